@@ -1,0 +1,135 @@
+"""The global Newton-Euler form (paper eq. 16-29) in the plane, and the joint reactions.
+
+The paper writes each body in 3-D (15 rows). The motion is planar, so here each body has
+its in-plane rows only; the eight global coordinates are
+
+    [x_c, y_c, x_p, y_p, x_s, y_s, theta_c, theta_p]
+
+(centres of mass of crank and coupler, the slider, the two body rotations). The global
+equations read
+
+    Mbar J phi'' + qbar_c = qbar_e + Qbar g_r                      (eq. 24)
+
+and D'Alembert's projection with J^T removes the reactions because `J^T Qbar = 0`:
+`J^T Mbar J = M`, `J^T qbar_c = K phi'^2`, `J^T qbar_e = q`.
+
+The seven reactions `g_r` (the planar counterpart of the paper's 14) are:
+
+- `O` (2,): force of the frame on the crank at the crank bearing O, N.
+- `A` (2,): force of the coupler on the crank at the crank pin A, N (the crank pushes
+  back with -A on the coupler).
+- `B` (2,): force of the slider on the coupler at the wrist pin B, N.
+- `N` (): normal force of the guide on the slider, along +y, N.
+
+All functions here take a scalar state; `jax.vmap` them for time series.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike
+
+from ._kinematics import coupler_angle
+from ._loads import AbstractLoad, as_load
+from ._params import SliderCrank
+
+__all__ = ["GlobalForm", "global_form", "distribution_matrix", "Reactions", "reactions"]
+
+
+class GlobalForm(NamedTuple):
+    """The global Newton-Euler quantities at one state (eq. 25-29), planar."""
+
+    Mbar: Array
+    """(8, 8) block-diagonal mass matrix diag(m_c, m_c, m_p, m_p, m_s, m_s, I_c, I_p)."""
+    J: Array
+    """(8,) global Jacobian d(coordinates)/d(phi)."""
+    qbar_c: Array
+    """(8,) Coriolis/centripetal forces Mbar (dJ/dphi) phi'^2 (gyroscopic terms vanish)."""
+    qbar_e: Array
+    """(8,) applied forces and torques (weights, P, spring-damper, tau)."""
+
+
+def global_form(
+    mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike, t: ArrayLike = 0.0,
+    load: AbstractLoad | None = None, torque: AbstractLoad | None = None,
+) -> GlobalForm:
+    """Build Mbar, J, qbar_c and qbar_e at a scalar state (phi rad, dphi rad/s, t s)."""
+    load, torque = as_load(load), as_load(torque)
+    r, L, b, s, g = mech.r, mech.L, mech.b, mech.s, mech.g
+    ca = coupler_angle(mech, phi)
+    sd, cd, d1, d2 = ca.sin, ca.cos, ca.d1, ca.d2
+    sp, cp = jnp.sin(phi), jnp.cos(phi)
+    J = jnp.stack([
+        -s * sp, s * cp,
+        -r * sp - b * d1 * sd, r * cp - b * d1 * cd,
+        -r * sp - L * d1 * sd, jnp.zeros_like(sp),
+        jnp.ones_like(sp), -d1,
+    ])
+    dJ = jnp.stack([  # dJ/dphi, the velocity-product accelerations per phi'^2 (eq. 13-15)
+        -s * cp, -s * sp,
+        -r * cp - b * d2 * sd - b * d1 * d1 * cd, -r * sp - b * d2 * cd + b * d1 * d1 * sd,
+        -r * cp - L * d2 * sd - L * d1 * d1 * cd, jnp.zeros_like(sp),
+        jnp.zeros_like(sp), -d2,
+    ])
+    m = jnp.stack([mech.m_c, mech.m_c, mech.m_p, mech.m_p, mech.m_s, mech.m_s, mech.I_c, mech.I_p])
+    zero = jnp.zeros_like(sp)
+    qbar_e = jnp.stack([
+        -mech.m_c * g + zero, zero,
+        -mech.m_p * g + zero, zero,
+        -load(t) - mech.m_s * g + zero, zero,
+        -mech.k * phi - mech.c * dphi + torque(t), zero,
+    ])
+    return GlobalForm(jnp.diag(m), J, m * dJ * dphi**2, qbar_e)
+
+
+def distribution_matrix(mech: SliderCrank, phi: ArrayLike) -> Array:
+    """Qbar (8, 7): how the reactions [O_x, O_y, A_x, A_y, B_x, B_y, N] enter each global
+    equation (eq. 29). Moments are taken about each body's centre of mass."""
+    r, L, b, s = mech.r, mech.L, mech.b, mech.s
+    ca = coupler_angle(mech, phi)
+    sd, cd = ca.sin, ca.cos
+    sp, cp = jnp.sin(phi), jnp.cos(phi)
+    z, o = jnp.zeros_like(sp), jnp.ones_like(sp)
+    # Moment of a force F at offset u from the centre of mass: u_x F_y - u_y F_x.
+    # Crank: O at u = -s(cos, sin), A at u = (r-s)(cos, sin).
+    # Coupler: A (force -A) at u = b(-cos d, sin d), B at u = (L-b)(cos d, -sin d).
+    rows = [
+        [o, z, o, z, z, z, z],
+        [z, o, z, o, z, z, z],
+        [z, z, -o, z, o, z, z],
+        [z, z, z, -o, z, o, z],
+        [z, z, z, z, -o, z, z],
+        [z, z, z, z, z, -o, o],
+        [s * sp, -s * cp, -(r - s) * sp, (r - s) * cp, z, z, z],
+        [z, z, b * sd, b * cd, (L - b) * sd, (L - b) * cd, z],
+    ]
+    return jnp.stack([jnp.stack(row) for row in rows])
+
+
+class Reactions(NamedTuple):
+    """Joint reaction forces at one state (N). See the module docstring for conventions."""
+
+    O: Array
+    A: Array
+    B: Array
+    N: Array
+
+
+def reactions(
+    mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike, ddphi: ArrayLike,
+    t: ArrayLike = 0.0, load: AbstractLoad | None = None, torque: AbstractLoad | None = None,
+) -> Reactions:
+    """Joint reactions from the crank's motion (phi, phi', phi'') and the loads.
+
+    Solves the seven translational and coupler-rotation rows of eq. 24 for g_r. The
+    eighth row, the crank's moment balance, is then satisfied exactly when phi'' obeys the
+    equation of motion: it is the projection D'Alembert's principle keeps.
+    """
+    gf = global_form(mech, phi, dphi, t, load, torque)
+    rhs = gf.Mbar @ gf.J * ddphi + gf.qbar_c - gf.qbar_e
+    Q = distribution_matrix(mech, phi)
+    keep = jnp.array([0, 1, 2, 3, 4, 5, 7])
+    g_r = jnp.linalg.solve(Q[keep], rhs[keep])
+    return Reactions(O=g_r[0:2], A=g_r[2:4], B=g_r[4:6], N=g_r[6])

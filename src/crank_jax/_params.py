@@ -1,0 +1,137 @@
+"""Physical parameters of the slider-crank: geometry, inertia, crank-axis shaft, gravity."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+__all__ = ["SliderCrank", "FIELDS"]
+
+#: The twelve mechanism fields, in the order of the paper's symbol table.
+FIELDS: tuple[str, ...] = ("r", "L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c", "g")
+
+_UNITS = {
+    "r": "m", "L": "m", "b": "m", "s": "m", "m_c": "kg", "m_p": "kg", "m_s": "kg",
+    "I_c": "kg*m^2", "I_p": "kg*m^2", "k": "N*m/rad", "c": "N*m*s/rad", "g": "m/s^2",
+}
+
+
+def _as_float_array(x: ArrayLike) -> Array:
+    # Python floats would become weakly-typed; an explicit float array keeps the pytree's
+    # dtype stable (float64 under x64) so a new value never means a new compilation.
+    if isinstance(x, jax.core.Tracer):
+        return x
+    if isinstance(x, (jax.Array, np.ndarray, np.generic)) and jnp.issubdtype(x.dtype, jnp.floating):
+        return jnp.asarray(x)
+    # Strongly typed: a weakly-typed Python float would compile a different program than
+    # a float64 array of the same value.
+    return jnp.asarray(x, dtype=jax.dtypes.canonicalize_dtype(jnp.float64))
+
+
+def _rules(v: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, str]]:
+    """(field, violated-mask, rule and fix) for every validation rule; numpy or jax arrays."""
+    xp = jnp if any(isinstance(a, jax.Array) for a in v.values()) else np
+    rules = [(name, ~xp.isfinite(v[name]), f"{name} must be finite (got NaN or inf)") for name in FIELDS]
+    rules += [
+        ("r", v["r"] <= 0, "r must be > 0 (crank radius O->A, metres)"),
+        ("L", v["L"] <= v["r"], "L must be > r (coupler longer than crank), else the crank locks"),
+        ("s", v["s"] < 0, "s must be >= 0 (distance O->crank centre of mass, metres)"),
+        ("b", (v["b"] < 0) | (v["b"] > v["L"]), "b must satisfy 0 <= b <= L (A->coupler CoM)"),
+    ]
+    for name in ("m_c", "m_p", "m_s", "I_c", "I_p"):
+        rules.append((name, v[name] < 0, f"{name} must be >= 0 ({_UNITS[name]}); use 0 for an absent body"))
+    rules += [
+        ("I_c", v["m_c"] * v["s"] ** 2 + v["I_c"] <= 0,
+         "m_c*s^2 + I_c must be > 0 so that M(phi) > 0: give the crank an inertia I_c"),
+        ("k", v["k"] < 0, "k must be >= 0 (torsional stiffness, N*m/rad)"),
+        ("c", v["c"] < 0, "c must be >= 0 (torsional damping, N*m*s/rad)"),
+    ]
+    return rules
+
+
+class SliderCrank(eqx.Module):
+    """Parameters of a slider-crank with a flexible crank axis, all in SI units.
+
+    Every field is a floating-point array (a scalar, or a batch under `jax.vmap`), so one
+    compiled function serves every value and the object can be differentiated and vmapped.
+
+    **Arguments:**
+
+    - `r`: crank radius O->A, m. `L`: coupler length A->B, m (`L > r`).
+    - `b`: distance A->coupler centre of mass along the coupler, m (`0 <= b <= L`).
+    - `s`: distance O->crank centre of mass, m (`s >= 0`).
+    - `m_c`, `m_p`, `m_s`: masses of crank, coupler and slider, kg (`>= 0`).
+    - `I_c`, `I_p`: moments of inertia of crank and coupler about z at their centres of
+      mass, kg*m^2 (`>= 0`, and `m_c*s^2 + I_c > 0`).
+    - `k`: torsional stiffness of the crank axis, N*m/rad. `c`: its damping, N*m*s/rad.
+    - `g`: gravitational acceleration along -x, m/s^2 (0 switches gravity off).
+
+    Concrete values are validated at construction (a `ValueError` naming the field and the
+    rule). Traced values are checked inside `jit` by [`SliderCrank.checked`][] with
+    `eqx.error_if`, which every simulation calls.
+    """
+
+    r: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    L: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    b: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    s: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    m_c: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    m_p: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    m_s: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    I_c: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    I_p: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    k: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    c: Float[Array, "..."] = eqx.field(converter=_as_float_array)
+    g: Float[Array, "..."] = eqx.field(converter=_as_float_array, default=9.81)
+
+    def __check_init__(self):
+        values = {name: getattr(self, name) for name in FIELDS}
+        # Values that are traced (inside jit/vmap/grad) cannot be inspected here; they are
+        # checked where they are used, by `checked()`.
+        if any(isinstance(v, jax.core.Tracer) for v in values.values()):
+            return
+        # Arrays placed by JAX transformations (e.g. object() sentinels in tree_map) are skipped.
+        if not all(isinstance(v, (jax.Array, np.ndarray, np.generic)) for v in values.values()):
+            return
+        concrete = {n: np.asarray(v) for n, v in values.items()}
+        for name, bad, rule in _rules(concrete):
+            if np.any(bad):
+                raise ValueError(
+                    f"SliderCrank.{name} = {_show(concrete[name])} is invalid: {rule}."
+                )
+
+    def checked(self) -> SliderCrank:
+        """Return `self` with every validation rule enforced by `eqx.error_if`.
+
+        Use this on parameters that may be traced (built inside `jit`/`vmap` from data):
+        an invalid value raises at run time with the field and the rule in the message.
+        """
+        values = {name: getattr(self, name) for name in FIELDS}
+        out = dict(values)
+        for name, bad, rule in _rules(values):
+            out[name] = eqx.error_if(out[name], bad, f"SliderCrank.{name} is invalid: {rule}.")
+        return SliderCrank(**out)
+
+    def replace(self, **changes: ArrayLike) -> SliderCrank:
+        """A copy with some fields changed, e.g. `mech.replace(k=3.0)`."""
+        unknown = set(changes) - set(FIELDS)
+        if unknown:
+            raise ValueError(
+                f"unknown SliderCrank field(s) {sorted(unknown)}; valid fields are {list(FIELDS)}"
+            )
+        return SliderCrank(**{n: changes.get(n, getattr(self, n)) for n in FIELDS})
+
+    def as_dict(self) -> dict[str, float]:
+        """The concrete values as Python floats (for reports and TOML)."""
+        return {n: float(np.asarray(getattr(self, n))) for n in FIELDS}
+
+
+def _show(x: np.ndarray) -> str:
+    if x.ndim == 0:
+        return repr(float(x)) if math.isfinite(float(x)) else str(float(x))
+    return f"array(shape={x.shape})"

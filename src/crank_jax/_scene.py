@@ -1,0 +1,271 @@
+"""Scenes: a mechanism, its loads, an initial state, solver settings and wanted outputs.
+
+A scene's *structure* (which bodies have mass, gravity on/off, the kinds of load, the
+solver, the outputs, the number of samples) is static; its *values* are arrays. Scenes
+load from TOML (see the README for the format) and ship as presets.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import math
+import os
+import tomllib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from ._dynamics import Structure
+from ._io import atomic_write
+from ._loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
+from ._params import FIELDS, SliderCrank, _as_float_array
+from ._simulate import OUTPUTS, SOLVERS, Trajectory, simulate
+
+__all__ = ["Scene", "SceneError", "load_scene", "scene_to_toml", "save_scene", "presets",
+           "PRESETS"]
+
+#: Preset scene names; `load_scene(name)` loads one.
+PRESETS: tuple[str, ...] = ("lab-rig", "torsional", "near-buckling", "pendulum")
+DEFAULT_PRESET = "lab-rig"
+
+
+class SceneError(ValueError):
+    """A scene file or value is malformed; the message names the place and the fix."""
+
+
+class Scene(eqx.Module):
+    """Everything one simulation needs.
+
+    **Fields:**
+
+    - `mech`: [`SliderCrank`][] parameters.
+    - `load`, `torque`: slider force P(t) (N, along -x) and crank torque tau(t) (N*m).
+    - `phi0`, `dphi0`: initial state at t = 0 (rad, rad/s).
+    - `rtol`, `atol`: solver tolerances (arrays: changing them never recompiles).
+    - `t1`: default end time, s. `samples`: default number of uniform samples on [0, t1].
+    - `solver`: a name from [`SOLVERS`][] (static). `outputs`: derived outputs (static).
+    - `name`, `description`: labels (static).
+    """
+
+    mech: SliderCrank
+    load: AbstractLoad = NoLoad()
+    torque: AbstractLoad = NoLoad()
+    phi0: Array = eqx.field(converter=_as_float_array, default=1.0)
+    dphi0: Array = eqx.field(converter=_as_float_array, default=0.0)
+    rtol: Array = eqx.field(converter=_as_float_array, default=1e-8)
+    atol: Array = eqx.field(converter=_as_float_array, default=1e-10)
+    t1: float = eqx.field(static=True, default=10.0)
+    samples: int = eqx.field(static=True, default=1001)
+    solver: str = eqx.field(static=True, default="auto")
+    outputs: tuple[str, ...] = eqx.field(static=True, default=())
+    name: str = eqx.field(static=True, default="custom")
+    description: str = eqx.field(static=True, default="")
+
+    def __check_init__(self):
+        if self.solver not in SOLVERS:
+            raise SceneError(f"solver {self.solver!r} is unknown; choose from {list(SOLVERS)}")
+        for o in self.outputs:
+            if o not in OUTPUTS:
+                raise SceneError(f"output {o!r} is unknown; choose from {sorted(OUTPUTS)}")
+        if not (isinstance(self.samples, int) and self.samples >= 2):
+            raise SceneError(f"samples must be an integer >= 2, got {self.samples!r}")
+        if not (math.isfinite(self.t1) and self.t1 > 0):
+            raise SceneError(f"t1 must be a finite time > 0 s, got {self.t1!r}")
+
+    @property
+    def structure(self) -> Structure:
+        """The static set of equation terms this scene uses."""
+        return Structure.of(self.mech)
+
+    def ts(self, t1: float | None = None, samples: int | None = None) -> Array:
+        """Uniform save times on [0, t1] inclusive, shape (samples,)."""
+        return jnp.linspace(0.0, self.t1 if t1 is None else t1,
+                            self.samples if samples is None else samples)
+
+    def simulate(self, ts: Array | None = None, **kwargs: Any) -> Trajectory:
+        """Run [`simulate`][] with this scene's settings; keyword arguments override them."""
+        opts = dict(load=self.load, torque=self.torque, solver=self.solver, rtol=self.rtol,
+                    atol=self.atol, outputs=self.outputs)
+        opts.update(kwargs)
+        phi0 = opts.pop("phi0", self.phi0)
+        dphi0 = opts.pop("dphi0", self.dphi0)
+        return simulate(self.mech, phi0, dphi0, self.ts() if ts is None else ts, **opts)
+
+
+# ---------------------------------------------------------------------------------------
+# TOML
+
+_TABLES: dict[str, tuple[str, ...]] = {
+    "mechanism": FIELDS,
+    "load": ("P0", "P1", "freq_hz", "phase"),
+    "torque": ("tau0", "tau1", "freq_hz", "phase"),
+    "initial": ("phi0", "dphi0"),
+    "solver": ("name", "rtol", "atol"),
+    "output": ("t1", "samples", "extras"),
+}
+_TOP_KEYS = ("description",)
+
+
+def _number(where: str, key: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise SceneError(f"{where}: [{key.split('.')[0]}] {key.split('.')[1]} must be a "
+                         f"number, got {v!r}")
+    if not math.isfinite(v):
+        raise SceneError(f"{where}: [{key.split('.')[0]}] {key.split('.')[1]} must be finite, "
+                         f"got {v!r}")
+    return float(v)
+
+
+def _harmonic(where: str, doc: dict, tname: str, names: tuple[str, str]) -> AbstractLoad:
+    table = doc.get(tname, {})
+    mean = _number(where, f"{tname}.{names[0]}", table.get(names[0], 0.0))
+    amp = _number(where, f"{tname}.{names[1]}", table.get(names[1], 0.0))
+    freq = _number(where, f"{tname}.freq_hz", table.get("freq_hz", 0.0))
+    phase = _number(where, f"{tname}.phase", table.get("phase", 0.0))
+    # A zero load is no load: the scene's structure then skips its terms entirely.
+    if amp == 0.0:
+        return ConstantLoad(mean) if mean != 0.0 else NoLoad()
+    if freq < 0:
+        raise SceneError(f"{where}: [{tname}] freq_hz must be >= 0, got {freq}")
+    return HarmonicLoad(mean, amp, freq, phase)
+
+
+def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> Scene:
+    """Build a [`Scene`][] from a parsed TOML document, rejecting unknown tables and keys."""
+    for key in doc:
+        if key not in _TABLES and key not in _TOP_KEYS:
+            raise SceneError(f"{where}: unknown table or key {key!r}; valid tables are "
+                             f"{['[' + t + ']' for t in _TABLES]}")
+    for table, keys in _TABLES.items():
+        if table in doc:
+            if not isinstance(doc[table], dict):
+                raise SceneError(f"{where}: {table!r} must be a table [{table}]")
+            for key in doc[table]:
+                if key not in keys:
+                    raise SceneError(f"{where}: unknown key {key!r} in [{table}]; valid keys "
+                                     f"are {list(keys)}")
+    if "mechanism" not in doc:
+        raise SceneError(f"{where}: the [mechanism] table is required")
+    mt = doc["mechanism"]
+    missing = [f for f in FIELDS if f not in mt and f != "g"]
+    if missing:
+        raise SceneError(f"{where}: [mechanism] is missing {missing}; every field but g "
+                         "(default 9.81) is required")
+    values = {f: _number(where, f"mechanism.{f}", mt.get(f, 9.81)) for f in FIELDS}
+    try:
+        mech = SliderCrank(**values)
+    except ValueError as e:
+        raise SceneError(f"{where}: [mechanism] {e}") from None
+
+    load = _harmonic(where, doc, "load", ("P0", "P1"))
+    torque = _harmonic(where, doc, "torque", ("tau0", "tau1"))
+    init = doc.get("initial", {})
+    phi0 = _number(where, "initial.phi0", init.get("phi0", 1.0))
+    dphi0 = _number(where, "initial.dphi0", init.get("dphi0", 0.0))
+    st = doc.get("solver", {})
+    solver = st.get("name", "auto")
+    if solver not in SOLVERS:
+        raise SceneError(f"{where}: [solver] name {solver!r} is unknown; choose from "
+                         f"{list(SOLVERS)}")
+    rtol = _number(where, "solver.rtol", st.get("rtol", 1e-8))
+    atol = _number(where, "solver.atol", st.get("atol", 1e-10))
+    if not (0 < rtol < 1 and 0 < atol):
+        raise SceneError(f"{where}: [solver] needs 0 < rtol < 1 and atol > 0")
+    out = doc.get("output", {})
+    t1 = _number(where, "output.t1", out.get("t1", 10.0))
+    samples = out.get("samples", 1001)
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 2:
+        raise SceneError(f"{where}: [output] samples must be an integer >= 2, got {samples!r}")
+    extras = out.get("extras", [])
+    if not isinstance(extras, list) or any(e not in OUTPUTS for e in extras):
+        raise SceneError(f"{where}: [output] extras must be a list drawn from "
+                         f"{sorted(OUTPUTS)}, got {extras!r}")
+    description = doc.get("description", "")
+    if not isinstance(description, str):
+        raise SceneError(f"{where}: description must be a string")
+    return Scene(mech, load, torque, phi0, dphi0, rtol, atol, t1=t1, samples=samples,
+                 solver=solver, outputs=tuple(extras), name=name, description=description)
+
+
+def presets() -> dict[str, str]:
+    """Preset name -> one-line description."""
+    return {n: load_scene(n).description for n in PRESETS}
+
+
+def load_scene(source: str | os.PathLike) -> Scene:
+    """Load a scene from a preset name (see [`PRESETS`][]) or a TOML file path.
+
+    Raises [`SceneError`][] naming the file, table and key on any mistake, including
+    unknown tables or keys (a typo never falls back to a default silently).
+    """
+    src = str(source)
+    if src in PRESETS:
+        text = importlib.resources.files("crank_jax").joinpath(f"scenes/{src}.toml").read_text()
+        return scene_from_dict(tomllib.loads(text), where=f"preset {src}", name=src)
+    path = Path(src)
+    if not path.is_file():
+        raise SceneError(f"{src!r} is neither a preset ({', '.join(PRESETS)}) nor a TOML file")
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{src}: malformed TOML: {e}") from None
+    except UnicodeDecodeError:
+        raise SceneError(f"{src}: not a UTF-8 text file") from None
+    return scene_from_dict(doc, where=src, name=path.stem)
+
+
+def _load_table(load: AbstractLoad, names: Sequence[str]) -> dict[str, float] | None:
+    mean, amp = names
+    if isinstance(load, NoLoad):
+        return None
+    if isinstance(load, ConstantLoad):
+        return {mean: float(load.value)}
+    if isinstance(load, HarmonicLoad):
+        return {mean: float(load.X0), amp: float(load.X1), "freq_hz": float(load.freq_hz),
+                "phase": float(load.phase)}
+    if isinstance(load, SampledLoad):
+        raise SceneError("a sampled load cannot be written to a scene file; keep it as data")
+    raise SceneError(f"cannot write a load of type {type(load).__name__} to TOML")
+
+
+def scene_to_toml(scene: Scene) -> str:
+    """Serialise a scene to the TOML format that [`load_scene`][] reads."""
+    def fmt(v: Any) -> str:
+        if isinstance(v, str):
+            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(fmt(x) for x in v) + "]"
+        return repr(v)
+
+    lines = []
+    if scene.description:
+        lines.append(f"description = {fmt(scene.description)}\n")
+    tables: dict[str, dict[str, Any] | None] = {
+        "mechanism": scene.mech.as_dict(),
+        "load": _load_table(scene.load, ("P0", "P1")),
+        "torque": _load_table(scene.torque, ("tau0", "tau1")),
+        "initial": {"phi0": float(np.asarray(scene.phi0)), "dphi0": float(np.asarray(scene.dphi0))},
+        "solver": {"name": scene.solver, "rtol": float(np.asarray(scene.rtol)),
+                   "atol": float(np.asarray(scene.atol))},
+        "output": {"t1": float(scene.t1), "samples": int(scene.samples),
+                   "extras": list(scene.outputs)},
+    }
+    for table, body in tables.items():
+        if body is None:
+            continue
+        lines.append(f"[{table}]")
+        lines += [f"{k} = {fmt(v)}" for k, v in body.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def save_scene(scene: Scene, path: str | os.PathLike) -> None:
+    """Write a scene as TOML, atomically."""
+    with atomic_write(path) as f:
+        f.write(scene_to_toml(scene))
+

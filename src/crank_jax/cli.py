@@ -1,0 +1,200 @@
+"""The `crank-jax` command line.
+
+Every subcommand is a pair `(add_arguments, run)` in [`COMMANDS`][]. A user mistake (bad
+file, bad value, unknown option) prints one line on stderr and exits with status 2;
+outputs are written atomically and never over an input file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+
+import numpy as np
+
+__all__ = ["main", "COMMANDS", "UserError"]
+
+EXIT_USAGE = 2
+
+
+class UserError(Exception):
+    """A mistake on the user's side: reported in one line, exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    # argparse prints the whole usage block before its error; one line is kinder in
+    # scripts and logs, and `--help` still shows the usage.
+    def error(self, message: str):
+        raise UserError(f"{self.prog}: {message} (see --help)")
+
+
+def _setup_jax() -> None:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def _scene_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", help="preset name (see `crank-jax scenes`) or a TOML scene file")
+
+
+def _load(source: str):
+    from ._scene import load_scene
+
+    return load_scene(source)
+
+
+# --- simulate ---------------------------------------------------------------------------
+
+def _simulate_args(p: argparse.ArgumentParser) -> None:
+    _scene_args(p)
+    p.add_argument("--t1", type=float, help="end time, s (default: the scene's, else 10)")
+    p.add_argument("--samples", type=int, help="number of uniform samples on [0, t1]")
+    p.add_argument("--phi0", type=float, help="initial crank angle, rad")
+    p.add_argument("--dphi0", type=float, help="initial crank rate, rad/s")
+    p.add_argument("--solver", help="auto, tsit5, dopri5, dopri8 or kvaerno5")
+    p.add_argument("--rtol", type=float, help="relative tolerance")
+    p.add_argument("--atol", type=float, help="absolute tolerance")
+    p.add_argument("--out", required=True, help="output CSV file (t,phi,dphi,...)")
+    p.add_argument("--plot", help="also draw phi(t) and dphi(t) to this PNG file")
+
+
+def _simulate_run(a: argparse.Namespace) -> int:
+    from ._io import atomic_write, check_not_input
+    from ._simulate import SOLVERS
+
+    scene = _load(a.scene)
+    check_not_input(a.out, [a.scene])
+    if a.plot:
+        check_not_input(a.plot, [a.scene])
+    t1 = scene.t1 if a.t1 is None else a.t1
+    samples = scene.samples if a.samples is None else a.samples
+    if not (np.isfinite(t1) and t1 > 0):
+        raise UserError(f"--t1 must be a finite time > 0 s, got {t1}")
+    if samples < 2:
+        raise UserError(f"--samples must be >= 2, got {samples}")
+    if a.solver is not None and a.solver not in SOLVERS:
+        raise UserError(f"--solver {a.solver!r} is unknown; choose from {', '.join(SOLVERS)}")
+    for name in ("rtol", "atol"):
+        v = getattr(a, name)
+        if v is not None and not (np.isfinite(v) and v > 0):
+            raise UserError(f"--{name} must be a positive number, got {v}")
+    kw = {}
+    for name in ("phi0", "dphi0", "solver", "rtol", "atol"):
+        if getattr(a, name) is not None:
+            kw[name] = getattr(a, name)
+    for name in ("phi0", "dphi0"):
+        if name in kw and not np.isfinite(kw[name]):
+            raise UserError(f"--{name} must be finite, got {kw[name]}")
+    traj = scene.simulate(scene.ts(t1, samples), **kw)
+    cols = {"t": traj.ts, "phi": traj.phi, "dphi": traj.dphi, **traj.extras}
+    data = np.column_stack([np.asarray(v) for v in cols.values()])
+    with atomic_write(a.out) as f:
+        f.write(",".join(cols) + "\n")
+        np.savetxt(f, data, delimiter=",", fmt="%.17g")
+    if a.plot:
+        from ._plot import plot_trajectory
+
+        plot_trajectory(traj, a.plot, title=f"{scene.name}: {scene.description}")
+    print(f"wrote {a.out}: {samples} samples of {', '.join(cols)} over [0, {t1:g}] s "
+          f"({int(traj.num_steps)} solver steps)", file=sys.stderr)
+    return 0
+
+
+# --- linearize --------------------------------------------------------------------------
+
+def _linearize_args(p: argparse.ArgumentParser) -> None:
+    _scene_args(p)
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+
+
+def _linearize_run(a: argparse.Namespace) -> int:
+    from ._linear import linearize
+
+    scene = _load(a.scene)
+    lin = linearize(scene.mech, scene.load)
+    out = {}
+    for key in ("mu", "chi", "xi", "omega_n", "zeta", "stable", "k_crit"):
+        v = np.asarray(getattr(lin, key))
+        if key == "stable":
+            out[key] = bool(v)
+        else:
+            out[key] = float(v) if np.isfinite(v) else None
+    if a.json:
+        print(json.dumps(out))
+    else:
+        units = {"mu": "kg m^2", "chi": "N m s/rad", "xi": "N m/rad", "omega_n": "rad/s",
+                 "zeta": "", "stable": "", "k_crit": "N m/rad"}
+        for key, v in out.items():
+            print(f"{key:>8} = {v}  {units[key]}".rstrip())
+        if out["omega_n"] is not None:
+            print(f"{'f_n':>8} = {out['omega_n'] / (2 * np.pi):.6g}  Hz")
+    return 0
+
+
+# --- scenes -----------------------------------------------------------------------------
+
+def _scenes_args(p: argparse.ArgumentParser) -> None:
+    pass
+
+
+def _scenes_run(a: argparse.Namespace) -> int:
+    from ._scene import presets
+
+    for name, desc in presets().items():
+        print(f"{name:<14} {desc}")
+    return 0
+
+
+Command = tuple[str, str, Callable[[argparse.ArgumentParser], None],
+                Callable[[argparse.Namespace], int]]
+
+#: (name, help, add_arguments, run) for every subcommand.
+COMMANDS: list[Command] = [
+    ("simulate", "simulate a scene and write a CSV", _simulate_args, _simulate_run),
+    ("linearize", "linearise a scene about phi = 0", _linearize_args, _linearize_run),
+    ("scenes", "list the preset scenes", _scenes_args, _scenes_run),
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="crank-jax", description="Slider-crank simulation and identification.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for name, help_, add, run in COMMANDS:
+        p = sub.add_parser(name, help=help_, description=help_)
+        add(p)
+        p.set_defaults(_run=run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of `crank-jax`; returns the exit status."""
+    try:
+        args = build_parser().parse_args(argv)
+        _setup_jax()
+        return int(args._run(args) or 0)
+    except UserError as e:
+        print(f"crank-jax: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except (ValueError, OSError) as e:
+        # SceneError, data errors and bad values are ValueErrors with a message that names
+        # the field and the fix; file problems are OSErrors. Either is the user's to fix.
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        print(f"crank-jax: error: {msg}", file=sys.stderr)
+        return EXIT_USAGE
+    except RuntimeError as e:
+        # A solve that failed (e.g. hit max_steps) or a value rejected inside jit by
+        # eqx.error_if: not a crash of ours, so no traceback, but not a success either.
+        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+        print(f"crank-jax: error: {lines[0] if lines else type(e).__name__}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("crank-jax: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
