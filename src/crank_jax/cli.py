@@ -159,11 +159,17 @@ COMMANDS: list[Command] = [
 ]
 
 
+def _all_commands() -> list[Command]:
+    from . import _cli_identify, _cli_sweep
+
+    return COMMANDS + _cli_identify.COMMANDS + _cli_sweep.COMMANDS
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="crank-jax", description="Slider-crank simulation and identification.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
-    for name, help_, add, run in COMMANDS:
+    for name, help_, add, run in _all_commands():
         p = sub.add_parser(name, help=help_, description=help_)
         add(p)
         p.set_defaults(_run=run)
