@@ -55,7 +55,8 @@ class Structure:
     def of(cls, mech: SliderCrank) -> Structure:
         """The structure of concrete (non-traced) parameters. Batched fields count a term
         as present if any member of the batch has it."""
-        v = {n: np.asarray(getattr(mech, n)) for n in ("m_c", "s", "m_p", "I_p", "m_s", "g", "k", "c")}
+        names = ("m_c", "s", "m_p", "I_p", "m_s", "g", "k", "c")
+        v = {n: np.asarray(getattr(mech, n)) for n in names}
         nz = lambda x: bool(np.any(x != 0))  # noqa: E731
         return cls(
             crank=True,  # M > 0 requires crank inertia; it is always present.

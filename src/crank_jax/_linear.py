@@ -53,8 +53,8 @@ def linearize(mech: SliderCrank, load: AbstractLoad | None = None) -> Linearizat
     P = as_load(load).mean()
     r, L, b, s, g = mech.r, mech.L, mech.b, mech.s, mech.g
     mu = mech.m_c * s**2 + mech.I_c + mech.m_p * r**2 * (1 - b / L) ** 2 + mech.I_p * r**2 / L**2
-    softening = (g * (mech.m_c * s + mech.m_p * r * (1 + r * b / L**2) + mech.m_s * r * (1 + r / L))
-                 + P * r * (1 + r / L))
+    weight = mech.m_c * s + mech.m_p * r * (1 + r * b / L**2) + mech.m_s * r * (1 + r / L)
+    softening = g * weight + P * r * (1 + r / L)
     xi = mech.k - softening
     chi = mech.c + jnp.zeros_like(xi)
     # Only defined for a statically stable equilibrium; NaN says "no oscillation" honestly

@@ -111,7 +111,7 @@ def distribution_matrix(mech: SliderCrank, phi: ArrayLike) -> Array:
 class Reactions(NamedTuple):
     """Joint reaction forces at one state (N). See the module docstring for conventions."""
 
-    O: Array
+    O: Array  # noqa: E741 (the paper's name for the crank bearing)
     A: Array
     B: Array
     N: Array

@@ -26,7 +26,8 @@ def _as_float_array(x: ArrayLike) -> Array:
     # dtype stable (float64 under x64) so a new value never means a new compilation.
     if isinstance(x, jax.core.Tracer):
         return x
-    if isinstance(x, (jax.Array, np.ndarray, np.generic)) and jnp.issubdtype(x.dtype, jnp.floating):
+    is_array = isinstance(x, (jax.Array, np.ndarray, np.generic))
+    if is_array and jnp.issubdtype(x.dtype, jnp.floating):
         return jnp.asarray(x)
     # Strongly typed: a weakly-typed Python float would compile a different program than
     # a float64 array of the same value.
@@ -36,7 +37,8 @@ def _as_float_array(x: ArrayLike) -> Array:
 def _rules(v: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, str]]:
     """(field, violated-mask, rule and fix) for every validation rule; numpy or jax arrays."""
     xp = jnp if any(isinstance(a, jax.Array) for a in v.values()) else np
-    rules = [(name, ~xp.isfinite(v[name]), f"{name} must be finite (got NaN or inf)") for name in FIELDS]
+    rules = [(name, ~xp.isfinite(v[name]), f"{name} must be finite (got NaN or inf)")
+             for name in FIELDS]
     rules += [
         ("r", v["r"] <= 0, "r must be > 0 (crank radius O->A, metres)"),
         ("L", v["L"] <= v["r"], "L must be > r (coupler longer than crank), else the crank locks"),
@@ -44,7 +46,8 @@ def _rules(v: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, str]]:
         ("b", (v["b"] < 0) | (v["b"] > v["L"]), "b must satisfy 0 <= b <= L (A->coupler CoM)"),
     ]
     for name in ("m_c", "m_p", "m_s", "I_c", "I_p"):
-        rules.append((name, v[name] < 0, f"{name} must be >= 0 ({_UNITS[name]}); use 0 for an absent body"))
+        rules.append((name, v[name] < 0,
+                      f"{name} must be >= 0 ({_UNITS[name]}); use 0 for an absent body"))
     rules += [
         ("I_c", v["m_c"] * v["s"] ** 2 + v["I_c"] <= 0,
          "m_c*s^2 + I_c must be > 0 so that M(phi) > 0: give the crank an inertia I_c"),
@@ -76,18 +79,18 @@ class SliderCrank(eqx.Module):
     `eqx.error_if`, which every simulation calls.
     """
 
-    r: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    L: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    b: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    s: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    m_c: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    m_p: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    m_s: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    I_c: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    I_p: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    k: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    c: Float[Array, "..."] = eqx.field(converter=_as_float_array)
-    g: Float[Array, "..."] = eqx.field(converter=_as_float_array, default=9.81)
+    r: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    L: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    b: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    s: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    m_c: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    m_p: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    m_s: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    I_c: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    I_p: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    k: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    c: Float[Array, ...] = eqx.field(converter=_as_float_array)
+    g: Float[Array, ...] = eqx.field(converter=_as_float_array, default=9.81)
 
     def __check_init__(self):
         values = {name: getattr(self, name) for name in FIELDS}

@@ -57,13 +57,15 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--solver", help="auto, tsit5, dopri5, dopri8 or kvaerno5")
     p.add_argument("--rtol", type=float, help="relative tolerance")
     p.add_argument("--atol", type=float, help="absolute tolerance")
+    p.add_argument("--extras", help="comma-separated derived outputs to add as columns "
+                   "(ddphi, delta, slider, energy, loads, reactions); default: the scene's")
     p.add_argument("--out", required=True, help="output CSV file (t,phi,dphi,...)")
     p.add_argument("--plot", help="also draw phi(t) and dphi(t) to this PNG file")
 
 
 def _simulate_run(a: argparse.Namespace) -> int:
     from ._io import atomic_write, check_not_input
-    from ._simulate import SOLVERS
+    from ._simulate import SOLVERS, output_columns
 
     scene = _load(a.scene)
     check_not_input(a.out, [a.scene])
@@ -85,11 +87,14 @@ def _simulate_run(a: argparse.Namespace) -> int:
     for name in ("phi0", "dphi0", "solver", "rtol", "atol"):
         if getattr(a, name) is not None:
             kw[name] = getattr(a, name)
+    if a.extras is not None:
+        kw["outputs"] = tuple(x.strip() for x in a.extras.split(",") if x.strip())
+        output_columns(kw["outputs"])  # raises ValueError naming an unknown output
     for name in ("phi0", "dphi0"):
         if name in kw and not np.isfinite(kw[name]):
             raise UserError(f"--{name} must be finite, got {kw[name]}")
     traj = scene.simulate(scene.ts(t1, samples), **kw)
-    cols = {"t": traj.ts, "phi": traj.phi, "dphi": traj.dphi, **traj.extras}
+    cols = traj.columns()
     data = np.column_stack([np.asarray(v) for v in cols.values()])
     with atomic_write(a.out) as f:
         f.write(",".join(cols) + "\n")

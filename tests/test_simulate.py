@@ -1,0 +1,204 @@
+"""Simulation: agreement with an independent integrator and implementation, energy
+conservation, transformations (jit, vmap, grad, jacfwd) and no recompilation."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import cumulative_simpson, solve_ivp
+
+import crank_jax as cj
+from crank_jax import _simulate
+
+
+def _numpy_rhs(v, P, tau):
+    """The equation of motion transcribed independently in NumPy from DESIGN.md §1."""
+    r, L, b, s = v["r"], v["L"], v["b"], v["s"]
+
+    def rhs(t, y):
+        phi, dphi = y
+        sd = r / L * np.sin(phi)
+        cd = np.sqrt(1 - sd**2)
+        d1 = r / L * np.cos(phi) / cd
+        d2 = r / L * (d1 * np.cos(phi) * sd - np.sin(phi) * cd) / cd**2
+        lever = r * np.sin(phi) + L * d1 * sd
+        M = (v["m_c"] * s**2 + v["I_c"]
+             + v["m_p"] * (r**2 - 2 * r * b * d1 * np.cos(phi + np.arcsin(sd)) + b**2 * d1**2)
+             + v["I_p"] * d1**2 + v["m_s"] * lever**2)
+        K = (v["m_p"] * (r * b * (d1 * (1 + d1) * np.sin(phi + np.arcsin(sd))
+                                  - d2 * np.cos(phi + np.arcsin(sd))) + b**2 * d1 * d2)
+             + v["m_s"] * lever * (r * np.cos(phi) + L * (d2 * sd + d1**2 * cd))
+             + v["I_p"] * d1 * d2)
+        q = (v["g"] * (v["m_c"] * s * np.sin(phi) + v["m_p"] * (r * np.sin(phi) + b * d1 * sd)
+                       + v["m_s"] * lever)
+             + P(t) * lever - v["k"] * phi - v["c"] * dphi + tau(t))
+        return [dphi, (q - K * dphi**2) / M]
+
+    return rhs
+
+
+@pytest.mark.parametrize("scene", ["lab-rig", "near-buckling", "pendulum"])
+def test_matches_scipy_dop853_on_independent_equations(scene):
+    sc = cj.load_scene(scene)
+    load = cj.HarmonicLoad(1.0, 2.0, 3.0, 0.5)
+    torque = cj.HarmonicLoad(0.0, 0.05, 4.0, 0.0)
+    ts = np.linspace(0.5, 5.5, 501)  # starts at t != 0
+    tr = cj.simulate(sc.mech, 1.0, 0.5, ts, load=load, torque=torque, solver="dopri8",
+                     rtol=1e-12, atol=1e-14)
+    rhs = _numpy_rhs(sc.mech.as_dict(), lambda t: 1.0 + 2.0 * np.sin(6 * np.pi * t + 0.5),
+                     lambda t: 0.05 * np.sin(8 * np.pi * t))
+    ref = solve_ivp(rhs,
+                    (ts[0], ts[-1]), [1.0, 0.5], method="DOP853", t_eval=ts, rtol=1e-12,
+                    atol=1e-14)
+    assert ref.success
+    np.testing.assert_allclose(tr.phi, ref.y[0], atol=1e-8, rtol=0)
+    np.testing.assert_allclose(tr.dphi, ref.y[1], atol=1e-7, rtol=0)
+    assert tr.ts[0] == ts[0] and tr.phi[0] == 1.0
+
+
+@pytest.mark.parametrize("solver", ["tsit5", "dopri8", "kvaerno5", "auto"])
+def test_every_solver_meets_its_tolerance(solver):
+    sc = cj.load_scene("lab-rig")
+    ts = np.linspace(0, 2, 201)
+    ref = cj.simulate(sc.mech, 1.0, 0.0, ts, solver="dopri8", rtol=1e-13, atol=1e-15)
+    tr = cj.simulate(sc.mech, 1.0, 0.0, ts, solver=solver, rtol=1e-8, atol=1e-10)
+    err = np.max(np.abs(np.asarray(tr.phi - ref.phi)))
+    assert err < 1e-6, err  # global error within ~100x of the local tolerance
+    assert bool(tr.ok)
+
+
+def test_energy_conserved_over_100_periods_without_damping():
+    sc = cj.load_scene("lab-rig")
+    mech = sc.mech.replace(c=0.0)
+    period = 2 * np.pi / float(cj.linearize(mech).omega_n)
+    ts = np.linspace(0, 100 * period, 2001)
+    tr = cj.simulate(mech, 1.0, 0.0, ts, solver="dopri8", rtol=1e-13, atol=1e-15,
+                     outputs=("energy",))
+    E = np.asarray(tr.extras["energy"])
+    drift = np.max(np.abs(E - E[0])) / np.abs(E[0])
+    assert drift <= 1e-9, drift
+
+
+def test_energy_balance_with_damping_and_loads():
+    # d(T+V)/dt = power_in: integrate the power along the trajectory and compare.
+    sc = cj.load_scene("lab-rig")
+    load, torque = cj.HarmonicLoad(2.0, 3.0, 2.0, 0.0), cj.HarmonicLoad(0.1, 0.2, 5.0, 1.0)
+    ts = np.linspace(0, 2, 4001)
+    tr = cj.simulate(sc.mech, 0.8, 0.0, ts, load=load, torque=torque, solver="dopri8",
+                     rtol=1e-12, atol=1e-14, outputs=("energy",))
+    p = np.asarray(cj.power_in(sc.mech, tr.phi, tr.dphi, tr.ts, load, torque))
+    # Simpson's rule (error ~ h^4): the trapezoid rule's h^2 error would swamp the check.
+    work = cumulative_simpson(p, x=ts, initial=0.0)
+    E = np.asarray(tr.extras["energy"])
+    np.testing.assert_allclose(E - E[0], work, atol=2e-6)
+    assert np.max(np.abs(E - E[0])) > 1e-2  # the balance is not trivially zero
+
+
+def test_derived_outputs_only_when_asked_and_consistent():
+    sc = cj.load_scene("lab-rig")
+    ts = np.linspace(0, 1, 11)
+    plain = cj.simulate(sc.mech, 1.0, 0.0, ts)
+    assert plain.extras == {}
+    full = cj.simulate(sc.mech, 1.0, 0.0, ts, outputs=("reactions", "energy", "slider", "delta",
+                                                       "ddphi", "loads"))
+    assert list(full.columns()) == ["t", "phi", "dphi", *cj.output_columns(list(cj.OUTPUTS))]
+    np.testing.assert_allclose(full.extras["energy"], cj.energy(sc.mech, full.phi, full.dphi))
+    kin = cj.kinematics(sc.mech, full.phi, full.dphi, full.extras["ddphi"])
+    np.testing.assert_allclose(full.extras["x_s"], kin.x_s)
+    np.testing.assert_allclose(full.phi, plain.phi, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="unknown output"):
+        cj.simulate(sc.mech, 1.0, 0.0, ts, outputs=("bogus",))
+
+
+def test_vmap_over_a_batch_of_mechanisms():
+    sc = cj.load_scene("lab-rig")
+    ks = jnp.array([1.5, 2.0, 3.0])
+    batch = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (3,)), sc.mech)
+    batch = eqx.tree_at(lambda m: m.k, batch, ks)
+    ts = jnp.linspace(0, 1, 51)
+    phi = jax.vmap(lambda m: cj.simulate(m, 1.0, 0.0, ts).phi)(batch)
+    for i, k in enumerate(ks):
+        one = cj.simulate(sc.mech.replace(k=k), 1.0, 0.0, ts)
+        np.testing.assert_allclose(phi[i], one.phi, rtol=1e-7, atol=1e-9)
+
+
+def test_mechanism_built_from_traced_values_inside_vmap():
+    base = cj.load_scene("lab-rig").mech.as_dict()
+    ts = jnp.linspace(0, 0.5, 11)
+
+    def run(k):
+        return cj.simulate(cj.SliderCrank(**{**base, "k": k}), 1.0, 0.0, ts).phi[-1]
+
+    out = jax.jit(jax.vmap(run))(jnp.array([2.0, 2.5]))
+    assert out.shape == (2,) and np.all(np.isfinite(out))
+
+
+def test_grad_and_jacfwd_match_finite_differences():
+    sc = cj.load_scene("lab-rig")
+    ts = jnp.linspace(0, 1.0, 21)
+
+    def loss(k, c, adjoint):
+        tr = cj.simulate(sc.mech.replace(k=k, c=c), 1.0, 0.0, ts, solver="dopri8",
+                         rtol=1e-12, atol=1e-14, adjoint=adjoint)
+        return jnp.sum(tr.phi**2)
+
+    g_rev = jax.grad(loss, argnums=(0, 1))(2.0, 0.01, "reverse")
+    g_fwd = jax.jacfwd(loss, argnums=(0, 1))(2.0, 0.01, "forward")
+    h = 1e-6
+    fd_k = (loss(2.0 + h, 0.01, "reverse") - loss(2.0 - h, 0.01, "reverse")) / (2 * h)
+    fd_c = (loss(2.0, 0.01 + h, "reverse") - loss(2.0, 0.01 - h, "reverse")) / (2 * h)
+    np.testing.assert_allclose(g_rev, [fd_k, fd_c], rtol=1e-5)
+    np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-6)
+
+
+def test_no_recompilation_when_only_values_change(monkeypatch):
+    # Count traces of the vector field: a new value must reuse the compiled solve.
+    traces = []
+    original = _simulate._vector_field
+
+    def counting(t, y, args):
+        traces.append(1)
+        return original(t, y, args)
+
+    monkeypatch.setattr(_simulate, "_vector_field", counting)
+    mech = cj.load_scene("lab-rig").mech
+    ts = jnp.linspace(0, 0.3, 7)
+    cj.simulate(mech.replace(k=2.1), 0.9, 0.0, ts, solver="tsit5", rtol=1e-7)
+    n = len(traces)
+    assert n > 0
+    for k, phi0, rtol in [(2.2, 0.5, 1e-6), (3.0, 1.2, 1e-9), (2.05, -0.3, 1e-5)]:
+        cj.simulate(mech.replace(k=k, c=0.02), phi0, 0.1, ts, solver="tsit5", rtol=rtol)
+    assert len(traces) == n
+
+
+def test_user_level_jit_traces_once():
+    mech = cj.load_scene("lab-rig").mech
+    ts = jnp.linspace(0, 0.3, 7)
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def final_angle(m, phi0):
+        return cj.simulate(m, phi0, 0.0, ts).phi[-1]
+
+    for k in (2.0, 2.5, 3.0):
+        final_angle(mech.replace(k=k), jnp.asarray(0.5 + k / 10))
+
+
+def test_failed_solve_reports_instead_of_nan():
+    sc = cj.load_scene("lab-rig")
+    ts = jnp.linspace(0, 10, 11)
+    tr = cj.simulate(sc.mech, 1.0, 0.0, ts, solver="tsit5", max_steps=10, throw=False)
+    assert not bool(tr.ok)
+    with pytest.raises(Exception, match="max_steps|maximum number of solver steps"):
+        cj.simulate(sc.mech, 1.0, 0.0, ts, solver="tsit5", max_steps=10)
+
+
+def test_bad_time_grid_rejected():
+    mech = cj.load_scene("lab-rig").mech
+    with pytest.raises(ValueError, match="increase strictly"):
+        cj.simulate(mech, 1.0, 0.0, [0.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="at least 2"):
+        cj.simulate(mech, 1.0, 0.0, [0.0])
+    with pytest.raises(ValueError, match="unknown solver"):
+        cj.simulate(mech, 1.0, 0.0, [0.0, 1.0], solver="euler")
