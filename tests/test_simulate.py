@@ -202,3 +202,22 @@ def test_bad_time_grid_rejected():
         cj.simulate(mech, 1.0, 0.0, [0.0])
     with pytest.raises(ValueError, match="unknown solver"):
         cj.simulate(mech, 1.0, 0.0, [0.0, 1.0], solver="euler")
+
+
+def test_gradient_with_respect_to_load_amplitudes():
+    sc = cj.load_scene("lab-rig")
+    ts = jnp.linspace(0, 1.0, 11)
+
+    def final(amps):
+        torque = cj.HarmonicLoad(amps[0], amps[1], 3.0, 0.2)
+        load = cj.SampledLoad(jnp.array([0.0, 0.5, 1.0]), amps[2] * jnp.array([1.0, -1.0, 2.0]))
+        tr = cj.simulate(sc.mech, 0.5, 0.0, ts, load=load, torque=torque, solver="dopri8",
+                         rtol=1e-12, atol=1e-14)
+        return tr.phi[-1]
+
+    x = jnp.array([0.05, 0.1, 2.0])
+    g = jax.grad(final)(x)
+    h = 1e-6
+    fd = [(final(x.at[i].add(h)) - final(x.at[i].add(-h))) / (2 * h) for i in range(3)]
+    np.testing.assert_allclose(g, fd, rtol=1e-5)
+    assert np.all(np.abs(g) > 1e-4)
