@@ -48,3 +48,18 @@ __all__ = [
     "load_scene", "mass", "output_columns", "potential_energy", "power_in", "presets",
     "reactions", "save_scene", "scene_to_toml", "simulate",
 ]
+
+# --- sweeps ---
+from . import _distributions as distributions  # noqa: E402
+from ._simulate import fastest_mode  # noqa: E402
+from ._sweep import (  # noqa: E402
+    REDUCTIONS,
+    STATUS,
+    VARIABLES,
+    SweepResult,
+    initialize_distributed,
+    sweep,
+)
+
+__all__ += ["REDUCTIONS", "STATUS", "SweepResult", "VARIABLES", "distributions", "fastest_mode",
+            "initialize_distributed", "sweep"]
