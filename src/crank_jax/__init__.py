@@ -50,7 +50,7 @@ __all__ = [
 ]
 
 # --- sweeps ---
-from . import _distributions as distributions  # noqa: E402
+from . import distributions  # noqa: E402
 from ._simulate import fastest_mode  # noqa: E402
 from ._sweep import (  # noqa: E402
     REDUCTIONS,
@@ -59,7 +59,8 @@ from ._sweep import (  # noqa: E402
     SweepResult,
     initialize_distributed,
     sweep,
+    sweep_cost,
 )
 
 __all__ += ["REDUCTIONS", "STATUS", "SweepResult", "VARIABLES", "distributions", "fastest_mode",
-            "initialize_distributed", "sweep"]
+            "initialize_distributed", "sweep", "sweep_cost"]

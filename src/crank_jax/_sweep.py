@@ -40,7 +40,7 @@ from ._params import FIELDS, SliderCrank, _rules
 from ._simulate import SOLVERS, choose_solver, fastest_mode, simulate
 
 __all__ = ["sweep", "SweepResult", "REDUCTIONS", "STATUS", "VARIABLES",
-           "initialize_distributed", "sweep_structure"]
+           "initialize_distributed", "sweep_cost"]
 
 #: Per-sample status codes: `SweepResult.status == i` means `STATUS[i]`.
 STATUS: tuple[str, ...] = ("ok", "invalid", "max_steps", "failed", "nonfinite")
@@ -257,21 +257,6 @@ def _build(scene, cols: dict[str, np.ndarray], kinds: dict[str, str]):
     return mech, loads[0], loads[1], cols["phi0"], cols["dphi0"]
 
 
-def sweep_structure(scene, values: Mapping[str, np.ndarray]) -> Structure:
-    """The static structure a sweep compiles: the union of the nominal scene's and that
-    of every sample (a field varied away from zero switches its term on)."""
-    n = len(next(iter(values.values()))) if values else 1
-    cols = _columns(scene, dict(values), n)
-    mech = SliderCrank(**{f: cols[f] for f in FIELDS}) if not _invalid(cols).any() else None
-    s = Structure.of(scene.mech)
-    if mech is not None:
-        s = s.union(Structure.of(mech))
-    else:
-        ok = ~_invalid(cols)
-        s = s.union(Structure.of(SliderCrank(**{f: cols[f][ok] for f in FIELDS})))
-    return s
-
-
 # ---------------------------------------------------------------------------------------
 # The compiled chunk
 
@@ -350,6 +335,71 @@ def _run_chunk(mech, load, torque, phi0, dphi0, ts, rtol, atol, *, load_fixed, t
     return jax.vmap(one, in_axes=axes)(mech, load, torque, phi0, dphi0)
 
 
+class _Plan(eqx.Module):
+    values: dict
+    cols: dict
+    invalid: np.ndarray
+    kinds: dict
+    structure: Structure
+    reductions: tuple
+    order: np.ndarray
+    ts: np.ndarray
+    n: int
+    span: float
+    rtol: float
+    atol: float
+    solver: str
+    seed: int
+
+
+def _prepare(scene, samples, outputs, n, seed, t1, num_saves, solver, chunk_size, sort):
+    reductions = tuple(dict.fromkeys(outputs))
+    for name in reductions:
+        if name not in REDUCTIONS:
+            raise ValueError(f"unknown sweep output {name!r}; choose from {list(REDUCTIONS)}")
+    for name in samples:
+        if name not in VARIABLES:
+            raise ValueError(f"cannot vary {name!r}; choose from {list(VARIABLES)}")
+    if chunk_size < 1:
+        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+    solver = scene.solver if solver is None else solver
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; choose from {list(SOLVERS)}")
+    spec = {k: parse_distribution(v) if isinstance(v, str) else v for k, v in samples.items()}
+    values = draw(spec, n, seed)
+    n = len(next(iter(values.values()))) if values else int(n or 1)
+    seed = seed if any(isinstance(v, AbstractDistribution) for v in spec.values()) else -1
+
+    cols = _columns(scene, values, n)
+    invalid = _invalid(cols)
+    # Set invalid samples aside on the nominal values: validated inside jit, one of them
+    # would raise for the whole chunk.
+    nominal = _columns(scene, {}, n)
+    for k in cols:
+        cols[k] = np.where(invalid, nominal[k], cols[k])
+    kinds = {w: _load_kind(w, getattr(scene, w), spec) for w in ("load", "torque")}
+    structure = Structure.of(scene.mech).union(
+        Structure.of(SliderCrank(**{f: cols[f] for f in FIELDS})))
+
+    ts = np.linspace(0.0, scene.t1 if t1 is None else float(t1),
+                     scene.samples if num_saves is None else int(num_saves))
+    if not (ts[-1] > 0 and ts.shape[0] >= 2):
+        raise ValueError("a sweep needs t1 > 0 and at least 2 save times")
+    span = float(ts[-1] - ts[0])
+    rtol = float(np.asarray(scene.rtol))
+    atol = float(np.asarray(scene.atol))
+
+    valid_idx = np.flatnonzero(~invalid)
+    if sort and valid_idx.size:
+        lin_mech, lin_load, _, _, _ = _build(scene, _take(cols, valid_idx), kinds)
+        lam, _ = fastest_mode(linearize(lin_mech, lin_load if kinds["load"] != "fixed"
+                                        else getattr(scene, "load")))
+        valid_idx = valid_idx[np.argsort(np.asarray(lam), kind="stable")]
+
+    return _Plan(values, cols, invalid, kinds, structure, reductions, valid_idx, ts, n, span,
+                 rtol, atol, solver, seed)
+
+
 # ---------------------------------------------------------------------------------------
 # The public function
 
@@ -396,49 +446,12 @@ def sweep(
 
     **Returns:** a [`SweepResult`][] in the original sample order.
     """
-    reductions = tuple(dict.fromkeys(outputs))
-    for name in reductions:
-        if name not in REDUCTIONS:
-            raise ValueError(f"unknown sweep output {name!r}; choose from {list(REDUCTIONS)}")
-    for name in samples:
-        if name not in VARIABLES:
-            raise ValueError(f"cannot vary {name!r}; choose from {list(VARIABLES)}")
-    if chunk_size < 1:
-        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
-    solver = scene.solver if solver is None else solver
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}; choose from {list(SOLVERS)}")
-    spec = {k: parse_distribution(v) if isinstance(v, str) else v for k, v in samples.items()}
-    values = draw(spec, n, seed)
-    n = len(next(iter(values.values()))) if values else int(n or 1)
-    seed_used = seed if any(isinstance(v, AbstractDistribution) for v in spec.values()) else -1
-
-    cols = _columns(scene, values, n)
-    invalid = _invalid(cols)
-    # Set invalid samples aside on the nominal values: validated inside jit, one of them
-    # would raise for the whole chunk.
-    nominal = _columns(scene, {}, n)
-    for k in cols:
-        cols[k] = np.where(invalid, nominal[k], cols[k])
-    kinds = {w: _load_kind(w, getattr(scene, w), spec) for w in ("load", "torque")}
-    structure = Structure.of(scene.mech).union(
-        Structure.of(SliderCrank(**{f: cols[f] for f in FIELDS})))
-
-    ts = np.linspace(0.0, scene.t1 if t1 is None else float(t1),
-                     scene.samples if num_saves is None else int(num_saves))
-    if not (ts[-1] > 0 and ts.shape[0] >= 2):
-        raise ValueError("a sweep needs t1 > 0 and at least 2 save times")
-    span = float(ts[-1] - ts[0])
-    rtol = float(np.asarray(scene.rtol))
-    atol = float(np.asarray(scene.atol))
-
-    valid_idx = np.flatnonzero(~invalid)
-    if sort and valid_idx.size:
-        lin_mech, lin_load, _, _, _ = _build(scene, _take(cols, valid_idx), kinds)
-        lam, _ = fastest_mode(linearize(lin_mech, lin_load if kinds["load"] != "fixed"
-                                        else getattr(scene, "load")))
-        valid_idx = valid_idx[np.argsort(np.asarray(lam), kind="stable")]
-
+    plan = _prepare(scene, samples, outputs, n, seed, t1, num_saves, solver, chunk_size,
+                    sort)
+    cols, invalid, kinds, structure, reductions = (plan.cols, plan.invalid, plan.kinds,
+                                                   plan.structure, plan.reductions)
+    values, valid_idx, ts, n, span = plan.values, plan.order, plan.ts, plan.n, plan.span
+    rtol, atol, solver = plan.rtol, plan.atol, plan.solver
     devices = list(jax.devices() if devices is None else devices)
     ndev = len(devices)
     chunk = int(math.ceil(min(chunk_size, max(valid_idx.size, 1)) / ndev) * ndev)
@@ -499,4 +512,44 @@ def sweep(
             callback(done, n)
     if bar is not None:
         bar.close()
-    return SweepResult(values, out, status, steps, solver_used, ts, structure, seed_used)
+    return SweepResult(values, out, status, steps, solver_used, ts, structure,
+                       plan.seed)
+
+
+def sweep_cost(
+    scene,
+    samples: Mapping[str, AbstractDistribution | str | float | np.ndarray],
+    outputs: Sequence[str] = DEFAULT_OUTPUTS,
+    *,
+    n: int = 8,
+    solver: str = "tsit5",
+    num_saves: int | None = None,
+    structure: Structure | None = None,
+) -> dict[str, float]:
+    """What the compiled chunk of a [`sweep`][] costs, from XLA's own cost analysis.
+
+    For showing that unused outputs, bodies and loads cost nothing: compare two scenes
+    or two output lists. XLA counts a loop body once, so `flops` is about the work of
+    one solver step plus the reductions, not of a whole solve.
+
+    **Arguments:** as for [`sweep`][] (`n` samples in one chunk); `structure` overrides
+    the sweep's own (e.g. `Structure()`, every term, to see what skipping saves).
+
+    **Returns:** `flops`, `transcendentals`, `bytes_accessed` and `hlo_lines` (the size of
+    the optimised HLO text).
+    """
+    plan = _prepare(scene, samples, outputs, n, 0, None, num_saves, solver, n, False)
+    mech, load, torque, phi0, dphi0 = _build(scene, plan.cols, plan.kinds)
+    lowered = _run_chunk.lower(
+        mech, load, torque, jnp.asarray(phi0), jnp.asarray(dphi0), jnp.asarray(plan.ts),
+        jnp.asarray(plan.rtol), jnp.asarray(plan.atol), load_fixed=plan.kinds["load"] == "fixed",
+        torque_fixed=plan.kinds["torque"] == "fixed", solver=plan.solver,
+        structure=plan.structure if structure is None else structure,
+        reductions=plan.reductions, max_steps=1000)
+    compiled = lowered.compile().compiled  # equinox wraps jax.stages.Compiled
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    return {"flops": float(cost.get("flops", 0.0)),
+            "transcendentals": float(cost.get("transcendentals", 0.0)),
+            "bytes_accessed": float(cost.get("bytes accessed", 0.0)),
+            "hlo_lines": float(len(compiled.as_text().splitlines()))}

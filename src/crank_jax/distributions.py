@@ -1,0 +1,16 @@
+"""Distributions for [`crank_jax.sweep`][]: `from crank_jax.distributions import Normal`."""
+
+from ._distributions import (
+    DISTRIBUTIONS,
+    AbstractDistribution,
+    Const,
+    LogNormal,
+    LogUniform,
+    Normal,
+    Uniform,
+    draw,
+    parse_distribution,
+)
+
+__all__ = ["AbstractDistribution", "Normal", "Uniform", "LogNormal", "LogUniform", "Const",
+           "parse_distribution", "draw", "DISTRIBUTIONS"]

@@ -1,0 +1,219 @@
+"""Monte Carlo sweeps: distributions, agreement with single simulations, per-sample status,
+static structure, chunking and order, the CLI."""
+
+import json
+
+import numpy as np
+import pytest
+
+import crank_jax as cj
+from crank_jax import cli
+from crank_jax.distributions import (
+    Const,
+    LogNormal,
+    LogUniform,
+    Normal,
+    Uniform,
+    draw,
+    parse_distribution,
+)
+
+SHORT = dict(t1=0.5, num_saves=51)
+
+
+# --- distributions ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("text, expected", [
+    ("normal(2.0,0.1)", Normal(2.0, 0.1)),
+    (" uniform( 0.005 , 0.02 )", Uniform(0.005, 0.02)),
+    ("lognormal(2,0.5)", LogNormal(2.0, 0.5)),
+    ("loguniform(1e-2,1e7)", LogUniform(1e-2, 1e7)),
+    ("const(3)", Const(3.0)),
+    ("4.5", Const(4.5)),
+])
+def test_parse_distribution(text, expected):
+    assert parse_distribution(text) == expected
+
+
+@pytest.mark.parametrize("text, words", [
+    ("normal(2.0", "cannot read"), ("gauss(1,2)", "cannot read"),
+    ("normal(1)", "takes 2"), ("normal(1,-1)", "sd >= 0"), ("uniform(2,1)", "lo <= hi"),
+    ("lognormal(0,1)", "median > 0"), ("normal(a,b)", "must be numbers"),
+    ("const(inf)", "finite"),
+])
+def test_parse_distribution_errors(text, words):
+    with pytest.raises(ValueError, match=words):
+        parse_distribution(text)
+
+
+def test_draw_is_seeded_and_per_field():
+    a = draw({"k": Normal(2, 0.1)}, n=1000, seed=7)
+    b = draw({"c": Uniform(0, 1), "k": Normal(2, 0.1)}, n=1000, seed=7)
+    c = draw({"k": Normal(2, 0.1)}, n=1000, seed=8)
+    # Adding a field leaves the others' samples unchanged; another seed changes them.
+    np.testing.assert_array_equal(a["k"], b["k"])
+    assert not np.allclose(a["k"], c["k"])
+    assert abs(a["k"].mean() - 2) < 4 * 0.1 / np.sqrt(1000)
+    assert abs(a["k"].std() - 0.1) < 0.01
+    lu = draw({"k": LogUniform(1e-2, 1e7)}, n=2000)["k"]
+    assert lu.min() >= 1e-2 and lu.max() < 1e7 and np.median(np.log10(lu)) == pytest.approx(
+        2.5, abs=0.3)
+    assert np.all(draw({"m": LogNormal(2, 1)}, n=100)["m"] > 0)
+
+
+def test_draw_explicit_arrays_and_errors():
+    out = draw({"k": np.array([1.0, 2.0]), "c": 0.5})
+    np.testing.assert_array_equal(out["c"], [0.5, 0.5])
+    with pytest.raises(ValueError, match="different lengths"):
+        draw({"k": np.ones(2), "c": np.ones(3)})
+    with pytest.raises(ValueError, match="number of samples"):
+        draw({"k": Normal(1, 1)})
+
+
+# --- agreement with simulate ------------------------------------------------------------
+
+def test_sweep_matches_individual_simulations(lab_rig):
+    ks = np.array([2.5, 1.5, 40.0, 2.0, 0.3])
+    c = np.array([0.01, 0.02, 0.005, 0.0, 0.01])
+    outs = ("peak_phi", "peak_dphi", "final_phi", "final_energy", "peak_O", "phi")
+    r = cj.sweep(lab_rig, {"k": ks, "c": c, "phi0": 0.5}, outs, chunk_size=2, **SHORT)
+    assert r.n == 5 and np.all(r.ok) and r.seed == -1
+    for i in range(5):
+        mech = lab_rig.mech.replace(k=ks[i], c=c[i])
+        tr = cj.simulate(mech, 0.5, 0.0, r.ts, solver=cj.SOLVERS[r.solver[i]],
+                         outputs=("reactions",))
+        np.testing.assert_allclose(r.outputs["phi"][i], tr.phi, rtol=1e-10, atol=1e-12)
+        assert r.outputs["peak_phi"][i] == pytest.approx(np.abs(tr.phi).max(), rel=1e-12)
+        assert r.outputs["final_phi"][i] == pytest.approx(float(tr.phi[-1]), rel=1e-10)
+        e = cj.energy(mech, tr.phi[-1], tr.dphi[-1])
+        assert r.outputs["final_energy"][i] == pytest.approx(float(e), rel=1e-10)
+        peak_O = np.hypot(tr.extras["O_x"], tr.extras["O_y"]).max()
+        assert r.outputs["peak_O"][i] == pytest.approx(float(peak_O), rel=1e-9)
+        assert r.num_steps[i] == int(tr.num_steps)
+
+
+def test_order_chunking_and_sorting_do_not_change_results(lab_rig):
+    spec = {"k": "loguniform(0.5,500)", "c": "uniform(0.0,0.05)", "dphi0": "normal(0,1)"}
+    a = cj.sweep(lab_rig, spec, ("peak_phi", "settling_time"), n=7, seed=3, chunk_size=3,
+                 **SHORT)
+    b = cj.sweep(lab_rig, spec, ("peak_phi", "settling_time"), n=7, seed=3, chunk_size=8,
+                 sort=False, **SHORT)
+    np.testing.assert_array_equal(a.samples["k"], b.samples["k"])
+    np.testing.assert_allclose(a.outputs["peak_phi"], b.outputs["peak_phi"], rtol=1e-9)
+    np.testing.assert_allclose(a.outputs["settling_time"], b.outputs["settling_time"])
+
+
+def test_dominant_frequency_matches_linearisation(lab_rig):
+    # Small amplitude, light damping: the spectrum peaks at the linear natural frequency.
+    ks = np.array([5.0, 20.0])
+    r = cj.sweep(lab_rig, {"k": ks, "phi0": 1e-3}, ("dominant_freq",), t1=4.0, num_saves=801)
+    fn = [float(cj.linearize(lab_rig.mech.replace(k=k)).omega_n) / (2 * np.pi) for k in ks]
+    np.testing.assert_allclose(r.outputs["dominant_freq"], fn, rtol=0.02)
+
+
+# --- per-sample status, no NaN ----------------------------------------------------------
+
+def test_invalid_and_failed_samples_are_marked_and_the_rest_kept(lab_rig):
+    L = np.array([0.2, 0.04, 0.2, np.nan, 0.2])      # 0.04 < r = 0.05: invalid
+    k = np.array([2.0, 2.0, 2e6, 2.0, 3.0])          # 2e6: needs far more than 3000 steps
+    r = cj.sweep(lab_rig, {"L": L, "k": k}, ("peak_phi", "phi"), solver="tsit5",
+                 max_steps=3000, **SHORT)
+    names = [cj.STATUS[s] for s in r.status]
+    assert names == ["ok", "invalid", "max_steps", "invalid", "ok"]
+    for v in r.outputs.values():
+        assert np.all(np.isfinite(v))
+    assert np.all(r.outputs["peak_phi"][~r.ok] == 0)
+    assert r.counts() == {"ok": 2, "invalid": 2, "max_steps": 1, "failed": 0, "nonfinite": 0}
+    ok = cj.sweep(lab_rig, {"k": k[[0, 4]]}, ("peak_phi",), solver="tsit5", **SHORT)
+    np.testing.assert_allclose(r.outputs["peak_phi"][[0, 4]], ok.outputs["peak_phi"])
+    s = r.summary()
+    assert s["peak_phi"]["max"] == pytest.approx(r.outputs["peak_phi"][r.ok].max())
+
+
+def test_bad_arguments(lab_rig):
+    with pytest.raises(ValueError, match="cannot vary 'q'"):
+        cj.sweep(lab_rig, {"q": 1.0}, n=2)
+    with pytest.raises(ValueError, match="unknown sweep output"):
+        cj.sweep(lab_rig, {"k": 1.0}, ("peak_q",), n=2)
+    with pytest.raises(ValueError, match="unknown solver"):
+        cj.sweep(lab_rig, {"k": 1.0}, n=2, solver="euler")
+
+
+# --- static structure -------------------------------------------------------------------
+
+def test_structure_is_the_union_of_scene_and_samples(lab_rig):
+    scene = cj.Scene(lab_rig.mech.replace(c=0.0, m_s=0.0), phi0=0.3, t1=0.5, samples=11)
+    assert not scene.structure.damper and not scene.structure.slider
+    r0 = cj.sweep(scene, {"k": "normal(2,0.1)", "c": "const(0)"}, n=2)
+    assert not r0.structure.damper and not r0.structure.slider
+    r1 = cj.sweep(scene, {"c": "uniform(0,0.01)", "m_s": np.array([0.0, 0.2])}, n=2)
+    assert r1.structure.damper and r1.structure.slider
+
+
+def test_unused_outputs_bodies_and_loads_cost_nothing(lab_rig):
+    spec = {"k": "normal(2,0.1)"}
+    base = cj.sweep_cost(lab_rig, spec, ("peak_phi",), num_saves=11)
+    # A load varied at constant zero compiles exactly the program without it.
+    assert cj.sweep_cost(lab_rig, {**spec, "P1": "const(0)"}, ("peak_phi",),
+                         num_saves=11) == base
+    with_load = cj.sweep_cost(lab_rig, {**spec, "P1": "normal(1,0.1)"}, ("peak_phi",),
+                              num_saves=11)
+    assert with_load["transcendentals"] > base["transcendentals"]
+    with_O = cj.sweep_cost(lab_rig, spec, ("peak_phi", "peak_O"), num_saves=11)
+    assert with_O["flops"] > 2 * base["flops"]
+    pend = cj.load_scene("pendulum")
+    lean = cj.sweep_cost(pend, {"c": "uniform(0,1e-3)"}, ("peak_phi",), num_saves=11)
+    full = cj.sweep_cost(pend, {"c": "uniform(0,1e-3)"}, ("peak_phi",), num_saves=11,
+                         structure=cj.Structure())
+    assert lean["transcendentals"] < full["transcendentals"]
+    assert lean["hlo_lines"] < full["hlo_lines"]
+
+
+def test_varied_load_amplitude_switches_the_load_on(lab_rig):
+    scene = cj.Scene(lab_rig.mech, phi0=0.0, t1=0.5, samples=51)
+    r = cj.sweep(scene, {"tau1": np.array([0.0, 0.05]), "tau_freq_hz": 4.0}, ("peak_phi",))
+    assert r.outputs["peak_phi"][0] == 0.0 and r.outputs["peak_phi"][1] > 1e-3
+    tr = cj.simulate(scene.mech, 0.0, 0.0, r.ts, torque=cj.HarmonicLoad(0.0, 0.05, 4.0))
+    assert r.outputs["peak_phi"][1] == pytest.approx(float(np.abs(tr.phi).max()), rel=1e-8)
+
+
+# --- CLI --------------------------------------------------------------------------------
+
+def test_cli_sweep_writes_npz_and_summary(tmp_path, capsys):
+    out = tmp_path / "s.npz"
+    rc = cli.main(["sweep", "lab-rig", "--vary", "k=normal(2.0,0.1)", "--vary",
+                   "c=uniform(0.005,0.02)", "--n", "6", "--t1", "0.5", "--samples", "21",
+                   "--out", str(out), "--summary", "--quiet", "--outputs",
+                   "peak_phi,final_energy"])
+    assert rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["status"]["ok"] == 6
+    with np.load(out) as z:
+        assert z["sample.k"].shape == (6,) and z["output.final_energy"].shape == (6,)
+        np.testing.assert_array_equal(z["sample.k"], draw({"k": Normal(2.0, 0.1)}, 6)["k"])
+        assert summary["outputs"]["peak_phi"]["max"] == pytest.approx(
+            z["output.peak_phi"].max())
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--vary", "k"], "expected NAME=DIST"),
+    (["--vary", "q=normal(1,1)"], "cannot vary 'q'"),
+    (["--vary", "k=normal(1"], "cannot read"),
+    (["--vary", "k=1", "--vary", "k=2"], "given twice"),
+    (["--outputs", "peak_q"], "unknown output"),
+    (["--n", "0"], "--n must be"),
+])
+def test_cli_sweep_user_errors(tmp_path, capsys, args, words):
+    argv = ["sweep", "lab-rig", "--n", "2", "--out", str(tmp_path / "x.npz"), "--quiet"]
+    assert cli.main(argv + args) == 2
+    err = capsys.readouterr().err
+    assert words in err and err.count("\n") == 1
+
+
+def test_cli_sweep_never_overwrites_its_input(tmp_path, capsys, lab_rig):
+    scene = tmp_path / "scene.npz"
+    cj.save_scene(lab_rig, scene)
+    before = scene.read_bytes()
+    assert cli.main(["sweep", str(scene), "--n", "2", "--out", str(scene), "--quiet"]) == 2
+    assert "input file" in capsys.readouterr().err
+    assert scene.read_bytes() == before
