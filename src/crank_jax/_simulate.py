@@ -15,7 +15,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._dynamics import Structure, acceleration, energy
 from ._kinematics import kinematics
 from ._linear import linearize
-from ._loads import AbstractLoad, as_load
+from ._loads import AbstractLoad, SampledLoad, as_load
 from ._newton_euler import reactions
 from ._params import SliderCrank
 
@@ -76,6 +76,13 @@ class Trajectory(eqx.Module):
     extras: dict[str, Array]
     result: diffrax.RESULTS
     num_steps: Array
+
+    def columns(self) -> dict[str, Array]:
+        """`t, phi, dphi` and the extras in the documented column order (JAX sorts dict
+        keys when a pytree is rebuilt, so `extras` itself has no reliable order)."""
+        order = [c for c in output_columns(list(OUTPUTS)) if c in self.extras]
+        return {"t": self.ts, "phi": self.phi, "dphi": self.dphi,
+                **{c: self.extras[c] for c in order}}
 
     @property
     def ok(self) -> Array:
@@ -192,8 +199,18 @@ def _derived(mech, load, torque, ts, phi, dphi, outputs) -> dict[str, Array]:
             ts, phi, dphi, ddphi)
         out.update(O_x=rx.O[:, 0], O_y=rx.O[:, 1], A_x=rx.A[:, 0], A_y=rx.A[:, 1],
                    B_x=rx.B[:, 0], B_y=rx.B[:, 1], N=rx.N)
-    # Keep the documented column order whatever order the outputs were asked in.
-    return {c: out[c] for c in output_columns([o for o in OUTPUTS if o in outputs])}
+    return out
+
+
+def _controller(rtol, atol, load, torque) -> diffrax.AbstractStepSizeController:
+    pid = diffrax.PIDController(rtol=rtol, atol=atol)
+    knots = [x.ts for x in (load, torque) if isinstance(x, SampledLoad)]
+    if not knots:
+        return pid
+    # A sampled load is piecewise linear: its slope jumps at every sample. A step across a
+    # kink loses an order of accuracy that the error estimate does not see, so end steps
+    # exactly on the sample times.
+    return diffrax.ClipStepSizeController(pid, step_ts=jnp.sort(jnp.concatenate(knots)))
 
 
 @eqx.filter_jit
@@ -211,7 +228,7 @@ def _solve(mech, load, torque, y0, ts, rtol, atol, *, solver, max_steps, adjoint
         t0=ts[0], t1=ts[-1], dt0=None, y0=y0,
         args=(mech, load, torque, structure),
         saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        stepsize_controller=_controller(rtol, atol, load, torque),
         max_steps=max_steps,
         adjoint=adj,
         throw=throw,
@@ -288,7 +305,8 @@ def simulate(
     if _is_concrete(ts):
         d = np.diff(np.asarray(ts))
         if not np.all(d > 0):
-            raise ValueError(f"ts must increase strictly; it does not at index {int(np.argmin(d)) + 1}")
+            i = int(np.argmin(d)) + 1
+            raise ValueError(f"ts must increase strictly; it does not at index {i}")
     if structure is None:
         structure = Structure.of(mech) if _is_concrete(mech) else Structure()
     if solver == "auto":
