@@ -113,16 +113,21 @@ def test_energy_drift_shrinks_with_the_tolerance(lab_rig):
 
 # --- no NaN ever leaves simulate or sweep -----------------------------------------------
 
+SOLVERS_UNDER_TEST = ("dopri8", "auto")
+
+
 def test_failed_solve_with_throw_false_holds_the_last_state(lab_rig):
     ts = np.linspace(0.0, 1.0, 11)
-    tr = cj.simulate(lab_rig.mech, 1.0, 0.0, ts, max_steps=20, throw=False,
-                     outputs=("energy", "reactions"))
-    assert tr.result == diffrax.RESULTS.max_steps_reached and not bool(tr.ok)
-    for v in (tr.phi, tr.dphi, *tr.extras.values()):
-        assert np.all(np.isfinite(np.asarray(v)))
-    assert float(tr.phi[-1]) == float(tr.phi[-2])  # held, not invented
-    with pytest.raises(Exception, match="max_steps"):
-        cj.simulate(lab_rig.mech, 1.0, 0.0, ts, max_steps=20)
+    for solver in SOLVERS_UNDER_TEST:
+        tr = cj.simulate(lab_rig.mech, 1.0, 0.0, ts, max_steps=20, throw=False,
+                         outputs=("energy", "reactions"), solver=solver)
+        assert tr.result == diffrax.RESULTS.max_steps_reached and not bool(tr.ok)
+        for v in (tr.phi, tr.dphi, *tr.extras.values()):
+            assert np.all(np.isfinite(np.asarray(v)))
+        if solver == "dopri8":  # diffrax's adaptive path stops early: the state is held
+            assert float(tr.phi[-1]) == float(tr.phi[-2])
+        with pytest.raises(Exception, match="max_steps"):
+            cj.simulate(lab_rig.mech, 1.0, 0.0, ts, max_steps=20, solver=solver)
 
 
 def test_huge_stiffness_without_damping_ends_in_a_result_code(lab_rig):
