@@ -18,12 +18,13 @@ from ._linear import linearize
 from ._loads import AbstractLoad, SampledLoad, as_load
 from ._newton_euler import reactions
 from ._params import SliderCrank
+from ._uniform import solve_uniform, uniform_grid
 
 __all__ = ["Trajectory", "simulate", "choose_solver", "fastest_mode", "SOLVERS", "OUTPUTS",
            "output_columns"]
 
 #: Solver names accepted by `simulate(solver=...)`.
-SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5")
+SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform")
 
 #: Derived outputs `simulate(outputs=...)` can add, with the columns each one produces.
 OUTPUTS: dict[str, tuple[str, ...]] = {
@@ -215,26 +216,37 @@ def _controller(rtol, atol, load, torque) -> diffrax.AbstractStepSizeController:
 
 @eqx.filter_jit
 def _solve(mech, load, torque, y0, ts, rtol, atol, *, solver, max_steps, adjoint, structure,
-           outputs, throw):
-    mech = mech.checked()
-    y0 = eqx.error_if(y0, ~jnp.all(jnp.isfinite(y0)),
-                      "initial state (phi0, dphi0) must be finite")
+           outputs, throw, checks=True):
+    if checks:
+        mech = mech.checked()
+        y0 = eqx.error_if(y0, ~jnp.all(jnp.isfinite(y0)),
+                          "initial state (phi0, dphi0) must be finite")
     adj = {"reverse": diffrax.RecursiveCheckpointAdjoint(),
            "forward": diffrax.ForwardMode(),
            "direct": diffrax.DirectAdjoint()}[adjoint]
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(_vector_field),
-        _solver_for(solver),
-        t0=ts[0], t1=ts[-1], dt0=None, y0=y0,
-        args=(mech, load, torque, structure),
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=_controller(rtol, atol, load, torque),
-        max_steps=max_steps,
-        adjoint=adj,
-        throw=throw,
-    )
-    phi, dphi = sol.ys[:, 0], sol.ys[:, 1]
-    result = sol.result
+    if solver == "dopri8-uniform":
+        # Constant Dopri8 steps between the save times (see `_uniform`): the while-loop kind
+        # gives the same autodiff as the matching diffrax adjoint.
+        kind = {"reverse": "checkpointed", "forward": "lax", "direct": "bounded"}[adjoint]
+        ys, result, steps = solve_uniform(mech, load, torque, y0, ts, rtol, atol,
+                                          structure=structure, max_steps=max_steps, kind=kind)
+        if throw:
+            ys = result.error_if(ys, result != diffrax.RESULTS.successful)
+    else:
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(_vector_field),
+            _solver_for(solver),
+            t0=ts[0], t1=ts[-1], dt0=None, y0=y0,
+            args=(mech, load, torque, structure),
+            saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=_controller(rtol, atol, load, torque),
+            max_steps=max_steps,
+            adjoint=adj,
+            throw=throw,
+        )
+        ys, result = sol.ys, sol.result
+        steps = sol.stats["num_steps"] + sol.stats.get("num_rejected_steps", 0)
+    phi, dphi = ys[:, 0], ys[:, 1]
     if not throw:
         # A failed solve leaves inf after the failure time. No NaN or inf leaves simulate:
         # those samples hold the last state reached, and `result` says the solve failed.
@@ -245,7 +257,6 @@ def _solve(mech, load, torque, y0, ts, rtol, atol, *, solver, max_steps, adjoint
             (result == diffrax.RESULTS.successful) & ~jnp.all(good),
             diffrax.RESULTS.nonfinite, result)
     extras = _derived(mech, load, torque, ts, phi, dphi, outputs)
-    steps = sol.stats["num_steps"] + sol.stats.get("num_rejected_steps", 0)
     return Trajectory(ts, phi, dphi, extras, result, steps)
 
 
@@ -275,7 +286,10 @@ def simulate(
     - `ts`: (n,) strictly increasing save times, s, n >= 2.
     - `load`: slider force P(t), N along -x: a load, a number (constant) or `None`.
     - `torque`: crank torque tau(t), N*m about +z, likewise.
-    - `solver`: one of [`SOLVERS`][]; `"auto"` picks with [`choose_solver`][].
+    - `solver`: one of [`SOLVERS`][]; `"auto"` picks with [`choose_solver`][], and then,
+      for concrete parameters, uniform `ts` and a non-stiff choice, `"dopri8-uniform"`:
+      an integer number of equal Dopri8 steps per save interval, chosen so that the summed
+      embedded error estimate (an estimate of the global error) meets `rtol`/`atol`.
     - `rtol`, `atol`: tolerances of the adaptive step-size controller.
     - `max_steps`: step budget; exceeding it raises (or sets `result` if `throw=False`).
     - `outputs`: derived outputs to add to `Trajectory.extras` (see [`OUTPUTS`][]); only
@@ -312,13 +326,42 @@ def simulate(
     if solver == "auto":
         solver = choose_solver(mech, rtol if _is_concrete(rtol) else 1e-8, load,
                                span=float(ts[-1] - ts[0]) if _is_concrete(ts) else 10.0)
+        # Speed (issue 4): an explicit choice on uniform save times becomes constant Dopri8
+        # steps between them, faster than the adaptive diffrax solve at equal error (see
+        # experiments/bench_work_precision.py). Only for concrete parameters, where the
+        # stiffness test above ran, and not across a sampled load's kinks.
+        if (solver in ("tsit5", "dopri8") and _is_concrete((mech, ts, rtol, atol))
+                and not any(isinstance(x, SampledLoad) for x in (load, torque))
+                and uniform_grid(np.asarray(ts))):
+            solver = "dopri8-uniform"
     dtype = ts.dtype
     y0 = jnp.stack([jnp.asarray(phi0, dtype), jnp.asarray(dphi0, dtype)])
-    return _solve(
+    # Outside any transformation, check on the host and raise there: an `eqx.error_if` in
+    # the program is a Python callback, and JAX's persistent compilation cache cannot
+    # reuse a program with callbacks, so every process (every CLI call) would recompile.
+    host = _is_concrete((mech, load, torque, y0, ts, rtol, atol))
+    if host:
+        _host_checks(mech, y0)
+    traj = _solve(
         mech, load, torque, y0, ts, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
         solver=solver, max_steps=int(max_steps), adjoint=adjoint, structure=structure,
-        outputs=tuple(sorted(set(outputs))), throw=bool(throw),
+        outputs=tuple(sorted(set(outputs))), throw=bool(throw) and not host, checks=not host,
     )
+    if host and throw and traj.result != diffrax.RESULTS.successful:
+        raise eqx.EquinoxRuntimeError(diffrax.RESULTS[traj.result])
+    return traj
+
+
+def _host_checks(mech: SliderCrank, y0) -> None:
+    """The checks `_solve` makes with `eqx.error_if`, on concrete values, same messages."""
+    from ._params import FIELDS, _rules
+
+    values = {n: np.asarray(getattr(mech, n)) for n in FIELDS}
+    for name, bad, rule in _rules(values):
+        if np.any(bad):
+            raise eqx.EquinoxRuntimeError(f"SliderCrank.{name} is invalid: {rule}.")
+    if not np.all(np.isfinite(np.asarray(y0))):
+        raise eqx.EquinoxRuntimeError("initial state (phi0, dphi0) must be finite")
 
 
 def _warn_if_float32() -> None:

@@ -1,0 +1,110 @@
+"""The "dopri8-uniform" solver: its right-hand side, its accuracy against its tolerance on
+the presets, autodiff in every adjoint mode, failures, and the "auto" switch to it."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import crank_jax as cj
+from crank_jax._dynamics import Structure, acceleration
+from crank_jax._uniform import fused_acceleration
+
+
+@pytest.mark.parametrize("loads", [False, True])
+def test_fused_acceleration_equals_acceleration(rng, loads):
+    from conftest import random_mech
+
+    load = cj.HarmonicLoad(3.0, 2.0, 1.5, 0.3) if loads else cj.NoLoad()
+    torque = cj.ConstantLoad(0.2) if loads else cj.NoLoad()
+    phi = jnp.asarray(rng.uniform(-7, 7, 50))
+    dphi = jnp.asarray(rng.uniform(-20, 20, 50))
+    t = jnp.asarray(rng.uniform(0, 5, 50))
+    for i in range(6):
+        over = [{}, {"m_p": 0.0, "I_p": 0.0}, {"m_s": 0.0}, {"g": 0.0}, {"k": 0.0, "c": 0.0},
+                {"m_p": 0.0, "I_p": 0.0, "m_s": 0.0}][i]
+        mech = random_mech(rng, **over)
+        st = Structure.of(mech)
+        a = acceleration(mech, phi, dphi, t, load, torque, st)
+        b = fused_acceleration(mech, phi, dphi, t, load, torque, st)
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(a))))
+
+
+def _reference(scene, ts):
+    # Adaptive Dopri8 far tighter than any tolerance tested below.
+    return np.asarray(scene.simulate(ts, solver="dopri8", rtol=1e-13, atol=1e-15,
+                                     max_steps=10**6).phi)
+
+
+@pytest.mark.parametrize("name", cj.PRESETS)
+@pytest.mark.parametrize("rtol", [1e-6, 1e-9])
+def test_error_meets_tolerance_on_presets(name, rtol):
+    scene = cj.load_scene(name)
+    ts = scene.ts()
+    atol = rtol * 1e-2
+    traj = scene.simulate(ts, solver="dopri8-uniform", rtol=rtol, atol=atol)
+    assert bool(traj.ok)
+    ref = _reference(scene, ts)
+    err = np.max(np.abs(np.asarray(traj.phi) - ref))
+    # The contract: the global error in phi is within the tolerance on its scale.
+    assert err <= atol + rtol * np.max(np.abs(ref)), (name, rtol, err)
+
+
+def test_auto_picks_uniform_only_where_it_applies(lab_rig):
+    ts = lab_rig.ts()
+    n_uniform = int(lab_rig.simulate(ts, solver="dopri8-uniform").num_steps)
+    assert int(lab_rig.simulate(ts).num_steps) == n_uniform  # auto -> dopri8-uniform
+    uneven = jnp.concatenate([ts[:10], ts[10::2]])
+    a = lab_rig.simulate(uneven)
+    b = lab_rig.simulate(uneven, solver="dopri8")
+    assert int(a.num_steps) == int(b.num_steps)  # non-uniform: the adaptive solver
+
+
+@pytest.mark.parametrize("adjoint", [
+    "forward",
+    # Compiling the reverse passes of the nested loops takes ~20-40 s.
+    pytest.param("reverse", marks=pytest.mark.slow),
+    pytest.param("direct", marks=pytest.mark.slow),
+])
+def test_gradients(lab_rig, adjoint):
+    ts = jnp.linspace(0.0, 2.0, 201)
+
+    def final(k, adjoint):
+        mech = lab_rig.mech.replace(k=k)
+        return cj.simulate(mech, 1.0, 0.0, ts, solver="dopri8-uniform", rtol=1e-10,
+                           atol=1e-12, adjoint=adjoint).phi[-1]
+
+    k = lab_rig.mech.k
+    h = 1e-5
+    fd = (final(k + h, "forward") - final(k - h, "forward")) / (2 * h)
+    g = (jax.jacfwd if adjoint == "forward" else jax.grad)(final)(k, adjoint)
+    assert abs(float(g) - float(fd)) <= 1e-6 * abs(float(fd))
+
+
+def test_vmap_and_no_retrace(lab_rig):
+    ts = jnp.linspace(0.0, 1.0, 101)
+    ks = jnp.linspace(1.8, 2.2, 4)
+
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def batch(ks, rtol):
+        return jax.vmap(lambda k: cj.simulate(lab_rig.mech.replace(k=k), 1.0, 0.0, ts,
+                                              solver="dopri8-uniform", rtol=rtol).phi)(ks)
+
+    out = batch(ks, jnp.asarray(1e-8))
+    batch(ks + 0.01, jnp.asarray(1e-9))
+    for i, k in enumerate(ks):
+        one = cj.simulate(lab_rig.mech.replace(k=k), 1.0, 0.0, ts, solver="dopri8-uniform")
+        np.testing.assert_allclose(out[i], one.phi, atol=1e-9)
+
+
+def test_step_budget(lab_rig):
+    ts = lab_rig.ts()
+    with pytest.raises(Exception, match="maximum number of solver steps"):
+        lab_rig.simulate(ts, solver="dopri8-uniform", rtol=1e-12, max_steps=1000)
+    traj = lab_rig.simulate(ts, solver="dopri8-uniform", rtol=1e-12, max_steps=1000,
+                            throw=False)
+    assert traj.result == diffrax.RESULTS.max_steps_reached
+    assert np.all(np.isfinite(np.asarray(traj.phi)))
