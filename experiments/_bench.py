@@ -1,0 +1,89 @@
+"""Shared helpers for the benchmark scripts: machine record, median timing, results I/O."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS = ROOT / "experiments" / "results"
+FIGURES = ROOT / "docs" / "figures"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def setup_jax():
+    """float64 on, and return the jax module."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    return jax
+
+
+def machine() -> dict:
+    """Date and machine of a run: platform, CPU model, core count, library versions."""
+    import jax
+
+    cpu = platform.processor() or ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    vers = {"python": platform.python_version(), "jax": jax.__version__}
+    for mod in ("diffrax", "equinox", "numpy", "scipy", "numba"):
+        try:
+            vers[mod] = __import__(mod).__version__
+        except ImportError:
+            vers[mod] = None
+    return {
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "platform": platform.platform(), "cpu": cpu, "cores": os.cpu_count(),
+        "devices": [str(d) for d in jax.devices()], "versions": vers,
+        "note": "shared machine: other jobs ran at the same time; timings are medians",
+    }
+
+
+def median_time(fn, repeats: int = 5, warmup: int = 1, budget_s: float = 20.0) -> float:
+    """Median wall time of `fn()` in seconds over `repeats` runs after `warmup` calls
+    (fewer repeats, but at least 3, if a run is slow enough to exceed `budget_s`)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    start = time.perf_counter()
+    for i in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+        if i >= 2 and time.perf_counter() - start > budget_s:
+            break
+    return float(np.median(times))
+
+
+def save(name: str, payload: dict, smoke: bool) -> Path:
+    """Write `experiments/results/<name>.json` (or `<name>.smoke.json` in smoke mode)."""
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / (f"{name}.smoke.json" if smoke else f"{name}.json")
+    payload = {"machine": machine(), "smoke": smoke, **payload}
+    path.write_text(json.dumps(payload, indent=1, default=float))
+    print(f"wrote {path}")
+    return path
+
+
+def interp_time(errors, times, target: float) -> float | None:
+    """Time at error `target` by log-log interpolation along a work-precision curve
+    (None if `target` is outside the measured range)."""
+    e = np.log(np.asarray(errors, float))
+    t = np.log(np.asarray(times, float))
+    order = np.argsort(e)
+    e, t = e[order], t[order]
+    lt = np.log(target)
+    if not (e[0] <= lt <= e[-1]):
+        return None
+    return float(np.exp(np.interp(lt, e, t)))

@@ -1,0 +1,85 @@
+"""Gradients: the full sensitivity Jacobian d phi(ts) / d theta against one forward solve.
+
+theta = the 10 parameters (L, b, s, m_c, m_p, m_s, I_c, I_p, k, c) of the lab rig with
+c = 1e-3, phi0 = 1 rad, 10 s, 1001 samples, rtol 1e-8 / atol 1e-10: J has shape (1001, 10).
+Measured side by side in one run (medians):
+
+- the baseline: one forward solve, `crank_jax.simulate` with its default solver;
+- forward mode: `jax.jacfwd` through `simulate(adjoint="forward")`, with the
+  `"dopri8-uniform"` solver and with diffrax's adaptive Dopri8 (`diffrax.ForwardMode`);
+- reverse mode: `jax.jacrev` through `simulate(adjoint="reverse")` (one backward pass per
+  output sample, so 1001 of them, batched by `vmap`), both solvers.
+
+Each Jacobian is jitted; compile time is reported separately. Target (c): the best
+Jacobian <= 5x one default forward solve.
+
+Run: `python experiments/bench_gradients.py [--smoke]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+from _bench import median_time, save, setup_jax
+
+jax = setup_jax()
+import jax.numpy as jnp  # noqa: E402
+
+import crank_jax as cj  # noqa: E402
+
+PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--smoke", action="store_true")
+    smoke = ap.parse_args(argv).smoke
+    t1, samples = (1.0, 101) if smoke else (10.0, 1001)
+    repeats = 1 if smoke else 5
+    mech = cj.load_scene("lab-rig").mech.replace(c=1e-3)
+    ts = jnp.linspace(0.0, t1, samples)
+    theta0 = jnp.array([float(getattr(mech, n)) for n in PARAMS])
+
+    def phi(theta, solver, adjoint):
+        m = mech.replace(**dict(zip(PARAMS, theta)))
+        return cj.simulate(m, 1.0, 0.0, ts, solver=solver, rtol=1e-8, atol=1e-10,
+                           adjoint=adjoint).phi
+
+    base = median_time(lambda: jax.block_until_ready(cj.simulate(mech, 1.0, 0.0, ts).phi),
+                       repeats)
+    rows = [{"method": "one forward solve (simulate, default solver)", "time_s": base,
+             "ratio": 1.0, "compile_s": None}]
+    print(rows[-1], flush=True)
+    variants = [("jacfwd, dopri8-uniform", jax.jacfwd, "dopri8-uniform", "forward"),
+                ("jacfwd, diffrax Dopri8 (ForwardMode)", jax.jacfwd, "dopri8", "forward")]
+    if not smoke:
+        variants += [("jacrev, dopri8-uniform", jax.jacrev, "dopri8-uniform", "reverse"),
+                     ("jacrev, diffrax Dopri8 (RecursiveCheckpoint)", jax.jacrev, "dopri8",
+                      "reverse")]
+    jacs = {}
+    for label, tr, solver, adjoint in variants:
+        f = jax.jit(tr(lambda th, solver=solver, adjoint=adjoint: phi(th, solver, adjoint)))
+        t0 = time.perf_counter()
+        J = jax.block_until_ready(f(theta0))
+        comp = time.perf_counter() - t0
+        t = median_time(lambda f=f: jax.block_until_ready(f(theta0)), repeats, warmup=0,
+                        budget_s=60.0)
+        jacs[label] = np.asarray(J)
+        rows.append({"method": label, "time_s": t, "ratio": t / base, "compile_s": comp,
+                     "shape": list(J.shape)})
+        print(rows[-1], flush=True)
+    # The Jacobians agree (relative to the largest sensitivity of each parameter).
+    ref = jacs["jacfwd, diffrax Dopri8 (ForwardMode)"]
+    scale = np.max(np.abs(ref), axis=0)
+    agree = {k: float(np.max(np.abs(v - ref) / scale)) for k, v in jacs.items()}
+    best = min(rows[1:], key=lambda r: r["time_s"])
+    target = {"goal": 5.0, "best_method": best["method"], "ratio": best["ratio"]}
+    print("agreement:", agree, "\ntarget (c):", target)
+    save("gradients", {"t1": t1, "samples": samples, "params": PARAMS, "rows": rows,
+                       "max_rel_disagreement": agree, "target_c": target}, smoke)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""Skip what a scene doesn't need: the compiled solve of a scene holds only the terms and
+outputs the scene uses.
+
+Compiles `simulate`'s solve (solver "dopri8-uniform", 10 s, 1001 samples) for:
+the pendulum preset (crank only: no coupler, slider, spring, loads), the lab rig (every
+body), the lab rig with a harmonic slider force and crank torque, and the lab rig with
+every derived output. Records the optimised HLO's instruction count, XLA's flop estimate,
+and the run time (median). Fewer terms: fewer instructions and less time per step.
+
+Run: `python experiments/bench_structure.py [--smoke]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+import jax.numpy as jnp
+from _bench import median_time, save, setup_jax
+
+jax = setup_jax()
+import crank_jax as cj  # noqa: E402
+from crank_jax._dynamics import Structure  # noqa: E402
+from crank_jax._simulate import OUTPUTS, _solve  # noqa: E402
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--smoke", action="store_true")
+    smoke = ap.parse_args(argv).smoke
+    ts = jnp.linspace(0.0, 1.0 if smoke else 10.0, 101 if smoke else 1001)
+    lab, pend = cj.load_scene("lab-rig"), cj.load_scene("pendulum")
+    loads = (cj.HarmonicLoad(0.0, 5.0, 3.0), cj.HarmonicLoad(0.0, 0.05, 4.0))
+    cases = [("pendulum (crank only)", pend.mech, cj.NoLoad(), cj.NoLoad(), ()),
+             ("lab rig", lab.mech, cj.NoLoad(), cj.NoLoad(), ()),
+             ("lab rig + P(t) + tau(t)", lab.mech, *loads, ()),
+             ("lab rig + every output", lab.mech, cj.NoLoad(), cj.NoLoad(),
+              tuple(sorted(OUTPUTS)))]
+    rows = []
+    for label, mech, load, torque, outputs in cases:
+        kw = dict(solver="dopri8-uniform", max_steps=200_000, adjoint="forward",
+                  structure=Structure.of(mech), outputs=outputs, throw=False, checks=False)
+        args = (mech, load, torque, jnp.array([1.0, 0.0]), ts, jnp.asarray(1e-8),
+                jnp.asarray(1e-10))
+        compiled = _solve.lower(*args, **kw).compile() if hasattr(_solve, "lower") else None
+        if compiled is None:
+            compiled = jax.jit(lambda *a: _solve(*a, **kw)).lower(*args).compile()
+        text = compiled.as_text()
+        n_instr = len(re.findall(r"^\s+\S+ = ", text, re.M))
+        cost = compiled.cost_analysis()
+        cost = cost[0] if isinstance(cost, list) else cost
+        t = median_time(lambda: jax.block_until_ready(_solve(*args, **kw)), 1 if smoke else 7)
+        tr = _solve(*args, **kw)
+        rows.append({"case": label, "hlo_instructions": n_instr,
+                     "flops_estimate": float(cost.get("flops", float("nan"))),
+                     "time_s": t, "steps": int(tr.num_steps)})
+        print(rows[-1], flush=True)
+    save("structure", {"rows": rows}, smoke)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,171 @@
+"""Work-precision: run time against the maximum error in phi over 10 s (1001 samples).
+
+Scenes: the lab rig with c = 1e-3 (the issue's target configuration), the torsional and the
+near-buckling presets, each with its own phi0. Methods, side by side in one run:
+
+- `crank_jax.simulate` with its default solver (`"auto"`, which picks `"dopri8-uniform"`
+  for these non-stiff scenes), and diffrax's adaptive Tsit5, Dopri5, Dopri8 through
+  `simulate(solver=...)`, at rtol = 1e-4 .. 1e-12 (atol = rtol / 100);
+- scipy `solve_ivp` RK45, DOP853, LSODA and `odeint` with a plain-Python RHS;
+- a compiled scalar Dormand-Prince 5(4) with dense output in numba (skipped if numba is
+  missing).
+
+The error is the max |phi - phi_ref| over the samples. phi_ref is diffrax's Dopri8 at
+rtol = 1e-14, cross-checked against scipy's DOP853 at rtol = 1e-13: their difference is
+recorded as the error floor. Times are medians. Target (a) is evaluated on the lab rig:
+the default solve's time against DOP853's time interpolated (log-log) at the same error.
+
+Run: `python experiments/bench_work_precision.py [--smoke]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+from _bench import FIGURES, interp_time, median_time, save, setup_jax
+
+jax = setup_jax()
+import peers  # noqa: E402
+
+import crank_jax as cj  # noqa: E402
+
+T1, SAMPLES = 10.0, 1001
+
+
+def cases(smoke: bool):
+    lab = cj.load_scene("lab-rig")
+    out = [("lab-rig (c=1e-3)", lab.mech.replace(c=1e-3), 1.0)]
+    if not smoke:
+        for name in ("torsional", "near-buckling"):
+            s = cj.load_scene(name)
+            out.append((name, s.mech, float(s.phi0)))
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--smoke", action="store_true", help="tiny run for CI")
+    a = ap.parse_args(argv)
+    smoke = a.smoke
+    rtols = [1e-5, 1e-8] if smoke else [10.0**-e for e in range(4, 13)]
+    repeats = 1 if smoke else 5
+    ts = np.linspace(0.0, T1, SAMPLES)
+    tsj = jax.numpy.asarray(ts)
+    results = {}
+    for label, mech, phi0 in cases(smoke):
+        p = peers.params_of(mech)
+        y0 = (phi0, 0.0)
+        ref = np.asarray(cj.simulate(mech, phi0, 0.0, tsj, solver="dopri8", rtol=1e-14,
+                                     atol=1e-16, max_steps=10**7).phi)
+        if smoke:
+            floor = None
+        else:
+            chk, _ = peers.scipy_solve("DOP853", p, y0, ts, 1e-13, 1e-15)
+            floor = float(np.max(np.abs(chk - ref)))
+        curves: dict[str, list[dict]] = {}
+
+        def record(method, rtol, phi, t, steps=None):
+            err = float(np.max(np.abs(np.asarray(phi) - ref)))
+            curves.setdefault(method, []).append(
+                {"rtol": rtol, "error": err, "time_s": t, "steps": steps})
+            print(f"{label:>18} {method:>26} rtol={rtol:.0e} err={err:.2e} t={t * 1e3:9.3f} ms",
+                  flush=True)
+
+        jax_methods = {"crank_jax default (auto)": None, "diffrax Tsit5": "tsit5",
+                       "diffrax Dopri5": "dopri5", "diffrax Dopri8": "dopri8"}
+        if smoke:
+            jax_methods = {"crank_jax default (auto)": None, "diffrax Dopri8": "dopri8"}
+        for method, solver in jax_methods.items():
+            kw = {} if solver is None else {"solver": solver}
+            for rtol in rtols:
+                def run(rtol=rtol, kw=kw):
+                    tr = cj.simulate(mech, phi0, 0.0, tsj, rtol=rtol, atol=rtol * 1e-2,
+                                     max_steps=10**6, **kw)
+                    return jax.block_until_ready(tr)
+                tr = run()
+                record(method, rtol, tr.phi, median_time(run, repeats), int(tr.num_steps))
+
+        scipy_methods = ["DOP853"] if smoke else ["RK45", "DOP853", "LSODA", "odeint"]
+        for method in scipy_methods:
+            for rtol in rtols:
+                # RK45/LSODA at very tight tolerances take minutes on the torsional scene.
+                if method != "DOP853" and rtol < 1e-10:
+                    continue
+                if method == "odeint":
+                    def run(rtol=rtol):
+                        return peers.odeint_solve(p, y0, ts, rtol, rtol * 1e-2)
+                else:
+                    def run(rtol=rtol, method=method):
+                        return peers.scipy_solve(method, p, y0, ts, rtol, rtol * 1e-2)
+                phi, nfev = run()
+                record(f"scipy {method}", rtol, phi, median_time(run, repeats if not smoke else 1,
+                                                                 warmup=0, budget_s=10.0), nfev)
+        if peers.HAVE_NUMBA:
+            peers.dp5_numba(p, y0, ts, 1e-6, 1e-8)  # compile
+            for rtol in rtols:
+                def run(rtol=rtol):
+                    return peers.dp5_numba(p, y0, ts, rtol, rtol * 1e-2)
+                ys, ns = run()
+                record("numba DP5 (compiled)", rtol, ys[:, 0], median_time(run, repeats), ns)
+        else:
+            print("numba is not installed: skipping the compiled DP5 peer")
+        results[label] = {"phi0": phi0, "error_floor": floor, "curves": curves}
+
+    # Target (a): default solver vs scipy DOP853 at equal error, on the lab rig.
+    lab = results["lab-rig (c=1e-3)"]["curves"]
+    default = next(r for r in lab["crank_jax default (auto)"] if r["rtol"] == 1e-8)
+    dop = lab["scipy DOP853"]
+    t_dop = interp_time([r["error"] for r in dop], [r["time_s"] for r in dop], default["error"])
+    target = {
+        "default_error": default["error"], "default_time_s": default["time_s"],
+        "dop853_time_s_at_equal_error": t_dop,
+        "speedup": None if t_dop is None else t_dop / default["time_s"],
+        "goal": 25.0,
+    }
+    print("target (a):", target)
+    save("work_precision", {"t1": T1, "samples": SAMPLES, "cases": results, "target_a": target},
+         smoke)
+    plot(results, smoke)
+
+
+STYLE = {
+    "crank_jax default (auto)": dict(color="k", lw=2.5, marker="o"),
+    "diffrax Tsit5": dict(color="C0", marker="."),
+    "diffrax Dopri5": dict(color="C9", marker="."),
+    "diffrax Dopri8": dict(color="C1", marker="."),
+    "scipy RK45": dict(color="C2", ls="--", marker="x"),
+    "scipy DOP853": dict(color="C3", ls="--", marker="x"),
+    "scipy LSODA": dict(color="C4", ls="--", marker="x"),
+    "scipy odeint": dict(color="C5", ls="--", marker="x"),
+    "numba DP5 (compiled)": dict(color="C6", ls=":", marker="s"),
+}
+
+
+def plot(results, smoke):
+    from crank_jax._plot import _pyplot, save_figure
+
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(results), figsize=(5.2 * len(results), 4.6), squeeze=False)
+    for ax, (label, res) in zip(axes[0], results.items()):
+        for method, rows in res["curves"].items():
+            rows = sorted(rows, key=lambda r: r["error"])
+            ax.loglog([r["error"] for r in rows], [r["time_s"] for r in rows], label=method,
+                      ms=4, **STYLE.get(method, {}))
+        if res["error_floor"]:
+            ax.axvspan(1e-16, res["error_floor"], color="0.9", zorder=0)
+            ax.set_xlim(left=res["error_floor"] / 3)
+        ax.set_title(f"{label}, phi0 = {res['phi0']:g} rad, 10 s", fontsize=10)
+        ax.set_xlabel("max |phi - phi_ref| (rad)")
+        ax.grid(alpha=0.3, which="both")
+    axes[0][0].set_ylabel("run time (s), median")
+    axes[0][-1].legend(fontsize=7, loc="upper right")
+    fig.suptitle("Work-precision (grey: below the reference's own uncertainty)", fontsize=10)
+    FIGURES.mkdir(parents=True, exist_ok=True)
+    path = FIGURES / ("work_precision.smoke.png" if smoke else "work_precision.png")
+    save_figure(fig, path)
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,47 @@
+"""Smoke runs of the benchmark scripts (tiny sizes): they run, and write their results.
+
+The full benchmarks run by command (`python experiments/bench_*.py`), not in CI.
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXP = Path(__file__).resolve().parent.parent / "experiments"
+
+
+@pytest.mark.parametrize("script,result", [
+    ("bench_work_precision.py", "work_precision"),
+    ("bench_throughput.py", "throughput"),
+    ("bench_gradients.py", "gradients"),
+    ("bench_startup.py", "startup"),
+    ("bench_structure.py", "structure"),
+])
+def test_benchmark_smoke(script, result):
+    subprocess.run([sys.executable, str(EXP / script), "--smoke"], check=True, cwd=EXP,
+                   capture_output=True, timeout=300)
+    data = json.loads((EXP / "results" / f"{result}.smoke.json").read_text())
+    assert data["smoke"] is True
+    assert data["machine"]["cores"] >= 1 and data["machine"]["versions"]["jax"]
+
+
+def test_numba_peer_matches_crank_jax():
+    sys.path.insert(0, str(EXP))
+    import numpy as np
+    import peers
+
+    import crank_jax as cj
+
+    if not peers.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    mech = cj.load_scene("lab-rig").mech
+    ts = np.linspace(0.0, 2.0, 201)
+    ref = np.asarray(cj.simulate(mech, 1.0, 0.0, ts, solver="dopri8", rtol=1e-13,
+                                 atol=1e-15).phi)
+    ys, _ = peers.dp5_numba(peers.params_of(mech), (1.0, 0.0), ts, 1e-12, 1e-14)
+    assert np.max(np.abs(ys[:, 0] - ref)) < 1e-9
+    phi, _ = peers.scipy_solve("DOP853", peers.params_of(mech), (1.0, 0.0), ts, 1e-12, 1e-14)
+    assert np.max(np.abs(phi - ref)) < 1e-9
