@@ -64,3 +64,19 @@ from ._sweep import (  # noqa: E402
 
 __all__ += ["REDUCTIONS", "STATUS", "SweepResult", "VARIABLES", "distributions", "fastest_mode",
             "initialize_distributed", "sweep", "sweep_cost"]
+
+# --- identification ---
+from ._data import Data, DataError, load_data, save_data, synthesize  # noqa: E402
+from ._identify import (  # noqa: E402
+    FREE_NAMES,
+    ConvergenceWarning,
+    FitResult,
+    IdentifiabilityWarning,
+    Profile,
+    fit,
+    regressor_start,
+)
+
+__all__ += ["ConvergenceWarning", "Data", "DataError", "FREE_NAMES", "FitResult",
+            "IdentifiabilityWarning", "Profile", "fit", "load_data", "regressor_start",
+            "save_data", "synthesize"]

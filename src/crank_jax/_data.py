@@ -1,0 +1,269 @@
+"""Measured or synthetic crank-angle records: CSV in and out, validation, and synthetic
+data with a documented noise model.
+
+A record is a [`Data`][]: sample times `ts` (s), crank angles `phi` (rad), and optionally
+the loads that acted during it (slider force P, N; crank torque tau, N*m). Loads that
+come from a file are [`SampledLoad`][]s and replace the scene's loads when fitting.
+
+**Noise model of [`synthesize`][]** (applied in this order to the exact solution):
+
+1. *Sample-time jitter*: sample `i` is taken at `t_i + e_i`, `e_i ~ N(0, jitter_std^2)`
+   (clipped to +-0.45 sample periods so the order never changes), but logged at the
+   nominal time `t_i = t_start + i / rate`. The fit sees only `t_i`.
+2. *Dropped samples*: each sample after the first is lost with probability `drop`.
+3. *Encoder quantisation*: with `quantization = N` counts per revolution the angle is
+   rounded to the nearest multiple of `2 pi / N`.
+4. *Gaussian noise*: `N(0, noise_std^2)` is added, independently per sample.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+
+import equinox as eqx
+import numpy as np
+
+from ._io import atomic_write
+from ._loads import AbstractLoad, NoLoad, SampledLoad
+
+__all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES"]
+
+#: The fewest samples a record may have.
+MIN_SAMPLES = 5
+
+
+class DataError(ValueError):
+    """A data file or array is malformed; the message names the row or column."""
+
+
+def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[str] | None
+                  ) -> None:
+    """Raise [`DataError`][] naming the first bad row; `rows[i]` labels sample `i`."""
+    label = (lambda i: rows[i]) if rows is not None else (lambda i: f"sample {i}")
+    if ts.ndim != 1 or phi.shape != ts.shape:
+        raise DataError(f"{where}: t and phi must be 1-D of equal length, got shapes "
+                        f"{ts.shape} and {phi.shape}")
+    if ts.shape[0] < MIN_SAMPLES:
+        raise DataError(f"{where}: too few samples ({ts.shape[0]}); a record needs at least "
+                        f"{MIN_SAMPLES}")
+    for name, x in (("t", ts), ("phi", phi)):
+        bad = ~np.isfinite(x)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise DataError(f"{where}: {label(i)}: column {name!r} is {x[i]} (NaN or inf); "
+                            "remove or repair that row")
+    d = np.diff(ts)
+    if not np.all(d > 0):
+        i = int(np.argmax(d <= 0)) + 1
+        raise DataError(f"{where}: {label(i)}: time t = {ts[i]!r} does not increase (previous "
+                        f"t = {ts[i - 1]!r}); sort the record and remove duplicate times")
+
+
+class Data(eqx.Module):
+    """One record of crank angles, with the loads known to have acted during it.
+
+    **Fields:**
+
+    - `ts`: (n,) sample times, s, strictly increasing, n >= [`MIN_SAMPLES`][]. They may
+      start anywhere and be irregular.
+    - `phi`: (n,) measured crank angle, rad.
+    - `load`: the slider force P(t), N, or `None` to use the scene's when fitting.
+    - `torque`: the crank torque tau(t), N*m, or `None` to use the scene's.
+    - `source`: a label (file name or "synthetic"), used in messages.
+
+    Construction validates the arrays and raises [`DataError`][] naming the bad sample.
+    """
+
+    ts: np.ndarray = eqx.field(converter=lambda x: np.asarray(x, dtype=np.float64))
+    phi: np.ndarray = eqx.field(converter=lambda x: np.asarray(x, dtype=np.float64))
+    load: AbstractLoad | None = None
+    torque: AbstractLoad | None = None
+    source: str = eqx.field(static=True, default="<array>")
+
+    def __check_init__(self):
+        _check_series(self.ts, self.phi, self.source, None)
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.ts.shape[0])
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """`t`, `phi` and the known loads sampled at `ts` (`P`, `tau`), as numpy arrays."""
+        cols = {"t": self.ts, "phi": self.phi}
+        if self.load is not None and not isinstance(self.load, NoLoad):
+            cols["P"] = np.asarray(self.load(self.ts))
+        if self.torque is not None and not isinstance(self.torque, NoLoad):
+            cols["tau"] = np.asarray(self.torque(self.ts))
+        return cols
+
+
+# ---------------------------------------------------------------------------------------
+# Files
+
+
+def _split(line: str, delim: str | None) -> list[str]:
+    return [x.strip() for x in (line.split(delim) if delim else line.split())]
+
+
+def load_data(
+    path: str | os.PathLike,
+    *,
+    t_col: str = "t",
+    phi_col: str = "phi",
+    angle_unit: str = "rad",
+    P_col: str = "P",
+    tau_col: str = "tau",
+) -> Data:
+    """Read a record from a text file with a header line.
+
+    Comma-, semicolon- or whitespace-separated; blank lines and lines starting with `#` or
+    `%` are skipped. Columns are found by name in the header.
+
+    **Arguments:**
+
+    - `path`: the file.
+    - `t_col`, `phi_col`: names of the time (s) and angle columns (both required).
+    - `angle_unit`: `"rad"` or `"deg"` (the angle column's unit).
+    - `P_col`, `tau_col`: names of the optional slider-force (N) and crank-torque (N*m)
+      columns. When present they become [`SampledLoad`][]s that replace the scene's loads.
+
+    **Returns:** a [`Data`][].
+
+    Raises [`DataError`][] (a `ValueError`) naming the line and column for a missing
+    column, a non-numeric, NaN or infinite value, a time that does not increase, a ragged
+    row, or too few samples; `OSError` if the file cannot be read.
+    """
+    if angle_unit not in ("rad", "deg"):
+        raise DataError(f"angle unit must be 'rad' or 'deg', got {angle_unit!r}")
+    where = str(path)
+    with open(path, encoding="utf-8", errors="replace") as f:
+        lines = f.read().splitlines()
+    body = [(i + 1, ln) for i, ln in enumerate(lines)
+            if ln.strip() and not ln.lstrip().startswith(("#", "%"))]
+    if not body:
+        raise DataError(f"{where}: no header line and no data (the file is empty or all "
+                        "comments)")
+    lineno, header = body[0]
+    delim = "," if "," in header else (";" if ";" in header else None)
+    names = _split(header, delim)
+    if len(set(names)) != len(names):
+        raise DataError(f"{where}: line {lineno}: duplicate column names in header {names}")
+    for want, opt in ((t_col, "--t-col"), (phi_col, "--phi-col")):
+        if want not in names:
+            raise DataError(f"{where}: missing column {want!r}; the header (line {lineno}) has "
+                            f"{names}; choose the column with {opt}")
+    rows, labels = [], []
+    for ln, text in body[1:]:
+        fields = _split(text, delim)
+        if len(fields) != len(names):
+            raise DataError(f"{where}: line {ln}: {len(fields)} values but the header has "
+                            f"{len(names)} columns")
+        vals = []
+        for name, x in zip(names, fields):
+            try:
+                vals.append(float(x))
+            except ValueError:
+                raise DataError(f"{where}: line {ln}: column {name!r}: {x!r} is not a "
+                                "number") from None
+        rows.append(vals)
+        labels.append(f"line {ln}")
+    arr = np.asarray(rows, dtype=np.float64).reshape(len(rows), len(names))
+    col = {name: arr[:, j] for j, name in enumerate(names)}
+    ts = col[t_col]
+    phi = col[phi_col] * (math.pi / 180 if angle_unit == "deg" else 1.0)
+    # Check the whole table (not just t and phi): a NaN in a load column is as fatal.
+    for name in names:
+        bad = ~np.isfinite(col[name])
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise DataError(f"{where}: {labels[i]}: column {name!r} is {col[name][i]} (NaN or "
+                            "inf); remove or repair that row")
+    _check_series(ts, phi, where, labels)
+    load = SampledLoad(ts, col[P_col]) if P_col in col else None
+    torque = SampledLoad(ts, col[tau_col]) if tau_col in col else None
+    return Data(ts, phi, load, torque, source=where)
+
+
+def save_data(data: Data, path: str | os.PathLike, comment: str = "") -> None:
+    """Write a record as CSV (`t,phi[,P][,tau]`, full precision), atomically.
+
+    `comment` lines are written first, each prefixed with `# `.
+    """
+    cols = data.columns()
+    with atomic_write(path) as f:
+        for line in comment.splitlines():
+            f.write(f"# {line}\n")
+        f.write(",".join(cols) + "\n")
+        np.savetxt(f, np.column_stack(list(cols.values())), delimiter=",", fmt="%.17g")
+
+
+# ---------------------------------------------------------------------------------------
+# Synthetic data
+
+
+def synthesize(
+    scene,
+    *,
+    t1: float | None = None,
+    rate: float = 200.0,
+    noise_std: float = 0.0,
+    quantization: int | None = None,
+    jitter_std: float = 0.0,
+    drop: float = 0.0,
+    t_start: float = 0.0,
+    seed: int = 0,
+) -> Data:
+    """Simulate a scene and sample it like a data logger would (see the module's noise model).
+
+    **Arguments:**
+
+    - `scene`: a [`Scene`][]; its state `(phi0, dphi0)` is at t = 0.
+    - `t1`: end of the record, s (default: the scene's `t1`).
+    - `rate`: nominal sampling rate, Hz.
+    - `noise_std`: standard deviation of the additive Gaussian angle noise, rad.
+    - `quantization`: encoder counts per revolution (`None`: no quantisation).
+    - `jitter_std`: standard deviation of the sampling instants, s.
+    - `drop`: probability that a sample (other than the first) is lost.
+    - `t_start`: time of the first sample, s (`0 <= t_start < t1`): real records rarely
+      start at the release.
+    - `seed`: seed of the noise (numpy's `default_rng`).
+
+    **Returns:** a [`Data`][] whose `load` and `torque` are the scene's (exact) loads, so
+    a fit of in-memory synthetic data has no interpolation error; [`save_data`][] writes
+    them as sampled `P`/`tau` columns.
+    """
+    t1 = float(scene.t1 if t1 is None else t1)
+    for name, v, ok in (("rate", rate, rate > 0), ("noise_std", noise_std, noise_std >= 0),
+                        ("jitter_std", jitter_std, jitter_std >= 0),
+                        ("drop", drop, 0 <= drop < 1), ("t1", t1, t1 > 0),
+                        ("t_start", t_start, 0 <= t_start < t1)):
+        if not (math.isfinite(v) and ok):
+            raise ValueError(f"synthesize: {name} = {v!r} is out of range")
+    if quantization is not None and not (int(quantization) == quantization and quantization > 0):
+        raise ValueError(f"synthesize: quantization must be a positive integer count per "
+                         f"revolution, got {quantization!r}")
+    rng = np.random.default_rng(seed)
+    n = int(math.floor((t1 - t_start) * rate + 1e-9)) + 1
+    if n < MIN_SAMPLES:
+        raise ValueError(f"synthesize: only {n} samples in [{t_start}, {t1}] s at {rate} Hz; "
+                         f"need at least {MIN_SAMPLES}")
+    nominal = t_start + np.arange(n) / rate
+    jitter = np.clip(rng.normal(0.0, jitter_std, n), -0.45 / rate, 0.45 / rate)
+    actual = np.maximum(nominal + jitter, 0.0)
+    keep = np.ones(n, dtype=bool)
+    keep[1:] = rng.random(n - 1) >= drop
+    nominal, actual = nominal[keep], actual[keep]
+    # The scene's state is at t = 0, so integrate from there when the record starts later.
+    sim_ts = actual if actual[0] == 0.0 else np.concatenate([[0.0], actual])
+    traj = scene.simulate(sim_ts)
+    phi = np.asarray(traj.phi)[-actual.shape[0]:]
+    if quantization is not None:
+        step = 2 * math.pi / int(quantization)
+        phi = np.round(phi / step) * step
+    phi = phi + rng.normal(0.0, noise_std, phi.shape) if noise_std > 0 else phi
+    load = None if isinstance(scene.load, NoLoad) else scene.load
+    torque = None if isinstance(scene.torque, NoLoad) else scene.torque
+    return Data(nominal, phi, load, torque, source="synthetic")

@@ -1,0 +1,51 @@
+"""Figure of a fit: data against model, residuals, and the parameter correlations."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ._plot import _pyplot, save_figure
+
+__all__ = ["plot_fit"]
+
+
+def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
+    """Draw a [`FitResult`][]: phi data and fit (top), residuals (middle), and the
+    correlation matrix of the estimates (bottom; blank where undefined)."""
+    plt = _pyplot()
+    fig = plt.figure(figsize=(9, 9))
+    gs = fig.add_gridspec(3, 1, height_ratios=[2, 1, 2])
+    ax1 = fig.add_subplot(gs[0])
+    ax2 = fig.add_subplot(gs[1], sharex=ax1)
+    for i, (d, f) in enumerate(zip(result.data, result.fitted)):
+        label = f" (record {i})" if len(result.data) > 1 else ""
+        ax1.plot(d.ts, d.phi, ".", ms=2, color=f"C{2 * i}", label="data" + label)
+        ax1.plot(d.ts, f, "-", lw=1, color=f"C{2 * i + 1}", label="fit" + label)
+        ax2.plot(d.ts, d.phi - f, ".", ms=2, color=f"C{2 * i}")
+    ax1.set_ylabel("phi [rad]")
+    ax1.legend(loc="upper right", fontsize=8)
+    ax2.set_ylabel("data - fit [rad]")
+    ax2.set_xlabel("t [s]")
+    for ax in (ax1, ax2):
+        ax.grid(alpha=0.3)
+    state = "converged" if result.converged else "NOT converged"
+    ident = "" if result.identifiable else ", NOT identifiable"
+    ax1.set_title((title + "\n" if title else "") + f"{state}{ident}; rms residual "
+                  f"{result.rms_residual:.3g} rad; condition number "
+                  f"{result.condition_number:.3g}", fontsize=9)
+    ax3 = fig.add_subplot(gs[2])
+    corr = np.ma.masked_invalid(np.asarray(result.correlation, dtype=float))
+    im = ax3.imshow(corr, vmin=-1, vmax=1, cmap="RdBu_r")
+    names = list(result.names)
+    ax3.set_xticks(range(len(names)), names, rotation=45, fontsize=8)
+    ax3.set_yticks(range(len(names)), names, fontsize=8)
+    for i in range(len(names)):
+        for j in range(len(names)):
+            if not np.ma.is_masked(corr[i, j]):
+                ax3.text(j, i, f"{corr[i, j]:.2f}", ha="center", va="center", fontsize=7)
+    ax3.set_title("correlation of the estimates", fontsize=9)
+    fig.colorbar(im, ax=ax3, shrink=0.8)
+    fig.tight_layout()
+    save_figure(fig, path)

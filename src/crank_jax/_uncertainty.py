@@ -1,0 +1,234 @@
+"""Uncertainty and identifiability from the sensitivity matrix.
+
+With residuals `r(z)` (n,) and coordinates `z` (p,) (log-values for positive quantities,
+so the Jacobian's columns are the sensitivities scaled by the parameter values):
+
+- sensitivities `J = dr/dz` (n, p), by forward mode through the ODE solve
+  (`diffrax.ForwardMode` and `jax.jacfwd`: p tangents are cheaper than n cotangents);
+- noise variance `sigma^2 = |r|^2 / (n - p)`; Fisher information `J^T J / sigma^2`; Laplace
+  covariance `sigma^2 (J^T J)^-1`, from the SVD `J = U diag(s) V^T`;
+- a direction `v` of `z`-space is **unidentifiable** when it is numerically in the null
+  space (`s < 1e-7 s_max`) or so weakly determined that its standard error `sigma / s`
+  exceeds [`PRACTICAL_LIMIT`][] (a 50% relative error in log coordinates);
+- the common-scale direction of DESIGN.md section 3 (every free mass, inertia, stiffness,
+  damping and load amplitude multiplied by one factor) is tested explicitly and reported
+  in words.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from ._problem import LOAD_NAMES, SCALE_GROUP
+
+__all__ = ["Uncertainty", "analyse", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
+           "scale_message"]
+
+#: Two-sided 95% quantile of the standard normal distribution.
+Z95 = 1.959963984540054
+#: Relative singular values below this are the numerical null space.
+RANK_TOL = 1e-7
+#: A direction whose standard error (in log coordinates) exceeds this is unidentifiable
+#: in practice: the data cannot even pin it down to within +-50%.
+PRACTICAL_LIMIT = 0.5
+# A parameter whose unit vector has at least this component in an unidentifiable
+# subspace has no meaningful standard error.
+_AFFECTED = 0.05
+
+
+class Uncertainty(NamedTuple):
+    """Uncertainty of the reported parameters (p of them), in physical units.
+
+    NaN marks a quantity that is undefined (an unidentifiable parameter's stderr and CI).
+    """
+
+    stderr: np.ndarray
+    """(p,) standard errors, in each parameter's unit."""
+    ci95: np.ndarray
+    """(p, 2) 95% confidence intervals (log-normal for positive parameters)."""
+    correlation: np.ndarray
+    """(p, p) correlation matrix."""
+    covariance_z: np.ndarray
+    """(p, p) Laplace covariance of the coordinates z."""
+    singular_values: np.ndarray
+    """(p,) singular values of the scaled sensitivity matrix, descending."""
+    condition_number: float
+    """s_max / s_min of the scaled sensitivity matrix (inf when singular)."""
+    sigma: float
+    """Noise standard deviation estimated from the residuals (or given), rad."""
+    identifiable: bool
+    directions: list[str]
+    """One sentence per unidentifiable direction (empty when identifiable)."""
+    affected: np.ndarray
+    """(p,) bool: parameters involved in an unidentifiable direction."""
+
+
+def _name_list(names: Sequence[str]) -> str:
+    names = list(names)
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
+def scale_message(names: Sequence[str]) -> str:
+    """The sentence for the common-scale direction, e.g. "m_c, m_p, m_s, I_c, I_p, k and c
+    are determined only up to a common scale: fix one of them or supply a known load"."""
+    return (f"{_name_list(names)} are determined only up to a common scale: fix one of them "
+            "or supply a known load")
+
+
+def _term(name: str, coef: float, log: bool) -> str:
+    sign = "-" if coef < 0 else "+"
+    return f"{sign} {abs(coef):.2f} {'ln ' + name if log else name}"
+
+
+def analyse(
+    J: np.ndarray,
+    residuals: np.ndarray,
+    n: int,
+    names: Sequence[str],
+    values: np.ndarray,
+    log: Sequence[bool],
+    ref: np.ndarray,
+    sigma: float | None = None,
+    geometry: dict[str, float] | None = None,
+) -> Uncertainty:
+    """Standard errors, intervals, correlations and identifiability of a fit.
+
+    **Arguments:**
+
+    - `J`: (N, p) Jacobian of the residuals with respect to the coordinates z (rows of
+      zero weight allowed).
+    - `residuals`: (N,) residuals at the estimate, rad.
+    - `n`: number of fitted samples (the non-zero-weight rows).
+    - `names`, `values` (p,), `log` (p,): the reported parameters, their estimates and
+      whether each is fitted in log space; `ref` (p,): the scale of linear coordinates.
+    - `sigma`: the noise standard deviation if known; default: from the residuals.
+    - `geometry`: `r`, `L`, `b`, `s` (m), to test the coupler's equivalent-mass direction.
+
+    **Returns:** an [`Uncertainty`][].
+    """
+    J = np.asarray(J, dtype=float)
+    p = J.shape[1]
+    log = np.asarray(log, dtype=bool)
+    values = np.asarray(values, dtype=float)
+    dof = max(n - p, 1)
+    if sigma is None:
+        sigma = float(np.sqrt(np.sum(np.square(residuals)) / dof))
+    _, s, Vt = np.linalg.svd(J, full_matrices=False)
+    s_max = s[0] if s.size and s[0] > 0 else 1.0
+    numeric_null = s <= RANK_TOL * s_max
+    with np.errstate(divide="ignore"):
+        se_dir = np.where(s > 0, sigma / np.where(s > 0, s, 1.0), np.inf)
+    flagged = numeric_null | (se_dir > PRACTICAL_LIMIT)
+    V = Vt.T  # columns: right singular vectors (unit, in z)
+
+    # Known structural directions, tested explicitly so they can be stated in words.
+    known = _known_directions(names, values, log, ref, geometry)
+    directions: list[str] = []
+    Vf = V[:, flagged]
+    found = []
+    for u, message in known:
+        gain = float(np.linalg.norm(J @ u))
+        if gain <= RANK_TOL * s_max or sigma / max(gain, 1e-300) > PRACTICAL_LIMIT:
+            directions.append(message)
+            found.append(u)
+    if found:
+        Q, _ = np.linalg.qr(np.column_stack(found))
+        rest = Vf - Q @ (Q.T @ Vf)
+        if rest.size:
+            ur, sr, _ = np.linalg.svd(rest, full_matrices=False)
+            rest = ur[:, sr > 0.5]
+        _describe(rest, names, log, se_dir, directions)
+        Vf = np.column_stack([Q, rest]) if rest.size else Q
+    else:
+        _describe(Vf, names, log, se_dir, directions)
+
+    affected = (np.linalg.norm(Vf, axis=1) > _AFFECTED) if Vf.size else np.zeros(p, bool)
+    # Laplace covariance; the numerical null space is left out (a pseudo-inverse), so
+    # parameters orthogonal to it keep their (correct) standard errors.
+    inv_s2 = np.where(numeric_null, 0.0, 1.0 / np.where(s > 0, s, 1.0) ** 2)
+    cov = sigma**2 * (V * inv_s2) @ V.T
+    se_z = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    se_z[affected] = np.nan
+    stderr = np.where(log, values * se_z, ref * se_z)
+    lo = np.where(log, values * np.exp(-Z95 * se_z), values - Z95 * ref * se_z)
+    hi = np.where(log, values * np.exp(Z95 * se_z), values + Z95 * ref * se_z)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.sqrt(np.diag(cov))
+        corr = cov / np.outer(d, d)
+    corr[affected, :] = np.nan
+    corr[:, affected] = np.nan
+    s_min = s[-1] if s.size else 0.0
+    cond = float(s_max / s_min) if s_min > 0 else math.inf
+    return Uncertainty(stderr, np.column_stack([lo, hi]), corr, cov, s, cond, sigma,
+                       not directions, directions, affected)
+
+
+def _known_directions(names, values, log, ref, geometry) -> list[tuple[np.ndarray, str]]:
+    """Unit vectors in z of the structural symmetries whose members are all free."""
+    p = len(names)
+    idx = {n: i for i, n in enumerate(names)}
+    out = []
+
+    def vector(dv: dict[str, float]) -> np.ndarray | None:
+        u = np.zeros(p)
+        for n, d in dv.items():
+            if d == 0.0:
+                continue
+            if n not in idx:
+                return None  # a member this direction needs is fixed: no symmetry
+            i = idx[n]
+            u[i] = d / values[i] if log[i] else d / ref[i]
+        norm = np.linalg.norm(u)
+        return u / norm if norm > 0 else None
+
+    # 1. Common scale: every mass, inertia, k, c and load amplitude times one factor.
+    group = [n for n in names if n in SCALE_GROUP or n in LOAD_NAMES]
+    u = vector({n: values[idx[n]] for n in group}) if group else None
+    if u is not None:
+        out.append((u, scale_message(group)))
+    # 2. The coupler is dynamically equivalent to point masses m_p (1 - b/L) at A and
+    #    m_p b/L at B plus an inertia I_p - m_p b (L - b) about its centre of mass. So one
+    #    more kg of coupler can be undone by the crank (mass at radius r), the slider and
+    #    I_p: a second exact symmetry when m_c, I_c, m_s, I_p and m_p are all free.
+    if geometry is not None and "m_p" in idx:
+        r, L, b, s = (geometry[k] for k in ("r", "L", "b", "s"))
+        a = 1 - b / L
+        dm_c = -a * r / s if s > 0 else 0.0
+        dv = {"m_p": 1.0, "m_s": -b / L, "I_p": b * (L - b), "m_c": dm_c,
+              "I_c": -a * r * r - dm_c * s * s}
+        if s == 0 and a != 0:
+            dv = {}  # the crank cannot absorb the coupler's weight without an offset s
+        u = vector(dv) if dv else None
+        if u is not None:
+            members = [n for n in ("m_p", "m_c", "I_c", "m_s", "I_p") if dv.get(n, 0) != 0]
+            out.append((u, f"{_name_list(members)} are not separately determined: a coupler "
+                           "moves like point masses at its two joints plus an inertia, so "
+                           f"m_p trades against {_name_list(members[1:])}: fix one of them "
+                           "(e.g. weigh the coupler)"))
+    return out
+
+
+def _describe(Vf: np.ndarray, names, log, se_dir, out: list[str]) -> None:
+    """Append one sentence for the unidentifiable subspace spanned by the columns of Vf."""
+    if Vf.size == 0:
+        return
+    d = Vf.shape[1]
+    weight = np.linalg.norm(Vf, axis=1)
+    involved = [names[i] for i in np.argsort(-weight) if weight[i] > _AFFECTED]
+    if d == 1:
+        v = Vf[:, 0]
+        v = v * np.sign(v[np.argmax(np.abs(v))])
+        order = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) > _AFFECTED]
+        combo = " ".join(_term(names[i], v[i], bool(log[i])) for i in order).lstrip("+ ")
+        out.append(f"the combination {combo} is not determined by the data: fix one of "
+                   f"{_name_list(involved)}, or make the experiment richer (a larger amplitude, "
+                   "a known load)")
+    else:
+        out.append(f"{_name_list(involved)} enter the data only through "
+                   f"{max(len(involved) - d, 0)} combinations ({d} directions are not "
+                   f"determined): fix {d} of them, or make the "
+                   "experiment richer (a larger amplitude, a known load)")
