@@ -66,7 +66,7 @@ __all__ += ["REDUCTIONS", "STATUS", "SweepResult", "VARIABLES", "distributions",
             "initialize_distributed", "sweep", "sweep_cost"]
 
 # --- identification ---
-from ._data import Data, DataError, load_data, save_data, synthesize  # noqa: E402
+from ._data import Data, DataError, MultiSineLoad, load_data, save_data, synthesize  # noqa: E402
 from ._identify import (  # noqa: E402
     FREE_NAMES,
     ConvergenceWarning,
@@ -77,6 +77,6 @@ from ._identify import (  # noqa: E402
     regressor_start,
 )
 
-__all__ += ["ConvergenceWarning", "Data", "DataError", "FREE_NAMES", "FitResult",
+__all__ += ["ConvergenceWarning", "Data", "DataError", "FREE_NAMES", "FitResult", "MultiSineLoad",
             "IdentifiabilityWarning", "Profile", "fit", "load_data", "regressor_start",
             "save_data", "synthesize"]

@@ -23,15 +23,43 @@ import os
 from collections.abc import Sequence
 
 import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float
 
 from ._io import atomic_write
 from ._loads import AbstractLoad, NoLoad, SampledLoad
+from ._params import _as_float_array
 
-__all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES"]
+__all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES",
+           "MultiSineLoad"]
 
 #: The fewest samples a record may have.
 MIN_SAMPLES = 5
+
+
+class MultiSineLoad(AbstractLoad):
+    """An identification excitation: `X(t) = X0 + sum_j a_j sin(2 pi f_j t + p_j)`.
+
+    A sum of sines at several frequencies excites the mechanism's nonlinear terms with
+    different shapes, which separates masses and inertias that a single tone cannot.
+
+    **Arguments:** `amplitudes` (k,), N or N*m; `freqs_hz` (k,), Hz; `phases` (k,), rad;
+    `X0`, the mean.
+    """
+
+    amplitudes: Float[Array, " k"] = eqx.field(converter=_as_float_array)
+    freqs_hz: Float[Array, " k"] = eqx.field(converter=_as_float_array)
+    phases: Float[Array, " k"] = eqx.field(converter=_as_float_array)
+    X0: Float[Array, ""] = eqx.field(converter=_as_float_array, default=0.0)
+
+    def __call__(self, t: ArrayLike) -> Array:
+        t = jnp.asarray(t, dtype=float)[..., None]
+        arg = 2 * jnp.pi * self.freqs_hz * t + self.phases
+        return self.X0 + jnp.sum(self.amplitudes * jnp.sin(arg), axis=-1)
+
+    def mean(self) -> Array:
+        return self.X0
 
 
 class DataError(ValueError):
@@ -52,13 +80,14 @@ def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[st
         bad = ~np.isfinite(x)
         if bad.any():
             i = int(np.argmax(bad))
-            raise DataError(f"{where}: {label(i)}: column {name!r} is {x[i]} (NaN or inf); "
+            raise DataError(f"{where}: {label(i)}: column {name!r} is {float(x[i])} (NaN or inf); "
                             "remove or repair that row")
     d = np.diff(ts)
     if not np.all(d > 0):
         i = int(np.argmax(d <= 0)) + 1
-        raise DataError(f"{where}: {label(i)}: time t = {ts[i]!r} does not increase (previous "
-                        f"t = {ts[i - 1]!r}); sort the record and remove duplicate times")
+        raise DataError(f"{where}: {label(i)}: time t = {float(ts[i])!r} does not increase "
+                        f"(previous t = {float(ts[i - 1])!r}); sort the record and remove "
+                        "duplicate times")
 
 
 class Data(eqx.Module):
@@ -179,8 +208,8 @@ def load_data(
         bad = ~np.isfinite(col[name])
         if bad.any():
             i = int(np.argmax(bad))
-            raise DataError(f"{where}: {labels[i]}: column {name!r} is {col[name][i]} (NaN or "
-                            "inf); remove or repair that row")
+            raise DataError(f"{where}: {labels[i]}: column {name!r} is {float(col[name][i])} "
+                            "(NaN or inf); remove or repair that row")
     _check_series(ts, phi, where, labels)
     load = SampledLoad(ts, col[P_col]) if P_col in col else None
     torque = SampledLoad(ts, col[tau_col]) if tau_col in col else None
