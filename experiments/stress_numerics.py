@@ -4,12 +4,12 @@
     python experiments/stress_numerics.py --smoke    # seconds, for CI
 
 Writes experiments/results/stress_numerics[_smoke].json and (full run)
-docs/figures/stress_stiffness.png and docs/figures/stress_gradients.png.
+docs/figures/stress_stiffness.png (gradients over long horizons: stress_gradients.py).
 
 Sections: stiffness sweep (k = 1e-2 .. 1e7 N*m/rad, every solver and "auto"), energy drift
 with c = 0 over 1e3 periods against tolerance and solver, a 1e4-period horizon, geometry
-extremes r/L = 0.01 .. 0.999, full revolutions, a crank with xi < 0, gradients over long
-horizons with single and multiple shooting, and float32 against float64.
+extremes r/L = 0.01 .. 0.999, full revolutions, a crank with xi < 0, and float32 against
+float64.
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
@@ -141,60 +140,6 @@ def extremes(smoke):
     return rows
 
 
-def gradients(smoke):
-    """d(loss)/dk for a fit of k to a trajectory, single shooting against multiple shooting.
-
-    Data: the lab rig with k = 2 (c = 0.01). Model: k0 = 1.9 (5% off). Single shooting
-    integrates the whole horizon from the known initial state; multiple shooting restarts
-    every 0.5 s from the data's own state (the fitter would make these free parameters
-    with continuity penalties). The gradient should point from k0 towards 2.
-    """
-    scene = cj.load_scene("lab-rig")
-    horizons = (1.0, 4.0) if smoke else (1.0, 5.0, 20.0, 50.0)
-    seg = 0.5
-    rows = []
-    for T in horizons:
-        n = int(round(T / 0.01)) + 1
-        ts = np.linspace(0.0, T, n)
-        data = scene.simulate(ts=ts)
-        phi_d, dphi_d = jnp.asarray(data.phi), jnp.asarray(data.dphi)
-
-        def single(k, ts=ts, phi_d=phi_d):
-            tr = cj.simulate(scene.mech.replace(k=k), 1.0, 0.0, ts, solver="tsit5",
-                             rtol=1e-9, atol=1e-11, max_steps=1_000_000)
-            return jnp.mean((tr.phi - phi_d) ** 2)
-
-        m_per = int(round(seg / 0.01))
-        starts = np.arange(0, n - 1, m_per)
-
-        def multiple(k, ts=ts, phi_d=phi_d, dphi_d=dphi_d, starts=starts):
-            mech = scene.mech.replace(k=k)
-            local = ts[: m_per + 1] - ts[0]
-
-            def one(i):
-                tr = cj.simulate(mech, phi_d[i], dphi_d[i], local, solver="tsit5",
-                                 rtol=1e-9, atol=1e-11)
-                idx = jnp.minimum(i + jnp.arange(m_per + 1), n - 1)
-                valid = (i + jnp.arange(m_per + 1)) < n
-                return jnp.sum(jnp.where(valid, (tr.phi - phi_d[idx]) ** 2, 0.0))
-
-            # The same mean squared error as single shooting, over the same samples (the
-            # segment boundaries count twice, harmlessly).
-            return jnp.sum(jax.vmap(one)(jnp.asarray(starts))) / (n + len(starts) - 1)
-
-        for name, fn in (("single", single), ("multiple", multiple)):
-            ks = np.linspace(1.6, 2.4, 5 if smoke else 17)
-            grad = jax.jit(jax.grad(fn))
-            g = np.array([float(grad(jnp.asarray(k))) for k in ks])
-            right = np.mean(np.sign(g[ks != 2.0]) == np.sign(ks[ks != 2.0] - 2.0))
-            rows.append(dict(horizon_s=T, periods=T * 4.5, method=name,
-                             grad_at_1_9=float(g[np.argmin(np.abs(ks - 1.9))]),
-                             max_abs_grad=float(np.max(np.abs(g))),
-                             fraction_pointing_to_truth=float(right)))
-            print(f"gradient T={T} {name}: {rows[-1]}", flush=True)
-    return rows
-
-
 def float32(smoke):
     """The lab rig in float32 (x64 off) against float64: steps, success, drift, error."""
     script = textwrap.dedent(f"""
@@ -250,16 +195,6 @@ def figures(res):
     ax.legend()
     fig.tight_layout()
     fig.savefig(FIGURES / "stress_stiffness.png", dpi=120)
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for method, mk in (("single", "o-"), ("multiple", "s-")):
-        rows = [r for r in res["gradients"] if r["method"] == method]
-        ax.loglog([r["periods"] for r in rows], [r["max_abs_grad"] for r in rows], mk,
-                  label=f"{method} shooting")
-    ax.set_xlabel("horizon, periods")
-    ax.set_ylabel("max |d loss / d k| over k in [1.6, 2.4]")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(FIGURES / "stress_gradients.png", dpi=120)
 
 
 def main(argv=None):
@@ -268,7 +203,7 @@ def main(argv=None):
     p.add_argument("--only", nargs="*", help="run only these sections")
     a = p.parse_args(argv)
     sections = dict(stiffness=stiffness, energy_drift=energy_drift, long_horizon=long_horizon,
-                    extremes=extremes, gradients=gradients, float32=float32)
+                    extremes=extremes, float32=float32)
     res = dict(date=datetime.date.today().isoformat(),
                machine=f"{platform.machine()}, {os.cpu_count()} CPU cores, "
                        f"{platform.processor() or platform.platform()}",
