@@ -42,9 +42,7 @@ def main(argv=None):
                   structure=Structure.of(mech), outputs=outputs, throw=False, checks=False)
         args = (mech, load, torque, jnp.array([1.0, 0.0]), ts, jnp.asarray(1e-8),
                 jnp.asarray(1e-10))
-        compiled = _solve.lower(*args, **kw).compile() if hasattr(_solve, "lower") else None
-        if compiled is None:
-            compiled = jax.jit(lambda *a: _solve(*a, **kw)).lower(*args).compile()
+        compiled = jax.jit(lambda *a, kw=kw: _solve(*a, **kw)).lower(*args).compile()
         text = compiled.as_text()
         n_instr = len(re.findall(r"^\s+\S+ = ", text, re.M))
         cost = compiled.cost_analysis()

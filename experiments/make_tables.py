@@ -136,7 +136,7 @@ def section() -> str:
         sp = a["speedup"]
         out.append(f"- (a) one trajectory, default solver, >= 25x faster than scipy DOP853 at "
                    f"equal error: {_met(sp is not None and sp >= 25)}, "
-                   f"{'n/a' if sp is None else f'{sp:.0f}x'} (default: error "
+                   f"{'n/a' if sp is None else f'{sp:.2f}x'} (default: error "
                    f"{a['default_error']:.1e} rad in {_ms(a['default_time_s'])}; DOP853 at "
                    f"that error {_ms(a['dop853_time_s_at_equal_error'])}).")
     if tp:
