@@ -22,6 +22,7 @@ and single shooting loses the basin of attraction once that nears `pi/2`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -264,8 +265,6 @@ def _lm(problem, z0: np.ndarray, max_steps: int, tol: float, desc: str, progress
 def _optax(problem: Problem, z0: np.ndarray, max_steps: int, tol: float, desc: str,
            progress: bool) -> _Run:
     """Adam (a robust first phase far from the optimum), then L-BFGS, on 0.5 |r|^2."""
-    problem = eqx.tree_at(lambda p: p.adjoint, problem, "reverse")
-
     def loss(z, prob):
         r = prob.residuals(z)[0]
         return 0.5 * jnp.sum(r * r)
@@ -633,7 +632,7 @@ def fit(
     z0 = np.concatenate([z_start, _segment_z(ms, seg_states)])
     shooting_used = "single" if ms is ss else f"multiple ({'+'.join(map(str, nseg))} segments)"
     if method == "optax":
-        ms = eqx.tree_at(lambda pr: pr.adjoint, ms, "reverse")
+        ms = dataclasses.replace(ms, adjoint="reverse")
 
     # Directions in which the residuals are exactly flat at the start (the common scale)
     # are held fixed: the optimiser would otherwise wander along them, and the reported
@@ -782,7 +781,7 @@ def _segment_z(problem: Problem, seg_states) -> np.ndarray:
             # Segment s starts at the shared sample; the rows before it fit exactly the
             # samples before it, so their weights count its index in the record.
             k = int(np.sum(np.asarray(e.seg.w[:s])))
-            out += [ps[k] / e.ref_phi, dps[k] / e.ref_dphi]
+            out += [ps[k] / float(e.ref_phi), dps[k] / float(e.ref_dphi)]
     return np.asarray(out, dtype=float)
 
 
@@ -810,7 +809,7 @@ def _profile(problem: Problem, z_hat, j: int, se_z: float, n: int, max_steps: in
     """Profile likelihood on a grid of +-3 standard errors (or +-ln 2 / +-50% if none)."""
     half = 3 * se_z if math.isfinite(se_z) and se_z > 0 else (
         math.log(2) if problem.log[j] else 0.5)
-    grid = np.linspace(-half, half, 13)
+    grid = np.linspace(-half, half, 9)
     z_hat = np.asarray(z_hat)
     rss_min = 2 * _evaluate(problem, z_hat)[0]
     rss = np.full(grid.shape, np.nan)

@@ -105,8 +105,10 @@ class Experiment(eqx.Module):
     torque: AbstractLoad
     phi0: Array  # used when phi0 is not free
     dphi0: Array
-    ref_phi: float = eqx.field(static=True)
-    ref_dphi: float = eqx.field(static=True)
+    # Arrays, not static floats: a static value that depends on the data would recompile
+    # every fit.
+    ref_phi: Array
+    ref_dphi: Array
     n: int = eqx.field(static=True)  # number of samples
 
 
@@ -316,7 +318,8 @@ def build_problem(
                 ref.append(r)
         seg = make_segments(data.ts, data.phi, n_segments[i])
         exps.append(Experiment(seg, load, torque, jnp.asarray(phi0, float),
-                               jnp.asarray(dphi0, float), ref_phi, ref_dphi, data.n))
+                               jnp.asarray(dphi0, float), jnp.asarray(ref_phi, float),
+                               jnp.asarray(ref_dphi, float), data.n))
     mech_start = mech.replace(**{n: start[n] for n in glob if n in FIELDS})
     structure = Structure.of(mech_start)
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
