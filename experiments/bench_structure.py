@@ -5,7 +5,7 @@ Compiles `simulate`'s solve (solver "dopri8-uniform", 10 s, 1001 samples) for:
 the pendulum preset (crank only: no coupler, slider, spring, loads), the lab rig (every
 body), the lab rig with a harmonic slider force and crank torque, and the lab rig with
 every derived output. Records the optimised HLO's instruction count, XLA's flop estimate,
-and the run time (median). Fewer terms: fewer instructions and less time per step.
+and the run time (median of 31). Fewer terms: fewer instructions and less time per step.
 
 Run: `python experiments/bench_structure.py [--smoke]`.
 """
@@ -47,7 +47,10 @@ def main(argv=None):
         n_instr = len(re.findall(r"^\s+\S+ = ", text, re.M))
         cost = compiled.cost_analysis()
         cost = cost[0] if isinstance(cost, list) else cost
-        t = median_time(lambda: jax.block_until_ready(_solve(*args, **kw)), 1 if smoke else 7)
+        # 31 repeats: a single solve is a few ms, and the machine is shared (an earlier
+        # 7-repeat run put the loaded scene at 16 ms against 6 ms unloaded: noise).
+        t = median_time(lambda: jax.block_until_ready(_solve(*args, **kw)), 1 if smoke else 31,
+                        warmup=1 if smoke else 3)
         tr = _solve(*args, **kw)
         rows.append({"case": label, "hlo_instructions": n_instr,
                      "flops_estimate": float(cost.get("flops", float("nan"))),

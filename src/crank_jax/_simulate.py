@@ -288,8 +288,9 @@ def simulate(
     - `torque`: crank torque tau(t), N*m about +z, likewise.
     - `solver`: one of [`SOLVERS`][]; `"auto"` picks with [`choose_solver`][], and then,
       for concrete parameters, uniform `ts` and a non-stiff choice, `"dopri8-uniform"`:
-      an integer number of equal Dopri8 steps per save interval, chosen so that the summed
-      embedded error estimate (an estimate of the global error) meets `rtol`/`atol`.
+      an integer number of equal Dopri8 steps in each save interval, chosen interval by
+      interval so that the summed embedded error estimate (an estimate of the global
+      error) meets `rtol`/`atol`.
     - `rtol`, `atol`: tolerances of the adaptive step-size controller.
     - `max_steps`: step budget; exceeding it raises (or sets `result` if `throw=False`).
     - `outputs`: derived outputs to add to `Trajectory.extras` (see [`OUTPUTS`][]); only
@@ -324,8 +325,10 @@ def simulate(
     if structure is None:
         structure = Structure.of(mech) if _is_concrete(mech) else Structure()
     if solver == "auto":
-        solver = choose_solver(mech, rtol if _is_concrete(rtol) else 1e-8, load,
-                               span=float(ts[-1] - ts[0]) if _is_concrete(ts) else 10.0)
+        # The span on the host (NumPy): under a user's `jit`, even indexing a concrete `ts`
+        # would be staged out as a tracer.
+        span = float(np.ptp(np.asarray(ts))) if _is_concrete(ts) else 10.0
+        solver = choose_solver(mech, rtol if _is_concrete(rtol) else 1e-8, load, span=span)
         # Speed (issue 4): an explicit choice on uniform save times becomes constant Dopri8
         # steps between them, faster than the adaptive diffrax solve at equal error (see
         # experiments/bench_work_precision.py). Only for concrete parameters, where the
