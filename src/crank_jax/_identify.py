@@ -66,6 +66,7 @@ AUTO_PERIODS = 25.0
 #: Target length of a multiple-shooting segment, in linearised periods.
 SEGMENT_PERIODS = 8.0
 _MAX_ODE_STEPS = 200_000
+_SMALL_ODE_BUDGET = 32_768
 _STALL = 8
 _CHI2_95 = 3.841458820694124  # 95% quantile of chi-squared with 1 degree of freedom
 
@@ -206,47 +207,73 @@ def _evaluate(problem: Problem, z) -> tuple[float, int]:
     return 0.5 * float(r @ r), int(failed)
 
 
-def _lm_init(solver, problem, z):
-    f_struct = jax.eval_shape(lambda: problem(z)[0])
-    return solver.init(problem, z, None, {}, f_struct, None, frozenset())
+# The bar that the jitted loops report to (one fit runs at a time in a process).
+_BAR: list = [None]
 
 
-# Module-level and jitted once: a wrapper made per fit would recompile for every fit.
+def _tick(it, cost, n) -> None:
+    bar = _BAR[0]
+    if bar is not None:
+        bar.n = int(it)
+        bar.set_postfix(rms=f"{math.sqrt(2 * float(cost) / max(int(n), 1)):.3g}", refresh=False)
+        bar.refresh()
+
+
 @eqx.filter_jit
-def _lm_step(solver, problem, z, state):
-    z, state, _ = solver.step(problem, z, None, {}, state, frozenset())
-    return z, state
+def _lm_solve(solver, problem, z0, max_steps):
+    """Levenberg-Marquardt iterations in one compiled loop (a Python loop would pass the
+    solver state, with its linearisation closure, across the jit boundary and recompile on
+    every fit). Returns (z, iterations, done, result)."""
+    f_struct = jax.eval_shape(lambda: problem(z0)[0])
+    state = solver.init(problem, z0, None, {}, f_struct, None, frozenset())
+    n = f_struct.size
+    ring = jnp.full(_STALL + 1, jnp.inf)
+    dyn, static = eqx.partition((z0, state), eqx.is_array)
+
+    def cond(carry):
+        _, it, done, _ = carry
+        return (~done) & (it < max_steps)
+
+    def body(carry):
+        d, it, _, ring = carry
+        z, st = eqx.combine(d, static)
+        z, st, _ = solver.step(problem, z, None, {}, st, frozenset())
+        cost = 0.5 * jnp.sum(st.f_info.residual**2)
+        ring = jnp.roll(ring, -1).at[-1].set(cost)
+        # Besides optimistix's test on the step and residual changes, a statistical one:
+        # stop when the cost has fallen by less than 0.01 sigma^2 over the last _STALL
+        # steps (sigma^2 ~ 2 cost / n). LM can crawl for hundreds of steps along a weakly
+        # determined valley while moving the estimate by a tiny fraction of its
+        # confidence region.
+        stalled = (it >= _STALL) & (ring[0] - cost <= 0.02 * cost / n)
+        jax.debug.callback(_tick, it + 1, cost, n)
+        new_dyn, new_static = eqx.partition((z, st), eqx.is_array)
+        del new_static  # identical to `static` (optimistix keeps its jaxpr stable)
+        return new_dyn, it + 1, st.terminate | stalled, ring
+
+    dyn, it, done, _ = jax.lax.while_loop(cond, body, (dyn, jnp.asarray(0), jnp.asarray(False),
+                                                       ring))
+    z, state = eqx.combine(dyn, static)
+    return z, it, done, state.result
 
 
 def _lm(problem, z0: np.ndarray, max_steps: int, tol: float, desc: str, progress: bool
         ) -> _Run:
-    """Levenberg-Marquardt (optimistix), stepped from Python so progress can be shown."""
+    """Levenberg-Marquardt (optimistix) with forward-mode Jacobians, with a progress bar."""
     solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
     z = jnp.asarray(z0)
     cost0, failed0 = _evaluate(problem, z)
     if failed0 > 0 or not np.isfinite(cost0):
         return _Run(np.asarray(z0), float("nan"), 0, False,
                     "the ODE solve fails at the start values; choose other start values")
-    state = _lm_init(solver, problem, z)
-    it, done, costs = 0, False, []
     with _bar(max_steps, desc, progress) as bar:
-        while it < max_steps:
-            z, state = _lm_step(solver, problem, z, state)
-            it += 1
-            r = np.asarray(state.f_info.residual)
-            costs.append(0.5 * float(r @ r))
-            # Besides optimistix's test on the step and residual changes, a statistical
-            # one: stop when the cost has fallen by less than 0.01 sigma^2 over the last
-            # _STALL steps (sigma^2 ~ 2 cost / n). LM can crawl for hundreds of steps along
-            # a weakly determined valley while moving the estimate by a tiny fraction of
-            # its confidence region.
-            stalled = (len(costs) > _STALL
-                       and costs[-_STALL - 1] - costs[-1] <= 0.02 * costs[-1] / max(r.size, 1))
-            done = bool(state.terminate) or stalled
-            bar.update(1)
-            bar.set_postfix(rms=f"{math.sqrt(2 * costs[-1] / max(r.size, 1)):.3g}")
-            if done:
-                break
+        _BAR[0] = bar if progress else None
+        try:
+            z, it, done, result = _lm_solve(solver, problem, z, jnp.asarray(max_steps))
+            jax.block_until_ready(z)
+        finally:
+            _BAR[0] = None
+    it, done = int(it), bool(done)
     cost, failed = _evaluate(problem, z)
     zn = np.asarray(z)
     if not np.all(np.isfinite(zn)):
@@ -256,39 +283,46 @@ def _lm(problem, z0: np.ndarray, max_steps: int, tol: float, desc: str, progress
     if not done:
         return _Run(zn, float(cost), it, False,
                     f"stopped after max_steps = {max_steps} iterations without converging")
-    if state.result != optx.RESULTS.successful:
+    if result != optx.RESULTS.successful:
         return _Run(zn, float(cost), it, False, "Levenberg-Marquardt failed: "
-                    + optx.RESULTS[state.result])
+                    + optx.RESULTS[result])
     return _Run(zn, float(cost), it, True, "converged")
+
+
+def _loss(z, prob):
+    r = prob.residuals(z)[0]
+    return 0.5 * jnp.sum(r * r)
+
+
+# Module-level optimisers and steps: optax transformations made per fit would be new
+# static objects, and every fit would recompile.
+_ADAM = optax.adam(0.02)
+_LBFGS = optax.lbfgs()
+
+
+@eqx.filter_jit
+def _adam_step(z, st, prob):
+    v, g = jax.value_and_grad(_loss)(z, prob)
+    u, st = _ADAM.update(g, st, z)
+    return optax.apply_updates(z, u), st, v
+
+
+@eqx.filter_jit
+def _lbfgs_step(z, st, prob):
+    f = lambda x: _loss(x, prob)  # noqa: E731
+    v, g = optax.value_and_grad_from_state(f)(z, state=st)
+    u, st = _LBFGS.update(g, st, z, value=v, grad=g, value_fn=f)
+    return optax.apply_updates(z, u), st, v, jnp.max(jnp.abs(g))
 
 
 def _optax(problem: Problem, z0: np.ndarray, max_steps: int, tol: float, desc: str,
            progress: bool) -> _Run:
     """Adam (a robust first phase far from the optimum), then L-BFGS, on 0.5 |r|^2."""
-    def loss(z, prob):
-        r = prob.residuals(z)[0]
-        return 0.5 * jnp.sum(r * r)
-
     cost0, failed0 = _evaluate(problem, jnp.asarray(z0))
     if failed0 > 0 or not np.isfinite(cost0):
         return _Run(np.asarray(z0), float("nan"), 0, False,
                     "the ODE solve fails at the start values; choose other start values")
-    adam = optax.adam(0.02)
-    lbfgs = optax.lbfgs()
-
-    @eqx.filter_jit
-    def adam_step(z, st, prob):
-        v, g = jax.value_and_grad(loss)(z, prob)
-        u, st = adam.update(g, st, z)
-        return optax.apply_updates(z, u), st, v
-
-    @eqx.filter_jit
-    def lbfgs_step(z, st, prob):
-        f = lambda x: loss(x, prob)  # noqa: E731
-        v, g = optax.value_and_grad_from_state(f)(z, state=st)
-        u, st = lbfgs.update(g, st, z, value=v, grad=g, value_fn=f)
-        return optax.apply_updates(z, u), st, v, jnp.max(jnp.abs(g))
-
+    adam, lbfgs, adam_step, lbfgs_step = _ADAM, _LBFGS, _adam_step, _lbfgs_step
     z = jnp.asarray(z0)
     n_adam = max_steps // 4
     it, converged, stall = 0, False, 0
@@ -619,14 +653,16 @@ def fit(
 
     # ODE step budget: generous next to the solve at the start values, so that a trial
     # point in a stiff corner fails fast (and is rejected) instead of grinding through
-    # hundreds of thousands of steps. Rounded to a power of two so fits share compilations.
+    # hundreds of thousands of steps.
     ss = problem_for([1] * len(records), _MAX_ODE_STEPS)
     names = ss.names
     z_start = ss.to_z([full_start[n] for n in names])
     _, failed0, steps0 = _residuals_jit(ss, jnp.asarray(z_start))
     budget = _MAX_ODE_STEPS
     if int(failed0) == 0:
-        budget = int(min(_MAX_ODE_STEPS, 2 ** math.ceil(math.log2(max(20 * int(steps0), 4096)))))
+        # Two levels only: the start state varies with each record's noise, and a finer
+        # bucket would straddle a boundary (and recompile) from one record to the next.
+        budget = _SMALL_ODE_BUDGET if 20 * int(steps0) <= _SMALL_ODE_BUDGET else _MAX_ODE_STEPS
         ss = problem_for([1] * len(records), budget)
     ms = problem_for(nseg, budget) if max(nseg) > 1 else ss
     z0 = np.concatenate([z_start, _segment_z(ms, seg_states)])
