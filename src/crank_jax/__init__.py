@@ -11,9 +11,16 @@ Public API (everything else is private):
 - Loads: `NoLoad`, `ConstantLoad`, `HarmonicLoad`, `SampledLoad`, `AbstractLoad`.
 - Simulation: `simulate`, `Trajectory`, `choose_solver`, `SOLVERS`, `OUTPUTS`.
 - Scenes: `Scene`, `load_scene`, `save_scene`, `scene_to_toml`, `presets`, `PRESETS`.
+- Identification: `synthesize`, `load_data`, `save_data`, `Data`, `DataError`,
+  `MultiSineLoad`, `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
+  `IdentifiabilityWarning`, `ConvergenceWarning`.
+- Monte Carlo: `sweep`, `SweepResult`, `distributions`, `REDUCTIONS`, `STATUS`,
+  `VARIABLES`, `sweep_cost`, `initialize_distributed`, `fastest_mode`.
 """
 
+from . import distributions
 from ._cache import default_cache_dir, enable_compilation_cache
+from ._data import Data, DataError, MultiSineLoad, load_data, save_data, synthesize
 from ._dynamics import (
     Structure,
     acceleration,
@@ -25,6 +32,15 @@ from ._dynamics import (
     potential_energy,
     power_in,
 )
+from ._identify import (
+    FREE_NAMES,
+    ConvergenceWarning,
+    FitResult,
+    IdentifiabilityWarning,
+    Profile,
+    fit,
+    regressor_start,
+)
 from ._io import atomic_write
 from ._kinematics import CouplerAngle, Kinematics, coupler_angle, kinematics
 from ._linear import Linearization, linearize
@@ -32,7 +48,24 @@ from ._loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoa
 from ._newton_euler import GlobalForm, Reactions, distribution_matrix, global_form, reactions
 from ._params import FIELDS, SliderCrank
 from ._scene import PRESETS, Scene, SceneError, load_scene, presets, save_scene, scene_to_toml
-from ._simulate import OUTPUTS, SOLVERS, Trajectory, choose_solver, output_columns, simulate
+from ._simulate import (
+    OUTPUTS,
+    SOLVERS,
+    Trajectory,
+    choose_solver,
+    fastest_mode,
+    output_columns,
+    simulate,
+)
+from ._sweep import (
+    REDUCTIONS,
+    STATUS,
+    VARIABLES,
+    SweepResult,
+    initialize_distributed,
+    sweep,
+    sweep_cost,
+)
 
 __version__ = "0.1.0"
 
@@ -48,35 +81,27 @@ __all__ = [
     "load_scene", "mass", "output_columns", "potential_energy", "power_in", "presets",
     "reactions", "save_scene", "scene_to_toml", "simulate",
 ]
-
-# --- sweeps ---
-from . import distributions  # noqa: E402
-from ._simulate import fastest_mode  # noqa: E402
-from ._sweep import (  # noqa: E402
-    REDUCTIONS,
-    STATUS,
-    VARIABLES,
-    SweepResult,
-    initialize_distributed,
-    sweep,
-    sweep_cost,
-)
-
-__all__ += ["REDUCTIONS", "STATUS", "SweepResult", "VARIABLES", "distributions", "fastest_mode",
-            "initialize_distributed", "sweep", "sweep_cost"]
-
-# --- identification ---
-from ._data import Data, DataError, MultiSineLoad, load_data, save_data, synthesize  # noqa: E402
-from ._identify import (  # noqa: E402
-    FREE_NAMES,
-    ConvergenceWarning,
-    FitResult,
-    IdentifiabilityWarning,
-    Profile,
-    fit,
-    regressor_start,
-)
-
-__all__ += ["ConvergenceWarning", "Data", "DataError", "FREE_NAMES", "FitResult", "MultiSineLoad",
-            "IdentifiabilityWarning", "Profile", "fit", "load_data", "regressor_start",
-            "save_data", "synthesize"]
+__all__ += [
+    "REDUCTIONS",
+    "STATUS",
+    "SweepResult",
+    "VARIABLES",
+    "distributions",
+    "fastest_mode",
+    "initialize_distributed",
+    "sweep",
+    "sweep_cost",
+    "ConvergenceWarning",
+    "Data",
+    "DataError",
+    "FREE_NAMES",
+    "FitResult",
+    "MultiSineLoad",
+    "IdentifiabilityWarning",
+    "Profile",
+    "fit",
+    "load_data",
+    "regressor_start",
+    "save_data",
+    "synthesize",
+]
