@@ -158,17 +158,29 @@ def generalized_force(
     sphi = jnp.sin(phi)
     q = jnp.zeros(jnp.broadcast_shapes(phi.shape, dphi.shape, jnp.shape(t))) * mech.r
     has_P = not isinstance(load, NoLoad)
+    d1 = sd = lever = None
     if structure.gravity or has_P:
         ca = coupler_angle(mech, phi)
+        d1, sd = ca.d1, ca.sin
         lever = _slider_lever(mech, phi, ca)
+    return q + generalized_force_terms(mech, phi, dphi, t, load, torque, structure,
+                                       sphi, d1, sd, lever)
+
+
+def generalized_force_terms(mech, phi, dphi, t, load, torque, structure, sphi, d1, sd, lever):
+    """The terms of q from precomputed geometry: `sphi = sin(phi)`, `d1 = delta'`,
+    `sd = sin(delta)` and `lever = r sin(phi) + L delta' sin(delta)` (the last three may be
+    None when the structure has no term that needs them). Shared by `generalized_force` and
+    the fused right-hand side of the uniform solver, so q is written once."""
+    q = 0.0
     if structure.gravity:
         weight_arm = mech.m_c * mech.s * sphi
         if structure.coupler:
-            weight_arm = weight_arm + mech.m_p * (mech.r * sphi + mech.b * ca.d1 * ca.sin)
+            weight_arm = weight_arm + mech.m_p * (mech.r * sphi + mech.b * d1 * sd)
         if structure.slider:
             weight_arm = weight_arm + mech.m_s * lever
         q = q + mech.g * weight_arm
-    if has_P:
+    if not isinstance(load, NoLoad):
         q = q + load(t) * lever
     if structure.spring:
         q = q - mech.k * phi

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._dynamics import Structure
+from ._dynamics import Structure, generalized_force_terms
 from ._loads import NoLoad
 from ._params import SliderCrank
 
@@ -90,6 +90,7 @@ def fused_acceleration(mech: SliderCrank, phi, dphi, t, load, torque,
     M = mech.m_c * mech.s**2 + mech.I_c
     K = jnp.zeros_like(phi)
     q = jnp.zeros_like(phi)
+    d1 = sd = lever = None
     if structure.coupler or structure.slider or has_P:
         r, L = mech.r, mech.L
         lam = r / L  # loop-invariant: XLA hoists it
@@ -110,21 +111,8 @@ def fused_acceleration(mech: SliderCrank, phi, dphi, t, load, torque,
     if structure.slider:
         M = M + mech.m_s * lever * lever
         K = K + mech.m_s * lever * (r * cphi + L * (d2 * sd + d1 * d1 * cd))
-    if structure.gravity:
-        arm = mech.m_c * mech.s * sphi
-        if structure.coupler:
-            arm = arm + mech.m_p * (r * sphi + mech.b * d1 * sd)
-        if structure.slider:
-            arm = arm + mech.m_s * lever
-        q = q + mech.g * arm
-    if has_P:
-        q = q + load(t) * lever
-    if structure.spring:
-        q = q - mech.k * phi
-    if structure.damper:
-        q = q - mech.c * dphi
-    if not isinstance(torque, NoLoad):
-        q = q + torque(t)
+    q = q + generalized_force_terms(mech, phi, dphi, t, load, torque, structure, sphi,
+                                    d1, sd, lever)
     return (q - K * dphi * dphi) / M
 
 
