@@ -7,7 +7,7 @@ Measured side by side in one run (medians):
 - the baseline: one forward solve, `crank_jax.simulate` with its default solver;
 - forward mode: `jax.jacfwd` through `simulate(adjoint="forward")`, with the
   `"dopri8-uniform"` solver (whose JVP integrates the variational equation with the same
-  steps, see `crank_jax._uniform._attach_sensitivities`) and with diffrax's adaptive
+  steps, see `crank_jax.solve.uniform._attach_sensitivities`) and with diffrax's adaptive
   Dopri8 (`diffrax.ForwardMode`);
 - reverse mode: `jax.jacrev` through `simulate(adjoint="reverse")` (one backward pass per
   output sample, so 1001 of them, batched by `vmap`), both solvers.

@@ -24,7 +24,7 @@ from _bench import save, setup_jax
 
 setup_jax()
 
-CLI = [sys.executable, "-m", "crank_jax.cli"]
+CLI = [sys.executable, "-m", "crank_jax"]
 
 
 def wall(cmd, env) -> float:

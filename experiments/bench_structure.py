@@ -20,8 +20,8 @@ from _bench import median_time, save, setup_jax
 
 jax = setup_jax()
 import crank_jax as cj  # noqa: E402
-from crank_jax._dynamics import Structure  # noqa: E402
-from crank_jax._simulate import OUTPUTS, _solve  # noqa: E402
+from crank_jax.model.dynamics import Structure  # noqa: E402
+from crank_jax.solve.simulate import OUTPUTS, _solve  # noqa: E402
 
 
 def main(argv=None):

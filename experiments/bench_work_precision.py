@@ -143,9 +143,9 @@ STYLE = {
 
 
 def plot(results, smoke):
-    from crank_jax._plot import _pyplot, save_figure
+    from crank_jax.plot import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(results), figsize=(5.2 * len(results), 4.6), squeeze=False)
     for ax, (label, res) in zip(axes[0], results.items()):
         for method, rows in res["curves"].items():

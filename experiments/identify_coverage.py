@@ -26,9 +26,9 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax._cli_identify import DEMO, demo_data  # noqa: E402
-from crank_jax._io import atomic_write  # noqa: E402
-from crank_jax._plot import _pyplot, save_figure  # noqa: E402
+from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
+from crank_jax.io import atomic_write  # noqa: E402
+from crank_jax.plot import pyplot, save_figure  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -84,7 +84,7 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(out) as f:
         json.dump(doc, f, indent=1)
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(names), figsize=(12, 3), sharey=True)
     grid = np.linspace(-4, 4, 200)
     for ax, n in zip(axes, names):

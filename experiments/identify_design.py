@@ -29,10 +29,10 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax._identify import _jacobian, _residuals_jit  # noqa: E402
-from crank_jax._io import atomic_write  # noqa: E402
-from crank_jax._problem import build_problem  # noqa: E402
-from crank_jax._uncertainty import analyse  # noqa: E402
+from crank_jax.identify.fit import _jacobian, _residuals_jit  # noqa: E402
+from crank_jax.identify.problem import build_problem  # noqa: E402
+from crank_jax.identify.uncertainty import analyse  # noqa: E402
+from crank_jax.io import atomic_write  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SEVEN = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")

@@ -14,7 +14,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax._plot import _pyplot, save_figure  # noqa: E402
+from crank_jax.plot import pyplot, save_figure  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -31,7 +31,7 @@ def main(argv=None) -> None:
     a, wd = chi / (2 * mu), np.sqrt(xi / mu - (chi / (2 * mu)) ** 2)
     phi_lin = float(scene.phi0) * np.exp(-a * t) * (np.cos(wd * t) + a / wd * np.sin(wd * t))
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
     axes[0].plot(t, tr.phi, lw=1.0, label="nonlinear (crank-jax)")
     axes[0].plot(t, phi_lin, lw=0.8, ls="--", label="linearised, eq. 33 corrected")

@@ -2,7 +2,7 @@
 
 Every peer integrates the same equation as `crank_jax.simulate` for a scene without loads
 (`P = tau = 0`), from a hand-written scalar right-hand side, `acceleration_scalar`, that is
-a line-by-line transcription of `crank_jax._dynamics` (M, K, q of the paper's eq. 30, with
+a line-by-line transcription of `crank_jax.model.dynamics` (M, K, q of the paper's eq. 30, with
 the errata). The benchmarks check each peer against `crank_jax` at tight tolerance before
 timing it.
 

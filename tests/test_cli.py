@@ -99,7 +99,7 @@ def test_malformed_scene_file_one_line(tmp_path, capsys):
 
 def test_console_script_entry_point(tmp_path):
     out = tmp_path / "x.csv"
-    p = subprocess.run([sys.executable, "-m", "crank_jax.cli", "simulate", "lab-rig", "--t1",
+    p = subprocess.run([sys.executable, "-m", "crank_jax", "simulate", "lab-rig", "--t1",
                         "0.5", "--samples", "6", "--out", str(out)],
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax._cli_identify import DEMO, demo_data
-from crank_jax._problem import build_problem
+from crank_jax.cli.identify import DEMO, demo_data
+from crank_jax.identify.problem import build_problem
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax._scene import SceneError
+from crank_jax.scene import SceneError
 
 TOML = """
 [mechanism]

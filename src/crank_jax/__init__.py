@@ -19,9 +19,19 @@ Public API (everything else is private):
 """
 
 from . import distributions
-from ._cache import default_cache_dir, enable_compilation_cache
-from ._data import Data, DataError, MultiSineLoad, load_data, save_data, synthesize
-from ._dynamics import (
+from .cache import default_cache_dir, enable_compilation_cache
+from .data import Data, DataError, MultiSineLoad, load_data, save_data, synthesize
+from .identify.fit import (
+    FREE_NAMES,
+    ConvergenceWarning,
+    FitResult,
+    IdentifiabilityWarning,
+    Profile,
+    fit,
+    regressor_start,
+)
+from .io import atomic_write
+from .model.dynamics import (
     Structure,
     acceleration,
     coriolis,
@@ -32,32 +42,15 @@ from ._dynamics import (
     potential_energy,
     power_in,
 )
-from ._identify import (
-    FREE_NAMES,
-    ConvergenceWarning,
-    FitResult,
-    IdentifiabilityWarning,
-    Profile,
-    fit,
-    regressor_start,
-)
-from ._io import atomic_write
-from ._kinematics import CouplerAngle, Kinematics, coupler_angle, kinematics
-from ._linear import Linearization, linearize
-from ._loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
-from ._newton_euler import GlobalForm, Reactions, distribution_matrix, global_form, reactions
-from ._params import FIELDS, SliderCrank
-from ._scene import PRESETS, Scene, SceneError, load_scene, presets, save_scene, scene_to_toml
-from ._simulate import (
-    OUTPUTS,
-    SOLVERS,
-    Trajectory,
-    choose_solver,
-    fastest_mode,
-    output_columns,
-    simulate,
-)
-from ._sweep import (
+from .model.geometry import CouplerAngle, Kinematics, coupler_angle, kinematics
+from .model.linear import Linearization, linearize
+from .model.loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
+from .model.newton_euler import GlobalForm, Reactions, distribution_matrix, global_form, reactions
+from .model.params import FIELDS, SliderCrank
+from .scene import PRESETS, Scene, SceneError, load_scene, presets, save_scene, scene_to_toml
+from .solve.policy import SOLVERS, choose_solver, fastest_mode, resolve_solver
+from .solve.simulate import OUTPUTS, Trajectory, output_columns, simulate
+from .sweep.run import (
     REDUCTIONS,
     STATUS,
     VARIABLES,
@@ -69,7 +62,6 @@ from ._sweep import (
 
 __version__ = "0.1.0"
 
-enable_compilation_cache()
 
 __all__ = [
     "AbstractLoad", "ConstantLoad", "CouplerAngle", "FIELDS", "GlobalForm", "HarmonicLoad",
@@ -79,7 +71,7 @@ __all__ = [
     "default_cache_dir", "distribution_matrix", "enable_compilation_cache", "energy",
     "generalized_force", "global_form", "kinematics", "kinetic_energy", "linearize",
     "load_scene", "mass", "output_columns", "potential_energy", "power_in", "presets",
-    "reactions", "save_scene", "scene_to_toml", "simulate",
+    "reactions", "resolve_solver", "save_scene", "scene_to_toml", "simulate",
 ]
 __all__ += [
     "REDUCTIONS",

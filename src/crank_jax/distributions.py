@@ -1,6 +1,6 @@
 """Distributions for [`crank_jax.sweep`][]: `from crank_jax.distributions import Normal`."""
 
-from ._distributions import (
+from .sweep.distributions import (
     DISTRIBUTIONS,
     AbstractDistribution,
     Const,

@@ -31,9 +31,9 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from ._kinematics import coupler_angle
-from ._loads import AbstractLoad, as_load
-from ._params import SliderCrank
+from .geometry import coupler_angle
+from .loads import AbstractLoad, as_load
+from .params import SliderCrank
 
 __all__ = ["GlobalForm", "global_form", "distribution_matrix", "Reactions", "reactions"]
 

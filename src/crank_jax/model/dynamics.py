@@ -19,9 +19,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ._kinematics import coupler_angle
-from ._loads import AbstractLoad, NoLoad, as_load
-from ._params import SliderCrank
+from .geometry import coupler_angle
+from .loads import AbstractLoad, NoLoad, as_load
+from .params import SliderCrank
 
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",

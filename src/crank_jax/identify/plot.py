@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from ._plot import _pyplot, save_figure
+from ..plot import pyplot, save_figure
 
 __all__ = ["plot_fit"]
 
@@ -14,7 +14,7 @@ __all__ = ["plot_fit"]
 def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
     """Draw a [`FitResult`][]: phi data and fit (top), residuals (middle), and the
     correlation matrix of the estimates (bottom; blank where undefined)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig = plt.figure(figsize=(9, 9))
     gs = fig.add_gridspec(3, 1, height_ratios=[2, 1, 2])
     ax1 = fig.add_subplot(gs[0])

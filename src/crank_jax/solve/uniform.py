@@ -37,9 +37,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._dynamics import Structure, generalized_force_terms
-from ._loads import NoLoad
-from ._params import SliderCrank
+from ..model.dynamics import Structure, generalized_force_terms
+from ..model.loads import NoLoad
+from ..model.params import SliderCrank
 
 __all__ = ["fused_acceleration", "solve_uniform"]
 
@@ -147,7 +147,7 @@ def _step(f, t, y, h):
 
 def _omega(mech: SliderCrank, load) -> jax.Array:
     """A rate scale of the motion, rad/s, from the linearisation: |omega_n| plus damping."""
-    from ._linear import linearize
+    from ..model.linear import linearize
 
     lin = linearize(mech, load)
     mu = jnp.abs(lin.mu)

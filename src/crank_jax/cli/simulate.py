@@ -1,39 +1,16 @@
-"""The `crank-jax` command line.
-
-Every subcommand is a pair `(add_arguments, run)` in [`COMMANDS`][]. A user mistake (bad
-file, bad value, unknown option) prints one line on stderr and exits with status 2;
-outputs are written atomically and never over an input file.
-"""
+"""`crank-jax simulate`, `linearize` and `scenes`: the model's command group."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
-from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["main", "COMMANDS", "UserError"]
+from .errors import UserError
 
-EXIT_USAGE = 2
-
-
-class UserError(Exception):
-    """A mistake on the user's side: reported in one line, exit status 2."""
-
-
-class _Parser(argparse.ArgumentParser):
-    # argparse prints the whole usage block before its error; one line is kinder in
-    # scripts and logs, and `--help` still shows the usage.
-    def error(self, message: str):
-        raise UserError(f"{self.prog}: {message} (see --help)")
-
-
-def _setup_jax() -> None:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
+__all__ = ["COMMANDS"]
 
 
 def _scene_args(p: argparse.ArgumentParser) -> None:
@@ -41,7 +18,7 @@ def _scene_args(p: argparse.ArgumentParser) -> None:
 
 
 def _load(source: str):
-    from ._scene import load_scene
+    from ..scene import load_scene
 
     return load_scene(source)
 
@@ -64,8 +41,9 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
 
 
 def _simulate_run(a: argparse.Namespace) -> int:
-    from ._io import atomic_write, check_not_input
-    from ._simulate import SOLVERS, output_columns
+    from ..io import atomic_write, check_not_input
+    from ..solve.policy import SOLVERS
+    from ..solve.simulate import output_columns
 
     scene = _load(a.scene)
     check_not_input(a.out, [a.scene])
@@ -100,7 +78,7 @@ def _simulate_run(a: argparse.Namespace) -> int:
         f.write(",".join(cols) + "\n")
         np.savetxt(f, data, delimiter=",", fmt="%.17g")
     if a.plot:
-        from ._plot import plot_trajectory
+        from ..plot import plot_trajectory
 
         plot_trajectory(traj, a.plot, title=f"{scene.name}: {scene.description}")
     print(f"wrote {a.out}: {samples} samples of {', '.join(cols)} over [0, {t1:g}] s "
@@ -116,7 +94,7 @@ def _linearize_args(p: argparse.ArgumentParser) -> None:
 
 
 def _linearize_run(a: argparse.Namespace) -> int:
-    from ._linear import linearize
+    from ..model.linear import linearize
 
     scene = _load(a.scene)
     lin = linearize(scene.mech, scene.load)
@@ -146,66 +124,16 @@ def _scenes_args(p: argparse.ArgumentParser) -> None:
 
 
 def _scenes_run(a: argparse.Namespace) -> int:
-    from ._scene import presets
+    from ..scene import presets
 
     for name, desc in presets().items():
         print(f"{name:<14} {desc}")
     return 0
 
 
-Command = tuple[str, str, Callable[[argparse.ArgumentParser], None],
-                Callable[[argparse.Namespace], int]]
-
 #: (name, help, add_arguments, run) for every subcommand.
-COMMANDS: list[Command] = [
+COMMANDS = [
     ("simulate", "simulate a scene and write a CSV", _simulate_args, _simulate_run),
     ("linearize", "linearise a scene about phi = 0", _linearize_args, _linearize_run),
     ("scenes", "list the preset scenes", _scenes_args, _scenes_run),
 ]
-
-
-def _all_commands() -> list[Command]:
-    from . import _cli_identify, _cli_sweep
-
-    return COMMANDS + _cli_identify.COMMANDS + _cli_sweep.COMMANDS
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="crank-jax", description="Slider-crank simulation and identification.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    sub.required = True
-    for name, help_, add, run in _all_commands():
-        p = sub.add_parser(name, help=help_, description=help_)
-        add(p)
-        p.set_defaults(_run=run)
-    return parser
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of `crank-jax`; returns the exit status."""
-    try:
-        args = build_parser().parse_args(argv)
-        _setup_jax()
-        return int(args._run(args) or 0)
-    except UserError as e:
-        print(f"crank-jax: error: {e}", file=sys.stderr)
-        return EXIT_USAGE
-    except (ValueError, OSError) as e:
-        # SceneError, data errors and bad values are ValueErrors with a message that names
-        # the field and the fix; file problems are OSErrors. Either is the user's to fix.
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        print(f"crank-jax: error: {msg}", file=sys.stderr)
-        return EXIT_USAGE
-    except RuntimeError as e:
-        # A solve that failed (e.g. hit max_steps) or a value rejected inside jit by
-        # eqx.error_if: not a crash of ours, so no traceback, but not a success either.
-        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
-        print(f"crank-jax: error: {lines[0] if lines else type(e).__name__}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("crank-jax: interrupted", file=sys.stderr)
-        return 130
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -12,19 +12,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._dynamics import Structure, acceleration, energy
-from ._kinematics import kinematics
-from ._linear import linearize
-from ._loads import AbstractLoad, SampledLoad, as_load
-from ._newton_euler import reactions
-from ._params import SliderCrank
-from ._uniform import solve_uniform, uniform_grid
+from ..model.dynamics import Structure, acceleration, energy
+from ..model.geometry import kinematics
+from ..model.loads import AbstractLoad, SampledLoad, as_load
+from ..model.newton_euler import reactions
+from ..model.params import SliderCrank
+from .policy import is_concrete, resolve_solver
+from .uniform import solve_uniform
 
-__all__ = ["Trajectory", "simulate", "choose_solver", "fastest_mode", "SOLVERS", "OUTPUTS",
-           "output_columns"]
+__all__ = ["Trajectory", "simulate", "OUTPUTS", "output_columns"]
 
-#: Solver names accepted by `simulate(solver=...)`.
-SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform")
 
 #: Derived outputs `simulate(outputs=...)` can add, with the columns each one produces.
 OUTPUTS: dict[str, tuple[str, ...]] = {
@@ -35,18 +32,6 @@ OUTPUTS: dict[str, tuple[str, ...]] = {
     "loads": ("P", "tau"),
     "reactions": ("O_x", "O_y", "A_x", "A_y", "B_x", "B_y", "N"),
 }
-
-# The "auto" switch to an implicit solver (see `choose_solver`). Measured on the lab rig
-# (experiments/stress_stiffness.py): at the stability limit an explicit Tsit5 takes about
-# 0.75 steps per radian of the fast mode, Kvaerno5 resolves a decaying oscillation at about
-# 8 steps per radian while it is above the tolerance, and one Kvaerno5 step costs about
-# 13 Tsit5 steps. Implicit wins once the fast mode has decayed within 1/140 of the span.
-_SWITCH_RATIO = 140.0
-# A real fast mode is stiff only if the other mode is this much slower (otherwise the
-# slow mode, e.g. a crank falling over, needs the same small steps).
-_STIFFNESS_RATIO = 1e2
-_warned_x64 = False
-
 
 def output_columns(outputs: Sequence[str]) -> tuple[str, ...]:
     """The CSV/array column names that the requested outputs produce, in order."""
@@ -98,78 +83,6 @@ def _solver_for(name: str) -> diffrax.AbstractSolver:
         "dopri8": diffrax.Dopri8,
         "kvaerno5": diffrax.Kvaerno5,
     }[name]()
-
-
-def fastest_mode(lin) -> tuple[np.ndarray, np.ndarray]:
-    """The fastest mode of the linearisation `mu s^2 + chi s + xi = 0` (host NumPy).
-
-    **Arguments:** `lin`, a [`Linearization`][] (any batch shape).
-
-    **Returns:** `(rate, decay)`, arrays of the batch shape, 1/s: `rate = |s_fast|`, the
-    largest eigenvalue magnitude (it bounds an explicit solver's step by stability), and
-    `decay = -Re(s_fast)`, how fast that mode dies out (<= 0: it does not).
-    """
-    mu, chi, xi = (np.asarray(x, dtype=float) for x in (lin.mu, lin.chi, lin.xi))
-    disc = chi**2 - 4 * mu * xi
-    with np.errstate(invalid="ignore", divide="ignore"):
-        root = np.sqrt(np.abs(disc))
-        real = disc >= 0
-        # Real roots (-chi -+ root)/(2 mu): with chi >= 0 the "-" root is the larger.
-        rate = np.where(real, (chi + root) / (2 * mu), np.sqrt(np.abs(xi) / mu))
-        decay = np.where(real, (chi + root) / (2 * mu), chi / (2 * mu))
-    return rate, decay
-
-
-def _slowest_rate(lin) -> np.ndarray:
-    mu, chi, xi = (np.asarray(x, dtype=float) for x in (lin.mu, lin.chi, lin.xi))
-    disc = chi**2 - 4 * mu * xi
-    with np.errstate(invalid="ignore", divide="ignore"):
-        root = np.sqrt(np.abs(disc))
-        # A complex pair has one modulus; the slow dynamics is then the forcing's.
-        return np.where(disc >= 0, np.abs(-chi + root) / (2 * mu), 0.0)
-
-
-def choose_solver(
-    mech: SliderCrank, rtol: float, load: AbstractLoad | None = None, *,
-    span: float = 10.0,
-) -> str:
-    """The solver that `solver="auto"` picks, from the tolerance and the stiffness.
-
-    Stiff means: an explicit solver's step is limited by stability on a fast mode that
-    no longer matters. With `rate`, `decay` = [`fastest_mode`][] of the linearisation
-    (with the slider force's mean), the switch is
-
-        ln(1/rtol) / decay  <  span / 140
-
-    (the fast mode falls below the tolerance within 1/140 of the span), and, for a real
-    fast mode, the other mode is more than 100x slower. Then `"kvaerno5"`, an L-stable
-    ESDIRK, steps over the decayed fast mode. The constants are measured (see the README's
-    stability section): an oscillating fast mode with damping ratio 0.05 over 2 s switches
-    at k ~ 1e6 N*m/rad on the lab rig, where Tsit5 needs ~4e4 steps and Kvaerno5 ~3.4e3.
-    An undamped fast mode never switches: it must be resolved, and an explicit solver
-    resolves it cheapest. Otherwise `"dopri8"` for `rtol < 1e-7` (8th order wins at tight
-    tolerances) and `"tsit5"` above.
-
-    **Arguments:** `mech` (a batch counts as stiff if any member is); `rtol`; `load`, the
-    slider force; `span`, the integration time, s.
-
-    **Returns:** a name from [`SOLVERS`][]. Needs concrete parameters; traced ones (inside
-    `jit`) skip the stiffness test.
-    """
-    if _is_concrete(mech) and _is_concrete(load):
-        lin = linearize(mech, load)
-        rate, decay = fastest_mode(lin)
-        slow = _slowest_rate(lin)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            decays_early = decay * float(span) > _SWITCH_RATIO * np.log(1 / float(rtol))
-            separated = (slow * _STIFFNESS_RATIO < rate) | (slow == 0)
-        if np.any(decays_early & separated):
-            return "kvaerno5"
-    return "dopri8" if float(rtol) < 1e-7 else "tsit5"
-
-
-def _is_concrete(tree) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
 def _vector_field(t, y, args):
@@ -308,8 +221,6 @@ def simulate(
     `jax.jacfwd`.
     """
     _warn_if_float32()
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}; choose from {list(SOLVERS)}")
     if adjoint not in ("reverse", "forward", "direct"):
         raise ValueError(f"adjoint must be 'reverse', 'forward' or 'direct', got {adjoint!r}")
     output_columns(outputs)  # validates names
@@ -317,32 +228,20 @@ def simulate(
     ts = jnp.asarray(ts, dtype=jnp.result_type(float))
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"ts must be a 1-D array of at least 2 times, got shape {ts.shape}")
-    if _is_concrete(ts):
+    if is_concrete(ts):
         d = np.diff(np.asarray(ts))
         if not np.all(d > 0):
             i = int(np.argmin(d)) + 1
             raise ValueError(f"ts must increase strictly; it does not at index {i}")
     if structure is None:
-        structure = Structure.of(mech) if _is_concrete(mech) else Structure()
-    if solver == "auto":
-        # The span on the host (NumPy): under a user's `jit`, even indexing a concrete `ts`
-        # would be staged out as a tracer.
-        span = float(np.ptp(np.asarray(ts))) if _is_concrete(ts) else 10.0
-        solver = choose_solver(mech, rtol if _is_concrete(rtol) else 1e-8, load, span=span)
-        # Speed (issue 4): an explicit choice on uniform save times becomes constant Dopri8
-        # steps between them, faster than the adaptive diffrax solve at equal error (see
-        # experiments/bench_work_precision.py). Only for concrete parameters, where the
-        # stiffness test above ran, and not across a sampled load's kinks.
-        if (solver in ("tsit5", "dopri8") and _is_concrete((mech, ts, rtol, atol))
-                and not any(isinstance(x, SampledLoad) for x in (load, torque))
-                and uniform_grid(np.asarray(ts))):
-            solver = "dopri8-uniform"
+        structure = Structure.of(mech) if is_concrete(mech) else Structure()
+    solver = resolve_solver(solver, mech, rtol, atol, load=load, torque=torque, ts=ts)
     dtype = ts.dtype
     y0 = jnp.stack([jnp.asarray(phi0, dtype), jnp.asarray(dphi0, dtype)])
     # Outside any transformation, check on the host and raise there: an `eqx.error_if` in
     # the program is a Python callback, and JAX's persistent compilation cache cannot
     # reuse a program with callbacks, so every process (every CLI call) would recompile.
-    host = _is_concrete((mech, load, torque, y0, ts, rtol, atol))
+    host = is_concrete((mech, load, torque, y0, ts, rtol, atol))
     if host:
         _host_checks(mech, y0)
     traj = _solve(
@@ -357,10 +256,10 @@ def simulate(
 
 def _host_checks(mech: SliderCrank, y0) -> None:
     """The checks `_solve` makes with `eqx.error_if`, on concrete values, same messages."""
-    from ._params import FIELDS, _rules
+    from ..model.params import FIELDS, validation_rules
 
     values = {n: np.asarray(getattr(mech, n)) for n in FIELDS}
-    for name, bad, rule in _rules(values):
+    for name, bad, rule in validation_rules(values):
         if np.any(bad):
             raise eqx.EquinoxRuntimeError(f"SliderCrank.{name} is invalid: {rule}.")
     if not np.all(np.isfinite(np.asarray(y0))):
@@ -368,9 +267,9 @@ def _host_checks(mech: SliderCrank, y0) -> None:
 
 
 def _warn_if_float32() -> None:
-    global _warned_x64
-    if not jax.config.jax_enable_x64 and not _warned_x64:
-        _warned_x64 = True
+    # Python's default warning filter shows this once per call site, without a module-level
+    # flag.
+    if not jax.config.jax_enable_x64:
         warnings.warn(
             "crank_jax: float64 is off (jax_enable_x64 is False), so simulations run in "
             "float32, about 7 significant digits. Tolerances below rtol ~ 1e-6 cannot be met: "

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from ._params import SliderCrank
+from .params import SliderCrank
 
 __all__ = ["CouplerAngle", "coupler_angle", "Kinematics", "kinematics"]
 

@@ -11,13 +11,13 @@ import json
 import os
 import sys
 
-from .cli import UserError
+from .errors import UserError
 
 _ENV_DISTRIBUTED = "CRANK_JAX_DISTRIBUTED"
 
 
 def _sweep_args(p: argparse.ArgumentParser) -> None:
-    from ._sweep import DEFAULT_OUTPUTS, REDUCTIONS, VARIABLES
+    from ..sweep.run import DEFAULT_OUTPUTS, REDUCTIONS, VARIABLES
 
     p.add_argument("scene", help="preset name (see `crank-jax scenes`) or a TOML scene file")
     p.add_argument("--vary", action="append", default=[], metavar="NAME=DIST",
@@ -45,8 +45,8 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
 
 
 def _parse_vary(items: list[str]) -> dict[str, object]:
-    from ._distributions import parse_distribution
-    from ._sweep import VARIABLES
+    from ..sweep.distributions import parse_distribution
+    from ..sweep.run import VARIABLES
 
     spec: dict[str, object] = {}
     for item in items:
@@ -68,16 +68,16 @@ def _parse_vary(items: list[str]) -> dict[str, object]:
 
 def _sweep_run(a: argparse.Namespace) -> int:
     if a.distributed or os.environ.get(_ENV_DISTRIBUTED, "") not in ("", "0"):
-        from ._sweep import initialize_distributed
+        from ..sweep.run import initialize_distributed
 
         initialize_distributed()
     import jax
     import numpy as np
 
-    from ._io import check_not_input
-    from ._scene import load_scene
-    from ._simulate import SOLVERS
-    from ._sweep import REDUCTIONS, sweep
+    from ..io import check_not_input
+    from ..scene import load_scene
+    from ..solve.policy import SOLVERS
+    from ..sweep.run import REDUCTIONS, sweep
 
     spec = _parse_vary(a.vary)
     outputs = [o.strip() for o in a.outputs.split(",") if o.strip()]

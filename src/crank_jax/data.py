@@ -27,9 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._io import atomic_write
-from ._loads import AbstractLoad, NoLoad, SampledLoad
-from ._params import _as_float_array
+from .io import atomic_write
+from .model.loads import AbstractLoad, NoLoad, SampledLoad
+from .model.params import as_float_array
 
 __all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES",
            "MultiSineLoad"]
@@ -48,10 +48,10 @@ class MultiSineLoad(AbstractLoad):
     `X0`, the mean.
     """
 
-    amplitudes: Float[Array, " k"] = eqx.field(converter=_as_float_array)
-    freqs_hz: Float[Array, " k"] = eqx.field(converter=_as_float_array)
-    phases: Float[Array, " k"] = eqx.field(converter=_as_float_array)
-    X0: Float[Array, ""] = eqx.field(converter=_as_float_array, default=0.0)
+    amplitudes: Float[Array, " k"] = eqx.field(converter=as_float_array)
+    freqs_hz: Float[Array, " k"] = eqx.field(converter=as_float_array)
+    phases: Float[Array, " k"] = eqx.field(converter=as_float_array)
+    X0: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
 
     def __call__(self, t: ArrayLike) -> Array:
         t = jnp.asarray(t, dtype=float)[..., None]

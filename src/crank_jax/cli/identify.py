@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from .cli import UserError
+from .errors import UserError
 
 #: The demo experiment: the lab rig driven by a known harmonic crank torque (a shaker),
 #: which fixes the common scale of the inertial parameters; 5 s sampled at 200 Hz with
@@ -42,9 +42,9 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
 
 
 def _synth_run(a: argparse.Namespace) -> int:
-    from ._data import save_data, synthesize
-    from ._io import check_not_input
-    from ._scene import load_scene
+    from ..data import save_data, synthesize
+    from ..io import check_not_input
+    from ..scene import load_scene
 
     scene = load_scene(a.scene)
     check_not_input(a.out, [a.scene])
@@ -99,7 +99,7 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
 
 
 def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
-    from ._io import check_not_input
+    from ..io import check_not_input
 
     for path in (a.out, a.plot):
         if path:
@@ -109,7 +109,7 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
 
 
 def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = "") -> int:
-    from ._io import atomic_write
+    from ..io import atomic_write
 
     print(res.summary())
     if truth:
@@ -126,7 +126,7 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
             f.write("\n")
         print(f"wrote {a.out}", file=sys.stderr)
     if a.plot:
-        from ._fitplot import plot_fit
+        from ..identify.plot import plot_fit
 
         plot_fit(res, a.plot, title)
         print(f"wrote {a.plot}", file=sys.stderr)
@@ -159,9 +159,9 @@ def _fit_run(a: argparse.Namespace) -> int:
         return _demo(a)
     if a.scene is None:
         raise UserError("give both DATA and SCENE (or neither, for the built-in demo)")
-    from ._data import load_data
-    from ._identify import fit
-    from ._scene import load_scene
+    from ..data import load_data
+    from ..identify.fit import fit
+    from ..scene import load_scene
 
     scene = load_scene(a.scene)
     files = [a.data] + list(a.more_data)
@@ -181,9 +181,9 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
 
 def demo_data(seed: int = 1):
     """The demo's scene (the lab rig with its known shaker torque) and synthetic record."""
-    from ._data import synthesize
-    from ._loads import HarmonicLoad
-    from ._scene import load_scene
+    from ..data import synthesize
+    from ..model.loads import HarmonicLoad
+    from ..scene import load_scene
 
     base = load_scene(DEMO["scene"])
     scene = base.__class__(base.mech, torque=HarmonicLoad(0.0, DEMO["tau1"], DEMO["freq_hz"]),
@@ -195,7 +195,7 @@ def demo_data(seed: int = 1):
 
 
 def _demo(a: argparse.Namespace) -> int:
-    from ._identify import fit
+    from ..identify.fit import fit
 
     _outputs_ok(a, [])
     if getattr(a, "data", None) is not None or getattr(a, "more_data", None):
@@ -222,5 +222,5 @@ COMMANDS: list = [
     ("fit", "fit parameters to a record, with uncertainty and identifiability (no arguments: "
             "the built-in demo)", _fit_args, _fit_run),
     ("demo", "synthesise lab-rig data under a known torque, fit k, c, phi0, dphi0 and print "
-             "the estimates with 95% intervals", _demo_args, _demo),
+             "the estimates with 95%% intervals", _demo_args, _demo),
 ]

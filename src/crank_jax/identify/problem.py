@@ -23,12 +23,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._data import Data
-from ._dynamics import Structure
-from ._linear import linearize
-from ._loads import AbstractLoad, ConstantLoad, HarmonicLoad
-from ._params import FIELDS, SliderCrank
-from ._simulate import choose_solver, simulate
+from ..data import Data
+from ..model.dynamics import Structure
+from ..model.linear import linearize
+from ..model.loads import AbstractLoad, ConstantLoad, HarmonicLoad
+from ..model.params import FIELDS, SliderCrank
+from ..solve.policy import resolve_solver
+from ..solve.simulate import simulate
 
 __all__ = ["STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP", "Problem", "build_problem",
            "smooth_derivatives"]
@@ -46,7 +47,7 @@ SCALE_GROUP = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
 _FAILED_RESIDUAL = 10.0
 
 
-def _load_param(load: AbstractLoad, field: str) -> float | None:
+def load_param(load: AbstractLoad, field: str) -> float | None:
     if isinstance(load, HarmonicLoad):
         return float(getattr(load, field))
     if isinstance(load, ConstantLoad) and field == "X0":
@@ -54,7 +55,7 @@ def _load_param(load: AbstractLoad, field: str) -> float | None:
     return None
 
 
-def _set_load_param(load: AbstractLoad, field: str, value) -> AbstractLoad:
+def set_load_param(load: AbstractLoad, field: str, value) -> AbstractLoad:
     if isinstance(load, ConstantLoad):
         return eqx.tree_at(lambda x: x.value, load, value)
     return eqx.tree_at(lambda x: getattr(x, field), load, value)
@@ -180,9 +181,9 @@ class Problem(eqx.Module):
             for name, v in load_vals.items():
                 which, field = LOAD_NAMES[name]
                 if which == "load":
-                    load = _set_load_param(load, field, v)
+                    load = set_load_param(load, field, v)
                 else:
-                    torque = _set_load_param(torque, field, v)
+                    torque = set_load_param(torque, field, v)
             phi0, dphi0 = e.phi0, e.dphi0
             if self.state_free[0]:
                 phi0 = vals[k]
@@ -328,5 +329,6 @@ def build_problem(
 
 
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:
-    """The ODE solver of a fit: the scene's, or the automatic choice at the start values."""
-    return choose_solver(mech, rtol, load) if solver == "auto" else solver
+    """The ODE solver of a fit: the scene's, or the automatic choice at the start values
+    (the record's padded segment times are not a uniform grid, so no save times)."""
+    return resolve_solver(solver, mech, rtol, load=load)

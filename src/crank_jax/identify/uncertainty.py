@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._problem import LOAD_NAMES, SCALE_GROUP
+from .problem import LOAD_NAMES, SCALE_GROUP
 
 __all__ = ["Uncertainty", "analyse", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
            "scale_message"]

@@ -18,8 +18,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ._loads import AbstractLoad, as_load
-from ._params import SliderCrank
+from .loads import AbstractLoad, as_load
+from .params import SliderCrank
 
 __all__ = ["Linearization", "linearize"]
 

@@ -38,23 +38,23 @@ import optax
 import optimistix as optx
 from tqdm.auto import tqdm
 
-from ._data import Data
-from ._dynamics import coriolis, generalized_force, mass
-from ._loads import AbstractLoad
-from ._params import FIELDS, SliderCrank
-from ._problem import (
+from ..data import Data
+from ..model.dynamics import coriolis, generalized_force, mass
+from ..model.loads import AbstractLoad
+from ..model.params import FIELDS, SliderCrank
+from ..scene import Scene
+from .problem import (
     LOAD_NAMES,
     SCALE_GROUP,
     STATE_NAMES,
     Problem,
-    _load_param,
     build_problem,
+    load_param,
     natural_period,
     pick_solver,
     smooth_derivatives,
 )
-from ._scene import Scene
-from ._uncertainty import RANK_TOL, Uncertainty, analyse
+from .uncertainty import RANK_TOL, Uncertainty, analyse
 
 __all__ = ["fit", "FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning",
            "FREE_NAMES", "AUTO_PERIODS", "SEGMENT_PERIODS", "regressor_start"]
@@ -590,7 +590,7 @@ def fit(
                 if (d.load if which == "load" else d.torque) is not None:
                     raise ValueError(f"{n} cannot be free: record {d.source} supplies its own "
                                      f"{'P' if which == 'load' else 'tau'} as data")
-                v = _load_param(obj, field)
+                v = load_param(obj, field)
                 if v is None:
                     raise ValueError(f"{n} cannot be free: the scene's "
                                      f"{'load' if which == 'load' else 'torque'} is "

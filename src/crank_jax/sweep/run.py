@@ -31,13 +31,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._distributions import AbstractDistribution, draw, parse_distribution
-from ._dynamics import Structure, energy
-from ._io import atomic_write
-from ._linear import linearize
-from ._loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
-from ._params import FIELDS, SliderCrank, _rules
-from ._simulate import SOLVERS, choose_solver, fastest_mode, simulate
+from ..io import atomic_write
+from ..model.dynamics import Structure, energy
+from ..model.linear import linearize
+from ..model.loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
+from ..model.params import FIELDS, SliderCrank, validation_rules
+from ..solve.policy import SOLVERS, choose_solver, fastest_mode
+from ..solve.simulate import simulate
+from .distributions import AbstractDistribution, draw, parse_distribution
 
 __all__ = ["sweep", "SweepResult", "REDUCTIONS", "STATUS", "VARIABLES",
            "initialize_distributed", "sweep_cost"]
@@ -235,7 +236,7 @@ def _columns(scene, values: dict[str, np.ndarray], n: int) -> dict[str, np.ndarr
 def _invalid(cols: dict[str, np.ndarray]) -> np.ndarray:
     bad = np.zeros(next(iter(cols.values())).shape, bool)
     with np.errstate(invalid="ignore"):
-        for _, mask, _ in _rules({f: cols[f] for f in FIELDS}):
+        for _, mask, _ in validation_rules({f: cols[f] for f in FIELDS}):
             bad |= mask
         for name in VARIABLES[len(FIELDS):]:
             bad |= ~np.isfinite(cols[name])

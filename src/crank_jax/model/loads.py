@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._params import _as_float_array
+from .params import as_float_array
 
 __all__ = ["AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "SampledLoad", "as_load"]
 
@@ -44,7 +44,7 @@ class NoLoad(AbstractLoad):
 class ConstantLoad(AbstractLoad):
     """`X(t) = value` (N or N*m)."""
 
-    value: Float[Array, ""] = eqx.field(converter=_as_float_array)
+    value: Float[Array, ""] = eqx.field(converter=as_float_array)
 
     def __call__(self, t: ArrayLike) -> Array:
         return self.value + jnp.zeros_like(jnp.asarray(t, dtype=float))
@@ -59,10 +59,10 @@ class HarmonicLoad(AbstractLoad):
     **Arguments:** `X0` mean and `X1` amplitude (N or N*m), `freq_hz` (Hz), `phase` (rad).
     """
 
-    X0: Float[Array, ""] = eqx.field(converter=_as_float_array)
-    X1: Float[Array, ""] = eqx.field(converter=_as_float_array)
-    freq_hz: Float[Array, ""] = eqx.field(converter=_as_float_array)
-    phase: Float[Array, ""] = eqx.field(converter=_as_float_array, default=0.0)
+    X0: Float[Array, ""] = eqx.field(converter=as_float_array)
+    X1: Float[Array, ""] = eqx.field(converter=as_float_array)
+    freq_hz: Float[Array, ""] = eqx.field(converter=as_float_array)
+    phase: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
 
     def __call__(self, t: ArrayLike) -> Array:
         return self.X0 + self.X1 * jnp.sin(2 * jnp.pi * self.freq_hz * t + self.phase)
@@ -78,8 +78,8 @@ class SampledLoad(AbstractLoad):
     shape `(n,)`.
     """
 
-    ts: Float[Array, " n"] = eqx.field(converter=_as_float_array)
-    values: Float[Array, " n"] = eqx.field(converter=_as_float_array)
+    ts: Float[Array, " n"] = eqx.field(converter=as_float_array)
+    values: Float[Array, " n"] = eqx.field(converter=as_float_array)
 
     def __check_init__(self):
         ts, vs = self.ts, self.values

@@ -6,12 +6,12 @@ import os
 
 import numpy as np
 
-from ._io import atomic_write
+from .io import atomic_write
 
 __all__ = ["plot_trajectory", "save_figure"]
 
 
-def _pyplot():
+def pyplot():
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -25,12 +25,12 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> None:
     fmt = os.path.splitext(str(path))[1].lstrip(".") or "png"
     with atomic_write(path, "wb") as f:
         fig.savefig(f, format=fmt, dpi=dpi, bbox_inches="tight")
-    _pyplot().close(fig)
+    pyplot().close(fig)
 
 
 def plot_trajectory(traj, path: str | os.PathLike, title: str = "") -> None:
     """Draw phi(t) and dphi(t) of a [`Trajectory`][] to an image file."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     t = np.asarray(traj.ts)
     ax1.plot(t, np.asarray(traj.phi), lw=1.0)

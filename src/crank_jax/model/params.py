@@ -21,7 +21,7 @@ _UNITS = {
 }
 
 
-def _as_float_array(x: ArrayLike) -> Array:
+def as_float_array(x: ArrayLike) -> Array:
     # Python floats would become weakly-typed; an explicit float array keeps the pytree's
     # dtype stable (float64 under x64) so a new value never means a new compilation.
     if isinstance(x, jax.core.Tracer):
@@ -34,7 +34,7 @@ def _as_float_array(x: ArrayLike) -> Array:
     return jnp.asarray(x, dtype=jax.dtypes.canonicalize_dtype(jnp.float64))
 
 
-def _rules(v: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, str]]:
+def validation_rules(v: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, str]]:
     """(field, violated-mask, rule and fix) for every validation rule; numpy or jax arrays."""
     xp = jnp if any(isinstance(a, jax.Array) for a in v.values()) else np
     rules = [(name, ~xp.isfinite(v[name]), f"{name} must be finite (got NaN or inf)")
@@ -79,18 +79,18 @@ class SliderCrank(eqx.Module):
     `eqx.error_if`, which every simulation calls.
     """
 
-    r: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    L: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    b: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    s: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    m_c: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    m_p: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    m_s: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    I_c: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    I_p: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    k: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    c: Float[Array, ...] = eqx.field(converter=_as_float_array)
-    g: Float[Array, ...] = eqx.field(converter=_as_float_array, default=9.81)
+    r: Float[Array, ...] = eqx.field(converter=as_float_array)
+    L: Float[Array, ...] = eqx.field(converter=as_float_array)
+    b: Float[Array, ...] = eqx.field(converter=as_float_array)
+    s: Float[Array, ...] = eqx.field(converter=as_float_array)
+    m_c: Float[Array, ...] = eqx.field(converter=as_float_array)
+    m_p: Float[Array, ...] = eqx.field(converter=as_float_array)
+    m_s: Float[Array, ...] = eqx.field(converter=as_float_array)
+    I_c: Float[Array, ...] = eqx.field(converter=as_float_array)
+    I_p: Float[Array, ...] = eqx.field(converter=as_float_array)
+    k: Float[Array, ...] = eqx.field(converter=as_float_array)
+    c: Float[Array, ...] = eqx.field(converter=as_float_array)
+    g: Float[Array, ...] = eqx.field(converter=as_float_array, default=9.81)
 
     def __check_init__(self):
         values = {name: getattr(self, name) for name in FIELDS}
@@ -102,7 +102,7 @@ class SliderCrank(eqx.Module):
         if not all(isinstance(v, (jax.Array, np.ndarray, np.generic)) for v in values.values()):
             return
         concrete = {n: np.asarray(v) for n, v in values.items()}
-        for name, bad, rule in _rules(concrete):
+        for name, bad, rule in validation_rules(concrete):
             if np.any(bad):
                 raise ValueError(
                     f"SliderCrank.{name} = {_show(concrete[name])} is invalid: {rule}."
@@ -116,7 +116,7 @@ class SliderCrank(eqx.Module):
         """
         values = {name: getattr(self, name) for name in FIELDS}
         out = dict(values)
-        for name, bad, rule in _rules(values):
+        for name, bad, rule in validation_rules(values):
             out[name] = eqx.error_if(out[name], bad, f"SliderCrank.{name} is invalid: {rule}.")
         return SliderCrank(**out)
 

@@ -20,11 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ._dynamics import Structure
-from ._io import atomic_write
-from ._loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
-from ._params import FIELDS, SliderCrank, _as_float_array
-from ._simulate import OUTPUTS, SOLVERS, Trajectory, simulate
+from .io import atomic_write
+from .model.dynamics import Structure
+from .model.loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
+from .model.params import FIELDS, SliderCrank, as_float_array
+from .solve.policy import SOLVERS
+from .solve.simulate import OUTPUTS, Trajectory, simulate
 
 __all__ = ["Scene", "SceneError", "load_scene", "scene_to_toml", "save_scene", "presets",
            "PRESETS"]
@@ -55,10 +56,10 @@ class Scene(eqx.Module):
     mech: SliderCrank
     load: AbstractLoad = NoLoad()
     torque: AbstractLoad = NoLoad()
-    phi0: Array = eqx.field(converter=_as_float_array, default=1.0)
-    dphi0: Array = eqx.field(converter=_as_float_array, default=0.0)
-    rtol: Array = eqx.field(converter=_as_float_array, default=1e-8)
-    atol: Array = eqx.field(converter=_as_float_array, default=1e-10)
+    phi0: Array = eqx.field(converter=as_float_array, default=1.0)
+    dphi0: Array = eqx.field(converter=as_float_array, default=0.0)
+    rtol: Array = eqx.field(converter=as_float_array, default=1e-8)
+    atol: Array = eqx.field(converter=as_float_array, default=1e-10)
     t1: float = eqx.field(static=True, default=10.0)
     samples: int = eqx.field(static=True, default=1001)
     solver: str = eqx.field(static=True, default="auto")

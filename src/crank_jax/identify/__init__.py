@@ -1,0 +1,1 @@
+"""Parameter identification: the fit as parts."""

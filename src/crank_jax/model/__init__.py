@@ -1,0 +1,2 @@
+"""The physics, written once: parameters, loads, geometry, dynamics, Newton-Euler,
+linearisation."""

@@ -1,0 +1,1 @@
+"""Solvers and the simulation: they know vector fields, not mechanisms."""

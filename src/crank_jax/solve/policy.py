@@ -1,0 +1,151 @@
+"""The solver policy: the one place that turns `"auto"` and solver names into a solver.
+
+`simulate`, `fit` and `sweep` all call [`resolve_solver`][], so a scene gets the same
+solver whichever of them runs it. The rule, in order:
+
+1. A name other than `"auto"` is taken as given (after checking it is known).
+2. Stiff (see [`choose_solver`][]): `"kvaerno5"`, an L-stable ESDIRK.
+3. Otherwise `"dopri8"` below `rtol = 1e-7`, `"tsit5"` above; and on uniform save times
+   with concrete parameters and no sampled load, `"dopri8-uniform"`, the fused solver,
+   which is faster than either at equal error (experiments/bench_work_precision.py).
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from ..model.linear import linearize
+from ..model.loads import AbstractLoad, SampledLoad
+from ..model.params import SliderCrank
+from .uniform import uniform_grid
+
+__all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
+           "is_concrete"]
+
+#: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`.
+SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform")
+
+# The "auto" switch to an implicit solver (see `choose_solver`). Measured on the lab rig
+# (experiments/stress_stiffness.py): at the stability limit an explicit Tsit5 takes about
+# 0.75 steps per radian of the fast mode, Kvaerno5 resolves a decaying oscillation at about
+# 8 steps per radian while it is above the tolerance, and one Kvaerno5 step costs about
+# 13 Tsit5 steps. Implicit wins once the fast mode has decayed within 1/140 of the span.
+_SWITCH_RATIO = 140.0
+# A real fast mode is stiff only if the other mode is this much slower (otherwise the
+# slow mode, e.g. a crank falling over, needs the same small steps).
+_STIFFNESS_RATIO = 1e2
+
+
+
+
+def is_concrete(tree) -> bool:
+    """True if no leaf of `tree` is a tracer (the values can be read on the host)."""
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
+
+
+def check_solver(name: str) -> str:
+    """`name` if it is in [`SOLVERS`][], else a `ValueError` naming the choices."""
+    if name not in SOLVERS:
+        raise ValueError(f"unknown solver {name!r}; choose from {list(SOLVERS)}")
+    return name
+
+
+def fastest_mode(lin) -> tuple[np.ndarray, np.ndarray]:
+    """The fastest mode of the linearisation `mu s^2 + chi s + xi = 0` (host NumPy).
+
+    **Arguments:** `lin`, a [`Linearization`][] (any batch shape).
+
+    **Returns:** `(rate, decay)`, arrays of the batch shape, 1/s: `rate = |s_fast|`, the
+    largest eigenvalue magnitude (it bounds an explicit solver's step by stability), and
+    `decay = -Re(s_fast)`, how fast that mode dies out (<= 0: it does not).
+    """
+    mu, chi, xi = (np.asarray(x, dtype=float) for x in (lin.mu, lin.chi, lin.xi))
+    disc = chi**2 - 4 * mu * xi
+    with np.errstate(invalid="ignore", divide="ignore"):
+        root = np.sqrt(np.abs(disc))
+        real = disc >= 0
+        # Real roots (-chi -+ root)/(2 mu): with chi >= 0 the "-" root is the larger.
+        rate = np.where(real, (chi + root) / (2 * mu), np.sqrt(np.abs(xi) / mu))
+        decay = np.where(real, (chi + root) / (2 * mu), chi / (2 * mu))
+    return rate, decay
+
+
+def _slowest_rate(lin) -> np.ndarray:
+    mu, chi, xi = (np.asarray(x, dtype=float) for x in (lin.mu, lin.chi, lin.xi))
+    disc = chi**2 - 4 * mu * xi
+    with np.errstate(invalid="ignore", divide="ignore"):
+        root = np.sqrt(np.abs(disc))
+        # A complex pair has one modulus; the slow dynamics is then the forcing's.
+        return np.where(disc >= 0, np.abs(-chi + root) / (2 * mu), 0.0)
+
+
+def choose_solver(
+    mech: SliderCrank, rtol: float, load: AbstractLoad | None = None, *,
+    span: float = 10.0,
+) -> str:
+    """The solver that `solver="auto"` picks, from the tolerance and the stiffness.
+
+    Stiff means: an explicit solver's step is limited by stability on a fast mode that
+    no longer matters. With `rate`, `decay` = [`fastest_mode`][] of the linearisation
+    (with the slider force's mean), the switch is
+
+        ln(1/rtol) / decay  <  span / 140
+
+    (the fast mode falls below the tolerance within 1/140 of the span), and, for a real
+    fast mode, the other mode is more than 100x slower. Then `"kvaerno5"`, an L-stable
+    ESDIRK, steps over the decayed fast mode. The constants are measured (see the README's
+    stability section): an oscillating fast mode with damping ratio 0.05 over 2 s switches
+    at k ~ 1e6 N*m/rad on the lab rig, where Tsit5 needs ~4e4 steps and Kvaerno5 ~3.4e3.
+    An undamped fast mode never switches: it must be resolved, and an explicit solver
+    resolves it cheapest. Otherwise `"dopri8"` for `rtol < 1e-7` (8th order wins at tight
+    tolerances) and `"tsit5"` above.
+
+    **Arguments:** `mech` (a batch counts as stiff if any member is); `rtol`; `load`, the
+    slider force; `span`, the integration time, s.
+
+    **Returns:** a name from [`SOLVERS`][]. Needs concrete parameters; traced ones (inside
+    `jit`) skip the stiffness test.
+    """
+    if is_concrete(mech) and is_concrete(load):
+        lin = linearize(mech, load)
+        rate, decay = fastest_mode(lin)
+        slow = _slowest_rate(lin)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            decays_early = decay * float(span) > _SWITCH_RATIO * np.log(1 / float(rtol))
+            separated = (slow * _STIFFNESS_RATIO < rate) | (slow == 0)
+        if np.any(decays_early & separated):
+            return "kvaerno5"
+    return "dopri8" if float(rtol) < 1e-7 else "tsit5"
+
+
+def resolve_solver(
+    solver: str, mech: SliderCrank, rtol, atol=None, *, load: AbstractLoad | None = None,
+    torque: AbstractLoad | None = None, ts=None,
+) -> str:
+    """The solver that runs: `solver` itself, or for `"auto"` the choice described in the
+    module docstring.
+
+    **Arguments:** `solver`, a name from [`SOLVERS`][]; `mech` (a batch counts as stiff if
+    any member is); `rtol`, `atol` (arrays or floats; traced ones count as the defaults);
+    `load`, `torque`; `ts`, the save times (n,) if known on the host.
+
+    **Returns:** a name from [`SOLVERS`][] other than `"auto"`.
+    """
+    check_solver(solver)
+    if solver != "auto":
+        return solver
+    concrete_ts = ts is not None and is_concrete(ts)
+    # The span on the host (NumPy): under a user's `jit`, even indexing a concrete `ts`
+    # would be staged out as a tracer.
+    span = float(np.ptp(np.asarray(ts))) if concrete_ts else 10.0
+    rtol_host = float(np.max(np.asarray(rtol))) if is_concrete(rtol) else 1e-8
+    name = choose_solver(mech, rtol_host, load, span=span)
+    loads = (load, torque)
+    if (name in ("tsit5", "dopri8") and concrete_ts and is_concrete((mech, rtol, atol))
+            and not any(isinstance(x, SampledLoad) for x in loads)
+            and uniform_grid(np.asarray(ts))):
+        # Only for concrete parameters, where the stiffness test above ran, and not across
+        # a sampled load's kinks.
+        name = "dopri8-uniform"
+    return name

@@ -1,0 +1,1 @@
+"""Monte Carlo sweeps: a scene simulated for many sampled parameter values at once."""
