@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax.model.dynamics import Structure, acceleration
-from crank_jax.solve.uniform import fused_acceleration
+from crank_jax.model.dynamics import Structure, acceleration, fused_acceleration
 
 
 @pytest.mark.parametrize("loads", [False, True])

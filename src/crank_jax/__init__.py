@@ -32,6 +32,7 @@ from .identify.fit import (
 )
 from .io import atomic_write
 from .model.dynamics import (
+    CrankField,
     Structure,
     acceleration,
     coriolis,
@@ -64,7 +65,8 @@ __version__ = "0.1.0"
 
 
 __all__ = [
-    "AbstractLoad", "ConstantLoad", "CouplerAngle", "FIELDS", "GlobalForm", "HarmonicLoad",
+    "AbstractLoad", "ConstantLoad", "CrankField", "CouplerAngle", "FIELDS", "GlobalForm",
+    "HarmonicLoad",
     "Kinematics", "Linearization", "NoLoad", "OUTPUTS", "PRESETS", "Reactions", "SOLVERS",
     "SampledLoad", "Scene", "SceneError", "SliderCrank", "Structure", "Trajectory",
     "acceleration", "atomic_write", "choose_solver", "coriolis", "coupler_angle",

@@ -37,11 +37,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.dynamics import Structure, generalized_force_terms
-from ..model.loads import NoLoad
+from ..model.dynamics import fused_acceleration
 from ..model.params import SliderCrank
 
-__all__ = ["fused_acceleration", "solve_uniform"]
+__all__ = ["solve_uniform", "uniform_grid"]
 
 _TAB = diffrax.Dopri8.tableau
 # Dopri8's 14th stage (at y1) has zero weight in both the solution and the error estimate;
@@ -71,49 +70,6 @@ _NOISE = 8.0
 # An interval is redone if its error exceeds _REJECT times its share (at most _TRIES runs).
 _REJECT = 4.0
 _TRIES = 4
-
-
-def fused_acceleration(mech: SliderCrank, phi, dphi, t, load, torque,
-                       structure: Structure):
-    """phi'' = (q - K phi'^2) / M, rad/s^2: the same function as `acceleration`, written
-    for XLA's CPU fusion.
-
-    `acceleration` computes cos(delta) with a `sqrt` and delta', delta'' and phi'' with
-    three divisions. XLA does not duplicate such "expensive" ops into several consumers, so
-    each becomes its own kernel: ~4 kernels per evaluation, ~9 per Runge-Kutta stage once the
-    stage sums are counted. Here `w = 1/cos(delta)` is one `rsqrt`, everything else is a
-    product of it, and the only division is the last one, so a stage is ~3 kernels.
-    Equal to `acceleration` to rounding (tested); `structure` skips terms as there.
-    """
-    has_P = not isinstance(load, NoLoad)
-    sphi, cphi = jnp.sin(phi), jnp.cos(phi)
-    M = mech.m_c * mech.s**2 + mech.I_c
-    K = jnp.zeros_like(phi)
-    q = jnp.zeros_like(phi)
-    d1 = sd = lever = None
-    if structure.coupler or structure.slider or has_P:
-        r, L = mech.r, mech.L
-        lam = r / L  # loop-invariant: XLA hoists it
-        sd = lam * sphi
-        u = 1.0 - sd * sd
-        w = jax.lax.rsqrt(u)
-        cd = u * w
-        d1 = lam * cphi * w
-        d2 = lam * (d1 * cphi * sd - sphi * cd) * (w * w)
-        lever = r * sphi + L * d1 * sd
-    if structure.coupler:
-        b = mech.b
-        cpd = cphi * cd - sphi * sd
-        spd = sphi * cd + cphi * sd
-        M = M + mech.m_p * (r * r - 2 * r * b * d1 * cpd + b * b * d1 * d1) + mech.I_p * d1 * d1
-        K = K + mech.m_p * (r * b * (d1 * (1 + d1) * spd - d2 * cpd) + b * b * d1 * d2)
-        K = K + mech.I_p * d1 * d2
-    if structure.slider:
-        M = M + mech.m_s * lever * lever
-        K = K + mech.m_s * lever * (r * cphi + L * (d2 * sd + d1 * d1 * cd))
-    q = q + generalized_force_terms(mech, phi, dphi, t, load, torque, structure, sphi,
-                                    d1, sd, lever)
-    return (q - K * dphi * dphi) / M
 
 
 def _combine(y, h, coeffs, ks, j):
