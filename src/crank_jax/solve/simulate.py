@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Sequence
 
@@ -267,15 +268,19 @@ def _host_checks(mech: SliderCrank, y0) -> None:
 
 
 def _warn_if_float32() -> None:
-    # Python's default warning filter shows this once per call site, without a module-level
-    # flag.
     if not jax.config.jax_enable_x64:
-        warnings.warn(
-            "crank_jax: float64 is off (jax_enable_x64 is False), so simulations run in "
-            "float32, about 7 significant digits. Tolerances below rtol ~ 1e-6 cannot be met: "
-            "at the default rtol=1e-8 the solver takes ~20x more steps or stops at max_steps, "
-            "and energy drifts ~1e-6 relative even at c = 0. Call "
-            "jax.config.update('jax_enable_x64', True) at start-up, before creating arrays "
-            "(or pass rtol >= 1e-6 and accept float32 accuracy).",
-            stacklevel=3,
-        )
+        _warn_float32_once()
+
+
+@functools.cache
+def _warn_float32_once() -> None:
+    # Once per process (the cache is the flag): the advice does not change between calls.
+    warnings.warn(
+        "crank_jax: float64 is off (jax_enable_x64 is False), so simulations run in "
+        "float32, about 7 significant digits. Tolerances below rtol ~ 1e-6 cannot be met: "
+        "at the default rtol=1e-8 the solver takes ~20x more steps or stops at max_steps, "
+        "and energy drifts ~1e-6 relative even at c = 0. Call "
+        "jax.config.update('jax_enable_x64', True) at start-up, before creating arrays "
+        "(or pass rtol >= 1e-6 and accept float32 accuracy).",
+        stacklevel=4,
+    )
