@@ -64,6 +64,17 @@ def test_global_newton_euler_projection_with_offset_and_friction(rng):
             rtol=1e-10, atol=1e-11)
 
 
+def test_acceleration_equals_global_newton_euler_solution(rng):
+    # The fused acceleration (one rsqrt, one division) against the projected global form,
+    # which shares none of its M, K, q code; with and without offset and friction.
+    for mech, phi, dphi, t in _cases(rng):
+        for m in (mech, mech.replace(e=0.0, T_c=0.0, c_s=0.0, F_s=0.0)):
+            gf = cj.global_form(m, phi, dphi, t, LOAD, TORQUE)
+            ne = (gf.J @ gf.qbar_e - gf.J @ gf.qbar_c) / (gf.J @ gf.Mbar @ gf.J)
+            acc = cj.acceleration(m, phi, dphi, t, LOAD, TORQUE, cj.Structure.of(m))
+            np.testing.assert_allclose(acc, ne, rtol=1e-10, atol=1e-10)
+
+
 def test_conservative_q_is_minus_grad_potential_with_offset(rng):
     # At rest every friction term vanishes (tanh(0) = 0), so q(phi, 0) is conservative.
     for mech, phi, _, _ in _cases(rng):

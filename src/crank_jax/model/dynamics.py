@@ -29,7 +29,7 @@ from .structure import Structure
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
     "kinetic_energy", "potential_energy", "power_in", "CrankField", "mass_terms",
-    "coriolis_terms", "force_terms", "dissipative_terms", "fused_acceleration",
+    "coriolis_terms", "force_terms", "dissipative_terms",
 ]
 
 _FULL = Structure()
