@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -88,23 +89,26 @@ def equilibrium(mech: SliderCrank, load: AbstractLoad | None = None,
 
     **Returns:** an array of the parameters' broadcast shape; NaN where no root was found.
     """
-    load, torque = as_load(load), as_load(torque)
-    has_P = not isinstance(load, NoLoad)
-    P = load.mean()
-    loads = (ConstantLoad(P) if has_P else NoLoad(),
-             NoLoad() if isinstance(torque, NoLoad) else ConstantLoad(torque.mean()))
+    return _equilibrium(mech, _mean_loads(load, torque))
+
+
+def _newton_step(mech: SliderCrank, loads, phi: Array) -> Array:
+    q = force_terms(mech, geometry(mech, phi), phi, 0.0, 0.0, *loads)
+    has_P = not isinstance(loads[0], NoLoad)
+    xi = mech.k - _softening(mech, phi, loads[0].mean(), has_P)
+    return jnp.where(xi != 0, q / jnp.where(xi != 0, xi, 1.0), 0.0)
+
+
+# Jitted at module level so that eager calls (every concrete `simulate` asks the solver
+# policy for a linearisation) reuse one compiled loop instead of re-tracing a closure.
+@eqx.filter_jit
+def _equilibrium(mech: SliderCrank, loads) -> Array:
     shape = jnp.broadcast_shapes(*(jnp.shape(x) for x in jax.tree_util.tree_leaves(mech)))
-
-    def newton_step(m, phi):
-        q = force_terms(m, geometry(m, phi), phi, 0.0, 0.0, *loads)
-        xi = m.k - _softening(m, phi, P, has_P)
-        return jnp.where(xi != 0, q / jnp.where(xi != 0, xi, 1.0), 0.0)
-
-    frozen = jax.lax.stop_gradient(mech)
+    frozen = jax.lax.stop_gradient((mech, loads))
 
     def body(_, carry):
         phi, _ = carry
-        step = jnp.clip(newton_step(frozen, phi), -_MAX_STEP, _MAX_STEP)
+        step = jnp.clip(_newton_step(*frozen, phi), -_MAX_STEP, _MAX_STEP)
         return phi + step, step
 
     zero = jnp.zeros(shape, jnp.result_type(float))
@@ -113,7 +117,7 @@ def equilibrium(mech: SliderCrank, load: AbstractLoad | None = None,
     found = jnp.isfinite(phi) & (jnp.abs(last) <= _STEP_TOL)
     # One more (unclipped) Newton step with live parameters: the value is unchanged to
     # rounding, and its derivative is the implicit function theorem's -(dq/dp)/(dq/dphi).
-    phi = phi + newton_step(mech, phi)
+    phi = phi + _newton_step(mech, loads, phi)
     return jnp.where(found, phi, jnp.nan)
 
 
@@ -126,15 +130,27 @@ def linearize(mech: SliderCrank, load: AbstractLoad | None = None,
 
     **Returns:** a [`Linearization`][]; every field has the shape of the parameters.
     """
-    load = as_load(load)
-    has_P = not isinstance(load, NoLoad)
-    P = load.mean()
-    phi_eq = equilibrium(mech, load, torque)
+    return _linearize(mech, _mean_loads(load, torque))
+
+
+def _mean_loads(load, torque) -> tuple[AbstractLoad, AbstractLoad]:
+    """The loads at their means; an absent load stays `NoLoad` (its terms are left out)."""
+    load, torque = as_load(load), as_load(torque)
+    return (NoLoad() if isinstance(load, NoLoad) else ConstantLoad(load.mean()),
+            NoLoad() if isinstance(torque, NoLoad) else ConstantLoad(torque.mean()))
+
+
+# One compiled program for eager calls too (the solver policy linearises before every
+# concrete solve); inside an outer jit it is simply inlined.
+@eqx.filter_jit
+def _linearize(mech: SliderCrank, loads) -> Linearization:
+    has_P = not isinstance(loads[0], NoLoad)
+    phi_eq = _equilibrium(mech, loads)
     at = jnp.where(jnp.isnan(phi_eq), 0.0, phi_eq)
     g = geometry(mech, at)
     mu = mass_terms(mech, g)
     chi = mech.c + mech.c_s * g.lever * g.lever
-    k_crit = _softening(mech, at, P, has_P) + jnp.zeros_like(mu)
+    k_crit = _softening(mech, at, loads[0].mean(), has_P) + jnp.zeros_like(mu)
     xi = mech.k - k_crit
     # Only defined for a statically stable equilibrium; NaN says "no oscillation" honestly
     # rather than a silently clipped number.
