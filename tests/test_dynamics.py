@@ -104,7 +104,9 @@ def test_closure_wrist_pin_on_slider_line(rng):
 def test_reduced_structure_matches_full_terms_for_crank_only():
     mech = cj.load_scene("pendulum").mech
     st = cj.Structure.of(mech)
-    assert st == cj.Structure(coupler=False, slider=False, spring=False)
+    assert st == cj.Structure(coupler=False, slider=False, spring=False, offset=False,
+                               crank_coulomb=False, slider_damper=False,
+                               slider_coulomb=False)
     phis = jnp.linspace(-4, 4, 17)
     np.testing.assert_allclose(cj.mass(mech, phis, st), cj.mass(mech, phis), rtol=1e-15)
     np.testing.assert_allclose(cj.coriolis(mech, phis, st), cj.coriolis(mech, phis), atol=0)

@@ -52,7 +52,9 @@ def test_presets_load_and_have_the_promised_character():
     nb = cj.linearize(cj.load_scene("near-buckling").mech)
     assert 0 < float(nb.xi) < 0.02 * float(cj.load_scene("near-buckling").mech.k)
     pend = cj.load_scene("pendulum")
-    assert pend.structure == cj.Structure(coupler=False, slider=False, spring=False)
+    assert pend.structure == cj.Structure(coupler=False, slider=False, spring=False, offset=False,
+                               crank_coulomb=False, slider_damper=False,
+                               slider_coulomb=False)
 
 
 def test_full_scene_file(tmp_path):
@@ -69,6 +71,48 @@ def test_round_trip(tmp_path):
     cj.save_scene(sc, out)
     again = cj.load_scene(out)
     assert cj.scene_to_toml(again) == cj.scene_to_toml(sc)
+
+
+FRICTION = TOML.replace("g = 9.81", "g = 9.81\ne = -0.01\nT_c = 0.02\nc_s = 0.5\nF_s = 0.3") + """
+[friction]
+crank_width = 0.02
+slider_width = 0.005
+"""
+
+
+def test_offset_and_friction_keys_round_trip(tmp_path):
+    sc = cj.load_scene(_write(tmp_path, FRICTION))
+    v = sc.mech.as_dict()
+    assert (v["e"], v["T_c"], v["c_s"], v["F_s"]) == (-0.01, 0.02, 0.5, 0.3)
+    assert (v["w_c"], v["w_s"]) == (0.02, 0.005)
+    text = cj.scene_to_toml(sc)
+    assert "[friction]" in text and "e = -0.01" in text
+    again = cj.load_scene(_write(tmp_path, text, "again.toml"))
+    assert again.mech.as_dict() == v
+    assert cj.scene_to_toml(again) == text
+    st = again.structure
+    assert st.offset and st.crank_coulomb and st.slider_damper and st.slider_coulomb
+
+
+def test_defaults_of_offset_and_friction(tmp_path):
+    sc = cj.load_scene(_write(tmp_path, TOML))
+    v = sc.mech.as_dict()
+    assert (v["e"], v["T_c"], v["c_s"], v["F_s"], v["w_c"], v["w_s"]) == (0, 0, 0, 0, 0.01, 1e-3)
+    text = cj.scene_to_toml(sc)
+    assert "[friction]" not in text and "T_c" not in text
+
+
+@pytest.mark.parametrize("text,match", [
+    (FRICTION.replace("slider_width = 0.005", "slider_width = 0.0"), "w_s must be > 0"),
+    (FRICTION.replace("slider_width", "slider_wdth"),
+     "unknown key 'slider_wdth' in \\[friction\\]"),
+    (FRICTION.replace("F_s = 0.3", "F_s = -0.3"), "F_s must be >= 0"),
+    (FRICTION.replace("e = -0.01", "e = 0.2"), "L must be > r \\+ \\|e\\|"),
+    (FRICTION.replace("e = -0.01", "offset = 0.01"), "unknown key 'offset' in \\[mechanism\\]"),
+])
+def test_bad_offset_and_friction_rejected(tmp_path, text, match):
+    with pytest.raises(SceneError, match=match):
+        cj.load_scene(_write(tmp_path, text))
 
 
 def test_only_mechanism_is_required(tmp_path):

@@ -29,6 +29,16 @@ BAD = [
     ("g", {"g": float("nan")}, "g must be finite"),
     ("k", {"k": float("inf")}, "k must be finite"),
     ("m_p", {"m_p": float("nan")}, "m_p must be finite"),
+    ("k", {"k": 10**400}, "k must be finite"),
+    ("c", {"c": -(10**400)}, "c must be finite"),
+    ("L", {"e": 0.16}, "L must be > r \\+ \\|e\\|"),
+    ("L", {"e": -0.16}, "L must be > r \\+ \\|e\\|"),
+    ("e", {"e": float("inf")}, "e must be finite"),
+    ("T_c", {"T_c": -0.1}, "T_c must be >= 0"),
+    ("c_s", {"c_s": -1.0}, "c_s must be >= 0"),
+    ("F_s", {"F_s": -1.0}, "F_s must be >= 0"),
+    ("w_c", {"w_c": 0.0}, "w_c must be > 0"),
+    ("w_s", {"w_s": -1e-3}, "w_s must be > 0"),
 ]
 
 
@@ -54,6 +64,34 @@ def test_invalid_traced_field_raises_inside_jit(field, change, rule):
     run(jnp.asarray(GOOD[field]))  # valid: fine
     with pytest.raises(Exception, match=rf"SliderCrank\.{field} is invalid"):
         run(jnp.asarray(change[field]))
+
+
+@pytest.mark.parametrize("field,change,rule", BAD[-8:])
+def test_invalid_traced_offset_and_friction_raise_inside_jit(field, change, rule):
+    # The same rules as at construction, from the same list, checked by eqx.error_if.
+    name = next(iter(change))
+
+    @jax.jit
+    def check(x):
+        # Every checked field is returned: an unused error_if would be compiled away.
+        return jax.tree_util.tree_leaves(cj.SliderCrank(**{**GOOD, name: x}).checked())
+
+    check(jnp.asarray(0.0 if name == "e" else 0.5))  # valid: fine
+    with pytest.raises(Exception, match=rf"SliderCrank\.{field} is invalid: {rule}"):
+        check(jnp.asarray(change[name]))
+
+
+def test_offset_within_bounds_is_valid():
+    slack = GOOD["L"] - GOOD["r"]
+    for e in (0.99 * slack, -0.99 * slack):
+        cj.SliderCrank(**{**GOOD, "e": e})
+
+
+def test_fields_that_do_not_broadcast_are_refused():
+    with pytest.raises(ValueError, match=r"do not broadcast.*L \(2,\).*k \(3,\)"):
+        cj.SliderCrank(**{**GOOD, "k": jnp.ones(3), "L": jnp.full(2, 0.2)})
+    cj.SliderCrank(**{**GOOD, "k": jnp.ones(3), "L": jnp.full(3, 0.2)})  # one batch: fine
+    cj.SliderCrank(**{**GOOD, "k": jnp.ones((2, 1)), "L": jnp.full(3, 0.2)})  # broadcasts
 
 
 def test_nonfinite_initial_state_raises():

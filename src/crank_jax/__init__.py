@@ -3,11 +3,11 @@ differentiable JAX model (El-Adawi & El-Kafrawy's minimal form, corrected).
 
 Public API (everything else is private):
 
-- Parameters: `SliderCrank`, `FIELDS`.
-- Physics: `coupler_angle`, `kinematics`, `mass` (M), `coriolis` (K),
+- Parameters: `SliderCrank`, `FIELDS`, `SIGNED_FIELDS`.
+- Physics: `geometry`, `coupler_angle`, `kinematics`, `mass` (M), `coriolis` (K),
   `generalized_force` (q), `acceleration`, `energy`, `kinetic_energy`, `potential_energy`,
   `power_in`, `Structure`; `global_form`, `distribution_matrix`, `reactions`;
-  `linearize`.
+  `linearize`, `equilibrium`, `coulomb_note`.
 - Loads: `NoLoad`, `ConstantLoad`, `HarmonicLoad`, `SampledLoad`, `AbstractLoad`.
 - Simulation: `simulate`, `Trajectory`, `choose_solver`, `SOLVERS`, `OUTPUTS`.
 - Scenes: `Scene`, `load_scene`, `save_scene`, `scene_to_toml`, `presets`, `PRESETS`.
@@ -43,11 +43,11 @@ from .model.dynamics import (
     potential_energy,
     power_in,
 )
-from .model.geometry import CouplerAngle, Kinematics, coupler_angle, kinematics
-from .model.linear import Linearization, linearize
+from .model.geometry import CouplerAngle, Geometry, Kinematics, coupler_angle, geometry, kinematics
+from .model.linear import Linearization, coulomb_note, equilibrium, linearize
 from .model.loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
 from .model.newton_euler import GlobalForm, Reactions, distribution_matrix, global_form, reactions
-from .model.params import FIELDS, SliderCrank
+from .model.params import FIELDS, SIGNED_FIELDS, SliderCrank
 from .scene import PRESETS, Scene, SceneError, load_scene, presets, save_scene, scene_to_toml
 from .solve.policy import SOLVERS, choose_solver, fastest_mode, resolve_solver
 from .solve.simulate import OUTPUTS, Trajectory, output_columns, simulate
@@ -74,6 +74,7 @@ __all__ = [
     "generalized_force", "global_form", "kinematics", "kinetic_energy", "linearize",
     "load_scene", "mass", "output_columns", "potential_energy", "power_in", "presets",
     "reactions", "resolve_solver", "save_scene", "scene_to_toml", "simulate",
+    "Geometry", "geometry", "equilibrium", "coulomb_note", "SIGNED_FIELDS",
 ]
 __all__ += [
     "REDUCTIONS",

@@ -23,7 +23,7 @@ from jaxtyping import Array
 from .io import atomic_write
 from .model.dynamics import Structure
 from .model.loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
-from .model.params import FIELDS, SliderCrank, as_float_array
+from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
 
@@ -101,8 +101,16 @@ class Scene(eqx.Module):
 # ---------------------------------------------------------------------------------------
 # TOML
 
+#: Optional [mechanism] keys beyond the paper's (default 0), and the [friction] table's
+#: keys with the SliderCrank field each sets (default: the field's default).
+_OPTIONAL_MECH = ("e", "T_c", "c_s", "F_s")
+_FRICTION = {"crank_width": "w_c", "slider_width": "w_s"}
+_DEFAULT_MECH = {n: float(SliderCrank.__dataclass_fields__[n].default)
+                 for n in ("g", *_OPTIONAL_MECH, *_FRICTION.values())}
+
 _TABLES: dict[str, tuple[str, ...]] = {
-    "mechanism": FIELDS,
+    "mechanism": PAPER_FIELDS + _OPTIONAL_MECH,
+    "friction": tuple(_FRICTION),
     "load": ("P0", "P1", "freq_hz", "phase"),
     "torque": ("tau0", "tau1", "freq_hz", "phase"),
     "initial": ("phi0", "dphi0"),
@@ -153,11 +161,15 @@ def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> 
     if "mechanism" not in doc:
         raise SceneError(f"{where}: the [mechanism] table is required")
     mt = doc["mechanism"]
-    missing = [f for f in FIELDS if f not in mt and f != "g"]
+    missing = [f for f in PAPER_FIELDS if f not in mt and f != "g"]
     if missing:
         raise SceneError(f"{where}: [mechanism] is missing {missing}; every field but g "
-                         "(default 9.81) is required")
-    values = {f: _number(where, f"mechanism.{f}", mt.get(f, 9.81)) for f in FIELDS}
+                         f"(default 9.81) and {list(_OPTIONAL_MECH)} (default 0) is required")
+    values = {f: _number(where, f"mechanism.{f}", mt.get(f, _DEFAULT_MECH.get(f)))
+              for f in PAPER_FIELDS + _OPTIONAL_MECH}
+    ft = doc.get("friction", {})
+    values.update({f: _number(where, f"friction.{key}", ft.get(key, _DEFAULT_MECH[f]))
+                   for key, f in _FRICTION.items()})
     try:
         mech = SliderCrank(**values)
     except ValueError as e:
@@ -246,8 +258,15 @@ def scene_to_toml(scene: Scene) -> str:
     lines = []
     if scene.description:
         lines.append(f"description = {fmt(scene.description)}\n")
+    mech = scene.mech.as_dict()
+    # Keys beyond the paper's are written only when they differ from their defaults, so a
+    # scene without offset or friction reads exactly as before.
+    mech_table = {k: v for k, v in mech.items()
+                  if k in PAPER_FIELDS or (k in _OPTIONAL_MECH and v != _DEFAULT_MECH[k])}
+    friction = {key: mech[f] for key, f in _FRICTION.items() if mech[f] != _DEFAULT_MECH[f]}
     tables: dict[str, dict[str, Any] | None] = {
-        "mechanism": scene.mech.as_dict(),
+        "mechanism": mech_table,
+        "friction": friction or None,
         "load": _load_table(scene.load, ("P0", "P1")),
         "torque": _load_table(scene.torque, ("tau0", "tau1")),
         "initial": {"phi0": float(np.asarray(scene.phi0)),

@@ -94,12 +94,12 @@ def _linearize_args(p: argparse.ArgumentParser) -> None:
 
 
 def _linearize_run(a: argparse.Namespace) -> int:
-    from ..model.linear import linearize
+    from ..model.linear import coulomb_note, linearize
 
     scene = _load(a.scene)
-    lin = linearize(scene.mech, scene.load)
+    lin = linearize(scene.mech, scene.load, scene.torque)
     out = {}
-    for key in ("mu", "chi", "xi", "omega_n", "zeta", "stable", "k_crit"):
+    for key in ("mu", "chi", "xi", "omega_n", "zeta", "stable", "k_crit", "phi_eq"):
         v = np.asarray(getattr(lin, key))
         if key == "stable":
             out[key] = bool(v)
@@ -109,11 +109,14 @@ def _linearize_run(a: argparse.Namespace) -> int:
         print(json.dumps(out))
     else:
         units = {"mu": "kg m^2", "chi": "N m s/rad", "xi": "N m/rad", "omega_n": "rad/s",
-                 "zeta": "", "stable": "", "k_crit": "N m/rad"}
+                 "zeta": "", "stable": "", "k_crit": "N m/rad", "phi_eq": "rad"}
         for key, v in out.items():
             print(f"{key:>8} = {v}  {units[key]}".rstrip())
         if out["omega_n"] is not None:
             print(f"{'f_n':>8} = {out['omega_n'] / (2 * np.pi):.6g}  Hz")
+        note = coulomb_note(scene.mech)
+        if note:
+            print(note)
     return 0
 
 

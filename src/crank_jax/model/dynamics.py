@@ -1,86 +1,97 @@
-"""The minimal form of the equation of motion (paper eq. 30, corrected):
+"""The minimal form of the equation of motion (paper eq. 30, corrected, plus the offset and
+the friction terms of DESIGN.md §1 "Beyond the paper"):
 
     M(phi) phi'' + K(phi) phi'^2 = q(phi, phi', t)
 
-`M`, `K` and `q` are hand-written from the paper. The tests check them against autodiff
-(`K = M'/2`), the global Newton-Euler form (`M = J^T Mbar J`) and a potential
-(`q_conservative = -dV/dphi`).
+`M`, `K` and `q` are written once, here, on the [`geometry`][] of the crank angle; the
+mass, Coriolis and force functions, the acceleration, the energy and [`CrankField`][] all
+call the same term builders. The tests check them against autodiff (`K = M'/2`), the
+global Newton-Euler form (`M = J^T Mbar J`), a potential (`q_conservative = -dV/dphi`) and
+the power balance (`d(T+V)/dt = power_in`).
 
 A [`Structure`][] says which terms a scene has. It is static (a hashable dataclass of
 bools), so the compiled program contains only the terms that are used: a crank-only
-pendulum traces no coupler or slider arithmetic, a scene without loads no load calls.
+pendulum traces no coupler or slider arithmetic, a scene without loads no load calls, a
+scene without friction no `tanh`.
 """
 
 from __future__ import annotations
 
-import dataclasses
-
 import equinox as eqx
-import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from .geometry import coupler_angle
+from .geometry import Geometry, geometry
 from .loads import AbstractLoad, NoLoad, as_load
 from .params import SliderCrank
+from .structure import Structure
 
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
-    "kinetic_energy", "potential_energy", "power_in", "CrankField", "fused_acceleration",
+    "kinetic_energy", "potential_energy", "power_in", "CrankField", "mass_terms",
+    "coriolis_terms", "force_terms", "dissipative_terms",
 ]
-
-
-@dataclasses.dataclass(frozen=True)
-class Structure:
-    """Which terms of the equation of motion are present (static, hashable).
-
-    `Structure.of(mech)` reads it from concrete parameters: a body whose masses and inertia
-    are all zero is a body the scene does not have. `Structure()` keeps every term, which is
-    always correct and is the default everywhere.
-    """
-
-    crank: bool = True
-    """m_c s^2 + I_c and m_c s (the crank's inertia and weight)."""
-    coupler: bool = True
-    """m_p or I_p nonzero."""
-    slider: bool = True
-    """m_s nonzero."""
-    gravity: bool = True
-    """g nonzero."""
-    spring: bool = True
-    """k nonzero."""
-    damper: bool = True
-    """c nonzero."""
-
-    @classmethod
-    def of(cls, mech: SliderCrank) -> Structure:
-        """The structure of concrete (non-traced) parameters. Batched fields count a term
-        as present if any member of the batch has it."""
-        names = ("m_c", "s", "m_p", "I_p", "m_s", "g", "k", "c")
-        v = {n: np.asarray(getattr(mech, n)) for n in names}
-        nz = lambda x: bool(np.any(x != 0))  # noqa: E731
-        return cls(
-            crank=True,  # M > 0 requires crank inertia; it is always present.
-            coupler=nz(v["m_p"]) or nz(v["I_p"]),
-            slider=nz(v["m_s"]),
-            gravity=nz(v["g"]),
-            spring=nz(v["k"]),
-            damper=nz(v["c"]),
-        )
-
-    def union(self, other: Structure) -> Structure:
-        """A structure with every term that either has."""
-        return Structure(*(a or b for a, b in zip(dataclasses.astuple(self),
-                                                  dataclasses.astuple(other))))
-
 
 _FULL = Structure()
 
 
-def _slider_lever(mech: SliderCrank, phi, ca):
-    """`r sin(phi) + L delta' sin(delta) = -dx_s/dphi`: the slider's lever arm, m."""
-    return mech.r * jnp.sin(phi) + mech.L * ca.d1 * ca.sin
+def mass_terms(mech: SliderCrank, g: Geometry, structure: Structure = _FULL) -> Array:
+    """M from a [`Geometry`][] (see [`mass`][]); the one place M is written."""
+    M = mech.m_c * mech.s**2 + mech.I_c + jnp.zeros_like(g.sphi)
+    if structure.coupler:
+        r, b, d1 = mech.r, mech.b, g.d1
+        M = M + mech.m_p * (r * r - 2 * r * b * d1 * g.cpd + b * b * d1 * d1) + mech.I_p * d1 * d1
+    if structure.slider:
+        M = M + mech.m_s * g.lever * g.lever
+    return M
+
+
+def coriolis_terms(mech: SliderCrank, g: Geometry, structure: Structure = _FULL) -> Array:
+    """K from a [`Geometry`][] (see [`coriolis`][]); the one place K is written."""
+    K = jnp.zeros_like(g.sphi) * mech.r
+    if structure.coupler:
+        r, b, d1, d2 = mech.r, mech.b, g.d1, g.d2
+        K = K + mech.m_p * (r * b * (d1 * (1 + d1) * g.spd - d2 * g.cpd) + b * b * d1 * d2)
+        K = K + mech.I_p * d1 * d2
+    if structure.slider:
+        K = K + mech.m_s * g.lever * g.dlever
+    return K
+
+
+def force_terms(mech: SliderCrank, g: Geometry, phi, dphi, t, load: AbstractLoad,
+                torque: AbstractLoad, structure: Structure = _FULL) -> Array:
+    """q from a [`Geometry`][] (see [`generalized_force`][]); the one place q is written.
+    `load` and `torque` must be loads (not None)."""
+    q = 0.0
+    if structure.gravity:
+        weight_arm = mech.m_c * mech.s * g.sphi
+        if structure.coupler:
+            weight_arm = weight_arm + mech.m_p * (mech.r * g.sphi + mech.b * g.d1 * g.sin)
+        if structure.slider:
+            weight_arm = weight_arm + mech.m_s * g.lever
+        q = q + mech.g * weight_arm
+    if not isinstance(load, NoLoad):
+        q = q + load(t) * g.lever
+    if structure.spring:
+        q = q - mech.k * phi
+    return q + dissipative_terms(mech, g, dphi, structure) + (
+        0.0 if isinstance(torque, NoLoad) else torque(t))
+
+
+def dissipative_terms(mech: SliderCrank, g: Geometry, dphi, structure: Structure = _FULL):
+    """The damping and friction part of q, N*m:
+    `-c phi' - T_c tanh(phi'/w_c) - c_s lever^2 phi' - F_s lever tanh(lever phi'/w_s)`."""
+    q = 0.0
+    if structure.damper:
+        q = q - mech.c * dphi
+    if structure.crank_coulomb:
+        # 1/w_c is loop-invariant (hoisted), so the stage keeps a single division.
+        q = q - mech.T_c * jnp.tanh(dphi * (1.0 / mech.w_c))
+    if structure.slider_damper:
+        q = q - mech.c_s * g.lever * g.lever * dphi
+    if structure.slider_coulomb:
+        q = q - mech.F_s * g.lever * jnp.tanh(g.lever * dphi * (1.0 / mech.w_s))
+    return q
 
 
 def mass(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) -> Array:
@@ -92,17 +103,7 @@ def mass(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) -> Arr
     **Arguments:** `mech`; `phi`, crank angle (rad), any shape; `structure`, the static
     set of terms to include. **Returns:** an array of `phi`'s shape, always > 0.
     """
-    phi = jnp.asarray(phi)
-    ca = coupler_angle(mech, phi)
-    M = mech.m_c * mech.s**2 + mech.I_c + jnp.zeros_like(phi)
-    if structure.coupler:
-        r, b, d1 = mech.r, mech.b, ca.d1
-        # cos(phi + delta), expanded so delta itself (an arcsin) is never needed.
-        cpd = jnp.cos(phi) * ca.cos - jnp.sin(phi) * ca.sin
-        M = M + mech.m_p * (r * r - 2 * r * b * d1 * cpd + b * b * d1 * d1) + mech.I_p * d1 * d1
-    if structure.slider:
-        M = M + mech.m_s * _slider_lever(mech, phi, ca) ** 2
-    return M
+    return mass_terms(mech, geometry(mech, phi, structure), structure)
 
 
 def coriolis(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) -> Array:
@@ -116,24 +117,7 @@ def coriolis(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) ->
 
     **Returns:** an array of `phi`'s shape.
     """
-    phi = jnp.asarray(phi)
-    K = jnp.zeros_like(phi) * mech.r
-    if not (structure.coupler or structure.slider):
-        return K
-    ca = coupler_angle(mech, phi)
-    d1, d2 = ca.d1, ca.d2
-    if structure.coupler:
-        r, b = mech.r, mech.b
-        sphi, cphi = jnp.sin(phi), jnp.cos(phi)
-        spd = sphi * ca.cos + cphi * ca.sin
-        cpd = cphi * ca.cos - sphi * ca.sin
-        K = K + mech.m_p * (r * b * (d1 * (1 + d1) * spd - d2 * cpd) + b * b * d1 * d2)
-        K = K + mech.I_p * d1 * d2
-    if structure.slider:
-        L = mech.L
-        lever = _slider_lever(mech, phi, ca)
-        K = K + mech.m_s * lever * (mech.r * jnp.cos(phi) + L * (d2 * ca.sin + d1 * d1 * ca.cos))
-    return K
+    return coriolis_terms(mech, geometry(mech, phi, structure), structure)
 
 
 def generalized_force(
@@ -145,11 +129,13 @@ def generalized_force(
     torque: AbstractLoad | None = None,
     structure: Structure = _FULL,
 ) -> Array:
-    """Generalised force q(phi, phi', t), N*m (paper eq. 30 plus the crank torque tau):
+    """Generalised force q(phi, phi', t), N*m (paper eq. 30 plus tau, offset, friction):
 
-        q = g (m_c s sin(phi) + m_p (r sin(phi) + b delta' sin(delta))
-               + m_s (r sin(phi) + L delta' sin(delta)))
-            + P(t) (r sin(phi) + L delta' sin(delta)) - k phi - c phi' + tau(t)
+        q = g (m_c s sin(phi) + m_p (r sin(phi) + b delta' sin(delta)) + m_s lever)
+            + P(t) lever - k phi - c phi' + tau(t)
+            - T_c tanh(phi'/w_c) - c_s lever^2 phi' - F_s lever tanh(lever phi'/w_s)
+
+    with `lever = r sin(phi) + L delta' sin(delta)`.
 
     **Arguments:** `phi` (rad), `dphi` (rad/s), `t` (s), broadcastable; `load`, the
     slider force P(t) in N along -x; `torque`, the crank torque tau(t) in N*m about +z;
@@ -157,40 +143,9 @@ def generalized_force(
     """
     load, torque = as_load(load), as_load(torque)
     phi, dphi = jnp.asarray(phi), jnp.asarray(dphi)
-    sphi = jnp.sin(phi)
-    q = jnp.zeros(jnp.broadcast_shapes(phi.shape, dphi.shape, jnp.shape(t))) * mech.r
-    has_P = not isinstance(load, NoLoad)
-    d1 = sd = lever = None
-    if structure.gravity or has_P:
-        ca = coupler_angle(mech, phi)
-        d1, sd = ca.d1, ca.sin
-        lever = _slider_lever(mech, phi, ca)
-    return q + generalized_force_terms(mech, phi, dphi, t, load, torque, structure,
-                                       sphi, d1, sd, lever)
-
-
-def generalized_force_terms(mech, phi, dphi, t, load, torque, structure, sphi, d1, sd, lever):
-    """The terms of q from precomputed geometry: `sphi = sin(phi)`, `d1 = delta'`,
-    `sd = sin(delta)` and `lever = r sin(phi) + L delta' sin(delta)` (the last three may be
-    None when the structure has no term that needs them). Shared by `generalized_force` and
-    the fused right-hand side of the uniform solver, so q is written once."""
-    q = 0.0
-    if structure.gravity:
-        weight_arm = mech.m_c * mech.s * sphi
-        if structure.coupler:
-            weight_arm = weight_arm + mech.m_p * (mech.r * sphi + mech.b * d1 * sd)
-        if structure.slider:
-            weight_arm = weight_arm + mech.m_s * lever
-        q = q + mech.g * weight_arm
-    if not isinstance(load, NoLoad):
-        q = q + load(t) * lever
-    if structure.spring:
-        q = q - mech.k * phi
-    if structure.damper:
-        q = q - mech.c * dphi
-    if not isinstance(torque, NoLoad):
-        q = q + torque(t)
-    return q
+    zero = jnp.zeros(jnp.broadcast_shapes(phi.shape, dphi.shape, jnp.shape(t))) * mech.r
+    return zero + force_terms(mech, geometry(mech, phi, structure), phi, dphi, t, load,
+                              torque, structure)
 
 
 def acceleration(
@@ -202,11 +157,21 @@ def acceleration(
     torque: AbstractLoad | None = None,
     structure: Structure = _FULL,
 ) -> Array:
-    """Crank angular acceleration phi'' = (q - K phi'^2) / M, rad/s^2."""
-    M = mass(mech, phi, structure)
-    K = coriolis(mech, phi, structure)
-    q = generalized_force(mech, phi, dphi, t, load, torque, structure)
-    return (q - K * jnp.square(dphi)) / M
+    """Crank angular acceleration phi'' = (q - K phi'^2) / M, rad/s^2.
+
+    One geometry evaluation (a single `rsqrt`) and a single division: this is the form
+    the fast solvers step (see [`geometry`][]).
+    """
+    load, torque = as_load(load), as_load(torque)
+    phi, dphi = jnp.asarray(phi), jnp.asarray(dphi)
+    g = geometry(mech, phi, structure)
+    q = force_terms(mech, g, phi, dphi, t, load, torque, structure)
+    return (q - coriolis_terms(mech, g, structure) * dphi * dphi) / mass_terms(mech, g, structure)
+
+
+#: Deprecated alias of [`acceleration`][] (same positional arguments), kept only until
+#: the solver stops importing it; new code calls `acceleration` or a [`CrankField`][].
+fused_acceleration = acceleration
 
 
 def kinetic_energy(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike) -> Array:
@@ -217,16 +182,13 @@ def kinetic_energy(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike) -> Array:
 def potential_energy(mech: SliderCrank, phi: ArrayLike) -> Array:
     """V = g (m_c x_c + m_p x_p + m_s x_s) + k phi^2 / 2, J (gravity along -x)."""
     phi = jnp.asarray(phi)
-    ca = coupler_angle(mech, phi)
-    cphi = jnp.cos(phi)
-    x_c = mech.s * cphi
-    x_p = mech.r * cphi + mech.b * ca.cos
-    x_s = mech.r * cphi + mech.L * ca.cos
-    return mech.g * (mech.m_c * x_c + mech.m_p * x_p + mech.m_s * x_s) + 0.5 * mech.k * phi**2
+    g = geometry(mech, phi)
+    weight = mech.m_c * g.x_c + mech.m_p * g.x_p + mech.m_s * g.x_s
+    return mech.g * weight + 0.5 * mech.k * phi**2
 
 
 def energy(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike) -> Array:
-    """Mechanical energy T + V, J. Constant when c = P = tau = 0."""
+    """Mechanical energy T + V, J. Constant when c = P = tau = 0 and there is no friction."""
     return kinetic_energy(mech, phi, dphi) + potential_energy(mech, phi)
 
 
@@ -236,55 +198,14 @@ def power_in(
 ) -> Array:
     """Power of the non-conservative forces, W: `d(T+V)/dt = power_in`.
 
-    `(P(t) (r sin(phi) + L delta' sin(delta)) - c phi' + tau(t)) phi'`.
+    `(P(t) lever - c phi' + tau(t) - T_c tanh(phi'/w_c) - c_s lever^2 phi'
+    - F_s lever tanh(lever phi'/w_s)) phi'`; every friction term is <= 0.
     """
     load, torque = as_load(load), as_load(torque)
-    ca = coupler_angle(mech, phi)
-    gen = load(t) * _slider_lever(mech, phi, ca) - mech.c * dphi + torque(t)
+    phi, dphi = jnp.asarray(phi), jnp.asarray(dphi)
+    g = geometry(mech, phi)
+    gen = load(t) * g.lever + torque(t) + dissipative_terms(mech, g, dphi)
     return gen * dphi
-
-
-def fused_acceleration(mech: SliderCrank, phi, dphi, t, load, torque,
-                       structure: Structure):
-    """phi'' = (q - K phi'^2) / M, rad/s^2: the same function as `acceleration`, written
-    for XLA's CPU fusion.
-
-    `acceleration` computes cos(delta) with a `sqrt` and delta', delta'' and phi'' with
-    three divisions. XLA does not duplicate such "expensive" ops into several consumers, so
-    each becomes its own kernel: ~4 kernels per evaluation, ~9 per Runge-Kutta stage once the
-    stage sums are counted. Here `w = 1/cos(delta)` is one `rsqrt`, everything else is a
-    product of it, and the only division is the last one, so a stage is ~3 kernels.
-    Equal to `acceleration` to rounding (tested); `structure` skips terms as there.
-    """
-    has_P = not isinstance(load, NoLoad)
-    sphi, cphi = jnp.sin(phi), jnp.cos(phi)
-    M = mech.m_c * mech.s**2 + mech.I_c
-    K = jnp.zeros_like(phi)
-    q = jnp.zeros_like(phi)
-    d1 = sd = lever = None
-    if structure.coupler or structure.slider or has_P:
-        r, L = mech.r, mech.L
-        lam = r / L  # loop-invariant: XLA hoists it
-        sd = lam * sphi
-        u = 1.0 - sd * sd
-        w = jax.lax.rsqrt(u)
-        cd = u * w
-        d1 = lam * cphi * w
-        d2 = lam * (d1 * cphi * sd - sphi * cd) * (w * w)
-        lever = r * sphi + L * d1 * sd
-    if structure.coupler:
-        b = mech.b
-        cpd = cphi * cd - sphi * sd
-        spd = sphi * cd + cphi * sd
-        M = M + mech.m_p * (r * r - 2 * r * b * d1 * cpd + b * b * d1 * d1) + mech.I_p * d1 * d1
-        K = K + mech.m_p * (r * b * (d1 * (1 + d1) * spd - d2 * cpd) + b * b * d1 * d2)
-        K = K + mech.I_p * d1 * d2
-    if structure.slider:
-        M = M + mech.m_s * lever * lever
-        K = K + mech.m_s * lever * (r * cphi + L * (d2 * sd + d1 * d1 * cd))
-    q = q + generalized_force_terms(mech, phi, dphi, t, load, torque, structure, sphi,
-                                    d1, sd, lever)
-    return (q - K * dphi * dphi) / M
 
 
 class CrankField(eqx.Module):
@@ -307,8 +228,7 @@ class CrankField(eqx.Module):
 
     def acceleration(self, t, phi, dphi):
         """phi'' = (q - K phi'^2) / M, rad/s^2, at time `t` (s)."""
-        return fused_acceleration(self.mech, phi, dphi, t, self.load, self.torque,
-                                  self.structure)
+        return acceleration(self.mech, phi, dphi, t, self.load, self.torque, self.structure)
 
     def __call__(self, t, y, args=None):
         phi, dphi = y

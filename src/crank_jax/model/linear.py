@@ -1,6 +1,16 @@
-"""Linearisation about phi = 0 (paper eq. 33, corrected by erratum 1 and 3):
+"""Linearisation about the static equilibrium phi_eq (paper eq. 33, corrected by errata 1
+and 3, generalised as in DESIGN.md §1 "Beyond the paper"):
 
-    mu phi'' + chi phi' + xi phi = tau(t)
+    mu (phi - phi_eq)'' + chi (phi - phi_eq)' + xi (phi - phi_eq) = tau(t) - mean(tau)
+
+    phi_eq: the root of q(phi, 0) = 0 (loads at their means) nearest phi = 0
+    mu  = M(phi_eq)
+    chi = c + c_s lever(phi_eq)^2
+    xi  = -dq/dphi (phi_eq, 0) = k - k_crit,
+    k_crit = g (m_c s cos(phi) + m_p (r cos(phi) + b (delta'' sin(delta) + delta'^2 cos(delta)))
+                + m_s lever') + P lever'        (at phi_eq; lever' = d lever / d phi)
+
+With `e = 0` and no constant loads, `phi_eq = 0` and these are the paper's
 
     mu  = m_c s^2 + I_c + m_p r^2 (1 - b/L)^2 + I_p r^2/L^2
     chi = c
@@ -8,58 +18,154 @@
 
 The paper's coupler term `m_p g r (1 + b/L)` is wrong (erratum 1), and its "excitation"
 `M_e = P r (1 + r/L) phi` is a stiffness, not a forcing (erratum 3): a constant P enters
-xi, a harmonic P(t) pumps the stiffness parametrically. Here P is the load's mean.
+xi, a harmonic P(t) pumps the stiffness parametrically. Coulomb friction (T_c, F_s) has no
+linearisation (its slope at rest, `T_c / w_c`, is an artefact of the smoothing): it is left
+out, and [`coulomb_note`][] says so. `xi` is written by hand here, not differentiated, so
+that it stays an independent check of q (tested against `jax.jacfwd`).
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
-from .loads import AbstractLoad, as_load
+from .dynamics import force_terms, mass_terms
+from .geometry import geometry
+from .loads import AbstractLoad, ConstantLoad, NoLoad, as_load
 from .params import SliderCrank
 
-__all__ = ["Linearization", "linearize"]
+__all__ = ["Linearization", "linearize", "equilibrium", "coulomb_note"]
+
+# Damped Newton from phi = 0: steps are clipped so that the search creeps towards the
+# nearest root instead of jumping over it; 40 steps of at most 0.25 rad reach 10 rad.
+_NEWTON_STEPS = 40
+_MAX_STEP = 0.25
+_STEP_TOL = 1e-10
 
 
 class Linearization(NamedTuple):
     """Coefficients of the linearised equation and derived quantities (SI units)."""
 
     mu: Array
-    """Inertia at phi = 0, kg*m^2."""
+    """Inertia M(phi_eq), kg*m^2."""
     chi: Array
-    """Damping, N*m*s/rad."""
+    """Damping c + c_s lever(phi_eq)^2, N*m*s/rad (Coulomb friction left out)."""
     xi: Array
-    """Effective stiffness at phi = 0 (shaft minus gravity and slider-force softening), N*m/rad."""
+    """Effective stiffness at phi_eq (shaft minus gravity and slider-force softening), N*m/rad."""
     omega_n: Array
     """Undamped natural frequency sqrt(xi/mu), rad/s (NaN when xi <= 0: no oscillation)."""
     zeta: Array
     """Damping ratio chi / (2 sqrt(xi mu)) (NaN when xi <= 0)."""
     stable: Array
-    """Static stability of phi = 0: xi > 0."""
+    """Static stability of phi_eq: xi > 0 (False where no equilibrium was found)."""
     k_crit: Array
-    """Stiffness k at which xi = 0, N*m/rad: below it the crank falls over."""
+    """Stiffness k at which xi = 0 (with phi_eq held), N*m/rad: below it the crank falls."""
+    phi_eq: Array
+    """The static equilibrium, rad: the root of q(phi, 0) = 0 nearest 0. NaN where the
+    search found none (e.g. a constant torque that no spring holds); the coefficients are
+    then those at phi = 0, a rate scale rather than an equilibrium's."""
 
 
-def linearize(mech: SliderCrank, load: AbstractLoad | None = None) -> Linearization:
-    """Linearise the equation of motion about phi = 0 with the slider force's mean.
+def _softening(mech: SliderCrank, phi: Array, P: Array, has_P: bool) -> Array:
+    """k_crit(phi) = -(dq/dphi + k) at rest, N*m/rad, written by hand."""
+    g = geometry(mech, phi)
+    coupler = mech.r * g.cphi + mech.b * (g.d2 * g.sin + g.d1 * g.d1 * g.cos)
+    soft = mech.g * (mech.m_c * mech.s * g.cphi + mech.m_p * coupler + mech.m_s * g.dlever)
+    return soft + P * g.dlever if has_P else soft
 
-    **Arguments:** `mech`; `load`, the slider force P (its `mean()` enters xi).
+
+def equilibrium(mech: SliderCrank, load: AbstractLoad | None = None,
+                torque: AbstractLoad | None = None) -> Array:
+    """The static equilibrium phi_eq, rad: the root of `q(phi, 0) = 0` with the loads at
+    their means, found by damped Newton steps from phi = 0 (the root nearest 0).
+
+    Works on concrete and traced parameters and on batches (one root per member); its
+    derivative with respect to the parameters is the implicit one.
+
+    **Returns:** an array of the parameters' broadcast shape; NaN where no root was found.
+    """
+    return _equilibrium(mech, _mean_loads(load, torque))
+
+
+def _newton_step(mech: SliderCrank, loads, phi: Array) -> Array:
+    q = force_terms(mech, geometry(mech, phi), phi, 0.0, 0.0, *loads)
+    has_P = not isinstance(loads[0], NoLoad)
+    xi = mech.k - _softening(mech, phi, loads[0].mean(), has_P)
+    return jnp.where(xi != 0, q / jnp.where(xi != 0, xi, 1.0), 0.0)
+
+
+# Jitted at module level so that eager calls (every concrete `simulate` asks the solver
+# policy for a linearisation) reuse one compiled loop instead of re-tracing a closure.
+@eqx.filter_jit
+def _equilibrium(mech: SliderCrank, loads) -> Array:
+    shape = jnp.broadcast_shapes(*(jnp.shape(x) for x in jax.tree_util.tree_leaves(mech)))
+    frozen = jax.lax.stop_gradient((mech, loads))
+
+    def body(_, carry):
+        phi, _ = carry
+        step = jnp.clip(_newton_step(*frozen, phi), -_MAX_STEP, _MAX_STEP)
+        return phi + step, step
+
+    zero = jnp.zeros(shape, jnp.result_type(float))
+    phi, last = jax.lax.fori_loop(0, _NEWTON_STEPS, body, (zero, zero + 1.0))
+    phi = jax.lax.stop_gradient(phi)
+    found = jnp.isfinite(phi) & (jnp.abs(last) <= _STEP_TOL)
+    # One more (unclipped) Newton step with live parameters: the value is unchanged to
+    # rounding, and its derivative is the implicit function theorem's -(dq/dp)/(dq/dphi).
+    phi = phi + _newton_step(mech, loads, phi)
+    return jnp.where(found, phi, jnp.nan)
+
+
+def linearize(mech: SliderCrank, load: AbstractLoad | None = None,
+              torque: AbstractLoad | None = None) -> Linearization:
+    """Linearise the equation of motion about its static equilibrium (loads at their means).
+
+    **Arguments:** `mech`; `load`, the slider force P; `torque`, the crank torque tau
+    (their `mean()`s set the equilibrium; P's also enters xi).
 
     **Returns:** a [`Linearization`][]; every field has the shape of the parameters.
     """
-    P = as_load(load).mean()
-    r, L, b, s, g = mech.r, mech.L, mech.b, mech.s, mech.g
-    mu = mech.m_c * s**2 + mech.I_c + mech.m_p * r**2 * (1 - b / L) ** 2 + mech.I_p * r**2 / L**2
-    weight = mech.m_c * s + mech.m_p * r * (1 + r * b / L**2) + mech.m_s * r * (1 + r / L)
-    softening = g * weight + P * r * (1 + r / L)
-    xi = mech.k - softening
-    chi = mech.c + jnp.zeros_like(xi)
+    return _linearize(mech, _mean_loads(load, torque))
+
+
+def _mean_loads(load, torque) -> tuple[AbstractLoad, AbstractLoad]:
+    """The loads at their means; an absent load stays `NoLoad` (its terms are left out)."""
+    load, torque = as_load(load), as_load(torque)
+    return (NoLoad() if isinstance(load, NoLoad) else ConstantLoad(load.mean()),
+            NoLoad() if isinstance(torque, NoLoad) else ConstantLoad(torque.mean()))
+
+
+# One compiled program for eager calls too (the solver policy linearises before every
+# concrete solve); inside an outer jit it is simply inlined.
+@eqx.filter_jit
+def _linearize(mech: SliderCrank, loads) -> Linearization:
+    has_P = not isinstance(loads[0], NoLoad)
+    phi_eq = _equilibrium(mech, loads)
+    at = jnp.where(jnp.isnan(phi_eq), 0.0, phi_eq)
+    g = geometry(mech, at)
+    mu = mass_terms(mech, g)
+    chi = mech.c + mech.c_s * g.lever * g.lever
+    k_crit = _softening(mech, at, loads[0].mean(), has_P) + jnp.zeros_like(mu)
+    xi = mech.k - k_crit
     # Only defined for a statically stable equilibrium; NaN says "no oscillation" honestly
     # rather than a silently clipped number.
     pos = jnp.where(xi > 0, xi, jnp.nan)
     omega_n = jnp.sqrt(pos / mu)
     zeta = chi / (2 * jnp.sqrt(pos * mu))
-    return Linearization(mu, chi, xi, omega_n, zeta, xi > 0, softening + jnp.zeros_like(xi))
+    stable = (xi > 0) & ~jnp.isnan(phi_eq)
+    return Linearization(mu, chi, xi, omega_n, zeta, stable, k_crit, phi_eq)
+
+
+def coulomb_note(mech: SliderCrank) -> str | None:
+    """A one-line note when the (concrete) parameters have Coulomb friction, which the
+    linearisation leaves out; `None` otherwise."""
+    names = [n for n in ("T_c", "F_s") if np.any(np.asarray(getattr(mech, n)) != 0)]
+    if not names:
+        return None
+    return (f"note: Coulomb friction ({', '.join(names)}) is left out of the linearisation "
+            "(it has none at rest); the real decay is partly linear, not exponential")

@@ -20,6 +20,12 @@ The seven reactions `g_r` (the planar counterpart of the paper's 14) are:
   back with -A on the coupler).
 - `B` (2,): force of the slider on the coupler at the wrist pin B, N.
 - `N` (): normal force of the guide on the slider, along +y, N.
+- `F` (): friction force of the guide on the slider, along +x, N (the applied
+  `-c_s v_s - F_s tanh(v_s/w_s)`; zero without slider friction).
+
+With an offset `e` the slider runs along `y = e`; the positions and moment arms come from
+the same geometry, and the crank bearing's friction torque `-T_c tanh(phi'/w_c)` joins the
+crank's moment row.
 
 All functions here take a scalar state; `jax.vmap` them for time series.
 """
@@ -35,7 +41,8 @@ from .geometry import coupler_angle
 from .loads import AbstractLoad, as_load
 from .params import SliderCrank
 
-__all__ = ["GlobalForm", "global_form", "distribution_matrix", "Reactions", "reactions"]
+__all__ = ["GlobalForm", "global_form", "guide_friction", "distribution_matrix", "Reactions",
+           "reactions"]
 
 
 class GlobalForm(NamedTuple):
@@ -48,7 +55,8 @@ class GlobalForm(NamedTuple):
     qbar_c: Array
     """(8,) Coriolis/centripetal forces Mbar (dJ/dphi) phi'^2 (gyroscopic terms vanish)."""
     qbar_e: Array
-    """(8,) applied forces and torques (weights, P, spring-damper, tau)."""
+    """(8,) applied forces and torques (weights, P, guide friction, spring-damper, bearing
+    friction, tau)."""
 
 
 def global_form(
@@ -75,13 +83,21 @@ def global_form(
     ])
     m = jnp.stack([mech.m_c, mech.m_c, mech.m_p, mech.m_p, mech.m_s, mech.m_s, mech.I_c, mech.I_p])
     zero = jnp.zeros_like(sp)
+    crank_torque = (-mech.k * phi - mech.c * dphi + torque(t)
+                    - mech.T_c * jnp.tanh(dphi / mech.w_c))
     qbar_e = jnp.stack([
         -mech.m_c * g + zero, zero,
         -mech.m_p * g + zero, zero,
-        -load(t) - mech.m_s * g + zero, zero,
-        -mech.k * phi - mech.c * dphi + torque(t), zero,
+        -load(t) - mech.m_s * g + guide_friction(mech, J[4] * dphi) + zero, zero,
+        crank_torque + zero, zero,
     ])
     return GlobalForm(jnp.diag(m), J, m * dJ * dphi**2, qbar_e)
+
+
+def guide_friction(mech: SliderCrank, v_s: ArrayLike) -> Array:
+    """Friction force of the guide on the slider along +x, N, at slider velocity `v_s`
+    (m/s): `-c_s v_s - F_s tanh(v_s / w_s)`."""
+    return -mech.c_s * v_s - mech.F_s * jnp.tanh(v_s / mech.w_s)
 
 
 def distribution_matrix(mech: SliderCrank, phi: ArrayLike) -> Array:
@@ -115,6 +131,7 @@ class Reactions(NamedTuple):
     A: Array
     B: Array
     N: Array
+    F: Array
 
 
 def reactions(
@@ -132,4 +149,5 @@ def reactions(
     Q = distribution_matrix(mech, phi)
     keep = jnp.array([0, 1, 2, 3, 4, 5, 7])
     g_r = jnp.linalg.solve(Q[keep], rhs[keep])
-    return Reactions(O=g_r[0:2], A=g_r[2:4], B=g_r[4:6], N=g_r[6])
+    return Reactions(O=g_r[0:2], A=g_r[2:4], B=g_r[4:6], N=g_r[6],
+                     F=guide_friction(mech, gf.J[4] * dphi))

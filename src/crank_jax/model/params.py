@@ -1,4 +1,6 @@
-"""Physical parameters of the slider-crank: geometry, inertia, crank-axis shaft, gravity."""
+"""Physical parameters of the slider-crank: geometry, inertia, crank-axis shaft, gravity,
+slider offset and joint friction; their validation (one rule list, used for concrete values
+at construction and for traced values inside `jit`)."""
 
 from __future__ import annotations
 
@@ -10,18 +12,40 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-__all__ = ["SliderCrank", "FIELDS"]
+__all__ = ["SliderCrank", "FIELDS", "PAPER_FIELDS", "SIGNED_FIELDS", "WIDTH_FIELDS",
+           "check_shapes", "UNITS", "as_float_array", "validation_rules"]
 
-#: The twelve mechanism fields, in the order of the paper's symbol table.
-FIELDS: tuple[str, ...] = ("r", "L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c", "g")
+#: The paper's twelve mechanism fields, in the order of its symbol table.
+PAPER_FIELDS: tuple[str, ...] = ("r", "L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k",
+                                 "c", "g")
+#: Every field: the paper's, then the slider offset and the friction terms (DESIGN.md §1
+#: "Beyond the paper"), each zero by default except the two smoothing widths.
+FIELDS: tuple[str, ...] = PAPER_FIELDS + ("e", "T_c", "w_c", "c_s", "F_s", "w_s")
+#: Fields that may be negative (log coordinates do not apply to them).
+SIGNED_FIELDS: tuple[str, ...] = ("e",)
+#: Smoothing widths of the Coulomb terms: numerical choices, not physical parameters.
+WIDTH_FIELDS: tuple[str, ...] = ("w_c", "w_s")
 
-_UNITS = {
+UNITS: dict[str, str] = {
     "r": "m", "L": "m", "b": "m", "s": "m", "m_c": "kg", "m_p": "kg", "m_s": "kg",
     "I_c": "kg*m^2", "I_p": "kg*m^2", "k": "N*m/rad", "c": "N*m*s/rad", "g": "m/s^2",
+    "e": "m", "T_c": "N*m", "w_c": "rad/s", "c_s": "N*s/m", "F_s": "N", "w_s": "m/s",
 }
+_DEFAULTS = {"g": 9.81, "e": 0.0, "T_c": 0.0, "w_c": 0.01, "c_s": 0.0, "F_s": 0.0,
+             "w_s": 0.001}
 
 
 def as_float_array(x: ArrayLike) -> Array:
+    """`x` as a strongly typed float array (float64 under x64); tracers pass through.
+
+    A Python int too large for a float (e.g. 400 digits) becomes +-inf, so validation
+    reports "must be finite" rather than an `OverflowError`.
+    """
+    if isinstance(x, int) and not isinstance(x, bool):
+        try:
+            x = float(x)
+        except OverflowError:
+            x = math.inf if x > 0 else -math.inf
     # Python floats would become weakly-typed; an explicit float array keeps the pytree's
     # dtype stable (float64 under x64) so a new value never means a new compilation.
     if isinstance(x, jax.core.Tracer):
@@ -35,26 +59,50 @@ def as_float_array(x: ArrayLike) -> Array:
 
 
 def validation_rules(v: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, str]]:
-    """(field, violated-mask, rule and fix) for every validation rule; numpy or jax arrays."""
+    """Every validation rule, the one place they are written.
+
+    **Arguments:** `v`, field name -> value (numpy arrays for concrete values, jax arrays
+    or tracers for traced ones); fields missing from `v` take their defaults.
+
+    **Returns:** a list of `(field, violated-mask, rule and fix)`.
+    """
+    v = {**_DEFAULTS, **v}
     xp = jnp if any(isinstance(a, jax.Array) for a in v.values()) else np
     rules = [(name, ~xp.isfinite(v[name]), f"{name} must be finite (got NaN or inf)")
              for name in FIELDS]
     rules += [
         ("r", v["r"] <= 0, "r must be > 0 (crank radius O->A, metres)"),
-        ("L", v["L"] <= v["r"], "L must be > r (coupler longer than crank), else the crank locks"),
+        ("L", v["L"] <= v["r"] + xp.abs(v["e"]),
+         "L must be > r + |e| (coupler longer than crank plus offset), else the crank locks"),
         ("s", v["s"] < 0, "s must be >= 0 (distance O->crank centre of mass, metres)"),
         ("b", (v["b"] < 0) | (v["b"] > v["L"]), "b must satisfy 0 <= b <= L (A->coupler CoM)"),
     ]
     for name in ("m_c", "m_p", "m_s", "I_c", "I_p"):
         rules.append((name, v[name] < 0,
-                      f"{name} must be >= 0 ({_UNITS[name]}); use 0 for an absent body"))
+                      f"{name} must be >= 0 ({UNITS[name]}); use 0 for an absent body"))
     rules += [
         ("I_c", v["m_c"] * v["s"] ** 2 + v["I_c"] <= 0,
          "m_c*s^2 + I_c must be > 0 so that M(phi) > 0: give the crank an inertia I_c"),
         ("k", v["k"] < 0, "k must be >= 0 (torsional stiffness, N*m/rad)"),
         ("c", v["c"] < 0, "c must be >= 0 (torsional damping, N*m*s/rad)"),
     ]
+    for name in ("T_c", "c_s", "F_s"):
+        rules.append((name, v[name] < 0, f"{name} must be >= 0 ({UNITS[name]}); use 0 for "
+                      "no friction"))
+    for name in WIDTH_FIELDS:
+        rules.append((name, v[name] <= 0, f"{name} must be > 0 ({UNITS[name]}; smoothing "
+                      f"width of the Coulomb term, default {_DEFAULTS[name]})"))
     return rules
+
+
+def check_shapes(shapes: dict[str, tuple[int, ...]]) -> None:
+    """Raise a `ValueError` naming the fields whose shapes do not broadcast together."""
+    try:
+        np.broadcast_shapes(*shapes.values())
+    except ValueError:
+        shown = ", ".join(f"{n} {s}" for n, s in shapes.items() if s != ())
+        raise ValueError(f"SliderCrank fields have shapes that do not broadcast together: "
+                         f"{shown}; give every batched field one shape (or a scalar)") from None
 
 
 class SliderCrank(eqx.Module):
@@ -73,6 +121,16 @@ class SliderCrank(eqx.Module):
       mass, kg*m^2 (`>= 0`, and `m_c*s^2 + I_c > 0`).
     - `k`: torsional stiffness of the crank axis, N*m/rad. `c`: its damping, N*m*s/rad.
     - `g`: gravitational acceleration along -x, m/s^2 (0 switches gravity off).
+    - `e`: offset of the slider's line from O, m (the slider runs along `y = e`; signed;
+      `L > r + |e|`).
+    - `T_c`: Coulomb friction torque of the crank bearing, N*m (`>= 0`), smoothed as
+      `T_c tanh(phi'/w_c)`; `w_c`: its width, rad/s (`> 0`, default 0.01).
+    - `c_s`: viscous friction of the slider guide, N*s/m (`>= 0`). `F_s`: its Coulomb
+      friction force, N (`>= 0`), smoothed as `F_s tanh(v_s/w_s)`; `w_s`: its width, m/s
+      (`> 0`, default 0.001).
+
+    Every field but the paper's twelve defaults to zero (the widths to the values above); a
+    zero term is compiled out (see `Structure`). Field shapes must broadcast together.
 
     Concrete values are validated at construction (a `ValueError` naming the field and the
     rule). Traced values are checked inside `jit` by [`SliderCrank.checked`][] with
@@ -90,10 +148,19 @@ class SliderCrank(eqx.Module):
     I_p: Float[Array, ...] = eqx.field(converter=as_float_array)
     k: Float[Array, ...] = eqx.field(converter=as_float_array)
     c: Float[Array, ...] = eqx.field(converter=as_float_array)
-    g: Float[Array, ...] = eqx.field(converter=as_float_array, default=9.81)
+    g: Float[Array, ...] = eqx.field(converter=as_float_array, default=_DEFAULTS["g"])
+    e: Float[Array, ...] = eqx.field(converter=as_float_array, default=_DEFAULTS["e"])
+    T_c: Float[Array, ...] = eqx.field(converter=as_float_array, default=_DEFAULTS["T_c"])
+    w_c: Float[Array, ...] = eqx.field(converter=as_float_array, default=_DEFAULTS["w_c"])
+    c_s: Float[Array, ...] = eqx.field(converter=as_float_array, default=_DEFAULTS["c_s"])
+    F_s: Float[Array, ...] = eqx.field(converter=as_float_array, default=_DEFAULTS["F_s"])
+    w_s: Float[Array, ...] = eqx.field(converter=as_float_array, default=_DEFAULTS["w_s"])
 
     def __check_init__(self):
         values = {name: getattr(self, name) for name in FIELDS}
+        # Shapes are known even for tracers: a batch that cannot broadcast is refused here.
+        if all(hasattr(v, "shape") for v in values.values()):
+            check_shapes({n: tuple(v.shape) for n, v in values.items()})
         # Values that are traced (inside jit/vmap/grad) cannot be inspected here; they are
         # checked where they are used, by `checked()`.
         if any(isinstance(v, jax.core.Tracer) for v in values.values()):
