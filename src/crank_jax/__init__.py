@@ -8,11 +8,13 @@ Public API (everything else is private):
   `generalized_force` (q), `acceleration`, `energy`, `kinetic_energy`, `potential_energy`,
   `power_in`, `Structure`; `global_form`, `distribution_matrix`, `reactions`;
   `linearize`.
-- Loads: `NoLoad`, `ConstantLoad`, `HarmonicLoad`, `SampledLoad`, `AbstractLoad`.
+- Loads: `NoLoad`, `ConstantLoad`, `HarmonicLoad`, `MultiSineLoad`, `SampledLoad`,
+  `AbstractLoad`; `INTERPOLATIONS` (a sampled load's), `LOAD_PARAMS` (load parameter
+  names shared by scenes, fits and sweeps).
 - Simulation: `simulate`, `Trajectory`, `choose_solver`, `SOLVERS`, `OUTPUTS`.
 - Scenes: `Scene`, `load_scene`, `save_scene`, `scene_to_toml`, `presets`, `PRESETS`.
 - Identification: `synthesize`, `load_data`, `save_data`, `Data`, `DataError`,
-  `MultiSineLoad`, `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
+  `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
   `IdentifiabilityWarning`, `ConvergenceWarning`.
 - Monte Carlo: `sweep`, `SweepResult`, `distributions`, `REDUCTIONS`, `STATUS`,
   `VARIABLES`, `sweep_cost`, `initialize_distributed`, `fastest_mode`.
@@ -20,7 +22,7 @@ Public API (everything else is private):
 
 from . import distributions
 from .cache import default_cache_dir, enable_compilation_cache
-from .data import Data, DataError, MultiSineLoad, load_data, save_data, synthesize
+from .data import Data, DataError, load_data, save_data, synthesize
 from .identify.fit import (
     FREE_NAMES,
     ConvergenceWarning,
@@ -44,7 +46,16 @@ from .model.dynamics import (
 )
 from .model.geometry import CouplerAngle, Kinematics, coupler_angle, kinematics
 from .model.linear import Linearization, linearize
-from .model.loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
+from .model.loads import (
+    INTERPOLATIONS,
+    LOAD_PARAMS,
+    AbstractLoad,
+    ConstantLoad,
+    HarmonicLoad,
+    MultiSineLoad,
+    NoLoad,
+    SampledLoad,
+)
 from .model.newton_euler import GlobalForm, Reactions, distribution_matrix, global_form, reactions
 from .model.params import FIELDS, SliderCrank
 from .scene import PRESETS, Scene, SceneError, load_scene, presets, save_scene, scene_to_toml
@@ -64,7 +75,8 @@ __version__ = "0.1.0"
 
 
 __all__ = [
-    "AbstractLoad", "ConstantLoad", "CouplerAngle", "FIELDS", "GlobalForm", "HarmonicLoad",
+    "AbstractLoad", "ConstantLoad", "INTERPOLATIONS", "LOAD_PARAMS",
+    "CouplerAngle", "FIELDS", "GlobalForm", "HarmonicLoad",
     "Kinematics", "Linearization", "NoLoad", "OUTPUTS", "PRESETS", "Reactions", "SOLVERS",
     "SampledLoad", "Scene", "SceneError", "SliderCrank", "Structure", "Trajectory",
     "acceleration", "atomic_write", "choose_solver", "coriolis", "coupler_angle",
