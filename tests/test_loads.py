@@ -73,8 +73,9 @@ def test_linear_and_zoh():
     zoh = cj.SampledLoad(ts, vs, "zoh")
     np.testing.assert_allclose(np.asarray(zoh(t)), [1, 1, 1, 3, 3, -1, -1])
     assert float(zoh.mean()) == pytest.approx((1.0 + 6.0) / 3)
-    assert lin.nonsmooth().kinks is not None and zoh.nonsmooth().jumps is not None
-    assert cj.SampledLoad(ts, vs).nonsmooth() == (None, None)
+    assert lin.nonsmooth().step_ts is not None and zoh.nonsmooth().jump_ts is not None
+    assert zoh.nonsmooth().step_ts is None and cj.SampledLoad(ts, vs).nonsmooth().step_ts \
+        is not None
     with pytest.raises(ValueError, match="interp 'spline' is unknown"):
         cj.SampledLoad(ts, vs, "spline")
 

@@ -118,13 +118,14 @@ def _derived(mech, load, torque, ts, phi, dphi, outputs) -> dict[str, Array]:
 
 def _controller(rtol, atol, load, torque) -> diffrax.AbstractStepSizeController:
     pid = diffrax.PIDController(rtol=rtol, atol=atol)
-    kinks, jumps = nonsmooth_times(load, torque)
-    if kinks is None and jumps is None:
+    step_ts, jump_ts = nonsmooth_times(load, torque)
+    if step_ts is None and jump_ts is None:
         return pid
-    # A step across a kink (a linearly interpolated load) loses an order of accuracy that
-    # the error estimate does not see, so steps end exactly on those times; across a jump
-    # (a zero-order hold) diffrax steps to just before it and restarts just after.
-    return diffrax.ClipStepSizeController(pid, step_ts=kinks, jump_ts=jumps)
+    # A step across a kink (or a jump in a higher derivative) of a load loses accuracy
+    # that the error estimate does not see in time, so steps end exactly there; across a
+    # jump in the load itself (a zero-order hold) diffrax steps to just before it and
+    # restarts just after.
+    return diffrax.ClipStepSizeController(pid, step_ts=step_ts, jump_ts=jump_ts)
 
 
 @eqx.filter_jit
