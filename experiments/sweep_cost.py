@@ -8,6 +8,9 @@
    the scene's own structure against every term compiled in (`Structure()`).
 2. Bucketing: a sweep whose samples span a stiff tail, with and without sorting by the
    linearised fastest rate (lockstep batches cost their slowest member's steps).
+3. Solvers: what `"auto"` (the policy's fused `dopri8-uniform` on a sweep's uniform save
+   times) costs against Tsit5 and Dopri8 at the scene's tolerance, with the error of each
+   against an rtol = 1e-12 reference.
 
 Writes experiments/results/sweep_cost[_smoke].json.
 """
@@ -93,6 +96,24 @@ def bucketing(smoke):
     return rows
 
 
+def solvers(smoke):
+    rig = cj.load_scene("lab-rig")
+    n = 64 if smoke else 256
+    spec = {"k": "uniform(1.5,2.5)", "c": "uniform(0.001,0.003)"}
+    kw = dict(n=n, t1=2.0, num_saves=201, chunk_size=n)
+    tight = rig.__class__(rig.mech, rtol=1e-12, atol=1e-14, t1=rig.t1, samples=rig.samples)
+    ref = cj.sweep(tight, spec, ("phi",), solver="dopri8", **kw).outputs["phi"]
+    rows = []
+    for solver in ("auto", "tsit5", "dopri8"):
+        r, t = _time_sweep(rig, spec, ("phi",), 1 if smoke else 3, solver=solver, **kw)
+        rows.append(dict(solver=solver, ran=sorted({cj.SOLVERS[i] for i in r.solver}), n=n,
+                         rtol=float(rig.rtol), time_per_sample_us=t / n * 1e6,
+                         mean_steps=float(r.num_steps.mean()),
+                         max_error_rad=float(np.max(np.abs(r.outputs["phi"] - ref)))))
+        print(rows[-1], flush=True)
+    return rows
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--smoke", action="store_true")
@@ -100,7 +121,8 @@ def main(argv=None):
     res = dict(date=datetime.date.today().isoformat(),
                machine=f"{platform.machine()}, {os.cpu_count()} CPU cores",
                jax=jax.__version__, smoke=a.smoke,
-               structure_cost=structure_cost(a.smoke), bucketing=bucketing(a.smoke))
+               structure_cost=structure_cost(a.smoke), bucketing=bucketing(a.smoke),
+               solvers=solvers(a.smoke), shared_machine="2 cores shared with other jobs")
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"sweep_cost{'_smoke' if a.smoke else ''}.json"
     with cj.atomic_write(path) as f:

@@ -3,12 +3,14 @@ static structure, chunking and order, the CLI."""
 
 import json
 
+import equinox as eqx
 import numpy as np
 import pytest
 
 import crank_jax as cj
 from crank_jax import cli
 from crank_jax.distributions import (
+    DRAW_BLOCK,
     Const,
     LogNormal,
     LogUniform,
@@ -70,6 +72,21 @@ def test_draw_explicit_arrays_and_errors():
         draw({"k": Normal(1, 1)})
 
 
+def test_draw_any_range_alone_matches_the_whole():
+    spec = {"k": Normal(2, 0.1), "c": "loguniform(1e-3,1)", "L": np.arange(DRAW_BLOCK + 90.0)}
+    n = DRAW_BLOCK + 90
+    whole = draw(spec, n=n, seed=4)
+    for start, stop in ((0, 10), (DRAW_BLOCK - 50, DRAW_BLOCK + 70), (n - 1, n)):
+        part = draw(spec, n=n, seed=4, start=start, stop=stop)
+        for k in spec:
+            np.testing.assert_array_equal(part[k], whole[k][start:stop])
+    # The first samples do not depend on how many are drawn.
+    np.testing.assert_array_equal(draw({"k": Normal(2, 0.1)}, n=10, seed=4)["k"],
+                                  whole["k"][:10])
+    with pytest.raises(ValueError, match="start < stop"):
+        draw(spec, n=n, start=5, stop=5)
+
+
 # --- agreement with simulate ------------------------------------------------------------
 
 def test_sweep_matches_individual_simulations(lab_rig):
@@ -78,6 +95,8 @@ def test_sweep_matches_individual_simulations(lab_rig):
     outs = ("peak_phi", "peak_dphi", "final_phi", "final_energy", "peak_O", "phi")
     r = cj.sweep(lab_rig, {"k": ks, "c": c, "phi0": 0.5}, outs, chunk_size=2, **SHORT)
     assert r.n == 5 and np.all(r.ok) and r.seed == -1
+    # "auto" goes through the solver policy: the fused solver on a sweep's uniform saves.
+    assert {cj.SOLVERS[i] for i in r.solver} == {"dopri8-uniform"}
     for i in range(5):
         mech = lab_rig.mech.replace(k=ks[i], c=c[i])
         tr = cj.simulate(mech, 0.5, 0.0, r.ts, solver=cj.SOLVERS[r.solver[i]],
@@ -137,6 +156,40 @@ def test_bad_arguments(lab_rig):
         cj.sweep(lab_rig, {"k": 1.0}, ("peak_q",), n=2)
     with pytest.raises(ValueError, match="unknown solver"):
         cj.sweep(lab_rig, {"k": 1.0}, n=2, solver="euler")
+
+
+def test_a_result_too_large_is_refused_before_any_work(lab_rig, tmp_path, capsys):
+    with pytest.raises(ValueError, match=r"n = 100000000000 samples need .* GiB .* use n <="):
+        cj.sweep(lab_rig, {"k": "normal(2,0.1)"}, n=10**11, chunk_size=8)
+    with pytest.raises(ValueError, match="limit is 0.0 GiB"):
+        cj.sweep(lab_rig, {"k": "normal(2,0.1)"}, ("phi",), n=1000, max_memory=10_000)
+    argv = ["sweep", "lab-rig", "--vary", "k=normal(2,0.1)", "--n", "100000000000",
+            "--chunk-size", "8", "--out", str(tmp_path / "x.npz"), "--quiet"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "GiB" in err and err.count("\n") == 1
+
+
+# --- every load kind --------------------------------------------------------------------
+
+def test_every_load_kind_sweeps_or_is_refused_by_name(lab_rig):
+    ms = cj.MultiSineLoad([0.04, 0.03], [1.3, 2.9], [0.0, 1.0], X0=0.01)
+    scene = cj.Scene(lab_rig.mech, torque=ms, phi0=0.5, t1=0.5, samples=51, solver="tsit5")
+    r = cj.sweep(scene, {"k": np.array([2.0, 3.0]), "tau0": np.array([0.0, 0.02])},
+                 ("final_phi",))
+    assert np.all(r.ok)
+    tr = cj.simulate(scene.mech.replace(k=3.0), 0.5, 0.0, r.ts, solver="tsit5",
+                     torque=cj.MultiSineLoad(ms.amplitudes, ms.freqs_hz, ms.phases, 0.02))
+    assert r.outputs["final_phi"][1] == pytest.approx(float(tr.phi[-1]), rel=1e-9)
+    with pytest.raises(ValueError, match=r"MultiSineLoad .* no tau1; its parameters are"):
+        cj.sweep(scene, {"tau1": "normal(0.1,0.01)"}, n=2)
+    sampled = cj.SampledLoad(np.linspace(0, 0.5, 26), 0.03 * np.sin(np.arange(26.0)))
+    scene = eqx.tree_at(lambda s: s.torque, scene, sampled)
+    r = cj.sweep(scene, {"k": np.array([2.0])}, ("final_phi",))
+    tr = cj.simulate(scene.mech, 0.5, 0.0, r.ts, torque=sampled, solver="tsit5")
+    assert r.ok[0] and r.outputs["final_phi"][0] == pytest.approx(float(tr.phi[-1]), rel=1e-9)
+    with pytest.raises(ValueError, match="SampledLoad .* no tau0"):
+        cj.sweep(scene, {"tau0": 1.0}, n=2)
 
 
 # --- static structure -------------------------------------------------------------------

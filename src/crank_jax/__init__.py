@@ -1,26 +1,43 @@
 """crank-jax: the single slider-crank mechanism with a flexible crank axis, as a fast,
-differentiable JAX model (El-Adawi & El-Kafrawy's minimal form, corrected).
+differentiable JAX model (El-Adawi & El-Kafrawy's minimal form, corrected, plus offset
+and friction).
 
-Public API (everything else is private):
+The public API, by topic (everything else is private; the subpackages
+`model`, `solve`, `identify`, `sweep` and `cli` are the implementation):
 
 - Parameters: `SliderCrank`, `FIELDS`, `SIGNED_FIELDS`.
-- Physics: `geometry`, `coupler_angle`, `kinematics`, `mass` (M), `coriolis` (K),
-  `generalized_force` (q), `acceleration`, `energy`, `kinetic_energy`, `potential_energy`,
-  `power_in`, `Structure`; `global_form`, `distribution_matrix`, `reactions`;
-  `linearize`, `equilibrium`, `coulomb_note`.
-- Loads: `NoLoad`, `ConstantLoad`, `HarmonicLoad`, `SampledLoad`, `AbstractLoad`.
-- Simulation: `simulate`, `Trajectory`, `choose_solver`, `SOLVERS`, `OUTPUTS`.
-- Scenes: `Scene`, `load_scene`, `save_scene`, `scene_to_toml`, `presets`, `PRESETS`.
-- Identification: `synthesize`, `load_data`, `save_data`, `Data`, `DataError`,
-  `MultiSineLoad`, `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
+- Physics: `geometry`, `Geometry`, `coupler_angle`, `CouplerAngle`, `kinematics`,
+  `Kinematics`, `Structure`, `CrankField`, `mass`, `coriolis`, `generalized_force`,
+  `acceleration`, `energy`, `kinetic_energy`, `potential_energy`, `power_in`,
+  `global_form`, `GlobalForm`, `distribution_matrix`, `reactions`, `Reactions`,
+  `linearize`, `Linearization`, `equilibrium`, `coulomb_note`.
+- Loads: `AbstractLoad`, `NoLoad`, `ConstantLoad`, `HarmonicLoad`, `MultiSineLoad`,
+  `SampledLoad`, `INTERPOLATIONS`, `LOAD_PARAMS`.
+- Simulation: `simulate`, `Trajectory`, `OUTPUTS`, `output_columns`, `SOLVERS`,
+  `resolve_solver`, `choose_solver`, `fastest_mode`.
+- Scenes: `Scene`, `SceneError`, `load_scene`, `save_scene`, `scene_to_toml`, `presets`,
+  `PRESETS`.
+- Data: `Data`, `DataError`, `load_data`, `save_data`, `synthesize`.
+- Identification: `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
   `IdentifiabilityWarning`, `ConvergenceWarning`.
-- Monte Carlo: `sweep`, `SweepResult`, `distributions`, `REDUCTIONS`, `STATUS`,
-  `VARIABLES`, `sweep_cost`, `initialize_distributed`, `fastest_mode`.
+- Monte Carlo: `sweep`, `SweepResult`, `REDUCTIONS`, `STATUS`, `VARIABLES`,
+  `sweep_cost`, `initialize_distributed`, `distributions`.
+- Files and the compilation cache: `atomic_write`, `enable_compilation_cache`,
+  `default_cache_dir`.
 """
 
 from . import distributions
-from .cache import default_cache_dir, enable_compilation_cache
-from .data import Data, DataError, MultiSineLoad, load_data, save_data, synthesize
+from .cache import (
+    default_cache_dir,
+    enable_compilation_cache,
+)
+from .data import (
+    Data,
+    DataError,
+    load_data,
+    save_data,
+    synthesize,
+)
 from .identify.fit import (
     FREE_NAMES,
     ConvergenceWarning,
@@ -30,7 +47,9 @@ from .identify.fit import (
     fit,
     regressor_start,
 )
-from .io import atomic_write
+from .io import (
+    atomic_write,
+)
 from .model.dynamics import (
     CrankField,
     Structure,
@@ -43,14 +62,63 @@ from .model.dynamics import (
     potential_energy,
     power_in,
 )
-from .model.geometry import CouplerAngle, Geometry, Kinematics, coupler_angle, geometry, kinematics
-from .model.linear import Linearization, coulomb_note, equilibrium, linearize
-from .model.loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
-from .model.newton_euler import GlobalForm, Reactions, distribution_matrix, global_form, reactions
-from .model.params import FIELDS, SIGNED_FIELDS, SliderCrank
-from .scene import PRESETS, Scene, SceneError, load_scene, presets, save_scene, scene_to_toml
-from .solve.policy import SOLVERS, choose_solver, fastest_mode, resolve_solver
-from .solve.simulate import OUTPUTS, Trajectory, output_columns, simulate
+from .model.geometry import (
+    CouplerAngle,
+    Geometry,
+    Kinematics,
+    coupler_angle,
+    geometry,
+    kinematics,
+)
+from .model.linear import (
+    Linearization,
+    coulomb_note,
+    equilibrium,
+    linearize,
+)
+from .model.loads import (
+    INTERPOLATIONS,
+    LOAD_PARAMS,
+    AbstractLoad,
+    ConstantLoad,
+    HarmonicLoad,
+    MultiSineLoad,
+    NoLoad,
+    SampledLoad,
+)
+from .model.newton_euler import (
+    GlobalForm,
+    Reactions,
+    distribution_matrix,
+    global_form,
+    reactions,
+)
+from .model.params import (
+    FIELDS,
+    SIGNED_FIELDS,
+    SliderCrank,
+)
+from .scene import (
+    PRESETS,
+    Scene,
+    SceneError,
+    load_scene,
+    presets,
+    save_scene,
+    scene_to_toml,
+)
+from .solve.policy import (
+    SOLVERS,
+    choose_solver,
+    fastest_mode,
+    resolve_solver,
+)
+from .solve.simulate import (
+    OUTPUTS,
+    Trajectory,
+    output_columns,
+    simulate,
+)
 from .sweep.run import (
     REDUCTIONS,
     STATUS,
@@ -63,40 +131,79 @@ from .sweep.run import (
 
 __version__ = "0.1.0"
 
-
 __all__ = [
-    "AbstractLoad", "ConstantLoad", "CrankField", "CouplerAngle", "FIELDS", "GlobalForm",
-    "HarmonicLoad",
-    "Kinematics", "Linearization", "NoLoad", "OUTPUTS", "PRESETS", "Reactions", "SOLVERS",
-    "SampledLoad", "Scene", "SceneError", "SliderCrank", "Structure", "Trajectory",
-    "acceleration", "atomic_write", "choose_solver", "coriolis", "coupler_angle",
-    "default_cache_dir", "distribution_matrix", "enable_compilation_cache", "energy",
-    "generalized_force", "global_form", "kinematics", "kinetic_energy", "linearize",
-    "load_scene", "mass", "output_columns", "potential_energy", "power_in", "presets",
-    "reactions", "resolve_solver", "save_scene", "scene_to_toml", "simulate",
-    "Geometry", "geometry", "equilibrium", "coulomb_note", "SIGNED_FIELDS",
-]
-__all__ += [
-    "REDUCTIONS",
-    "STATUS",
-    "SweepResult",
-    "VARIABLES",
-    "distributions",
-    "fastest_mode",
-    "initialize_distributed",
-    "sweep",
-    "sweep_cost",
+    "AbstractLoad",
+    "acceleration",
+    "atomic_write",
+    "choose_solver",
+    "ConstantLoad",
     "ConvergenceWarning",
+    "coriolis",
+    "coulomb_note",
+    "coupler_angle",
+    "CouplerAngle",
+    "CrankField",
     "Data",
     "DataError",
-    "FREE_NAMES",
-    "FitResult",
-    "MultiSineLoad",
-    "IdentifiabilityWarning",
-    "Profile",
+    "default_cache_dir",
+    "distribution_matrix",
+    "distributions",
+    "enable_compilation_cache",
+    "energy",
+    "equilibrium",
+    "fastest_mode",
+    "FIELDS",
     "fit",
+    "FitResult",
+    "FREE_NAMES",
+    "generalized_force",
+    "Geometry",
+    "geometry",
+    "global_form",
+    "GlobalForm",
+    "HarmonicLoad",
+    "IdentifiabilityWarning",
+    "initialize_distributed",
+    "INTERPOLATIONS",
+    "kinematics",
+    "Kinematics",
+    "kinetic_energy",
+    "Linearization",
+    "linearize",
     "load_data",
+    "LOAD_PARAMS",
+    "load_scene",
+    "mass",
+    "MultiSineLoad",
+    "NoLoad",
+    "output_columns",
+    "OUTPUTS",
+    "potential_energy",
+    "power_in",
+    "presets",
+    "PRESETS",
+    "Profile",
+    "Reactions",
+    "reactions",
+    "REDUCTIONS",
     "regressor_start",
+    "resolve_solver",
+    "SampledLoad",
     "save_data",
+    "save_scene",
+    "Scene",
+    "scene_to_toml",
+    "SceneError",
+    "SIGNED_FIELDS",
+    "simulate",
+    "SliderCrank",
+    "SOLVERS",
+    "STATUS",
+    "Structure",
+    "sweep",
+    "sweep_cost",
+    "SweepResult",
     "synthesize",
+    "Trajectory",
+    "VARIABLES",
 ]

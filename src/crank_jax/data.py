@@ -23,43 +23,15 @@ import os
 from collections.abc import Sequence
 
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
 
 from .io import atomic_write
-from .model.loads import AbstractLoad, NoLoad, SampledLoad
-from .model.params import as_float_array
+from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
 
-__all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES",
-           "MultiSineLoad"]
+__all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES"]
 
 #: The fewest samples a record may have.
 MIN_SAMPLES = 5
-
-
-class MultiSineLoad(AbstractLoad):
-    """An identification excitation: `X(t) = X0 + sum_j a_j sin(2 pi f_j t + p_j)`.
-
-    A sum of sines at several frequencies excites the mechanism's nonlinear terms with
-    different shapes, which separates masses and inertias that a single tone cannot.
-
-    **Arguments:** `amplitudes` (k,), N or N*m; `freqs_hz` (k,), Hz; `phases` (k,), rad;
-    `X0`, the mean.
-    """
-
-    amplitudes: Float[Array, " k"] = eqx.field(converter=as_float_array)
-    freqs_hz: Float[Array, " k"] = eqx.field(converter=as_float_array)
-    phases: Float[Array, " k"] = eqx.field(converter=as_float_array)
-    X0: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
-
-    def __call__(self, t: ArrayLike) -> Array:
-        t = jnp.asarray(t, dtype=float)[..., None]
-        arg = 2 * jnp.pi * self.freqs_hz * t + self.phases
-        return self.X0 + jnp.sum(self.amplitudes * jnp.sin(arg), axis=-1)
-
-    def mean(self) -> Array:
-        return self.X0
 
 
 class DataError(ValueError):
@@ -145,6 +117,7 @@ def load_data(
     angle_unit: str = "rad",
     P_col: str = "P",
     tau_col: str = "tau",
+    interp: str = "cubic",
 ) -> Data:
     """Read a record from a text file with a header line.
 
@@ -158,6 +131,10 @@ def load_data(
     - `angle_unit`: `"rad"` or `"deg"` (the angle column's unit).
     - `P_col`, `tau_col`: names of the optional slider-force (N) and crank-torque (N*m)
       columns. When present they become [`SampledLoad`][]s that replace the scene's loads.
+    - `interp`: how those load columns are interpolated between samples (see
+      [`INTERPOLATIONS`][]): `"cubic"` (default, a C2 not-a-knot spline: for measured,
+      smooth signals), `"linear"`, or `"zoh"` (zero-order hold: exact for a command a
+      digital controller holds between samples).
 
     **Returns:** a [`Data`][].
 
@@ -165,6 +142,9 @@ def load_data(
     column, a non-numeric, NaN or infinite value, a time that does not increase, a ragged
     row, or too few samples; `OSError` if the file cannot be read.
     """
+    if interp not in INTERPOLATIONS:
+        raise DataError(f"load interpolation {interp!r} is unknown; choose from "
+                        f"{list(INTERPOLATIONS)}")
     if angle_unit not in ("rad", "deg"):
         raise DataError(f"angle unit must be 'rad' or 'deg', got {angle_unit!r}")
     where = str(path)
@@ -211,8 +191,8 @@ def load_data(
             raise DataError(f"{where}: {labels[i]}: column {name!r} is {float(col[name][i])} "
                             "(NaN or inf); remove or repair that row")
     _check_series(ts, phi, where, labels)
-    load = SampledLoad(ts, col[P_col]) if P_col in col else None
-    torque = SampledLoad(ts, col[tau_col]) if tau_col in col else None
+    load = SampledLoad(ts, col[P_col], interp) if P_col in col else None
+    torque = SampledLoad(ts, col[tau_col], interp) if tau_col in col else None
     return Data(ts, phi, load, torque, source=where)
 
 

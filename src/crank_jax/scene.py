@@ -11,7 +11,6 @@ import importlib.resources
 import math
 import os
 import tomllib
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +21,7 @@ from jaxtyping import Array
 
 from .io import atomic_write
 from .model.dynamics import Structure
-from .model.loads import AbstractLoad, ConstantLoad, HarmonicLoad, NoLoad, SampledLoad
+from .model.loads import AbstractLoad, NoLoad, load_from_table, load_to_table, toml_keys
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
@@ -111,8 +110,8 @@ _DEFAULT_MECH = {n: float(SliderCrank.__dataclass_fields__[n].default)
 _TABLES: dict[str, tuple[str, ...]] = {
     "mechanism": PAPER_FIELDS + _OPTIONAL_MECH,
     "friction": tuple(_FRICTION),
-    "load": ("P0", "P1", "freq_hz", "phase"),
-    "torque": ("tau0", "tau1", "freq_hz", "phase"),
+    "load": toml_keys("load"),
+    "torque": toml_keys("torque"),
     "initial": ("phi0", "dphi0"),
     "solver": ("name", "rtol", "atol"),
     "output": ("t1", "samples", "extras"),
@@ -130,18 +129,11 @@ def _number(where: str, key: str, v: Any) -> float:
     return float(v)
 
 
-def _harmonic(where: str, doc: dict, tname: str, names: tuple[str, str]) -> AbstractLoad:
-    table = doc.get(tname, {})
-    mean = _number(where, f"{tname}.{names[0]}", table.get(names[0], 0.0))
-    amp = _number(where, f"{tname}.{names[1]}", table.get(names[1], 0.0))
-    freq = _number(where, f"{tname}.freq_hz", table.get("freq_hz", 0.0))
-    phase = _number(where, f"{tname}.phase", table.get("phase", 0.0))
-    # A zero load is no load: the scene's structure then skips its terms entirely.
-    if amp == 0.0:
-        return ConstantLoad(mean) if mean != 0.0 else NoLoad()
-    if freq < 0:
-        raise SceneError(f"{where}: [{tname}] freq_hz must be >= 0, got {freq}")
-    return HarmonicLoad(mean, amp, freq, phase)
+def _load(where: str, doc: dict, side: str) -> AbstractLoad:
+    try:
+        return load_from_table(doc.get(side, {}), side)
+    except ValueError as e:
+        raise SceneError(f"{where}: {e}") from None
 
 
 def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> Scene:
@@ -175,8 +167,8 @@ def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> 
     except ValueError as e:
         raise SceneError(f"{where}: [mechanism] {e}") from None
 
-    load = _harmonic(where, doc, "load", ("P0", "P1"))
-    torque = _harmonic(where, doc, "torque", ("tau0", "tau1"))
+    load = _load(where, doc, "load")
+    torque = _load(where, doc, "torque")
     init = doc.get("initial", {})
     phi0 = _number(where, "initial.phi0", init.get("phi0", 1.0))
     dphi0 = _number(where, "initial.dphi0", init.get("dphi0", 0.0))
@@ -232,18 +224,11 @@ def load_scene(source: str | os.PathLike) -> Scene:
     return scene_from_dict(doc, where=src, name=path.stem)
 
 
-def _load_table(load: AbstractLoad, names: Sequence[str]) -> dict[str, float] | None:
-    mean, amp = names
-    if isinstance(load, NoLoad):
-        return None
-    if isinstance(load, ConstantLoad):
-        return {mean: float(load.value)}
-    if isinstance(load, HarmonicLoad):
-        return {mean: float(load.X0), amp: float(load.X1), "freq_hz": float(load.freq_hz),
-                "phase": float(load.phase)}
-    if isinstance(load, SampledLoad):
-        raise SceneError("a sampled load cannot be written to a scene file; keep it as data")
-    raise SceneError(f"cannot write a load of type {type(load).__name__} to TOML")
+def _load_table(load: AbstractLoad, side: str) -> dict[str, Any] | None:
+    try:
+        return load_to_table(load, side)
+    except ValueError as e:
+        raise SceneError(str(e)) from None
 
 
 def scene_to_toml(scene: Scene) -> str:
@@ -267,8 +252,8 @@ def scene_to_toml(scene: Scene) -> str:
     tables: dict[str, dict[str, Any] | None] = {
         "mechanism": mech_table,
         "friction": friction or None,
-        "load": _load_table(scene.load, ("P0", "P1")),
-        "torque": _load_table(scene.torque, ("tau0", "tau1")),
+        "load": _load_table(scene.load, "load"),
+        "torque": _load_table(scene.torque, "torque"),
         "initial": {"phi0": float(np.asarray(scene.phi0)),
                     "dphi0": float(np.asarray(scene.dphi0))},
         "solver": {"name": scene.solver, "rtol": float(np.asarray(scene.rtol)),

@@ -17,7 +17,8 @@ _ENV_DISTRIBUTED = "CRANK_JAX_DISTRIBUTED"
 
 
 def _sweep_args(p: argparse.ArgumentParser) -> None:
-    from ..sweep.run import DEFAULT_OUTPUTS, REDUCTIONS, VARIABLES
+    from ..sweep.plan import VARIABLES
+    from ..sweep.reductions import DEFAULT_OUTPUTS, REDUCTIONS
 
     p.add_argument("scene", help="preset name (see `crank-jax scenes`) or a TOML scene file")
     p.add_argument("--vary", action="append", default=[], metavar="NAME=DIST",
@@ -34,7 +35,9 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--samples", type=int, help="number of save times on [0, t1]")
     p.add_argument("--solver", help="auto (default: per chunk), tsit5, dopri5, dopri8, kvaerno5")
     p.add_argument("--max-steps", type=int, default=100_000, help="step budget per sample")
-    p.add_argument("--chunk-size", type=int, default=1024, help="samples per compiled call")
+    p.add_argument("--chunk-size", type=int, default=1024,
+                   help="samples per compiled call (bounds device memory; the samples drawn "
+                        "do not depend on it)")
     p.add_argument("--summary", action="store_true",
                    help="print statistics of every output (JSON) on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -46,7 +49,7 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
 
 def _parse_vary(items: list[str]) -> dict[str, object]:
     from ..sweep.distributions import parse_distribution
-    from ..sweep.run import VARIABLES
+    from ..sweep.plan import VARIABLES
 
     spec: dict[str, object] = {}
     for item in items:
@@ -77,7 +80,8 @@ def _sweep_run(a: argparse.Namespace) -> int:
     from ..io import check_not_input
     from ..scene import load_scene
     from ..solve.policy import SOLVERS
-    from ..sweep.run import REDUCTIONS, sweep
+    from ..sweep.reductions import REDUCTIONS
+    from ..sweep.run import sweep
 
     spec = _parse_vary(a.vary)
     outputs = [o.strip() for o in a.outputs.split(",") if o.strip()]

@@ -26,7 +26,7 @@ from jaxtyping import Array
 from ..data import Data
 from ..model.dynamics import Structure
 from ..model.linear import linearize
-from ..model.loads import AbstractLoad, ConstantLoad, HarmonicLoad
+from ..model.loads import LOAD_PARAMS, AbstractLoad, get_param, set_param
 from ..model.params import FIELDS, SliderCrank
 from ..solve.policy import resolve_solver
 from ..solve.simulate import simulate
@@ -35,9 +35,9 @@ __all__ = ["STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP", "Problem", "build_problem
            "smooth_derivatives"]
 
 STATE_NAMES = ("phi0", "dphi0")
-#: Load amplitudes that can be free: the scene's mean (X0) and harmonic amplitude (X1).
-LOAD_NAMES = {"P0": ("load", "X0"), "P1": ("load", "X1"),
-              "tau0": ("torque", "X0"), "tau1": ("torque", "X1")}
+#: Load parameters that can be free, name -> (side, role) from the load table
+#: (`model.loads.LOAD_PARAMS`): each load's mean and amplitude (they enter linearly).
+LOAD_NAMES = {n: sr for n, sr in LOAD_PARAMS.items() if sr[1] in ("mean", "amp")}
 #: Parameters that enter the equation of motion linearly: scaling all of them (and every
 #: load) by one factor leaves the motion unchanged (DESIGN.md section 3).
 SCALE_GROUP = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
@@ -47,18 +47,15 @@ SCALE_GROUP = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
 _FAILED_RESIDUAL = 10.0
 
 
-def load_param(load: AbstractLoad, field: str) -> float | None:
-    if isinstance(load, HarmonicLoad):
-        return float(getattr(load, field))
-    if isinstance(load, ConstantLoad) and field == "X0":
-        return float(load.value)
-    return None
+def load_param(load: AbstractLoad, role: str) -> float | None:
+    """The value of a load's `role` ("mean", "amp", ...), or None if its kind lacks it."""
+    v = get_param(load, role)
+    return None if v is None else float(v)
 
 
-def set_load_param(load: AbstractLoad, field: str, value) -> AbstractLoad:
-    if isinstance(load, ConstantLoad):
-        return eqx.tree_at(lambda x: x.value, load, value)
-    return eqx.tree_at(lambda x: getattr(x, field), load, value)
+def set_load_param(load: AbstractLoad, role: str, value) -> AbstractLoad:
+    """A copy of `load` with `role` set to `value` (see `model.loads.set_param`)."""
+    return set_param(load, role, value)
 
 
 class Segments(eqx.Module):

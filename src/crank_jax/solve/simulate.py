@@ -15,7 +15,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..model.dynamics import Structure, acceleration, energy
 from ..model.geometry import kinematics
-from ..model.loads import AbstractLoad, SampledLoad, as_load
+from ..model.loads import AbstractLoad, as_load, nonsmooth_times
 from ..model.newton_euler import reactions
 from ..model.params import SliderCrank
 from .policy import is_concrete, resolve_solver
@@ -119,13 +119,14 @@ def _derived(mech, load, torque, ts, phi, dphi, outputs) -> dict[str, Array]:
 
 def _controller(rtol, atol, load, torque) -> diffrax.AbstractStepSizeController:
     pid = diffrax.PIDController(rtol=rtol, atol=atol)
-    knots = [x.ts for x in (load, torque) if isinstance(x, SampledLoad)]
-    if not knots:
+    step_ts, jump_ts = nonsmooth_times(load, torque)
+    if step_ts is None and jump_ts is None:
         return pid
-    # A sampled load is piecewise linear: its slope jumps at every sample. A step across a
-    # kink loses an order of accuracy that the error estimate does not see, so end steps
-    # exactly on the sample times.
-    return diffrax.ClipStepSizeController(pid, step_ts=jnp.sort(jnp.concatenate(knots)))
+    # A step across a kink (or a jump in a higher derivative) of a load loses accuracy
+    # that the error estimate does not see in time, so steps end exactly there; across a
+    # jump in the load itself (a zero-order hold) diffrax steps to just before it and
+    # restarts just after.
+    return diffrax.ClipStepSizeController(pid, step_ts=step_ts, jump_ts=jump_ts)
 
 
 @eqx.filter_jit

@@ -1,9 +1,11 @@
 """Distributions for Monte Carlo sweeps, and their one-line text form.
 
-Samples are drawn on the host with NumPy, one independent stream per varied field,
-seeded by `(seed, field name)`: the same seed gives the same samples on every machine and
-every host of a distributed run, and adding a second varied field never changes the first
-field's samples.
+Samples are drawn on the host with NumPy, one independent stream per varied field and
+block of [`DRAW_BLOCK`][] samples, seeded by `(seed, field name, block)`: the same seed
+gives the same samples on every machine and every host of a distributed run, adding a
+second varied field never changes the first field's samples, and any range of samples can
+be drawn alone (`draw(..., start=, stop=)`), so a sweep draws chunk by chunk in bounded
+memory and its samples do not depend on its chunk size.
 
 Text form (as on the command line): `normal(mu,sd)`, `uniform(lo,hi)`,
 `lognormal(median,sigma)`, `loguniform(lo,hi)`, `const(x)`, or a bare number.
@@ -22,8 +24,12 @@ import numpy as np
 
 __all__ = [
     "AbstractDistribution", "Normal", "Uniform", "LogNormal", "LogUniform", "Const",
-    "parse_distribution", "draw", "DISTRIBUTIONS",
+    "parse_distribution", "draw", "DISTRIBUTIONS", "DRAW_BLOCK", "Spec", "parse_spec",
 ]
+
+#: Samples per seeded stream block (see the module docstring). Part of the seed's meaning:
+#: changing it changes every sample drawn.
+DRAW_BLOCK = 65536
 
 
 class AbstractDistribution(eqx.Module):
@@ -183,27 +189,38 @@ def parse_distribution(text: str) -> AbstractDistribution:
     return cls(*args)
 
 
-def _stream(seed: int, name: str) -> np.random.Generator:
+def _stream(seed: int, name: str, block: int) -> np.random.Generator:
     # crc32 is stable across processes and Python versions (unlike hash()).
-    return np.random.default_rng(np.random.SeedSequence([int(seed), zlib.crc32(name.encode())]))
+    return np.random.default_rng(
+        np.random.SeedSequence([int(seed), zlib.crc32(name.encode()), int(block)]))
 
 
-def draw(
-    spec: Mapping[str, AbstractDistribution | str | float | np.ndarray],
-    n: int | None = None,
-    seed: int = 0,
-) -> dict[str, np.ndarray]:
-    """Draw the samples of a sweep.
+def _draw_range(d: AbstractDistribution, seed: int, name: str, start: int, stop: int
+                ) -> np.ndarray:
+    parts = []
+    for block in range(start // DRAW_BLOCK, (stop - 1) // DRAW_BLOCK + 1):
+        lo = max(start - block * DRAW_BLOCK, 0)
+        hi = min(stop - block * DRAW_BLOCK, DRAW_BLOCK)
+        # NumPy fills an array from its stream in order, so the first `hi` samples of a
+        # block are the same whether `hi` or DRAW_BLOCK are drawn.
+        parts.append(d.sample(_stream(seed, name, block), hi)[lo:])
+    return np.asarray(np.concatenate(parts), dtype=np.float64)
 
-    **Arguments:**
 
-    - `spec`: field name -> a distribution, its text form, a number (constant) or an
-      explicit (n,) array of values.
-    - `n`: number of samples; may be omitted when `spec` gives arrays.
-    - `seed`: integer seed; field `name` uses the stream `(seed, crc32(name))`.
+class Spec(eqx.Module):
+    """A parsed sweep specification: `dists` (name -> distribution, constants included)
+    and `arrays` (name -> explicit (n,) values), `n` samples, in the `names` order."""
 
-    **Returns:** field name -> (n,) float64 array.
-    """
+    dists: dict
+    arrays: dict
+    n: int
+    names: tuple
+
+
+def parse_spec(
+    spec: Mapping[str, AbstractDistribution | str | float | np.ndarray], n: int | None = None
+) -> Spec:
+    """Check a specification and count its samples (see [`draw`][] for the arguments)."""
     arrays: dict[str, np.ndarray] = {}
     dists: dict[str, AbstractDistribution] = {}
     for name, v in spec.items():
@@ -229,7 +246,35 @@ def draw(
         raise ValueError(f"n = {n} but the explicit sample arrays have length {lengths.pop()}")
     if int(n) < 1:
         raise ValueError(f"n must be >= 1, got {n}")
-    out = dict(arrays)
-    for name, d in dists.items():
-        out[name] = np.asarray(d.sample(_stream(seed, name), int(n)), dtype=np.float64)
-    return {name: out[name] for name in spec}
+    return Spec(dists, arrays, int(n), tuple(spec))
+
+
+def draw(
+    spec: Mapping[str, AbstractDistribution | str | float | np.ndarray] | Spec,
+    n: int | None = None,
+    seed: int = 0,
+    *,
+    start: int = 0,
+    stop: int | None = None,
+) -> dict[str, np.ndarray]:
+    """Draw the samples of a sweep, or the range `[start, stop)` of them.
+
+    **Arguments:**
+
+    - `spec`: field name -> a distribution, its text form, a number (constant) or an
+      explicit (n,) array of values (or a [`Spec`][] from [`parse_spec`][]).
+    - `n`: number of samples; may be omitted when `spec` gives arrays.
+    - `seed`: integer seed; field `name` uses the streams `(seed, crc32(name), block)`.
+    - `start`, `stop`: the range of sample indices to draw (default: all `n`); the
+      values do not depend on the range asked for.
+
+    **Returns:** field name -> (stop - start,) float64 array.
+    """
+    sp = spec if isinstance(spec, Spec) else parse_spec(spec, n)
+    stop = sp.n if stop is None else int(stop)
+    if not 0 <= start < stop <= sp.n:
+        raise ValueError(f"draw: need 0 <= start < stop <= n = {sp.n}, got [{start}, {stop})")
+    out = {name: a[start:stop] for name, a in sp.arrays.items()}
+    for name, d in sp.dists.items():
+        out[name] = _draw_range(d, seed, name, start, stop)
+    return {name: out[name] for name in sp.names}
