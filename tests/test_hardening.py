@@ -322,3 +322,35 @@ def test_no_traceback_for_any_exception(capsys, monkeypatch, exc, code):
     monkeypatch.setenv("CRANK_JAX_DEBUG", "1")
     got, _, err = _run(capsys, "scenes")
     assert got == code and "Traceback" in err
+
+
+def test_binary_or_endless_data_file_refused_quickly(tmp_path, capsys):
+    p = tmp_path / "d.csv"
+    p.write_bytes(b"\x00" * 200_000)
+    with pytest.raises(cj.DataError, match="line 1 is longer than"):
+        cj.load_data(p)
+    code, _, err = _run(capsys, "fit", "/dev/zero", "lab-rig")
+    assert code == 2 and _one_line(err) and "not a text table" in err
+
+
+@pytest.mark.parametrize("value", ["1.3407807929942597e+154", "1e-300", "-1e31"])
+def test_scene_numbers_beyond_float64_products_refused(scene_file, capsys, value):
+    # Found by test_properties: s = sqrt(max float) made m_c s^2 overflow.
+    _edit_scene(scene_file, "s = ", f"s = {value}\n#")
+    code, _, err = _run(capsys, "linearize", scene_file)
+    assert code == 2 and _one_line(err) and "[mechanism] s = " in err and "out of range" in err
+
+
+def test_warnings_are_one_line(capsys, monkeypatch):
+    import warnings
+
+    def warn(a):
+        warnings.warn("something odd\nsecond line", UserWarning, stacklevel=1)
+        return 0
+
+    monkeypatch.setattr(cli_simulate, "COMMANDS",
+                        [(n, h, add, warn) for n, h, add, _ in cli_simulate.COMMANDS])
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        code, _, err = _run(capsys, "scenes")
+    assert code == 0 and err == "crank-jax: warning: something odd\n"

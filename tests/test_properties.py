@@ -132,6 +132,8 @@ def scene_texts(draw) -> bytes:
         kind = draw(st.sampled_from(["set", "set", "set", "delete", "table", "unknown"]))
         table = draw(st.sampled_from(sorted(_TABLES)))
         key = draw(st.sampled_from(_TABLES[table]))
+        if not isinstance(doc.get(table, {}), dict):
+            doc[table] = {}
         if kind == "set":
             doc.setdefault(table, {})[key] = draw(_value)
         elif kind == "delete":

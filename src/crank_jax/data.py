@@ -211,11 +211,25 @@ def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...]):
                     "comments)")
 
 
+#: The longest line [`load_data`][] reads, in characters: a binary file or a device such
+#: as /dev/zero has no line ends, and reading its "line" would fill memory.
+MAX_LINE_CHARS = 1 << 16
+
+
+def _numbered_lines(f, where: str):
+    """(line number, line without its end) for each line, refusing overlong lines."""
+    for i, ln in enumerate(iter(lambda: f.readline(MAX_LINE_CHARS + 1), ""), start=1):
+        if len(ln) > MAX_LINE_CHARS:
+            raise DataError(f"{where}: line {i} is longer than {MAX_LINE_CHARS} characters; "
+                            "this is not a text table")
+        yield i, ln.rstrip("\n")
+
+
 def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...]):
     """Read the used columns of a text table: (names, {name: array}, line numbers)."""
     where = str(path)
     with _open_text(path) as f:
-        lines = ((i + 1, ln.rstrip("\n")) for i, ln in enumerate(f))
+        lines = _numbered_lines(f, where)
         body = ((i, ln) for i, ln in lines
                 if ln.strip() and not ln.lstrip().startswith(("#", "%")))
         lineno, delim, names = _header(where, body, t_col, phi_col, used)

@@ -122,7 +122,17 @@ def _number(where: str, key: str, v: Any) -> float:
         x = math.inf
     if not math.isfinite(x):
         raise SceneError(f"{where}: [{table}] {name} must be finite, got {_short(v)}")
+    # Products of a few parameters (m s^2, k / mu, ...) must stay inside float64: beyond
+    # this range (far beyond any SI value of a mechanism) they overflow or lose all digits.
+    if x != 0 and not _NUMBER_RANGE[0] <= abs(x) <= _NUMBER_RANGE[1]:
+        raise SceneError(f"{where}: [{table}] {name} = {x:g} is out of range: use 0 or a "
+                         f"magnitude from {_NUMBER_RANGE[0]:g} to {_NUMBER_RANGE[1]:g} (SI "
+                         "units)")
     return x
+
+
+#: Magnitudes a scene number may have, besides 0.
+_NUMBER_RANGE = (1e-30, 1e30)
 
 
 def _short(v: Any, limit: int = 60) -> str:

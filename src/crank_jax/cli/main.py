@@ -21,6 +21,7 @@ import signal
 import sys
 import threading
 import traceback
+import warnings
 from collections.abc import Iterator
 
 from . import identify, simulate, sweep
@@ -101,7 +102,23 @@ def _signals_raise() -> Iterator[None]:
             signal.signal(s, h)
 
 
-def _one_line(e: BaseException) -> str:
+@contextlib.contextmanager
+def _warnings_one_line() -> Iterator[None]:
+    """Show each warning as one line `crank-jax: warning: ...` (not file, line and source);
+    the warning filters themselves are left alone."""
+    old = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"crank-jax: warning: {_one_line(message)}", file=sys.stderr)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = old
+
+
+def _one_line(e: BaseException | Warning | str) -> str:
     lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
     msg = lines[0] if lines else type(e).__name__
     return msg if len(msg) <= 500 else msg[:497] + "..."
@@ -125,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = _debug(argv)
     try:
-        with _signals_raise():
+        with _signals_raise(), _warnings_one_line():
             # --debug is accepted anywhere on the line, not only before the command.
             args = build_parser().parse_args([a for a in argv if a != "--debug"])
             _setup_jax()
