@@ -104,3 +104,17 @@ def test_console_script_entry_point(tmp_path):
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     assert out.read_text().startswith("t,phi,dphi\n")
+
+
+def _commands():
+    from crank_jax.cli import identify, simulate, sweep
+
+    return [c[0] for c in simulate.COMMANDS + identify.COMMANDS + sweep.COMMANDS]
+
+
+@pytest.mark.parametrize("argv", [["--help"]] + [[c, "--help"] for c in _commands()])
+def test_help_of_every_command(capsys, argv):
+    # Issue 10, row 1: an unescaped % in a help text made --help a traceback.
+    code, out, err = _run(capsys, *argv)
+    assert code == 0 and err == ""
+    assert out.startswith("usage: crank-jax")

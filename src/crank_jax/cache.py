@@ -27,7 +27,7 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     """Point JAX's persistent compilation cache at `path` (default: [`default_cache_dir`][]).
 
     Does nothing (returns None) if the user already configured a cache directory, if
-    `CRANK_JAX_NO_CACHE` is set, or if the directory cannot be created.
+    `CRANK_JAX_NO_CACHE` is set, or if the directory cannot be created or written.
     """
     if os.environ.get("CRANK_JAX_NO_CACHE") or jax.config.jax_compilation_cache_dir:
         return None
@@ -35,6 +35,10 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError:
+        return None
+    if not os.access(p, os.W_OK | os.X_OK):
+        # A read-only cache (a shared or read-only home) would make JAX warn on every
+        # write; run without one instead.
         return None
     jax.config.update("jax_compilation_cache_dir", str(p))
     # Small programs compile in well under JAX's default 1 s threshold, yet together they

@@ -18,8 +18,10 @@ come from a file are [`SampledLoad`][]s and replace the scene's loads when fitti
 
 from __future__ import annotations
 
+import csv
 import math
 import os
+from array import array
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -28,7 +30,8 @@ import numpy as np
 from .io import atomic_write
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
 
-__all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES"]
+__all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES",
+           "MAX_RECORD_SAMPLES"]
 
 #: The fewest samples a record may have.
 MIN_SAMPLES = 5
@@ -105,8 +108,126 @@ class Data(eqx.Module):
 # Files
 
 
+#: The most samples [`load_data`][] reads: a longer record is refused as soon as it is
+#: seen, before it fills memory (each used column takes 8 bytes per sample).
+MAX_RECORD_SAMPLES = 10**7
+
+
+def _open_text(path: str | os.PathLike):
+    """Open a text file as pandas would read it: a UTF-8 byte-order mark (as Excel writes)
+    is dropped, a UTF-16 one selects UTF-16, and CRLF or CR line ends read as LF."""
+    with open(path, "rb") as f:
+        head = f.read(2)
+    enc = "utf-16" if head in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"
+    return open(path, encoding=enc, errors="replace", newline=None)
+
+
+def _unquote(x: str) -> str:
+    x = x.strip()
+    return x[1:-1].strip() if len(x) >= 2 and x[0] == x[-1] == '"' else x
+
+
 def _split(line: str, delim: str | None) -> list[str]:
-    return [x.strip() for x in (line.split(delim) if delim else line.split())]
+    """Fields of one line: `csv` quoting rules for `,` and `;`, else whitespace."""
+    if delim is None:
+        return [_unquote(x) for x in line.split()]
+    return [_unquote(x) for x in next(csv.reader([line], delimiter=delim))]
+
+
+def _to_float(x: str, delim: str | None) -> float:
+    try:
+        return float(x)
+    except ValueError:
+        # Excel in many locales writes "1,5" in semicolon-separated files.
+        if delim == ";" and x.count(",") == 1:
+            return float(x.replace(",", "."))
+        raise
+
+
+def _cut(names: list[str], limit: int = 8) -> str:
+    text = repr(names[:limit])[:-1] + (", ...]" if len(names) > limit else "]")
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+class _Lines:
+    """Row labels `line N` for [`_check_series`][], without a string per row in memory."""
+
+    def __init__(self, numbers: array):
+        self.numbers = numbers
+
+    def __getitem__(self, i: int) -> str:
+        return f"line {self.numbers[i]}"
+
+
+def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...]):
+    """Find the header line; return (its line number, delimiter, column names)."""
+    for lineno, text in lines:
+        delim = "," if "," in text else (";" if ";" in text else None)
+        names = _split(text, delim)
+        dup = sorted({n for n in names if n in used and names.count(n) > 1})
+        if dup:
+            raise DataError(f"{where}: line {lineno}: column {dup[0]!r} appears more than "
+                            "once in the header; rename one")
+        for want, opt in ((t_col, "--t-col"), (phi_col, "--phi-col")):
+            if want in names:
+                continue
+            try:
+                [_to_float(x, delim) for x in names]
+            except ValueError:
+                raise DataError(f"{where}: missing column {want!r}; the header (line "
+                                f"{lineno}) has {_cut(names)}; choose the column with "
+                                f"{opt}") from None
+            raise DataError(f"{where}: line {lineno} is data, not a header: add a header "
+                            f"line naming the columns, e.g. '{t_col},{phi_col}'")
+        return lineno, delim, names
+    raise DataError(f"{where}: no header line and no data (the file is empty or all "
+                    "comments)")
+
+
+#: The longest line [`load_data`][] reads, in characters: a binary file or a device such
+#: as /dev/zero has no line ends, and reading its "line" would fill memory.
+MAX_LINE_CHARS = 1 << 16
+
+
+def _numbered_lines(f, where: str):
+    """(line number, line without its end) for each line, refusing overlong lines."""
+    for i, ln in enumerate(iter(lambda: f.readline(MAX_LINE_CHARS + 1), ""), start=1):
+        if len(ln) > MAX_LINE_CHARS:
+            raise DataError(f"{where}: line {i} is longer than {MAX_LINE_CHARS} characters; "
+                            "this is not a text table")
+        yield i, ln.rstrip("\n")
+
+
+def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...]):
+    """Read the used columns of a text table: (names, {name: array}, line numbers)."""
+    where = str(path)
+    with _open_text(path) as f:
+        lines = _numbered_lines(f, where)
+        body = ((i, ln) for i, ln in lines
+                if ln.strip() and not ln.lstrip().startswith(("#", "%")))
+        lineno, delim, names = _header(where, body, t_col, phi_col, used)
+        want = [(j, n) for j, n in enumerate(names) if n in used]
+        cols = {n: array("d") for _, n in want}
+        numbers = array("q")
+        for ln, text in body:
+            try:
+                fields = _split(text, delim)
+            except csv.Error as e:
+                raise DataError(f"{where}: line {ln}: {e}") from None
+            if len(fields) != len(names):
+                raise DataError(f"{where}: line {ln}: {len(fields)} values but the header "
+                                f"has {len(names)} columns")
+            if len(numbers) >= MAX_RECORD_SAMPLES:
+                raise DataError(f"{where}: more than {MAX_RECORD_SAMPLES} samples; split the "
+                                "record or decimate it")
+            for j, name in want:
+                try:
+                    cols[name].append(_to_float(fields[j], delim))
+                except ValueError:
+                    raise DataError(f"{where}: line {ln}: column {name!r}: "
+                                    f"{fields[j][:40]!r} is not a number") from None
+            numbers.append(ln)
+    return names, {n: np.array(c, dtype=np.float64) for n, c in cols.items()}, numbers
 
 
 def load_data(
@@ -122,7 +243,10 @@ def load_data(
     """Read a record from a text file with a header line.
 
     Comma-, semicolon- or whitespace-separated; blank lines and lines starting with `#` or
-    `%` are skipped. Columns are found by name in the header.
+    `%` are skipped. Columns are found by name in the header. Read as pandas reads CSV: a
+    byte-order mark (UTF-8, as Excel writes, or UTF-16), quoted names and values, and CRLF
+    line ends are all fine; semicolon-separated files may use decimal commas. Columns other
+    than the four below are ignored (only their count is checked).
 
     **Arguments:**
 
@@ -140,7 +264,8 @@ def load_data(
 
     Raises [`DataError`][] (a `ValueError`) naming the line and column for a missing
     column, a non-numeric, NaN or infinite value, a time that does not increase, a ragged
-    row, or too few samples; `OSError` if the file cannot be read.
+    row, too few samples or more than [`MAX_RECORD_SAMPLES`][]; `OSError` if the file
+    cannot be read.
     """
     if interp not in INTERPOLATIONS:
         raise DataError(f"load interpolation {interp!r} is unknown; choose from "
@@ -148,43 +273,12 @@ def load_data(
     if angle_unit not in ("rad", "deg"):
         raise DataError(f"angle unit must be 'rad' or 'deg', got {angle_unit!r}")
     where = str(path)
-    with open(path, encoding="utf-8", errors="replace") as f:
-        lines = f.read().splitlines()
-    body = [(i + 1, ln) for i, ln in enumerate(lines)
-            if ln.strip() and not ln.lstrip().startswith(("#", "%"))]
-    if not body:
-        raise DataError(f"{where}: no header line and no data (the file is empty or all "
-                        "comments)")
-    lineno, header = body[0]
-    delim = "," if "," in header else (";" if ";" in header else None)
-    names = _split(header, delim)
-    if len(set(names)) != len(names):
-        raise DataError(f"{where}: line {lineno}: duplicate column names in header {names}")
-    for want, opt in ((t_col, "--t-col"), (phi_col, "--phi-col")):
-        if want not in names:
-            raise DataError(f"{where}: missing column {want!r}; the header (line {lineno}) has "
-                            f"{names}; choose the column with {opt}")
-    rows, labels = [], []
-    for ln, text in body[1:]:
-        fields = _split(text, delim)
-        if len(fields) != len(names):
-            raise DataError(f"{where}: line {ln}: {len(fields)} values but the header has "
-                            f"{len(names)} columns")
-        vals = []
-        for name, x in zip(names, fields):
-            try:
-                vals.append(float(x))
-            except ValueError:
-                raise DataError(f"{where}: line {ln}: column {name!r}: {x!r} is not a "
-                                "number") from None
-        rows.append(vals)
-        labels.append(f"line {ln}")
-    arr = np.asarray(rows, dtype=np.float64).reshape(len(rows), len(names))
-    col = {name: arr[:, j] for j, name in enumerate(names)}
+    names, col, numbers = _read_table(path, t_col, phi_col, (t_col, phi_col, P_col, tau_col))
+    labels = _Lines(numbers)
     ts = col[t_col]
     phi = col[phi_col] * (math.pi / 180 if angle_unit == "deg" else 1.0)
-    # Check the whole table (not just t and phi): a NaN in a load column is as fatal.
-    for name in names:
+    # Check every column used (not just t and phi): a NaN in a load column is as fatal.
+    for name in (n for n in names if n in col):
         bad = ~np.isfinite(col[name])
         if bad.any():
             i = int(np.argmax(bad))

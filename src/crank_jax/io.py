@@ -1,32 +1,70 @@
-"""Safe file output: atomic writes that never clobber an input file."""
+"""Safe file output: atomic writes with the umask's permissions that never clobber an input
+file, and checks of output paths made before any work."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import IO
 
-__all__ = ["atomic_write", "check_not_input"]
+__all__ = ["atomic_write", "check_not_input", "check_output", "check_figure_format",
+           "default_file_mode"]
+
+
+def default_file_mode() -> int:
+    """The mode `open(path, "w")` gives a new file: `0o666` less the process's umask."""
+    # os.umask can only be read by setting it; set it back at once (the CLI is
+    # single-threaded while it writes files).
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def _is_special(path: Path) -> bool:
+    """True for an existing file that is not a regular file (a device, a FIFO, a socket)."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return False
+    return not stat.S_ISREG(mode) and not stat.S_ISDIR(mode)
 
 
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
     """Open a temporary file beside `path`; on success rename it over `path` atomically.
 
-    A crash or an exception leaves `path` as it was (no half-written files). The rename is
+    A crash, an exception, Ctrl-C or (under the CLI, which turns it into an exception)
+    SIGTERM leaves `path` as it was and removes the temporary file. The rename is
     `os.replace`, atomic on POSIX and Windows when both are on one file system, which the
-    temporary file beside the target guarantees.
+    temporary file beside the target guarantees. The file gets the permissions `open`
+    would give: an existing file's mode, else `0o666` less the umask. A symbolic link is
+    written through (its target is replaced), and an existing device or FIFO such as
+    `/dev/null` is written to directly, never replaced.
     """
     path = Path(path)
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
+    if _is_special(path):
+        with open(path, mode) as f:
+            yield f
+        return
+    if path.is_dir():
+        raise IsADirectoryError(f"output {str(path)!r} is a directory; name a file")
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise FileNotFoundError(f"output directory {str(directory)!r} does not exist")
+    try:
+        file_mode = stat.S_IMODE(os.stat(path).st_mode)
+    except OSError:
+        file_mode = default_file_mode()
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
     try:
         with os.fdopen(fd, mode) as f:
+            os.fchmod(f.fileno(), file_mode)
             yield f
             f.flush()
             os.fsync(f.fileno())
@@ -37,12 +75,54 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
         raise
 
 
-def check_not_input(out: str | os.PathLike, inputs: list[str | os.PathLike | None]) -> None:
+def check_not_input(out: str | os.PathLike, inputs: Sequence[str | os.PathLike | None],
+                    option: str = "--out") -> None:
     """Raise `ValueError` if the output path is one of the input files."""
     o = Path(out).resolve()
     for i in inputs:
         if i is not None and Path(i).exists() and Path(i).resolve() == o:
             raise ValueError(
                 f"output {str(out)!r} is an input file; refusing to overwrite it: choose "
-                "another --out"
+                f"another {option}"
             )
+
+
+def check_output(out: str | os.PathLike, inputs: Sequence[str | os.PathLike | None] = (),
+                 option: str = "--out") -> None:
+    """Check an output path before any work: not an input, not a directory, in an existing
+    writable directory. Raises `ValueError` naming `option` and the fix."""
+    text = str(out)
+    if not text or text.endswith(os.sep):
+        raise ValueError(f"{option} {text!r} is not a file name; name a file")
+    check_not_input(out, inputs, option)
+    path = Path(out)
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
+    if path.is_dir():
+        raise ValueError(f"{option} {text!r} is a directory; name a file in it")
+    if _is_special(path):
+        return
+    directory = path.parent if str(path.parent) else Path(".")
+    if not directory.is_dir():
+        raise ValueError(f"{option} {text!r}: output directory {str(directory)!r} does not "
+                         "exist; create it first")
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise ValueError(f"{option} {text!r}: cannot write in directory {str(directory)!r} "
+                         "(permission denied); choose another place")
+    if path.exists() and not os.access(path, os.W_OK):
+        # os.replace would succeed anyway (it needs only the directory), but a read-only
+        # file is a user's way of saying "keep this".
+        raise ValueError(f"{option} {text!r} exists and is read-only; choose another name "
+                         "or make it writable")
+
+
+def check_figure_format(path: str | os.PathLike, option: str = "--plot") -> None:
+    """Raise `ValueError` unless matplotlib can write `path`'s format (from its suffix)."""
+    from matplotlib.figure import Figure
+
+    fmt = os.path.splitext(str(path))[1].lstrip(".").lower() or "png"
+    # pgf needs a LaTeX installation that we cannot check without running it.
+    formats = sorted(set(Figure().canvas.get_supported_filetypes()) - {"pgf"})
+    if fmt not in formats:
+        raise ValueError(f"{option} {str(path)!r}: format {fmt!r} is not supported; use a "
+                         f"suffix from {', '.join(formats)}")

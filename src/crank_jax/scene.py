@@ -120,13 +120,32 @@ _TOP_KEYS = ("description",)
 
 
 def _number(where: str, key: str, v: Any) -> float:
+    table, name = key.split(".")
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise SceneError(f"{where}: [{key.split('.')[0]}] {key.split('.')[1]} must be a "
-                         f"number, got {v!r}")
-    if not math.isfinite(v):
-        raise SceneError(f"{where}: [{key.split('.')[0]}] {key.split('.')[1]} must be finite, "
-                         f"got {v!r}")
-    return float(v)
+        raise SceneError(f"{where}: [{table}] {name} must be a number, got {_short(v)}")
+    try:
+        x = float(v)  # an integer beyond float64's range raises OverflowError
+    except OverflowError:
+        x = math.inf
+    if not math.isfinite(x):
+        raise SceneError(f"{where}: [{table}] {name} must be finite, got {_short(v)}")
+    # Products of a few parameters (m s^2, k / mu, ...) must stay inside float64: beyond
+    # this range (far beyond any SI value of a mechanism) they overflow or lose all digits.
+    if x != 0 and not _NUMBER_RANGE[0] <= abs(x) <= _NUMBER_RANGE[1]:
+        raise SceneError(f"{where}: [{table}] {name} = {x:g} is out of range: use 0 or a "
+                         f"magnitude from {_NUMBER_RANGE[0]:g} to {_NUMBER_RANGE[1]:g} (SI "
+                         "units)")
+    return x
+
+
+#: Magnitudes a scene number may have, besides 0.
+_NUMBER_RANGE = (1e-30, 1e30)
+
+
+def _short(v: Any, limit: int = 60) -> str:
+    """`repr(v)`, cut to `limit` characters: a message stays one readable line."""
+    text = repr(v)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def _load(where: str, doc: dict, side: str) -> AbstractLoad:
@@ -187,9 +206,10 @@ def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> 
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 2:
         raise SceneError(f"{where}: [output] samples must be an integer >= 2, got {samples!r}")
     extras = out.get("extras", [])
-    if not isinstance(extras, list) or any(e not in OUTPUTS for e in extras):
+    if not isinstance(extras, list) or not all(isinstance(e, str) and e in OUTPUTS
+                                               for e in extras):
         raise SceneError(f"{where}: [output] extras must be a list drawn from "
-                         f"{sorted(OUTPUTS)}, got {extras!r}")
+                         f"{sorted(OUTPUTS)}, got {_short(extras)}")
     description = doc.get("description", "")
     if not isinstance(description, str):
         raise SceneError(f"{where}: description must be a string")

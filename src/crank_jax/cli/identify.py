@@ -41,13 +41,24 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output CSV (t,phi[,P][,tau])")
 
 
+def _check_record_size(a: argparse.Namespace, scene) -> None:
+    from ..data import MAX_RECORD_SAMPLES
+
+    t1 = scene.t1 if a.t1 is None else a.t1
+    n = (t1 - a.t_start) * a.rate  # NaN or inf (a bad option) is synthesize's to name
+    if np.isfinite(n) and n >= MAX_RECORD_SAMPLES:
+        raise UserError(f"--rate {a.rate:g} Hz over {t1 - a.t_start:g} s is {n:.3g} samples; "
+                        f"a record holds at most {MAX_RECORD_SAMPLES}")
+
+
 def _synth_run(a: argparse.Namespace) -> int:
     from ..data import save_data, synthesize
-    from ..io import check_not_input
+    from ..io import check_output
     from ..scene import load_scene
 
+    check_output(a.out, [a.scene])
     scene = load_scene(a.scene)
-    check_not_input(a.out, [a.scene])
+    _check_record_size(a, scene)
     data = synthesize(scene, t1=a.t1, rate=a.rate, noise_std=a.noise_std,
                       quantization=a.quantization, jitter_std=a.jitter_std, drop=a.drop,
                       t_start=a.t_start, seed=a.seed)
@@ -99,11 +110,13 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
 
 
 def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
-    from ..io import check_not_input
+    from ..io import check_figure_format, check_output
 
-    for path in (a.out, a.plot):
+    for path, option in ((a.out, "--out"), (a.plot, "--plot")):
         if path:
-            check_not_input(path, inputs)
+            check_output(path, inputs, option)
+    if a.plot:
+        check_figure_format(a.plot)
     if a.out and a.plot and a.out == a.plot:
         raise UserError("--out and --plot name the same file")
 

@@ -1,20 +1,46 @@
 """The `crank-jax` command line.
 
 Every subcommand is a tuple `(name, help, add_arguments, run)` in the `COMMANDS` list of
-its command group (`simulate`, `identify`, `sweep`). A user mistake (bad file, bad value,
-unknown option) prints one line on stderr and exits with status 2; outputs are written
-atomically and never over an input file.
+its command group (`simulate`, `identify`, `sweep`).
+
+The contract with the user: a mistake on their side (bad file, bad value, unknown option)
+prints one line on stderr and exits with status 2; a run that could not finish (a failed
+solve, an internal error, no memory) prints one line and exits with status 1; no traceback
+reaches the user unless asked for with `--debug` or `CRANK_JAX_DEBUG=1`. Every option is
+checked before any work. Outputs are written atomically and never over an input file, and
+SIGINT, SIGTERM and SIGHUP remove the temporary files of unfinished outputs (exit 130, 143,
+129).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import signal
 import sys
+import threading
+import traceback
+import warnings
+from collections.abc import Iterator
 
 from . import identify, simulate, sweep
-from .errors import EXIT_USAGE, UserError
+from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "Terminated", "ENV_DEBUG"]
+
+#: Set to a non-empty value other than "0" to see tracebacks (like `--debug`).
+ENV_DEBUG = "CRANK_JAX_DEBUG"
+
+
+class Terminated(BaseException):
+    """Raised in the main thread by SIGTERM or SIGHUP, so that `finally` blocks (and the
+    atomic writers' cleanup) run; a BaseException like KeyboardInterrupt, so that no
+    `except Exception` swallows it."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
 
 
 class _Parser(argparse.ArgumentParser):
@@ -37,6 +63,8 @@ def _setup_jax() -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="crank-jax", description="Slider-crank simulation and identification.")
+    parser.add_argument("--debug", action="store_true",
+                        help=f"show the traceback of any error (also: {ENV_DEBUG}=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     for name, help_, add, run in simulate.COMMANDS + identify.COMMANDS + sweep.COMMANDS:
@@ -46,27 +74,105 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of `crank-jax`; returns the exit status."""
+@contextlib.contextmanager
+def _signals_raise() -> Iterator[None]:
+    """Turn SIGTERM and SIGHUP into [`Terminated`][] while the CLI runs (main thread only).
+
+    The default action of SIGTERM kills the process without unwinding, so a temporary
+    output file would survive it. Python runs the handler between bytecodes: a compiled
+    computation finishes its current call first, which is why long simulations run in
+    bounded chunks.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated(signum)
+
+    sigs = [s for s in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)) if s]
+    old = {s: signal.getsignal(s) for s in sigs}
+    for s in sigs:
+        if old[s] is not signal.SIG_IGN:  # nohup ignores SIGHUP: keep it ignored
+            signal.signal(s, handler)
     try:
-        args = build_parser().parse_args(argv)
-        _setup_jax()
-        return int(args._run(args) or 0)
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+@contextlib.contextmanager
+def _warnings_one_line() -> Iterator[None]:
+    """Show each warning as one line `crank-jax: warning: ...` (not file, line and source);
+    the warning filters themselves are left alone."""
+    old = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"crank-jax: warning: {_one_line(message)}", file=sys.stderr)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = old
+
+
+def _one_line(e: BaseException | Warning | str) -> str:
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    msg = lines[0] if lines else type(e).__name__
+    return msg if len(msg) <= 500 else msg[:497] + "..."
+
+
+def _debug(argv: list[str]) -> bool:
+    return "--debug" in argv or os.environ.get(ENV_DEBUG, "") not in ("", "0")
+
+
+def _fail(code: int, msg: str, debug: bool) -> int:
+    if debug:
+        traceback.print_exc()
+    print(f"crank-jax: error: {msg}", file=sys.stderr)
+    return code
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of `crank-jax`; returns the exit status (0, 1 or 2; 128 + the signal's
+    number when interrupted). Never raises, except `SystemExit` from `--help`'s exit 0,
+    which it returns as 0."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = _debug(argv)
+    try:
+        with _signals_raise(), _warnings_one_line():
+            # --debug is accepted anywhere on the line, not only before the command.
+            args = build_parser().parse_args([a for a in argv if a != "--debug"])
+            _setup_jax()
+            return int(args._run(args) or 0)
+    except SystemExit as e:  # --help
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else EXIT_USAGE)
     except UserError as e:
-        print(f"crank-jax: error: {e}", file=sys.stderr)
-        return EXIT_USAGE
+        return _fail(EXIT_USAGE, _one_line(e), debug)
     except (ValueError, OSError) as e:
         # SceneError, data errors and bad values are ValueErrors with a message that names
         # the field and the fix; file problems are OSErrors. Either is the user's to fix.
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        print(f"crank-jax: error: {msg}", file=sys.stderr)
-        return EXIT_USAGE
+        if isinstance(e, BrokenPipeError):  # `crank-jax ... | head`: not an error
+            with contextlib.suppress(OSError):
+                sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (silence the exit flush)
+            return EXIT_FAILURE
+        return _fail(EXIT_USAGE, _one_line(e), debug)
     except RuntimeError as e:
         # A solve that failed (e.g. hit max_steps) or a value rejected inside jit by
         # eqx.error_if: not a crash of ours, so no traceback, but not a success either.
-        lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
-        print(f"crank-jax: error: {lines[0] if lines else type(e).__name__}", file=sys.stderr)
-        return 1
+        return _fail(EXIT_FAILURE, _one_line(e), debug)
+    except MemoryError:
+        return _fail(EXIT_FAILURE, "out of memory; ask for fewer samples or a shorter run",
+                     debug)
     except KeyboardInterrupt:
         print("crank-jax: interrupted", file=sys.stderr)
-        return 130
+        return 128 + signal.SIGINT
+    except Terminated as e:
+        print(f"crank-jax: terminated by {signal.Signals(e.signum).name}", file=sys.stderr)
+        return 128 + e.signum
+    except Exception as e:  # any other class is a bug of ours: say so in one line
+        return _fail(EXIT_FAILURE, f"internal error: {type(e).__name__}: {_one_line(e)} "
+                     f"(please report it; run with --debug or {ENV_DEBUG}=1 for the "
+                     "traceback)", debug)

@@ -77,7 +77,7 @@ def _sweep_run(a: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
-    from ..io import check_not_input
+    from ..io import check_output
     from ..scene import load_scene
     from ..solve.policy import SOLVERS
     from ..sweep.reductions import REDUCTIONS
@@ -102,7 +102,7 @@ def _sweep_run(a: argparse.Namespace) -> int:
     if not a.out.endswith(".npz"):
         # np.savez would silently append ".npz" to another name; say so instead.
         raise UserError(f"--out must end in .npz, got {a.out!r}")
-    check_not_input(a.out, [a.scene])
+    check_output(a.out, [a.scene])
     scene = load_scene(a.scene)
     result = sweep(scene, spec, outputs, n=a.n, seed=a.seed, t1=a.t1, num_saves=a.samples,
                    solver=a.solver, max_steps=a.max_steps, chunk_size=a.chunk_size,

@@ -1,0 +1,356 @@
+"""Issue 10: every hostile input a user can give gets one line and exit 2 (or 1 for a run
+that could not finish), options are checked before any work, memory is bounded, signals
+leave no temporary file, outputs get the umask's permissions and CSV reads as pandas reads
+it. One test (or more) per row of the issue."""
+
+import os
+import signal
+import stat
+import subprocess
+import sys
+import time
+from collections import namedtuple
+
+import numpy as np
+import pytest
+
+import crank_jax as cj
+import crank_jax.cli.simulate as cli_simulate
+import crank_jax.data as cj_data
+from crank_jax.cli import main
+
+_Usage = namedtuple("_Usage", "total used free")
+
+
+def _run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _one_line(err):
+    lines = [ln for ln in err.strip().splitlines() if not ln.startswith("simulate:")]
+    return len(lines) == 1 and "Traceback" not in err
+
+
+@pytest.fixture
+def scene_file(tmp_path):
+    p = tmp_path / "s.toml"
+    cj.save_scene(cj.load_scene("lab-rig"), p)
+    return p
+
+
+@pytest.fixture
+def spy_simulate(monkeypatch):
+    """Record the length of every `Scene.simulate` call; `calls[i]` is its sample count."""
+    calls = []
+    real = cj.Scene.simulate
+
+    def spy(self, ts=None, **kw):
+        calls.append(None if ts is None else len(ts))
+        return real(self, ts, **kw)
+
+    monkeypatch.setattr(cj.Scene, "simulate", spy)
+    return calls
+
+
+# --- rows 2 and 3: scene values that used to raise OverflowError / TypeError -------------
+
+def _edit_scene(path, old, new):
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+
+
+def test_row2_huge_integer_in_scene(scene_file, capsys):
+    _edit_scene(scene_file, "k = ", "k = " + "9" * 400 + "\n#")
+    before = scene_file.read_bytes()
+    code, _, err = _run(capsys, "linearize", scene_file)
+    assert code == 2 and _one_line(err) and "[mechanism] k must be finite" in err
+    assert scene_file.read_bytes() == before
+
+
+@pytest.mark.parametrize("extras", ["[[1]]", "[{a = 1}]", "[1]", '"energy"', '["energy", 2]'])
+def test_row3_malformed_extras(scene_file, capsys, extras):
+    _edit_scene(scene_file, "extras = []", f"extras = {extras}")
+    code, _, err = _run(capsys, "linearize", scene_file)
+    assert code == 2 and _one_line(err) and "[output] extras must be a list" in err
+
+
+# --- rows 6 and 7: sizes are bounded; long runs stream in chunks --------------------------
+
+@pytest.mark.parametrize("samples", ["100000000000", "9" * 400,
+                                     str(cli_simulate.MAX_SAMPLES + 1)])
+def test_row6_samples_beyond_the_limit_refused_before_work(tmp_path, capsys, spy_simulate,
+                                                           samples):
+    out = tmp_path / "x.csv"
+    code, _, err = _run(capsys, "simulate", "lab-rig", "--samples", samples, "--out", out)
+    assert code == 2 and _one_line(err) and str(cli_simulate.MAX_SAMPLES) in err
+    assert spy_simulate == [] and not list(tmp_path.iterdir())
+
+
+def test_row6_scene_samples_beyond_the_limit(scene_file, tmp_path, capsys, spy_simulate):
+    _edit_scene(scene_file, "samples = ", "samples = 1" + "0" * 30 + "\n#")
+    code, _, err = _run(capsys, "simulate", scene_file, "--out", tmp_path / "x.csv")
+    assert code == 2 and _one_line(err) and "[output] samples" in err and spy_simulate == []
+
+
+def test_row7_refused_when_the_disk_cannot_hold_it(tmp_path, capsys, monkeypatch, spy_simulate):
+    monkeypatch.setattr(cli_simulate.shutil, "disk_usage", lambda p: _Usage(10**9, 0, 10**8))
+    code, _, err = _run(capsys, "simulate", "lab-rig", "--samples", "300000000", "--t1", "1",
+                        "--out", tmp_path / "x.csv")
+    assert code == 2 and _one_line(err) and "GB free" in err
+    assert spy_simulate == [] and not list(tmp_path.iterdir())
+
+
+def test_row7_long_runs_stream_in_bounded_chunks(tmp_path, capsys, monkeypatch, spy_simulate):
+    monkeypatch.setattr(cli_simulate, "CHUNK_SAMPLES", 40)
+    out, png = tmp_path / "x.csv", tmp_path / "x.png"
+    code, _, err = _run(capsys, "simulate", "lab-rig", "--t1", "2", "--samples", "201",
+                        "--extras", "energy", "--out", out, "--plot", png)
+    assert code == 0, err
+    assert "simulate:" in err  # the progress bar, on stderr
+    assert len(spy_simulate) == 5 and max(spy_simulate) == 41  # memory: one chunk at a time
+    data = np.loadtxt(out, delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(data[:, 0], np.linspace(0, 2, 201))
+    ref = cj.load_scene("lab-rig").simulate(np.linspace(0, 2, 201), outputs=("energy",))
+    # Each chunk restarts the solver from the last state: the same solution to tolerance.
+    np.testing.assert_allclose(data[:, 1], ref.phi, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(data[:, 2], ref.dphi, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(data[:, 3], ref.extras["energy"], rtol=1e-7)
+    assert png.stat().st_size > 1000
+
+
+def test_synth_record_too_long_refused(tmp_path, capsys, spy_simulate):
+    code, _, err = _run(capsys, "synth", "lab-rig", "--rate", "1e12", "--out", tmp_path / "d.csv")
+    assert code == 2 and _one_line(err) and str(cj_data.MAX_RECORD_SAMPLES) in err
+    assert spy_simulate == []
+
+
+# --- row 8: every option is checked before any work --------------------------------------
+
+@pytest.mark.parametrize("argv", [
+    ["simulate", "lab-rig", "--t1", "0.1", "--samples", "3", "--plot", "p.xyz"],
+    ["fit", "d.csv", "lab-rig", "--plot", "p.xyz"],
+    ["demo", "--plot", "p.xyz"],
+    ["demo", "--out", "nodir/r.json"],
+    ["simulate", "lab-rig", "--out", "nodir/x.csv"],
+    ["simulate", "lab-rig", "--plot", "nodir/x.png"],
+    ["simulate", "lab-rig", "--out", "."],
+    ["simulate", "lab-rig", "--out", "x.csv", "--plot", "x.csv"],
+    ["synth", "lab-rig", "--out", "nodir/d.csv"],
+])
+def test_row8_options_checked_before_any_work(tmp_path, capsys, monkeypatch, spy_simulate, argv):
+    monkeypatch.chdir(tmp_path)
+    cj.save_data(cj.Data(np.arange(6.0), np.zeros(6)), "d.csv")
+    if "--out" not in argv:
+        argv = argv + ["--out", "x.csv"]
+    t = time.perf_counter()
+    code, _, err = _run(capsys, *argv)
+    assert code == 2 and _one_line(err), err
+    assert spy_simulate == [] and time.perf_counter() - t < 20
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.csv"]
+
+
+def test_read_only_output_and_directory_refused(tmp_path, capsys):
+    ro = tmp_path / "ro.csv"
+    ro.write_text("keep\n")
+    ro.chmod(0o444)
+    if os.access(ro, os.W_OK):
+        pytest.skip("running as root: a read-only file is still writable")
+    code, _, err = _run(capsys, "simulate", "lab-rig", "--out", ro)
+    assert code == 2 and "read-only" in err and ro.read_text() == "keep\n"
+
+
+def test_dev_null_is_written_not_replaced(capsys):
+    code, _, err = _run(capsys, "simulate", "lab-rig", "--t1", "0.1", "--samples", "3",
+                        "--out", os.devnull)
+    assert code == 0, err
+    assert stat.S_ISCHR(os.stat(os.devnull).st_mode)
+
+
+def test_symlink_output_written_through(tmp_path, capsys):
+    target = tmp_path / "real.csv"
+    target.write_text("old\n")
+    link = tmp_path / "link.csv"
+    link.symlink_to(target)
+    code, _, err = _run(capsys, "simulate", "lab-rig", "--t1", "0.1", "--samples", "3",
+                        "--out", link)
+    assert code == 0, err
+    assert link.is_symlink() and target.read_text().startswith("t,phi,dphi\n")
+
+
+# --- rows 10 and 11 (and CRLF, UTF-16, decimal commas): CSV read as pandas reads it -------
+
+_ROWS = [(0.1 * i, 0.5 * float(np.cos(i))) for i in range(6)]
+
+
+def _table(sep=",", quote=False, eol="\n", dec="."):
+    q = (lambda s: f'"{s}"') if quote else (lambda s: s)
+    lines = [sep.join([q("t"), q("phi"), q("note")])]
+    lines += [sep.join([f"{t!r}".replace(".", dec), f"{p!r}".replace(".", dec), q("a b")])
+              for t, p in _ROWS]
+    return eol.join(lines) + eol
+
+
+@pytest.mark.parametrize("name,raw", [
+    ("utf-8 bom (row 10)", b"\xef\xbb\xbf" + _table().encode()),
+    ("quoted header (row 11)", _table(quote=True).encode()),
+    ("crlf", _table(eol="\r\n").encode()),
+    ("bom+quoted+crlf", b"\xef\xbb\xbf" + _table(quote=True, eol="\r\n").encode()),
+    ("utf-16", _table().encode("utf-16")),
+    ("semicolon, decimal comma", _table(sep=";", dec=",").encode()),
+])
+def test_rows10_11_csv_dialects(tmp_path, name, raw):
+    p = tmp_path / "d.csv"
+    p.write_bytes(raw)
+    d = cj.load_data(p)
+    np.testing.assert_array_equal(d.ts, [t for t, _ in _ROWS])
+    np.testing.assert_array_equal(d.phi, [p for _, p in _ROWS])
+    assert p.read_bytes() == raw
+
+
+def test_header_that_is_data_says_so(tmp_path):
+    p = tmp_path / "d.csv"
+    p.write_text("".join(f"{t},{ph}\n" for t, ph in _ROWS))
+    with pytest.raises(cj.DataError, match="line 1 is data, not a header"):
+        cj.load_data(p)
+
+
+def test_record_too_long_refused(tmp_path, monkeypatch):
+    monkeypatch.setattr(cj_data, "MAX_RECORD_SAMPLES", 10)
+    p = tmp_path / "d.csv"
+    p.write_text("t,phi\n" + "".join(f"{i},0\n" for i in range(11)))
+    with pytest.raises(cj.DataError, match="more than 10 samples"):
+        cj.load_data(p)
+
+
+# --- rows 18 and 19: signals leave no temporary file and never touch an existing output ---
+
+def _tmp_files(d):
+    return [p.name for p in d.iterdir() if p.name.endswith(".tmp")]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP, signal.SIGTERM])
+def test_rows18_19_signal_mid_run_in_process(tmp_path, capsys, monkeypatch, sig):
+    monkeypatch.setattr(cli_simulate, "CHUNK_SAMPLES", 20)
+    out = tmp_path / "big.csv"
+    out.write_text("old\n")
+    real, calls = cj.Scene.simulate, []
+
+    def spy(self, ts=None, **kw):
+        calls.append(1)
+        if len(calls) == 3:
+            assert _tmp_files(tmp_path)  # the output is being written
+            os.kill(os.getpid(), sig)
+        return real(self, ts, **kw)
+
+    monkeypatch.setattr(cj.Scene, "simulate", spy)
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
+    code, _, err = _run(capsys, "simulate", "lab-rig", "--t1", "1", "--samples", "201",
+                        "--out", out)
+    assert code == 128 + sig and len(calls) == 3
+    assert out.read_text() == "old\n" and _tmp_files(tmp_path) == []
+    assert "Traceback" not in err
+    assert handlers == {s: signal.getsignal(s) for s in handlers}  # handlers restored
+
+
+def test_rows18_19_sigterm_real_process(tmp_path):
+    out = tmp_path / "big.csv"
+    out.write_text("old\n")
+    env = dict(os.environ, CRANK_JAX_NO_CACHE="1")
+    p = subprocess.Popen([sys.executable, "-m", "crank_jax", "simulate", "lab-rig", "--t1", "100",
+                          "--samples", "5000000", "--out", str(out), "--quiet"],
+                         stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 240
+        while not _tmp_files(tmp_path) and p.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert _tmp_files(tmp_path), "the run never started writing"
+        time.sleep(1.0)
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 128 + signal.SIGTERM, err
+    assert "Traceback" not in err and "terminated by SIGTERM" in err
+    assert out.read_text() == "old\n" and _tmp_files(tmp_path) == []
+
+
+# --- row 20: outputs get the umask's permissions ------------------------------------------
+
+def test_row20_outputs_follow_the_umask(tmp_path, capsys):
+    old = os.umask(0o027)
+    try:
+        code, _, err = _run(capsys, "simulate", "lab-rig", "--t1", "0.1", "--samples", "3",
+                            "--out", tmp_path / "x.csv")
+        cj.save_data(cj.Data(np.arange(6.0), np.zeros(6)), tmp_path / "d.csv")
+        cj.save_scene(cj.load_scene("lab-rig"), tmp_path / "s.toml")
+        np.savetxt(tmp_path / "np.csv", np.zeros(2))
+    finally:
+        os.umask(old)
+    assert code == 0, err
+    for name in ("x.csv", "d.csv", "s.toml"):
+        assert stat.S_IMODE((tmp_path / name).stat().st_mode) == 0o640, name
+    assert stat.S_IMODE((tmp_path / "np.csv").stat().st_mode) == 0o640  # as numpy does
+    # An existing file keeps its mode, as open(path, "w") keeps it.
+    (tmp_path / "x.csv").chmod(0o600)
+    code, _, _ = _run(capsys, "simulate", "lab-rig", "--t1", "0.1", "--samples", "3",
+                      "--out", tmp_path / "x.csv")
+    assert code == 0 and stat.S_IMODE((tmp_path / "x.csv").stat().st_mode) == 0o600
+
+
+# --- no traceback for any exception class ---------------------------------------------------
+
+@pytest.mark.parametrize("exc,code", [
+    (TypeError("unhashable type: 'list'"), 1), (OverflowError("int too large"), 1),
+    (ZeroDivisionError("division by zero"), 1), (MemoryError(), 1),
+    (RuntimeError("max_steps reached"), 1), (ValueError("bad value\nmore"), 2),
+    (PermissionError(13, "Permission denied"), 2),
+])
+def test_no_traceback_for_any_exception(capsys, monkeypatch, exc, code):
+    def boom(a):
+        raise exc
+
+    monkeypatch.setattr(cli_simulate, "COMMANDS",
+                        [(n, h, add, boom) for n, h, add, _ in cli_simulate.COMMANDS])
+    got, _, err = _run(capsys, "scenes")
+    assert got == code and _one_line(err) and err.startswith("crank-jax: error: ")
+    got, _, err = _run(capsys, "scenes", "--debug")
+    assert got == code and "Traceback" in err
+    monkeypatch.setenv("CRANK_JAX_DEBUG", "1")
+    got, _, err = _run(capsys, "scenes")
+    assert got == code and "Traceback" in err
+
+
+def test_binary_or_endless_data_file_refused_quickly(tmp_path, capsys):
+    p = tmp_path / "d.csv"
+    p.write_bytes(b"\x00" * 200_000)
+    with pytest.raises(cj.DataError, match="line 1 is longer than"):
+        cj.load_data(p)
+    code, _, err = _run(capsys, "fit", "/dev/zero", "lab-rig")
+    assert code == 2 and _one_line(err) and "not a text table" in err
+
+
+@pytest.mark.parametrize("value", ["1.3407807929942597e+154", "1e-300", "-1e31"])
+def test_scene_numbers_beyond_float64_products_refused(scene_file, capsys, value):
+    # Found by test_properties: s = sqrt(max float) made m_c s^2 overflow.
+    _edit_scene(scene_file, "s = ", f"s = {value}\n#")
+    code, _, err = _run(capsys, "linearize", scene_file)
+    assert code == 2 and _one_line(err) and "[mechanism] s = " in err and "out of range" in err
+
+
+def test_warnings_are_one_line(capsys, monkeypatch):
+    import warnings
+
+    def warn(a):
+        warnings.warn("something odd\nsecond line", UserWarning, stacklevel=1)
+        return 0
+
+    monkeypatch.setattr(cli_simulate, "COMMANDS",
+                        [(n, h, add, warn) for n, h, add, _ in cli_simulate.COMMANDS])
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        code, _, err = _run(capsys, "scenes")
+    assert code == 0 and err == "crank-jax: warning: something odd\n"
