@@ -14,6 +14,8 @@ Public API (everything else is private):
 - Identification: `synthesize`, `load_data`, `save_data`, `Data`, `DataError`,
   `MultiSineLoad`, `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
   `IdentifiabilityWarning`, `ConvergenceWarning`.
+- Residual diagnostics: `residual_diagnostics`, `Diagnostics`, `hac_covariance`, `widen`,
+  `robust_uncertainty`, `RobustUncertainty`. Validation: `validate`, `Validation`.
 - Monte Carlo: `sweep`, `SweepResult`, `distributions`, `REDUCTIONS`, `STATUS`,
   `VARIABLES`, `sweep_cost`, `initialize_distributed`, `fastest_mode`.
 """
@@ -21,6 +23,14 @@ Public API (everything else is private):
 from . import distributions
 from .cache import default_cache_dir, enable_compilation_cache
 from .data import Data, DataError, MultiSineLoad, load_data, save_data, synthesize
+from .identify.diagnostics import (
+    Diagnostics,
+    RobustUncertainty,
+    hac_covariance,
+    residual_diagnostics,
+    robust_uncertainty,
+    widen,
+)
 from .identify.fit import (
     FREE_NAMES,
     ConvergenceWarning,
@@ -97,3 +107,5 @@ __all__ += [
     "save_data",
     "synthesize",
 ]
+__all__ += ["Diagnostics", "RobustUncertainty", "hac_covariance", "residual_diagnostics",
+            "robust_uncertainty", "widen"]
