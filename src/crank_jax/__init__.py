@@ -69,6 +69,7 @@ from .sweep.run import (
     sweep,
     sweep_cost,
 )
+from .validate import Validation, validate
 
 __version__ = "0.1.0"
 
@@ -108,4 +109,4 @@ __all__ += [
     "synthesize",
 ]
 __all__ += ["Diagnostics", "RobustUncertainty", "hac_covariance", "residual_diagnostics",
-            "robust_uncertainty", "widen"]
+            "robust_uncertainty", "widen", "Validation", "validate"]

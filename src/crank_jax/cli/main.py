@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from . import identify, simulate, sweep
+from . import identify, simulate, sweep, validate
 from .errors import EXIT_USAGE, UserError
 
 __all__ = ["main", "build_parser"]
@@ -39,7 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="crank-jax", description="Slider-crank simulation and identification.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
-    for name, help_, add, run in simulate.COMMANDS + identify.COMMANDS + sweep.COMMANDS:
+    for name, help_, add, run in (simulate.COMMANDS + identify.COMMANDS + sweep.COMMANDS
+                               + validate.COMMANDS):
         p = sub.add_parser(name, help=help_, description=help_)
         add(p)
         p.set_defaults(_run=run)
