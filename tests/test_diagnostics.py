@@ -171,3 +171,11 @@ def test_bad_input_names_the_field():
 def test_public_names():
     assert cj.residual_diagnostics is dg.residual_diagnostics
     assert cj.hac_covariance is dg.hac_covariance
+
+
+def test_auto_bandwidth_several_components_reduce_to_one():
+    # Andrews' multi-series plug-in with identical components is the one-series rule.
+    for rho in (0.0, 0.3, 0.9):
+        assert dg.auto_bandwidth([rho, rho, rho], 5000) == dg.auto_bandwidth(rho, 5000)
+    assert dg.auto_bandwidth(0.0, 5000) == 1
+    assert dg.auto_bandwidth(0.99, 40) == 10  # capped at n // 4

@@ -124,20 +124,52 @@ def autocorrelation(r: np.ndarray, n_lags: int, lengths: Sequence[int] | None = 
     return gamma / gamma[0], pairs
 
 
-def auto_bandwidth(rho1: float, n: int) -> int:
+def auto_bandwidth(rho1: float | np.ndarray, n: int,
+                   var: np.ndarray | None = None) -> int:
     """Newey-West truncation lag from Andrews' (1991) AR(1) plug-in for Bartlett weights.
 
-    `S = 1.1447 (alpha n)^(1/3)`, `alpha = 4 rho^2 / ((1 - rho)^2 (1 + rho)^2)`, with `rho`
-    clipped to [-0.97, 0.97] and `S` to [1, n // 4]: a window near the record length makes
-    the sandwich collapse (at the least-squares optimum `sum_t J_t r_t = 0`, so the
+    `S = 1.1447 (alpha n)^(1/3)` with, for one series, `alpha = 4 rho^2 / ((1 - rho)^2
+    (1 + rho)^2)`, and for several (the components of the scores, Andrews' eq. 6.4 with
+    equal weights) `alpha = sum_a 4 rho_a^2 v_a^2 / ((1 - rho_a)^6 (1 + rho_a)^2) /
+    sum_a v_a^2 / (1 - rho_a)^4` (`v_a`: innovation variances). Each `rho` is clipped to
+    [-0.97, 0.97] and `S` to [1, n // 4]: a window near the record length makes the
+    sandwich collapse (at the least-squares optimum `sum_t J_t r_t = 0`, so the
     full-length sum of its autocovariances is zero).
+
+    **Arguments:** `rho1`: lag-1 autocorrelation(s), scalar or (p,); `n`: samples (of the
+    shortest record); `var` (p,): innovation variances (default: equal).
 
     **Returns:** the number of lags, an int >= 1 (so at least lag 1 gets weight 1/2).
     """
-    rho = min(max(float(rho1), -0.97), 0.97) if math.isfinite(rho1) else 0.0
-    alpha = 4 * rho**2 / ((1 - rho) ** 2 * (1 + rho) ** 2)
+    rho = np.atleast_1d(np.asarray(rho1, dtype=float))
+    rho = np.clip(np.where(np.isfinite(rho), rho, 0.0), -0.97, 0.97)
+    v = np.ones_like(rho) if var is None else np.asarray(var, dtype=float)
+    den = float(np.sum(v**2 / (1 - rho) ** 4))
+    num = float(np.sum(4 * rho**2 * v**2 / ((1 - rho) ** 6 * (1 + rho) ** 2)))
+    alpha = num / den if den > 0 else 0.0
     s = 1.1447 * (alpha * n) ** (1 / 3)
     return int(min(max(math.ceil(s), 1), max(n // 4, 1)))
+
+
+def _score_bandwidth(g: np.ndarray, slices: list[slice], shortest: int) -> int:
+    """Andrews' plug-in from an AR(1) fitted to each component of the scores `g` (n, p)."""
+    p = g.shape[1]
+    xy, xx, ss, m = np.zeros(p), np.zeros(p), np.zeros(p), 0
+    for s in slices:
+        gs = g[s] - g[s].mean(axis=0)
+        xy += np.sum(gs[1:] * gs[:-1], axis=0)
+        xx += np.sum(gs[:-1] ** 2, axis=0)
+        m += gs.shape[0] - 1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.where(xx > 0, xy / xx, 0.0)
+    rho = np.clip(rho, -0.97, 0.97)
+    for s in slices:
+        gs = g[s] - g[s].mean(axis=0)
+        ss += np.sum((gs[1:] - rho * gs[:-1]) ** 2, axis=0)
+    keep = xx > 0
+    if not keep.any():
+        return 1
+    return auto_bandwidth(rho[keep], shortest, ss[keep] / max(m, 1))
 
 
 class Diagnostics(NamedTuple):
@@ -154,7 +186,8 @@ class Diagnostics(NamedTuple):
     - `n_samples`: n.
     - `white`: `ljung_box_p >= WHITE_P`.
     - `acf` (k + 1,): autocorrelation at lags 0..k (k = max(n_lags, bandwidth)).
-    - `bandwidth`: the Newey-West truncation lag.
+    - `bandwidth`: the truncation lag of the Bartlett window used for `effective_samples`
+      ([`auto_bandwidth`][] from `rho_1`).
     """
 
     ljung_box_p: float
@@ -177,7 +210,7 @@ class Diagnostics(NamedTuple):
             "effective_samples": float(self.effective_samples),
             "n_samples": int(self.n_samples),
             "white": bool(self.white),
-            "hac_bandwidth": int(self.bandwidth),
+            "bandwidth": int(self.bandwidth),
             "acf": [float(a) for a in self.acf],
         }
 
@@ -236,8 +269,8 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, bandwidth: int | None = None,
 
     - `J`: (n, p) Jacobian of the residuals with respect to the coordinates.
     - `r`: (n,) residuals at the estimate.
-    - `bandwidth`: truncation lag S; default [`auto_bandwidth`][] from the lag-1
-      autocorrelation of `r` and the shortest record.
+    - `bandwidth`: truncation lag S; default [`auto_bandwidth`][] from an AR(1) fitted to
+      each component of the scores `g_t` (Andrews' plug-in) and the shortest record.
     - `lengths`: samples per record.
 
     **Returns:** (p, p) covariance of the coordinates (pseudo-inverse of `J^T J` on its
@@ -250,11 +283,10 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, bandwidth: int | None = None,
         raise ValueError(f"hac_covariance: J has {n} rows but r has {r.shape[0]} entries")
     slices = _split(n, lengths)
     shortest = min(s.stop - s.start for s in slices)
-    if bandwidth is None:
-        rho1, _ = autocorrelation(r, 1, lengths)
-        bandwidth = auto_bandwidth(float(rho1[1]), shortest)
-    bandwidth = int(min(max(bandwidth, 0), shortest - 1))
     g = J * r[:, None]
+    if bandwidth is None:
+        bandwidth = _score_bandwidth(g, slices, shortest)
+    bandwidth = int(min(max(bandwidth, 0), shortest - 1))
     omega = np.zeros((p, p))
     for s in slices:
         gs = g[s]
@@ -347,7 +379,7 @@ def robust_uncertainty(J: np.ndarray, r: np.ndarray, lengths: Sequence[int] | No
     if sigma is None:
         sigma = float(np.sqrt(r @ r / max(n - p, 1)))
     cov_white = sigma**2 * _pinv_gram(J)
-    cov_hac = hac_covariance(J, r, diag.bandwidth, lengths)
+    cov_hac = hac_covariance(J, r, None, lengths)
     cov = cov_white.copy() if diag.white else widen(cov_white, cov_hac)
     with np.errstate(invalid="ignore", divide="ignore"):
         infl = np.sqrt(np.diag(cov) / np.diag(cov_white))
