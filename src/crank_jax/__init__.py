@@ -20,6 +20,9 @@ The public API, by topic (everything else is private; the subpackages
 - Data: `Data`, `DataError`, `load_data`, `save_data`, `synthesize`.
 - Identification: `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
   `IdentifiabilityWarning`, `ConvergenceWarning`.
+- Residual diagnostics and validation: `residual_diagnostics`, `Diagnostics`,
+  `hac_covariance`, `widen`, `robust_uncertainty`, `RobustUncertainty`, `validate`,
+  `Validation`.
 - Monte Carlo: `sweep`, `SweepResult`, `REDUCTIONS`, `STATUS`, `VARIABLES`,
   `sweep_cost`, `initialize_distributed`, `distributions`.
 - Files and the compilation cache: `atomic_write`, `enable_compilation_cache`,
@@ -37,6 +40,14 @@ from .data import (
     load_data,
     save_data,
     synthesize,
+)
+from .identify.diagnostics import (
+    Diagnostics,
+    RobustUncertainty,
+    hac_covariance,
+    residual_diagnostics,
+    robust_uncertainty,
+    widen,
 )
 from .identify.fit import (
     FREE_NAMES,
@@ -128,6 +139,10 @@ from .sweep.run import (
     sweep,
     sweep_cost,
 )
+from .validate import (
+    Validation,
+    validate,
+)
 
 __version__ = "0.1.0"
 
@@ -146,6 +161,7 @@ __all__ = [
     "Data",
     "DataError",
     "default_cache_dir",
+    "Diagnostics",
     "distribution_matrix",
     "distributions",
     "enable_compilation_cache",
@@ -161,12 +177,13 @@ __all__ = [
     "geometry",
     "global_form",
     "GlobalForm",
+    "hac_covariance",
     "HarmonicLoad",
     "IdentifiabilityWarning",
     "initialize_distributed",
     "INTERPOLATIONS",
-    "kinematics",
     "Kinematics",
+    "kinematics",
     "kinetic_energy",
     "Linearization",
     "linearize",
@@ -183,11 +200,14 @@ __all__ = [
     "presets",
     "PRESETS",
     "Profile",
-    "Reactions",
     "reactions",
+    "Reactions",
     "REDUCTIONS",
     "regressor_start",
+    "residual_diagnostics",
     "resolve_solver",
+    "robust_uncertainty",
+    "RobustUncertainty",
     "SampledLoad",
     "save_data",
     "save_scene",
@@ -205,5 +225,8 @@ __all__ = [
     "SweepResult",
     "synthesize",
     "Trajectory",
+    "validate",
+    "Validation",
     "VARIABLES",
+    "widen",
 ]

@@ -24,7 +24,7 @@ import traceback
 import warnings
 from collections.abc import Iterator
 
-from . import identify, simulate, sweep
+from . import identify, simulate, sweep, validate
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
 
 __all__ = ["main", "build_parser", "Terminated", "ENV_DEBUG"]
@@ -67,7 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help=f"show the traceback of any error (also: {ENV_DEBUG}=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
-    for name, help_, add, run in simulate.COMMANDS + identify.COMMANDS + sweep.COMMANDS:
+    for name, help_, add, run in (simulate.COMMANDS + identify.COMMANDS + sweep.COMMANDS
+                               + validate.COMMANDS):
         p = sub.add_parser(name, help=help_, description=help_)
         add(p)
         p.set_defaults(_run=run)
