@@ -47,7 +47,7 @@ def test_linearize_json_keys(capsys):
     code, out, _ = _run(capsys, "linearize", "lab-rig", "--json")
     assert code == 0
     d = json.loads(out)
-    assert list(d) == ["mu", "chi", "xi", "omega_n", "zeta", "stable", "k_crit"]
+    assert list(d) == ["mu", "chi", "xi", "omega_n", "zeta", "stable", "k_crit", "phi_eq"]
     lin = cj.linearize(cj.load_scene("lab-rig").mech)
     assert d["xi"] == pytest.approx(float(lin.xi), rel=1e-15) and d["stable"] is True
 
