@@ -252,6 +252,22 @@ def test_absurd_scales_named_with_a_fix(over):
     assert "increase" not in str(e.value).lower()
 
 
+def test_nan_parameter_inside_jit_names_the_parameter():
+    # Inside jit the values are traced: the check runs in the program (eqx.error_if) and
+    # its message names the field, under eqx.filter_jit and (inside JAX's callback error)
+    # under jax.jit.
+    mech = cj.load_scene("lab-rig").mech
+    ts = jnp.linspace(0.0, 1.0, 11)
+
+    def final(k):
+        return cj.simulate(mech.replace(k=k), 1.0, 0.0, ts).phi[-1]
+
+    with pytest.raises(eqx.EquinoxRuntimeError, match="SliderCrank.k is invalid"):
+        eqx.filter_jit(final)(jnp.asarray(jnp.nan))
+    with pytest.raises(Exception, match="SliderCrank.k is invalid"):
+        jax.jit(final)(jnp.asarray(jnp.nan))
+
+
 def test_gradient_with_respect_to_load_amplitudes():
     sc = cj.load_scene("lab-rig")
     ts = jnp.linspace(0, 1.0, 11)
