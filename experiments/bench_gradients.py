@@ -25,7 +25,7 @@ import argparse
 import time
 
 import numpy as np
-from _bench import median_time, save, setup_jax
+from _bench import median_time, save, setup_jax, use_clock
 
 jax = setup_jax()
 import jax.numpy as jnp  # noqa: E402
@@ -38,7 +38,12 @@ PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true")
-    smoke = ap.parse_args(argv).smoke
+    ap.add_argument("--forward-only", action="store_true", help="skip the jacrev variants")
+    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                    help="time on the wall clock or the process CPU clock (shared machines)")
+    a = ap.parse_args(argv)
+    use_clock(a.clock)
+    smoke = a.smoke
     t1, samples = (1.0, 101) if smoke else (10.0, 1001)
     repeats = 1 if smoke else 5
     mech = cj.load_scene("lab-rig").mech.replace(c=1e-3)
@@ -57,7 +62,7 @@ def main(argv=None):
     print(rows[-1], flush=True)
     variants = [("jacfwd, dopri8-uniform", jax.jacfwd, "dopri8-uniform", "forward"),
                 ("jacfwd, diffrax Dopri8 (ForwardMode)", jax.jacfwd, "dopri8", "forward")]
-    if not smoke:
+    if not (smoke or a.forward_only):
         variants += [("jacrev, dopri8-uniform", jax.jacrev, "dopri8-uniform", "reverse"),
                      ("jacrev, diffrax Dopri8 (RecursiveCheckpoint)", jax.jacrev, "dopri8",
                       "reverse")]

@@ -79,6 +79,44 @@ def _copied_components(g, x, theta) -> list:
     return out
 
 
+def _variational_field(g, copies, flat, N, y0_cols, dtype):
+    """`f(t, Y, _)`: the field of the augmented state. Row j of `Y` is component j of the
+    state (column 0) and its sensitivities to the P parameters and the y0 columns; the rows'
+    derivative is `(f_j, sum_k f_j,x_k S_k + f_j,theta)`, `f_y` and `f_theta` by one reverse
+    pass per component that is not a plain copy (`copies`) of a state component."""
+    work = [j for j in range(N) if copies[j] is None]
+
+    def f(t, Y, _):
+        x = tuple(row[0] for row in Y)
+        val, vjp = jax.vjp(lambda x, theta: tuple(g(t, x, theta)[j] for j in work), x, flat)
+        rows = {}
+        for w, j in enumerate(work):
+            ct = tuple(jnp.ones_like(v) if i == w else jnp.zeros_like(v)
+                       for i, v in enumerate(val))
+            dx, dth = vjp(ct)
+            d = jnp.concatenate([dth.astype(dtype), jnp.zeros(y0_cols, dtype)])
+            for k in range(N):
+                d = d + dx[k] * Y[k][1:]
+            rows[j] = jnp.concatenate([val[w][None], d])
+        for j in range(N):
+            if copies[j] is not None:
+                rows[j] = Y[copies[j]]
+        return tuple(rows[j] for j in range(N))
+
+    return f
+
+
+def _columns_to_tree(dys, y0):
+    """(n, N) tangent columns back to `y0`'s pytree: a leaf of shape s becomes (n,) + s."""
+    n = dys.shape[0]
+    out, i = [], 0
+    for v in jax.tree_util.tree_leaves(y0):
+        k = int(np.size(v))
+        out.append(dys[:, i:i + k].reshape((n,) + np.shape(v)))
+        i += k
+    return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(y0), out)
+
+
 def _make_attach(erk: FusedERK, static):
     @jax.custom_jvp
     def attach(params, y0, ts, ys, ms):
@@ -97,8 +135,7 @@ def _make_attach(erk: FusedERK, static):
         components, rebuild, N = _flatten_state(y0)
         dy0_leaves = ([tangents[1]] * len(jax.tree_util.tree_leaves(y0)) if is_zero(tangents[1])
                       else jax.tree_util.tree_leaves(tangents[1], is_leaf=is_zero))
-        y0_live = any(not is_zero(d) for d in dy0_leaves)
-        y0_cols = N if y0_live else 0
+        y0_cols = N if any(not is_zero(d) for d in dy0_leaves) else 0
         if not live and not y0_cols:
             return ys, jax.tree_util.tree_map(jnp.zeros_like, ys)
         sizes = [int(np.size(leaves[i])) for i in live]
@@ -122,26 +159,7 @@ def _make_attach(erk: FusedERK, static):
         # Components of the field that merely copy a state component (the crank's
         # phi' = dphi) need no reverse pass: their sensitivity row is that component's.
         copies = _copied_components(lambda x, th: g(ts[0], x, th), components(y0), flat)
-        work = [j for j in range(N) if copies[j] is None]
-
-        def f(t, Y, _):
-            # Row j: component j of the state (column 0) and its sensitivities.
-            x = tuple(row[0] for row in Y)
-            val, vjp = jax.vjp(lambda x, theta: tuple(g(t, x, theta)[j] for j in work),
-                               x, flat)
-            rows = {}
-            for w, j in enumerate(work):
-                ct = tuple(jnp.ones_like(v) if i == w else jnp.zeros_like(v)
-                           for i, v in enumerate(val))
-                dx, dth = vjp(ct)
-                d = jnp.concatenate([dth.astype(dtype), jnp.zeros(y0_cols, dtype)])
-                for k in range(N):
-                    d = d + dx[k] * Y[k][1:]
-                rows[j] = jnp.concatenate([val[w][None], d])
-            for j in range(N):
-                if copies[j] is not None:
-                    rows[j] = Y[copies[j]]
-            return tuple(rows[j] for j in range(N))
+        f = _variational_field(g, copies, flat, N, y0_cols, dtype)
 
         def interval(Y, x):
             t0, t1, m = x
@@ -162,18 +180,8 @@ def _make_attach(erk: FusedERK, static):
         if y0_cols:
             dy0 = [jnp.zeros_like(v) if is_zero(d) else d
                    for v, d in zip(jax.tree_util.tree_leaves(y0), dy0_leaves)]
-            dy0_flat = jnp.concatenate([jnp.ravel(d).astype(dtype) for d in dy0])
-            dys = dys + S[..., P:] @ dy0_flat
-        # (n, N) back to ys's pytree: a leaf of shape s becomes (n,) + s.
-        n = ts.shape[0]
-        cols = [dys[:, j] for j in range(N)]
-        out, i = [], 0
-        for v in jax.tree_util.tree_leaves(y0):
-            k = int(np.size(v))
-            out.append(jnp.stack(cols[i:i + k], axis=1).reshape((n,) + np.shape(v)))
-            i += k
-        dys_tree = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(y0), out)
-        return ys, dys_tree
+            dys = dys + S[..., P:] @ jnp.concatenate([jnp.ravel(d).astype(dtype) for d in dy0])
+        return ys, _columns_to_tree(dys, y0)
 
     attach.defjvp(attach_jvp, symbolic_zeros=True)
     return attach

@@ -1,4 +1,11 @@
-"""Time integration of the equation of motion with Diffrax."""
+"""Time integration of the equation of motion: `simulate`, `Trajectory`, derived outputs.
+
+`simulate` builds the vector field, a [`CrankField`][], and hands it to a solver that knows
+nothing of the mechanism: the fused `"dopri8-uniform"` solver (`uniform.py`), or diffrax
+through a thin `ODETerm` adapter (the state as one (2,) array, the field as `args`). It is
+one of the two modules of `solve/` that import the model: it builds the field, checks the
+inputs, and computes the derived outputs; `policy.py` linearises for the stiffness test.
+"""
 
 from __future__ import annotations
 
