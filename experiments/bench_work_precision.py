@@ -26,7 +26,7 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from _bench import FIGURES, interp_time, median_time, save, setup_jax, use_clock
+from _bench import CLOCK, FIGURES, interp_time, median_time, save, setup_jax, use_clock
 
 jax = setup_jax()
 import peers  # noqa: E402
@@ -190,7 +190,8 @@ def plot(results, smoke, tag=""):
         ax.set_title(f"{label}, phi0 = {res['phi0']:g} rad, 10 s", fontsize=10)
         ax.set_xlabel("max |phi - phi_ref| (rad)")
         ax.grid(alpha=0.3, which="both")
-    axes[0][0].set_ylabel("run time (s), median")
+    clock = "process CPU time" if CLOCK["name"] == "cpu" else "run time"
+    axes[0][0].set_ylabel(f"{clock} (s), median")
     axes[0][-1].legend(fontsize=7, loc="upper right")
     fig.suptitle("Work-precision (grey: below the reference's own uncertainty)", fontsize=10)
     FIGURES.mkdir(parents=True, exist_ok=True)

@@ -60,6 +60,31 @@ def _no_grad(tree):
                                   tree)
 
 
+def _packer(y0):
+    """`(pack, unpack)`: a state pytree to one flat (N,) array and back, the latter for any
+    leading axes. The solve records one array per save interval: one XLA update per
+    interval instead of one per leaf (measured ~6% of a `vmap`-ed batch's time)."""
+    leaves, treedef = jax.tree_util.tree_flatten(y0)
+    shapes = [np.shape(x) for x in leaves]
+    sizes = [int(np.prod(s, dtype=int)) for s in shapes]
+
+    def pack(y):
+        parts = jax.tree_util.tree_leaves(y)
+        if all(s == () for s in shapes):
+            return jnp.stack(parts)
+        return jnp.concatenate([jnp.ravel(x) for x in parts])
+
+    def unpack(Y):
+        out, i = [], 0
+        for s, k in zip(shapes, sizes):
+            part = Y[..., i] if s == () else Y[..., i:i + k].reshape(Y.shape[:-1] + s)
+            out.append(part)
+            i += k
+        return jax.tree_util.tree_unflatten(treedef, out)
+
+    return pack, unpack
+
+
 def _all_finite(tree):
     ok = jnp.array(True)
     for x in jax.tree_util.tree_leaves(tree):
@@ -77,7 +102,7 @@ def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
     `m_{i+1} = ceil(m_i (E_i / aim)^(1/(p-1)))`, which aims every interval at the same share
     `aim` of the global budget. `m` at most halves per interval (a slow fall lets a growing
     instability show in `E_i` before it matters) and never goes below `m_floor` or above
-    `max_sub`. Returns `ys` (a pytree like `y0` with a leading axis n), `E = sum E_i` (inf
+    `max_sub`. Returns `ys` ((n, N), the packed states, see `_packer`), `E = sum E_i` (inf
     if the solution is not finite), the number of steps, whether some interval wanted more
     than `max_sub` steps, and the accepted `m_i` of every interval.
     """
@@ -85,6 +110,7 @@ def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
 
     def one_pass(y0, ts, m1, aim, m_floor):
         dtype = ts.dtype
+        pack, _ = _packer(y0)
 
         def interval(carry, tt):
             y, E, m, steps, top = carry
@@ -132,11 +158,11 @@ def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
             want = jnp.maximum(want, jnp.maximum(m_floor, (m + 1) // 2))
             m_next = jnp.minimum(want, max_sub).astype(m.dtype)
             top = top | (want > max_sub)
-            return (y, E + Ei, m_next, steps, top), (y, m)
+            return (y, E + Ei, m_next, steps, top), (pack(y), m)
 
         init = (y0, jnp.zeros((), dtype), m1, jnp.zeros((), m1.dtype), jnp.array(False))
         (_, E, _, steps, top), (ys, ms) = jax.lax.scan(interval, init, (ts[:-1], ts[1:]))
-        ys = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), y0, ys)
+        ys = jnp.concatenate([pack(y0)[None].astype(ys.dtype), ys])
         # A non-finite solution (an unstable step) counts as a failed pass.
         E = jnp.where(_all_finite(jax.lax.stop_gradient(ys)), E, jnp.inf)
         return ys, E, steps, top, ms
@@ -250,13 +276,15 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
         ys, E, s, top, ms = one_pass(y0_sel, ts, jnp.maximum(m1, m_floor), aim, m_floor)
         return aim, m_floor, ys, ms, E, steps + s, top, j + 1
 
-    ys0 = jax.tree_util.tree_map(lambda x: jnp.zeros((n,) + jnp.shape(x), dtype), y0)
+    pack, unpack = _packer(y0)
+    ys0 = jnp.zeros((n,) + pack(y0).shape, dtype)
     init = (aim0, m_floor0, ys0, jnp.zeros(n_int, jnp.int32), jnp.asarray(jnp.inf, dtype),
             pilot_steps, jnp.array(False), jnp.array(0))
     _, _, ys, ms, E, steps, _, _ = eqxi.while_loop(sel_cond, sel_body, init,
                                                    max_steps=_MAX_PASSES, kind=kind)
     result = diffrax.RESULTS.where(E <= 1, diffrax.RESULTS.successful,
                                    diffrax.RESULTS.max_steps_reached)
+    ys = unpack(ys)
     if sens:
         ys = attach_sensitivities(erk, field, args, y0, ts, ys, ms)
     return ys, result, steps
