@@ -7,15 +7,18 @@ near-buckling presets, each with its own phi0. Methods, side by side in one run:
   for these non-stiff scenes), and diffrax's adaptive Tsit5, Dopri5, Dopri8 through
   `simulate(solver=...)`, at rtol = 1e-4 .. 1e-12 (atol = rtol / 100);
 - scipy `solve_ivp` RK45, DOP853, LSODA and `odeint` with a plain-Python RHS;
-- a compiled scalar Dormand-Prince 5(4) with dense output in numba (skipped if numba is
-  missing).
+- compiled scalar peers in numba (skipped if numba is missing): a Dormand-Prince 5(4) with
+  dense output, and DOP853 with scipy's coefficients, controller and dense output.
 
 The error is the max |phi - phi_ref| over the samples. phi_ref is diffrax's Dopri8 at
 rtol = 1e-14, cross-checked against scipy's DOP853 at rtol = 1e-13: their difference is
 recorded as the error floor. Times are medians. Target (a) is evaluated on the lab rig:
 the default solve's time against DOP853's time interpolated (log-log) at the same error.
+Issue 9 target 2 compares the default solve (default rtol 1e-8) with the compiled DOP853:
+at equal error (interpolated), and against the cheapest compiled-DOP853 run whose error
+meets the lab rig's 1e-8 rad.
 
-Run: `python experiments/bench_work_precision.py [--smoke]`.
+Run: `python experiments/bench_work_precision.py [--smoke] [--lab-only] [--repeats N]`.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from _bench import FIGURES, interp_time, median_time, save, setup_jax
+from _bench import CLOCK, FIGURES, interp_time, median_time, save, setup_jax, use_clock
 
 jax = setup_jax()
 import peers  # noqa: E402
@@ -33,10 +36,10 @@ import crank_jax as cj  # noqa: E402
 T1, SAMPLES = 10.0, 1001
 
 
-def cases(smoke: bool):
+def cases(smoke: bool, lab_only: bool = False):
     lab = cj.load_scene("lab-rig")
     out = [("lab-rig (c=1e-3)", lab.mech.replace(c=1e-3), 1.0)]
-    if not smoke:
+    if not (smoke or lab_only):
         for name in ("torsional", "near-buckling"):
             s = cj.load_scene(name)
             out.append((name, s.mech, float(s.phi0)))
@@ -45,15 +48,21 @@ def cases(smoke: bool):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
+                    help="time on the wall clock or the process CPU clock (shared machines)")
+    ap.add_argument("--tag", default="", help="suffix of the results file (e.g. _before)")
     ap.add_argument("--smoke", action="store_true", help="tiny run for CI")
+    ap.add_argument("--lab-only", action="store_true", help="only the lab-rig scene")
+    ap.add_argument("--repeats", type=int, default=5, help="timing repeats (median)")
     a = ap.parse_args(argv)
+    use_clock(a.clock)
     smoke = a.smoke
     rtols = [1e-5, 1e-8] if smoke else [10.0**-e for e in range(4, 13)]
-    repeats = 1 if smoke else 5
+    repeats = 1 if smoke else a.repeats
     ts = np.linspace(0.0, T1, SAMPLES)
     tsj = jax.numpy.asarray(ts)
     results = {}
-    for label, mech, phi0 in cases(smoke):
+    for label, mech, phi0 in cases(smoke, a.lab_only):
         p = peers.params_of(mech)
         y0 = (phi0, 0.0)
         ref = np.asarray(cj.simulate(mech, phi0, 0.0, tsj, solver="dopri8", rtol=1e-14,
@@ -102,12 +111,15 @@ def main(argv=None):
                 record(f"scipy {method}", rtol, phi, median_time(run, repeats if not smoke else 1,
                                                                  warmup=0, budget_s=10.0), nfev)
         if peers.HAVE_NUMBA:
-            peers.dp5_numba(p, y0, ts, 1e-6, 1e-8)  # compile
-            for rtol in rtols:
-                def run(rtol=rtol):
-                    return peers.dp5_numba(p, y0, ts, rtol, rtol * 1e-2)
-                ys, ns = run()
-                record("numba DP5 (compiled)", rtol, ys[:, 0], median_time(run, repeats), ns)
+            nb_rtols = rtols if smoke else rtols + [1e-13]
+            for name, fn in (("numba DP5 (compiled)", peers.dp5_numba),
+                             ("numba DOP853 (compiled)", peers.dop853_numba)):
+                fn(p, y0, ts, 1e-6, 1e-8)  # compile
+                for rtol in nb_rtols:
+                    def run(rtol=rtol, fn=fn):
+                        return fn(p, y0, ts, rtol, rtol * 1e-2)
+                    ys, ns = run()
+                    record(name, rtol, ys[:, 0], median_time(run, repeats), ns)
         else:
             print("numba is not installed: skipping the compiled DP5 peer")
         results[label] = {"phi0": phi0, "error_floor": floor, "curves": curves}
@@ -124,9 +136,28 @@ def main(argv=None):
         "goal": 25.0,
     }
     print("target (a):", target)
-    save("work_precision", {"t1": T1, "samples": SAMPLES, "cases": results, "target_a": target},
-         smoke)
-    plot(results, smoke)
+    target2 = target_2(lab, default)
+    print("issue 9 target 2:", target2)
+    save("work_precision" + a.tag, {"t1": T1, "samples": SAMPLES, "cases": results,
+                                    "target_a": target, "target_2": target2}, smoke)
+    plot(results, smoke, a.tag)
+
+
+def target_2(lab: dict, default: dict) -> dict | None:
+    """Default solve (rtol 1e-8) against the compiled DOP853: at equal error, and against
+    its cheapest run that meets the lab rig's 1e-8 rad."""
+    dop = lab.get("numba DOP853 (compiled)")
+    if not dop:
+        return None
+    t_eq = interp_time([r["error"] for r in dop], [r["time_s"] for r in dop], default["error"])
+    meets = [r for r in dop if r["error"] <= 1e-8]
+    t_meet = min((r["time_s"] for r in meets), default=None)
+    return {"goal": 3.0, "default_error": default["error"], "default_time_s": default["time_s"],
+            "dop853_time_s_at_equal_error": t_eq,
+            "ratio_at_equal_error": None if t_eq is None else default["time_s"] / t_eq,
+            "dop853_cheapest_time_s_error_le_1e-8": t_meet,
+            "ratio_vs_cheapest_meeting_1e-8": (None if t_meet is None
+                                               else default["time_s"] / t_meet)}
 
 
 STYLE = {
@@ -139,10 +170,11 @@ STYLE = {
     "scipy LSODA": dict(color="C4", ls="--", marker="x"),
     "scipy odeint": dict(color="C5", ls="--", marker="x"),
     "numba DP5 (compiled)": dict(color="C6", ls=":", marker="s"),
+    "numba DOP853 (compiled)": dict(color="C7", ls=":", marker="D"),
 }
 
 
-def plot(results, smoke):
+def plot(results, smoke, tag=""):
     from crank_jax.plot import pyplot, save_figure
 
     plt = pyplot()
@@ -158,11 +190,12 @@ def plot(results, smoke):
         ax.set_title(f"{label}, phi0 = {res['phi0']:g} rad, 10 s", fontsize=10)
         ax.set_xlabel("max |phi - phi_ref| (rad)")
         ax.grid(alpha=0.3, which="both")
-    axes[0][0].set_ylabel("run time (s), median")
+    clock = "process CPU time" if CLOCK["name"] == "cpu" else "run time"
+    axes[0][0].set_ylabel(f"{clock} (s), median")
     axes[0][-1].legend(fontsize=7, loc="upper right")
     fig.suptitle("Work-precision (grey: below the reference's own uncertainty)", fontsize=10)
     FIGURES.mkdir(parents=True, exist_ok=True)
-    path = FIGURES / ("work_precision.smoke.png" if smoke else "work_precision.png")
+    path = FIGURES / (f"work_precision{tag}.smoke.png" if smoke else f"work_precision{tag}.png")
     save_figure(fig, path)
     print(f"wrote {path}")
 

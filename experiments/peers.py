@@ -15,6 +15,12 @@ timing it.
   starting step, and the 4th-order dense output of Shampine (the one scipy's RK45 uses)
   to sample the save times. numba is optional (`pip install crank-jax[bench]`);
   `HAVE_NUMBA` says whether it is importable.
+- `dop853_numba(...)`: the compiled DOP853, transcribed from scipy's `DOP853` with scipy's
+  own coefficients (`scipy.integrate._ivp.dop853_coefficients`), its controller (the
+  combined 5th/3rd-order error norm, exponent -1/8, safety 0.9, growth in [0.2, 10], no
+  growth right after a rejection), its starting step, and its 7th-order dense output (the
+  three extra stages are computed only for steps that hold a save time). It agrees with
+  scipy's DOP853 far within its tolerance (tests/test_benchmarks_smoke.py).
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ except ImportError:  # numba is an optional benchmark dependency
     HAVE_NUMBA = False
 
 __all__ = ["params_of", "acceleration_scalar", "rhs_py", "scipy_solve", "odeint_solve",
-           "dp5_numba", "HAVE_NUMBA", "PARAM_ORDER"]
+           "dp5_numba", "dop853_numba", "HAVE_NUMBA", "PARAM_ORDER"]
 
 #: Order of the entries of the parameter tuple `p` used by every peer.
 PARAM_ORDER = ("r", "L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c", "g")
@@ -212,11 +218,157 @@ def _dp5(p, y0, ts, rtol, atol, max_steps):
     return out, nsteps
 
 
+# --- compiled DOP853 (scipy's coefficients and controller) -------------------------------
+
+def _dop853_coefficients():
+    from scipy.integrate._ivp import dop853_coefficients as co
+
+    return (np.ascontiguousarray(co.A, dtype=float), np.ascontiguousarray(co.B, dtype=float),
+            np.ascontiguousarray(co.C, dtype=float), np.ascontiguousarray(co.E3, dtype=float),
+            np.ascontiguousarray(co.E5, dtype=float), np.ascontiguousarray(co.D, dtype=float))
+
+
+_A8, _B8, _C8, _E3, _E5, _D8 = _dop853_coefficients()
+
+
+def _dop853_error_norm(K, h, y, ynew, rtol, atol):
+    # scipy's DOP853._estimate_error_norm.
+    e5 = 0.0
+    e3 = 0.0
+    for j in range(2):
+        sc = atol + max(abs(y[j]), abs(ynew[j])) * rtol
+        a5 = 0.0
+        a3 = 0.0
+        for q in range(13):
+            a5 += _E5[q] * K[q, j]
+            a3 += _E3[q] * K[q, j]
+        e5 += (a5 / sc) ** 2
+        e3 += (a3 / sc) ** 2
+    if e5 == 0.0 and e3 == 0.0:
+        return 0.0
+    return abs(h) * e5 / math.sqrt((e5 + 0.01 * e3) * 2)
+
+
+def _dop853_stages(p, K, y, t, h, first, last, yi):
+    # Stages first..last-1 into K (scipy's rk_step / _dense_output_impl).
+    for s in range(first, last):
+        for j in range(2):
+            acc_j = 0.0
+            for q in range(s):
+                acc_j += _A8[s, q] * K[q, j]
+            yi[j] = y[j] + h * acc_j
+        K[s, 0] = yi[1]
+        K[s, 1] = _acc(yi[0], yi[1], p)
+
+
+def _dop853(p, y0, ts, rtol, atol, max_steps):
+    n = ts.shape[0]
+    out = np.empty((n, 2))
+    out[0, 0] = y0[0]
+    out[0, 1] = y0[1]
+    K = np.empty((16, 2))
+    F = np.empty((7, 2))
+    y = np.empty(2)
+    ynew = np.empty(2)
+    yi = np.empty(2)
+    t = ts[0]
+    t_end = ts[-1]
+    y[0] = y0[0]
+    y[1] = y0[1]
+    K[0, 0] = y[1]
+    K[0, 1] = _acc(y[0], y[1], p)
+    # scipy's select_initial_step with the error estimator's order, 7.
+    d0 = 0.0
+    d1 = 0.0
+    for j in range(2):
+        sc = atol + abs(y[j]) * rtol
+        d0 += (y[j] / sc) ** 2
+        d1 += (K[0, j] / sc) ** 2
+    d0 = math.sqrt(d0 / 2)
+    d1 = math.sqrt(d1 / 2)
+    h0 = 1e-6 if (d0 < 1e-5 or d1 < 1e-5) else 0.01 * d0 / d1
+    h0 = min(h0, t_end - t)
+    yi[0] = y[0] + h0 * K[0, 0]
+    yi[1] = y[1] + h0 * K[0, 1]
+    f1a = yi[1]
+    f1b = _acc(yi[0], yi[1], p)
+    sc0 = atol + abs(y[0]) * rtol
+    sc1 = atol + abs(y[1]) * rtol
+    d2 = math.sqrt((((f1a - K[0, 0]) / sc0) ** 2 + ((f1b - K[0, 1]) / sc1) ** 2) / 2) / h0
+    if d1 <= 1e-15 and d2 <= 1e-15:
+        h1 = max(1e-6, h0 * 1e-3)
+    else:
+        h1 = (0.01 / max(d1, d2)) ** (1 / 8)
+    h_abs = min(100 * h0, h1)
+    nsteps = 0
+    isave = 1
+    while t < t_end and nsteps < max_steps:
+        rejected = False
+        while True:
+            t_new = min(t + h_abs, t_end)
+            h = t_new - t
+            _dop853_stages(p, K, y, t, h, 1, 12, yi)
+            for j in range(2):
+                acc_j = 0.0
+                for q in range(12):
+                    acc_j += _B8[q] * K[q, j]
+                ynew[j] = y[j] + h * acc_j
+            K[12, 0] = ynew[1]
+            K[12, 1] = _acc(ynew[0], ynew[1], p)
+            err = _dop853_error_norm(K, h, y, ynew, rtol, atol)
+            nsteps += 1
+            if err < 1.0:
+                fac = 10.0 if err == 0.0 else min(10.0, 0.9 * err ** (-1 / 8))
+                if rejected:
+                    fac = min(1.0, fac)
+                h_abs *= fac
+                break
+            h_abs *= max(0.2, 0.9 * err ** (-1 / 8))
+            rejected = True
+            if nsteps >= max_steps:
+                break
+        if err >= 1.0:
+            break
+        if isave < n and ts[isave] <= t_new:
+            # The 7th-order dense output: three more stages, then scipy's F rows.
+            _dop853_stages(p, K, y, t, h, 13, 16, yi)
+            for j in range(2):
+                dy = ynew[j] - y[j]
+                F[0, j] = dy
+                F[1, j] = h * K[0, j] - dy
+                F[2, j] = 2 * dy - h * (K[12, j] + K[0, j])
+                for r in range(4):
+                    acc_j = 0.0
+                    for q in range(16):
+                        acc_j += _D8[r, q] * K[q, j]
+                    F[3 + r, j] = h * acc_j
+            while isave < n and ts[isave] <= t_new:
+                x = (ts[isave] - t) / h
+                for j in range(2):
+                    v = 0.0
+                    for i in range(7):
+                        v += F[6 - i, j]
+                        v *= x if i % 2 == 0 else 1 - x
+                    out[isave, j] = y[j] + v
+                isave += 1
+        t = t_new
+        y[0] = ynew[0]
+        y[1] = ynew[1]
+        K[0, 0] = K[12, 0]
+        K[0, 1] = K[12, 1]
+    if isave < n:
+        out[isave:, :] = np.nan
+    return out, nsteps
+
+
 # numba resolves the global `_acc` when it compiles `_dp5`, so the loop calls compiled code.
 _acc = acceleration_scalar
 if HAVE_NUMBA:
     _acc = numba.njit(cache=True)(acceleration_scalar)
     _dp5_nb = numba.njit(cache=True)(_dp5)
+    _dop853_error_norm = numba.njit(cache=True)(_dop853_error_norm)
+    _dop853_stages = numba.njit(cache=True)(_dop853_stages)
+    _dop853_nb = numba.njit(cache=True)(_dop853)
 
 
 def dp5_numba(p, y0, ts, rtol: float, atol: float, max_steps: int = 10_000_000):
@@ -228,4 +380,17 @@ def dp5_numba(p, y0, ts, rtol: float, atol: float, max_steps: int = 10_000_000):
         raise RuntimeError("numba is not installed: pip install 'crank-jax[bench]'")
     ys, nsteps = _dp5_nb(tuple(float(x) for x in p), np.asarray(y0, dtype=float),
                          np.asarray(ts, dtype=float), float(rtol), float(atol), max_steps)
+    return ys, int(nsteps)
+
+
+def dop853_numba(p, y0, ts, rtol: float, atol: float, max_steps: int = 10_000_000):
+    """The compiled DOP853 (scipy's method, in numba): returns (ys (n, 2) at `ts`, number of
+    steps tried).
+
+    Raises `RuntimeError` if numba is missing.
+    """
+    if not HAVE_NUMBA:
+        raise RuntimeError("numba is not installed: pip install 'crank-jax[bench]'")
+    ys, nsteps = _dop853_nb(tuple(float(x) for x in p), np.asarray(y0, dtype=float),
+                            np.asarray(ts, dtype=float), float(rtol), float(atol), max_steps)
     return ys, int(nsteps)

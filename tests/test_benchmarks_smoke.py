@@ -45,3 +45,24 @@ def test_numba_peer_matches_crank_jax():
     assert np.max(np.abs(ys[:, 0] - ref)) < 1e-9
     phi, _ = peers.scipy_solve("DOP853", peers.params_of(mech), (1.0, 0.0), ts, 1e-12, 1e-14)
     assert np.max(np.abs(phi - ref)) < 1e-9
+    ys, _ = peers.dop853_numba(peers.params_of(mech), (1.0, 0.0), ts, 1e-12, 1e-14)
+    assert np.max(np.abs(ys[:, 0] - ref)) < 1e-9
+
+
+def test_numba_dop853_is_scipys_dop853():
+    # The compiled DOP853 transcribes scipy's (coefficients, controller, dense output): at a
+    # loose tolerance, where the two would differ visibly if the steps differed, they agree
+    # to rounding.
+    sys.path.insert(0, str(EXP))
+    import numpy as np
+    import peers
+
+    import crank_jax as cj
+
+    if not peers.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    p = peers.params_of(cj.load_scene("lab-rig").mech)
+    ts = np.linspace(0.0, 2.0, 201)
+    ys, _ = peers.dop853_numba(p, (1.0, 0.0), ts, 1e-5, 1e-7)
+    phi, _ = peers.scipy_solve("DOP853", p, (1.0, 0.0), ts, 1e-5, 1e-7)
+    assert np.max(np.abs(ys[:, 0] - phi)) < 1e-11

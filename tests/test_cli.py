@@ -23,7 +23,8 @@ def test_simulate_writes_csv_and_plot(tmp_path, capsys):
                         "--extras", "energy,reactions", "--out", str(out), "--plot", str(png))
     assert code == 0, err
     header = out.read_text().splitlines()[0].split(",")
-    assert header == ["t", "phi", "dphi", "energy", "O_x", "O_y", "A_x", "A_y", "B_x", "B_y", "N"]
+    assert header == ["t", "phi", "dphi", "energy", "O_x", "O_y", "A_x", "A_y", "B_x", "B_y", "N",
+                      "F"]
     data = np.loadtxt(out, delimiter=",", skiprows=1)
     assert data.shape == (201, 11)
     np.testing.assert_allclose(data[:, 0], np.linspace(0, 2, 201))

@@ -118,10 +118,9 @@ def test_vmap_over_a_batch_of_mechanisms():
     ts = jnp.linspace(0, 1, 51)
     phi = jax.vmap(lambda m: cj.simulate(m, 1.0, 0.0, ts).phi)(batch)
     for i, k in enumerate(ks):
-        # Traced parameters keep "auto" on diffrax's Dopri8 (rtol 1e-8), while a concrete
-        # mechanism gets "dopri8-uniform": compare the same solver, or the comparison
-        # measures Dopri8's own ~5e-9 error instead of vmap.
-        one = cj.simulate(sc.mech.replace(k=k), 1.0, 0.0, ts, solver="dopri8")
+        # Traced parameters get "auto"'s "dopri8-uniform" too (uniform ts known on the
+        # host): the same solver as a concrete mechanism, so this measures vmap alone.
+        one = cj.simulate(sc.mech.replace(k=k), 1.0, 0.0, ts, solver="dopri8-uniform")
         np.testing.assert_allclose(phi[i], one.phi, rtol=1e-7, atol=1e-9)
 
 
@@ -216,6 +215,57 @@ def test_bad_time_grid_rejected():
         cj.simulate(mech, 1.0, 0.0, [0.0])
     with pytest.raises(ValueError, match="unknown solver"):
         cj.simulate(mech, 1.0, 0.0, [0.0, 1.0], solver="euler")
+
+
+@pytest.mark.parametrize("kw,match", [
+    ({"rtol": 0.0}, "rtol must be a finite number > 0"),
+    ({"rtol": float("nan")}, "rtol must be a finite number > 0"),
+    ({"atol": -1e-9}, "atol must be a finite number >= 0"),
+    ({"atol": float("inf")}, "atol must be a finite number >= 0"),
+])
+def test_bad_tolerances_rejected_naming_the_argument(kw, match):
+    mech = cj.load_scene("lab-rig").mech
+    with pytest.raises(ValueError, match=match):
+        cj.simulate(mech, 1.0, 0.0, [0.0, 1.0], **kw)
+
+
+def test_batched_mechanism_outside_vmap_rejected():
+    mech = cj.load_scene("lab-rig").mech
+    with pytest.raises(ValueError, match=r"SliderCrank\.k has shape \(2,\).*jax\.vmap"):
+        cj.simulate(mech.replace(k=jnp.array([1.0, 2.0])), 1.0, 0.0, [0.0, 1.0])
+    with pytest.raises(ValueError, match=r"phi0 has shape \(2,\).*jax\.vmap"):
+        cj.simulate(mech, jnp.array([1.0, 2.0]), 0.0, [0.0, 1.0])
+
+
+@pytest.mark.parametrize("over", [
+    {"k": 1e300},
+    {"m_c": 1e-300, "m_p": 1e-300, "m_s": 1e-300, "I_c": 1e-300, "I_p": 1e-300},
+])
+def test_absurd_scales_named_with_a_fix(over):
+    # Rows 12-13 of issue 10: one line naming the rate the values imply and what to check,
+    # not "increase max_steps"; and no overflow RuntimeWarning from the solver chooser
+    # (pytest turns warnings into errors).
+    mech = cj.load_scene("lab-rig").mech.replace(**over)
+    with pytest.raises(ValueError, match="fastest mode .* rad/s .* check the units") as e:
+        cj.simulate(mech, 1.0, 0.0, jnp.linspace(0.0, 1.0, 11))
+    assert "\n" not in str(e.value) and "max_steps" in str(e.value)
+    assert "increase" not in str(e.value).lower()
+
+
+def test_nan_parameter_inside_jit_names_the_parameter():
+    # Inside jit the values are traced: the check runs in the program (eqx.error_if) and
+    # its message names the field, under eqx.filter_jit and (inside JAX's callback error)
+    # under jax.jit.
+    mech = cj.load_scene("lab-rig").mech
+    ts = jnp.linspace(0.0, 1.0, 11)
+
+    def final(k):
+        return cj.simulate(mech.replace(k=k), 1.0, 0.0, ts).phi[-1]
+
+    with pytest.raises(eqx.EquinoxRuntimeError, match="SliderCrank.k is invalid"):
+        eqx.filter_jit(final)(jnp.asarray(jnp.nan))
+    with pytest.raises(Exception, match="SliderCrank.k is invalid"):
+        jax.jit(final)(jnp.asarray(jnp.nan))
 
 
 def test_gradient_with_respect_to_load_amplitudes():

@@ -169,11 +169,6 @@ def acceleration(
     return (q - coriolis_terms(mech, g, structure) * dphi * dphi) / mass_terms(mech, g, structure)
 
 
-#: Deprecated alias of [`acceleration`][] (same positional arguments), kept only until
-#: the solver stops importing it; new code calls `acceleration` or a [`CrankField`][].
-fused_acceleration = acceleration
-
-
 def kinetic_energy(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike) -> Array:
     """T = M(phi) phi'^2 / 2, J."""
     return 0.5 * mass(mech, phi) * jnp.square(dphi)

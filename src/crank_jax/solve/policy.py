@@ -6,8 +6,9 @@ solver whichever of them runs it. The rule, in order:
 1. A name other than `"auto"` is taken as given (after checking it is known).
 2. Stiff (see [`choose_solver`][]): `"kvaerno5"`, an L-stable ESDIRK.
 3. Otherwise `"dopri8"` below `rtol = 1e-7`, `"tsit5"` above; and on uniform save times
-   with concrete parameters and no sampled load, `"dopri8-uniform"`, the fused solver,
-   which is faster than either at equal error (experiments/bench_work_precision.py).
+   known on the host (the parameters may be traced) and no sampled load,
+   `"dopri8-uniform"`, the fused solver, which is faster than either at equal error
+   (experiments/bench_work_precision.py, experiments/bench_throughput.py).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from ..model.params import SliderCrank
 from .uniform import uniform_grid
 
 __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
-           "is_concrete"]
+           "is_concrete", "check_time_scale"]
 
 #: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`.
 SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform")
@@ -32,6 +33,13 @@ SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "do
 # 8 steps per radian while it is above the tolerance, and one Kvaerno5 step costs about
 # 13 Tsit5 steps. Implicit wins once the fast mode has decayed within 1/140 of the span.
 _SWITCH_RATIO = 140.0
+# |h rate| an explicit solver can take on the fastest mode (Dopri8's stability region
+# reaches ~4.8 along the imaginary axis, Tsit5's ~3.5): below span * rate / this, no
+# explicit solve can finish.
+_EXPLICIT_H_RATE = 3.5
+# A mode this many times faster than the span is below float64's resolution of the times:
+# a units mistake, whatever the solver.
+_MAX_SPAN_RATE = 1e12
 # A real fast mode is stiff only if the other mode is this much slower (otherwise the
 # slow mode, e.g. a crank falling over, needs the same small steps).
 _STIFFNESS_RATIO = 1e2
@@ -62,7 +70,7 @@ def fastest_mode(lin) -> tuple[np.ndarray, np.ndarray]:
     """
     mu, chi, xi = (np.asarray(x, dtype=float) for x in (lin.mu, lin.chi, lin.xi))
     disc = chi**2 - 4 * mu * xi
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         root = np.sqrt(np.abs(disc))
         real = disc >= 0
         # Real roots (-chi -+ root)/(2 mu): with chi >= 0 the "-" root is the larger.
@@ -74,7 +82,7 @@ def fastest_mode(lin) -> tuple[np.ndarray, np.ndarray]:
 def _slowest_rate(lin) -> np.ndarray:
     mu, chi, xi = (np.asarray(x, dtype=float) for x in (lin.mu, lin.chi, lin.xi))
     disc = chi**2 - 4 * mu * xi
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         root = np.sqrt(np.abs(disc))
         # A complex pair has one modulus; the slow dynamics is then the forcing's.
         return np.where(disc >= 0, np.abs(-chi + root) / (2 * mu), 0.0)
@@ -111,7 +119,7 @@ def choose_solver(
         lin = linearize(mech, load)
         rate, decay = fastest_mode(lin)
         slow = _slowest_rate(lin)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             decays_early = decay * float(span) > _SWITCH_RATIO * np.log(1 / float(rtol))
             separated = (slow * _STIFFNESS_RATIO < rate) | (slow == 0)
         if np.any(decays_early & separated):
@@ -142,10 +150,43 @@ def resolve_solver(
     rtol_host = float(np.max(np.asarray(rtol))) if is_concrete(rtol) else 1e-8
     name = choose_solver(mech, rtol_host, load, span=span)
     loads = (load, torque)
-    if (name in ("tsit5", "dopri8") and concrete_ts and is_concrete((mech, rtol, atol))
+    if (name in ("tsit5", "dopri8") and concrete_ts
             and not any(isinstance(x, SampledLoad) for x in loads)
             and uniform_grid(np.asarray(ts))):
-        # Only for concrete parameters, where the stiffness test above ran, and not across
-        # a sampled load's kinks.
+        # Traced parameters too (a `vmap`-ed batch, `jacfwd`): that is how users batch and
+        # differentiate, and the fused solver is the fastest there as well. Not across a
+        # sampled load's kinks.
         name = "dopri8-uniform"
     return name
+
+
+def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int,
+                     load: AbstractLoad | None = None) -> None:
+    """`ValueError` if the linearised fastest mode cannot be integrated over `span`.
+
+    An explicit solver needs at least `span * rate / 3.5` steps (its stability limit on the
+    fastest mode, `rate` from [`fastest_mode`][]); more than `max_steps` means the solve can
+    only fail. Any solver fails once `span * rate > 1e12` (or the rate overflows). Both
+    happen when k, a mass or an inertia is off by orders of magnitude (k = 1e300, masses of
+    1e-300), so the message names the rate and the linearisation and asks to check them.
+    Concrete values only; traced ones are skipped.
+    """
+    if not (is_concrete(mech) and is_concrete(load)):
+        return
+    lin = linearize(mech, load)
+    rate, _ = fastest_mode(lin)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        rate = np.asarray(rate, dtype=float)
+        top = float(np.max(np.where(np.isnan(rate), 0.0, rate))) if rate.size else 0.0
+        product = top * float(span)
+        explicit = solver not in ("kvaerno5",)
+        need = product / _EXPLICIT_H_RATE
+    if np.isfinite(product) and product <= _MAX_SPAN_RATE and not (explicit and need > max_steps):
+        return
+    mu, chi, xi = (float(np.max(np.abs(np.asarray(x, dtype=float)))) for x in
+                   (lin.mu, lin.chi, lin.xi))
+    raise ValueError(
+        f"the fastest mode of the linearised crank is {top:.3g} rad/s (mu = {mu:.3g} kg*m^2, "
+        f"chi = {chi:.3g} N*m*s/rad, xi = {xi:.3g} N*m/rad): over {span:g} s that needs "
+        f"~{need:.3g} solver steps (max_steps = {max_steps}); check the units and values of "
+        f"k, c and the masses and inertias")

@@ -1,4 +1,11 @@
-"""Time integration of the equation of motion with Diffrax."""
+"""Time integration of the equation of motion: `simulate`, `Trajectory`, derived outputs.
+
+`simulate` builds the vector field, a [`CrankField`][], and hands it to a solver that knows
+nothing of the mechanism: the fused `"dopri8-uniform"` solver (`uniform.py`), or diffrax
+through a thin `ODETerm` adapter (the state as one (2,) array, the field as `args`). It is
+one of the two modules of `solve/` that import the model: it builds the field, checks the
+inputs, and computes the derived outputs; `policy.py` linearises for the stiffness test.
+"""
 
 from __future__ import annotations
 
@@ -13,12 +20,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..model.dynamics import Structure, acceleration, energy
+from ..model.dynamics import CrankField, Structure, acceleration, energy
 from ..model.geometry import kinematics
+from ..model.linear import linearize
 from ..model.loads import AbstractLoad, as_load, nonsmooth_times
 from ..model.newton_euler import reactions
 from ..model.params import SliderCrank
-from .policy import is_concrete, resolve_solver
+from .inputs import check_tolerances, check_unbatched
+from .policy import check_time_scale, is_concrete, resolve_solver
 from .uniform import solve_uniform
 
 __all__ = ["Trajectory", "simulate", "OUTPUTS", "output_columns"]
@@ -31,7 +40,7 @@ OUTPUTS: dict[str, tuple[str, ...]] = {
     "slider": ("x_s", "v_s", "a_s"),
     "energy": ("energy",),
     "loads": ("P", "tau"),
-    "reactions": ("O_x", "O_y", "A_x", "A_y", "B_x", "B_y", "N"),
+    "reactions": ("O_x", "O_y", "A_x", "A_y", "B_x", "B_y", "N", "F"),
 }
 
 def output_columns(outputs: Sequence[str]) -> tuple[str, ...]:
@@ -86,10 +95,17 @@ def _solver_for(name: str) -> diffrax.AbstractSolver:
     }[name]()
 
 
-def _vector_field(t, y, args):
-    mech, load, torque, structure = args
-    phi, dphi = y[0], y[1]
-    return jnp.stack([dphi, acceleration(mech, phi, dphi, t, load, torque, structure)])
+def _stacked_field(t, y, field):
+    """The ODETerm adapter: diffrax steps the state as one (2,) array, `args` is the
+    [`CrankField`][]."""
+    return jnp.stack(field(t, (y[0], y[1])))
+
+
+def _rate(field: CrankField) -> Array:
+    """A rate scale of the motion, 1/s, from the linearisation: |omega_n| plus damping."""
+    lin = linearize(field.mech, field.load)
+    mu = jnp.abs(lin.mu)
+    return jnp.sqrt(jnp.abs(lin.xi) / mu) + jnp.abs(lin.chi) / mu
 
 
 def _derived(mech, load, torque, ts, phi, dphi, outputs) -> dict[str, Array]:
@@ -113,7 +129,7 @@ def _derived(mech, load, torque, ts, phi, dphi, outputs) -> dict[str, Array]:
         rx = jax.vmap(lambda t, p, d, a: reactions(mech, p, d, a, t, load, torque))(
             ts, phi, dphi, ddphi)
         out.update(O_x=rx.O[:, 0], O_y=rx.O[:, 1], A_x=rx.A[:, 0], A_y=rx.A[:, 1],
-                   B_x=rx.B[:, 0], B_y=rx.B[:, 1], N=rx.N)
+                   B_x=rx.B[:, 0], B_y=rx.B[:, 1], N=rx.N, F=rx.F)
     return out
 
 
@@ -139,20 +155,23 @@ def _solve(mech, load, torque, y0, ts, rtol, atol, *, solver, max_steps, adjoint
     adj = {"reverse": diffrax.RecursiveCheckpointAdjoint(),
            "forward": diffrax.ForwardMode(),
            "direct": diffrax.DirectAdjoint()}[adjoint]
+    field = CrankField(mech, load, torque, structure)
     if solver == "dopri8-uniform":
-        # Constant Dopri8 steps between the save times (see `_uniform`): the while-loop kind
-        # gives the same autodiff as the matching diffrax adjoint.
+        # Constant Dopri8 steps between the save times (see `uniform.py`): the while-loop
+        # kind gives the same autodiff as the matching diffrax adjoint.
         kind = {"reverse": "checkpointed", "forward": "lax", "direct": "bounded"}[adjoint]
-        ys, result, steps = solve_uniform(mech, load, torque, y0, ts, rtol, atol,
-                                          structure=structure, max_steps=max_steps, kind=kind)
+        (phi, dphi), result, steps = solve_uniform(
+            field, (y0[0], y0[1]), ts, rtol, atol, rate=_rate(field), max_steps=max_steps,
+            kind=kind)
+        ys = jnp.stack([phi, dphi], axis=1)
         if throw:
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
     else:
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(_vector_field),
+            diffrax.ODETerm(_stacked_field),
             _solver_for(solver),
             t0=ts[0], t1=ts[-1], dt0=None, y0=y0,
-            args=(mech, load, torque, structure),
+            args=field,
             saveat=diffrax.SaveAt(ts=ts),
             stepsize_controller=_controller(rtol, atol, load, torque),
             max_steps=max_steps,
@@ -202,7 +221,7 @@ def simulate(
     - `load`: slider force P(t), N along -x: a load, a number (constant) or `None`.
     - `torque`: crank torque tau(t), N*m about +z, likewise.
     - `solver`: one of [`SOLVERS`][]; `"auto"` picks with [`choose_solver`][], and then,
-      for concrete parameters, uniform `ts` and a non-stiff choice, `"dopri8-uniform"`:
+      for uniform `ts` known on the host and a non-stiff choice, `"dopri8-uniform"`:
       an integer number of equal Dopri8 steps in each save interval, chosen interval by
       interval so that the summed embedded error estimate (an estimate of the global
       error) meets `rtol`/`atol`.
@@ -235,9 +254,17 @@ def simulate(
         if not np.all(d > 0):
             i = int(np.argmin(d)) + 1
             raise ValueError(f"ts must increase strictly; it does not at index {i}")
+    check_tolerances(rtol, atol)
+    check_unbatched("SliderCrank", mech)
+    for name, v in (("phi0", phi0), ("dphi0", dphi0), ("rtol", rtol), ("atol", atol)):
+        if np.ndim(v) > 0:
+            raise ValueError(f"{name} has shape {np.shape(v)}: simulate integrates one system; "
+                             f"to run a batch, map over it with jax.vmap")
     if structure is None:
         structure = Structure.of(mech) if is_concrete(mech) else Structure()
     solver = resolve_solver(solver, mech, rtol, atol, load=load, torque=torque, ts=ts)
+    if throw and is_concrete(ts):
+        check_time_scale(mech, solver, float(np.ptp(np.asarray(ts))), int(max_steps), load)
     dtype = ts.dtype
     y0 = jnp.stack([jnp.asarray(phi0, dtype), jnp.asarray(dphi0, dtype)])
     # Outside any transformation, check on the host and raise there: an `eqx.error_if` in

@@ -1,31 +1,26 @@
-"""The `"dopri8-uniform"` solver: equal Dopri8 steps within each interval between uniform
-save times.
+"""The `"dopri8-uniform"` solver: equal steps of a fused ERK (default Dopri8) within each
+interval between uniform save times, for any vector field.
 
-Why not `diffrax.diffeqsolve` for this path? The equation has a 2-vector state, so on the
-CPU a diffrax solve is bound by per-step overhead, not arithmetic: the adaptive controller,
-the dense-output interpolation for `SaveAt(ts=...)`, and the stage loop (diffrax runs the
-Runge-Kutta stages in a `while_loop`, so each stage is several small XLA kernels). Measured
-in `experiments/bench_work_precision.py`, that is ~8 us per Dopri8 step. Here the stages of
-diffrax's own Dopri8 tableau are unrolled into straight-line code and the right-hand side is
-written so that XLA fuses each stage into about three kernels (one `rsqrt` and a single
-division; see [`fused_acceleration`][]), which makes a step ~2.5x cheaper. And since the
-save times are uniform, an integer number `m` of equal steps per save interval lands exactly
-on every save time: no interpolation, and the step control is a cheap integer choice per
-interval.
+Why not `diffrax.diffeqsolve` for this path? For a state of a few scalars, a diffrax solve
+on the CPU is bound by per-step overhead, not arithmetic: the adaptive controller, the
+dense-output interpolation for `SaveAt(ts=...)`, and the stage loop. The stages here are
+unrolled ([`FusedERK`][], diffrax's own tableau), and since the save times are uniform, an
+integer number `m` of equal steps per save interval lands exactly on every save time: no
+interpolation, and the step control is a cheap integer choice per interval.
 
 The number of steps per interval, `m_i`, adapts interval by interval, and the result is
-checked a posteriori (details in `solve_uniform`). The error measure is Dopri8's embedded
-(7th-order) local-error estimate, scaled by `atol + rtol |y|` and *summed* over all steps,
-`E`, as an estimate of the global error; the solve succeeds when `E <= 1`. A short pilot
-over the first save intervals measures the error rate and picks the first `m`; then each
-interval aims at an equal share of the budget: a controller picks `m_{i+1}` from interval
-i's error (`E_i ~ m^-7`), and an interval that overshoots its share 4x is redone with more
-steps. If the whole pass still ends with `E > 1`, the shares shrink and the pass repeats.
-So `m` follows the motion both ways: a decaying oscillation (the torsional scene) drops to
-the stability floor instead of paying for its start all the way. The sum of the 7th-order
-estimates over-estimates the error of the 8th-order solution (by 10-1000x on the presets),
-so the measured global error meets the tolerance with margin; `tests/test_uniform.py`
-checks it on the presets.
+checked a posteriori (details in `solve_uniform`). The error measure is the method's
+embedded local-error estimate (7th order for Dopri8), scaled by `atol + rtol |y|` and
+*summed* over all steps, `E`, as an estimate of the global error; the solve succeeds when
+`E <= 1`. A short pilot over the first save intervals measures the error rate and picks the
+first `m`; then each interval aims at an equal share of the budget: a controller picks
+`m_{i+1}` from interval i's error (`E_i ~ m^-(p-1)`), and an interval that overshoots its
+share 4x is redone with more steps. If the whole pass still ends with `E > 1`, the shares
+shrink and the pass repeats. So `m` follows the motion both ways: a decaying oscillation
+(the torsional scene) drops to the stability floor instead of paying for its start all the
+way. The sum of the lower-order estimates over-estimates the error of the solution (by
+10-1000x on the presets), so the measured global error meets the tolerance with margin;
+`tests/test_uniform.py` checks it on the presets.
 """
 
 from __future__ import annotations
@@ -37,24 +32,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.dynamics import fused_acceleration
-from ..model.params import SliderCrank
+from .erk import DOPRI8, FusedERK, rms_error
+from .sensitivity import attach_sensitivities
 
 __all__ = ["solve_uniform", "uniform_grid"]
 
-_TAB = diffrax.Dopri8.tableau
-# Dopri8's 14th stage (at y1) has zero weight in both the solution and the error estimate;
-# it only serves as the next step's first stage. Recomputing that stage costs the same as
-# carrying it, so the 13 stages below are all there is.
-assert _TAB.b_sol[-1] == 0 and _TAB.b_error[-1] == 0
-_NS = 13
-_A = [tuple(float(x) for x in row) for row in _TAB.a_lower[: _NS - 1]]
-_C = [0.0] + [float(x) for x in _TAB.c[: _NS - 1]]
-_B = [float(x) for x in _TAB.b_sol[:_NS]]
-_E = [float(x) for x in _TAB.b_error[:_NS]]
-_ORDER = 8
-# Constant of the global-error model E ~ C T omega (omega h)^7 / rtol used for the first
-# guess, fitted on the lab rig (a wrong guess costs one more pass, never accuracy).
+# Constant of the global-error model E ~ C T omega (omega h)^p-1 / rtol used for the first
+# guess, fitted on the lab rig with Dopri8 (a wrong guess costs one more pass, never
+# accuracy).
 _C_MODEL = 6e-5
 _MAX_PASSES = 8
 # Step selection (see `solve_uniform`): every save interval aims at an equal share of
@@ -65,49 +50,9 @@ _E_AIM = 0.5
 # |h omega| below which Dopri8 is stable on an undamped oscillation (its stability region
 # reaches ~4.8 along the imaginary axis; kept well inside).
 _STABLE_H_OMEGA = 3.0
-# Rounding noise in the embedded error estimate, in units of eps h sum |e_i k_i| (`_step`).
-_NOISE = 8.0
 # An interval is redone if its error exceeds _REJECT times its share (at most _TRIES runs).
 _REJECT = 4.0
 _TRIES = 4
-
-
-def _combine(y, h, coeffs, ks, j):
-    acc = None
-    for a, k in zip(coeffs, ks):
-        if a != 0.0:
-            term = a * k[j]
-            acc = term if acc is None else acc + term
-    return y[j] + h * acc if acc is not None else y[j]
-
-
-def _step(f, t, y, h):
-    """One Dopri8 step of size h from (t, y): returns (y1, scaled-error numerator)."""
-    ks = [f(t, y)]
-    for i in range(1, _NS):
-        yi = (_combine(y, h, _A[i - 1], ks, 0), _combine(y, h, _A[i - 1], ks, 1))
-        ks.append(f(t + _C[i] * h, yi))
-    y1 = (_combine(y, h, _B, ks, 0), _combine(y, h, _B, ks, 1))
-    err = tuple(h * sum(e * k[j] for e, k in zip(_E, ks) if e != 0.0) for j in range(2))
-    # The error weights sum to zero, so `err` is a difference of terms of size h |k|: its
-    # rounding error is ~eps h sum |e k|. Below a few times that, `err` is noise, and a
-    # smaller step does not make it smaller (it did drive m to the step budget at
-    # rtol 1e-12 once m adapted per interval), so the noise is taken off the estimate.
-    eps = jnp.finfo(jnp.result_type(h)).eps
-    noise = tuple(_NOISE * eps * jnp.abs(h) * sum(abs(e) * jnp.abs(k[j])
-                                                  for e, k in zip(_E, ks) if e != 0.0)
-                  for j in range(2))
-    err = tuple(jnp.maximum(jnp.abs(err[j]) - noise[j], 0.0) for j in range(2))
-    return y1, err
-
-
-def _omega(mech: SliderCrank, load) -> jax.Array:
-    """A rate scale of the motion, rad/s, from the linearisation: |omega_n| plus damping."""
-    from ..model.linear import linearize
-
-    lin = linearize(mech, load)
-    mu = jnp.abs(lin.mu)
-    return jnp.sqrt(jnp.abs(lin.xi) / mu) + jnp.abs(lin.chi) / mu
 
 
 def _no_grad(tree):
@@ -115,57 +60,85 @@ def _no_grad(tree):
                                   tree)
 
 
-def _make_pass(f, rtol, atol, max_sub, kind):
+def _packer(y0):
+    """`(pack, unpack)`: a state pytree to one flat (N,) array and back, the latter for any
+    leading axes. The solve records one array per save interval: one XLA update per
+    interval instead of one per leaf (measured ~6% of a `vmap`-ed batch's time)."""
+    leaves, treedef = jax.tree_util.tree_flatten(y0)
+    shapes = [np.shape(x) for x in leaves]
+    sizes = [int(np.prod(s, dtype=int)) for s in shapes]
+
+    def pack(y):
+        parts = jax.tree_util.tree_leaves(y)
+        if all(s == () for s in shapes):
+            return jnp.stack(parts)
+        return jnp.concatenate([jnp.ravel(x) for x in parts])
+
+    def unpack(Y):
+        out, i = [], 0
+        for s, k in zip(shapes, sizes):
+            part = Y[..., i] if s == () else Y[..., i:i + k].reshape(Y.shape[:-1] + s)
+            out.append(part)
+            i += k
+        return jax.tree_util.tree_unflatten(treedef, out)
+
+    return pack, unpack
+
+
+def _all_finite(tree):
+    ok = jnp.array(True)
+    for x in jax.tree_util.tree_leaves(tree):
+        ok = ok & jnp.all(jnp.isfinite(x))
+    return ok
+
+
+def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
     """`one_pass(y0, ts, m1, aim, m_floor) -> (ys, E, steps, top, ms)`.
 
-    Integrates over `ts` with `m_i` equal Dopri8 steps in save interval i. `m1` is the
-    first interval's; then `m_{i+1}` comes from interval i's error, as a step-size
-    controller would pick it: the summed scaled error estimate of an interval, `E_i`, goes
-    as `m^-7`, so `m_{i+1} = ceil(m_i (E_i / aim)^(1/7))`, which aims every interval at the
-    same share `aim` of the global budget. `m` at most halves per interval (a slow fall
-    lets a growing instability show in `E_i` before it matters) and never goes below
-    `m_floor` or above `max_sub`. Returns `E = sum E_i` (inf if the solution is not finite),
-    the number of steps, whether some interval wanted more than `max_sub` steps, and the
-    accepted `m_i` of every interval.
+    Integrates `dy/dt = f(t, y, args)` over `ts` with `m_i` equal steps of `erk` in save
+    interval i. `m1` is the first interval's; then `m_{i+1}` comes from interval i's error,
+    as a step-size controller would pick it: the summed scaled error estimate of an
+    interval, `E_i`, goes as `m^-(p-1)` (p = `erk.order`), so
+    `m_{i+1} = ceil(m_i (E_i / aim)^(1/(p-1)))`, which aims every interval at the same share
+    `aim` of the global budget. `m` at most halves per interval (a slow fall lets a growing
+    instability show in `E_i` before it matters) and never goes below `m_floor` or above
+    `max_sub`. Returns `ys` ((n, N), the packed states, see `_packer`), `E = sum E_i` (inf
+    if the solution is not finite), the number of steps, whether some interval wanted more
+    than `max_sub` steps, and the accepted `m_i` of every interval.
     """
+    expo = 1 / (erk.order - 1)
 
     def one_pass(y0, ts, m1, aim, m_floor):
         dtype = ts.dtype
+        pack, _ = _packer(y0)
 
         def interval(carry, tt):
             y, E, m, steps, top = carry
             t0, t1 = tt
 
             def run(m):
-                mf = m.astype(dtype)
-                h = (t1 - t0) / mf
-
-                def cond(c):
-                    return c[0] < m
+                h = (t1 - t0) / m.astype(dtype)
 
                 def body(c):
                     i, yy, Ei = c
-                    y1, err = _step(f, t0 + i.astype(dtype) * h, yy, h)
-                    # diffrax's RMS norm of the error, scaled as its PID controller scales
-                    # it. The estimate only picks the step: stop_gradient keeps its
-                    # arithmetic (and its tangents) out of every derivative.
-                    err, y_sg, y1_sg = jax.lax.stop_gradient((err, yy, y1))
-                    sc = [atol + rtol * jnp.maximum(jnp.abs(y_sg[j]), jnp.abs(y1_sg[j]))
-                          for j in range(2)]
-                    e = jnp.sqrt(0.5 * ((err[0] / sc[0]) ** 2 + (err[1] / sc[1]) ** 2))
+                    y1, err = erk.step(f, t0 + i.astype(dtype) * h, yy, args, h)
+                    # The estimate only picks the step: stop_gradient keeps its arithmetic
+                    # (and its tangents) out of every derivative.
+                    e = rms_error(*jax.lax.stop_gradient((err, yy, y1)), rtol, atol)
                     return i + 1, y1, Ei + e
 
-                _, y1, Ei = eqxi.while_loop(cond, body, (jnp.array(0), y, jnp.zeros((), dtype)),
+                _, y1, Ei = eqxi.while_loop(lambda c: c[0] < m, body,
+                                            (jnp.array(0), y, jnp.zeros((), dtype)),
                                             max_steps=max_sub, kind=kind)
-                return y1, jnp.where(jnp.isfinite(y1[0]) & jnp.isfinite(y1[1]), Ei, jnp.inf)
+                return y1, jnp.where(_all_finite(y1), Ei, jnp.inf)
 
             def grow_to(m, Ei):
-                fac = (Ei / aim) ** (1 / (_ORDER - 1))
+                fac = (Ei / aim) ** expo
                 return jnp.where(jnp.isfinite(fac), jnp.ceil(m * fac), 4.0 * m)
 
             # An interval whose error overshoots its share by _REJECT is redone with more
             # steps, as an adaptive solver rejects a step: the relative scale atol + rtol |y|
-            # jumps where phi or phi' crosses zero, which the previous interval cannot
+            # jumps where a component crosses zero, which the previous interval cannot
             # predict.
             def try_cond(c):
                 j, m, _, Ei, _ = c
@@ -185,77 +158,81 @@ def _make_pass(f, rtol, atol, max_sub, kind):
             want = jnp.maximum(want, jnp.maximum(m_floor, (m + 1) // 2))
             m_next = jnp.minimum(want, max_sub).astype(m.dtype)
             top = top | (want > max_sub)
-            return (y, E + Ei, m_next, steps, top), (jnp.stack(y), m)
+            return (y, E + Ei, m_next, steps, top), (pack(y), m)
 
-        init = ((y0[0], y0[1]), jnp.zeros((), dtype), m1, jnp.zeros((), m1.dtype),
-                jnp.array(False))
+        init = (y0, jnp.zeros((), dtype), m1, jnp.zeros((), m1.dtype), jnp.array(False))
         (_, E, _, steps, top), (ys, ms) = jax.lax.scan(interval, init, (ts[:-1], ts[1:]))
-        ys = jnp.concatenate([y0[None], ys])
+        ys = jnp.concatenate([pack(y0)[None].astype(ys.dtype), ys])
         # A non-finite solution (an unstable step) counts as a failed pass.
-        E = jnp.where(jnp.all(jnp.isfinite(jax.lax.stop_gradient(ys))), E, jnp.inf)
+        E = jnp.where(_all_finite(jax.lax.stop_gradient(ys)), E, jnp.inf)
         return ys, E, steps, top, ms
 
     return one_pass
 
 
-def solve_uniform(mech, load, torque, y0, ts, rtol, atol, *, structure, max_steps, kind):
-    """Integrate with `m_i` equal Dopri8 steps in save interval i, chosen to meet the
-    tolerance.
+def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind,
+                  erk: FusedERK = DOPRI8):
+    """Integrate `dy/dt = field(t, y, args)` with `m_i` equal steps of `erk` in save
+    interval i, chosen to meet the tolerance.
 
-    **Arguments:** as `_simulate._solve`; `y0` (2,), `ts` (n,); `kind` is the
-    `equinox.internal.while_loop` kind that sets which autodiff works: `"lax"` (forward),
-    `"checkpointed"` (reverse), `"bounded"` (both).
+    **Arguments:**
 
-    **Returns:** `(ys (n, 2), result, num_steps)`. `num_steps` counts the steps of every
-    pass (the pilot passes included). `result` is `max_steps_reached` if meeting the
-    tolerance would need more than `max_steps` steps in all.
+    - `field`: the vector field `field(t, y, args) -> dy/dt`, a callable pytree (e.g. an
+      `eqx.Module`); its inexact-array leaves are differentiable parameters.
+    - `y0`: the initial state, a pytree of arrays (small: the stages are unrolled per leaf).
+    - `ts` (n,): uniform save times; `rtol`, `atol`: tolerances (scalars).
+    - `args`: passed to `field`; its inexact-array leaves are differentiable too.
+    - `rate`: a rate scale of the motion, 1/s (e.g. a natural frequency plus a decay
+      rate): it sets the first guess and the stability floor on the steps. A guess only:
+      the step counts are measured.
+    - `max_steps`: the step budget; `kind`, the `equinox.internal.while_loop` kind that
+      sets which autodiff works: `"lax"` (forward, through the sensitivities),
+      `"checkpointed"` (reverse), `"bounded"` (both).
+    - `erk`: the method, default [`DOPRI8`][].
+
+    **Returns:** `(ys, result, num_steps)`: `ys` a pytree like `y0` with a leading axis n;
+    `num_steps` counts the steps of every pass (the pilot passes included). `result` is
+    `max_steps_reached` if meeting the tolerance would need more than `max_steps` steps.
 
     The global budget is `E <= 1`, `E` the summed scaled error estimate (module docstring);
     each save interval gets the share `_E_AIM / (n - 1)` of it:
 
     1. A pilot over the first `_PILOT_INTERVALS` intervals with a constant `m_p` measures
-       the error rate and predicts the first interval's `m` (`E ~ m^-7`). `m_p` starts at
-       half the model guess from the linearised frequency (the guess alone was up to 4x too
-       large). If the pilot is unstable or its prediction is more than 2x away from `m_p`
-       (outside the asymptotic range), it is repeated at the prediction (at most
-       `_PILOT_PASSES` pilots).
+       the error rate and predicts the first interval's `m` (`E ~ m^-(p-1)`). `m_p` starts
+       at half the model guess from `rate` (the guess alone was up to 4x too large). If the
+       pilot is unstable or its prediction is more than 2x away from `m_p` (outside the
+       asymptotic range), it is repeated at the prediction (at most `_PILOT_PASSES`).
     2. The full pass adapts `m_i` interval by interval (see `_make_pass`): honest in both
        directions, so a decaying motion (the torsional scene) stops paying for its start.
     3. The a-posteriori check: if the full pass ended with `E > 1` (or not finite), the
        per-interval share shrinks by the overrun (and, after an unstable pass, the floor
        on `m` doubles) and the pass repeats, at most `_MAX_PASSES` times.
 
-    The floor `m >= dt omega / _STABLE_H_OMEGA` (omega from the linearisation) keeps a
-    decayed, tiny motion from taking steps beyond Dopri8's stability limit. The step
-    choice runs on values (`stop_gradient`): `m` is an integer and carries no derivative.
+    The floor `m >= dt rate / _STABLE_H_OMEGA` keeps a decayed, tiny motion from taking
+    steps beyond the method's stability limit. The step choice runs on values
+    (`stop_gradient`): `m` is an integer and carries no derivative.
     """
     n = ts.shape[0]
     n_int = n - 1
     # Static bound on steps per interval, from the caller's overall step budget.
     max_sub = max(1, int(max_steps) // n_int)
     dtype = ts.dtype
-
-    def make_f(mech, load, torque):
-        def f(t, y):
-            return (y[1], fused_acceleration(mech, y[0], y[1], t, load, torque, structure))
-        return f
-
+    expo = 1 / (erk.order - 1)
     sg = jax.lax.stop_gradient
     # Forward mode ("lax"): the solve runs on values, and its derivative comes from
-    # `_attach_sensitivities` (the variational equation, stepped with the same steps).
+    # `attach_sensitivities` (the variational equation, stepped with the same steps).
     sens = kind == "lax"
     y0_sel = sg(y0) if sens else y0
-    sel_params = _no_grad((mech, load, torque)) if sens else (mech, load, torque)
-    one_pass = _make_pass(make_f(*sel_params), rtol, atol, max_sub, kind)
+    field_sel, args_sel = _no_grad((field, args)) if sens else (field, args)
+    one_pass = _make_pass(erk, field_sel, args_sel, rtol, atol, max_sub, kind)
     # The pilot never carries tangents, so a plain lax loop is fine in every adjoint mode.
-    pilot_pass = _make_pass(make_f(*_no_grad((mech, load, torque))), sg(rtol), sg(atol),
-                            max_sub, "lax")
+    pilot_pass = _make_pass(erk, *_no_grad((field, args)), sg(rtol), sg(atol), max_sub, "lax")
 
-    # Model guess from E ~ C T omega (omega h)^7 / rtol <= 1/2 (see `_C_MODEL`).
+    # Model guess from E ~ C T omega (omega h)^(p-1) / rtol <= 1/2 (see `_C_MODEL`).
     span = sg(ts[-1] - ts[0])
     dt = sg(jnp.max(jnp.diff(ts)))
-    om = jnp.maximum(sg(_omega(mech, load)), 1e-3 / span)
-    om_h = (0.5 * sg(rtol) / (_C_MODEL * span * om)) ** (1 / (_ORDER - 1))
+    om = jnp.maximum(sg(jnp.asarray(rate, dtype)), 1e-3 / span)
+    om_h = (0.5 * sg(rtol) / (_C_MODEL * span * om)) ** expo
     m_model = jnp.ceil(dt * om / om_h)
     m_floor0 = jnp.clip(jnp.ceil(dt * om / _STABLE_H_OMEGA), 1, max_sub).astype(jnp.int32)
 
@@ -267,8 +244,7 @@ def solve_uniform(mech, load, torque, y0, ts, rtol, atol, *, structure, max_step
 
     def predict(m_p, E_p):
         # Per-interval error E_p / k at m_p; aim at aim0. An unstable pilot: 4x m_p.
-        fac = jnp.where(jnp.isfinite(E_p), (jnp.maximum(E_p / k, 1e-300) / aim0)
-                        ** (1 / (_ORDER - 1)), 4.0)
+        fac = jnp.where(jnp.isfinite(E_p), (jnp.maximum(E_p / k, 1e-300) / aim0) ** expo, 4.0)
         return jnp.clip(jnp.ceil(m_p * fac), m_floor0, max_sub).astype(jnp.int32)
 
     def pilot_cond(c):
@@ -300,109 +276,18 @@ def solve_uniform(mech, load, torque, y0, ts, rtol, atol, *, structure, max_step
         ys, E, s, top, ms = one_pass(y0_sel, ts, jnp.maximum(m1, m_floor), aim, m_floor)
         return aim, m_floor, ys, ms, E, steps + s, top, j + 1
 
-    init = (aim0, m_floor0, jnp.zeros((n, 2), dtype), jnp.zeros(n_int, jnp.int32),
-            jnp.asarray(jnp.inf, dtype),
+    pack, unpack = _packer(y0)
+    ys0 = jnp.zeros((n,) + pack(y0).shape, dtype)
+    init = (aim0, m_floor0, ys0, jnp.zeros(n_int, jnp.int32), jnp.asarray(jnp.inf, dtype),
             pilot_steps, jnp.array(False), jnp.array(0))
     _, _, ys, ms, E, steps, _, _ = eqxi.while_loop(sel_cond, sel_body, init,
-                                               max_steps=_MAX_PASSES, kind=kind)
-    ok = E <= 1
-    result = diffrax.RESULTS.where(ok, diffrax.RESULTS.successful,
+                                                   max_steps=_MAX_PASSES, kind=kind)
+    result = diffrax.RESULTS.where(E <= 1, diffrax.RESULTS.successful,
                                    diffrax.RESULTS.max_steps_reached)
+    ys = unpack(ys)
     if sens:
-        diff, static = eqx.partition((mech, load, torque), eqx.is_inexact_array)
-        ys = _attach_sensitivities(structure, static)(diff, y0, ts, ys, ms)
+        ys = attach_sensitivities(erk, field, args, y0, ts, ys, ms)
     return ys, result, steps
-
-
-def _attach_sensitivities(structure, static):
-    """`attach(params, y0, ts, ys, ms) -> ys`, whose JVP is the forward sensitivity.
-
-    `params` are the inexact-array leaves of `(mech, load, torque)` (`static` the rest),
-    `ys` the solution and `ms` the steps per interval the solve took.
-
-    Why not let `jax.jvp` differentiate the solve? Forward mode through an explicit
-    Runge-Kutta step *is* that step applied to the variational equation, so the arithmetic
-    is the same, but XLA's CPU fusion handles `jvp`'s tangents badly here: with the 10
-    tangents of a full Jacobian a step cost ~7.5x a plain step (30 -> 130 kernels per
-    step, measured on the lab rig). Here the state is two rows, (phi, phi') and their
-    sensitivities to all P parameter leaves and to y0: S' = [S_1, a_phi S_0 + a_phi' S_1 +
-    a_theta], with a_theta = d a / d params from *reverse* mode of the scalar acceleration
-    (scalar code that fuses like the solve), stepped with the same Dopri8 stages and the
-    same `ms` as the solve. The sensitivity matrix does not depend on the tangent, so any
-    number of tangents (`jax.jacfwd`'s `vmap`) costs one pass plus one small matrix product.
-    The steps are not differentiated: `m` is an integer.
-    """
-
-    @jax.custom_jvp
-    def attach(params, y0, ts, ys, ms):
-        return ys
-
-    def attach_jvp(primals, tangents):
-        params, y0, ts, ys, ms = primals
-        dtype = ts.dtype
-        # With `symbolic_zeros`, a leaf nobody differentiates (under `jacfwd` over 10
-        # parameters: r, g and y0) has a SymbolicZero tangent and gets no column.
-        zero = jax.custom_derivatives.SymbolicZero
-        leaves, treedef = jax.tree_util.tree_flatten(params)
-        dleaves = jax.tree_util.tree_leaves(tangents[0], is_leaf=lambda x: isinstance(x, zero))
-        live = [i for i, d in enumerate(dleaves) if not isinstance(d, zero)]
-        dy0 = tangents[1]
-        y0_cols = 0 if isinstance(dy0, zero) else 2
-        if not live and not y0_cols:
-            return ys, jnp.zeros_like(ys)
-        sizes = [int(np.size(leaves[i])) for i in live]
-        offsets = np.cumsum([0] + sizes)
-        P = int(offsets[-1])
-        flat = jnp.concatenate([jnp.ravel(leaves[i]).astype(dtype) for i in live]
-                               + [jnp.zeros(0, dtype)])
-        dflat = jnp.concatenate([jnp.ravel(dleaves[i]).astype(dtype) for i in live]
-                                + [jnp.zeros(0, dtype)])
-
-        def acc(p, d, t, x):
-            # Scalars by indexing, not by `ravel_pytree`'s slices: that fuses ~2x better.
-            out = list(leaves)
-            for i, o, k in zip(live, offsets, sizes):
-                v = leaves[i]
-                out[i] = (x[o] if np.shape(v) == () else
-                          x[o:o + k].reshape(np.shape(v))).astype(v.dtype)
-            mech, load, torque = eqx.combine(jax.tree_util.tree_unflatten(treedef, out), static)
-            return fused_acceleration(mech, p, d, t, load, torque, structure)
-
-        value_and_grad = jax.value_and_grad(acc, argnums=(0, 1, 3))
-
-        def f(t, Y):
-            # Row 0: phi and d phi / d(params, y0); row 1: the same for phi'. Column 0 is
-            # the solution itself.
-            r0, r1 = Y
-            a, (a_p, a_d, g) = value_and_grad(r0[0], r1[0], t, flat)
-            forcing = jnp.concatenate([g.astype(dtype), jnp.zeros(y0_cols, dtype)])
-            return r1, jnp.concatenate([a[None], a_p * r0[1:] + a_d * r1[1:] + forcing])
-
-        def step(t, Y, h):
-            ks = [f(t, Y)]
-            for i in range(1, _NS):
-                Yi = (_combine(Y, h, _A[i - 1], ks, 0), _combine(Y, h, _A[i - 1], ks, 1))
-                ks.append(f(t + _C[i] * h, Yi))
-            return _combine(Y, h, _B, ks, 0), _combine(Y, h, _B, ks, 1)
-
-        def interval(Y, x):
-            t0, t1, m = x
-            h = (t1 - t0) / m.astype(dtype)
-            Y = jax.lax.fori_loop(0, m, lambda i, Y: step(t0 + i.astype(dtype) * h, Y, h), Y)
-            return Y, jnp.stack([Y[0][1:], Y[1][1:]])
-
-        unit = jnp.eye(2, dtype=dtype)[:, :y0_cols]
-        Y0 = tuple(jnp.concatenate([y0[j][None].astype(dtype), jnp.zeros(P, dtype), unit[j]])
-                   for j in range(2))
-        _, S = jax.lax.scan(interval, Y0, (ts[:-1], ts[1:], ms))
-        S = jnp.concatenate([jnp.stack([Y0[0][1:], Y0[1][1:]])[None], S])  # (n, 2, P + 2)
-        dys = S[..., :P] @ dflat
-        if y0_cols:
-            dys = dys + S[..., P:] @ dy0.astype(dtype)
-        return ys, dys
-
-    attach.defjvp(attach_jvp, symbolic_zeros=True)
-    return attach
 
 
 def uniform_grid(ts: np.ndarray, rtol: float = 1e-9) -> bool:

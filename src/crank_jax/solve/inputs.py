@@ -1,0 +1,44 @@
+"""Checks on a solve's inputs that need no physics: tolerances and batch shapes.
+
+Each raises a `ValueError` of one line that names the argument and the fix, before any
+compilation (so the CLI can turn it into exit 2).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import numpy as np
+
+__all__ = ["check_tolerances", "check_unbatched"]
+
+
+def check_tolerances(rtol, atol) -> None:
+    """`ValueError` unless `rtol > 0` and `atol >= 0`, both finite (concrete values only;
+    traced ones are the caller's)."""
+    for name, value, ok, rule in (
+        ("rtol", rtol, lambda v: v > 0, "a finite number > 0, e.g. rtol=1e-8"),
+        ("atol", atol, lambda v: v >= 0, "a finite number >= 0, e.g. atol=1e-10"),
+    ):
+        if isinstance(value, jax.core.Tracer):
+            continue
+        v = np.asarray(value, dtype=float)
+        if not (np.all(np.isfinite(v)) and np.all(ok(v))):
+            shown = v.item() if v.size == 1 else v
+            raise ValueError(f"{name} must be {rule}; got {name}={shown}")
+
+
+def check_unbatched(name: str, tree) -> None:
+    """`ValueError` if an array leaf of the Module `tree` (named `name`) is not a scalar.
+
+    A simulation integrates one system; a batch of parameters is `jax.vmap`'s job (inside
+    the `vmap` every leaf is a scalar again).
+    """
+    fields = getattr(tree, "__dataclass_fields__", {})
+    for field in fields:
+        value = getattr(tree, field, None)
+        if eqx.is_array(value) and np.ndim(value) > 0:
+            raise ValueError(
+                f"{name}.{field} has shape {tuple(np.shape(value))}: simulate integrates one "
+                f"system; to run a batch, map over it with jax.vmap, e.g. jax.vmap(lambda v: "
+                f"simulate(mech.replace({field}=v), ...))(values)")
