@@ -17,6 +17,8 @@ scene without friction no `tanh`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
@@ -156,8 +158,12 @@ def acceleration(
     load: AbstractLoad | None = None,
     torque: AbstractLoad | None = None,
     structure: Structure = _FULL,
+    force: Callable | None = None,
 ) -> Array:
     """Crank angular acceleration phi'' = (q - K phi'^2) / M, rad/s^2.
+
+    `force`, if given, is a user's generalised force `force(t, phi, dphi) -> N*m` added to
+    q (any pytree callable, e.g. an `equinox` MLP: a learned friction law, a controller).
 
     One geometry evaluation (a single `rsqrt`) and a single division: this is the form
     the fast solvers step (see [`geometry`][]).
@@ -166,6 +172,8 @@ def acceleration(
     phi, dphi = jnp.asarray(phi), jnp.asarray(dphi)
     g = geometry(mech, phi, structure)
     q = force_terms(mech, g, phi, dphi, t, load, torque, structure)
+    if force is not None:
+        q = q + force(t, phi, dphi)
     return (q - coriolis_terms(mech, g, structure) * dphi * dphi) / mass_terms(mech, g, structure)
 
 
@@ -213,17 +221,22 @@ class CrankField(eqx.Module):
     module imports the mechanism.
 
     **Fields:** `mech`, the [`SliderCrank`][]; `load`, the slider force P(t) (N, along -x);
-    `torque`, the crank torque tau(t) (N*m); `structure`, the static set of terms.
+    `torque`, the crank torque tau(t) (N*m); `structure`, the static set of terms;
+    `force`, an optional user term `force(t, phi, dphi) -> N*m` added to q: any pytree
+    callable, so an `equinox` MLP's weights are leaves of the field and train through the
+    solver (a universal differential equation; experiments/ude_friction.py).
     """
 
     mech: SliderCrank
     load: AbstractLoad
     torque: AbstractLoad
     structure: Structure = eqx.field(static=True, default=_FULL)
+    force: Callable | None = None
 
     def acceleration(self, t, phi, dphi):
         """phi'' = (q - K phi'^2) / M, rad/s^2, at time `t` (s)."""
-        return acceleration(self.mech, phi, dphi, t, self.load, self.torque, self.structure)
+        return acceleration(self.mech, phi, dphi, t, self.load, self.torque, self.structure,
+                            self.force)
 
     def __call__(self, t, y, args=None):
         phi, dphi = y

@@ -129,8 +129,15 @@ def linearize(mech: SliderCrank, load: AbstractLoad | None = None,
     (their `mean()`s set the equilibrium; P's also enters xi).
 
     **Returns:** a [`Linearization`][]; every field has the shape of the parameters.
+    Concrete inputs give concrete outputs even inside a caller's `jit` (the solver policy
+    reads them on the host to choose a solver).
     """
-    return _linearize(mech, _mean_loads(load, torque))
+    loads = _mean_loads(load, torque)
+    leaves = jax.tree_util.tree_leaves((mech, loads))
+    if not any(isinstance(x, jax.core.Tracer) for x in leaves):
+        with jax.ensure_compile_time_eval():
+            return _linearize(mech, loads)
+    return _linearize(mech, loads)
 
 
 def _mean_loads(load, torque) -> tuple[AbstractLoad, AbstractLoad]:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import functools
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import diffrax
 import equinox as eqx
@@ -108,10 +108,11 @@ def _rate(field: CrankField) -> Array:
     return jnp.sqrt(jnp.abs(lin.xi) / mu) + jnp.abs(lin.chi) / mu
 
 
-def _derived(mech, load, torque, ts, phi, dphi, outputs) -> dict[str, Array]:
+def _derived(mech, load, torque, ts, phi, dphi, outputs, force=None) -> dict[str, Array]:
     if not outputs:
         return {}
-    ddphi = jax.vmap(lambda t, p, d: acceleration(mech, p, d, t, load, torque))(ts, phi, dphi)
+    ddphi = jax.vmap(lambda t, p, d: acceleration(mech, p, d, t, load, torque, force=force))(
+        ts, phi, dphi)
     out: dict[str, Array] = {}
     if "ddphi" in outputs:
         out["ddphi"] = ddphi
@@ -146,8 +147,8 @@ def _controller(rtol, atol, load, torque) -> diffrax.AbstractStepSizeController:
 
 
 @eqx.filter_jit
-def _solve(mech, load, torque, y0, ts, rtol, atol, *, solver, max_steps, adjoint, structure,
-           outputs, throw, checks=True):
+def _solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, adjoint,
+           structure, outputs, throw, checks=True):
     if checks:
         mech = mech.checked()
         y0 = eqx.error_if(y0, ~jnp.all(jnp.isfinite(y0)),
@@ -155,7 +156,7 @@ def _solve(mech, load, torque, y0, ts, rtol, atol, *, solver, max_steps, adjoint
     adj = {"reverse": diffrax.RecursiveCheckpointAdjoint(),
            "forward": diffrax.ForwardMode(),
            "direct": diffrax.DirectAdjoint()}[adjoint]
-    field = CrankField(mech, load, torque, structure)
+    field = CrankField(mech, load, torque, structure, force)
     if solver == "dopri8-uniform":
         # Constant Dopri8 steps between the save times (see `uniform.py`): the while-loop
         # kind gives the same autodiff as the matching diffrax adjoint.
@@ -190,7 +191,7 @@ def _solve(mech, load, torque, y0, ts, rtol, atol, *, solver, max_steps, adjoint
         result = diffrax.RESULTS.where(
             (result == diffrax.RESULTS.successful) & ~jnp.all(good),
             diffrax.RESULTS.nonfinite, result)
-    extras = _derived(mech, load, torque, ts, phi, dphi, outputs)
+    extras = _derived(mech, load, torque, ts, phi, dphi, outputs, force)
     return Trajectory(ts, phi, dphi, extras, result, steps)
 
 
@@ -210,6 +211,7 @@ def simulate(
     adjoint: str = "reverse",
     structure: Structure | None = None,
     throw: bool = True,
+    force: Callable | None = None,
 ) -> Trajectory:
     """Integrate `M(phi) phi'' + K(phi) phi'^2 = q(phi, phi', t)` from `ts[0]` to `ts[-1]`.
 
@@ -235,6 +237,10 @@ def simulate(
       parameters, every term for traced ones.
     - `throw`: raise on a failed solve; with `False` the failure is in `result` and the
       samples after it hold the last state reached (never NaN or inf).
+    - `force`: a generalised force of your own, `force(t, phi, dphi) -> N*m`, added to q:
+      any pytree callable (an `equinox` MLP included), differentiable through the solve.
+      The solver policy and the derived outputs see it; `energy` and `reactions` do not
+      (they are the mechanism's own).
 
     **Returns:** a [`Trajectory`][].
 
@@ -274,7 +280,7 @@ def simulate(
     if host:
         _host_checks(mech, y0)
     traj = _solve(
-        mech, load, torque, y0, ts, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
+        mech, load, torque, force, y0, ts, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
         solver=solver, max_steps=int(max_steps), adjoint=adjoint, structure=structure,
         outputs=tuple(sorted(set(outputs))), throw=bool(throw) and not host, checks=not host,
     )
