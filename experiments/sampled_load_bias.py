@@ -134,11 +134,16 @@ def fit_bias(scene, true_torque, seed: int) -> dict[str, dict]:
     for name, ld in loads.items():
         rec = cj.Data(data.ts, data.phi, None, ld, source=f"synthetic, {name} torque")
         res = cj.fit(scene, rec, free=FREE, init=START, progress=False, warn=False)
-        z = {n: (res.values[n] - float(getattr(scene.mech, n))) / res.stderr[n]
-             for n in FREE if n in cj.FIELDS and res.stderr[n]}
-        out[name] = {"converged": res.converged, "seconds": res.seconds,
-                     "rms_residual_rad": res.rms_residual, "bias_in_stderr": z,
-                     "max_abs_bias_in_stderr": max(abs(v) for v in z.values())}
+        truth = {n: float(getattr(scene.mech, n)) for n in FREE if n in cj.FIELDS}
+        z = {n: (res.values[n] - v) / res.stderr[n] if res.stderr[n] else None
+             for n, v in truth.items()}
+        out[name] = {"converged": res.converged, "identifiable": res.identifiable,
+                     "seconds": res.seconds, "rms_residual_rad": res.rms_residual,
+                     "bias_in_stderr": z,
+                     "max_abs_bias_in_stderr": max((abs(v) for v in z.values()
+                                                    if v is not None), default=None),
+                     "relative_error": {n: res.values[n] / v - 1 for n, v in truth.items()},
+                     "warnings": res.warnings}
         print(name, json.dumps(out[name]), flush=True)
     return out
 
@@ -161,10 +166,15 @@ def main() -> None:
         doc["model_error"][label] = model_errors(scene, scene.torque, ts)
         print(label, json.dumps(doc["model_error"][label], indent=1), flush=True)
     doc["cubic_clipping"] = clipping(mech, multisine, ts)
+    _write(doc)
     if not args.no_fits:
         for label, scene in scenes.items():
             doc["fit"][label] = [fit_bias(scene, scene.torque, 100 + s)
                                  for s in range(args.seeds)]
+            _write(doc)
+
+
+def _write(doc) -> None:
     doc.update(date=time.strftime("%Y-%m-%d"),
                machine=f"{platform.machine()} {jax.devices()[0].device_kind}, shared 2-core "
                        "VM")
