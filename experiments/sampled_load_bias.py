@@ -124,10 +124,10 @@ def clipping(mech, true_torque, ts) -> list[dict]:
     return rows
 
 
-def fit_bias(scene, true_torque, seed: int) -> dict[str, dict]:
-    """Fit the record (torque logged at the data rate) with each interpolation."""
+def fit_bias(scene, true_torque, logged, seed: int) -> dict[str, dict]:
+    """Fit the record with the torque `logged` at its samples, with each interpolation."""
     data = cj.synthesize(scene, t1=T1, rate=RATE, noise_std=NOISE, seed=seed)
-    logged = np.asarray(true_torque(data.ts))
+    assert data.n == logged.shape[0]
     loads = {"true": true_torque}
     loads.update({i: cj.SampledLoad(data.ts, logged, i) for i in cj.INTERPOLATIONS})
     out = {}
@@ -154,7 +154,9 @@ def main() -> None:
     ap.add_argument("--no-fits", action="store_true")
     args = ap.parse_args()
     mech = cj.load_scene("lab-rig").mech
-    ts = np.arange(0.0, T1 + 1e-9, 1 / RATE)
+    # The same sample times as `synthesize` (i / rate): a held command sampled a rounding
+    # error before its own knots would read the previous value.
+    ts = np.arange(round(T1 * RATE) + 1) / RATE
     multisine = cj.MultiSineLoad(**TONES)
     held = cj.SampledLoad(ts, np.asarray(multisine(ts)), "zoh")
     scenes = {"A: continuous multisine": cj.Scene(mech, torque=multisine, phi0=1.5),
@@ -169,7 +171,9 @@ def main() -> None:
     _write(doc)
     if not args.no_fits:
         for label, scene in scenes.items():
-            doc["fit"][label] = [fit_bias(scene, scene.torque, 100 + s)
+            logged = np.asarray(held.values) if scene.torque is held else \
+                np.asarray(multisine(ts))
+            doc["fit"][label] = [fit_bias(scene, scene.torque, logged, 100 + s)
                                  for s in range(args.seeds)]
             _write(doc)
 
