@@ -124,21 +124,26 @@ def clipping(mech, true_torque, ts) -> list[dict]:
     return rows
 
 
-def fit_bias(scene, true_torque, seed: int) -> dict[str, dict]:
-    """Fit the record (torque logged at the data rate) with each interpolation."""
+def fit_bias(scene, true_torque, logged, seed: int) -> dict[str, dict]:
+    """Fit the record with the torque `logged` at its samples, with each interpolation."""
     data = cj.synthesize(scene, t1=T1, rate=RATE, noise_std=NOISE, seed=seed)
-    logged = np.asarray(true_torque(data.ts))
+    assert data.n == logged.shape[0]
     loads = {"true": true_torque}
     loads.update({i: cj.SampledLoad(data.ts, logged, i) for i in cj.INTERPOLATIONS})
     out = {}
     for name, ld in loads.items():
         rec = cj.Data(data.ts, data.phi, None, ld, source=f"synthetic, {name} torque")
         res = cj.fit(scene, rec, free=FREE, init=START, progress=False, warn=False)
-        z = {n: (res.values[n] - float(getattr(scene.mech, n))) / res.stderr[n]
-             for n in FREE if n in cj.FIELDS and res.stderr[n]}
-        out[name] = {"converged": res.converged, "seconds": res.seconds,
-                     "rms_residual_rad": res.rms_residual, "bias_in_stderr": z,
-                     "max_abs_bias_in_stderr": max(abs(v) for v in z.values())}
+        truth = {n: float(getattr(scene.mech, n)) for n in FREE if n in cj.FIELDS}
+        z = {n: (res.values[n] - v) / res.stderr[n] if res.stderr[n] else None
+             for n, v in truth.items()}
+        out[name] = {"converged": res.converged, "identifiable": res.identifiable,
+                     "seconds": res.seconds, "rms_residual_rad": res.rms_residual,
+                     "bias_in_stderr": z,
+                     "max_abs_bias_in_stderr": max((abs(v) for v in z.values()
+                                                    if v is not None), default=None),
+                     "relative_error": {n: res.values[n] / v - 1 for n, v in truth.items()},
+                     "warnings": res.warnings}
         print(name, json.dumps(out[name]), flush=True)
     return out
 
@@ -149,7 +154,9 @@ def main() -> None:
     ap.add_argument("--no-fits", action="store_true")
     args = ap.parse_args()
     mech = cj.load_scene("lab-rig").mech
-    ts = np.arange(0.0, T1 + 1e-9, 1 / RATE)
+    # The same sample times as `synthesize` (i / rate): a held command sampled a rounding
+    # error before its own knots would read the previous value.
+    ts = np.arange(round(T1 * RATE) + 1) / RATE
     multisine = cj.MultiSineLoad(**TONES)
     held = cj.SampledLoad(ts, np.asarray(multisine(ts)), "zoh")
     scenes = {"A: continuous multisine": cj.Scene(mech, torque=multisine, phi0=1.5),
@@ -161,10 +168,17 @@ def main() -> None:
         doc["model_error"][label] = model_errors(scene, scene.torque, ts)
         print(label, json.dumps(doc["model_error"][label], indent=1), flush=True)
     doc["cubic_clipping"] = clipping(mech, multisine, ts)
+    _write(doc)
     if not args.no_fits:
         for label, scene in scenes.items():
-            doc["fit"][label] = [fit_bias(scene, scene.torque, 100 + s)
+            logged = np.asarray(held.values) if scene.torque is held else \
+                np.asarray(multisine(ts))
+            doc["fit"][label] = [fit_bias(scene, scene.torque, logged, 100 + s)
                                  for s in range(args.seeds)]
+            _write(doc)
+
+
+def _write(doc) -> None:
     doc.update(date=time.strftime("%Y-%m-%d"),
                machine=f"{platform.machine()} {jax.devices()[0].device_kind}, shared 2-core "
                        "VM")

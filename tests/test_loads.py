@@ -131,6 +131,19 @@ def test_sampled_multisine_bias_per_interpolation(lab_rig):
     assert rms["cubic"] < 1e-6, rms
 
 
+def test_load_data_takes_the_interpolation(tmp_path):
+    path = tmp_path / "d.csv"
+    path.write_text("t,phi,tau\n" + "".join(f"{i * 0.1},{0.01 * i},{i % 3}\n"
+                                            for i in range(8)))
+    for interp in cj.INTERPOLATIONS:
+        d = cj.load_data(path, interp=interp)
+        assert d.torque.interp == interp and d.load is None
+    assert float(cj.load_data(path, interp="zoh").torque(0.19)) == 1.0
+    assert float(cj.load_data(path, interp="linear").torque(0.15)) == pytest.approx(1.5)
+    with pytest.raises(cj.DataError, match="interpolation 'spline' is unknown"):
+        cj.load_data(path, interp="spline")
+
+
 # --- the table --------------------------------------------------------------------------
 
 def test_table_names_and_roles():

@@ -238,11 +238,11 @@ class SampledLoad(AbstractLoad):
 
     def nonsmooth(self) -> Nonsmooth:
         # zoh: the value jumps at every sample; linear: the slope does. The cubic spline
-        # is C2, but its third derivative jumps at every knot, which an 8th-order step
-        # across a knot sees: measured (experiments/sampled_load_bias.py, 250 Hz
-        # multisine), ending steps at the knots cuts Dopri8's error 150x at rtol 1e-8
-        # with 12% fewer steps, and 4x the steps at rtol 1e-11; Tsit5 takes 5-16% more
-        # steps for a 2-3x smaller error.
+        # is C2, but its third derivative jumps at every knot, which a Dopri8 step across
+        # a knot sees. Measured (experiments/sampled_load_bias.py, 250 Hz multisine):
+        # ending steps at the knots gives Dopri8 a 220x smaller error with 9% fewer steps
+        # at rtol 1e-8 (2.9x fewer at 1e-10), and Tsit5 a 2-3x smaller error for 1-16%
+        # more steps.
         if self.interp == "zoh":
             return Nonsmooth(jump_ts=self.ts)
         return Nonsmooth(step_ts=self.ts)

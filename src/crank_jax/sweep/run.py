@@ -24,9 +24,10 @@ How a sweep runs ([`make_plan`][] checks everything first):
 
 Memory: the result holds, per sample, 8 bytes per varied field and per scalar output,
 `8 n_t` per trajectory output, and 10 bytes of status, steps and solver; a sweep whose
-result exceeds half the host's memory is refused before any work. Beyond the result, a
-block needs about `SORT_BLOCK * 600` bytes (~40 MB) on the host, and a chunk about
-`chunk_size * num_saves * 16` bytes of trajectory on the device.
+result exceeds half the host's memory is refused before any work (`max_memory=`
+overrides). Beyond the result, a block of `SORT_BLOCK` samples needs about 30 MB of NumPy
+arrays on the host (measured) and about as much again for its linearisation, whatever
+`n`; a chunk needs about `chunk_size * num_saves * 16` bytes of trajectory on the device.
 """
 
 from __future__ import annotations
