@@ -1,22 +1,31 @@
 """The least-squares problem behind [`fit`][]: free parameters, their coordinates, and the
 residual function (single or multiple shooting, one or several records).
 
-Coordinates `z` (what the optimisers see, all O(1)):
+Coordinates `z` (what the optimisers see, all O(1)), chosen per name by
+[`coordinate`][]:
 
-- the twelve mechanism fields are positive, so they are fitted as `z = ln(value)`: a step
-  in `z` is a relative change, positivity needs no constraint, and the columns of the
-  Jacobian are the sensitivities *scaled by the parameter values* that the identifiability
-  analysis needs;
-- the initial states and load amplitudes are signed: `z = value / ref`, with `ref` a
-  typical magnitude (the record's angle amplitude, that times the natural frequency, or
-  the load's amplitude).
+- a mechanism field that cannot be negative and starts positive is fitted as
+  `z = ln(value)`: a step in `z` is a relative change, positivity needs no constraint,
+  and the columns of the Jacobian are the sensitivities *scaled by the parameter values*
+  that the identifiability analysis needs;
+- everything else (a signed field such as the offset `e`, a field that starts at 0 such
+  as a friction coefficient, the initial states and load amplitudes) is linear:
+  `z = value / ref`, with `ref` a typical magnitude (the start value, the record's angle
+  amplitude, that times the natural frequency).
+
+Shapes are bucketed (each record is padded to one of a few lengths with samples of weight
+0), so records of other lengths reuse the compiled programs; and the ODE solve carries no
+host callback (no `eqx.error_if`), so JAX's persistent cache can keep those programs
+between processes.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Sequence
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -24,38 +33,60 @@ import numpy as np
 from jaxtyping import Array
 
 from ..data import Data
-from ..model.dynamics import Structure
+from ..model.dynamics import Structure, acceleration
 from ..model.linear import linearize
-from ..model.loads import AbstractLoad, ConstantLoad, HarmonicLoad
+from ..model.loads import AbstractLoad, ConstantLoad, SampledLoad
 from ..model.params import FIELDS, SliderCrank
 from ..solve.policy import resolve_solver
-from ..solve.simulate import simulate
+from .request import LOAD_NAMES, SIGNED_FIELDS
 
-__all__ = ["STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP", "Problem", "build_problem",
-           "smooth_derivatives"]
-
-STATE_NAMES = ("phi0", "dphi0")
-#: Load amplitudes that can be free: the scene's mean (X0) and harmonic amplitude (X1).
-LOAD_NAMES = {"P0": ("load", "X0"), "P1": ("load", "X1"),
-              "tau0": ("torque", "X0"), "tau1": ("torque", "X1")}
-#: Parameters that enter the equation of motion linearly: scaling all of them (and every
-#: load) by one factor leaves the motion unchanged (DESIGN.md section 3).
-SCALE_GROUP = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
+__all__ = ["Problem", "Experiment", "Segments", "build_problem", "make_segments",
+           "bucket", "coordinate", "natural_period", "linear_frequency", "pick_solver",
+           "set_load_param", "residuals_at", "jacobian_at", "Program",
+           "checks_without_callbacks", "Subspace", "Pinned"]
 
 # A failed solve gives NaN samples; a large finite residual instead makes the trust
 # region reject that step, where a NaN could poison the linear algebra.
 _FAILED_RESIDUAL = 10.0
+# Linear scale of a mechanism field that starts at 0 (a friction coefficient, an offset
+# in units of r): the optimiser's first steps are O(1) in z.
+_ZERO_START_REF = 1e-3
+_TINY = 1e-9
 
 
-def load_param(load: AbstractLoad, field: str) -> float | None:
-    if isinstance(load, HarmonicLoad):
-        return float(getattr(load, field))
-    if isinstance(load, ConstantLoad) and field == "X0":
-        return float(load.value)
-    return None
+def bucket(m: int) -> int:
+    """The padded length of a row of `m` samples: the next of 64, 96, 128, 192, 256, ...
+    (two sizes per doubling, so at most a third of a row is padding)."""
+    size = 64
+    while size < m:
+        size = size * 3 // 2 if (size & (size - 1)) == 0 else size * 4 // 3
+    return size
+
+
+def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None = None
+               ) -> tuple[bool, float]:
+    """`(log, ref)` of a global free name: log coordinates for a mechanism field that
+    cannot be negative and starts positive; otherwise linear with scale `ref`.
+
+    A field that starts at 0 takes its scale from the record's observed angular frequency
+    `omega` (rad/s) and the linearised inertia `mu`: `mu omega^2` for k, 5% damping
+    (`0.1 mu omega`) for c; an offset e takes a tenth of r.
+    """
+    if name in FIELDS and name not in SIGNED_FIELDS and start > 0:
+        return True, 1.0
+    if start != 0:
+        return False, abs(start)
+    if name in SIGNED_FIELDS:
+        return False, 0.1 * float(mech.r)
+    if omega and name in ("k", "c"):
+        mu = float(np.asarray(linearize(mech).mu))
+        if math.isfinite(mu) and mu > 0:
+            return False, mu * omega**2 if name == "k" else 0.1 * mu * omega
+    return False, _ZERO_START_REF
 
 
 def set_load_param(load: AbstractLoad, field: str, value) -> AbstractLoad:
+    """`load` with its amplitude `field` ("X0" or "X1") set to `value`."""
     if isinstance(load, ConstantLoad):
         return eqx.tree_at(lambda x: x.value, load, value)
     return eqx.tree_at(lambda x: getattr(x, field), load, value)
@@ -72,30 +103,47 @@ class Segments(eqx.Module):
     phi: Array  # (S, m) data
     w: Array  # (S, m) 1 for a fitted sample, 0 for padding and the shared end sample
     end: Array  # (S,) int: index of the continuity sample in each row
+    first: Array  # (S,) int: index in the record of each row's first sample
 
 
-def make_segments(ts: np.ndarray, phi: np.ndarray, n_segments: int) -> Segments:
-    """Split a record into `n_segments` segments of nearly equal sample counts."""
+def make_segments(ts: np.ndarray, phi: np.ndarray, n_segments: int, pad: bool = True
+                  ) -> Segments:
+    """Split a record into `n_segments` segments of nearly equal sample counts, each row
+    padded to [`bucket`][] length (when `pad`)."""
     n = ts.shape[0]
     S = max(1, min(int(n_segments), n // 4))
     bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
     m = int(np.max(np.diff(bounds))) + 1 if S > 1 else n
-    T, P, W, E = (np.zeros((S, m)), np.zeros((S, m)), np.zeros((S, m)),
-                  np.zeros(S, dtype=np.int32))
+    m = bucket(m) if pad else m
+    T, P, W = np.zeros((S, m)), np.zeros((S, m)), np.zeros((S, m))
+    E, F = np.zeros(S, dtype=np.int32), np.zeros(S, dtype=np.int32)
     for s in range(S):
         a, b = bounds[s], bounds[s + 1]
         k = b - a + 1 if S > 1 else n
         seg_t = ts[a:a + k]
         # Padding times continue just past the end, so each row stays strictly increasing
         # without extending the integration by more than a few nanoseconds.
-        pad = seg_t[-1] + 1e-9 * np.arange(1, m - k + 1) * max(1.0, abs(seg_t[-1]))
-        T[s] = np.concatenate([seg_t, pad])
+        pad_t = seg_t[-1] + 1e-9 * np.arange(1, m - k + 1) * max(1.0, abs(seg_t[-1]))
+        T[s] = np.concatenate([seg_t, pad_t])
         P[s, :k] = phi[a:a + k]
         W[s, :k] = 1.0
         if S > 1 and s < S - 1:
             W[s, k - 1] = 0.0  # the shared sample belongs to the next segment
-        E[s] = k - 1
-    return Segments(jnp.asarray(T), jnp.asarray(P), jnp.asarray(W), jnp.asarray(E))
+        E[s], F[s] = k - 1, a
+    return Segments(jnp.asarray(T), jnp.asarray(P), jnp.asarray(W), jnp.asarray(E),
+                    jnp.asarray(F))
+
+
+def _padded_load(load: AbstractLoad) -> AbstractLoad:
+    # A sampled load's length is a shape: pad it (holding its last value, as it is held
+    # outside its samples anyway) so records of other lengths reuse the programs.
+    if not isinstance(load, SampledLoad):
+        return load
+    ts, vs = np.asarray(load.ts), np.asarray(load.values)
+    m = bucket(ts.shape[0])
+    extra = ts[-1] + np.arange(1, m - ts.shape[0] + 1) * max(1.0, abs(ts[-1] - ts[0]))
+    return SampledLoad(np.concatenate([ts, extra]),
+                       np.concatenate([vs, np.full(extra.shape, vs[-1])]))
 
 
 class Experiment(eqx.Module):
@@ -110,7 +158,20 @@ class Experiment(eqx.Module):
     # every fit.
     ref_phi: Array
     ref_dphi: Array
-    n: int = eqx.field(static=True)  # number of samples
+
+    @property
+    def n(self) -> int:
+        """Number of fitted samples (host side)."""
+        return int(np.asarray(self.seg.w).sum())
+
+
+def _vector_field(t, y, args):
+    mech, load, torque, structure = args
+    return jnp.stack([y[1], acceleration(mech, y[0], y[1], t, load, torque, structure)])
+
+
+_SOLVERS = {"tsit5": diffrax.Tsit5, "dopri5": diffrax.Dopri5, "dopri8": diffrax.Dopri8,
+            "dopri8-uniform": diffrax.Dopri8, "kvaerno5": diffrax.Kvaerno5}
 
 
 class Problem(eqx.Module):
@@ -202,15 +263,43 @@ class Problem(eqx.Module):
     # --- residuals --------------------------------------------------------------------
 
     def simulate_segments(self, mech, e: Experiment, load, torque, y0s):
-        """Model angles and rates on every segment: (phi, dphi), each (S, m)."""
+        """Model angles and rates on every segment: (phi, dphi), each (S, m), and the ODE
+        steps each segment's solve took (S,)."""
+        controller = diffrax.PIDController(rtol=self.rtol, atol=self.atol)
+        knots = [x.ts for x in (load, torque) if isinstance(x, SampledLoad)]
+        if knots:
+            # A sampled load's slope jumps at every sample: end steps on them.
+            controller = diffrax.ClipStepSizeController(
+                controller, step_ts=jnp.sort(jnp.concatenate(knots)))
+        adjoint = (diffrax.ForwardMode() if self.adjoint == "forward"
+                   else diffrax.RecursiveCheckpointAdjoint())
+
+        # diffrax directly rather than `simulate`: with traced parameters `simulate`
+        # validates them with `eqx.error_if`, a host callback, and JAX's persistent cache
+        # does not keep programs with callbacks. A trial point outside the valid set fails
+        # its solve (NaN or max_steps), which the residuals below turn into a rejection.
         def one(ts, y0):
-            tr = simulate(mech, y0[0], y0[1], ts, load=load, torque=torque,
-                          solver=self.solver, rtol=self.rtol, atol=self.atol,
-                          max_steps=self.max_steps, adjoint=self.adjoint,
-                          structure=self.structure, throw=False)
-            return tr.phi, tr.dphi, tr.num_steps
+            sol = diffrax.diffeqsolve(
+                diffrax.ODETerm(_vector_field), _SOLVERS[self.solver](), t0=ts[0],
+                t1=ts[-1], dt0=None, y0=y0, args=(mech, load, torque, self.structure),
+                saveat=diffrax.SaveAt(ts=ts), stepsize_controller=controller,
+                max_steps=self.max_steps, adjoint=adjoint, throw=False)
+            ok = sol.result == diffrax.RESULTS.successful
+            phi = jnp.where(ok, sol.ys[:, 0], jnp.nan)
+            dphi = jnp.where(ok, sol.ys[:, 1], jnp.nan)
+            return phi, dphi, sol.stats["num_steps"]
 
         return jax.vmap(one)(e.seg.ts, y0s)
+
+    def fitted(self, r) -> list[np.ndarray]:
+        """Model angles at each record's samples, from single-shooting residuals `r`
+        (r = model - data), rad."""
+        out, k = [], 0
+        for e in self.exps:
+            size = int(np.prod(e.seg.ts.shape))
+            out.append(np.asarray(e.seg.phi[0, :e.n]) + np.asarray(r)[k:k + e.n])
+            k += size
+        return out
 
     def residuals(self, z: Array) -> tuple[Array, Array, Array]:
         """(r, n_failed, steps): the stacked residual vector, how many samples failed,
@@ -243,26 +332,11 @@ class Problem(eqx.Module):
         return self.residuals(z)[0], None
 
 
-def smooth_derivatives(ts: np.ndarray, phi: np.ndarray, half: int):
-    """Local quartic least-squares fits (a Savitzky-Golay filter for irregular samples).
-
-    **Arguments:** `ts`, `phi` (n,); `half`, the half-width of the window in samples (the
-    window is shifted inwards at the ends). **Returns:** `(phi, dphi, ddphi)`, each (n,).
-    """
-    n = ts.shape[0]
-    w = min(max(2 * half + 1, 7), n)
-    start = np.clip(np.arange(n) - half, 0, n - w)
-    idx = start[:, None] + np.arange(w)[None, :]
-    dt = ts[idx] - ts[:, None]
-    h = np.maximum(np.abs(dt).max(axis=1, keepdims=True), 1e-12)
-    x = dt / h  # scaled for conditioning
-    # Quartic: a cubic's error in phi'' is ~25x larger over the same window.
-    V = x[..., None] ** np.arange(5)
-    A = np.einsum("nwi,nwj->nij", V, V)
-    bvec = np.einsum("nwi,nw->ni", V, phi[idx])
-    c = np.linalg.solve(A + 1e-12 * np.eye(5), bvec[..., None])[..., 0]
-    hh = h[:, 0]
-    return c[:, 0], c[:, 1] / hh, 2 * c[:, 2] / hh**2
+def linear_frequency(mech: SliderCrank, load: AbstractLoad | None = None) -> float | None:
+    """The linearised natural frequency omega_n, rad/s, or None when phi = 0 is not a
+    stable equilibrium."""
+    period = natural_period(mech, load)
+    return 2 * math.pi / period if period is not None else None
 
 
 def natural_period(mech: SliderCrank, load: AbstractLoad | None = None) -> float | None:
@@ -284,6 +358,8 @@ def build_problem(
     atol: float,
     max_steps: int,
     adjoint: str = "forward",
+    pad: bool = True,
+    omega: float | None = None,
 ) -> Problem:
     """Assemble a [`Problem`][].
 
@@ -293,16 +369,23 @@ def build_problem(
     - `records`: per record `(data, load, torque, phi0, dphi0)`; the state is the start
       value (or the fixed value, when not free) at the record's first sample.
     - `free`: names from `FIELDS`, `LOAD_NAMES` and `STATE_NAMES`.
-    - `start`: start value of every free global name, and `phi0[i]`/`dphi0[i]` per record.
+    - `start`: start value of every free global name.
     - `n_segments`: shooting segments per record (1 = single shooting).
+    - `solver`, `rtol`, `atol`, `max_steps`: the ODE solve; `adjoint`: `"forward"` (for
+      Jacobians) or `"reverse"` (for gradients).
+    - `pad`: pad each record to a [`bucket`][] length (weight-0 samples), so that records
+      of other lengths reuse the compiled programs.
+    - `omega`: the records' observed angular frequency, rad/s (scales a free field that
+      starts at 0; see [`coordinate`][]).
     """
-    glob = [n for n in free if n not in STATE_NAMES]
+    glob = [n for n in free if n not in ("phi0", "dphi0")]
     state_free = (("phi0" in free), ("dphi0" in free))
     names, log, ref = [], [], []
     for n in glob:
+        lg, rf = coordinate(n, float(start[n]), mech, omega)
         names.append(n)
-        log.append(n in FIELDS)
-        ref.append(1.0 if n in FIELDS else max(abs(start[n]), 1e-6))
+        log.append(lg)
+        ref.append(rf)
     exps = []
     multi = len(records) > 1
     for i, (data, load, torque, phi0, dphi0) in enumerate(records):
@@ -317,12 +400,16 @@ def build_problem(
                 names.append(f"{name}[{i}]" if multi else name)
                 log.append(False)
                 ref.append(r)
-        seg = make_segments(data.ts, data.phi, n_segments[i])
-        exps.append(Experiment(seg, load, torque, jnp.asarray(phi0, float),
-                               jnp.asarray(dphi0, float), jnp.asarray(ref_phi, float),
-                               jnp.asarray(ref_dphi, float), data.n))
+        seg = make_segments(data.ts, data.phi, n_segments[i], pad)
+        exps.append(Experiment(seg, _padded_load(load) if pad else load,
+                               _padded_load(torque) if pad else torque,
+                               jnp.asarray(phi0, float), jnp.asarray(dphi0, float),
+                               jnp.asarray(ref_phi, float), jnp.asarray(ref_dphi, float)))
     mech_start = mech.replace(**{n: start[n] for n in glob if n in FIELDS})
-    structure = Structure.of(mech_start)
+    # A zero is structure (the compiled program leaves its term out), but a free field
+    # that starts at 0 must keep its term, or its sensitivity would be exactly zero.
+    nonzero = mech_start.replace(**{n: _TINY for n in glob if n in FIELDS and start[n] == 0})
+    structure = Structure.of(mech_start).union(Structure.of(nonzero))
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
                    len(glob), state_free, solver, structure, jnp.asarray(rtol),
                    jnp.asarray(atol), int(max_steps), adjoint)
@@ -331,4 +418,98 @@ def build_problem(
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:
     """The ODE solver of a fit: the scene's, or the automatic choice at the start values
     (the record's padded segment times are not a uniform grid, so no save times)."""
-    return resolve_solver(solver, mech, rtol, load=load)
+    name = resolve_solver(solver, mech, rtol, load=load)
+    return "dopri8" if name == "dopri8-uniform" else name
+
+
+@contextlib.contextmanager
+def checks_without_callbacks():
+    """Trace with equinox's runtime checks as NaN instead of host callbacks.
+
+    diffrax validates `SaveAt(ts)` with `eqx.error_if`, which in equinox's default mode
+    is a host callback, and JAX's persistent cache does not keep programs with host
+    callbacks, so every process would recompile every fit. equinox reads its mode
+    (`EQX_ON_ERROR`) when a program is traced; "nan" turns a failed check into NaN
+    samples, which the residuals turn into a rejected step. Our save times are strictly
+    increasing by construction, so the check never fires. (Only the tracing of the fit's
+    own programs is affected; the previous mode is restored on exit.)
+    """
+    import equinox._errors as eqx_errors
+
+    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
+    if old is None:  # another equinox: leave it alone
+        yield
+        return
+    eqx_errors.EQX_ON_ERROR = "nan"
+    try:
+        yield
+    finally:
+        eqx_errors.EQX_ON_ERROR = old
+
+
+class Program(eqx.Module):
+    """A compiled function of the fit, traced under [`checks_without_callbacks`][] so that
+    JAX's persistent cache can keep it. Call it, or `.lower(...)` it (for inspection)."""
+
+    fn: eqx.Module
+
+    def __call__(self, *args):
+        with checks_without_callbacks():
+            return self.fn(*args)
+
+    def lower(self, *args):
+        with checks_without_callbacks():
+            return self.fn.lower(*args)
+
+
+def _residuals(problem, z):
+    return problem.residuals(z)
+
+
+def _jacobian(problem, z):
+    def f(x):
+        r, failed, steps = problem.residuals(x)
+        return r, (r, failed, steps)
+
+    J, (r, failed, steps) = jax.jacfwd(f, has_aux=True)(z)
+    return r, failed, steps, J
+
+
+#: `residuals_at(problem, z) -> (r, n_failed, steps)`, compiled.
+residuals_at = Program(eqx.filter_jit(_residuals))
+#: `jacobian_at(problem, z) -> (r, n_failed, steps, J)`: the residuals with their
+#: sensitivities `J = dr/dz` (N, p), by forward mode through the ODE solves (one program
+#: for both: the fit needs both at its start and at its estimate).
+jacobian_at = Program(eqx.filter_jit(_jacobian))
+
+
+class Subspace(eqx.Module):
+    """The residuals on the affine subspace `z = z0 + B w` (B: orthonormal columns), used
+    to hold exactly flat directions (a common scale) fixed during the optimisation."""
+
+    problem: Problem
+    z0: Array
+    B: Array
+
+    def residuals(self, w):
+        return self.problem.residuals(self.z0 + self.B @ w)
+
+    def __call__(self, w, args=None):
+        return self.residuals(w)[0], None
+
+
+class Pinned(eqx.Module):
+    """The residuals with coordinate `j` held at `zj` (for profile likelihoods)."""
+
+    problem: Problem
+    zj: Array
+    j: int = eqx.field(static=True)
+
+    def full(self, zr):
+        return jnp.concatenate([zr[:self.j], self.zj[None], zr[self.j:]])
+
+    def residuals(self, zr):
+        return self.problem.residuals(self.full(zr))
+
+    def __call__(self, zr, args=None):
+        return self.residuals(zr)[0], None

@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .problem import LOAD_NAMES, SCALE_GROUP
+from .request import FRICTION_SCALED, LOAD_NAMES, SCALE_GROUP
 
 __all__ = ["Uncertainty", "analyse", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
            "scale_message"]
@@ -186,7 +186,7 @@ def _known_directions(names, values, log, ref, geometry) -> list[tuple[np.ndarra
         return u / norm if norm > 0 else None
 
     # 1. Common scale: every mass, inertia, k, c and load amplitude times one factor.
-    group = [n for n in names if n in SCALE_GROUP or n in LOAD_NAMES]
+    group = [n for n in names if n in SCALE_GROUP or n in LOAD_NAMES or n in FRICTION_SCALED]
     u = vector({n: values[idx[n]] for n in group}) if group else None
     if u is not None:
         out.append((u, scale_message(group)))
