@@ -29,7 +29,8 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.identify.problem import build_problem, jacobian_at  # noqa: E402
+from crank_jax.identify.problem import build_problem  # noqa: E402
+from crank_jax.identify.programs import jacobian_at  # noqa: E402
 from crank_jax.identify.uncertainty import analyse  # noqa: E402
 from crank_jax.io import atomic_write  # noqa: E402
 

@@ -14,13 +14,8 @@ import crank_jax as cj
 from crank_jax.cli.identify import DEMO, demo_data
 from crank_jax.identify import fit as fit_module
 from crank_jax.identify.optimise import CHUNK, STALL_STEPS, lm_chunk
-from crank_jax.identify.problem import (
-    Subspace,
-    build_problem,
-    coordinate,
-    jacobian_at,
-    residuals_at,
-)
+from crank_jax.identify.problem import build_problem, coordinate
+from crank_jax.identify.programs import Subspace, jacobian_at, residuals_at
 from crank_jax.identify.start import observed_period, smooth_derivatives
 
 

@@ -37,15 +37,9 @@ import numpy as np
 from ..data import Data
 from ..scene import Scene
 from .optimise import Run, least_squares, minimise_optax
-from .problem import (
-    Problem,
-    Subspace,
-    build_problem,
-    jacobian_at,
-    linear_frequency,
-    pick_solver,
-)
+from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .profile import profile_likelihood
+from .programs import Subspace, jacobian_at
 from .request import STATE_NAMES, FitRequest, free_names, normalise
 from .result import ConvergenceWarning, FitResult, IdentifiabilityWarning, Profile
 from .start import half_window, noise_level, observed_period, regressor_start, smooth_derivatives
@@ -61,7 +55,7 @@ from .strategy import (
     ode_budget,
     perturb,
 )
-from .uncertainty import RANK_TOL, Uncertainty, analyse
+from .uncertainty import RANK_TOL, assess, undefined
 
 __all__ = ["fit", "FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning",
            "FREE_NAMES", "AUTO_PERIODS", "SEGMENT_PERIODS", "regressor_start"]
@@ -322,56 +316,15 @@ def _stalled(run: Run, n: int, plan: _Plan, req: FitRequest) -> bool:
     return not run.converged or far_from_noise(_rms(run, n), plan.noise, req.sigma)
 
 
-def _undefined(p: int, why: str) -> Uncertainty:
-    nan = np.full(p, np.nan)
-    return Uncertainty(nan, np.full((p, 2), np.nan), np.full((p, p), np.nan),
-                       np.full((p, p), np.nan), nan, math.inf, float("nan"), False, [why],
-                       np.ones(p, bool))
-
-
-def _assess(req: FitRequest, ss: Problem, z_hat, converged: bool):
-    """Residuals, sensitivities and uncertainty at the estimate (single shooting).
-
-    Identifiability is judged only at a converged estimate: a fit that did not converge
-    says so, not that the data cannot determine a direction."""
-    try:
-        r_hat, failed, _, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z_hat)))
-    except (RuntimeError, ValueError) as e:
-        return (np.full(ss.n_residuals, np.nan), np.asarray(ss.values(jnp.asarray(z_hat))),
-                float("nan"), _undefined(ss.p, f"sensitivities could not be computed: "
-                                                f"{str(e).splitlines()[0]}"), [])
-    values = np.asarray(ss.values(jnp.asarray(z_hat)))
-    n = ss.n_residuals
-    rms = float(np.sqrt(np.sum(r_hat**2) / n)) if int(failed) == 0 else float("nan")
-    notes: list[str] = []
-    if not converged or int(failed) > 0:
-        return r_hat, values, rms, _undefined(ss.p, "did not converge"), notes
-    if not np.all(np.isfinite(J)):
-        return r_hat, values, rms, _undefined(
-            ss.p, "the sensitivities are undefined at the estimate (the solve failed), so "
-                  "nothing can be said about identifiability"), notes
-    unc = analyse(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), req.sigma,
-                  geometry={k: float(getattr(ss.base, k)) for k in "rLbs"})
-    if not unc.identifiable:
-        notes += [f"not identifiable: {m}" for m in unc.directions]
-        bad = [nm for nm, a in zip(ss.names, unc.affected) if a]
-        notes.append(f"no standard errors for {', '.join(bad)}: the values reported for them "
-                     "are one point of a set that fits equally well, not estimates")
-    elif unc.condition_number > 1e6:
-        notes.append(f"the scaled sensitivity matrix is poorly conditioned (condition number "
-                     f"{unc.condition_number:.2g}): expect large, strongly correlated errors")
-    return r_hat, values, rms, unc, notes
-
-
 def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
     ss = plan.single
     z_hat = best.z[:ss.p] if np.all(np.isfinite(best.z)) else plan.z0[:ss.p]
     converged, message = best.converged, best.message
     if plan.abort:  # nothing was solved, and nothing more is
         r_hat, values = np.full(ss.n_residuals, np.nan), np.asarray(ss.values(z_hat))
-        rms, unc, more = float("nan"), _undefined(ss.p, "did not converge"), []
+        rms, unc, more = float("nan"), undefined(ss.p, "did not converge"), []
     else:
-        r_hat, values, rms, unc, more = _assess(req, ss, z_hat, converged)
+        r_hat, values, rms, unc, more = assess(ss, z_hat, converged, req.sigma)
     if converged and not math.isfinite(rms):
         converged, message = False, "the ODE solve fails at the final estimate"
     notes = more + notes + plan.notes

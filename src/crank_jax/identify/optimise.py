@@ -21,7 +21,7 @@ import optax
 import optimistix as optx
 from jaxtyping import Array
 
-from .problem import Program, residuals_at
+from .programs import Program, residuals_at
 
 __all__ = ["Run", "StallTest", "least_squares", "minimise_optax", "evaluate", "CHUNK",
            "STALL_STEPS", "progress_bar", "lm_chunk"]

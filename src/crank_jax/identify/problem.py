@@ -21,7 +21,6 @@ between processes.
 
 from __future__ import annotations
 
-import contextlib
 import math
 from collections.abc import Sequence
 
@@ -39,11 +38,10 @@ from ..model.loads import AbstractLoad, ConstantLoad, SampledLoad
 from ..model.params import FIELDS, SliderCrank
 from ..solve.policy import resolve_solver
 from .request import LOAD_NAMES, SIGNED_FIELDS
+from .segments import Segments, make_segments, padded_load
 
-__all__ = ["Problem", "Experiment", "Segments", "build_problem", "make_segments",
-           "bucket", "coordinate", "natural_period", "linear_frequency", "pick_solver",
-           "set_load_param", "residuals_at", "jacobian_at", "Program",
-           "checks_without_callbacks", "Subspace", "Pinned"]
+__all__ = ["Problem", "Experiment", "build_problem", "coordinate", "natural_period",
+           "linear_frequency", "pick_solver", "set_load_param"]
 
 # A failed solve gives NaN samples; a large finite residual instead makes the trust
 # region reject that step, where a NaN could poison the linear algebra.
@@ -52,15 +50,6 @@ _FAILED_RESIDUAL = 10.0
 # in units of r): the optimiser's first steps are O(1) in z.
 _ZERO_START_REF = 1e-3
 _TINY = 1e-9
-
-
-def bucket(m: int) -> int:
-    """The padded length of a row of `m` samples: the next of 64, 96, 128, 192, 256, ...
-    (two sizes per doubling, so at most a third of a row is padding)."""
-    size = 64
-    while size < m:
-        size = size * 3 // 2 if (size & (size - 1)) == 0 else size * 4 // 3
-    return size
 
 
 def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None = None
@@ -90,60 +79,6 @@ def set_load_param(load: AbstractLoad, field: str, value) -> AbstractLoad:
     if isinstance(load, ConstantLoad):
         return eqx.tree_at(lambda x: x.value, load, value)
     return eqx.tree_at(lambda x: getattr(x, field), load, value)
-
-
-class Segments(eqx.Module):
-    """One record cut into `S` shooting segments of `m` save times each (padded).
-
-    Segment `s` covers samples `starts[s] .. starts[s+1]` inclusive: the shared sample is
-    fitted by segment `s+1` (weight 0 in segment `s`) and is where continuity is imposed.
-    """
-
-    ts: Array  # (S, m) save times, strictly increasing in each row
-    phi: Array  # (S, m) data
-    w: Array  # (S, m) 1 for a fitted sample, 0 for padding and the shared end sample
-    end: Array  # (S,) int: index of the continuity sample in each row
-    first: Array  # (S,) int: index in the record of each row's first sample
-
-
-def make_segments(ts: np.ndarray, phi: np.ndarray, n_segments: int, pad: bool = True
-                  ) -> Segments:
-    """Split a record into `n_segments` segments of nearly equal sample counts, each row
-    padded to [`bucket`][] length (when `pad`)."""
-    n = ts.shape[0]
-    S = max(1, min(int(n_segments), n // 4))
-    bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
-    m = int(np.max(np.diff(bounds))) + 1 if S > 1 else n
-    m = bucket(m) if pad else m
-    T, P, W = np.zeros((S, m)), np.zeros((S, m)), np.zeros((S, m))
-    E, F = np.zeros(S, dtype=np.int32), np.zeros(S, dtype=np.int32)
-    for s in range(S):
-        a, b = bounds[s], bounds[s + 1]
-        k = b - a + 1 if S > 1 else n
-        seg_t = ts[a:a + k]
-        # Padding times continue just past the end, so each row stays strictly increasing
-        # without extending the integration by more than a few nanoseconds.
-        pad_t = seg_t[-1] + 1e-9 * np.arange(1, m - k + 1) * max(1.0, abs(seg_t[-1]))
-        T[s] = np.concatenate([seg_t, pad_t])
-        P[s, :k] = phi[a:a + k]
-        W[s, :k] = 1.0
-        if S > 1 and s < S - 1:
-            W[s, k - 1] = 0.0  # the shared sample belongs to the next segment
-        E[s], F[s] = k - 1, a
-    return Segments(jnp.asarray(T), jnp.asarray(P), jnp.asarray(W), jnp.asarray(E),
-                    jnp.asarray(F))
-
-
-def _padded_load(load: AbstractLoad) -> AbstractLoad:
-    # A sampled load's length is a shape: pad it (holding its last value, as it is held
-    # outside its samples anyway) so records of other lengths reuse the programs.
-    if not isinstance(load, SampledLoad):
-        return load
-    ts, vs = np.asarray(load.ts), np.asarray(load.values)
-    m = bucket(ts.shape[0])
-    extra = ts[-1] + np.arange(1, m - ts.shape[0] + 1) * max(1.0, abs(ts[-1] - ts[0]))
-    return SampledLoad(np.concatenate([ts, extra]),
-                       np.concatenate([vs, np.full(extra.shape, vs[-1])]))
 
 
 class Experiment(eqx.Module):
@@ -401,8 +336,8 @@ def build_problem(
                 log.append(False)
                 ref.append(r)
         seg = make_segments(data.ts, data.phi, n_segments[i], pad)
-        exps.append(Experiment(seg, _padded_load(load) if pad else load,
-                               _padded_load(torque) if pad else torque,
+        exps.append(Experiment(seg, padded_load(load) if pad else load,
+                               padded_load(torque) if pad else torque,
                                jnp.asarray(phi0, float), jnp.asarray(dphi0, float),
                                jnp.asarray(ref_phi, float), jnp.asarray(ref_dphi, float)))
     mech_start = mech.replace(**{n: start[n] for n in glob if n in FIELDS})
@@ -420,96 +355,3 @@ def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:
     (the record's padded segment times are not a uniform grid, so no save times)."""
     name = resolve_solver(solver, mech, rtol, load=load)
     return "dopri8" if name == "dopri8-uniform" else name
-
-
-@contextlib.contextmanager
-def checks_without_callbacks():
-    """Trace with equinox's runtime checks as NaN instead of host callbacks.
-
-    diffrax validates `SaveAt(ts)` with `eqx.error_if`, which in equinox's default mode
-    is a host callback, and JAX's persistent cache does not keep programs with host
-    callbacks, so every process would recompile every fit. equinox reads its mode
-    (`EQX_ON_ERROR`) when a program is traced; "nan" turns a failed check into NaN
-    samples, which the residuals turn into a rejected step. Our save times are strictly
-    increasing by construction, so the check never fires. (Only the tracing of the fit's
-    own programs is affected; the previous mode is restored on exit.)
-    """
-    import equinox._errors as eqx_errors
-
-    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
-    if old is None:  # another equinox: leave it alone
-        yield
-        return
-    eqx_errors.EQX_ON_ERROR = "nan"
-    try:
-        yield
-    finally:
-        eqx_errors.EQX_ON_ERROR = old
-
-
-class Program(eqx.Module):
-    """A compiled function of the fit, traced under [`checks_without_callbacks`][] so that
-    JAX's persistent cache can keep it. Call it, or `.lower(...)` it (for inspection)."""
-
-    fn: eqx.Module
-
-    def __call__(self, *args):
-        with checks_without_callbacks():
-            return self.fn(*args)
-
-    def lower(self, *args):
-        with checks_without_callbacks():
-            return self.fn.lower(*args)
-
-
-def _residuals(problem, z):
-    return problem.residuals(z)
-
-
-def _jacobian(problem, z):
-    def f(x):
-        r, failed, steps = problem.residuals(x)
-        return r, (r, failed, steps)
-
-    J, (r, failed, steps) = jax.jacfwd(f, has_aux=True)(z)
-    return r, failed, steps, J
-
-
-#: `residuals_at(problem, z) -> (r, n_failed, steps)`, compiled.
-residuals_at = Program(eqx.filter_jit(_residuals))
-#: `jacobian_at(problem, z) -> (r, n_failed, steps, J)`: the residuals with their
-#: sensitivities `J = dr/dz` (N, p), by forward mode through the ODE solves (one program
-#: for both: the fit needs both at its start and at its estimate).
-jacobian_at = Program(eqx.filter_jit(_jacobian))
-
-
-class Subspace(eqx.Module):
-    """The residuals on the affine subspace `z = z0 + B w` (B: orthonormal columns), used
-    to hold exactly flat directions (a common scale) fixed during the optimisation."""
-
-    problem: Problem
-    z0: Array
-    B: Array
-
-    def residuals(self, w):
-        return self.problem.residuals(self.z0 + self.B @ w)
-
-    def __call__(self, w, args=None):
-        return self.residuals(w)[0], None
-
-
-class Pinned(eqx.Module):
-    """The residuals with coordinate `j` held at `zj` (for profile likelihoods)."""
-
-    problem: Problem
-    zj: Array
-    j: int = eqx.field(static=True)
-
-    def full(self, zr):
-        return jnp.concatenate([zr[:self.j], self.zj[None], zr[self.j:]])
-
-    def residuals(self, zr):
-        return self.problem.residuals(self.full(zr))
-
-    def __call__(self, zr, args=None):
-        return self.residuals(zr)[0], None

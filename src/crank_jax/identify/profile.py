@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .optimise import evaluate, least_squares, progress_bar
-from .problem import Pinned, Problem
+from .problem import Problem
+from .programs import Pinned
 from .result import Profile
 
 __all__ = ["profile_likelihood", "CHI2_95"]
