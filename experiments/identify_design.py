@@ -29,8 +29,8 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.identify.fit import _jacobian, _residuals_jit  # noqa: E402
 from crank_jax.identify.problem import build_problem  # noqa: E402
+from crank_jax.identify.programs import jacobian_at  # noqa: E402
 from crank_jax.identify.uncertainty import analyse  # noqa: E402
 from crank_jax.io import atomic_write  # noqa: E402
 
@@ -57,8 +57,8 @@ def analyse_design(mech, kind: dict, phi0: float, params: tuple[str, ...]):
     pr = build_problem(mech, [(data, scene.load, scene.torque, phi0, 0.0)], free, start, [1],
                        solver="dopri8", rtol=1e-9, atol=1e-11, max_steps=100_000)
     z = jnp.asarray(pr.to_z([start[n] for n in params] + [phi0, 0.0]))
-    r, _, _ = _residuals_jit(pr, z)
-    J = np.asarray(_jacobian(pr, z))
+    r, _, _, J = jacobian_at(pr, z)
+    J = np.asarray(J)
     values = np.asarray(pr.values(z))
     unc = analyse(J, np.asarray(r), data.n, pr.names, values, pr.log, np.asarray(pr.ref),
                   sigma=SIGMA, geometry={k: float(getattr(mech, k)) for k in "rLbs"})

@@ -112,3 +112,20 @@ def test_demo_prints_estimates_with_intervals(tmp_path, capsys):
     doc = json.loads(out.read_text())
     assert doc["converged"] and doc["identifiable"]
     assert set(doc["estimates"]) == {"k", "c", "phi0", "dphi0"}
+
+
+def test_fit_window_options(pendulum_csv, tmp_path):
+    out = tmp_path / "fit.json"
+    assert main(["fit", str(pendulum_csv), "pendulum", "--free", "c,phi0,dphi0",
+                 "--t-start", "0.5", "--t-end", "1.8", "--out", str(out), "--quiet"]) == 0
+    data = cj.load_data(pendulum_csv)
+    doc = json.loads(out.read_text())
+    assert doc["n_samples"] == int(np.sum((data.ts >= 0.5) & (data.ts <= 1.8)))
+
+
+def test_fit_window_errors_exit_2(pendulum_csv, capsys):
+    assert main(["fit", str(pendulum_csv), "pendulum", "--t-start", "1.5", "--t-end",
+                 "1.0"]) == 2
+    assert "--t-start (1.5) must be before --t-end (1)" in capsys.readouterr().err
+    assert main(["fit", str(pendulum_csv), "pendulum", "--t-start", "50"]) == 2
+    assert "widen --t-start/--t-end" in capsys.readouterr().err

@@ -91,6 +91,11 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, help="iteration budget per start")
     p.add_argument("--sigma", type=float, help="known noise std, rad (default: from residuals)")
     p.add_argument("--profile", metavar="NAME", help="profile likelihood of one parameter")
+    p.add_argument("--t-start", type=float, dest="fit_t_start",
+                   help="fit only samples at or after this time, s (e.g. to trim a release "
+                        "transient)")
+    p.add_argument("--t-end", type=float, dest="fit_t_end",
+                   help="fit only samples at or before this time, s")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -159,9 +164,13 @@ def _fit_kwargs(a: argparse.Namespace) -> dict:
         raise UserError(f"--max-steps must be >= 1, got {a.max_steps}")
     if a.sigma is not None and not (np.isfinite(a.sigma) and a.sigma > 0):
         raise UserError(f"--sigma must be a positive number, got {a.sigma}")
+    lo, hi = getattr(a, "fit_t_start", None), getattr(a, "fit_t_end", None)
+    if lo is not None and hi is not None and not lo < hi:
+        raise UserError(f"--t-start ({lo:g}) must be before --t-end ({hi:g})")
+    window = None if lo is None and hi is None else (lo, hi)
     return dict(free=free, init=a.init, method=a.method, shooting=a.shooting,
                 segments=a.segments, multistart=a.multistart, seed=a.seed,
-                max_steps=a.max_steps, sigma=a.sigma, profile=a.profile,
+                max_steps=a.max_steps, sigma=a.sigma, profile=a.profile, window=window,
                 progress=not a.quiet, warn=False)
 
 

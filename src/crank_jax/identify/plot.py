@@ -31,7 +31,7 @@ def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
     state = "converged" if result.converged else "NOT converged"
-    ident = "" if result.identifiable else ", NOT identifiable"
+    ident = ", NOT identifiable" if result.identifiable is False else ""
     ax1.set_title((title + "\n" if title else "") + f"{state}{ident}; rms residual "
                   f"{result.rms_residual:.3g} rad; condition number "
                   f"{result.condition_number:.3g}", fontsize=9)

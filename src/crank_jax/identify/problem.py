@@ -1,15 +1,22 @@
 """The least-squares problem behind [`fit`][]: free parameters, their coordinates, and the
 residual function (single or multiple shooting, one or several records).
 
-Coordinates `z` (what the optimisers see, all O(1)):
+Coordinates `z` (what the optimisers see, all O(1)), chosen per name by
+[`coordinate`][]:
 
-- the twelve mechanism fields are positive, so they are fitted as `z = ln(value)`: a step
-  in `z` is a relative change, positivity needs no constraint, and the columns of the
-  Jacobian are the sensitivities *scaled by the parameter values* that the identifiability
-  analysis needs;
-- the initial states and load amplitudes are signed: `z = value / ref`, with `ref` a
-  typical magnitude (the record's angle amplitude, that times the natural frequency, or
-  the load's amplitude).
+- a mechanism field that cannot be negative and starts positive is fitted as
+  `z = ln(value)`: a step in `z` is a relative change, positivity needs no constraint,
+  and the columns of the Jacobian are the sensitivities *scaled by the parameter values*
+  that the identifiability analysis needs;
+- everything else (a signed field such as the offset `e`, a field that starts at 0 such
+  as a friction coefficient, the initial states and load amplitudes) is linear:
+  `z = value / ref`, with `ref` a typical magnitude (the start value, the record's angle
+  amplitude, that times the natural frequency).
+
+Shapes are bucketed (each record is padded to one of a few lengths with samples of weight
+0), so records of other lengths reuse the compiled programs; and the ODE solve carries no
+host callback (no `eqx.error_if`), so JAX's persistent cache can keep those programs
+between processes.
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -26,73 +34,45 @@ from jaxtyping import Array
 from ..data import Data
 from ..model.dynamics import Structure
 from ..model.linear import linearize
-from ..model.loads import LOAD_PARAMS, AbstractLoad, get_param, set_param
+from ..model.loads import AbstractLoad, set_param
 from ..model.params import FIELDS, SliderCrank
 from ..solve.policy import resolve_solver
 from ..solve.simulate import simulate
+from .request import LOAD_NAMES, SIGNED_FIELDS
+from .segments import Segments, make_segments, padded_load
 
-__all__ = ["STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP", "Problem", "build_problem",
-           "smooth_derivatives"]
-
-STATE_NAMES = ("phi0", "dphi0")
-#: Load parameters that can be free, name -> (side, role) from the load table
-#: (`model.loads.LOAD_PARAMS`): each load's mean and amplitude (they enter linearly).
-LOAD_NAMES = {n: sr for n, sr in LOAD_PARAMS.items() if sr[1] in ("mean", "amp")}
-#: Parameters that enter the equation of motion linearly: scaling all of them (and every
-#: load) by one factor leaves the motion unchanged (DESIGN.md section 3).
-SCALE_GROUP = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
+__all__ = ["Problem", "Experiment", "build_problem", "coordinate", "natural_period",
+           "linear_frequency", "pick_solver"]
 
 # A failed solve gives NaN samples; a large finite residual instead makes the trust
 # region reject that step, where a NaN could poison the linear algebra.
 _FAILED_RESIDUAL = 10.0
+# Linear scale of a mechanism field that starts at 0 (a friction coefficient, an offset
+# in units of r): the optimiser's first steps are O(1) in z.
+_ZERO_START_REF = 1e-3
+_TINY = 1e-9
 
 
-def load_param(load: AbstractLoad, role: str) -> float | None:
-    """The value of a load's `role` ("mean", "amp", ...), or None if its kind lacks it."""
-    v = get_param(load, role)
-    return None if v is None else float(v)
+def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None = None
+               ) -> tuple[bool, float]:
+    """`(log, ref)` of a global free name: log coordinates for a mechanism field that
+    cannot be negative and starts positive; otherwise linear with scale `ref`.
 
-
-def set_load_param(load: AbstractLoad, role: str, value) -> AbstractLoad:
-    """A copy of `load` with `role` set to `value` (see `model.loads.set_param`)."""
-    return set_param(load, role, value)
-
-
-class Segments(eqx.Module):
-    """One record cut into `S` shooting segments of `m` save times each (padded).
-
-    Segment `s` covers samples `starts[s] .. starts[s+1]` inclusive: the shared sample is
-    fitted by segment `s+1` (weight 0 in segment `s`) and is where continuity is imposed.
+    A field that starts at 0 takes its scale from the record's observed angular frequency
+    `omega` (rad/s) and the linearised inertia `mu`: `mu omega^2` for k, 5% damping
+    (`0.1 mu omega`) for c; an offset e takes a tenth of r.
     """
-
-    ts: Array  # (S, m) save times, strictly increasing in each row
-    phi: Array  # (S, m) data
-    w: Array  # (S, m) 1 for a fitted sample, 0 for padding and the shared end sample
-    end: Array  # (S,) int: index of the continuity sample in each row
-
-
-def make_segments(ts: np.ndarray, phi: np.ndarray, n_segments: int) -> Segments:
-    """Split a record into `n_segments` segments of nearly equal sample counts."""
-    n = ts.shape[0]
-    S = max(1, min(int(n_segments), n // 4))
-    bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
-    m = int(np.max(np.diff(bounds))) + 1 if S > 1 else n
-    T, P, W, E = (np.zeros((S, m)), np.zeros((S, m)), np.zeros((S, m)),
-                  np.zeros(S, dtype=np.int32))
-    for s in range(S):
-        a, b = bounds[s], bounds[s + 1]
-        k = b - a + 1 if S > 1 else n
-        seg_t = ts[a:a + k]
-        # Padding times continue just past the end, so each row stays strictly increasing
-        # without extending the integration by more than a few nanoseconds.
-        pad = seg_t[-1] + 1e-9 * np.arange(1, m - k + 1) * max(1.0, abs(seg_t[-1]))
-        T[s] = np.concatenate([seg_t, pad])
-        P[s, :k] = phi[a:a + k]
-        W[s, :k] = 1.0
-        if S > 1 and s < S - 1:
-            W[s, k - 1] = 0.0  # the shared sample belongs to the next segment
-        E[s] = k - 1
-    return Segments(jnp.asarray(T), jnp.asarray(P), jnp.asarray(W), jnp.asarray(E))
+    if name in FIELDS and name not in SIGNED_FIELDS and start > 0:
+        return True, 1.0
+    if start != 0:
+        return False, abs(start)
+    if name in SIGNED_FIELDS:
+        return False, 0.1 * float(mech.r)
+    if omega and name in ("k", "c"):
+        mu = float(np.asarray(linearize(mech).mu))
+        if math.isfinite(mu) and mu > 0:
+            return False, mu * omega**2 if name == "k" else 0.1 * mu * omega
+    return False, _ZERO_START_REF
 
 
 class Experiment(eqx.Module):
@@ -107,7 +87,13 @@ class Experiment(eqx.Module):
     # every fit.
     ref_phi: Array
     ref_dphi: Array
-    n: int = eqx.field(static=True)  # number of samples
+
+    @property
+    def n(self) -> int:
+        """Number of fitted samples (host side)."""
+        return int(np.asarray(self.seg.w).sum())
+
+
 
 
 class Problem(eqx.Module):
@@ -176,11 +162,11 @@ class Problem(eqx.Module):
         for e in self.exps:
             load, torque = e.load, e.torque
             for name, v in load_vals.items():
-                which, field = LOAD_NAMES[name]
-                if which == "load":
-                    load = set_load_param(load, field, v)
+                side, role = LOAD_NAMES[name]
+                if side == "load":
+                    load = set_param(load, role, v, side)
                 else:
-                    torque = set_load_param(torque, field, v)
+                    torque = set_param(torque, role, v, side)
             phi0, dphi0 = e.phi0, e.dphi0
             if self.state_free[0]:
                 phi0 = vals[k]
@@ -199,15 +185,34 @@ class Problem(eqx.Module):
     # --- residuals --------------------------------------------------------------------
 
     def simulate_segments(self, mech, e: Experiment, load, torque, y0s):
-        """Model angles and rates on every segment: (phi, dphi), each (S, m)."""
+        """Model angles and rates on every segment: (phi, dphi), each (S, m), NaN after a
+        failed solve, and the ODE steps each segment's solve took (S,).
+
+        Through `simulate`, so the fit runs the solvers and the policy everyone runs. The
+        programs are traced under `programs.checks_without_callbacks`, so its checks on
+        traced values hold no host callback (JAX's persistent cache keeps the program):
+        a trial point outside the valid set fails its solve, which the residuals turn
+        into a rejection."""
         def one(ts, y0):
             tr = simulate(mech, y0[0], y0[1], ts, load=load, torque=torque,
                           solver=self.solver, rtol=self.rtol, atol=self.atol,
                           max_steps=self.max_steps, adjoint=self.adjoint,
                           structure=self.structure, throw=False)
-            return tr.phi, tr.dphi, tr.num_steps
+            ok = tr.result == diffrax.RESULTS.successful
+            return (jnp.where(ok, tr.phi, jnp.nan), jnp.where(ok, tr.dphi, jnp.nan),
+                    tr.num_steps)
 
         return jax.vmap(one)(e.seg.ts, y0s)
+
+    def fitted(self, r) -> list[np.ndarray]:
+        """Model angles at each record's samples, from single-shooting residuals `r`
+        (r = model - data), rad."""
+        out, k = [], 0
+        for e in self.exps:
+            size = int(np.prod(e.seg.ts.shape))
+            out.append(np.asarray(e.seg.phi[0, :e.n]) + np.asarray(r)[k:k + e.n])
+            k += size
+        return out
 
     def residuals(self, z: Array) -> tuple[Array, Array, Array]:
         """(r, n_failed, steps): the stacked residual vector, how many samples failed,
@@ -240,26 +245,11 @@ class Problem(eqx.Module):
         return self.residuals(z)[0], None
 
 
-def smooth_derivatives(ts: np.ndarray, phi: np.ndarray, half: int):
-    """Local quartic least-squares fits (a Savitzky-Golay filter for irregular samples).
-
-    **Arguments:** `ts`, `phi` (n,); `half`, the half-width of the window in samples (the
-    window is shifted inwards at the ends). **Returns:** `(phi, dphi, ddphi)`, each (n,).
-    """
-    n = ts.shape[0]
-    w = min(max(2 * half + 1, 7), n)
-    start = np.clip(np.arange(n) - half, 0, n - w)
-    idx = start[:, None] + np.arange(w)[None, :]
-    dt = ts[idx] - ts[:, None]
-    h = np.maximum(np.abs(dt).max(axis=1, keepdims=True), 1e-12)
-    x = dt / h  # scaled for conditioning
-    # Quartic: a cubic's error in phi'' is ~25x larger over the same window.
-    V = x[..., None] ** np.arange(5)
-    A = np.einsum("nwi,nwj->nij", V, V)
-    bvec = np.einsum("nwi,nw->ni", V, phi[idx])
-    c = np.linalg.solve(A + 1e-12 * np.eye(5), bvec[..., None])[..., 0]
-    hh = h[:, 0]
-    return c[:, 0], c[:, 1] / hh, 2 * c[:, 2] / hh**2
+def linear_frequency(mech: SliderCrank, load: AbstractLoad | None = None) -> float | None:
+    """The linearised natural frequency omega_n, rad/s, or None when phi = 0 is not a
+    stable equilibrium."""
+    period = natural_period(mech, load)
+    return 2 * math.pi / period if period is not None else None
 
 
 def natural_period(mech: SliderCrank, load: AbstractLoad | None = None) -> float | None:
@@ -281,6 +271,8 @@ def build_problem(
     atol: float,
     max_steps: int,
     adjoint: str = "forward",
+    pad: bool = True,
+    omega: float | None = None,
 ) -> Problem:
     """Assemble a [`Problem`][].
 
@@ -290,16 +282,23 @@ def build_problem(
     - `records`: per record `(data, load, torque, phi0, dphi0)`; the state is the start
       value (or the fixed value, when not free) at the record's first sample.
     - `free`: names from `FIELDS`, `LOAD_NAMES` and `STATE_NAMES`.
-    - `start`: start value of every free global name, and `phi0[i]`/`dphi0[i]` per record.
+    - `start`: start value of every free global name.
     - `n_segments`: shooting segments per record (1 = single shooting).
+    - `solver`, `rtol`, `atol`, `max_steps`: the ODE solve; `adjoint`: `"forward"` (for
+      Jacobians) or `"reverse"` (for gradients).
+    - `pad`: pad each record to a [`bucket`][] length (weight-0 samples), so that records
+      of other lengths reuse the compiled programs.
+    - `omega`: the records' observed angular frequency, rad/s (scales a free field that
+      starts at 0; see [`coordinate`][]).
     """
-    glob = [n for n in free if n not in STATE_NAMES]
+    glob = [n for n in free if n not in ("phi0", "dphi0")]
     state_free = (("phi0" in free), ("dphi0" in free))
     names, log, ref = [], [], []
     for n in glob:
+        lg, rf = coordinate(n, float(start[n]), mech, omega)
         names.append(n)
-        log.append(n in FIELDS)
-        ref.append(1.0 if n in FIELDS else max(abs(start[n]), 1e-6))
+        log.append(lg)
+        ref.append(rf)
     exps = []
     multi = len(records) > 1
     for i, (data, load, torque, phi0, dphi0) in enumerate(records):
@@ -314,12 +313,16 @@ def build_problem(
                 names.append(f"{name}[{i}]" if multi else name)
                 log.append(False)
                 ref.append(r)
-        seg = make_segments(data.ts, data.phi, n_segments[i])
-        exps.append(Experiment(seg, load, torque, jnp.asarray(phi0, float),
-                               jnp.asarray(dphi0, float), jnp.asarray(ref_phi, float),
-                               jnp.asarray(ref_dphi, float), data.n))
+        seg = make_segments(data.ts, data.phi, n_segments[i], pad)
+        exps.append(Experiment(seg, padded_load(load) if pad else load,
+                               padded_load(torque) if pad else torque,
+                               jnp.asarray(phi0, float), jnp.asarray(dphi0, float),
+                               jnp.asarray(ref_phi, float), jnp.asarray(ref_dphi, float)))
     mech_start = mech.replace(**{n: start[n] for n in glob if n in FIELDS})
-    structure = Structure.of(mech_start)
+    # A zero is structure (the compiled program leaves its term out), but a free field
+    # that starts at 0 must keep its term, or its sensitivity would be exactly zero.
+    nonzero = mech_start.replace(**{n: _TINY for n in glob if n in FIELDS and start[n] == 0})
+    structure = Structure.of(mech_start).union(Structure.of(nonzero))
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
                    len(glob), state_free, solver, structure, jnp.asarray(rtol),
                    jnp.asarray(atol), int(max_steps), adjoint)
@@ -328,4 +331,5 @@ def build_problem(
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:
     """The ODE solver of a fit: the scene's, or the automatic choice at the start values
     (the record's padded segment times are not a uniform grid, so no save times)."""
-    return resolve_solver(solver, mech, rtol, load=load)
+    name = resolve_solver(solver, mech, rtol, load=load)
+    return "dopri8" if name == "dopri8-uniform" else name

@@ -21,11 +21,13 @@ import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
-from .problem import LOAD_NAMES, SCALE_GROUP
+from .programs import jacobian_at
+from .request import FRICTION_SCALED, LOAD_NAMES, SCALE_GROUP
 
-__all__ = ["Uncertainty", "analyse", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
+__all__ = ["Uncertainty", "analyse", "assess", "undefined", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
            "scale_message"]
 
 #: Two-sided 95% quantile of the standard normal distribution.
@@ -186,7 +188,7 @@ def _known_directions(names, values, log, ref, geometry) -> list[tuple[np.ndarra
         return u / norm if norm > 0 else None
 
     # 1. Common scale: every mass, inertia, k, c and load amplitude times one factor.
-    group = [n for n in names if n in SCALE_GROUP or n in LOAD_NAMES]
+    group = [n for n in names if n in SCALE_GROUP or n in LOAD_NAMES or n in FRICTION_SCALED]
     u = vector({n: values[idx[n]] for n in group}) if group else None
     if u is not None:
         out.append((u, scale_message(group)))
@@ -232,3 +234,46 @@ def _describe(Vf: np.ndarray, names, log, se_dir, out: list[str]) -> None:
                    f"{max(len(involved) - d, 0)} combinations ({d} directions are not "
                    f"determined): fix {d} of them, or make the "
                    "experiment richer (a larger amplitude, a known load)")
+
+
+def undefined(p: int, why: str) -> Uncertainty:
+    """An [`Uncertainty`][] with nothing defined (NaN), for a fit with no estimate."""
+    nan = np.full(p, np.nan)
+    return Uncertainty(nan, np.full((p, 2), np.nan), np.full((p, p), np.nan),
+                       np.full((p, p), np.nan), nan, math.inf, float("nan"), False, [why],
+                       np.ones(p, bool))
+
+
+def assess(ss, z_hat, converged: bool, sigma: float | None = None):
+    """Residuals, sensitivities and uncertainty at the estimate `z_hat` of the
+    single-shooting problem `ss`. **Returns:** `(r, values, rms, Uncertainty, notes)`.
+
+    Identifiability is judged only at a converged estimate: a fit that did not converge
+    says so, not that the data cannot determine a direction."""
+    try:
+        r_hat, failed, _, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z_hat)))
+    except (RuntimeError, ValueError) as e:
+        return (np.full(ss.n_residuals, np.nan), np.asarray(ss.values(jnp.asarray(z_hat))),
+                float("nan"), undefined(ss.p, f"sensitivities could not be computed: "
+                                                f"{str(e).splitlines()[0]}"), [])
+    values = np.asarray(ss.values(jnp.asarray(z_hat)))
+    n = ss.n_residuals
+    rms = float(np.sqrt(np.sum(r_hat**2) / n)) if int(failed) == 0 else float("nan")
+    notes: list[str] = []
+    if not converged or int(failed) > 0:
+        return r_hat, values, rms, undefined(ss.p, "did not converge"), notes
+    if not np.all(np.isfinite(J)):
+        return r_hat, values, rms, undefined(
+            ss.p, "the sensitivities are undefined at the estimate (the solve failed), so "
+                  "nothing can be said about identifiability"), notes
+    unc = analyse(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
+                  geometry={k: float(getattr(ss.base, k)) for k in "rLbs"})
+    if not unc.identifiable:
+        notes += [f"not identifiable: {m}" for m in unc.directions]
+        bad = [nm for nm, a in zip(ss.names, unc.affected) if a]
+        notes.append(f"no standard errors for {', '.join(bad)}: the values reported for them "
+                     "are one point of a set that fits equally well, not estimates")
+    elif unc.condition_number > 1e6:
+        notes.append(f"the scaled sensitivity matrix is poorly conditioned (condition number "
+                     f"{unc.condition_number:.2g}): expect large, strongly correlated errors")
+    return r_hat, values, rms, unc, notes

@@ -1,0 +1,66 @@
+"""Profile likelihood of one parameter: every other free parameter re-fitted on a grid."""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from .optimise import evaluate, least_squares, progress_bar
+from .problem import Problem
+from .programs import Pinned
+from .result import Profile
+
+__all__ = ["profile_likelihood", "CHI2_95"]
+
+#: 95% quantile of chi-squared with 1 degree of freedom.
+CHI2_95 = 3.841458820694124
+
+
+def profile_likelihood(problem: Problem, z_hat, j: int, se_z: float, n: int, max_steps: int,
+                       tol: float, progress: bool) -> Profile:
+    """Profile likelihood of coordinate `j` on a grid of +-3 standard errors (or +-ln 2 /
+    +-50% of `ref` if none), warm-started outwards from the estimate `z_hat` (p,).
+
+    **Returns:** a [`Profile`][] with `n ln(RSS / RSS_min)` per grid point.
+    """
+    half = 3 * se_z if math.isfinite(se_z) and se_z > 0 else (
+        math.log(2) if problem.log[j] else 0.5)
+    grid = np.linspace(-half, half, 9)
+    z_hat = np.asarray(z_hat)
+    rss_min = 2 * evaluate(problem, z_hat)[0]
+    rss = np.full(grid.shape, np.nan)
+    centre = int(np.argmin(np.abs(grid)))
+    zr_hat = np.delete(z_hat, j)
+    with progress_bar(len(grid), f"profile {problem.names[j]}", progress) as bar:
+        for direction in (range(centre, len(grid)), range(centre - 1, -1, -1)):
+            zr = zr_hat.copy()
+            for k in direction:
+                pinned = Pinned(problem, jnp.asarray(z_hat[j] + grid[k]), j)
+                run = least_squares(pinned, zr, max_steps, tol, "", False)
+                if np.isfinite(run.cost):
+                    rss[k] = 2 * run.cost
+                    zr = run.z  # warm start the next grid point
+                bar.update(1)
+    rss_min = min(rss_min, float(np.nanmin(rss))) if np.any(np.isfinite(rss)) else rss_min
+    dev = n * np.log(rss / rss_min)
+    zs = z_hat[j] + grid
+    values = np.exp(zs) if problem.log[j] else zs * float(problem.ref[j])
+    return Profile(problem.names[j], values, dev, _crossings(values, dev, centre))
+
+
+def _crossings(values, dev, centre) -> tuple[float | None, float | None]:
+    def cross(rng):
+        prev = centre
+        for k in rng:
+            if not np.isfinite(dev[k]):
+                return None
+            if dev[k] > CHI2_95:
+                d0, d1 = dev[prev], dev[k]
+                f = (CHI2_95 - d0) / (d1 - d0) if d1 != d0 else 0.0
+                return float(values[prev] + f * (values[k] - values[prev]))
+            prev = k
+        return None
+
+    return cross(range(centre - 1, -1, -1)), cross(range(centre + 1, len(values)))

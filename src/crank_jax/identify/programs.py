@@ -1,0 +1,112 @@
+"""The fit's compiled programs, and the residual views the optimisers see.
+
+Every program is traced under [`checks_without_callbacks`][], so that none holds a host
+callback and JAX's persistent cache can keep it between processes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from .problem import Problem
+
+__all__ = ["checks_without_callbacks", "Program", "residuals_at", "jacobian_at", "Subspace",
+           "Pinned"]
+
+
+@contextlib.contextmanager
+def checks_without_callbacks():
+    """Trace with equinox's runtime checks as NaN instead of host callbacks.
+
+    diffrax validates `SaveAt(ts)` with `eqx.error_if`, which in equinox's default mode
+    is a host callback, and JAX's persistent cache does not keep programs with host
+    callbacks, so every process would recompile every fit. equinox reads its mode
+    (`EQX_ON_ERROR`) when a program is traced; "nan" turns a failed check into NaN
+    samples, which the residuals turn into a rejected step. Our save times are strictly
+    increasing by construction, so the check never fires. (Only the tracing of the fit's
+    own programs is affected; the previous mode is restored on exit.)
+    """
+    import equinox._errors as eqx_errors
+
+    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
+    if old is None:  # another equinox: leave it alone
+        yield
+        return
+    eqx_errors.EQX_ON_ERROR = "nan"
+    try:
+        yield
+    finally:
+        eqx_errors.EQX_ON_ERROR = old
+
+
+class Program(eqx.Module):
+    """A compiled function of the fit, traced under [`checks_without_callbacks`][] so that
+    JAX's persistent cache can keep it. Call it, or `.lower(...)` it (for inspection)."""
+
+    fn: eqx.Module
+
+    def __call__(self, *args):
+        with checks_without_callbacks():
+            return self.fn(*args)
+
+    def lower(self, *args):
+        with checks_without_callbacks():
+            return self.fn.lower(*args)
+
+
+def _residuals(problem, z):
+    return problem.residuals(z)
+
+
+def _jacobian(problem, z):
+    def f(x):
+        r, failed, steps = problem.residuals(x)
+        return r, (r, failed, steps)
+
+    J, (r, failed, steps) = jax.jacfwd(f, has_aux=True)(z)
+    return r, failed, steps, J
+
+
+#: `residuals_at(problem, z) -> (r, n_failed, steps)`, compiled.
+residuals_at = Program(eqx.filter_jit(_residuals))
+#: `jacobian_at(problem, z) -> (r, n_failed, steps, J)`: the residuals with their
+#: sensitivities `J = dr/dz` (N, p), by forward mode through the ODE solves (one program
+#: for both: the fit needs both at its start and at its estimate).
+jacobian_at = Program(eqx.filter_jit(_jacobian))
+
+
+class Subspace(eqx.Module):
+    """The residuals on the affine subspace `z = z0 + B w` (B: orthonormal columns), used
+    to hold exactly flat directions (a common scale) fixed during the optimisation."""
+
+    problem: Problem
+    z0: Array
+    B: Array
+
+    def residuals(self, w):
+        return self.problem.residuals(self.z0 + self.B @ w)
+
+    def __call__(self, w, args=None):
+        return self.residuals(w)[0], None
+
+
+class Pinned(eqx.Module):
+    """The residuals with coordinate `j` held at `zj` (for profile likelihoods)."""
+
+    problem: Problem
+    zj: Array
+    j: int = eqx.field(static=True)
+
+    def full(self, zr):
+        return jnp.concatenate([zr[:self.j], self.zj[None], zr[self.j:]])
+
+    def residuals(self, zr):
+        return self.problem.residuals(self.full(zr))
+
+    def __call__(self, zr, args=None):
+        return self.residuals(zr)[0], None

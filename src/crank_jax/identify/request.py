@@ -1,0 +1,250 @@
+"""Normalise and check a fit request before any compute.
+
+Every mistake a user can make in a call to [`fit`][] (an unknown name, a profile of a
+parameter that is not free, a start value outside a parameter's domain, scenes that
+disagree about the mechanism, a window with too few samples) is found here and raised as
+one `ValueError` naming the field and the fix, before a single ODE is solved.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..data import Data
+from ..model.loads import LOAD_PARAMS, AbstractLoad, get_param, load_kind
+from ..model.params import FIELDS
+from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
+from ..scene import Scene
+
+__all__ = ["FitRequest", "normalise", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
+           "SIGNED_FIELDS", "FRICTION_SCALED", "free_names", "load_param", "reported_names",
+           "window_data"]
+
+STATE_NAMES = ("phi0", "dphi0")
+#: Load parameters that can be free, name -> (side, role), from the one load table
+#: (`model.loads.LOAD_PARAMS`): each load's mean and amplitude (they enter linearly).
+LOAD_NAMES = {n: sr for n, sr in LOAD_PARAMS.items() if sr[1] in ("mean", "amp")}
+#: Parameters that enter the equation of motion linearly: scaling all of them (and every
+#: load) by one factor leaves the motion unchanged (DESIGN.md section 3).
+SCALE_GROUP = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
+#: Friction coefficients (where the model has them) scale with that group too: every term
+#: of the equation of motion is then multiplied by the same factor.
+FRICTION_SCALED = ("c_s", "T_c", "F_s")
+#: Mechanism fields that may be negative (the slider line's offset, from `model.params`);
+#: every other field is >= 0, and r, L strictly positive.
+SIGNED_FIELDS = frozenset(PARAM_SIGNED_FIELDS)
+_STRICTLY_POSITIVE = frozenset({"r", "L"})
+_METHODS = ("lm", "optax")
+_SHOOTING = ("auto", "single", "multiple")
+
+
+def free_names() -> tuple[str, ...]:
+    """Every name that can be free: the mechanism fields (read from `FIELDS`, so new
+    fields can be free as soon as the model has them), the load amplitudes and the
+    initial state."""
+    return tuple(FIELDS) + tuple(LOAD_NAMES) + STATE_NAMES
+
+
+def load_param(load: AbstractLoad, role: str) -> float | None:
+    """The value of a load's `role` ("mean" or "amp", see `model.loads.ROLES`), or None
+    when that load's kind has no such parameter."""
+    v = get_param(load, role)
+    return None if v is None else float(np.asarray(v))
+
+
+def reported_names(free: Sequence[str], n_records: int) -> tuple[str, ...]:
+    """The names a fit reports: the global free names, then `phi0[i]`/`dphi0[i]` per
+    record (no suffix for a single record)."""
+    glob = [n for n in free if n not in STATE_NAMES]
+    states = [n for n in STATE_NAMES if n in free]
+    if n_records == 1:
+        return tuple(glob + states)
+    return tuple(glob + [f"{n}[{i}]" for i in range(n_records) for n in states])
+
+
+@dataclasses.dataclass(frozen=True)
+class FitRequest:
+    """A checked fit request (see [`fit`][] for the meaning of each option).
+
+    `records` are the windowed records; `loads` holds each record's `(load, torque)` (its
+    own, else its scene's); `states` each record's fixed `(phi0, dphi0)` (its scene's),
+    used for a state that is not free. `start` holds the start value of every free global
+    name (the initial states start from the data, later).
+    """
+
+    scene: Scene
+    records: tuple[Data, ...]
+    loads: tuple[tuple[AbstractLoad, AbstractLoad], ...]
+    states: tuple[tuple[float, float], ...]
+    free: tuple[str, ...]
+    names: tuple[str, ...]
+    start: dict
+    init: str
+    method: str
+    shooting: str
+    segments: int | None
+    multistart: int
+    seed: int
+    max_steps: int
+    tol: float
+    sigma: float | None
+    profile: str | None
+    window: tuple[float, float] | None
+    progress: bool
+    warn: bool
+
+
+def window_data(d: Data, window: tuple[float, float] | None) -> Data:
+    """The samples of `d` with `t_start <= t <= t_end` (either end may be +-inf)."""
+    if window is None:
+        return d
+    lo, hi = window
+    keep = (d.ts >= lo) & (d.ts <= hi)
+    if int(keep.sum()) < 8:
+        raise ValueError(f"window [{lo:g}, {hi:g}] s keeps {int(keep.sum())} samples of "
+                         f"{d.source} (which spans [{d.ts[0]:g}, {d.ts[-1]:g}] s); widen "
+                         "--t-start/--t-end")
+    return Data(d.ts[keep], d.phi[keep], d.load, d.torque, source=d.source)
+
+
+def _check_scenes(scenes: list[Scene]) -> None:
+    # A multi-experiment fit shares one mechanism and one solver; scenes may differ only
+    # in what an experiment changes: its loads and its initial state.
+    first = scenes[0]
+    for i, sc in enumerate(scenes[1:], start=1):
+        for n in FIELDS:
+            if not np.array_equal(np.asarray(getattr(sc.mech, n)),
+                                  np.asarray(getattr(first.mech, n))):
+                raise ValueError(f"scene {i} has {n} = {float(getattr(sc.mech, n)):g}, scene "
+                                 f"0 has {float(getattr(first.mech, n)):g}: the scenes of a "
+                                 "multi-record fit must share the mechanism (they may differ "
+                                 "only in loads and initial state)")
+        for n in ("solver", "rtol", "atol"):
+            a, b = getattr(sc, n), getattr(first, n)
+            if not np.array_equal(np.asarray(a), np.asarray(b)):
+                raise ValueError(f"scene {i} has {n} = {a}, scene 0 has {b}: the scenes of a "
+                                 "multi-record fit must share the solver settings")
+
+
+def _check_options(method, shooting, segments, multistart, max_steps, tol, sigma) -> None:
+    if method not in _METHODS:
+        raise ValueError(f"method must be 'lm' or 'optax', got {method!r}")
+    if shooting not in _SHOOTING:
+        raise ValueError(f"shooting must be 'auto', 'single' or 'multiple', got {shooting!r}")
+    if segments is not None and (segments < 1 or shooting == "single" and segments > 1):
+        raise ValueError(f"segments = {segments} is not valid with shooting={shooting!r}")
+    if multistart < 1:
+        raise ValueError(f"multistart must be >= 1, got {multistart}")
+    if max_steps is not None and max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    if not (math.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be a positive number, got {tol}")
+    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be a positive number (rad), got {sigma}")
+
+
+def _check_window(window) -> tuple[float, float] | None:
+    if window is None:
+        return None
+    lo, hi = window
+    lo = -math.inf if lo is None else float(lo)
+    hi = math.inf if hi is None else float(hi)
+    if not lo < hi:
+        raise ValueError(f"window must have t_start < t_end, got [{lo:g}, {hi:g}]")
+    return lo, hi
+
+
+def _load_starts(free, records, loads) -> dict[str, float]:
+    start = {}
+    for n in free:
+        if n not in LOAD_NAMES:
+            continue
+        which, role = LOAD_NAMES[n]
+        for d, (load, torque) in zip(records, loads):
+            if (d.load if which == "load" else d.torque) is not None:
+                raise ValueError(f"{n} cannot be free: record {d.source} supplies its own "
+                                 f"{'P' if which == 'load' else 'tau'} as data")
+            obj = load if which == "load" else torque
+            v = load_param(obj, role)
+            if v is None:
+                raise ValueError(f"{n} cannot be free: the scene's {which} is "
+                                 f"{type(obj).__name__} ({load_kind(obj).name}), which has "
+                                 f"no {n}; give the scene a harmonic {which} (or, for "
+                                 f"{n[:-1]}0, a constant one)")
+            start[n] = float(v)
+    return start
+
+
+def _check_start(start: dict[str, float]) -> None:
+    for n, v in start.items():
+        if not math.isfinite(v):
+            raise ValueError(f"the start value of {n} is {v}; give a finite init={{'{n}': ...}}")
+        if n in _STRICTLY_POSITIVE and v <= 0:
+            raise ValueError(f"the start value of {n} is {v}; {n} must be > 0 (it is fitted "
+                             f"in log space): pass init={{'{n}': ...}}")
+        if n in FIELDS and n not in SIGNED_FIELDS and v < 0:
+            raise ValueError(f"the start value of {n} is {v}; {n} must be >= 0: pass "
+                             f"init={{'{n}': ...}}")
+
+
+def normalise(scene, data, free, *, init, method, shooting, segments, multistart, seed,
+              max_steps, tol, sigma, profile, window, progress, warn) -> FitRequest:
+    """Check a fit request and bring it to one form (the arguments are those of [`fit`][]).
+
+    **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
+    """
+    records = [data] if isinstance(data, Data) else list(data)
+    if not records or not all(isinstance(d, Data) for d in records):
+        raise ValueError("data must be a Data record or a non-empty sequence of them")
+    scenes = [scene] * len(records) if isinstance(scene, Scene) else list(scene)
+    if len(scenes) != len(records) or not all(isinstance(s, Scene) for s in scenes):
+        raise ValueError(f"got {len(scenes)} scenes for {len(records)} records; give one "
+                         "Scene, or one per record")
+    _check_scenes(scenes)
+    free = tuple(dict.fromkeys(free))
+    unknown = [n for n in free if n not in free_names()]
+    if unknown or not free:
+        raise ValueError(f"unknown free parameter(s) {unknown}; choose from {list(free_names())}"
+                         if unknown else "free must name at least one parameter")
+    _check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
+    window = _check_window(window)
+    records = [window_data(d, window) for d in records]
+    loads = tuple((d.load if d.load is not None else sc.load,
+                   d.torque if d.torque is not None else sc.torque)
+                  for d, sc in zip(records, scenes))
+    mech = scenes[0].mech
+    start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}
+    start.update(_load_starts(free, records, loads))
+    if isinstance(init, dict):
+        bad = [n for n in init if n not in start]
+        if bad:
+            raise ValueError(f"init gives start values for {bad}, which are not free global "
+                             f"parameters ({sorted(start)})")
+        start.update({n: float(v) for n, v in init.items()})
+        init_kind = "dict"
+    elif init in ("scene", "regressor"):
+        init_kind = init
+    else:
+        raise ValueError(f"init must be 'scene', 'regressor' or a dict, got {init!r}")
+    _check_start(start)
+    names = reported_names(free, len(records))
+    if profile is not None and profile not in names:
+        raise ValueError(f"profile {profile!r} is not a free parameter; choose from "
+                         f"{list(names)}")
+    n_total = sum(d.n for d in records)
+    if n_total <= len(names):
+        raise ValueError(f"too few samples: {n_total} samples for {len(names)} free "
+                         "parameters")
+    return FitRequest(
+        scene=scenes[0], records=tuple(records), loads=loads,
+        states=tuple((float(sc.phi0), float(sc.dphi0)) for sc in scenes), free=free,
+        names=names, start=start, init=init_kind, method=method, shooting=shooting,
+        segments=segments, multistart=int(multistart), seed=int(seed),
+        max_steps=int(max_steps if max_steps is not None else
+                      (100 if method == "lm" else 2000)),
+        tol=float(tol), sigma=sigma, profile=profile, window=window, progress=bool(progress),
+        warn=bool(warn))

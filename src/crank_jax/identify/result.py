@@ -1,0 +1,133 @@
+"""The outcome of a fit: [`FitResult`][] (with its JSON document and summary table),
+[`Profile`][], and the warning classes."""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from ..data import Data
+from ..model.params import SliderCrank
+
+__all__ = ["FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning"]
+
+
+class IdentifiabilityWarning(UserWarning):
+    """The data cannot determine some free parameters (see `FitResult.warnings`)."""
+
+
+class ConvergenceWarning(UserWarning):
+    """A fit stopped without converging (see `FitResult.warnings`)."""
+
+
+class Profile(NamedTuple):
+    """Profile likelihood of one parameter: every other free parameter re-fitted.
+
+    `values` (k,): the pinned values; `deviance` (k,): `n ln(RSS / RSS_min)`, which is
+    asymptotically chi-squared with one degree of freedom; `ci95`: the interval where the
+    deviance stays below 3.84 (an end is `None` when the grid does not reach the crossing).
+    """
+
+    name: str
+    values: np.ndarray
+    deviance: np.ndarray
+    ci95: tuple[float | None, float | None]
+
+
+class FitResult(NamedTuple):
+    """The outcome of [`fit`][]. Every dict is keyed by the reported parameter names
+    (`names`: the free names, with `phi0[i]`, `dphi0[i]` per record when there are several).
+
+    `stderr`/`ci95` are `None` where they are undefined: for parameters in an
+    unidentifiable direction, and for every parameter when the fit did not converge.
+    """
+
+    names: tuple[str, ...]
+    values: dict[str, float]
+    start: dict[str, float]
+    stderr: dict[str, float | None]
+    ci95: dict[str, tuple[float, float] | None]
+    correlation: np.ndarray
+    """(p, p), NaN where undefined."""
+    condition_number: float
+    """Of the sensitivity matrix with columns scaled by the parameter values."""
+    singular_values: np.ndarray
+    identifiable: bool | None
+    """None when the fit did not converge: identifiability is judged at an estimate."""
+    unidentifiable_directions: list[str]
+    rms_residual: float
+    """Root-mean-square residual, rad (the estimate of the noise level)."""
+    n_samples: int
+    converged: bool
+    iterations: int
+    seconds: float
+    warnings: list[str]
+    message: str
+    method: str
+    shooting: str
+    mech: SliderCrank
+    """The mechanism with the fitted values."""
+    data: list[Data]
+    fitted: list[np.ndarray]
+    """Model angle at each record's sample times, rad."""
+    profile: Profile | None
+    strategy: str = ""
+    """What won: the shooting used and, if the first attempt stalled, the escalation."""
+
+    def to_json(self) -> dict:
+        """The `fit.json` document (exactly the documented top-level keys)."""
+        def num(x):
+            return float(x) if x is not None and math.isfinite(x) else None
+
+        est = {}
+        for i, n in enumerate(self.names):
+            ci = self.ci95[n]
+            est[n] = {
+                "value": num(self.values[n]),
+                "stderr": num(self.stderr[n]) if self.stderr[n] is not None else None,
+                "ci95": [num(ci[0]), num(ci[1])] if ci is not None else None,
+                "start": num(self.start[n]),
+                "correlation": {m: num(float(self.correlation[i, j]))
+                                for j, m in enumerate(self.names)},
+            }
+            if self.profile is not None and self.profile.name == n:
+                est[n]["profile"] = {
+                    "values": [float(v) for v in self.profile.values],
+                    "deviance": [num(float(d)) for d in self.profile.deviance],
+                    "ci95": [num(c) if c is not None else None for c in self.profile.ci95],
+                }
+        return {
+            "estimates": est,
+            "identifiable": (None if self.identifiable is None
+                             else bool(self.identifiable)),
+            "unidentifiable_directions": list(self.unidentifiable_directions),
+            "rms_residual": num(self.rms_residual),
+            "n_samples": int(self.n_samples),
+            "converged": bool(self.converged),
+            "iterations": int(self.iterations),
+            "seconds": float(self.seconds),
+            "warnings": list(self.warnings),
+        }
+
+    def summary(self) -> str:
+        """A human-readable table of the estimates with their 95% intervals."""
+        lines = [f"{'parameter':<10} {'start':>12} {'estimate':>12} {'stderr':>11} "
+                 f"{'95% CI':>27}"]
+        for n in self.names:
+            se, ci = self.stderr[n], self.ci95[n]
+            se_s = f"{se:11.4g}" if se is not None else f"{'-':>11}"
+            ci_s = (f"[{ci[0]:.6g}, {ci[1]:.6g}]" if ci is not None else "not determined")
+            lines.append(f"{n:<10} {self.start[n]:12.6g} {self.values[n]:12.6g} {se_s} "
+                         f"{ci_s:>27}")
+        state = "converged" if self.converged else f"NOT converged ({self.message})"
+        lines.append(f"{state} after {self.iterations} iterations in {self.seconds:.1f} s "
+                     f"({self.method}, {self.strategy or self.shooting + ' shooting'}); rms "
+                     "residual "
+                     f"{self.rms_residual:.3g} rad over {self.n_samples} samples; condition "
+                     f"number {self.condition_number:.3g}")
+        lines.append("identifiable: " + ("not judged (the fit did not converge)"
+                                         if self.identifiable is None
+                                         else "yes" if self.identifiable else "NO"))
+        return "\n".join(lines)

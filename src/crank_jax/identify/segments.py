@@ -1,0 +1,78 @@
+"""Records as shooting segments, padded to a few bucket lengths (so that records of other
+lengths reuse the compiled programs; the padding has weight 0)."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from ..model.loads import AbstractLoad, SampledLoad
+
+__all__ = ["bucket", "Segments", "make_segments", "padded_load"]
+
+
+def bucket(m: int) -> int:
+    """The padded length of a row of `m` samples: the next of 64, 96, 128, 192, 256, ...
+    (two sizes per doubling, so at most a third of a row is padding)."""
+    size = 64
+    while size < m:
+        size = size * 3 // 2 if (size & (size - 1)) == 0 else size * 4 // 3
+    return size
+
+
+class Segments(eqx.Module):
+    """One record cut into `S` shooting segments of `m` save times each (padded).
+
+    Segment `s` covers samples `starts[s] .. starts[s+1]` inclusive: the shared sample is
+    fitted by segment `s+1` (weight 0 in segment `s`) and is where continuity is imposed.
+    """
+
+    ts: Array  # (S, m) save times, strictly increasing in each row
+    phi: Array  # (S, m) data
+    w: Array  # (S, m) 1 for a fitted sample, 0 for padding and the shared end sample
+    end: Array  # (S,) int: index of the continuity sample in each row
+    first: Array  # (S,) int: index in the record of each row's first sample
+
+
+def make_segments(ts: np.ndarray, phi: np.ndarray, n_segments: int, pad: bool = True
+                  ) -> Segments:
+    """Split a record into `n_segments` segments of nearly equal sample counts, each row
+    padded to [`bucket`][] length (when `pad`)."""
+    n = ts.shape[0]
+    S = max(1, min(int(n_segments), n // 4))
+    bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
+    m = int(np.max(np.diff(bounds))) + 1 if S > 1 else n
+    m = bucket(m) if pad else m
+    T, P, W = np.zeros((S, m)), np.zeros((S, m)), np.zeros((S, m))
+    E, F = np.zeros(S, dtype=np.int32), np.zeros(S, dtype=np.int32)
+    for s in range(S):
+        a, b = bounds[s], bounds[s + 1]
+        k = b - a + 1 if S > 1 else n
+        seg_t = ts[a:a + k]
+        # Padding times continue just past the end, so each row stays strictly increasing
+        # without extending the integration by more than a few nanoseconds.
+        pad_t = seg_t[-1] + 1e-9 * np.arange(1, m - k + 1) * max(1.0, abs(seg_t[-1]))
+        T[s] = np.concatenate([seg_t, pad_t])
+        P[s, :k] = phi[a:a + k]
+        W[s, :k] = 1.0
+        if S > 1 and s < S - 1:
+            W[s, k - 1] = 0.0  # the shared sample belongs to the next segment
+        E[s], F[s] = k - 1, a
+    return Segments(jnp.asarray(T), jnp.asarray(P), jnp.asarray(W), jnp.asarray(E),
+                    jnp.asarray(F))
+
+
+def padded_load(load: AbstractLoad) -> AbstractLoad:
+    # A sampled load's length is a shape: pad it (holding its last value, as it is held
+    # outside its samples anyway) so records of other lengths reuse the programs.
+    if not isinstance(load, SampledLoad):
+        return load
+    ts, vs = np.asarray(load.ts), np.asarray(load.values)
+    m = bucket(ts.shape[0])
+    extra = ts[-1] + np.arange(1, m - ts.shape[0] + 1) * max(1.0, abs(ts[-1] - ts[0]))
+    return SampledLoad(np.concatenate([ts, extra]),
+                       np.concatenate([vs, np.full(extra.shape, vs[-1])]), interp=load.interp)
+
+

@@ -1,0 +1,131 @@
+"""The fit's strategy: single or multiple shooting, the ODE step budget, multistart and
+when to try them.
+
+Phase drift decides the shooting. A model whose frequency is off by a fraction `e` drifts
+`2 pi e N` rad in phase over `N` periods, and single shooting loses the basin of attraction
+once that nears `pi/2`. Both `e` and `N` are judged from the record itself: `N` from its
+zero crossings, `e` from the crossings of the start model's angle against the record's
+(the linearised period of the start scene would be 20% off at large amplitude).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "MAX_ODE_STEPS", "SMALL_ODE_BUDGET",
+           "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
+           "absurd_start", "absurd_frequency",
+           "perturb", "far_from_noise"]
+
+#: `shooting="auto"` uses multiple shooting above this many observed periods, whatever
+#: the start's drift (a record that long has many chances to slip a cycle).
+AUTO_PERIODS = 25.0
+#: Longest multiple-shooting segment, in observed periods.
+SEGMENT_PERIODS = 8.0
+#: Largest predicted phase drift (rad) over a single-shooting record or one segment.
+MAX_DRIFT = 1.0
+#: The ODE step budget of a fit's solves when the start solve is cheap, and otherwise.
+SMALL_ODE_BUDGET = 32_768
+MAX_ODE_STEPS = 200_000
+#: A start solve that takes more steps than this per observed period of the record (or
+#: per record, if it holds less than one) is absurd: the start values make the dynamics
+#: orders of magnitude faster or stiffer than the record shows.
+STEPS_PER_PERIOD = 4000
+#: A start model whose linearised frequency is this many times above (or below) the
+#: record's observed frequency is rejected before any solve.
+FREQUENCY_RATIO = 30.0
+#: A fit whose rms residual ends above this multiple of the record's noise level (and
+#: of `sigma`, when given) is stalled far from the noise: try another strategy.
+FAR_FROM_NOISE = 3.0
+
+
+def n_segments(span: float, period_data: float | None, period_model: float | None,
+               shooting: str, segments: int | None) -> tuple[int, str]:
+    """Shooting segments for one record and the reason, in words.
+
+    **Arguments:** `span`, the record's length, s; `period_data`, its observed period, s
+    (None: less than one period); `period_model`, the start model's observed period over
+    the same samples; `shooting`, `"auto"`, `"single"` or `"multiple"`; `segments`, a
+    fixed count or None.
+    """
+    if shooting == "single":
+        return 1, "single shooting (requested)"
+    if segments is not None:
+        return int(segments), f"{segments} segments (requested)"
+    if period_data is None:
+        n = 1 if shooting == "auto" else 2
+        return n, "the record holds less than one period"
+    periods = span / period_data
+    if period_model is None:
+        err = 0.5  # the start model does not even oscillate like the record
+    else:
+        err = abs(period_data / period_model - 1.0)
+    drift = 2 * math.pi * err * periods
+    per_segment = min(SEGMENT_PERIODS, MAX_DRIFT / max(2 * math.pi * err, 1e-12))
+    why = (f"{periods:.1f} periods in the record, start period "
+           + (f"{100 * err:.0f}% off" if period_model is not None else "not observed")
+           + f" (predicted drift {drift:.1f} rad)")
+    if shooting == "auto" and drift <= MAX_DRIFT and periods <= AUTO_PERIODS:
+        return 1, why
+    return max(2, math.ceil(periods / max(per_segment, 0.5))), why
+
+
+def ode_budget(steps0: int) -> int:
+    """The step budget of the fit's solves, from the steps of the solve at the start.
+
+    Generous next to the start solve, so that a trial point in a stiff corner fails fast
+    (and is rejected) instead of grinding through hundreds of thousands of steps. Two levels
+    only: the budget is static in the compiled program, and a finer ladder would straddle a
+    boundary (and recompile) from one noisy record to the next.
+    """
+    return SMALL_ODE_BUDGET if 20 * int(steps0) <= SMALL_ODE_BUDGET else MAX_ODE_STEPS
+
+
+def absurd_start(steps0: int, span: float, period_data: float | None) -> str | None:
+    """A message when the start solve took absurdly many steps for what the record shows
+    (see [`STEPS_PER_PERIOD`][]), else None."""
+    periods = max(1.0, span / period_data) if period_data else 1.0
+    if steps0 <= STEPS_PER_PERIOD * periods:
+        return None
+    return (f"the start values make the model far faster or stiffer than the record: its "
+            f"solve takes {steps0} steps for {periods:.0f} observed period(s) of the record; "
+            "choose start values nearer the truth (e.g. init='regressor', or the stiffness "
+            "from the observed period)")
+
+
+def absurd_frequency(omega_start: float | None, period_data: float | None) -> str | None:
+    """A message when the start model's linearised natural frequency (rad/s) is more than
+    [`FREQUENCY_RATIO`][] times off the record's observed one, else None. Checked before
+    any solve: such a start would spend minutes in stiff solves that cannot converge
+    (the linearised frequency is within ~20% of the true one even at large amplitude, far
+    inside the ratio)."""
+    if not omega_start or not period_data or not math.isfinite(omega_start):
+        return None
+    ratio = omega_start * period_data / (2 * math.pi)
+    if 1 / FREQUENCY_RATIO <= ratio <= FREQUENCY_RATIO:
+        return None
+    return (f"the start values put the model's natural frequency at "
+            f"{omega_start / (2 * math.pi):.3g} Hz, {ratio:.3g} times the record's "
+            f"{1 / period_data:.3g} Hz: choose start values nearer the truth (e.g. "
+            "init='regressor', or a stiffness from the observed period)")
+
+
+def perturb(z0: np.ndarray, names, log, rng: np.random.Generator) -> np.ndarray:
+    """A multistart point: the log-coordinates of `names` (the first entries of `z0`) plus
+    N(0, 0.5^2) (a factor `exp(N(0, 0.5^2))`), their other global coordinates times
+    `1 + N(0, 0.3^2)`; initial and segment states stay."""
+    z = np.array(z0, dtype=float)
+    for i, n in enumerate(names):
+        if log[i]:
+            z[i] += rng.normal(0.0, 0.5)
+        elif not (n.startswith("phi0") or n.startswith("dphi0")):
+            z[i] *= 1 + rng.normal(0.0, 0.3)
+    return z
+
+
+def far_from_noise(rms: float, noise: float, sigma: float | None) -> bool:
+    """True when a fit's rms residual (rad) is far above the noise level of the record."""
+    level = max(noise, sigma or 0.0, 1e-12)
+    return not (math.isfinite(rms) and rms <= FAR_FROM_NOISE * level)
