@@ -21,13 +21,21 @@ from jaxtyping import Array
 
 from .io import atomic_write
 from .model.dynamics import Structure
-from .model.loads import AbstractLoad, NoLoad, load_from_table, load_to_table, toml_keys
+from .model.loads import (
+    LOAD_PARAMS,
+    AbstractLoad,
+    NoLoad,
+    load_from_table,
+    load_to_table,
+    set_param,
+    toml_keys,
+)
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
 
 __all__ = ["Scene", "SceneError", "load_scene", "scene_to_toml", "save_scene", "presets",
-           "PRESETS"]
+           "PRESETS", "fitted_scene"]
 
 #: Preset scene names; `load_scene(name)` loads one.
 PRESETS: tuple[str, ...] = ("lab-rig", "torsional", "near-buckling", "pendulum")
@@ -288,6 +296,28 @@ def scene_to_toml(scene: Scene) -> str:
         lines += [f"{k} = {fmt(v)}" for k, v in body.items()]
         lines.append("")
     return "\n".join(lines)
+
+
+def fitted_scene(scene: Scene, result) -> Scene:
+    """`scene` with a fit's estimates: the fitted mechanism, the fitted load amplitudes
+    (`P0`, `P1`, `tau0`, `tau1`) and, where they were free, the first record's fitted
+    initial state (the state at that record's first sample). A record's own sampled
+    loads are data, not scene, so the scene's loads are kept for them.
+
+    **Arguments:** `scene`, the scene the fit started from; `result`, its
+    [`FitResult`][crank_jax.FitResult]. **Returns:** a [`Scene`][].
+    """
+    loads = {"load": scene.load, "torque": scene.torque}
+    for name, value in result.values.items():
+        if name in LOAD_PARAMS:
+            side, role = LOAD_PARAMS[name]
+            loads[side] = set_param(loads[side], role, as_float_array(value), side)
+    state = {n: result.values.get(n, result.values.get(f"{n}[0]")) for n in ("phi0", "dphi0")}
+    return eqx.tree_at(
+        lambda s: (s.mech, s.load, s.torque, s.phi0, s.dphi0), scene,
+        (result.mech, loads["load"], loads["torque"],
+         as_float_array(scene.phi0 if state["phi0"] is None else state["phi0"]),
+         as_float_array(scene.dphi0 if state["dphi0"] is None else state["dphi0"])))
 
 
 def save_scene(scene: Scene, path: str | os.PathLike) -> None:

@@ -96,6 +96,8 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
                         "transient)")
     p.add_argument("--t-end", type=float, dest="fit_t_end",
                    help="fit only samples at or before this time, s")
+    p.add_argument("--scene-out", metavar="FITTED.toml",
+                   help="write the fitted mechanism and loads as a complete scene file")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -111,19 +113,25 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--phi-col", default="phi", help="name of the angle column (phi)")
     p.add_argument("--angle-unit", default="rad", choices=("rad", "deg"),
                    help="unit of the angle column (rad)")
+    p.add_argument("--load-interp", default="cubic", choices=("cubic", "linear", "zoh"),
+                   help="interpolation of the record's P/tau columns: cubic (C2 spline, for "
+                        "measured signals; default), linear, or zoh (a held digital command)")
     _fit_options(p)
 
 
 def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
     from ..io import check_figure_format, check_output
 
-    for path, option in ((a.out, "--out"), (a.plot, "--plot")):
+    outs = ((a.out, "--out"), (a.plot, "--plot"), (getattr(a, "scene_out", None),
+                                                   "--scene-out"))
+    for path, option in outs:
         if path:
             check_output(path, inputs, option)
     if a.plot:
         check_figure_format(a.plot)
-    if a.out and a.plot and a.out == a.plot:
-        raise UserError("--out and --plot name the same file")
+    named = [path for path, _ in outs if path]
+    if len(set(named)) < len(named):
+        raise UserError("--out, --plot and --scene-out must name different files")
 
 
 def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = "") -> int:
@@ -148,6 +156,9 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
 
         plot_fit(res, a.plot, title)
         print(f"wrote {a.plot}", file=sys.stderr)
+    if getattr(a, "scene_out", None):
+        _write_scene(res, a)
+        print(f"wrote {a.scene_out}", file=sys.stderr)
     # Not identifiable or not converged is a result, reported in full: exit 0.
     return 0
 
@@ -188,10 +199,19 @@ def _fit_run(a: argparse.Namespace) -> int:
     scene = load_scene(a.scene)
     files = [a.data] + list(a.more_data)
     _outputs_ok(a, files + [a.scene])
-    records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit)
-               for f in files]
+    records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
+                         interp=a.load_interp) for f in files]
     res = fit(scene, records if len(records) > 1 else records[0], **_fit_kwargs(a))
+    a.fitted_scene = scene
     return _report(res, a, title=f"{', '.join(files)} with {a.scene}")
+
+
+def _write_scene(res, a: argparse.Namespace) -> None:
+    """The fitted mechanism (and fitted load amplitudes) as a complete scene file, with the
+    first record's fitted initial state; written atomically, never over an input."""
+    from ..scene import fitted_scene, save_scene
+
+    save_scene(fitted_scene(a.fitted_scene, res), a.scene_out)
 
 
 # --- demo -------------------------------------------------------------------------------
@@ -233,6 +253,7 @@ def _demo(a: argparse.Namespace) -> int:
         start = {k: v for k, v in DEMO["start"].items() if k in kw["free"]}
         kw["init"] = start
     res = fit(scene, data, **kw)
+    a.fitted_scene = scene
     truth = {n: truth_mech[n] for n in res.names if n in truth_mech}
     truth.update({n: v for n, v in (("phi0", DEMO["phi0"]), ("dphi0", 0.0)) if n in res.names})
     return _report(res, a, truth, title="demo: lab rig with a known harmonic torque")

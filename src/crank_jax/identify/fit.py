@@ -322,9 +322,9 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
     converged, message = best.converged, best.message
     if plan.abort:  # nothing was solved, and nothing more is
         r_hat, values = np.full(ss.n_residuals, np.nan), np.asarray(ss.values(z_hat))
-        rms, unc, more = float("nan"), undefined(ss.p, "did not converge"), []
+        rms, unc, more, diag = float("nan"), undefined(ss.p, "did not converge"), [], None
     else:
-        r_hat, values, rms, unc, more = assess(ss, z_hat, converged, req.sigma)
+        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, req.sigma)
     if converged and not math.isfinite(rms):
         converged, message = False, "the ODE solve fails at the final estimate"
     notes = more + notes + plan.notes
@@ -359,7 +359,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         shooting=("multiple" + plan.strategy.split("multiple shooting", 1)[1].split(",")[0]
                   if plan.strategy.startswith("multiple") else "single"),
         mech=ss.unpack(jnp.asarray(z_hat))[0], data=list(req.records),
-        fitted=ss.fitted(r_hat), profile=prof, strategy=plan.strategy)
+        fitted=ss.fitted(r_hat), profile=prof, strategy=plan.strategy, diagnostics=diag)
 
 
 def fit(

@@ -7,18 +7,20 @@ import os
 import numpy as np
 
 from ..plot import pyplot, save_figure
+from .diagnostics import plot_acf
 
 __all__ = ["plot_fit"]
 
 
 def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
-    """Draw a [`FitResult`][]: phi data and fit (top), residuals (middle), and the
-    correlation matrix of the estimates (bottom; blank where undefined)."""
+    """Draw a [`FitResult`][]: phi data and fit (top), residuals (middle), the
+    correlation matrix of the estimates (bottom left; blank where undefined) and the
+    residuals' autocorrelation with its white-noise band (bottom right)."""
     plt = pyplot()
-    fig = plt.figure(figsize=(9, 9))
-    gs = fig.add_gridspec(3, 1, height_ratios=[2, 1, 2])
-    ax1 = fig.add_subplot(gs[0])
-    ax2 = fig.add_subplot(gs[1], sharex=ax1)
+    fig = plt.figure(figsize=(10, 9))
+    gs = fig.add_gridspec(3, 2, height_ratios=[2, 1, 2])
+    ax1 = fig.add_subplot(gs[0, :])
+    ax2 = fig.add_subplot(gs[1, :], sharex=ax1)
     for i, (d, f) in enumerate(zip(result.data, result.fitted)):
         label = f" (record {i})" if len(result.data) > 1 else ""
         ax1.plot(d.ts, d.phi, ".", ms=2, color=f"C{2 * i}", label="data" + label)
@@ -35,7 +37,7 @@ def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
     ax1.set_title((title + "\n" if title else "") + f"{state}{ident}; rms residual "
                   f"{result.rms_residual:.3g} rad; condition number "
                   f"{result.condition_number:.3g}", fontsize=9)
-    ax3 = fig.add_subplot(gs[2])
+    ax3 = fig.add_subplot(gs[2, 0])
     corr = np.ma.masked_invalid(np.asarray(result.correlation, dtype=float))
     im = ax3.imshow(corr, vmin=-1, vmax=1, cmap="RdBu_r")
     names = list(result.names)
@@ -47,5 +49,12 @@ def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
                 ax3.text(j, i, f"{corr[i, j]:.2f}", ha="center", va="center", fontsize=7)
     ax3.set_title("correlation of the estimates", fontsize=9)
     fig.colorbar(im, ax=ax3, shrink=0.8)
+    ax4 = fig.add_subplot(gs[2, 1])
+    if result.diagnostics is not None:
+        plot_acf(ax4, result.diagnostics)
+    else:
+        ax4.text(0.5, 0.5, "no residual diagnostics\n(the fit did not converge)",
+                 ha="center", va="center", fontsize=9, transform=ax4.transAxes)
+        ax4.set_axis_off()
     fig.tight_layout()
     save_figure(fig, path)

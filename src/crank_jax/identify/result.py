@@ -10,6 +10,7 @@ import numpy as np
 
 from ..data import Data
 from ..model.params import SliderCrank
+from .diagnostics import Diagnostics
 
 __all__ = ["FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning"]
 
@@ -75,6 +76,10 @@ class FitResult(NamedTuple):
     profile: Profile | None
     strategy: str = ""
     """What won: the shooting used and, if the first attempt stalled, the escalation."""
+    diagnostics: Diagnostics | None = None
+    """Whiteness of the residuals at a converged estimate (Ljung-Box p-value, lag-1
+    autocorrelation, effective samples); when they are not white the standard errors
+    and intervals above already account for the correlation."""
 
     def to_json(self) -> dict:
         """The `fit.json` document (exactly the documented top-level keys)."""
@@ -109,6 +114,8 @@ class FitResult(NamedTuple):
             "iterations": int(self.iterations),
             "seconds": float(self.seconds),
             "warnings": list(self.warnings),
+            "diagnostics": (None if self.diagnostics is None
+                            else self.diagnostics.to_json()),
         }
 
     def summary(self) -> str:
@@ -130,4 +137,10 @@ class FitResult(NamedTuple):
         lines.append("identifiable: " + ("not judged (the fit did not converge)"
                                          if self.identifiable is None
                                          else "yes" if self.identifiable else "NO"))
+        d = self.diagnostics
+        if d is not None:
+            lines.append(f"residuals: {'white' if d.white else 'NOT white'} (Ljung-Box p = "
+                         f"{d.ljung_box_p:.3g}, lag-1 autocorrelation "
+                         f"{d.lag1_autocorrelation:.3f}, {d.effective_samples:.0f} effective "
+                         f"of {d.n_samples} samples)")
         return "\n".join(lines)

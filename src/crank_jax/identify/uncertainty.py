@@ -24,11 +24,12 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from .diagnostics import robust_uncertainty
 from .programs import jacobian_at
 from .request import FRICTION_SCALED, LOAD_NAMES, SCALE_GROUP
 
 __all__ = ["Uncertainty", "analyse", "assess", "undefined", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
-           "scale_message"]
+           "scale_message", "sample_rows", "inflate", "misfit"]
 
 #: Two-sided 95% quantile of the standard normal distribution.
 Z95 = 1.959963984540054
@@ -244,9 +245,51 @@ def undefined(p: int, why: str) -> Uncertainty:
                        np.ones(p, bool))
 
 
+def sample_rows(ss) -> tuple[np.ndarray, list[int]]:
+    """Indices of the fitted samples in the single-shooting residual vector of `ss` (the
+    rows in time order, padding left out), and the number of samples per record."""
+    rows, lengths, k = [], [], 0
+    for e in ss.exps:
+        n, size = e.n, int(np.prod(e.seg.ts.shape))
+        rows.append(k + np.arange(n))
+        lengths.append(n)
+        k += size
+    return np.concatenate(rows), lengths
+
+
+def inflate(unc: Uncertainty, factor: np.ndarray, values: np.ndarray, log, ref
+            ) -> Uncertainty:
+    """`unc` with every standard error multiplied by `factor` (p,) >= 1 and the intervals
+    and the covariance widened to match (correlations unchanged)."""
+    log = np.asarray(log, dtype=bool)
+    cov = unc.covariance_z * np.outer(factor, factor)
+    se_z = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    se_z[unc.affected] = np.nan
+    lo = np.where(log, values * np.exp(-Z95 * se_z), values - Z95 * ref * se_z)
+    hi = np.where(log, values * np.exp(Z95 * se_z), values + Z95 * ref * se_z)
+    return unc._replace(stderr=unc.stderr * factor, ci95=np.column_stack([lo, hi]),
+                        covariance_z=cov)
+
+
+def misfit(ss, unc: Uncertainty, r_hat, J, values, sigma):
+    """Whiteness of the residuals and, when they are not white, the standard errors
+    widened for their correlation (a Newey-West sandwich, never below the white-noise
+    ones). **Returns:** `(Uncertainty, Diagnostics, notes)`."""
+    rows, lengths = sample_rows(ss)
+    rob = robust_uncertainty(J[rows], r_hat[rows], lengths, sigma)
+    if rob.warning is None:
+        return unc, rob.diagnostics, []
+    wide = inflate(unc, rob.inflation, values, ss.log, np.asarray(ss.ref))
+    worst = float(np.max(rob.inflation))
+    return wide, rob.diagnostics, [
+        f"{rob.warning}; the standard errors and intervals account for the correlation "
+        f"(up to {worst:.3g}x the white-noise ones)"]
+
+
 def assess(ss, z_hat, converged: bool, sigma: float | None = None):
     """Residuals, sensitivities and uncertainty at the estimate `z_hat` of the
-    single-shooting problem `ss`. **Returns:** `(r, values, rms, Uncertainty, notes)`.
+    single-shooting problem `ss`.
+    **Returns:** `(r, values, rms, Uncertainty, notes, Diagnostics or None)`.
 
     Identifiability is judged only at a converged estimate: a fit that did not converge
     says so, not that the data cannot determine a direction."""
@@ -255,17 +298,17 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
     except (RuntimeError, ValueError) as e:
         return (np.full(ss.n_residuals, np.nan), np.asarray(ss.values(jnp.asarray(z_hat))),
                 float("nan"), undefined(ss.p, f"sensitivities could not be computed: "
-                                                f"{str(e).splitlines()[0]}"), [])
+                                                f"{str(e).splitlines()[0]}"), [], None)
     values = np.asarray(ss.values(jnp.asarray(z_hat)))
     n = ss.n_residuals
     rms = float(np.sqrt(np.sum(r_hat**2) / n)) if int(failed) == 0 else float("nan")
     notes: list[str] = []
     if not converged or int(failed) > 0:
-        return r_hat, values, rms, undefined(ss.p, "did not converge"), notes
+        return r_hat, values, rms, undefined(ss.p, "did not converge"), notes, None
     if not np.all(np.isfinite(J)):
         return r_hat, values, rms, undefined(
             ss.p, "the sensitivities are undefined at the estimate (the solve failed), so "
-                  "nothing can be said about identifiability"), notes
+                  "nothing can be said about identifiability"), notes, None
     unc = analyse(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
                   geometry={k: float(getattr(ss.base, k)) for k in "rLbs"})
     if not unc.identifiable:
@@ -276,4 +319,5 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
     elif unc.condition_number > 1e6:
         notes.append(f"the scaled sensitivity matrix is poorly conditioned (condition number "
                      f"{unc.condition_number:.2g}): expect large, strongly correlated errors")
-    return r_hat, values, rms, unc, notes
+    unc, diag, more = misfit(ss, unc, r_hat, J, values, sigma)
+    return r_hat, values, rms, unc, more + notes, diag
