@@ -26,7 +26,7 @@ def test_simulate_writes_csv_and_plot(tmp_path, capsys):
     assert header == ["t", "phi", "dphi", "energy", "O_x", "O_y", "A_x", "A_y", "B_x", "B_y", "N",
                       "F"]
     data = np.loadtxt(out, delimiter=",", skiprows=1)
-    assert data.shape == (201, 11)
+    assert data.shape == (201, 12)
     np.testing.assert_allclose(data[:, 0], np.linspace(0, 2, 201))
     ref = cj.load_scene("lab-rig").simulate(np.linspace(0, 2, 201))
     np.testing.assert_allclose(data[:, 1], ref.phi, rtol=0, atol=1e-12)

@@ -24,6 +24,11 @@ from .uniform import uniform_grid
 __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
            "is_concrete", "check_time_scale"]
 
+# How many times its stability floor the fused solver may need per interval to resolve a
+# fast mode at the default tolerance (a margin, not a tuned constant: below it the
+# adaptive diffrax path is used).
+_UNIFORM_MARGIN = 8.0
+
 #: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`.
 SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform")
 
@@ -129,14 +134,15 @@ def choose_solver(
 
 def resolve_solver(
     solver: str, mech: SliderCrank, rtol, atol=None, *, load: AbstractLoad | None = None,
-    torque: AbstractLoad | None = None, ts=None,
+    torque: AbstractLoad | None = None, ts=None, max_steps: int | None = None,
 ) -> str:
     """The solver that runs: `solver` itself, or for `"auto"` the choice described in the
     module docstring.
 
     **Arguments:** `solver`, a name from [`SOLVERS`][]; `mech` (a batch counts as stiff if
     any member is); `rtol`, `atol` (arrays or floats; traced ones count as the defaults);
-    `load`, `torque`; `ts`, the save times (n,) if known on the host.
+    `load`, `torque`; `ts`, the save times (n,) if known on the host; `max_steps`, the
+    caller's step budget (the fused solver splits it evenly over the save intervals).
 
     **Returns:** a name from [`SOLVERS`][] other than `"auto"`.
     """
@@ -152,12 +158,42 @@ def resolve_solver(
     loads = (load, torque)
     if (name in ("tsit5", "dopri8") and concrete_ts
             and not any(isinstance(x, SampledLoad) for x in loads)
-            and uniform_grid(np.asarray(ts))):
+            and uniform_grid(np.asarray(ts))
+            and _fits_interval_budget(mech, load, np.asarray(ts), max_steps)
+            and not _has_coulomb(mech)):
         # Traced parameters too (a `vmap`-ed batch, `jacfwd`): that is how users batch and
         # differentiate, and the fused solver is the fastest there as well. Not across a
         # sampled load's kinks.
         name = "dopri8-uniform"
     return name
+
+
+def _has_coulomb(mech) -> bool:
+    """Concrete Coulomb friction (T_c or F_s nonzero): its tanh is nearly a kink at rest,
+    which the fused solver's summed per-interval error control handles badly (measured: the
+    lab rig with T_c = 0.004 N*m exhausts its step budget where adaptive Dopri8 takes 1843
+    steps), so the adaptive path runs it. Traced values cannot be read and keep the fused
+    solver."""
+    names = [n for n in ("T_c", "F_s") if hasattr(mech, n)]
+    vals = [getattr(mech, n) for n in names]
+    return is_concrete(vals) and any(bool(np.any(np.asarray(v) != 0)) for v in vals)
+
+
+def _fits_interval_budget(mech, load, ts: np.ndarray, max_steps: int | None) -> bool:
+    """Whether the fused uniform solver can afford the fastest mode: it takes at least
+    `dt * rate / 3` steps in every save interval (Dopri8's stability on that mode) and
+    several times that to resolve it, out of `max_steps / (n - 1)` per interval. A fast
+    shaft mode that an adaptive solver resolves once and then steps over at its stability
+    limit would exhaust it (measured: a sweep to k = 1e7 on the lab rig)."""
+    if max_steps is None or not is_concrete((mech, load)):
+        return True
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        rate, _ = fastest_mode(linearize(mech, load))
+        rate = np.asarray(rate, dtype=float)
+        top = float(np.max(np.where(np.isfinite(rate), rate, 0.0))) if rate.size else 0.0
+    dt = float(np.max(np.diff(ts)))
+    per_interval = max(1, int(max_steps) // max(ts.shape[0] - 1, 1))
+    return _UNIFORM_MARGIN * dt * top / _EXPLICIT_H_RATE <= per_interval
 
 
 def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int,

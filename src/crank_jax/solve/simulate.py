@@ -268,7 +268,8 @@ def simulate(
                              f"to run a batch, map over it with jax.vmap")
     if structure is None:
         structure = Structure.of(mech) if is_concrete(mech) else Structure()
-    solver = resolve_solver(solver, mech, rtol, atol, load=load, torque=torque, ts=ts)
+    solver = resolve_solver(solver, mech, rtol, atol, load=load, torque=torque, ts=ts,
+                            max_steps=max_steps)
     if throw and is_concrete(ts):
         check_time_scale(mech, solver, float(np.ptp(np.asarray(ts))), int(max_steps), load)
     dtype = ts.dtype

@@ -1,0 +1,80 @@
+"""A fit under model misfit says so and widens its intervals; a fit that fits reports white
+residuals; the fitted model is written back as a scene (issue 8, items 5 and 6)."""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import crank_jax as cj
+from crank_jax.cli import main
+
+
+def _coulomb_record():
+    # The rig has crank-bearing Coulomb friction; the model fitted to it has none.
+    scene = cj.load_scene("lab-rig")
+    rig = cj.Scene(scene.mech.replace(T_c=0.004, c=0.001), phi0=0.8)
+    data = cj.synthesize(rig, t1=4.0, rate=200.0, noise_std=2e-4, seed=3)
+    model = cj.Scene(scene.mech.replace(c=0.002), phi0=0.8)
+    return model, data
+
+
+def test_misfit_is_reported_not_white_and_intervals_widen():
+    model, data = _coulomb_record()
+    free = ("k", "c", "phi0", "dphi0")
+    res = cj.fit(model, data, free=free, progress=False, warn=False)
+    assert res.converged
+    d = res.diagnostics
+    assert d is not None and not d.white
+    assert d.ljung_box_p < 0.01 and d.lag1_autocorrelation > 0.5
+    assert d.effective_samples < 0.5 * d.n_samples
+    assert any("not white" in w for w in res.warnings)
+    doc = res.to_json()["diagnostics"]
+    assert {"ljung_box_p", "lag1_autocorrelation", "effective_samples"} <= set(doc)
+    # Honest: the reported errors are wider than the white-noise (Laplace) ones.
+    note = next(w for w in res.warnings if "not white" in w)
+    factor = float(note.split("up to ")[1].split("x the white-noise")[0])
+    assert factor > 1.5
+
+
+def test_a_correct_model_has_white_residuals():
+    scene = cj.load_scene("lab-rig")
+    truth = cj.Scene(scene.mech, phi0=0.8)
+    data = cj.synthesize(truth, t1=4.0, rate=200.0, noise_std=1e-3, seed=4)
+    res = cj.fit(truth, data, free=("k", "c", "phi0", "dphi0"), progress=False, warn=False)
+    assert res.converged and res.diagnostics.white
+    assert not any("not white" in w for w in res.warnings)
+
+
+def test_fitted_scene_round_trips_through_the_cli(tmp_path):
+    scene = cj.Scene(cj.load_scene("lab-rig").mech.replace(k=2.2), phi0=0.6,
+                     torque=cj.HarmonicLoad(0.0, 0.2, 3.0))
+    data = cj.synthesize(scene, t1=3.0, rate=200.0, noise_std=1e-3, seed=2)
+    cj.save_scene(scene, tmp_path / "start.toml")
+    cj.save_data(data, tmp_path / "rec.csv")
+    out = tmp_path / "fitted.toml"
+    assert main(["fit", str(tmp_path / "rec.csv"), str(tmp_path / "start.toml"), "--free",
+                 "k,c,phi0,dphi0", "--scene-out", str(out), "--quiet",
+                 "--out", str(tmp_path / "fit.json")]) == 0
+    fitted = cj.load_scene(str(out))
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert float(fitted.mech.k) == pytest.approx(doc["estimates"]["k"]["value"], rel=1e-12)
+    assert float(fitted.phi0) == pytest.approx(doc["estimates"]["phi0"]["value"], rel=1e-12)
+    assert float(fitted.torque.X1) == pytest.approx(0.2)
+    # The fitted scene predicts the record it came from.
+    tr = fitted.simulate(jnp.asarray(data.ts))
+    assert float(np.sqrt(np.mean((np.asarray(tr.phi) - data.phi) ** 2))) < 3e-3
+
+
+def test_scene_out_never_overwrites_an_input(tmp_path, capsys):
+    scene = cj.load_scene("lab-rig")
+    data = cj.synthesize(scene, t1=1.0, rate=100.0, noise_std=1e-3, seed=2)
+    cj.save_data(data, tmp_path / "rec.csv")
+    cj.save_scene(scene, tmp_path / "s.toml")
+    before = (tmp_path / "s.toml").read_bytes()
+    code = main(["fit", str(tmp_path / "rec.csv"), str(tmp_path / "s.toml"), "--scene-out",
+                 str(tmp_path / "s.toml"), "--quiet"])
+    assert code == 2
+    assert "--scene-out" in capsys.readouterr().err
+    assert (tmp_path / "s.toml").read_bytes() == before
