@@ -37,6 +37,10 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
                    help="probability that a sample is lost (0)")
     p.add_argument("--t-start", type=float, default=0.0,
                    help="time of the first sample, s (0; the scene's state is at t = 0)")
+    p.add_argument("--transient", type=float, default=0.0, metavar="RAD",
+                   help="amplitude of a start-up transient (a hand release), rad (0: none)")
+    p.add_argument("--transient-time", type=float, default=0.1, metavar="S",
+                   help="its decay time, s (0.1)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (0)")
     p.add_argument("--out", required=True, help="output CSV (t,phi[,P][,tau])")
 
@@ -61,7 +65,8 @@ def _synth_run(a: argparse.Namespace) -> int:
     _check_record_size(a, scene)
     data = synthesize(scene, t1=a.t1, rate=a.rate, noise_std=a.noise_std,
                       quantization=a.quantization, jitter_std=a.jitter_std, drop=a.drop,
-                      t_start=a.t_start, seed=a.seed)
+                      t_start=a.t_start, seed=a.seed, transient=a.transient,
+                      transient_time=a.transient_time)
     comment = (f"crank-jax synth {a.scene}: t1={a.t1 if a.t1 is not None else scene.t1} "
                f"rate={a.rate} noise_std={a.noise_std} quantization={a.quantization} "
                f"jitter_std={a.jitter_std} drop={a.drop} t_start={a.t_start} seed={a.seed}")
