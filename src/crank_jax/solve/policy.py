@@ -9,6 +9,12 @@ solver whichever of them runs it. The rule, in order:
    known on the host (the parameters may be traced) and no sampled load,
    `"dopri8-uniform"`, the fused solver, which is faster than either at equal error
    (experiments/bench_work_precision.py, experiments/bench_throughput.py).
+
+`"dopri8-fused"` (adaptive fused Dopri8 with dense output, `adaptive.py`) is never picked
+by `"auto"`: on the lab rig it is faster than `"dopri8-uniform"` at equal error only for
+errors above ~1e-9 rad, slower below, and at the default rtol its error (1.7e-8 rad, per
+step control as diffrax's) misses the lab rig's 1e-8 rad (experiments/results/
+work_precision_speed.json).
 """
 
 from __future__ import annotations
