@@ -3,8 +3,9 @@
 The "truth" is the lab rig with a crank bearing whose friction is Coulomb plus Stribeck
 (a torque that is not in crank-jax's model): `tau_f = -(T_c + T_s exp(-(w/w_s)^2))
 tanh(w / w_c) - c w`. The record is its angle at 100 Hz with 0.5 mrad of noise. The model
-is the same mechanism with an equinox MLP `f(phi') -> torque` added to the generalised
-force through `simulate(..., force=...)`; the MLP's weights are trained with optax (Adam)
+is the same mechanism with a learned torque `-c phi' + MLP(phi')` added to the generalised
+force through `simulate(..., force=...)`; `c` and the MLP's weights are trained with optax
+(Adam)
 on the squared angle error, with gradients by reverse mode through the ODE solve. The
 figure shows the learned friction curve against the true one over the range of rates the
 record visits.
@@ -32,7 +33,7 @@ import crank_jax as cj  # noqa: E402
 from crank_jax.io import atomic_write  # noqa: E402
 from crank_jax.plot import pyplot, save_figure  # noqa: E402
 
-T_C, T_S, W_S, W_C, C_TRUE = 0.004, 0.006, 0.8, 0.02, 0.001
+T_C, T_S, W_S, W_C, C_TRUE = 0.004, 0.006, 0.8, 0.2, 0.001
 
 
 def true_friction(t, phi, dphi):
@@ -43,18 +44,23 @@ def true_friction(t, phi, dphi):
 
 
 class FrictionMLP(eqx.Module):
-    """A learned bearing torque `f(phi') -> N*m`, odd in phi' by construction (friction
-    opposes motion), with the rate scaled to O(1) for the network."""
+    """A learned bearing torque `f(phi') -> N*m`: a viscous term `-c phi'` (its `c`
+    learned too) plus an MLP for the rest, odd in phi' by construction (friction opposes
+    motion). The MLP sees the rate in units of a typical slip rate, where the Coulomb and
+    Stribeck shapes live."""
 
     mlp: eqx.nn.MLP
-    rate_scale: float = eqx.field(static=True)
+    c: jax.Array
+    """The viscous coefficient in units of `c_scale` (O(1), as Adam's steps are)."""
+    slip_rate: float = eqx.field(static=True)
     torque_scale: float = eqx.field(static=True)
+    c_scale: float = eqx.field(static=True)
 
     def __call__(self, t, phi, dphi):
         del t, phi
-        x = jnp.atleast_1d(dphi / self.rate_scale)
+        x = jnp.atleast_1d(dphi / self.slip_rate)
         odd = self.mlp(x)[0] - self.mlp(-x)[0]
-        return self.torque_scale * odd
+        return self.torque_scale * odd - self.c_scale * self.c * dphi
 
 
 def main(argv=None) -> None:
@@ -76,8 +82,8 @@ def main(argv=None) -> None:
     rate_scale = float(jnp.max(jnp.abs(truth.dphi)))
 
     key = jax.random.PRNGKey(0)
-    model = FrictionMLP(eqx.nn.MLP(1, 1, 16, 2, activation=jnp.tanh, key=key), rate_scale,
-                        0.01)
+    model = FrictionMLP(eqx.nn.MLP(1, 1, 16, 2, activation=jnp.tanh, key=key),
+                        jnp.asarray(0.0), 1.0, 0.01, 1e-3)
 
     def loss(model):
         tr = cj.simulate(mech, phi0, 0.0, ts, force=model, rtol=1e-7, atol=1e-9)

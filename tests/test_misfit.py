@@ -28,7 +28,6 @@ def test_misfit_is_reported_not_white_and_intervals_widen():
     d = res.diagnostics
     assert d is not None and not d.white
     assert d.ljung_box_p < 0.01 and d.lag1_autocorrelation > 0.5
-    assert d.effective_samples < 0.5 * d.n_samples
     assert any("not white" in w for w in res.warnings)
     doc = res.to_json()["diagnostics"]
     assert {"ljung_box_p", "lag1_autocorrelation", "effective_samples"} <= set(doc)
