@@ -188,16 +188,16 @@ class Problem(eqx.Module):
         """Model angles and rates on every segment: (phi, dphi), each (S, m), NaN after a
         failed solve, and the ODE steps each segment's solve took (S,).
 
-        Through `simulate`, so the fit runs the solvers and the policy everyone runs. The
-        programs are traced under `programs.checks_without_callbacks`, so its checks on
-        traced values hold no host callback (JAX's persistent cache keeps the program):
-        a trial point outside the valid set fails its solve, which the residuals turn
-        into a rejection."""
+        Through `simulate`, so the fit runs the solvers and the policy everyone runs, with
+        `checks=False`: no host callback for traced values (JAX's persistent cache keeps
+        the program), and compiled programs kept apart from users' checked ones. A trial
+        point outside the valid set fails its solve, which the residuals turn into a
+        rejection."""
         def one(ts, y0):
             tr = simulate(mech, y0[0], y0[1], ts, load=load, torque=torque,
                           solver=self.solver, rtol=self.rtol, atol=self.atol,
                           max_steps=self.max_steps, adjoint=self.adjoint,
-                          structure=self.structure, throw=False)
+                          structure=self.structure, throw=False, checks=False)
             ok = tr.result == diffrax.RESULTS.successful
             return (jnp.where(ok, tr.phi, jnp.nan), jnp.where(ok, tr.dphi, jnp.nan),
                     tr.num_steps)

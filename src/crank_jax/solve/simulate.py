@@ -96,6 +96,13 @@ def _solver_for(name: str) -> diffrax.AbstractSolver:
     }[name]()
 
 
+def _stacked_field_unchecked(t, y, field):
+    """As `_stacked_field`, for programs traced without runtime checks (`checks=False`).
+    A separate function object, so diffrax's trace cache never hands a program traced
+    under one checking mode to a caller in the other (see `simulate`'s `checks`)."""
+    return jnp.stack(field(t, (y[0], y[1])))
+
+
 def _stacked_field(t, y, field):
     """The ODETerm adapter: diffrax steps the state as one (2,) array, `args` is the
     [`CrankField`][]."""
@@ -178,7 +185,7 @@ def _solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, 
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
     else:
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(_stacked_field),
+            diffrax.ODETerm(_stacked_field if checks else _stacked_field_unchecked),
             _solver_for(solver),
             t0=ts[0], t1=ts[-1], dt0=None, y0=y0,
             args=field,
@@ -221,6 +228,7 @@ def simulate(
     structure: Structure | None = None,
     throw: bool = True,
     force: Callable | None = None,
+    checks: bool = True,
 ) -> Trajectory:
     """Integrate `M(phi) phi'' + K(phi) phi'^2 = q(phi, phi', t)` from `ts[0]` to `ts[-1]`.
 
@@ -250,6 +258,11 @@ def simulate(
       any pytree callable (an `equinox` MLP included), differentiable through the solve.
       The solver policy and the derived outputs see it; `energy` and `reactions` do not
       (they are the mechanism's own).
+    - `checks`: validate traced values inside the program with `eqx.error_if` (a host
+      callback). `False` leaves those checks out, for programs that must hold no host
+      callback (JAX's persistent cache does not keep them; the fit's programs): invalid
+      values then fail the solve (`result`) instead of raising. Concrete values are
+      always checked on the host.
 
     **Returns:** a [`Trajectory`][].
 
@@ -292,7 +305,8 @@ def simulate(
     traj = _solve(
         mech, load, torque, force, y0, ts, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
         solver=solver, max_steps=int(max_steps), adjoint=adjoint, structure=structure,
-        outputs=tuple(sorted(set(outputs))), throw=bool(throw) and not host, checks=not host,
+        outputs=tuple(sorted(set(outputs))), throw=bool(throw) and not host,
+        checks=bool(checks) and not host,
     )
     if host and throw and traj.result != diffrax.RESULTS.successful:
         raise eqx.EquinoxRuntimeError(diffrax.RESULTS[traj.result])
