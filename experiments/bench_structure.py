@@ -39,8 +39,8 @@ def main(argv=None):
     rows = []
     for label, mech, load, torque, outputs in cases:
         kw = dict(solver="dopri8-uniform", max_steps=200_000, adjoint="forward",
-                  structure=Structure.of(mech), outputs=outputs, throw=False, checks=False)
-        args = (mech, load, torque, jnp.array([1.0, 0.0]), ts, jnp.asarray(1e-8),
+                  structure=Structure.of(mech), outputs=outputs, throw=False, mode="host")
+        args = (mech, load, torque, None, jnp.array([1.0, 0.0]), ts, jnp.asarray(1e-8),
                 jnp.asarray(1e-10))
         compiled = jax.jit(lambda *a, kw=kw: _solve(*a, **kw)).lower(*args).compile()
         text = compiled.as_text()

@@ -97,9 +97,12 @@ def _solver_for(name: str) -> diffrax.AbstractSolver:
 
 
 def _stacked_field_unchecked(t, y, field):
-    """As `_stacked_field`, for programs traced without runtime checks (`checks=False`).
-    A separate function object, so diffrax's trace cache never hands a program traced
-    under one checking mode to a caller in the other (see `simulate`'s `checks`)."""
+    """As `_stacked_field`, for programs traced without runtime checks (`checks=False`)."""
+    return jnp.stack(field(t, (y[0], y[1])))
+
+
+def _stacked_field_host(t, y, field):
+    """As `_stacked_field`, for concrete inputs checked on the host."""
     return jnp.stack(field(t, (y[0], y[1])))
 
 
@@ -107,6 +110,13 @@ def _stacked_field(t, y, field):
     """The ODETerm adapter: diffrax steps the state as one (2,) array, `args` is the
     [`CrankField`][]."""
     return jnp.stack(field(t, (y[0], y[1])))
+
+
+# One function object per kind of program (see `_solve`'s `mode`): diffrax caches the
+# traces of its solve by the vector field's identity, so a program traced in one mode
+# (the fit's, with equinox's checks turned off) is never handed to a caller in another.
+_TERMS = {"checked": _stacked_field, "unchecked": _stacked_field_unchecked,
+          "host": _stacked_field_host}
 
 
 def _rate(field: CrankField) -> Array:
@@ -156,8 +166,12 @@ def _controller(rtol, atol, load, torque) -> diffrax.AbstractStepSizeController:
 
 @eqx.filter_jit
 def _solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, adjoint,
-           structure, outputs, throw, checks=True):
-    if checks:
+           structure, outputs, throw, mode="checked"):
+    # `mode`: "checked" (traced values, validated with `eqx.error_if`), "unchecked"
+    # (traced values, no callbacks: `simulate(checks=False)`) or "host" (concrete values,
+    # validated on the host before the call). A static argument, so each has its own
+    # compiled programs.
+    if mode == "checked":
         mech = mech.checked()
         y0 = eqx.error_if(y0, ~jnp.all(jnp.isfinite(y0)),
                           "initial state (phi0, dphi0) must be finite")
@@ -185,7 +199,7 @@ def _solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, 
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
     else:
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(_stacked_field if checks else _stacked_field_unchecked),
+            diffrax.ODETerm(_TERMS[mode]),
             _solver_for(solver),
             t0=ts[0], t1=ts[-1], dt0=None, y0=y0,
             args=field,
@@ -306,7 +320,7 @@ def simulate(
         mech, load, torque, force, y0, ts, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
         solver=solver, max_steps=int(max_steps), adjoint=adjoint, structure=structure,
         outputs=tuple(sorted(set(outputs))), throw=bool(throw) and not host,
-        checks=bool(checks) and not host,
+        mode="host" if host else ("checked" if checks else "unchecked"),
     )
     if host and throw and traj.result != diffrax.RESULTS.successful:
         raise eqx.EquinoxRuntimeError(diffrax.RESULTS[traj.result])
