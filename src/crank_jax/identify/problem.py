@@ -32,12 +32,11 @@ import numpy as np
 from jaxtyping import Array
 
 from ..data import Data
-from ..model.dynamics import Structure
+from ..model.dynamics import CrankField, Structure
 from ..model.linear import linearize
-from ..model.loads import AbstractLoad, set_param
+from ..model.loads import AbstractLoad, nonsmooth_times, set_param
 from ..model.params import FIELDS, SliderCrank
 from ..solve.policy import resolve_solver
-from ..solve.simulate import simulate
 from .request import LOAD_NAMES, SIGNED_FIELDS
 from .segments import Segments, make_segments, padded_load
 
@@ -73,6 +72,19 @@ def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None =
         if math.isfinite(mu) and mu > 0:
             return False, mu * omega**2 if name == "k" else 0.1 * mu * omega
     return False, _ZERO_START_REF
+
+
+def _fit_field(t, y, field):
+    """The fit's own ODETerm adapter on the model's vector field (a function object of its
+    own: diffrax caches traces by it, see `Problem.simulate_segments`)."""
+    return jnp.stack(field(t, (y[0], y[1])))
+
+
+# The fit's residuals use diffrax's adaptive solvers; "dopri8-uniform" (uniform save
+# times only) runs as the same Dopri8 tableau, adaptively, on the padded segment times.
+_SOLVERS = {"tsit5": diffrax.Tsit5, "dopri5": diffrax.Dopri5, "dopri8": diffrax.Dopri8,
+            "dopri8-uniform": diffrax.Dopri8, "dopri8-fused": diffrax.Dopri8,
+            "kvaerno5": diffrax.Kvaerno5}
 
 
 class Experiment(eqx.Module):
@@ -188,19 +200,32 @@ class Problem(eqx.Module):
         """Model angles and rates on every segment: (phi, dphi), each (S, m), NaN after a
         failed solve, and the ODE steps each segment's solve took (S,).
 
-        Through `simulate`, so the fit runs the solvers and the policy everyone runs, with
-        `checks=False`: no host callback for traced values (JAX's persistent cache keeps
-        the program), and compiled programs kept apart from users' checked ones. A trial
-        point outside the valid set fails its solve, which the residuals turn into a
-        rejection."""
+        diffrax directly, on the model's `CrankField`, rather than through `simulate`:
+        traced with equinox's checks off (`programs.checks_without_callbacks`), the fit's
+        programs must share no trace with a user's `simulate` (measured: routing them
+        through `simulate` let a host callback into a later fit program, or NaN-mode
+        checks into a later user program). The solver name comes from the one policy
+        (`pick_solver`) and the step clipping at load kinks is the loads' own
+        (`nonsmooth_times`). A trial point outside the valid set fails its solve, which
+        the residuals turn into a rejection."""
+        step_ts, jump_ts = nonsmooth_times(load, torque)
+        controller = diffrax.PIDController(rtol=self.rtol, atol=self.atol)
+        if step_ts is not None or jump_ts is not None:
+            controller = diffrax.ClipStepSizeController(controller, step_ts=step_ts,
+                                                        jump_ts=jump_ts)
+        adjoint = (diffrax.ForwardMode() if self.adjoint == "forward"
+                   else diffrax.RecursiveCheckpointAdjoint())
+        field = CrankField(mech, load, torque, self.structure)
+
         def one(ts, y0):
-            tr = simulate(mech, y0[0], y0[1], ts, load=load, torque=torque,
-                          solver=self.solver, rtol=self.rtol, atol=self.atol,
-                          max_steps=self.max_steps, adjoint=self.adjoint,
-                          structure=self.structure, throw=False, checks=False)
-            ok = tr.result == diffrax.RESULTS.successful
-            return (jnp.where(ok, tr.phi, jnp.nan), jnp.where(ok, tr.dphi, jnp.nan),
-                    tr.num_steps)
+            sol = diffrax.diffeqsolve(
+                diffrax.ODETerm(_fit_field), _SOLVERS[self.solver](), t0=ts[0],
+                t1=ts[-1], dt0=None, y0=y0, args=field, saveat=diffrax.SaveAt(ts=ts),
+                stepsize_controller=controller, max_steps=self.max_steps, adjoint=adjoint,
+                throw=False)
+            ok = sol.result == diffrax.RESULTS.successful
+            return (jnp.where(ok, sol.ys[:, 0], jnp.nan), jnp.where(ok, sol.ys[:, 1], jnp.nan),
+                    sol.stats["num_steps"])
 
         return jax.vmap(one)(e.seg.ts, y0s)
 
