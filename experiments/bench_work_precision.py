@@ -3,9 +3,8 @@
 Scenes: the lab rig with c = 1e-3 (the issue's target configuration), the torsional and the
 near-buckling presets, each with its own phi0. Methods, side by side in one run:
 
-- `crank_jax.simulate` with its default solver (`"auto"`), with the fused solvers by name
-  (`"dopri8-fused"`, adaptive with dense output; `"dopri8-uniform"`), and diffrax's
-  adaptive Tsit5, Dopri5, Dopri8 through
+- `crank_jax.simulate` with its default solver (`"auto"`, which picks `"dopri8-uniform"`
+  for these non-stiff scenes), and diffrax's adaptive Tsit5, Dopri5, Dopri8 through
   `simulate(solver=...)`, at rtol = 1e-4 .. 1e-12 (atol = rtol / 100);
 - scipy `solve_ivp` RK45, DOP853, LSODA and `odeint` with a plain-Python RHS;
 - compiled scalar peers in numba (skipped if numba is missing): a Dormand-Prince 5(4) with
@@ -82,11 +81,8 @@ def main(argv=None):
             print(f"{label:>18} {method:>26} rtol={rtol:.0e} err={err:.2e} t={t * 1e3:9.3f} ms",
                   flush=True)
 
-        jax_methods = {"crank_jax default (auto)": None,
-                       "crank_jax dopri8-fused": "dopri8-fused",
-                       "crank_jax dopri8-uniform": "dopri8-uniform",
-                       "diffrax Tsit5": "tsit5", "diffrax Dopri5": "dopri5",
-                       "diffrax Dopri8": "dopri8"}
+        jax_methods = {"crank_jax default (auto)": None, "diffrax Tsit5": "tsit5",
+                       "diffrax Dopri5": "dopri5", "diffrax Dopri8": "dopri8"}
         if smoke:
             jax_methods = {"crank_jax default (auto)": None, "diffrax Dopri8": "dopri8"}
         for method, solver in jax_methods.items():
@@ -142,14 +138,6 @@ def main(argv=None):
     print("target (a):", target)
     target2 = target_2(lab, default)
     print("issue 9 target 2:", target2)
-    # The same comparison for each fused solver by name (rtol 1e-8).
-    by_solver = {}
-    for method in ("crank_jax dopri8-fused", "crank_jax dopri8-uniform"):
-        rows = [r for r in lab.get(method, []) if r["rtol"] == 1e-8]
-        if rows:
-            by_solver[method] = target_2(lab, rows[0])
-            print(f"issue 9 target 2, {method}:", by_solver[method])
-    target2 = None if target2 is None else {**target2, "by_solver": by_solver}
     save("work_precision" + a.tag, {"t1": T1, "samples": SAMPLES, "cases": results,
                                     "target_a": target, "target_2": target2}, smoke)
     plot(results, smoke, a.tag)
@@ -174,8 +162,6 @@ def target_2(lab: dict, default: dict) -> dict | None:
 
 STYLE = {
     "crank_jax default (auto)": dict(color="k", lw=2.5, marker="o"),
-    "crank_jax dopri8-fused": dict(color="0.3", lw=1.5, marker="^"),
-    "crank_jax dopri8-uniform": dict(color="0.6", lw=1.5, marker="v"),
     "diffrax Tsit5": dict(color="C0", marker="."),
     "diffrax Dopri5": dict(color="C9", marker="."),
     "diffrax Dopri8": dict(color="C1", marker="."),

@@ -9,12 +9,6 @@ solver whichever of them runs it. The rule, in order:
    known on the host (the parameters may be traced) and no sampled load,
    `"dopri8-uniform"`, the fused solver, which is faster than either at equal error
    (experiments/bench_work_precision.py, experiments/bench_throughput.py).
-
-`"dopri8-fused"` (adaptive fused Dopri8 with dense output, `adaptive.py`) is never picked
-by `"auto"`: on the lab rig it is faster than `"dopri8-uniform"` at equal error only for
-errors above ~1e-9 rad, slower below, and at the default rtol its error (1.7e-8 rad, per
-step control as diffrax's) misses the lab rig's 1e-8 rad (experiments/results/
-work_precision_speed.json).
 """
 
 from __future__ import annotations
@@ -36,8 +30,7 @@ __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_
 _UNIFORM_MARGIN = 8.0
 
 #: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`.
-SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform",
-                            "dopri8-fused")
+SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform")
 
 # The "auto" switch to an implicit solver (see `choose_solver`). Measured on the lab rig
 # (experiments/stress_stiffness.py): at the stability limit an explicit Tsit5 takes about
@@ -55,29 +48,8 @@ _MAX_SPAN_RATE = 1e12
 # A real fast mode is stiff only if the other mode is this much slower (otherwise the
 # slow mode, e.g. a crank falling over, needs the same small steps).
 _STIFFNESS_RATIO = 1e2
-# The policy linearises the concrete parameters before every concrete solve, twice (the
-# stiffness test, the time-scale check): ~90 us each, eager, against a solve of a few ms.
-# The results are kept by the parameters' values (a few us to key); at most this many.
-_LIN_CACHE: dict = {}
-_LIN_CACHE_SIZE = 64
 
 
-def _host_linearization(mech: SliderCrank, load: AbstractLoad | None):
-    """`linearize(mech, load)` for concrete inputs, cached by their values."""
-    leaves, treedef = jax.tree_util.tree_flatten((mech, load))
-    try:
-        arrays = [np.asarray(x) for x in leaves]
-        key = (treedef, tuple((a.dtype.str, a.shape, a.tobytes()) for a in arrays))
-        hash(key)
-    except TypeError:  # an unhashable static field: no caching
-        return linearize(mech, load)
-    lin = _LIN_CACHE.get(key)
-    if lin is None:
-        lin = linearize(mech, load)
-        if len(_LIN_CACHE) >= _LIN_CACHE_SIZE:
-            _LIN_CACHE.pop(next(iter(_LIN_CACHE)))
-        _LIN_CACHE[key] = lin
-    return lin
 
 
 def is_concrete(tree) -> bool:
@@ -149,7 +121,7 @@ def choose_solver(
     `jit`) skip the stiffness test.
     """
     if is_concrete(mech) and is_concrete(load):
-        lin = _host_linearization(mech, load)
+        lin = linearize(mech, load)
         rate, decay = fastest_mode(lin)
         slow = _slowest_rate(lin)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -237,7 +209,7 @@ def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int
     """
     if not (is_concrete(mech) and is_concrete(load)):
         return
-    lin = _host_linearization(mech, load)
+    lin = linearize(mech, load)
     rate, _ = fastest_mode(lin)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         rate = np.asarray(rate, dtype=float)

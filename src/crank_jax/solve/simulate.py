@@ -26,7 +26,6 @@ from ..model.linear import linearize
 from ..model.loads import AbstractLoad, as_load, nonsmooth_times
 from ..model.newton_euler import reactions
 from ..model.params import SliderCrank
-from .adaptive import solve_adaptive
 from .inputs import check_tolerances, check_unbatched
 from .policy import check_time_scale, is_concrete, resolve_solver
 from .uniform import solve_uniform
@@ -186,14 +185,6 @@ def _solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, 
         (phi, dphi), result, steps = solve_uniform(
             field, (y0[0], y0[1]), ts, rtol, atol, rate=_rate(field), max_steps=max_steps,
             kind=kind)
-        ys = jnp.stack([phi, dphi], axis=1)
-        if throw:
-            ys = result.error_if(ys, result != diffrax.RESULTS.successful)
-    elif solver == "dopri8-fused":
-        # Adaptive fused Dopri8 with dense output (see `adaptive.py`): forward-mode
-        # autodiff only, whatever `adjoint` says (reverse mode raises).
-        (phi, dphi), result, steps = solve_adaptive(
-            field, (y0[0], y0[1]), ts, rtol, atol, max_steps=max_steps)
         ys = jnp.stack([phi, dphi], axis=1)
         if throw:
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
