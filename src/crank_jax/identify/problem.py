@@ -80,6 +80,20 @@ def _fit_field(t, y, field):
     return jnp.stack(field(t, (y[0], y[1])))
 
 
+def _fit_field_no_callbacks(t, y, field):
+    """As `_fit_field`, for traces made with equinox's checks as NaN
+    (`programs.checks_without_callbacks`): a separate object, so a trace made in one mode
+    (with host callbacks) is never reused in the other."""
+    return jnp.stack(field(t, (y[0], y[1])))
+
+
+def _ode_term() -> diffrax.ODETerm:
+    import equinox._errors as eqx_errors  # the same switch `checks_without_callbacks` sets
+
+    nan = getattr(eqx_errors, "EQX_ON_ERROR", None) == "nan"
+    return diffrax.ODETerm(_fit_field_no_callbacks if nan else _fit_field)
+
+
 # The fit's residuals use diffrax's adaptive solvers; "dopri8-uniform" (uniform save
 # times only) runs as the same Dopri8 tableau, adaptively, on the padded segment times.
 _SOLVERS = {"tsit5": diffrax.Tsit5, "dopri5": diffrax.Dopri5, "dopri8": diffrax.Dopri8,
@@ -219,7 +233,7 @@ class Problem(eqx.Module):
 
         def one(ts, y0):
             sol = diffrax.diffeqsolve(
-                diffrax.ODETerm(_fit_field), _SOLVERS[self.solver](), t0=ts[0],
+                _ode_term(), _SOLVERS[self.solver](), t0=ts[0],
                 t1=ts[-1], dt0=None, y0=y0, args=field, saveat=diffrax.SaveAt(ts=ts),
                 stepsize_controller=controller, max_steps=self.max_steps, adjoint=adjoint,
                 throw=False)
