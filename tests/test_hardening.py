@@ -354,3 +354,56 @@ def test_warnings_are_one_line(capsys, monkeypatch):
         warnings.simplefilter("always")
         code, _, err = _run(capsys, "scenes")
     assert code == 0 and err == "crank-jax: warning: something odd\n"
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (("--phi0", "1e300"), "turns from rest"),
+    (("--dphi0", "1e12"), "turns from rest"),
+    (("--rtol", "1e-300"), "rtol must be"),
+])
+def test_absurd_start_or_tolerance_refused_at_once(tmp_path, capsys, argv, needle):
+    """Finite but absurd initial states and tolerances: exit 2, one line, before a solve
+    (they used to run ~20 s and exit 1, or be accepted)."""
+    out = tmp_path / "x.csv"
+    t = time.perf_counter()
+    code, _, err = _run(capsys, "simulate", "lab-rig", *argv, "--out", out)
+    assert code == 2 and _one_line(err) and needle in err, err
+    assert not out.exists() and time.perf_counter() - t < 10
+
+
+def test_signal_noted_when_its_exception_is_dropped(tmp_path, monkeypatch):
+    """Python drops an exception raised by a signal handler while a gc callback runs (JAX
+    has one), so the run went on and replaced the output: the noted signal stops the
+    commit, and main exits with the signal's status."""
+    io = cj.io
+    out = tmp_path / "o.txt"
+    out.write_text("old\n")
+    io.note_signal(signal.SIGTERM)
+    try:
+        with pytest.raises(io.Terminated), io.atomic_write(out) as f:
+            f.write("new\n")
+    finally:
+        io.note_signal(None)
+    assert out.read_text() == "old\n" and _tmp_files(tmp_path) == []
+
+
+def test_main_exits_with_a_dropped_signal(capsys, monkeypatch):
+    cli_main = sys.modules["crank_jax.cli.main"]  # (crank_jax.cli.main is also the function)
+
+    def dropped(args):  # a command during which the handler's exception was dropped
+        cj.io.note_signal(signal.SIGTERM)
+        return 0
+
+    build = cli_main.build_parser
+
+    def parser_with(run):
+        parser = build()
+        parser.set_defaults(_run=run)
+        for action in parser._subparsers._group_actions:
+            for sub in action.choices.values():
+                sub.set_defaults(_run=run)
+        return parser
+
+    monkeypatch.setattr(cli_main, "build_parser", lambda: parser_with(dropped))
+    code, _, err = _run(capsys, "scenes")
+    assert code == 128 + signal.SIGTERM and "terminated by SIGTERM" in err

@@ -1,7 +1,5 @@
 """`python -m crank_jax ...` is `crank-jax ...`."""
 
-import sys
+from .cli import entry
 
-from .cli import main
-
-sys.exit(main())
+entry()

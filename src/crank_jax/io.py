@@ -12,7 +12,38 @@ from pathlib import Path
 from typing import IO
 
 __all__ = ["atomic_write", "check_not_input", "check_output", "check_figure_format",
-           "default_file_mode"]
+           "default_file_mode", "Terminated", "note_signal", "raise_if_terminated"]
+
+
+class Terminated(BaseException):
+    """Raised in the main thread by SIGTERM or SIGHUP (under the CLI), so that `finally`
+    blocks and the atomic writers' cleanup run; a BaseException like KeyboardInterrupt, so
+    that no `except Exception` swallows it."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+# Signals received (by the CLI's handler) in this process. Python drops an exception that
+# a signal handler raises while a garbage-collector callback or a `__del__` runs (JAX
+# registers such a callback), so the handler also notes the signal here, and a writer
+# checks before it commits: a terminated run never replaces an output.
+_SIGNALS: list[int] = []
+
+
+def note_signal(signum: int | None) -> None:
+    """Record a received signal (`None` forgets them all)."""
+    if signum is None:
+        _SIGNALS.clear()
+    else:
+        _SIGNALS.append(signum)
+
+
+def raise_if_terminated() -> None:
+    """Raise [`Terminated`][] if a signal was noted whose exception may have been lost."""
+    if _SIGNALS:
+        raise Terminated(_SIGNALS[0])
 
 
 def default_file_mode() -> int:
@@ -68,6 +99,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
             yield f
             f.flush()
             os.fsync(f.fileno())
+        raise_if_terminated()
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

@@ -18,14 +18,16 @@ import math
 import os
 from typing import NamedTuple
 
-import diffrax
 import numpy as np
 
 from .data import MIN_SAMPLES, Data, DataError
 from .identify.fit import fit
+from .lazy import lazy_import
 from .model.linear import linearize
 from .model.loads import AbstractLoad, NoLoad
 from .scene import Scene
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["validate", "Validation", "default_init_window", "plot_validation"]
 

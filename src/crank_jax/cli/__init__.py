@@ -1,5 +1,5 @@
 """The `crank-jax` command line: one module per command group, `errors` a leaf."""
 
-from .main import build_parser, main
+from .main import build_parser, entry, main
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "entry", "build_parser"]

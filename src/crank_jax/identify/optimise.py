@@ -1,7 +1,7 @@
 """The optimisers: Levenberg-Marquardt through `optimistix.least_squares`, and optax.
 
 LM runs as `optx.least_squares(fn, StallTest(BestSoFarLeastSquares(LevenbergMarquardt)),
-..., throw=False)`: optimistix's own loop, extended by wrapping its solver (as optimistix
+..., throw=False)` (`lm.py`): optimistix's own loop, extended by wrapping its solver (as optimistix
 extends its solvers) rather than by copying the loop. The compiled program has no host
 callback, so JAX's persistent cache keeps it between processes; progress is shown
 between compiled chunks of [`CHUNK`][] iterations instead.
@@ -9,26 +9,29 @@ between compiled chunks of [`CHUNK`][] iterations instead.
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
-import optimistix as optx
-from jaxtyping import Array
 
+from ..lazy import lazy_import
 from .programs import Program, residuals_at
 
-__all__ = ["Run", "StallTest", "least_squares", "minimise_optax", "evaluate", "CHUNK",
+# Imported on first use (see lazy.py): a warm fit runs stored programs and needs neither.
+optax = lazy_import("optax")
+optx = lazy_import("optimistix")
+
+__all__ = ["Run", "least_squares", "minimise_optax", "evaluate", "CHUNK",
            "STALL_STEPS", "progress_bar", "lm_chunk"]
 
 #: LM iterations per compiled call; progress is reported between calls.
 CHUNK = 16
-#: The stall test looks this many iterations back.
+#: The stall test looks this many iterations back (see `lm.StallTest`).
 STALL_STEPS = 8
 
 
@@ -57,87 +60,24 @@ def evaluate(problem, z) -> tuple[float, int]:
     return 0.5 * float(r @ r), int(failed)
 
 
-class _StallState(eqx.Module):
-    history: Array  # (STALL_STEPS + 1,) best cost after each of the last steps
-    n: Array  # number of residuals
-    inner: Any
-
-
-def _with_residual(fn, y, args):
-    out, aux = fn(y, args)
-    return out, (out, aux)
-
-
-class StallTest(optx.AbstractLeastSquaresSolver):
-    """Wraps a least-squares solver with a statistical stopping test.
-
-    Besides the wrapped solver's own test on the step and residual changes, stop when the
-    best cost has fallen by less than `0.01 sigma^2` over the last `STALL_STEPS` steps
-    (with `sigma^2 ~ 2 cost / n`): LM can crawl for hundreds of steps along a weakly
-    determined valley while moving the estimate by a tiny fraction of its confidence
-    region. `options["cost_history"]` carries the history from one call to the next.
-    """
-
-    solver: optx.AbstractLeastSquaresSolver
-
-    @property
-    def rtol(self):
-        return self.solver.rtol
-
-    @property
-    def atol(self):
-        return self.solver.atol
-
-    @property
-    def norm(self):
-        return self.solver.norm
-
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        wrapped = eqx.Partial(_with_residual, fn)
-        inner = self.solver.init(wrapped, y, args, options, f_struct, (f_struct, aux_struct),
-                                 tags)
-        history = options.get("cost_history", jnp.full(STALL_STEPS + 1, jnp.inf))
-        n = jnp.asarray(sum(x.size for x in jax.tree_util.tree_leaves(f_struct)), float)
-        return _StallState(jnp.asarray(history, float), n, inner)
-
-    def step(self, fn, y, args, options, state, tags):
-        wrapped = eqx.Partial(_with_residual, fn)
-        y, inner, (f, aux) = self.solver.step(wrapped, y, args, options, state.inner, tags)
-        cost = 0.5 * sum(jnp.sum(x**2) for x in jax.tree_util.tree_leaves(f))
-        best = jnp.minimum(cost, state.history[-1])
-        history = jnp.roll(state.history, -1).at[-1].set(best)
-        return y, _StallState(history, state.n, inner), aux
-
-    def terminate(self, fn, y, args, options, state, tags):
-        wrapped = eqx.Partial(_with_residual, fn)
-        done, result = self.solver.terminate(wrapped, y, args, options, state.inner, tags)
-        h = state.history
-        stalled = jnp.isfinite(h[0]) & (h[0] - h[-1] <= 0.02 * h[-1] / state.n)
-        return done | stalled, optx.RESULTS.where(stalled & ~done, optx.RESULTS.successful,
-                                                  result)
-
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        wrapped = eqx.Partial(_with_residual, fn)
-        y, _, stats = self.solver.postprocess(wrapped, y, (None, aux), args, options,
-                                              state.inner, tags, result)
-        return y, aux, stats
-
-
-def _call(w, model):
-    return model(w, None)[0]
+#: The outcomes a chunk reports by index (names of `optx.RESULTS`).
+OUTCOMES = ("successful", "nonlinear_max_steps_reached", "nonlinear_divergence",
+            "singular", "breakdown")
 
 
 def _lm_chunk_fn(model, z, history, tol, chunk):
-    solver = StallTest(optx.BestSoFarLeastSquares(optx.LevenbergMarquardt(rtol=tol, atol=tol)))
-    sol = optx.least_squares(_call, solver, z, args=model,
-                             options={"cost_history": history}, max_steps=chunk,
-                             throw=False)
-    return sol.value, sol.result, sol.stats["num_steps"], sol.state.history
+    from .lm import lm_chunk_fn  # optimistix: only while tracing
+
+    return lm_chunk_fn(model, z, history, tol, chunk, OUTCOMES)
 
 
-#: One compiled chunk of LM iterations: `(model, z, history, tol, chunk) -> (z, result,
-#: steps, history)`.
-lm_chunk = Program(eqx.filter_jit(_lm_chunk_fn))
+#: One compiled chunk of LM iterations: `(model, z, history, tol, chunk) -> (z, outcome
+#: index, steps, history)`.
+lm_chunk = Program(_lm_chunk_fn, "lm_chunk")
+
+
+def _outcome_name(code: int) -> str:
+    return OUTCOMES[code] if code < len(OUTCOMES) else "unknown"
 
 
 def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
@@ -149,13 +89,14 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     of 10 rad, so a point where the solve fails never wins)."""
     z = jnp.asarray(z0)
     history = jnp.full(STALL_STEPS + 1, jnp.inf)
-    it, done, result = 0, False, optx.RESULTS.successful
+    it, done, result = 0, False, "successful"
     with progress_bar(max_steps, desc, progress) as bar:
         while it < max_steps and not done:
             chunk = min(CHUNK, max_steps - it)
-            z, result, steps, history = lm_chunk(model, z, history, tol, chunk)
+            z, code, steps, history = lm_chunk(model, z, history, tol, chunk)
             it += int(steps)
-            done = result != optx.RESULTS.nonlinear_max_steps_reached
+            result = _outcome_name(int(code))
+            done = result != "nonlinear_max_steps_reached"
             bar.n = it
             bar.set_postfix(cost=f"{float(history[-1]):.4g}", refresh=True)
     zn, cost = np.asarray(z), float(history[-1])
@@ -164,8 +105,11 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     if not done:
         return Run(zn, cost, it, False,
                    f"stopped after max_steps = {max_steps} iterations without converging")
-    if result != optx.RESULTS.successful:
-        return Run(zn, cost, it, False, "Levenberg-Marquardt failed: " + optx.RESULTS[result])
+    if result != "successful":
+        from .lm import outcome_message
+
+        why = outcome_message(result)
+        return Run(zn, cost, it, False, "Levenberg-Marquardt failed: " + why)
     return Run(zn, cost, it, True, "converged")
 
 
@@ -190,16 +134,22 @@ def _loss(z, model):
     return 0.5 * jnp.sum(r * r)
 
 
-# Module-level (immutable) optimisers: optax transformations made per fit would be new
-# static objects, and every fit would recompile.
-_ADAM = optax.adam(0.02)
-_LBFGS = optax.lbfgs()
+# One (immutable) optimiser each, made on first use (optax is imported then): optax
+# transformations made per fit would be new static objects, and every fit would recompile.
+@functools.cache
+def _adam():
+    return optax.adam(0.02)
+
+
+@functools.cache
+def _lbfgs():
+    return optax.lbfgs()
 
 
 @eqx.filter_jit
 def _adam_step(z, st, model):
     v, g = jax.value_and_grad(_loss)(z, model)
-    u, st = _ADAM.update(g, st, z)
+    u, st = _adam().update(g, st, z)
     return optax.apply_updates(z, u), st, v
 
 
@@ -209,7 +159,7 @@ def _lbfgs_step(z, st, model):
         return _loss(x, model)
 
     v, g = optax.value_and_grad_from_state(f)(z, state=st)
-    u, st = _LBFGS.update(g, st, z, value=v, grad=g, value_fn=f)
+    u, st = _lbfgs().update(g, st, z, value=v, grad=g, value_fn=f)
     return optax.apply_updates(z, u), st, v, jnp.max(jnp.abs(g))
 
 
@@ -224,12 +174,12 @@ def minimise_optax(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     z = jnp.asarray(z0)
     it, converged, stall = 0, False, 0
     with progress_bar(max_steps, desc, progress) as bar:
-        st = _ADAM.init(z)
+        st = _adam().init(z)
         for _ in range(max_steps // 4):
             z, st, v = _adam_step(z, st, model)
             it += 1
             bar.update(1)
-        st = _LBFGS.init(z)
+        st = _lbfgs().init(z)
         prev = math.inf
         while it < max_steps:
             z, st, v, gmax = _lbfgs_step(z, st, model)

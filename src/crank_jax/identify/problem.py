@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -32,6 +31,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ..data import Data
+from ..lazy import lazy_import
 from ..model.dynamics import CrankField, Structure
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, nonsmooth_times, set_param
@@ -39,6 +39,8 @@ from ..model.params import FIELDS, SliderCrank
 from ..solve.policy import resolve_solver
 from .request import LOAD_NAMES, SIGNED_FIELDS
 from .segments import Segments, make_segments, padded_load
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["Problem", "Experiment", "build_problem", "coordinate", "natural_period",
            "linear_frequency", "pick_solver"]
@@ -96,9 +98,8 @@ def _ode_term() -> diffrax.ODETerm:
 
 # The fit's residuals use diffrax's adaptive solvers; "dopri8-uniform" (uniform save
 # times only) runs as the same Dopri8 tableau, adaptively, on the padded segment times.
-_SOLVERS = {"tsit5": diffrax.Tsit5, "dopri5": diffrax.Dopri5, "dopri8": diffrax.Dopri8,
-            "dopri8-uniform": diffrax.Dopri8, "dopri8-fused": diffrax.Dopri8,
-            "kvaerno5": diffrax.Kvaerno5}
+_SOLVERS = {"tsit5": "Tsit5", "dopri5": "Dopri5", "dopri8": "Dopri8",
+            "dopri8-uniform": "Dopri8", "dopri8-fused": "Dopri8", "kvaerno5": "Kvaerno5"}
 
 
 class Experiment(eqx.Module):
@@ -233,7 +234,7 @@ class Problem(eqx.Module):
 
         def one(ts, y0):
             sol = diffrax.diffeqsolve(
-                _ode_term(), _SOLVERS[self.solver](), t0=ts[0],
+                _ode_term(), getattr(diffrax, _SOLVERS[self.solver])(), t0=ts[0],
                 t1=ts[-1], dt0=None, y0=y0, args=field, saveat=diffrax.SaveAt(ts=ts),
                 stepsize_controller=controller, max_steps=self.max_steps, adjoint=adjoint,
                 throw=False)

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
+from ..persistent import PersistentProgram
 from .problem import Problem
 
 __all__ = ["checks_without_callbacks", "Program", "residuals_at", "jacobian_at", "Subspace",
@@ -44,19 +45,11 @@ def checks_without_callbacks():
         eqx_errors.EQX_ON_ERROR = old
 
 
-class Program(eqx.Module):
-    """A compiled function of the fit, traced under [`checks_without_callbacks`][] so that
-    JAX's persistent cache can keep it. Call it, or `.lower(...)` it (for inspection)."""
-
-    fn: eqx.Module
-
-    def __call__(self, *args):
-        with checks_without_callbacks():
-            return self.fn(*args)
-
-    def lower(self, *args):
-        with checks_without_callbacks():
-            return self.fn.lower(*args)
+def Program(fn, name: str) -> PersistentProgram:
+    """A compiled function of the fit, traced under [`checks_without_callbacks`][] and
+    kept between processes (see [`PersistentProgram`][]). Call it, or `.lower(...)` it
+    (for inspection)."""
+    return PersistentProgram(fn, name, checks_without_callbacks)
 
 
 def _residuals(problem, z):
@@ -73,11 +66,11 @@ def _jacobian(problem, z):
 
 
 #: `residuals_at(problem, z) -> (r, n_failed, steps)`, compiled.
-residuals_at = Program(eqx.filter_jit(_residuals))
+residuals_at = Program(_residuals, "residuals")
 #: `jacobian_at(problem, z) -> (r, n_failed, steps, J)`: the residuals with their
 #: sensitivities `J = dr/dz` (N, p), by forward mode through the ODE solves (one program
 #: for both: the fit needs both at its start and at its estimate).
-jacobian_at = Program(eqx.filter_jit(_jacobian))
+jacobian_at = Program(_jacobian, "jacobian")
 
 
 class Subspace(eqx.Module):

@@ -25,14 +25,16 @@ from __future__ import annotations
 import abc
 from typing import NamedTuple
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ..lazy import lazy_import
 from .params import as_float_array
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineLoad",
            "SampledLoad", "as_load", "INTERPOLATIONS", "Nonsmooth", "nonsmooth_times",

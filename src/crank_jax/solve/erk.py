@@ -15,12 +15,17 @@ a pytree of arrays (small: the stages are unrolled per leaf).
 
 from __future__ import annotations
 
-import diffrax
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-__all__ = ["FusedERK", "DOPRI8", "rms_error"]
+from ..lazy import lazy_import
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
+
+__all__ = ["FusedERK", "dopri8", "rms_error"]
 
 # Rounding noise in the embedded error estimate, in units of eps h sum |e_i k_i| (`step`).
 _NOISE = 8.0
@@ -128,4 +133,8 @@ def rms_error(err, y0, y1, rtol, atol):
 
 
 #: diffrax's Dopri8 (order 8, embedded order 7), fused.
-DOPRI8 = FusedERK(diffrax.Dopri8.tableau, 8)
+@functools.cache
+def dopri8() -> FusedERK:
+    """Dormand-Prince 8(5,3) (diffrax's tableau) as a [`FusedERK`][]: one object, so that
+    programs keyed on it compile once."""
+    return FusedERK(diffrax.Dopri8.tableau, 8)

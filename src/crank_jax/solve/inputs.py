@@ -13,11 +13,18 @@ import numpy as np
 __all__ = ["check_tolerances", "check_unbatched"]
 
 
+# Below this a relative tolerance cannot be verified in float64: the embedded error
+# estimate itself carries rounding noise of a few eps (2.2e-16), so the solver could only
+# shrink its steps until max_steps.
+MIN_RTOL = 1e-15
+
+
 def check_tolerances(rtol, atol) -> None:
-    """`ValueError` unless `rtol > 0` and `atol >= 0`, both finite (concrete values only;
-    traced ones are the caller's)."""
+    """`ValueError` unless `MIN_RTOL <= rtol` and `atol >= 0`, both finite (concrete values
+    only; traced ones are the caller's)."""
     for name, value, ok, rule in (
-        ("rtol", rtol, lambda v: v > 0, "a finite number > 0, e.g. rtol=1e-8"),
+        ("rtol", rtol, lambda v: v >= MIN_RTOL,
+         f"a finite number >= {MIN_RTOL:g} (float64 resolves ~2.2e-16), e.g. rtol=1e-8"),
         ("atol", atol, lambda v: v >= 0, "a finite number >= 0, e.g. atol=1e-10"),
     ):
         if isinstance(value, jax.core.Tracer):

@@ -22,7 +22,7 @@ from ..model.params import SliderCrank
 from .uniform import uniform_grid
 
 __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
-           "is_concrete", "check_time_scale"]
+           "is_concrete", "check_time_scale", "check_travel"]
 
 # How many times its stability floor the fused solver may need per interval to resolve a
 # fast mode at the default tolerance (a margin, not a tuned constant: below it the
@@ -45,6 +45,9 @@ _EXPLICIT_H_RATE = 3.5
 # A mode this many times faster than the span is below float64's resolution of the times:
 # a units mistake, whatever the solver.
 _MAX_SPAN_RATE = 1e12
+# No explicit or implicit step resolves a turn of the crank (2 pi of the geometry's
+# period) in fewer steps than this.
+_MIN_STEPS_PER_TURN = 4.0
 # A real fast mode is stiff only if the other mode is this much slower (otherwise the
 # slow mode, e.g. a crank falling over, needs the same small steps).
 _STIFFNESS_RATIO = 1e2
@@ -226,3 +229,32 @@ def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int
         f"chi = {chi:.3g} N*m*s/rad, xi = {xi:.3g} N*m/rad): over {span:g} s that needs "
         f"~{need:.3g} solver steps (max_steps = {max_steps}); check the units and values of "
         f"k, c and the masses and inertias")
+
+
+def check_travel(mech: SliderCrank, phi0, dphi0, span: float, max_steps: int,
+                 load: AbstractLoad | None = None) -> None:
+    """`ValueError` if the initial state is so far from rest that the crank must turn more
+    times than `max_steps` can resolve (phi0 = 1e300 rad: the spring winds the crank back
+    through every one of those turns).
+
+    The crank travels at least `A = |phi0 - phi_eq| + |dphi0| / omega` (omega: the fastest
+    linear mode, or 1/span without one) once it moves for a time `1/omega`, and every turn
+    needs at least [`_MIN_STEPS_PER_TURN`][] steps. Concrete values only.
+    """
+    if not is_concrete((mech, load, phi0, dphi0)):
+        return
+    lin = linearize(mech, load)
+    rate, _ = fastest_mode(lin)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        eq = np.nan_to_num(np.asarray(lin.phi_eq, dtype=float))
+        omega = float(np.nanmax(np.append(np.asarray(rate, dtype=float).ravel(), 0.0)))
+        omega = omega if np.isfinite(omega) and omega * span >= 1 else 1.0 / span
+        amp = float(np.max(np.abs(float(phi0) - eq))) + abs(float(dphi0)) / omega
+        need = amp / (2 * np.pi) * _MIN_STEPS_PER_TURN
+    if np.isfinite(need) and need <= max_steps:
+        return
+    raise ValueError(
+        f"the initial state phi0 = {float(phi0):.3g} rad, dphi0 = {float(dphi0):.3g} rad/s "
+        f"is ~{amp / (2 * np.pi):.3g} turns from rest: resolving them needs more than "
+        f"max_steps = {max_steps} solver steps; start within a few turns of the "
+        f"equilibrium (phi is in radians, and the spring k is not periodic in it)")

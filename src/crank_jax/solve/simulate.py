@@ -13,13 +13,13 @@ import functools
 import warnings
 from collections.abc import Callable, Sequence
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ..lazy import lazy_import
 from ..model.dynamics import CrankField, Structure, acceleration, energy
 from ..model.geometry import kinematics
 from ..model.linear import linearize
@@ -27,8 +27,10 @@ from ..model.loads import AbstractLoad, as_load, nonsmooth_times
 from ..model.newton_euler import reactions
 from ..model.params import SliderCrank
 from .inputs import check_tolerances, check_unbatched
-from .policy import check_time_scale, is_concrete, resolve_solver
+from .policy import check_time_scale, check_travel, is_concrete, resolve_solver
 from .uniform import solve_uniform
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["Trajectory", "simulate", "OUTPUTS", "output_columns"]
 
@@ -298,7 +300,9 @@ def simulate(
     solver = resolve_solver(solver, mech, rtol, atol, load=load, torque=torque, ts=ts,
                             max_steps=max_steps)
     if throw and is_concrete(ts):
-        check_time_scale(mech, solver, float(np.ptp(np.asarray(ts))), int(max_steps), load)
+        span = float(np.ptp(np.asarray(ts)))
+        check_time_scale(mech, solver, span, int(max_steps), load)
+        check_travel(mech, phi0, dphi0, span, int(max_steps), load)
     dtype = ts.dtype
     y0 = jnp.stack([jnp.asarray(phi0, dtype), jnp.asarray(dphi0, dtype)])
     # Outside any transformation, check on the host and raise there: an `eqx.error_if` in

@@ -25,15 +25,17 @@ way. The sum of the lower-order estimates over-estimates the error of the soluti
 
 from __future__ import annotations
 
-import diffrax
 import equinox as eqx
 import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .erk import DOPRI8, FusedERK, rms_error
+from ..lazy import lazy_import
+from .erk import FusedERK, dopri8, rms_error
 from .sensitivity import attach_sensitivities
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["solve_uniform", "uniform_grid"]
 
@@ -171,7 +173,7 @@ def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
 
 
 def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind,
-                  erk: FusedERK = DOPRI8):
+                  erk: FusedERK | None = None):
     """Integrate `dy/dt = field(t, y, args)` with `m_i` equal steps of `erk` in save
     interval i, chosen to meet the tolerance.
 
@@ -188,7 +190,7 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
     - `max_steps`: the step budget; `kind`, the `equinox.internal.while_loop` kind that
       sets which autodiff works: `"lax"` (forward, through the sensitivities),
       `"checkpointed"` (reverse), `"bounded"` (both).
-    - `erk`: the method, default [`DOPRI8`][].
+    - `erk`: the method, default [`dopri8`][]`()`.
 
     **Returns:** `(ys, result, num_steps)`: `ys` a pytree like `y0` with a leading axis n;
     `num_steps` counts the steps of every pass (the pilot passes included). `result` is
@@ -217,6 +219,7 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
     # Static bound on steps per interval, from the caller's overall step budget.
     max_sub = max(1, int(max_steps) // n_int)
     dtype = ts.dtype
+    erk = dopri8() if erk is None else erk
     expo = 1 / (erk.order - 1)
     sg = jax.lax.stop_gradient
     # Forward mode ("lax"): the solve runs on values, and its derivative comes from

@@ -36,13 +36,13 @@ import math
 import sys
 from collections.abc import Callable, Mapping, Sequence
 
-import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from ..lazy import lazy_import
 from ..model.dynamics import Structure
 from ..model.loads import SIDES
 from ..solve.policy import SOLVERS, resolve_solver
@@ -51,6 +51,8 @@ from .distributions import AbstractDistribution
 from .plan import SORT_BLOCK, VARIABLES, Plan, make_plan
 from .reductions import DEFAULT_OUTPUTS, REDUCTIONS, TRAJECTORY_OUTPUTS, reduce
 from .result import FAILED, INVALID, MAX_STEPS, NONFINITE, OK, STATUS, SweepResult
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["sweep", "SweepResult", "REDUCTIONS", "STATUS", "VARIABLES", "DEFAULT_OUTPUTS",
            "initialize_distributed", "sweep_cost"]

@@ -1,0 +1,252 @@
+"""Compiled programs kept between processes, so that a fresh process neither traces nor
+compiles them.
+
+JAX's persistent compilation cache keeps compiled executables, but a fresh process must
+still trace and lower a program to find its cache key, and tracing diffrax and optimistix
+was most of a warm `crank-jax fit` (about 3 s of 5 s). A [`PersistentProgram`][] skips
+that: the first call compiles the program and stores the executable
+(`jax.experimental.serialize_executable`) under a key made of everything that decides it:
+the static part of the arguments, their shapes and dtypes, this package's source, the
+versions of JAX and of the libraries that trace into it, x64, the backend and the CPU's
+instruction-set flags (an executable is machine code). Later processes load it (tens of
+milliseconds to a few tenths of a second, by size).
+
+The store is used only where JAX's persistent compilation cache is configured (the CLI
+does it; a library user calls `enable_compilation_cache()`): a library has no disk side
+effects unless asked. A program takes pytrees and returns a tuple of arrays.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import platform
+import re
+import sys
+from collections.abc import Callable
+from importlib import metadata
+from pathlib import Path
+
+import equinox as eqx
+import jax
+
+__all__ = ["PersistentProgram", "program_store_dir"]
+
+# Libraries whose code is traced into the programs: a new version changes the program.
+_TRACED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax")
+
+
+def program_store_dir() -> Path | None:
+    """Where compiled programs are kept: `<JAX's compilation cache>/crank-jax-programs`,
+    or None (no store) when JAX has no persistent cache, `CRANK_JAX_NO_CACHE` is set, or
+    the backend is not the CPU (there JAX's own persistent cache serves alone)."""
+    base = jax.config.jax_compilation_cache_dir
+    # CPU only: other backends' foreign functions are not checked by `_storable`.
+    if not base or os.environ.get("CRANK_JAX_NO_CACHE") or jax.default_backend() != "cpu":
+        return None
+    return Path(base) / "crank-jax-programs"
+
+
+def _cpu_flags() -> str:
+    """The CPU's instruction-set flags (Linux), else the processor's name."""
+    with contextlib.suppress(OSError), open("/proc/cpuinfo") as f:
+        for line in f:
+            if line.startswith(("flags", "Features")):
+                return line
+    return platform.processor()
+
+
+_ENV: str | None = None
+
+
+def _environment() -> str:
+    """Versions, this package's source, the machine (the costly part once per process)."""
+    global _ENV  # reading the source and cpuinfo costs a few milliseconds: once
+    if _ENV is None:
+        h = hashlib.sha256()
+        for p in sorted(Path(__file__).resolve().parent.rglob("*.py")):
+            h.update(p.read_bytes())
+        h.update(_cpu_flags().encode())
+        versions = []
+        for name in _TRACED:
+            try:
+                versions.append(f"{name}={metadata.version(name)}")
+            except metadata.PackageNotFoundError:
+                versions.append(f"{name}=-")
+        _ENV = (f"{h.hexdigest()}|{','.join(versions)}|{sys.version_info[:2]}"
+                f"|{platform.machine()}")
+    return f"{_ENV}|x64={jax.config.jax_enable_x64}|{jax.default_backend()}"
+
+
+def _signature(name: str, args) -> tuple[str, list, object, object]:
+    """(key, array leaves, their treedef, the static part) of a call."""
+    dyn, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree.flatten(dyn)
+    static_leaves, static_def = jax.tree.flatten(static)
+    text = "\n".join([
+        name, _environment(), str(treedef), str(static_def),
+        repr([(type(x).__name__, x) for x in static_leaves]),
+        repr([(x.shape, str(x.dtype), bool(getattr(x, "weak_type", False)))
+              for x in leaves])])
+    return hashlib.sha256(text.encode()).hexdigest(), leaves, treedef, static
+
+
+class PersistentProgram:
+    """`fn(*args)` compiled once per static structure and kept on disk between processes.
+
+    `fn` takes pytrees (equinox modules, arrays, Python scalars: the non-array leaves are
+    static, as in `eqx.filter_jit`) and returns a tuple of arrays. `trace_context` is
+    entered while tracing (e.g. to keep host callbacks out: an executable holding one
+    cannot be stored). Without a store (see [`program_store_dir`][]) it is
+    `eqx.filter_jit(fn)`.
+    """
+
+    def __init__(self, fn: Callable, name: str, trace_context=contextlib.nullcontext):
+        self.fn = fn
+        self.name = name
+        self.trace_context = trace_context
+        self.jitted = eqx.filter_jit(fn)
+        self._loaded: dict[str, Callable] = {}  # key -> compiled executable
+
+    def __call__(self, *args):
+        store = program_store_dir()
+        if store is None:
+            return self._jit(args)
+        key, leaves, treedef, static = _signature(self.name, args)
+        call = self._loaded.get(key)
+        if call is not None:
+            return self._jit(args) if call is _UNSTORED else tuple(call(*leaves))
+        path = store / f"{self.name}-{key[:32]}.xla"
+        call = _load(path, len(leaves))
+        if call is not None:
+            out = self._try(call, leaves)
+            if out is not None:
+                self._loaded[key] = call
+                return out
+        # The program's name carries the key, and a retry a random tag: JAX's own cache
+        # then never supplies the executable (one it supplies cannot be serialised again:
+        # loaded in another process it fails with "Function ... not found").
+        for tag in (key[:16], f"{key[:16]}_{os.urandom(4).hex()}"):
+            call, blob = self._compile(leaves, treedef, static, tag)
+            out = self._try(call, leaves)
+            if out is not None:
+                if blob is not None:  # stored only once it has run
+                    _store(path, blob)
+                self._loaded[key] = call
+                return out
+        self._loaded[key] = _UNSTORED
+        return self._jit(args)
+
+    @staticmethod
+    def _try(call, leaves):
+        """`call(*leaves)` as a tuple, or None if the executable does not run here."""
+        try:
+            return jax.block_until_ready(tuple(call(*leaves)))
+        except jax.errors.JaxRuntimeError:
+            return None
+
+    def lower(self, *args):
+        """The lowered program (for inspection), as `eqx.filter_jit(fn).lower`."""
+        with self.trace_context():
+            return self.jitted.lower(*args)
+
+    def _jit(self, args):
+        with self.trace_context():
+            return self.jitted(*args)
+
+    def _compile(self, leaves, treedef, static, tag: str):
+        """(the executable to run, its serialised bytes or None): the bytes are loaded
+        back at once, so what runs now is what later processes will load."""
+        fn = self.fn
+
+        def flat(*xs):
+            return tuple(fn(*eqx.combine(jax.tree.unflatten(treedef, xs), static)))
+
+        flat.__name__ = f"{self.name}_{tag}"
+
+        avals = [jax.ShapeDtypeStruct(x.shape, x.dtype,
+                                      weak_type=bool(getattr(x, "weak_type", False)))
+                 for x in leaves]
+        with self.trace_context():
+            lowered = jax.jit(flat).lower(*avals)
+        compiled = lowered.compile()
+        if not _storable(lowered.as_text()):
+            return compiled, None
+        try:
+            from jax.experimental.serialize_executable import serialize
+
+            n_out = compiled.out_tree.num_leaves
+            blob = n_out.to_bytes(4, "little") + serialize(compiled)[0]
+            return _deserialize(blob, len(leaves)), blob
+        except Exception:  # a program that cannot be stored still runs
+            return compiled, None
+
+
+_UNSTORED = object()  # marks a program that runs unstored in this process
+
+
+def _load(path: Path, n_in: int):
+    """The stored executable at `path`, or None (missing, truncated, foreign)."""
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        return _deserialize(blob, n_in)
+    except Exception:
+        return None
+
+
+def _storable(text: str) -> bool:
+    """Whether a lowered program may be stored: its custom calls (the foreign functions
+    it calls) are all LAPACK's, which [`_ready_custom_calls`][] registers before a load.
+    JAX registers custom-call targets while lowering; an executable loaded without
+    lowering, calling one that was never registered, would crash the process."""
+    targets = set(re.findall(r"call_target_name\s*=\s*\"([^\"]+)\"", text))
+    targets |= set(re.findall(r"custom_call\s*@([\w.]+)", text))
+    return all(t.startswith("lapack_") for t in targets)
+
+
+def _ready_custom_calls() -> None:
+    """Register LAPACK's custom-call targets, as lowering any linear algebra does (once
+    per process; ~0.13 s, mostly importing SciPy's LAPACK)."""
+    global _READY
+    if _READY:
+        return
+    try:  # JAX's own initialiser (private; 0.1 s cheaper than lowering a QR)
+        from jax._src.lax.linalg import initialize_lapack
+
+        initialize_lapack()
+    except Exception:
+        import jax.numpy as jnp
+
+        jax.jit(jnp.linalg.qr).lower(jax.ShapeDtypeStruct((2, 2), jnp.float32))
+    _READY = True
+
+
+_READY = False
+
+
+def _deserialize(blob: bytes, n_in: int):
+    """Load an executable stored as (number of outputs, 4 bytes; JAX's serialisation)."""
+    from jax.experimental.serialize_executable import deserialize_and_load
+
+    _ready_custom_calls()
+    n_out = int.from_bytes(blob[:4], "little")
+    blob = blob[4:]
+    in_tree = jax.tree.structure((tuple(range(n_in)), {}))
+    out_tree = jax.tree.structure(tuple(range(n_out)))
+    return deserialize_and_load(blob, in_tree, out_tree)
+
+
+def _store(path: Path, blob: bytes) -> None:
+    """Write `blob` atomically; a store that cannot be written is not an error."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_bytes(blob)
+        os.replace(tmp, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            tmp.unlink()

@@ -1,0 +1,86 @@
+"""Compiled programs kept between processes (`persistent.py`): a second process loads
+what the first compiled, gets the same numbers, and survives a damaged store.
+
+Each case runs fresh interpreters with their own cache directory, as CLI calls do (the
+test process itself runs with `CRANK_JAX_NO_CACHE`, so no store).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+# A fit with a stored LAPACK call (the LM step's QR), a forward-mode Jacobian and a
+# linearisation: every stored program of the CLI's fit. Prints the estimates and how
+# many programs this process compiled.
+SCRIPT = r"""
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import crank_jax as cj
+from crank_jax import persistent
+cj.enable_compilation_cache(sys.argv[1])
+compiled = []
+orig = persistent.PersistentProgram._compile
+def counting(self, *a, **k):
+    compiled.append(self.name)
+    return orig(self, *a, **k)
+persistent.PersistentProgram._compile = counting
+scene = cj.load_scene("lab-rig")
+data = cj.synthesize(scene, t1=2.0, rate=100.0, noise_std=1e-3, seed=int(sys.argv[2]))
+res = cj.fit(scene, data, free=("k", "c", "phi0", "dphi0"), init={"k": 2.4},
+             progress=False)
+print(json.dumps({"values": {n: float(v) for n, v in res.values.items()},
+                  "stderr": {n: float(v) for n, v in res.stderr.items()},
+                  "converged": bool(res.converged), "compiled": sorted(compiled)}))
+"""
+
+
+def _run(cache: Path, seed: int = 1) -> dict:
+    env = {k: v for k, v in os.environ.items() if k != "CRANK_JAX_NO_CACHE"}
+    out = subprocess.run([sys.executable, "-c", SCRIPT, str(cache), str(seed)], env=env,
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def stored(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("jax-cache")
+    return cache, _run(cache)
+
+
+def test_second_process_loads_instead_of_compiling(stored):
+    cache, first = stored
+    assert first["converged"]
+    assert set(first["compiled"]) >= {"jacobian", "lm_chunk", "linearize"}
+    files = sorted(p.name.split("-")[0] for p in (cache / "crank-jax-programs").glob("*.xla"))
+    assert set(files) >= {"jacobian", "lm_chunk", "linearize"}
+    second = _run(cache)
+    assert second["compiled"] == [], "a warm process compiled again"
+    # Loaded executables compute the same numbers as freshly compiled ones.
+    assert second["values"] == first["values"]
+    assert second["stderr"] == first["stderr"]
+    # Another record (other noise) of the same shape reuses the same programs.
+    assert _run(cache, seed=2)["compiled"] == []
+
+
+def test_damaged_store_is_recompiled(stored, tmp_path):
+    cache, first = stored
+    copy = tmp_path / "cache"
+    (copy / "crank-jax-programs").mkdir(parents=True)
+    for p in (cache / "crank-jax-programs").glob("*.xla"):
+        blob = p.read_bytes()
+        # truncated, garbage, or empty: each must be a miss, never a crash
+        damaged = {"jacobian": blob[: len(blob) // 2], "lm_chunk": b"\0garbage" * 100,
+                   "linearize": b""}[p.name.split("-")[0]]
+        (copy / "crank-jax-programs" / p.name).write_bytes(damaged)
+    again = _run(copy)
+    assert again["values"] == first["values"]
+    assert set(again["compiled"]) == {"jacobian", "lm_chunk", "linearize"}
+    assert _run(copy)["compiled"] == []  # and stored anew
