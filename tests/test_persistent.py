@@ -35,7 +35,11 @@ scene = cj.load_scene("lab-rig")
 data = cj.synthesize(scene, t1=2.0, rate=100.0, noise_std=1e-3, seed=int(sys.argv[2]))
 res = cj.fit(scene, data, free=("k", "c", "phi0", "dphi0"), init={"k": 2.4},
              progress=False)
-print(json.dumps({"values": {n: float(v) for n, v in res.values.items()},
+traj = scene.simulate(outputs=("energy", "reactions"))
+print(json.dumps({"sim": [float(traj.phi[-1]), float(traj.extras["energy"][-1]),
+                          float(traj.extras["N"][7]), int(traj.num_steps),
+                          bool(traj.result == __import__("diffrax").RESULTS.successful)],
+                  "values": {n: float(v) for n, v in res.values.items()},
                   "stderr": {n: float(v) for n, v in res.stderr.items()},
                   "converged": bool(res.converged), "compiled": sorted(compiled)}))
 """
@@ -58,7 +62,8 @@ def stored(tmp_path_factory):
 def test_second_process_loads_instead_of_compiling(stored):
     cache, first = stored
     assert first["converged"]
-    assert set(first["compiled"]) >= {"jacobian", "lm_chunk", "linearize"}
+    assert set(first["compiled"]) >= {"jacobian", "lm_chunk", "linearize", "simulate"}
+    assert first["sim"][-1]
     files = sorted(p.name.split("-")[0] for p in (cache / "crank-jax-programs").glob("*.xla"))
     assert set(files) >= {"jacobian", "lm_chunk", "linearize"}
     second = _run(cache)
@@ -66,8 +71,22 @@ def test_second_process_loads_instead_of_compiling(stored):
     # Loaded executables compute the same numbers as freshly compiled ones.
     assert second["values"] == first["values"]
     assert second["stderr"] == first["stderr"]
+    assert second["sim"] == first["sim"]
     # Another record (other noise) of the same shape reuses the same programs.
     assert _run(cache, seed=2)["compiled"] == []
+
+
+def test_stored_simulate_equals_the_ordinary_one(stored, tmp_path):
+    """The stored program (host mode, no callbacks) gives the numbers the ordinary
+    in-process `simulate` gives, extras and step count included."""
+    import jax  # noqa: F401  (x64 is on in the tests' conftest)
+
+    import crank_jax as cj
+
+    _, first = stored
+    traj = cj.load_scene("lab-rig").simulate(outputs=("energy", "reactions"))
+    assert first["sim"][:4] == [float(traj.phi[-1]), float(traj.extras["energy"][-1]),
+                                float(traj.extras["N"][7]), int(traj.num_steps)]
 
 
 def test_damaged_store_is_recompiled(stored, tmp_path):
@@ -78,9 +97,9 @@ def test_damaged_store_is_recompiled(stored, tmp_path):
         blob = p.read_bytes()
         # truncated, garbage, or empty: each must be a miss, never a crash
         damaged = {"jacobian": blob[: len(blob) // 2], "lm_chunk": b"\0garbage" * 100,
-                   "linearize": b""}[p.name.split("-")[0]]
+                   "linearize": b"", "simulate": blob[:4]}[p.name.split("-")[0]]
         (copy / "crank-jax-programs" / p.name).write_bytes(damaged)
     again = _run(copy)
     assert again["values"] == first["values"]
-    assert set(again["compiled"]) == {"jacobian", "lm_chunk", "linearize"}
+    assert set(again["compiled"]) == {"jacobian", "lm_chunk", "linearize", "simulate"}
     assert _run(copy)["compiled"] == []  # and stored anew

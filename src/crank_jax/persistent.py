@@ -31,7 +31,7 @@ from pathlib import Path
 import equinox as eqx
 import jax
 
-__all__ = ["PersistentProgram", "program_store_dir"]
+__all__ = ["PersistentProgram", "program_store_dir", "checks_without_callbacks"]
 
 # Libraries whose code is traced into the programs: a new version changes the program.
 _TRACED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax")
@@ -46,6 +46,31 @@ def program_store_dir() -> Path | None:
     if not base or os.environ.get("CRANK_JAX_NO_CACHE") or jax.default_backend() != "cpu":
         return None
     return Path(base) / "crank-jax-programs"
+
+
+@contextlib.contextmanager
+def checks_without_callbacks():
+    """Trace with equinox's runtime checks as NaN instead of host callbacks.
+
+    diffrax validates `SaveAt(ts)` with `eqx.error_if`, which in equinox's default mode
+    is a host callback, and JAX's persistent cache does not keep programs with host
+    callbacks, so every process would recompile every fit. equinox reads its mode
+    (`EQX_ON_ERROR`) when a program is traced; "nan" turns a failed check into NaN
+    samples, which the residuals turn into a rejected step. Our save times are strictly
+    increasing by construction, so the check never fires. (Only the tracing of the stored
+    programs is affected; the previous mode is restored on exit.)
+    """
+    import equinox._errors as eqx_errors
+
+    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
+    if old is None:  # another equinox: leave it alone
+        yield
+        return
+    eqx_errors.EQX_ON_ERROR = "nan"
+    try:
+        yield
+    finally:
+        eqx_errors.EQX_ON_ERROR = old
 
 
 def _cpu_flags() -> str:
@@ -79,8 +104,9 @@ def _environment() -> str:
     return f"{_ENV}|x64={jax.config.jax_enable_x64}|{jax.default_backend()}"
 
 
-def _signature(name: str, args) -> tuple[str, list, object, object]:
-    """(key, array leaves, their treedef, the static part) of a call."""
+def _signature(name: str, args) -> tuple[str | None, list, object, object]:
+    """(key, array leaves, their treedef, the static part) of a call; the key is None when
+    the static part names an object by its address (a user's function: no stable key)."""
     dyn, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree.flatten(dyn)
     static_leaves, static_def = jax.tree.flatten(static)
@@ -89,6 +115,8 @@ def _signature(name: str, args) -> tuple[str, list, object, object]:
         repr([(type(x).__name__, x) for x in static_leaves]),
         repr([(x.shape, str(x.dtype), bool(getattr(x, "weak_type", False)))
               for x in leaves])])
+    if " at 0x" in text:
+        return None, leaves, treedef, static
     return hashlib.sha256(text.encode()).hexdigest(), leaves, treedef, static
 
 
@@ -114,6 +142,8 @@ class PersistentProgram:
         if store is None:
             return self._jit(args)
         key, leaves, treedef, static = _signature(self.name, args)
+        if key is None:
+            return self._jit(args)
         call = self._loaded.get(key)
         if call is not None:
             return self._jit(args) if call is _UNSTORED else tuple(call(*leaves))
@@ -177,7 +207,7 @@ class PersistentProgram:
             from jax.experimental.serialize_executable import serialize
 
             n_out = compiled.out_tree.num_leaves
-            blob = n_out.to_bytes(4, "little") + serialize(compiled)[0]
+            blob = _MAGIC + n_out.to_bytes(4, "little") + serialize(compiled)[0]
             return _deserialize(blob, len(leaves)), blob
         except Exception:  # a program that cannot be stored still runs
             return compiled, None
@@ -190,6 +220,7 @@ def _load(path: Path, n_in: int):
     """The stored executable at `path`, or None (missing, truncated, foreign)."""
     try:
         blob = path.read_bytes()
+        os.utime(path)  # recently used: kept by `_evict`
     except OSError:
         return None
     try:
@@ -228,16 +259,28 @@ def _ready_custom_calls() -> None:
 _READY = False
 
 
+# A stored program: this tag, the number of outputs (4 bytes), JAX's serialisation.
+_MAGIC = b"crank-jax program 1\n"
+_MAX_OUTPUTS = 4096
+
+
 def _deserialize(blob: bytes, n_in: int):
-    """Load an executable stored as (number of outputs, 4 bytes; JAX's serialisation)."""
+    """Load a stored executable; `ValueError` for anything else."""
     from jax.experimental.serialize_executable import deserialize_and_load
 
+    head = len(_MAGIC) + 4
+    n_out = int.from_bytes(blob[len(_MAGIC):head], "little")
+    if not blob.startswith(_MAGIC) or not 0 < n_out <= _MAX_OUTPUTS:
+        raise ValueError("not a stored program")
     _ready_custom_calls()
-    n_out = int.from_bytes(blob[:4], "little")
-    blob = blob[4:]
+    blob = blob[head:]
     in_tree = jax.tree.structure((tuple(range(n_in)), {}))
     out_tree = jax.tree.structure(tuple(range(n_out)))
     return deserialize_and_load(blob, in_tree, out_tree)
+
+
+#: The store keeps at most this many programs (~1 MB each), the most recently used.
+MAX_PROGRAMS = 256
 
 
 def _store(path: Path, blob: bytes) -> None:
@@ -247,6 +290,15 @@ def _store(path: Path, blob: bytes) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp.write_bytes(blob)
         os.replace(tmp, path)
+        _evict(path.parent)
     except OSError:
         with contextlib.suppress(OSError):
             tmp.unlink()
+
+
+def _evict(store: Path) -> None:
+    """Remove the least recently used programs beyond [`MAX_PROGRAMS`][]."""
+    files = sorted(store.glob("*.xla"), key=lambda p: p.stat().st_mtime)
+    for p in files[:max(0, len(files) - MAX_PROGRAMS)]:
+        with contextlib.suppress(OSError):
+            p.unlink()

@@ -84,7 +84,7 @@ def _fit_field(t, y, field):
 
 def _fit_field_no_callbacks(t, y, field):
     """As `_fit_field`, for traces made with equinox's checks as NaN
-    (`programs.checks_without_callbacks`): a separate object, so a trace made in one mode
+    (`persistent.checks_without_callbacks`): a separate object, so a trace made in one mode
     (with host callbacks) is never reused in the other."""
     return jnp.stack(field(t, (y[0], y[1])))
 
@@ -216,7 +216,7 @@ class Problem(eqx.Module):
         failed solve, and the ODE steps each segment's solve took (S,).
 
         diffrax directly, on the model's `CrankField`, rather than through `simulate`:
-        traced with equinox's checks off (`programs.checks_without_callbacks`), the fit's
+        traced with equinox's checks off (`persistent.checks_without_callbacks`), the fit's
         programs must share no trace with a user's `simulate` (measured: routing them
         through `simulate` let a host callback into a later fit program, or NaN-mode
         checks into a later user program). The solver name comes from the one policy

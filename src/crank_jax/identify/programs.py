@@ -6,43 +6,16 @@ callback and JAX's persistent cache can keep it between processes.
 
 from __future__ import annotations
 
-import contextlib
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ..persistent import PersistentProgram
+from ..persistent import PersistentProgram, checks_without_callbacks
 from .problem import Problem
 
 __all__ = ["checks_without_callbacks", "Program", "residuals_at", "jacobian_at", "Subspace",
            "Pinned"]
-
-
-@contextlib.contextmanager
-def checks_without_callbacks():
-    """Trace with equinox's runtime checks as NaN instead of host callbacks.
-
-    diffrax validates `SaveAt(ts)` with `eqx.error_if`, which in equinox's default mode
-    is a host callback, and JAX's persistent cache does not keep programs with host
-    callbacks, so every process would recompile every fit. equinox reads its mode
-    (`EQX_ON_ERROR`) when a program is traced; "nan" turns a failed check into NaN
-    samples, which the residuals turn into a rejected step. Our save times are strictly
-    increasing by construction, so the check never fires. (Only the tracing of the fit's
-    own programs is affected; the previous mode is restored on exit.)
-    """
-    import equinox._errors as eqx_errors
-
-    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
-    if old is None:  # another equinox: leave it alone
-        yield
-        return
-    eqx_errors.EQX_ON_ERROR = "nan"
-    try:
-        yield
-    finally:
-        eqx_errors.EQX_ON_ERROR = old
 
 
 def Program(fn, name: str) -> PersistentProgram:

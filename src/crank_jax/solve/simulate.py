@@ -26,6 +26,7 @@ from ..model.linear import linearize
 from ..model.loads import AbstractLoad, as_load, nonsmooth_times
 from ..model.newton_euler import reactions
 from ..model.params import SliderCrank
+from ..persistent import PersistentProgram, checks_without_callbacks, program_store_dir
 from .inputs import check_tolerances, check_unbatched
 from .policy import check_time_scale, check_travel, is_concrete, resolve_solver
 from .uniform import solve_uniform
@@ -311,15 +312,56 @@ def simulate(
     host = is_concrete((mech, load, torque, y0, ts, rtol, atol))
     if host:
         _host_checks(mech, y0)
-    traj = _solve(
-        mech, load, torque, force, y0, ts, jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
-        solver=solver, max_steps=int(max_steps), adjoint=adjoint, structure=structure,
-        outputs=tuple(sorted(set(outputs))), throw=bool(throw) and not host,
-        mode="host" if host else ("checked" if checks else "unchecked"),
-    )
+    args = (mech, load, torque, force, y0, ts, jnp.asarray(rtol, dtype),
+            jnp.asarray(atol, dtype))
+    static = dict(solver=solver, max_steps=int(max_steps), adjoint=adjoint,
+                  structure=structure, outputs=tuple(sorted(set(outputs))))
+    traj = _stored_solve(*args, **static) if host and force is None else None
+    if traj is None:
+        traj = _solve(*args, **static, throw=bool(throw) and not host,
+                      mode="host" if host else ("checked" if checks else "unchecked"))
     if host and throw and traj.result != diffrax.RESULTS.successful:
         raise eqx.EquinoxRuntimeError(diffrax.RESULTS[traj.result])
     return traj
+
+
+# Outcomes of a stored solve, by index (names of `diffrax.RESULTS`): a stored program
+# returns arrays only.
+_RESULTS = ("successful", "max_steps_reached", "nonfinite", "singular", "breakdown",
+            "dt_min_reached")
+
+
+def _solve_flat(mech, load, torque, force, y0, ts, rtol, atol, solver, max_steps, adjoint,
+                structure, outputs):
+    traj = _solve(mech, load, torque, force, y0, ts, rtol, atol, solver=solver,
+                  max_steps=max_steps, adjoint=adjoint, structure=structure,
+                  outputs=outputs, throw=False, mode="host")
+    hits = [traj.result == getattr(diffrax.RESULTS, n) for n in _RESULTS]
+    code = jnp.argmax(jnp.stack(hits + [True]))
+    extras = tuple(traj.extras[k] for k in sorted(traj.extras))
+    return (traj.phi, traj.dphi, code, traj.num_steps) + extras
+
+
+# Concrete calls (every CLI simulate, a fit's synthetic data) in a fresh process load this
+# compiled program instead of tracing the solver again (see persistent.py).
+_solve_program = PersistentProgram(_solve_flat, "simulate", checks_without_callbacks)
+
+
+def _stored_solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps,
+                  adjoint, structure, outputs) -> Trajectory | None:
+    """`_solve` in host mode through the stored program, or None where there is no store
+    (or an unexpected outcome: the caller then runs `_solve` itself)."""
+    if program_store_dir() is None:
+        return None
+    phi, dphi, code, steps, *extras = _solve_program(
+        mech, load, torque, force, y0, ts, rtol, atol, solver, max_steps, adjoint,
+        structure, outputs)
+    code = int(code)
+    if code >= len(_RESULTS):
+        return None
+    names = sorted(c for c in output_columns(outputs))
+    return Trajectory(ts, phi, dphi, dict(zip(names, extras)),
+                      getattr(diffrax.RESULTS, _RESULTS[code]), steps)
 
 
 def _host_checks(mech: SliderCrank, y0) -> None:
