@@ -43,8 +43,8 @@ def _met(ok):
 
 
 def section() -> str:
-    wp, tp, gr, st, sk = (_load(n) for n in ("work_precision", "throughput", "gradients",
-                                             "startup", "structure"))
+    wp, tp, gr, st, sk, ee = (_load(n) for n in ("work_precision", "throughput", "gradients",
+                                                 "startup", "structure", "end_to_end"))
     out = ["## Performance", "",
            "All numbers below come from the scripts in `experiments/` (rerun them, then "
            "`python experiments/make_tables.py` rewrites this section). Timings are medians "
@@ -206,6 +206,8 @@ def section() -> str:
                 "7-run median of 16.5 ms for it (6.2 ms for the lab rig) did not reproduce "
                 "with 31 runs: it was noise from other jobs on the machine."]
         out.append("")
+    if ee:
+        out += _end_to_end(ee)
     out += ["### Targets", ""]
     if wp:
         a = wp["target_a"]
@@ -242,12 +244,46 @@ def section() -> str:
             out.append(f"- (issue 9, 4) forward-sensitivity Jacobian (10 parameters, "
                        f"{gr['samples']} samples) <= 4x one forward solve: "
                        f"{_met(t4['ratio'] <= 4)}, {t4['ratio']:.2f}x ({t4['method']}).")
+    if ee:
+        m, t = ee["medians"], ee["targets_met"]
+        out.append(f"- (issue 9, 1) `crank-jax fit` warm <= 2 s and <= half the scipy script: "
+                   f"{_met(t['warm_fit_le_2s'] and t['warm_fit_le_half_scipy'])}, "
+                   f"{m['cli_fit_warm_s']:.2f} s against scipy's {m['scipy_peer_s']:.2f} s "
+                   f"({m['cli_fit_warm_s'] / m['scipy_peer_s']:.2f}x); other records "
+                   f"{m['cli_fit_warm_other_records_s']:.2f} s; cold <= 10 s: "
+                   f"{_met(t['cold_fit_le_10s'])}, {m['cli_fit_cold_s']:.2f} s; demo warm "
+                   f"<= 3 s: {_met(t['demo_warm_le_3s'])}, {m['demo_warm_s']:.2f} s; first "
+                   f"fit in a process <= 8 s: {_met(t['first_fit_in_process_le_8s'])}, "
+                   f"{m['first_fit_in_process_s']:.2f} s.")
     if st:
         d = st["target_d"]
         out.append(f"- (d) warm-cache `crank-jax simulate lab-rig` <= 3 s: {_met(d['met'])}, "
                    f"{d['warm_s']:.2f} s.")
     out.append("")
     return "\n".join(out)
+
+
+def _end_to_end(ee) -> list[str]:
+    m = ee["medians"]
+    rows = [("`crank-jax fit`, empty cache (compiles and stores its programs)", "cli_fit_cold_s"),
+            ("`crank-jax fit`, warm (loads them)", "cli_fit_warm_s"),
+            ("`crank-jax fit` of other records (length, noise, start), warm",
+             "cli_fit_warm_other_records_s"),
+            ("`crank-jax demo`, empty cache", "demo_cold_s"),
+            ("`crank-jax demo`, warm", "demo_warm_s"),
+            ("first fit inside a fresh Python process, no cache", "first_fit_in_process_s"),
+            ("first fit inside a fresh Python process, `enable_compilation_cache()` warm",
+             "first_fit_in_process_stored_programs_s"),
+            ("the scipy script (`least_squares` + DOP853, Python right-hand side)",
+             "scipy_peer_s")]
+    out = ["### End to end", "", f"*{_machine(ee['machine'])}*", "",
+           f"Fresh processes, as a user runs them: a fit of {ee['free']} to "
+           f"{ee['record']} from k = {ee['start']['k']}, c = {ee['start']['c']} "
+           "(`experiments/bench_end_to_end.py`, medians). Warm runs load the stored programs "
+           "(`persistent.py`); most of what is left is importing JAX (~0.8 s) and loading "
+           "the executables (~0.5 s).", "", "| run | wall time |", "|---|---|"]
+    out += [f"| {label} | {m[key]:.2f} s |" for label, key in rows if key in m]
+    return out + [""]
 
 
 def main(argv=None):

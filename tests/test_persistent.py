@@ -102,4 +102,4 @@ def test_damaged_store_is_recompiled(stored, tmp_path):
     again = _run(copy)
     assert again["values"] == first["values"]
     assert set(again["compiled"]) == {"jacobian", "lm_chunk", "linearize", "simulate"}
-    assert _run(copy)["compiled"] == []  # and stored anew
+    assert all(p.stat().st_size > 1000 for p in (copy / "crank-jax-programs").glob("*.xla"))

@@ -218,8 +218,9 @@ def test_bad_time_grid_rejected():
 
 
 @pytest.mark.parametrize("kw,match", [
-    ({"rtol": 0.0}, "rtol must be a finite number > 0"),
-    ({"rtol": float("nan")}, "rtol must be a finite number > 0"),
+    ({"rtol": 0.0}, "rtol must be a finite number >= 1e-15"),
+    ({"rtol": float("nan")}, "rtol must be a finite number >= 1e-15"),
+    ({"rtol": 1e-300}, "rtol must be a finite number >= 1e-15"),
     ({"atol": -1e-9}, "atol must be a finite number >= 0"),
     ({"atol": float("inf")}, "atol must be a finite number >= 0"),
 ])

@@ -1,8 +1,11 @@
 """JAX's persistent compilation cache, on by default in a per-user cache directory.
 
 A cold `crank-jax simulate` spends most of its time compiling; with the cache a second
-process reuses the compiled executables. Set `CRANK_JAX_NO_CACHE=1` to leave JAX's
-configuration untouched, or `CRANK_JAX_CACHE_DIR` to choose the directory.
+process reuses the compiled executables, and the package's own programs (the fit's, the
+linearisation, concrete `simulate` calls) are kept beside it, in `crank-jax-programs/`,
+so that a second process need not even trace them (see `persistent.py`). Set
+`CRANK_JAX_NO_CACHE=1` to leave JAX's configuration untouched, or `CRANK_JAX_CACHE_DIR`
+to choose the directory.
 """
 
 from __future__ import annotations

@@ -236,7 +236,7 @@ def sweep(
                             jnp.asarray(plan.atol)))
     bar = None
     if progress:
-        from tqdm.auto import tqdm
+        from tqdm import tqdm
 
         bar = tqdm(total=n, file=sys.stderr, unit="sample", desc="sweep")
     done = 0
