@@ -54,6 +54,7 @@ from .strategy import (
     n_segments,
     ode_budget,
     perturb,
+    segment_count,
 )
 from .uncertainty import RANK_TOL, assess, undefined
 
@@ -289,7 +290,7 @@ def _optimise(req: FitRequest, plan: _Plan) -> tuple[Run, int, list[str]]:
     tried = []
     escalate = req.shooting == "auto" and req.segments is None and req.method == "lm"
     if escalate and plan.shoot is plan.single and _stalled(first, n, plan, req):
-        nseg = [max(2, math.ceil((d.ts[-1] - d.ts[0]) / p / 2)) if p else 2
+        nseg = [segment_count(math.ceil((d.ts[-1] - d.ts[0]) / p / 2)) if p else 2
                 for d, p in zip(req.records, plan.periods)]
         ms, z0 = _shooting(req, plan, nseg)
         label = f"multiple shooting ({'+'.join(map(str, nseg))} segments)"

@@ -16,7 +16,7 @@ import numpy as np
 
 __all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "MAX_ODE_STEPS", "SMALL_ODE_BUDGET",
            "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
-           "absurd_start", "absurd_frequency",
+           "absurd_start", "absurd_frequency", "segment_count",
            "perturb", "far_from_noise"]
 
 #: `shooting="auto"` uses multiple shooting above this many observed periods, whatever
@@ -69,7 +69,18 @@ def n_segments(span: float, period_data: float | None, period_model: float | Non
            + f" (predicted drift {drift:.1f} rad)")
     if shooting == "auto" and drift <= MAX_DRIFT and periods <= AUTO_PERIODS:
         return 1, why
-    return max(2, math.ceil(periods / max(per_segment, 0.5))), why
+    return segment_count(math.ceil(periods / max(per_segment, 0.5))), why
+
+
+def segment_count(n: int) -> int:
+    """At least `n` (and 2) segments, rounded up to the next of 2, 3, 4, 6, 8, 12, 16, 24,
+    ... (two counts per doubling): the count is a shape of the compiled programs, so
+    records a few periods longer or shorter share them. Shorter segments than needed cost
+    little and make the fit no less robust."""
+    size = 2
+    while size < n:
+        size = size * 3 // 2 if (size & (size - 1)) == 0 else size * 4 // 3
+    return size
 
 
 def ode_budget(steps0: int) -> int:
