@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from collections import namedtuple
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -407,3 +408,11 @@ def test_main_exits_with_a_dropped_signal(capsys, monkeypatch):
     monkeypatch.setattr(cli_main, "build_parser", lambda: parser_with(dropped))
     code, _, err = _run(capsys, "scenes")
     assert code == 128 + signal.SIGTERM and "terminated by SIGTERM" in err
+
+
+def test_huge_scene_file_refused_before_reading(tmp_path, monkeypatch):
+    big = tmp_path / "big.toml"
+    big.write_bytes(b"# " + b"x" * (cj.scene.MAX_SCENE_BYTES + 10) + b"\n")
+    monkeypatch.setattr(Path, "read_text", lambda *a, **k: pytest.fail("read"))
+    with pytest.raises(cj.SceneError, match="not a scene file"):
+        cj.load_scene(big)

@@ -230,6 +230,11 @@ def presets() -> dict[str, str]:
     return {n: load_scene(n).description for n in PRESETS}
 
 
+#: Scene files are a few kB; a larger file is a mistake (a record given as the scene),
+#: refused before it is read.
+MAX_SCENE_BYTES = 1 << 20
+
+
 def load_scene(source: str | os.PathLike) -> Scene:
     """Load a scene from a preset name (see [`PRESETS`][]) or a TOML file path.
 
@@ -243,6 +248,10 @@ def load_scene(source: str | os.PathLike) -> Scene:
     path = Path(src)
     if not path.is_file():
         raise SceneError(f"{src!r} is neither a preset ({', '.join(PRESETS)}) nor a TOML file")
+    if path.stat().st_size > MAX_SCENE_BYTES:
+        raise SceneError(f"{src}: {path.stat().st_size} bytes is not a scene file (scenes are "
+                         f"a few kB; the limit is {MAX_SCENE_BYTES} bytes); a record goes "
+                         "after the command as DATA, a scene second")
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as e:
