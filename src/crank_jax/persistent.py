@@ -30,8 +30,12 @@ from pathlib import Path
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 
-__all__ = ["PersistentProgram", "program_store_dir", "checks_without_callbacks"]
+from .io import atomic_write
+
+__all__ = ["PersistentProgram", "program_store_dir", "checks_without_callbacks", "enum_code",
+           "enum_name"]
 
 # Libraries whose code is traced into the programs: a new version changes the program.
 _TRACED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax")
@@ -118,6 +122,20 @@ def _signature(name: str, args) -> tuple[str | None, list, object, object]:
     if " at 0x" in text:
         return None, leaves, treedef, static
     return hashlib.sha256(text.encode()).hexdigest(), leaves, treedef, static
+
+
+def enum_code(item, enumeration, names: tuple[str, ...]):
+    """Inside a program: the index in `names` of an equinox enumeration `item` (e.g. a
+    `diffrax.RESULTS` or `optimistix.RESULTS` value), `len(names)` for any other. A stored
+    program returns arrays only, and an enumeration item is a custom pytree."""
+    hits = [item == getattr(enumeration, n) for n in names]
+    return jnp.argmax(jnp.stack(hits + [True]))
+
+
+def enum_name(code, names: tuple[str, ...]) -> str | None:
+    """On the host: the name [`enum_code`][] encoded, or None for any other outcome."""
+    code = int(code)
+    return names[code] if code < len(names) else None
 
 
 class PersistentProgram:
@@ -250,8 +268,6 @@ def _ready_custom_calls() -> None:
 
         initialize_lapack()
     except Exception:
-        import jax.numpy as jnp
-
         jax.jit(jnp.linalg.qr).lower(jax.ShapeDtypeStruct((2, 2), jnp.float32))
     _READY = True
 
@@ -284,16 +300,15 @@ MAX_PROGRAMS = 256
 
 
 def _store(path: Path, blob: bytes) -> None:
-    """Write `blob` atomically; a store that cannot be written is not an error."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    """Write `blob` atomically (`io.atomic_write`); a store that cannot be written is
+    not an error."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_bytes(blob)
-        os.replace(tmp, path)
+        with atomic_write(path, "wb") as f:
+            f.write(blob)
         _evict(path.parent)
     except OSError:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+        pass
 
 
 def _evict(store: Path) -> None:

@@ -13,6 +13,8 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array
 
+from ..persistent import enum_code
+
 __all__ = ["StallTest", "lm_chunk_fn", "outcome_message"]
 
 class _StallState(eqx.Module):
@@ -86,14 +88,6 @@ def _call(w, model):
     return model(w, None)[0]
 
 
-def _outcome_code(result, outcomes: tuple[str, ...]) -> Array:
-    """Index of `result` in `outcomes` (names of `optx.RESULTS`; len(outcomes) for any
-    other): a compiled program returns arrays only, and an optimistix result is a custom
-    pytree."""
-    hits = jnp.stack([result == getattr(optx.RESULTS, n) for n in outcomes] + [True])
-    return jnp.argmax(hits)
-
-
 def outcome_message(name: str) -> str:
     """optimistix's message for the outcome `name` (a name of `optx.RESULTS`)."""
     item = getattr(optx.RESULTS, name, None)
@@ -107,5 +101,5 @@ def lm_chunk_fn(model, z, history, tol, chunk, outcomes):
     sol = optx.least_squares(_call, solver, z, args=model,
                              options={"cost_history": history}, max_steps=chunk,
                              throw=False)
-    code = _outcome_code(sol.result, outcomes)
+    code = enum_code(sol.result, optx.RESULTS, outcomes)
     return sol.value, code, sol.stats["num_steps"], sol.state.history

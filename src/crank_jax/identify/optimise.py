@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..lazy import lazy_import
+from ..persistent import enum_name
 from .programs import Program, residuals_at
 
 # Imported on first use (see lazy.py): a warm fit runs stored programs and needs neither.
@@ -96,10 +97,6 @@ def _lm_chunk_fn(model, z, history, tol, chunk):
 lm_chunk = Program(_lm_chunk_fn, "lm_chunk")
 
 
-def _outcome_name(code: int) -> str:
-    return OUTCOMES[code] if code < len(OUTCOMES) else "unknown"
-
-
 def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
                   progress: bool) -> Run:
     """Levenberg-Marquardt on `model(z) -> (r, None)` (a residual module, e.g. a
@@ -115,7 +112,7 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
             chunk = min(CHUNK, max_steps - it)
             z, code, steps, history = lm_chunk(model, z, history, tol, chunk)
             it += int(steps)
-            result = _outcome_name(int(code))
+            result = enum_name(code, OUTCOMES) or "unknown"
             done = result != "nonlinear_max_steps_reached"
             bar.n = it
             bar.set_postfix(cost=f"{float(history[-1]):.4g}", refresh=True)

@@ -174,7 +174,7 @@ def _linearize_tuple(mech: SliderCrank, loads) -> tuple:
 
 
 # Concrete calls (the solver policy's, before every solve) in a fresh CLI process: the
-# exported program skips tracing the Newton loop (0.1-0.3 s per process).
+# stored program skips tracing the Newton loop (0.1-0.3 s per process).
 _linearize_program = PersistentProgram(_linearize_tuple, "linearize")
 
 

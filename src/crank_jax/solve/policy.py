@@ -22,7 +22,7 @@ from ..model.params import SliderCrank
 from .uniform import uniform_grid
 
 __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
-           "is_concrete", "check_time_scale", "check_travel"]
+           "is_concrete", "check_time_scale"]
 
 # How many times its stability floor the fused solver may need per interval to resolve a
 # fast mode at the default tolerance (a margin, not a tuned constant: below it the
@@ -200,14 +200,16 @@ def _fits_interval_budget(mech, load, ts: np.ndarray, max_steps: int | None) -> 
 
 
 def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int,
-                     load: AbstractLoad | None = None) -> None:
-    """`ValueError` if the linearised fastest mode cannot be integrated over `span`.
+                     load: AbstractLoad | None = None, phi0=None, dphi0=None) -> None:
+    """`ValueError` if the linearised fastest mode cannot be integrated over `span`, or
+    (given `phi0`, `dphi0`) if the initial state is too far from rest to resolve.
 
     An explicit solver needs at least `span * rate / 3.5` steps (its stability limit on the
     fastest mode, `rate` from [`fastest_mode`][]); more than `max_steps` means the solve can
     only fail. Any solver fails once `span * rate > 1e12` (or the rate overflows). Both
     happen when k, a mass or an inertia is off by orders of magnitude (k = 1e300, masses of
     1e-300), so the message names the rate and the linearisation and asks to check them.
+    The initial state is checked by [`_check_travel`][] on the same linearisation.
     Concrete values only; traced ones are skipped.
     """
     if not (is_concrete(mech) and is_concrete(load)):
@@ -220,35 +222,31 @@ def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int
         product = top * float(span)
         explicit = solver not in ("kvaerno5",)
         need = product / _EXPLICIT_H_RATE
-    if np.isfinite(product) and product <= _MAX_SPAN_RATE and not (explicit and need > max_steps):
-        return
-    mu, chi, xi = (float(np.max(np.abs(np.asarray(x, dtype=float)))) for x in
-                   (lin.mu, lin.chi, lin.xi))
-    raise ValueError(
-        f"the fastest mode of the linearised crank is {top:.3g} rad/s (mu = {mu:.3g} kg*m^2, "
-        f"chi = {chi:.3g} N*m*s/rad, xi = {xi:.3g} N*m/rad): over {span:g} s that needs "
-        f"~{need:.3g} solver steps (max_steps = {max_steps}); check the units and values of "
-        f"k, c and the masses and inertias")
+    if not (np.isfinite(product) and product <= _MAX_SPAN_RATE
+            and not (explicit and need > max_steps)):
+        mu, chi, xi = (float(np.max(np.abs(np.asarray(x, dtype=float)))) for x in
+                       (lin.mu, lin.chi, lin.xi))
+        raise ValueError(
+            f"the fastest mode of the linearised crank is {top:.3g} rad/s (mu = {mu:.3g} "
+            f"kg*m^2, chi = {chi:.3g} N*m*s/rad, xi = {xi:.3g} N*m/rad): over {span:g} s "
+            f"that needs ~{need:.3g} solver steps (max_steps = {max_steps}); check the units "
+            f"and values of k, c and the masses and inertias")
+    if phi0 is not None and is_concrete((phi0, dphi0)):
+        _check_travel(lin, top, phi0, dphi0, span, max_steps)
 
 
-def check_travel(mech: SliderCrank, phi0, dphi0, span: float, max_steps: int,
-                 load: AbstractLoad | None = None) -> None:
+def _check_travel(lin, top: float, phi0, dphi0, span: float, max_steps: int) -> None:
     """`ValueError` if the initial state is so far from rest that the crank must turn more
     times than `max_steps` can resolve (phi0 = 1e300 rad: the spring winds the crank back
     through every one of those turns).
 
     The crank travels at least `A = |phi0 - phi_eq| + |dphi0| / omega` (omega: the fastest
-    linear mode, or 1/span without one) once it moves for a time `1/omega`, and every turn
-    needs at least [`_MIN_STEPS_PER_TURN`][] steps. Concrete values only.
+    linear mode `top`, or 1/span without one) once it moves for a time `1/omega`, and every
+    turn needs at least [`_MIN_STEPS_PER_TURN`][] steps.
     """
-    if not is_concrete((mech, load, phi0, dphi0)):
-        return
-    lin = linearize(mech, load)
-    rate, _ = fastest_mode(lin)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         eq = np.nan_to_num(np.asarray(lin.phi_eq, dtype=float))
-        omega = float(np.nanmax(np.append(np.asarray(rate, dtype=float).ravel(), 0.0)))
-        omega = omega if np.isfinite(omega) and omega * span >= 1 else 1.0 / span
+        omega = top if np.isfinite(top) and top * span >= 1 else 1.0 / span
         amp = float(np.max(np.abs(float(phi0) - eq))) + abs(float(dphi0)) / omega
         need = amp / (2 * np.pi) * _MIN_STEPS_PER_TURN
     if np.isfinite(need) and need <= max_steps:

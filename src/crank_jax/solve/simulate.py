@@ -26,9 +26,15 @@ from ..model.linear import linearize
 from ..model.loads import AbstractLoad, as_load, nonsmooth_times
 from ..model.newton_euler import reactions
 from ..model.params import SliderCrank
-from ..persistent import PersistentProgram, checks_without_callbacks, program_store_dir
+from ..persistent import (
+    PersistentProgram,
+    checks_without_callbacks,
+    enum_code,
+    enum_name,
+    program_store_dir,
+)
 from .inputs import check_tolerances, check_unbatched
-from .policy import check_time_scale, check_travel, is_concrete, resolve_solver
+from .policy import check_time_scale, is_concrete, resolve_solver
 from .uniform import solve_uniform
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
@@ -301,9 +307,8 @@ def simulate(
     solver = resolve_solver(solver, mech, rtol, atol, load=load, torque=torque, ts=ts,
                             max_steps=max_steps)
     if throw and is_concrete(ts):
-        span = float(np.ptp(np.asarray(ts)))
-        check_time_scale(mech, solver, span, int(max_steps), load)
-        check_travel(mech, phi0, dphi0, span, int(max_steps), load)
+        check_time_scale(mech, solver, float(np.ptp(np.asarray(ts))), int(max_steps), load,
+                         phi0, dphi0)
     dtype = ts.dtype
     y0 = jnp.stack([jnp.asarray(phi0, dtype), jnp.asarray(dphi0, dtype)])
     # Outside any transformation, check on the host and raise there: an `eqx.error_if` in
@@ -336,8 +341,7 @@ def _solve_flat(mech, load, torque, force, y0, ts, rtol, atol, solver, max_steps
     traj = _solve(mech, load, torque, force, y0, ts, rtol, atol, solver=solver,
                   max_steps=max_steps, adjoint=adjoint, structure=structure,
                   outputs=outputs, throw=False, mode="host")
-    hits = [traj.result == getattr(diffrax.RESULTS, n) for n in _RESULTS]
-    code = jnp.argmax(jnp.stack(hits + [True]))
+    code = enum_code(traj.result, diffrax.RESULTS, _RESULTS)
     extras = tuple(traj.extras[k] for k in sorted(traj.extras))
     return (traj.phi, traj.dphi, code, traj.num_steps) + extras
 
@@ -356,12 +360,12 @@ def _stored_solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_
     phi, dphi, code, steps, *extras = _solve_program(
         mech, load, torque, force, y0, ts, rtol, atol, solver, max_steps, adjoint,
         structure, outputs)
-    code = int(code)
-    if code >= len(_RESULTS):
+    result = enum_name(code, _RESULTS)
+    if result is None:
         return None
-    names = sorted(c for c in output_columns(outputs))
+    names = sorted(output_columns(outputs))
     return Trajectory(ts, phi, dphi, dict(zip(names, extras)),
-                      getattr(diffrax.RESULTS, _RESULTS[code]), steps)
+                      getattr(diffrax.RESULTS, result), steps)
 
 
 def _host_checks(mech: SliderCrank, y0) -> None:
