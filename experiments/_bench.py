@@ -6,6 +6,7 @@ import datetime
 import json
 import os
 import platform
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -76,6 +77,14 @@ def median_time(fn, repeats: int = 5, warmup: int = 1, budget_s: float = 20.0) -
         if i >= 2 and time.perf_counter() - start > budget_s:
             break
     return float(np.median(times))
+
+
+def wall(cmd, env) -> float:
+    """Wall time, s, of the command `cmd` in a fresh process with environment `env`."""
+    t = time.perf_counter()
+    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t
 
 
 def save(name: str, payload: dict, smoke: bool) -> Path:

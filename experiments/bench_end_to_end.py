@@ -18,11 +18,10 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
-from _bench import save, setup_jax
+from _bench import save, setup_jax, wall
 
 setup_jax()
 
@@ -62,13 +61,6 @@ x = least_squares(res, [float(sys.argv[2]), float(sys.argv[3]), phi[0], 0.0],
                   x_scale=[1, 1e-3, 1, 1]).x
 print(" ".join(f"{v:.10g}" for v in x))
 '''
-
-
-def wall(cmd, env) -> float:
-    t = time.perf_counter()
-    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL,
-                   stderr=subprocess.DEVNULL)
-    return time.perf_counter() - t
 
 
 def records(tmp: Path, smoke: bool):

@@ -13,25 +13,16 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
-from _bench import save, setup_jax
+from _bench import save, setup_jax, wall
 
 setup_jax()
 
 CLI = [sys.executable, "-m", "crank_jax"]
-
-
-def wall(cmd, env) -> float:
-    t = time.perf_counter()
-    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL,
-                   stderr=subprocess.DEVNULL)
-    return time.perf_counter() - t
 
 
 def main(argv=None):
