@@ -1,5 +1,6 @@
 """The "dopri8-uniform" solver: its right-hand side, its accuracy against its tolerance on
-the presets, autodiff in every adjoint mode, failures, and the "auto" switch to it."""
+the presets, autodiff in every adjoint mode and failures (by name: "auto" now picks
+"dopri8-adaptive")."""
 
 import diffrax
 import equinox as eqx
@@ -111,16 +112,6 @@ def test_error_meets_tolerance_on_presets(name, rtol):
     err = np.max(np.abs(np.asarray(traj.phi) - ref))
     # The contract: the global error in phi is within the tolerance on its scale.
     assert err <= atol + rtol * np.max(np.abs(ref)), (name, rtol, err)
-
-
-def test_auto_picks_uniform_only_where_it_applies(lab_rig):
-    ts = lab_rig.ts()
-    n_uniform = int(lab_rig.simulate(ts, solver="dopri8-uniform").num_steps)
-    assert int(lab_rig.simulate(ts).num_steps) == n_uniform  # auto -> dopri8-uniform
-    uneven = jnp.concatenate([ts[:10], ts[10::2]])
-    a = lab_rig.simulate(uneven)
-    b = lab_rig.simulate(uneven, solver="dopri8")
-    assert int(a.num_steps) == int(b.num_steps)  # non-uniform: the adaptive solver
 
 
 @pytest.mark.parametrize("adjoint", [

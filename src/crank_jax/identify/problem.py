@@ -99,7 +99,7 @@ def _ode_term() -> diffrax.ODETerm:
 # The fit's residuals use diffrax's adaptive solvers; "dopri8-uniform" (uniform save
 # times only) runs as the same Dopri8 tableau, adaptively, on the padded segment times.
 _SOLVERS = {"tsit5": "Tsit5", "dopri5": "Dopri5", "dopri8": "Dopri8",
-            "dopri8-uniform": "Dopri8", "dopri8-fused": "Dopri8", "kvaerno5": "Kvaerno5"}
+            "dopri8-uniform": "Dopri8", "dopri8-adaptive": "Dopri8", "kvaerno5": "Kvaerno5"}
 
 
 class Experiment(eqx.Module):
@@ -372,4 +372,4 @@ def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:
     """The ODE solver of a fit: the scene's, or the automatic choice at the start values
     (the record's padded segment times are not a uniform grid, so no save times)."""
     name = resolve_solver(solver, mech, rtol, load=load)
-    return "dopri8" if name == "dopri8-uniform" else name
+    return "dopri8" if name in ("dopri8-uniform", "dopri8-adaptive") else name

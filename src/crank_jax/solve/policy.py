@@ -5,10 +5,12 @@ solver whichever of them runs it. The rule, in order:
 
 1. A name other than `"auto"` is taken as given (after checking it is known).
 2. Stiff (see [`choose_solver`][]): `"kvaerno5"`, an L-stable ESDIRK.
-3. Otherwise `"dopri8"` below `rtol = 1e-7`, `"tsit5"` above; and on uniform save times
-   known on the host (the parameters may be traced) and no sampled load,
-   `"dopri8-uniform"`, the fused solver, which is faster than either at equal error
-   (experiments/bench_work_precision.py, experiments/bench_throughput.py).
+3. Otherwise, with no sampled load, `"dopri8-adaptive"`: adaptive fused Dopri8 steps with
+   dense output (`adaptive.py`), a `vmap`-ed batch in lockstep (`lockstep.py`), for
+   concrete and traced parameters, any save times. It is the fastest of the library's
+   solvers at equal error (experiments/bench_work_precision.py,
+   experiments/bench_throughput.py). With a sampled load, `"dopri8"` below
+   `rtol = 1e-7` and `"tsit5"` above (diffrax's, whose steps end at the load's knots).
 """
 
 from __future__ import annotations
@@ -19,18 +21,13 @@ import numpy as np
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, SampledLoad
 from ..model.params import SliderCrank
-from .uniform import uniform_grid
 
 __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
            "is_concrete", "check_time_scale"]
 
-# How many times its stability floor the fused solver may need per interval to resolve a
-# fast mode at the default tolerance (a margin, not a tuned constant: below it the
-# adaptive diffrax path is used).
-_UNIFORM_MARGIN = 8.0
-
 #: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`.
-SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform")
+SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform",
+                           "dopri8-adaptive")
 
 # The "auto" switch to an implicit solver (see `choose_solver`). Measured on the lab rig
 # (experiments/stress_stiffness.py): at the stability limit an explicit Tsit5 takes about
@@ -152,51 +149,18 @@ def resolve_solver(
     check_solver(solver)
     if solver != "auto":
         return solver
-    concrete_ts = ts is not None and is_concrete(ts)
     # The span on the host (NumPy): under a user's `jit`, even indexing a concrete `ts`
     # would be staged out as a tracer.
+    concrete_ts = ts is not None and is_concrete(ts)
     span = float(np.ptp(np.asarray(ts))) if concrete_ts else 10.0
     rtol_host = float(np.max(np.asarray(rtol))) if is_concrete(rtol) else 1e-8
     name = choose_solver(mech, rtol_host, load, span=span)
-    loads = (load, torque)
-    if (name in ("tsit5", "dopri8") and concrete_ts
-            and not any(isinstance(x, SampledLoad) for x in loads)
-            and uniform_grid(np.asarray(ts))
-            and _fits_interval_budget(mech, load, np.asarray(ts), max_steps)
-            and not _has_coulomb(mech)):
+    if name != "kvaerno5" and not any(isinstance(x, SampledLoad) for x in (load, torque)):
         # Traced parameters too (a `vmap`-ed batch, `jacfwd`): that is how users batch and
         # differentiate, and the fused solver is the fastest there as well. Not across a
-        # sampled load's kinks.
-        name = "dopri8-uniform"
+        # sampled load's kinks, where diffrax's steps end at the knots.
+        name = "dopri8-adaptive"
     return name
-
-
-def _has_coulomb(mech) -> bool:
-    """Concrete Coulomb friction (T_c or F_s nonzero): its tanh is nearly a kink at rest,
-    which the fused solver's summed per-interval error control handles badly (measured: the
-    lab rig with T_c = 0.004 N*m exhausts its step budget where adaptive Dopri8 takes 1843
-    steps), so the adaptive path runs it. Traced values cannot be read and keep the fused
-    solver."""
-    names = [n for n in ("T_c", "F_s") if hasattr(mech, n)]
-    vals = [getattr(mech, n) for n in names]
-    return is_concrete(vals) and any(bool(np.any(np.asarray(v) != 0)) for v in vals)
-
-
-def _fits_interval_budget(mech, load, ts: np.ndarray, max_steps: int | None) -> bool:
-    """Whether the fused uniform solver can afford the fastest mode: it takes at least
-    `dt * rate / 3` steps in every save interval (Dopri8's stability on that mode) and
-    several times that to resolve it, out of `max_steps / (n - 1)` per interval. A fast
-    shaft mode that an adaptive solver resolves once and then steps over at its stability
-    limit would exhaust it (measured: a sweep to k = 1e7 on the lab rig)."""
-    if max_steps is None or not is_concrete((mech, load)):
-        return True
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        rate, _ = fastest_mode(linearize(mech, load))
-        rate = np.asarray(rate, dtype=float)
-        top = float(np.max(np.where(np.isfinite(rate), rate, 0.0))) if rate.size else 0.0
-    dt = float(np.max(np.diff(ts)))
-    per_interval = max(1, int(max_steps) // max(ts.shape[0] - 1, 1))
-    return _UNIFORM_MARGIN * dt * top / _EXPLICIT_H_RATE <= per_interval
 
 
 def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int,

@@ -34,6 +34,7 @@ from ..persistent import (
     program_store_dir,
 )
 from .inputs import check_tolerances, check_unbatched
+from .lockstep import adaptive_solve
 from .policy import check_time_scale, is_concrete, resolve_solver
 from .uniform import solve_uniform
 
@@ -187,7 +188,19 @@ def _solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, 
            "forward": diffrax.ForwardMode(),
            "direct": diffrax.DirectAdjoint()}[adjoint]
     field = CrankField(mech, load, torque, structure, force)
-    if solver == "dopri8-uniform":
+    if solver == "dopri8-adaptive":
+        def fallback(fld, y, ts_, r, a):
+            return diffrax.diffeqsolve(
+                diffrax.ODETerm(_TERMS[mode]), diffrax.Dopri8(), t0=ts_[0], t1=ts_[-1],
+                dt0=None, y0=y, args=fld, saveat=diffrax.SaveAt(ts=ts_),
+                stepsize_controller=diffrax.PIDController(rtol=r, atol=a),
+                max_steps=max_steps, adjoint=adj, throw=False).ys
+
+        ys, result, steps = adaptive_solve(field, y0, ts, rtol, atol, max_steps=max_steps,
+                                           adjoint=adjoint, fallback=fallback)
+        if throw:
+            ys = result.error_if(ys, result != diffrax.RESULTS.successful)
+    elif solver == "dopri8-uniform":
         # Constant Dopri8 steps between the save times (see `uniform.py`): the while-loop
         # kind gives the same autodiff as the matching diffrax adjoint.
         kind = {"reverse": "checkpointed", "forward": "lax", "direct": "bounded"}[adjoint]

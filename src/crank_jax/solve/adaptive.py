@@ -1,0 +1,226 @@
+"""The `"dopri8-adaptive"` solver: adaptive fused Dopri8 steps with dense output, for any
+vector field.
+
+Why not `diffrax.diffeqsolve`? The method and its tolerance semantics are diffrax's (the
+Dopri8 tableau, its 7th-order embedded estimate in diffrax's RMS norm, an integral
+controller like scipy's DOP853 and diffrax's `PIDController` default, diffrax's Dopri8
+dense output), but for a state of two scalars a step on the CPU is bound by per-kernel
+overhead, not arithmetic (measured with XLA's CPU runtime in jax 0.10: ~0.45 us for the
+arithmetic of 13 stages, ~1 us more for each separate kernel such as a save-time update,
+~1 us more for a data-dependent loop condition). So:
+
+- the stages are unrolled ([`FusedERK`][]) and the first stage is the previous step's last
+  (first same as last);
+- `unroll` step attempts run per loop iteration, so the loop condition and the output
+  update are paid once per block of attempts, not per step;
+- the dense output is evaluated once per block, for a window of `window` pending save
+  times: each save time takes the coefficients of the accepted attempt that covers it (a
+  select per attempt), one polynomial evaluation for the window, and one update of the
+  output. An attempt is shortened so that the block never passes the window's last save
+  time; this binds only where the saves are denser than the steps.
+
+Unlike `"dopri8-uniform"` the step count follows the motion, not the save grid: the error
+is controlled per step (`rtol`, `atol` mean what they mean for diffrax's `PIDController`).
+The steps are chosen on values (`stop_gradient`), so forward mode (`jax.jvp`,
+`jax.jacfwd`) differentiates the solution along the chosen steps.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..lazy import lazy_import
+from .erk import FusedERK, dopri8, packer
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
+
+__all__ = ["solve_adaptive", "dopri8_dense"]
+
+# The integral controller (as scipy's DOP853 and diffrax's PIDController default): safety
+# factor, and the step growth per step kept in [_FAC_MIN, _FAC_MAX].
+_SAFETY = 0.9
+_FAC_MIN = 0.2
+_FAC_MAX = 10.0
+# Step attempts per loop iteration, and save times one block may write (measured on the
+# lab rig, experiments/bench_work_precision.py: 8 attempts per iteration take ~half the
+# time per step of 1).
+UNROLL = 8
+WINDOW = 24
+
+
+@functools.cache
+def dopri8_dense() -> np.ndarray:
+    """diffrax's Dopri8 dense output: `y(t0 + theta h) = y0 + theta sum_i P_i(theta) h k_i`,
+    `P_i` the polynomial in row i (highest power first) over the 14 stages (the 14th is
+    `f(t1, y1)`, first same as last). Shape (14, powers)."""
+    return np.asarray(diffrax.Dopri8.interpolation_cls.eval_coeffs, dtype=float)
+
+
+def _rms(x):
+    """RMS over the state (the last axis), the largest over any leading batch axes: a
+    batch in lockstep takes the step its least accurate member allows."""
+    return jnp.max(jnp.sqrt(jnp.mean(x * x, axis=-1)))
+
+
+def _initial_step(f, t0, y0, k0, rtol, atol, order, span):
+    """Hairer, Norsett & Wanner's starting step (as diffrax's and scipy's), on packed
+    (N,) states."""
+    scale = atol + rtol * jnp.abs(y0)
+    rms = lambda x: jnp.sqrt(jnp.mean(x * x, axis=-1))  # noqa: E731
+    d0, d1 = rms(y0 / scale), rms(k0 / scale)
+    h0 = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / d1)
+    h0 = jnp.minimum(jnp.min(h0), span)
+    k1 = f(t0 + h0, y0 + h0 * k0)
+    d2 = rms((k1 - k0) / scale) / h0
+    h1 = jnp.where(jnp.maximum(d1, d2) <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3),
+                   (0.01 / jnp.maximum(d1, d2)) ** (1.0 / order))
+    return jnp.minimum(jnp.minimum(100 * h0, jnp.min(h1)), span)
+
+
+def _dense_coefficients(coeffs, h, ks):
+    """The dense output's polynomial coefficients times h, highest power first: a list of
+    (N,) arrays, one per power (unrolled over the nonzero stage weights)."""
+    d = []
+    for j in range(coeffs.shape[1]):
+        acc = None
+        for i, k in enumerate(ks):
+            a = float(coeffs[i, j])
+            if a != 0.0:
+                acc = a * k if acc is None else acc + a * k
+        d.append(h * acc)
+    return d
+
+
+def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int, kind: str = "lax",
+                   erk: FusedERK | None = None, unroll: int = UNROLL, window: int = WINDOW,
+                   batched: bool = False):
+    """Integrate `dy/dt = field(t, y, args)` with adaptive steps of `erk`, saving at `ts`
+    through the method's dense output.
+
+    **Arguments:**
+
+    - `field`: the vector field `field(t, y, args) -> dy/dt`, a callable pytree; its
+      inexact-array leaves are differentiable parameters.
+    - `y0`: the state at `ts[0]`, a pytree of arrays (small: the stages are unrolled).
+    - `ts` (n,): increasing save times, any spacing; `rtol`, `atol`: tolerances of the
+      local error per step as diffrax's `PIDController` scales them (RMS over the state of
+      `err / (atol + rtol max(|y0|, |y1|))`; a step is accepted when it is <= 1).
+    - `args`: passed to `field`; its inexact-array leaves are differentiable too.
+    - `max_steps`: the budget of step attempts (accepted and rejected), static.
+    - `kind`: the `equinox.internal.while_loop` kind (`"lax"`: forward mode;
+      `"checkpointed"`: reverse mode; `"bounded"`: both).
+    - `erk`: the method, default [`dopri8`][]`()`; its last stage must be `f(t1, y1)`
+      (first same as last), and `dopri8_dense()` its dense output.
+    - `unroll`, `window`: step attempts per loop iteration; save times one iteration may
+      write (a step is shortened so that the iteration writes no more).
+    - `batched`: the leaves of `y0` (and of `field`, `args` where they vary) carry a
+      leading batch axis (B,), one scalar state per member: the batch steps in lockstep,
+      with one step size that every member's error allows (see `batch.py`).
+
+    **Returns:** `(ys, result, num_steps)`: `ys` a pytree like `y0` with a leading axis n
+    (batched: leaves (n, B)); `result` a `diffrax.RESULTS` (`max_steps_reached` if the
+    budget ran out before `ts[-1]`); `num_steps`, the step attempts, accepted and
+    rejected.
+    """
+    erk = dopri8() if erk is None else erk
+    dense = dopri8_dense()
+    n = ts.shape[0]
+    dtype = ts.dtype
+    W, K = int(window), int(unroll)
+    if batched:
+        # Members' scalar states side by side: (B, N), the state on the last axis.
+        treedef = jax.tree_util.tree_structure(y0)
+        pack = lambda y: jnp.stack(jax.tree_util.tree_leaves(y), axis=-1)  # noqa: E731
+        unpack = lambda Y: jax.tree_util.tree_unflatten(  # noqa: E731
+            treedef, [Y[..., i] for i in range(treedef.num_leaves)])
+    else:
+        pack, unpack = packer(y0)
+    sg = jax.lax.stop_gradient
+    expo = 1.0 / erk.order
+    n_st = erk.num_stages
+    rtol, atol = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
+
+    def f(t, yp):
+        # One packed (N,) array: fewer, larger fusions than the state's leaves.
+        return pack(field(t, unpack(yp), args)).astype(dtype)
+
+    y0p = pack(y0).astype(dtype)
+    # Pending save times padded with +inf and outputs with W rows, so that a window at any
+    # pending index stays in range.
+    ts_pad = jnp.concatenate([ts, jnp.full((W,), jnp.inf, dtype)])
+    out0 = jnp.zeros((n + W,) + y0p.shape, dtype).at[0].set(y0p)
+    t0, t_end = sg(ts[0]), sg(ts[-1])
+    k0 = f(ts[0], y0p)
+    h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), erk.order, t_end - t0)
+
+    def attempt(c, t_lim):
+        t, y, k, h, steps, rejected = c
+        # The steps are chosen on values: t and h carry no derivative.
+        active = t < t_lim
+        h_try = sg(jnp.where(active, jnp.minimum(h, t_lim - t), 1.0))
+        ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h_try, k0=k)[:n_st]
+        y1 = erk.solution(y, h_try, ks)
+        scale = atol + rtol * jnp.maximum(jnp.abs(sg(y)), jnp.abs(sg(y1)))
+        err = _rms(sg(erk.error(h_try, ks)) / scale)
+        # A non-finite estimate (a step too long for stability) is a rejection.
+        finite = jnp.isfinite(err)
+        ok = active & (err <= 1.0)
+        t1 = jnp.where(h_try == t_lim - t, t_lim, t + h_try)
+        k1 = f(t1, y1)
+        # Integral controller; no growth right after a rejection (as scipy's DOP853).
+        fac = jnp.where(err == 0, _FAC_MAX, _SAFETY * sg(err) ** -expo)
+        fac = jnp.where(ok & rejected, jnp.minimum(fac, 1.0), fac)
+        fac = jnp.where(finite, jnp.clip(fac, _FAC_MIN, _FAC_MAX), _FAC_MIN)
+        new = (jnp.where(ok, t1, t), jnp.where(ok, y1, y), jnp.where(ok, k1, k),
+               jnp.where(active, sg(h_try * fac), h), steps + active, ~ok & active)
+        return new, (ok, t, t1, h_try, y, ks + [k1])
+
+    def cond(c):
+        return (c[0] < n) & (c[1][4] < max_steps)
+
+    def body(c):
+        i0, state, out = c
+        tw = jax.lax.dynamic_slice_in_dim(ts_pad, i0, W)
+        # The block may not step past its window's last save time (nor the end).
+        t_lim = jnp.minimum(tw[-1], t_end)
+        taken = []
+        for _ in range(K):
+            state, rec = attempt(state, t_lim)
+            taken.append(rec)
+        t_now = state[0]
+        # Each pending save time in (t, t1] of an accepted attempt takes its coefficients.
+        theta = jnp.zeros((W,), dtype)
+        base = jnp.zeros((W,) + y0p.shape, dtype)
+        coef = None
+        for ok, ta, t1a, ha, ya, ks in taken:
+            mine = ok & (tw > ta) & (tw <= t1a)
+            d = _dense_coefficients(dense, ha, ks)
+            m = mine.reshape((W,) + (1,) * y0p.ndim)
+            theta = jnp.where(mine, (tw - ta) / ha, theta)
+            base = jnp.where(m, ya[None], base)
+            coef = ([jnp.where(m, dj[None], 0.0) for dj in d] if coef is None else
+                    [jnp.where(m, dj[None], cj) for dj, cj in zip(d, coef)])
+        th = theta.reshape((W,) + (1,) * y0p.ndim)
+        poly = coef[0]
+        for cj in coef[1:]:
+            poly = poly * th + cj
+        # Rows from i0 on are pending; those this block does not reach are written again
+        # by a later block.
+        out = jax.lax.dynamic_update_slice_in_dim(out, base + th * poly, i0, 0)
+        reached = jnp.sum((tw <= t_now) & (i0 + jnp.arange(W) < n))
+        return i0 + reached, state, out
+
+    state0 = (t0, y0p, k0, h0, jnp.array(0), jnp.array(False))
+    i0, state, out = eqxi.while_loop(cond, body, (jnp.array(1), state0, out0),
+                                     max_steps=-(-max_steps // K) + 1, kind=kind)
+    steps = state[4]
+    result = diffrax.RESULTS.where(i0 >= n, diffrax.RESULTS.successful,
+                                   diffrax.RESULTS.max_steps_reached)
+    # Save times never reached (a failed solve) hold inf, as diffrax leaves them.
+    ys = jnp.where((jnp.arange(n) < i0).reshape((n,) + (1,) * y0p.ndim), out[:n], jnp.inf)
+    return unpack(ys), result, steps

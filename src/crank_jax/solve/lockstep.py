@@ -1,0 +1,127 @@
+"""`"dopri8-adaptive"` under JAX's transformations: a `jax.vmap`-ed batch steps in lockstep.
+
+A `vmap` of an adaptive solve already runs in lockstep (the loop runs until its slowest
+member is done), but each member keeps its own step size and save position, so every
+output update becomes a batched scatter and every carry a select: measured on 10^4 lab
+rigs, 1.56 ms per trajectory against 0.40 ms for the same solver stepping the whole batch
+with *one* step size, the largest that every member's error allows
+(experiments/bench_throughput.py). `jax.custom_batching.custom_vmap` gives that rule to
+`jax.vmap`: mapped over parameters, initial states or tolerances with shared save times,
+the batch takes shared steps; otherwise (save times that differ per member, a member
+leaf that is not a scalar) it falls back to a plain `vmap`. Each member's local error
+still meets its own tolerance; members that need fewer steps take the batch's.
+
+Differentiation: forward mode (`jax.jvp`, `jax.jacfwd`; `adjoint="forward"`) goes through
+the solve along the chosen steps (`custom_vmap` has a JVP rule). Reverse mode
+(`adjoint="reverse"`) cannot go through a `custom_vmap` (JAX has no transpose for it), so
+the solve carries a `custom_vjp` whose backward pass differentiates `fallback`, a
+reverse-differentiable solve of the same problem at the same tolerances (diffrax's Dopri8
+with checkpointed reverse mode): the gradient is that of a solution as accurate as the
+forward one, so the two agree to the tolerance (tests/test_adaptive.py checks them
+against finite differences).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax.custom_batching import custom_vmap
+
+from ..lazy import lazy_import
+from .adaptive import solve_adaptive
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
+
+__all__ = ["adaptive_solve"]
+
+
+def _stack(phi, dphi):
+    return jnp.stack([phi, dphi], axis=-1)
+
+
+def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str, fallback):
+    """Solve with [`solve_adaptive`][] so that `jax.vmap` steps a batch in lockstep.
+
+    **Arguments:** `field`, the vector field (a pytree; its array leaves may be traced or
+    batched); `y0` (2,), the state `(phi, phi')`; `ts` (n,) save times; `rtol`, `atol`
+    scalars; `max_steps`, the step budget; `adjoint`, `"reverse"`, `"forward"` or
+    `"direct"`; `fallback(field, y0, ts, rtol, atol) -> ys (n, 2)`, a reverse-
+    differentiable solve used by the backward pass of `"reverse"`.
+
+    **Returns:** `(ys (n, 2), result, num_steps)`, as `solve_adaptive` (`result` a
+    `diffrax.RESULTS`).
+    """
+    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback)
+    ys, code, steps = out
+    # The outcome carries no derivative (equinox's checks cannot take one through it).
+    code, steps = (jax.lax.stop_gradient(x).astype(jnp.int32) for x in (code, steps))
+    return ys, type(diffrax.RESULTS.successful)(code, diffrax.RESULTS), steps
+
+
+def _as_float(x, like):
+    return jnp.asarray(x).astype(like.dtype)
+
+
+def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback):
+    # The field's arrays as a flat list: `custom_vmap` cannot take the `None` leaves that
+    # `eqx.partition` leaves (jax issue 9066).
+    dyn_tree, static = eqx.partition(field, eqx.is_array)
+    dyn, treedef = jax.tree_util.tree_flatten(dyn_tree)
+
+    def rebuild(dyn):
+        return eqx.combine(jax.tree_util.tree_unflatten(treedef, dyn), static)
+
+    def single(dyn, y0, ts, rtol, atol):
+        (phi, dphi), result, steps = solve_adaptive(
+            rebuild(dyn), (y0[0], y0[1]), ts, rtol, atol, max_steps=max_steps)
+        # Every output a float: JAX's JVP of a `custom_vmap` takes float outputs only.
+        return _stack(phi, dphi), _as_float(result._value, phi), _as_float(steps, phi)
+
+    @custom_vmap
+    def solve(dyn, y0, ts, rtol, atol):
+        return single(dyn, y0, ts, rtol, atol)
+
+    @solve.def_vmap
+    def _rule(axis_size, in_batched, dyn, y0, ts, rtol, atol):
+        if not any(jax.tree_util.tree_leaves(in_batched)):
+            # Nothing mapped (JAX's JVP of this rule asks so): one solve, not batched.
+            return single(dyn, y0, ts, rtol, atol), (False, False, False)
+        scalar_members = all(jnp.ndim(x) == 1 for x, b in zip(dyn, in_batched[0]) if b)
+        if in_batched[2] or not scalar_members:
+            # Members with their own save times (or array-valued parameters): plain vmap.
+            axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, bt)
+                         for bt in in_batched)
+            out = jax.vmap(single, in_axes=axes)(dyn, y0, ts, rtol, atol)
+            return out, (True, True, True)
+        y0 = jnp.broadcast_to(y0, (axis_size, 2))
+        # Per-member tolerances scale that member's state (the last axis).
+        rtol = rtol[:, None] if in_batched[3] else rtol
+        atol = atol[:, None] if in_batched[4] else atol
+        (phi, dphi), result, steps = solve_adaptive(
+            rebuild(dyn), (y0[:, 0], y0[:, 1]), ts, rtol, atol,
+            max_steps=max_steps, batched=True)
+        ys = jnp.moveaxis(_stack(phi, dphi), 1, 0)
+        full = lambda x: jnp.broadcast_to(x, (axis_size,))  # noqa: E731
+        return ((ys, full(_as_float(result._value, phi)), full(_as_float(steps, phi))),
+                (True, True, True))
+
+    if adjoint != "reverse":
+        return solve(dyn, y0, ts, rtol, atol)
+
+    @jax.custom_vjp
+    def reverse(dyn, y0, ts, rtol, atol):
+        return solve(dyn, y0, ts, rtol, atol)
+
+    def fwd(dyn, y0, ts, rtol, atol):
+        return solve(dyn, y0, ts, rtol, atol), (dyn, y0, ts, rtol, atol)
+
+    def bwd(res, g):
+        dyn, y0, ts, rtol, atol = res
+        _, pull = jax.vjp(lambda d, y: fallback(rebuild(d), y, ts, rtol, atol), dyn, y0)
+        d_dyn, d_y0 = pull(g[0])
+        # No derivative with respect to the save times or the tolerances.
+        return d_dyn, d_y0, jnp.zeros_like(ts), jnp.zeros_like(rtol), jnp.zeros_like(atol)
+
+    reverse.defvjp(fwd, bwd)
+    return reverse(dyn, y0, ts, rtol, atol)
