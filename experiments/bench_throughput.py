@@ -3,7 +3,8 @@
 The lab rig with c = 1e-3, phi0 = 1 rad, 10 s, 1001 samples; the batch varies the stiffness
 k over +-10% (member 0 is the target configuration). The batch is `jax.jit(jax.vmap(...))`
 over the mechanisms, so the parameters are traced, with `simulate`'s default solver
-(`"auto"`) at the default rtol 1e-8 / atol 1e-10 (issue 9 target 3), and with
+(`"auto"`, the lockstep `"dopri8-adaptive"`) at the default rtol 1e-8 / atol 1e-10 and at
+rtol 1e-9 (the loosest whose members all stay <= 1e-8 rad: issue 9 target 3), and with
 `"dopri8-uniform"` at rtol 1e-6 (the cheapest setting whose error is <= 1e-8 rad; the
 earlier target (b)). Batches above `CHUNK` run in chunks of `CHUNK`. The errors of several
 members (0, N/3, 2N/3, N-1) are checked against a tight reference (diffrax Dopri8 at rtol
@@ -81,7 +82,8 @@ def main(argv=None):
     dop_meet = min((r["time_s"] for r in curves.get("numba DOP853", []) if r["error"] <= 1e-8),
                    default=None)
 
-    configs = [("default (auto)", None, 1e-8), ("dopri8-uniform", "dopri8-uniform", 1e-6)]
+    configs = [("default (auto)", None, 1e-8), ("default (auto)", None, 1e-9),
+               ("dopri8-uniform", "dopri8-uniform", 1e-6)]
     rows = []
     for label, solver, rtol in configs:
         kw = {} if solver is None else {"solver": solver}
@@ -124,7 +126,9 @@ def main(argv=None):
             rows.append(row)
             print(row, f"({time.perf_counter() - t0:.1f} s)", flush=True)
 
-    tgt = next((r for r in rows if r["N"] == 10_000 and r["method"] == "default (auto)"), None)
+    # Target 3 at equal error <= 1e-8 rad: the default's cheapest run at N = 1e4 meeting it.
+    tgt = min((r for r in rows if r["N"] == 10_000 and r["method"] == "default (auto)"
+               and r["max_error"] <= 1e-8), key=lambda r: r["per_traj_s"], default=None)
     target3 = None if tgt is None else {
         "goal": 0.15, "max_error": tgt["max_error"],
         "ratio_equal_error": tgt.get("ratio_to_numba DOP853_equal_error"),

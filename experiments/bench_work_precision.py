@@ -3,7 +3,8 @@
 Scenes: the lab rig with c = 1e-3 (the issue's target configuration), the torsional and the
 near-buckling presets, each with its own phi0. Methods, side by side in one run:
 
-- `crank_jax.simulate` with its default solver (`"auto"`, which picks `"dopri8-uniform"`
+- `crank_jax.simulate` with its default solver (`"auto"`, which picks `"dopri8-adaptive"`;
+  `"dopri8-uniform"` by name beside it
   for these non-stiff scenes), and diffrax's adaptive Tsit5, Dopri5, Dopri8 through
   `simulate(solver=...)`, at rtol = 1e-4 .. 1e-12 (atol = rtol / 100);
 - scipy `solve_ivp` RK45, DOP853, LSODA and `odeint` with a plain-Python RHS;
@@ -81,7 +82,8 @@ def main(argv=None):
             print(f"{label:>18} {method:>26} rtol={rtol:.0e} err={err:.2e} t={t * 1e3:9.3f} ms",
                   flush=True)
 
-        jax_methods = {"crank_jax default (auto)": None, "diffrax Tsit5": "tsit5",
+        jax_methods = {"crank_jax default (auto)": None,
+                       "crank_jax dopri8-uniform": "dopri8-uniform", "diffrax Tsit5": "tsit5",
                        "diffrax Dopri5": "dopri5", "diffrax Dopri8": "dopri8"}
         if smoke:
             jax_methods = {"crank_jax default (auto)": None, "diffrax Dopri8": "dopri8"}

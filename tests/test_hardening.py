@@ -114,10 +114,18 @@ def test_row7_long_runs_stream_in_bounded_chunks(tmp_path, capsys, monkeypatch, 
     assert len(spy_simulate) == 5 and max(spy_simulate) == 41  # memory: one chunk at a time
     data = np.loadtxt(out, delimiter=",", skiprows=1)
     np.testing.assert_array_equal(data[:, 0], np.linspace(0, 2, 201))
-    ref = cj.load_scene("lab-rig").simulate(np.linspace(0, 2, 201), outputs=("energy",))
+    scene = cj.load_scene("lab-rig")
+    ref = scene.simulate(np.linspace(0, 2, 201), outputs=("energy",), solver="dopri8",
+                         rtol=1e-13, atol=1e-15)
     # Each chunk restarts the solver from the last state: the same solution to tolerance.
-    np.testing.assert_allclose(data[:, 1], ref.phi, rtol=0, atol=1e-8)
-    np.testing.assert_allclose(data[:, 2], ref.dphi, rtol=0, atol=1e-7)
+    # The default solver controls the local error per step at the default rtol 1e-8 (its
+    # global error on the lab rig is ~1-2e-8 of each component's scale), so each solution,
+    # chunked or not, is compared with a tight reference at twice that.
+    one = scene.simulate(np.linspace(0, 2, 201))
+    for phi, dphi in ((data[:, 1], data[:, 2]), (one.phi, one.dphi)):
+        np.testing.assert_allclose(phi, ref.phi, rtol=0, atol=2e-8 * np.max(np.abs(ref.phi)))
+        np.testing.assert_allclose(dphi, ref.dphi, rtol=0,
+                                   atol=2e-8 * np.max(np.abs(ref.dphi)))
     np.testing.assert_allclose(data[:, 3], ref.extras["energy"], rtol=1e-7)
     assert png.stat().st_size > 1000
 

@@ -11,6 +11,8 @@ solver whichever of them runs it. The rule, in order:
    solvers at equal error (experiments/bench_work_precision.py,
    experiments/bench_throughput.py). With a sampled load, `"dopri8"` below
    `rtol = 1e-7` and `"tsit5"` above (diffrax's, whose steps end at the load's knots).
+   Sweeps ask for batch-invariant results (`batch_invariant=True`) and keep the per-member
+   `"dopri8-uniform"` on uniform save times.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, SampledLoad
 from ..model.params import SliderCrank
+from .uniform import uniform_grid
 
 __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
            "is_concrete", "check_time_scale"]
@@ -28,6 +31,11 @@ __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_
 #: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`.
 SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform",
                            "dopri8-adaptive")
+
+# How many times its stability floor the fused uniform solver may need per interval to
+# resolve a fast mode at the default tolerance (a margin, not a tuned constant: below it
+# the adaptive diffrax path is used).
+_UNIFORM_MARGIN = 8.0
 
 # The "auto" switch to an implicit solver (see `choose_solver`). Measured on the lab rig
 # (experiments/stress_stiffness.py): at the stability limit an explicit Tsit5 takes about
@@ -135,6 +143,7 @@ def choose_solver(
 def resolve_solver(
     solver: str, mech: SliderCrank, rtol, atol=None, *, load: AbstractLoad | None = None,
     torque: AbstractLoad | None = None, ts=None, max_steps: int | None = None,
+    batch_invariant: bool = False,
 ) -> str:
     """The solver that runs: `solver` itself, or for `"auto"` the choice described in the
     module docstring.
@@ -142,7 +151,12 @@ def resolve_solver(
     **Arguments:** `solver`, a name from [`SOLVERS`][]; `mech` (a batch counts as stiff if
     any member is); `rtol`, `atol` (arrays or floats; traced ones count as the defaults);
     `load`, `torque`; `ts`, the save times (n,) if known on the host; `max_steps`, the
-    caller's step budget (the fused solver splits it evenly over the save intervals).
+    caller's step budget (the fused solver splits it evenly over the save intervals);
+    `batch_invariant`: each member of a `vmap`-ed batch must get exactly the result of its
+    own solve, whatever else is in the batch (a sweep's results do not depend on its
+    chunking or order). `"dopri8-adaptive"` steps a batch in lockstep, so then
+    `"dopri8-uniform"` is chosen where it applies (uniform save times known on the host,
+    its step budget, no Coulomb friction; its steps are per member), else diffrax's.
 
     **Returns:** a name from [`SOLVERS`][] other than `"auto"`.
     """
@@ -155,12 +169,48 @@ def resolve_solver(
     span = float(np.ptp(np.asarray(ts))) if concrete_ts else 10.0
     rtol_host = float(np.max(np.asarray(rtol))) if is_concrete(rtol) else 1e-8
     name = choose_solver(mech, rtol_host, load, span=span)
-    if name != "kvaerno5" and not any(isinstance(x, SampledLoad) for x in (load, torque)):
+    sampled = any(isinstance(x, SampledLoad) for x in (load, torque))
+    if batch_invariant:
+        if (name in ("tsit5", "dopri8") and concrete_ts and not sampled
+                and uniform_grid(np.asarray(ts))
+                and _fits_interval_budget(mech, load, np.asarray(ts), max_steps)
+                and not _has_coulomb(mech)):
+            name = "dopri8-uniform"
+        return name
+    if name != "kvaerno5" and not sampled:
         # Traced parameters too (a `vmap`-ed batch, `jacfwd`): that is how users batch and
         # differentiate, and the fused solver is the fastest there as well. Not across a
         # sampled load's kinks, where diffrax's steps end at the knots.
         name = "dopri8-adaptive"
     return name
+
+
+def _has_coulomb(mech) -> bool:
+    """Concrete Coulomb friction (T_c or F_s nonzero): its tanh is nearly a kink at rest,
+    which the fused solver's summed per-interval error control handles badly (measured: the
+    lab rig with T_c = 0.004 N*m exhausts its step budget where adaptive Dopri8 takes 1843
+    steps), so the adaptive path runs it. Traced values cannot be read and keep the fused
+    solver."""
+    names = [n for n in ("T_c", "F_s") if hasattr(mech, n)]
+    vals = [getattr(mech, n) for n in names]
+    return is_concrete(vals) and any(bool(np.any(np.asarray(v) != 0)) for v in vals)
+
+
+def _fits_interval_budget(mech, load, ts: np.ndarray, max_steps: int | None) -> bool:
+    """Whether the fused uniform solver can afford the fastest mode: it takes at least
+    `dt * rate / 3` steps in every save interval (Dopri8's stability on that mode) and
+    several times that to resolve it, out of `max_steps / (n - 1)` per interval. A fast
+    shaft mode that an adaptive solver resolves once and then steps over at its stability
+    limit would exhaust it (measured: a sweep to k = 1e7 on the lab rig)."""
+    if max_steps is None or not is_concrete((mech, load)):
+        return True
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        rate, _ = fastest_mode(linearize(mech, load))
+        rate = np.asarray(rate, dtype=float)
+        top = float(np.max(np.where(np.isfinite(rate), rate, 0.0))) if rate.size else 0.0
+    dt = float(np.max(np.diff(ts)))
+    per_interval = max(1, int(max_steps) // max(ts.shape[0] - 1, 1))
+    return _UNIFORM_MARGIN * dt * top / _EXPLICIT_H_RATE <= per_interval
 
 
 def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int,

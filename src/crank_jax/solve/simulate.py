@@ -1,7 +1,8 @@
 """Time integration of the equation of motion: `simulate`, `Trajectory`, derived outputs.
 
 `simulate` builds the vector field, a [`CrankField`][], and hands it to a solver that knows
-nothing of the mechanism: the fused `"dopri8-uniform"` solver (`uniform.py`), or diffrax
+nothing of the mechanism: the fused `"dopri8-adaptive"` (`adaptive.py`, `lockstep.py`) and
+`"dopri8-uniform"` (`uniform.py`) solvers, or diffrax
 through a thin `ODETerm` adapter (the state as one (2,) array, the field as `args`). It is
 one of the two modules of `solve/` that import the model: it builds the field, checks the
 inputs, and computes the derived outputs; `policy.py` linearises for the stiffness test.
@@ -266,11 +267,10 @@ def simulate(
     - `ts`: (n,) strictly increasing save times, s, n >= 2.
     - `load`: slider force P(t), N along -x: a load, a number (constant) or `None`.
     - `torque`: crank torque tau(t), N*m about +z, likewise.
-    - `solver`: one of [`SOLVERS`][]; `"auto"` picks with [`choose_solver`][], and then,
-      for uniform `ts` known on the host and a non-stiff choice, `"dopri8-uniform"`:
-      an integer number of equal Dopri8 steps in each save interval, chosen interval by
-      interval so that the summed embedded error estimate (an estimate of the global
-      error) meets `rtol`/`atol`.
+    - `solver`: one of [`SOLVERS`][]; `"auto"` is `"kvaerno5"` for a stiff shaft (see
+      [`choose_solver`][]), else `"dopri8-adaptive"` (adaptive fused Dopri8 with dense
+      output; a `vmap`-ed batch steps in lockstep) unless a load is sampled (then diffrax's
+      Dopri8 or Tsit5, whose steps end at the knots). See `solve/policy.py`.
     - `rtol`, `atol`: tolerances of the adaptive step-size controller.
     - `max_steps`: step budget; exceeding it raises (or sets `result` if `throw=False`).
     - `outputs`: derived outputs to add to `Trajectory.extras` (see [`OUTPUTS`][]); only

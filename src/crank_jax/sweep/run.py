@@ -156,7 +156,8 @@ def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps,
         padded = np.concatenate([idx, np.full(chunk - idx.size, idx[0])])
         mech, load, torque, phi0, dphi0 = plan.batch({k: v[padded] for k, v in cols.items()})
         name = resolve_solver(plan.solver, mech, plan.rtol, plan.atol, load=load,
-                              torque=torque, ts=plan.ts, max_steps=int(max_steps))
+                              torque=torque, ts=plan.ts, max_steps=int(max_steps),
+                              batch_invariant=True)
         fixed = _fixed(plan)
         load = dev.replicate(load) if fixed["load_fixed"] else dev.shard(load)
         torque = dev.replicate(torque) if fixed["torque_fixed"] else dev.shard(torque)
