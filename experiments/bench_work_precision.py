@@ -138,7 +138,10 @@ def main(argv=None):
         "goal": 25.0,
     }
     print("target (a):", target)
-    target2 = target_2(lab, default)
+    # Issue 9 target 2 at equal measured error <= 1e-8 rad: the default's cheapest run
+    # meeting it (rtol 1e-8 lands just above 1e-8 with the adaptive default).
+    meeting = [r for r in lab["crank_jax default (auto)"] if r["error"] <= 1e-8]
+    target2 = target_2(lab, min(meeting, key=lambda r: r["time_s"]) if meeting else default)
     print("issue 9 target 2:", target2)
     save("work_precision" + a.tag, {"t1": T1, "samples": SAMPLES, "cases": results,
                                     "target_a": target, "target_2": target2}, smoke)
@@ -146,8 +149,8 @@ def main(argv=None):
 
 
 def target_2(lab: dict, default: dict) -> dict | None:
-    """Default solve (rtol 1e-8) against the compiled DOP853: at equal error, and against
-    its cheapest run that meets the lab rig's 1e-8 rad."""
+    """A default solve against the compiled DOP853: at equal error, and against its cheapest
+    run that meets the lab rig's 1e-8 rad."""
     dop = lab.get("numba DOP853 (compiled)")
     if not dop:
         return None
@@ -164,6 +167,7 @@ def target_2(lab: dict, default: dict) -> dict | None:
 
 STYLE = {
     "crank_jax default (auto)": dict(color="k", lw=2.5, marker="o"),
+    "crank_jax dopri8-uniform": dict(color="0.5", lw=1.5, marker="o"),
     "diffrax Tsit5": dict(color="C0", marker="."),
     "diffrax Dopri5": dict(color="C9", marker="."),
     "diffrax Dopri8": dict(color="C1", marker="."),

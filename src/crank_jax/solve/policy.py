@@ -103,7 +103,7 @@ def _slowest_rate(lin) -> np.ndarray:
 
 def choose_solver(
     mech: SliderCrank, rtol: float, load: AbstractLoad | None = None, *,
-    span: float = 10.0,
+    span: float = 10.0, lin=None,
 ) -> str:
     """The solver that `solver="auto"` picks, from the tolerance and the stiffness.
 
@@ -129,7 +129,7 @@ def choose_solver(
     `jit`) skip the stiffness test.
     """
     if is_concrete(mech) and is_concrete(load):
-        lin = linearize(mech, load)
+        lin = linearize(mech, load) if lin is None else lin
         rate, decay = fastest_mode(lin)
         slow = _slowest_rate(lin)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -143,7 +143,7 @@ def choose_solver(
 def resolve_solver(
     solver: str, mech: SliderCrank, rtol, atol=None, *, load: AbstractLoad | None = None,
     torque: AbstractLoad | None = None, ts=None, max_steps: int | None = None,
-    batch_invariant: bool = False,
+    batch_invariant: bool = False, lin=None,
 ) -> str:
     """The solver that runs: `solver` itself, or for `"auto"` the choice described in the
     module docstring.
@@ -152,6 +152,7 @@ def resolve_solver(
     any member is); `rtol`, `atol` (arrays or floats; traced ones count as the defaults);
     `load`, `torque`; `ts`, the save times (n,) if known on the host; `max_steps`, the
     caller's step budget (the fused solver splits it evenly over the save intervals);
+    `lin`, the linearisation of concrete `mech`, `load` if the caller has it;
     `batch_invariant`: each member of a `vmap`-ed batch must get exactly the result of its
     own solve, whatever else is in the batch (a sweep's results do not depend on its
     chunking or order). `"dopri8-adaptive"` steps a batch in lockstep, so then
@@ -168,7 +169,7 @@ def resolve_solver(
     concrete_ts = ts is not None and is_concrete(ts)
     span = float(np.ptp(np.asarray(ts))) if concrete_ts else 10.0
     rtol_host = float(np.max(np.asarray(rtol))) if is_concrete(rtol) else 1e-8
-    name = choose_solver(mech, rtol_host, load, span=span)
+    name = choose_solver(mech, rtol_host, load, span=span, lin=lin)
     sampled = any(isinstance(x, SampledLoad) for x in (load, torque))
     if batch_invariant:
         if (name in ("tsit5", "dopri8") and concrete_ts and not sampled
@@ -214,7 +215,8 @@ def _fits_interval_budget(mech, load, ts: np.ndarray, max_steps: int | None) -> 
 
 
 def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int,
-                     load: AbstractLoad | None = None, phi0=None, dphi0=None) -> None:
+                     load: AbstractLoad | None = None, phi0=None, dphi0=None,
+                     lin=None) -> None:
     """`ValueError` if the linearised fastest mode cannot be integrated over `span`, or
     (given `phi0`, `dphi0`) if the initial state is too far from rest to resolve.
 
@@ -228,7 +230,7 @@ def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int
     """
     if not (is_concrete(mech) and is_concrete(load)):
         return
-    lin = linearize(mech, load)
+    lin = linearize(mech, load) if lin is None else lin
     rate, _ = fastest_mode(lin)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         rate = np.asarray(rate, dtype=float)

@@ -315,13 +315,18 @@ def simulate(
         if np.ndim(v) > 0:
             raise ValueError(f"{name} has shape {np.shape(v)}: simulate integrates one system; "
                              f"to run a batch, map over it with jax.vmap")
+    # Concrete parameters are read on the host once (one transfer, not one per field), and
+    # linearised once for both the solver policy and the time-scale check.
+    concrete = is_concrete(mech)
+    host_mech = jax.device_get(mech) if concrete else mech
+    lin = linearize(host_mech, load) if concrete and is_concrete(load) else None
     if structure is None:
-        structure = Structure.of(mech) if is_concrete(mech) else Structure()
-    solver = resolve_solver(solver, mech, rtol, atol, load=load, torque=torque, ts=ts,
-                            max_steps=max_steps)
+        structure = Structure.of(host_mech) if concrete else Structure()
+    solver = resolve_solver(solver, host_mech, rtol, atol, load=load, torque=torque, ts=ts,
+                            max_steps=max_steps, lin=lin)
     if throw and is_concrete(ts):
-        check_time_scale(mech, solver, float(np.ptp(np.asarray(ts))), int(max_steps), load,
-                         phi0, dphi0)
+        check_time_scale(host_mech, solver, float(np.ptp(np.asarray(ts))), int(max_steps),
+                         load, phi0, dphi0, lin=lin)
     dtype = ts.dtype
     y0 = jnp.stack([jnp.asarray(phi0, dtype), jnp.asarray(dphi0, dtype)])
     # Outside any transformation, check on the host and raise there: an `eqx.error_if` in
@@ -329,7 +334,7 @@ def simulate(
     # reuse a program with callbacks, so every process (every CLI call) would recompile.
     host = is_concrete((mech, load, torque, y0, ts, rtol, atol))
     if host:
-        _host_checks(mech, y0)
+        _host_checks(host_mech, y0)
     args = (mech, load, torque, force, y0, ts, jnp.asarray(rtol, dtype),
             jnp.asarray(atol, dtype))
     static = dict(solver=solver, max_steps=int(max_steps), adjoint=adjoint,

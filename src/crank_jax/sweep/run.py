@@ -15,8 +15,10 @@ How a sweep runs ([`make_plan`][] checks everything first):
    (which sets an adaptive solver's step count), then cut into fixed-size chunks. A
    `vmap`-ed solve runs in lockstep, so a chunk costs its slowest member's steps: sorting
    keeps one stiff sample from slowing every chunk. `"auto"` is decided per chunk by the
-   solver policy ([`resolve_solver`][]): the fused `"dopri8-uniform"` whenever the
-   chunk is not stiff and no load is sampled (a sweep's save times are always uniform).
+   solver policy ([`resolve_solver`][], with `batch_invariant=True`): the fused
+   `"dopri8-uniform"` whenever the chunk is not stiff and no load is sampled (a sweep's
+   save times are always uniform). Not `"dopri8-adaptive"`, whose `vmap` steps a batch in
+   lockstep: a sweep's samples get exactly their own solve, whatever chunk they land in.
 5. Each chunk is one compiled call (no recompilation: the last chunk is padded), sharded
    over a 1-D mesh of all devices along the batch axis. Only the requested reductions
    leave the device; full trajectories only when `"phi"`/`"dphi"` are asked for.
