@@ -115,7 +115,9 @@ def test_error_meets_tolerance_on_presets(name, rtol):
 
 
 @pytest.mark.parametrize("adjoint", [
-    "forward",
+    # "dopri8-uniform" is no longer the default (by name and for sweeps, which do not
+    # differentiate); its JVP also runs in CI through bench_gradients' smoke test.
+    pytest.param("forward", marks=pytest.mark.slow),
     # Compiling the reverse passes of the nested loops takes ~20-40 s.
     pytest.param("reverse", marks=pytest.mark.slow),
     pytest.param("direct", marks=pytest.mark.slow),
@@ -135,6 +137,7 @@ def test_gradients(lab_rig, adjoint):
     assert abs(float(g) - float(fd)) <= 1e-6 * abs(float(fd))
 
 
+@pytest.mark.slow  # ~9 s; sweeps run this solver under vmap in test_sweep.py
 def test_vmap_and_no_retrace(lab_rig):
     ts = jnp.linspace(0.0, 1.0, 101)
     ks = jnp.linspace(1.8, 2.2, 4)
