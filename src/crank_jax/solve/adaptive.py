@@ -139,7 +139,7 @@ def _window_values(dense, taken, tw, ndim):
     return base + th * poly
 
 
-def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int, kind: str = "lax",
+def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
                    erk: FusedERK | None = None, unroll: int = UNROLL, window: int = WINDOW,
                    batched: bool = False):
     """Integrate `dy/dt = field(t, y, args)` with adaptive steps of `erk`, saving at `ts`
@@ -154,16 +154,16 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int, kind
       local error per step as diffrax's `PIDController` scales them (RMS over the state of
       `err / (atol + rtol max(|y0|, |y1|))`; a step is accepted when it is <= 1).
     - `args`: passed to `field`; its inexact-array leaves are differentiable too.
-    - `max_steps`: the budget of step attempts (accepted and rejected), static.
-    - `kind`: the `equinox.internal.while_loop` kind (`"lax"`: forward mode;
-      `"checkpointed"`: reverse mode; `"bounded"`: both).
+    - `max_steps`: the budget of step attempts (accepted and rejected), static. The loop
+      is a plain `lax` loop: forward mode goes through it; reverse mode does not (see
+      `lockstep.py`, whose backward pass differentiates another solve).
     - `erk`: the method, default [`dopri8`][]`()`; its last stage must be `f(t1, y1)`
       (first same as last), and `dopri8_dense()` its dense output.
     - `unroll`, `window`: step attempts per loop iteration; save times one iteration may
       write (a step is shortened so that the iteration writes no more).
     - `batched`: the leaves of `y0` (and of `field`, `args` where they vary) carry a
       leading batch axis (B,), one scalar state per member: the batch steps in lockstep,
-      with one step size that every member's error allows (see `batch.py`).
+      with one step size that every member's error allows (see `lockstep.py`).
 
     **Returns:** `(ys, result, num_steps)`: `ys` a pytree like `y0` with a leading axis n
     (batched: leaves (n, B)); `result` a `diffrax.RESULTS` (`max_steps_reached` if the
@@ -241,7 +241,7 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int, kind
 
     state0 = (t0, y0p, k0, h0, jnp.array(0), jnp.array(False))
     i0, state, out = eqxi.while_loop(cond, body, (jnp.array(1), state0, out0),
-                                     max_steps=-(-max_steps // K) + 1, kind=kind)
+                                     max_steps=-(-max_steps // K) + 1, kind="lax")
     steps = state[4]
     result = diffrax.RESULTS.where(i0 >= n, diffrax.RESULTS.successful,
                                    diffrax.RESULTS.max_steps_reached)

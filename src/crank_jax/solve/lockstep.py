@@ -6,11 +6,12 @@ output update becomes a batched scatter and every carry a select. Measured while
 this on 10^4 lab rigs (rtol 1e-8, 10 s, 1001 saves, 2-core CPU): 1.56 ms per trajectory
 for a plain `vmap` of the solver against 0.40 ms for the same solver stepping the whole
 batch with *one* step size, the largest that every member's error allows (0.53 ms in the
-run of experiments/bench_throughput.py recorded in the README). `jax.custom_batching.custom_vmap` gives that rule to
-`jax.vmap`: mapped over parameters, initial states or tolerances with shared save times,
-the batch takes shared steps; otherwise (save times that differ per member, a member
-leaf that is not a scalar) it falls back to a plain `vmap`. Each member's local error
-still meets its own tolerance; members that need fewer steps take the batch's.
+run of experiments/bench_throughput.py recorded in the README).
+`jax.custom_batching.custom_vmap` gives that rule to `jax.vmap`: mapped over parameters,
+initial states or tolerances with shared save times, the batch takes shared steps;
+otherwise (save times that differ per member, a member leaf that is not a scalar) it falls
+back to a plain `vmap`. Each member's local error still meets its own tolerance; members
+that need fewer steps take the batch's.
 
 Differentiation: forward mode (`jax.jvp`, `jax.jacfwd`; `adjoint="forward"`) goes through
 the solve along the chosen steps (`custom_vmap` has a JVP rule). Reverse mode

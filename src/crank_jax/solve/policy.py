@@ -169,12 +169,14 @@ def resolve_solver(
     concrete_ts = ts is not None and is_concrete(ts)
     span = float(np.ptp(np.asarray(ts))) if concrete_ts else 10.0
     rtol_host = float(np.max(np.asarray(rtol))) if is_concrete(rtol) else 1e-8
+    if lin is None and is_concrete(mech) and is_concrete(load):
+        lin = linearize(mech, load)  # once, for the stiffness test and the interval budget
     name = choose_solver(mech, rtol_host, load, span=span, lin=lin)
     sampled = any(isinstance(x, SampledLoad) for x in (load, torque))
     if batch_invariant:
         if (name in ("tsit5", "dopri8") and concrete_ts and not sampled
                 and uniform_grid(np.asarray(ts))
-                and _fits_interval_budget(mech, load, np.asarray(ts), max_steps)
+                and _fits_interval_budget(lin, np.asarray(ts), max_steps)
                 and not _has_coulomb(mech)):
             name = "dopri8-uniform"
         return name
@@ -197,16 +199,17 @@ def _has_coulomb(mech) -> bool:
     return is_concrete(vals) and any(bool(np.any(np.asarray(v) != 0)) for v in vals)
 
 
-def _fits_interval_budget(mech, load, ts: np.ndarray, max_steps: int | None) -> bool:
+def _fits_interval_budget(lin, ts: np.ndarray, max_steps: int | None) -> bool:
     """Whether the fused uniform solver can afford the fastest mode: it takes at least
     `dt * rate / 3` steps in every save interval (Dopri8's stability on that mode) and
     several times that to resolve it, out of `max_steps / (n - 1)` per interval. A fast
     shaft mode that an adaptive solver resolves once and then steps over at its stability
-    limit would exhaust it (measured: a sweep to k = 1e7 on the lab rig)."""
-    if max_steps is None or not is_concrete((mech, load)):
+    limit would exhaust it (measured: a sweep to k = 1e7 on the lab rig). `lin`: the
+    linearisation of concrete parameters, or None for traced ones (then True)."""
+    if max_steps is None or lin is None:
         return True
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        rate, _ = fastest_mode(linearize(mech, load))
+        rate, _ = fastest_mode(lin)
         rate = np.asarray(rate, dtype=float)
         top = float(np.max(np.where(np.isfinite(rate), rate, 0.0))) if rate.size else 0.0
     dt = float(np.max(np.diff(ts)))

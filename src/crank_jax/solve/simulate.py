@@ -316,15 +316,17 @@ def simulate(
             raise ValueError(f"{name} has shape {np.shape(v)}: simulate integrates one system; "
                              f"to run a batch, map over it with jax.vmap")
     # Concrete parameters are read on the host once (one transfer, not one per field), and
-    # linearised once for both the solver policy and the time-scale check.
+    # linearised once where the solver policy or the time-scale check needs it.
     concrete = is_concrete(mech)
     host_mech = jax.device_get(mech) if concrete else mech
-    lin = linearize(host_mech, load) if concrete and is_concrete(load) else None
+    checked = throw and is_concrete(ts)
+    lin = (linearize(host_mech, load) if concrete and is_concrete(load)
+           and (solver == "auto" or checked) else None)
     if structure is None:
         structure = Structure.of(host_mech) if concrete else Structure()
     solver = resolve_solver(solver, host_mech, rtol, atol, load=load, torque=torque, ts=ts,
                             max_steps=max_steps, lin=lin)
-    if throw and is_concrete(ts):
+    if checked:
         check_time_scale(host_mech, solver, float(np.ptp(np.asarray(ts))), int(max_steps),
                          load, phi0, dphi0, lin=lin)
     dtype = ts.dtype
