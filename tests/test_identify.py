@@ -219,9 +219,8 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp
 import crank_jax as cj
-from crank_jax.identify.optimise import CHUNK, STALL_STEPS, lm_chunk
 from crank_jax.identify.problem import build_problem
-from crank_jax.identify.programs import Subspace, jacobian_at, residuals_at
+from crank_jax.identify.programs import jacobian_at, residuals_at
 lab_rig = cj.load_scene("lab-rig")
 data = cj.synthesize(lab_rig, t1=0.5, rate=100.0)
 prob = build_problem(lab_rig.mech, [(data, lab_rig.load, lab_rig.torque, 1.0, 0.0)],
@@ -230,10 +229,6 @@ prob = build_problem(lab_rig.mech, [(data, lab_rig.load, lab_rig.torque, 1.0, 0.
 z = jnp.asarray(prob.to_z([2.0, 0.002, 1.0, 0.0]))
 for fn in (jacobian_at, residuals_at):
     assert "callback" not in fn.lower(prob, z).as_text().lower(), fn
-history = jnp.full(STALL_STEPS + 1, jnp.inf)
-text = lm_chunk.lower(Subspace(prob, z, jnp.eye(4)), jnp.zeros(4), history, 1e-8,
-                      CHUNK).as_text()
-assert "callback" not in text.lower(), "lm_chunk"
 print("ok")
 """
 

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-# A fit with a stored LAPACK call (the LM step's QR), a forward-mode Jacobian and a
-# linearisation: every stored program of the CLI's fit. Prints the estimates and how
-# many programs this process compiled.
+# A fit (its forward-mode residuals and Jacobian, a linearisation: every stored program of
+# the CLI's fit) and a simulation. Prints the estimates and how many programs this
+# process compiled.
 SCRIPT = r"""
 import json, sys
 import jax
@@ -62,10 +62,10 @@ def stored(tmp_path_factory):
 def test_second_process_loads_instead_of_compiling(stored):
     cache, first = stored
     assert first["converged"]
-    assert set(first["compiled"]) >= {"jacobian", "lm_chunk", "linearize", "simulate"}
+    assert set(first["compiled"]) >= {"jacobian", "linearize", "simulate"}
     assert first["sim"][-1]
     files = sorted(p.name.split("-")[0] for p in (cache / "crank-jax-programs").glob("*.xla"))
-    assert set(files) >= {"jacobian", "lm_chunk", "linearize"}
+    assert set(files) >= {"jacobian", "linearize", "simulate"}
     second = _run(cache)
     assert second["compiled"] == [], "a warm process compiled again"
     # Loaded executables compute the same numbers as freshly compiled ones.
@@ -93,13 +93,49 @@ def test_damaged_store_is_recompiled(stored, tmp_path):
     cache, first = stored
     copy = tmp_path / "cache"
     (copy / "crank-jax-programs").mkdir(parents=True)
-    for p in (cache / "crank-jax-programs").glob("*.xla"):
-        blob = p.read_bytes()
-        # truncated, garbage, or empty: each must be a miss, never a crash
-        damaged = {"jacobian": blob[: len(blob) // 2], "lm_chunk": b"\0garbage" * 100,
-                   "linearize": b"", "simulate": blob[:4]}[p.name.split("-")[0]]
-        (copy / "crank-jax-programs" / p.name).write_bytes(damaged)
+    damages = (lambda b: b[: len(b) // 2], lambda b: b"\0garbage" * 100, lambda b: b"",
+               lambda b: b[:4])
+    files = sorted((cache / "crank-jax-programs").glob("*.xla"))
+    assert len(files) >= 4  # so that every kind of damage is tried
+    for i, p in enumerate(files):
+        # truncated, garbage, empty or a bare header: each must be a miss, never a crash
+        (copy / "crank-jax-programs" / p.name).write_bytes(damages[i % 4](p.read_bytes()))
     again = _run(copy)
     assert again["values"] == first["values"]
-    assert set(again["compiled"]) == {"jacobian", "lm_chunk", "linearize", "simulate"}
+    assert set(again["compiled"]) == {"jacobian", "linearize", "simulate"}
     assert all(p.stat().st_size > 1000 for p in (copy / "crank-jax-programs").glob("*.xla"))
+
+
+# A stored program that calls LAPACK (a linear solve): a fresh process must register
+# LAPACK's custom-call targets before it runs the loaded executable, or it would crash.
+LAPACK = r"""
+import json, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import crank_jax as cj
+from crank_jax import persistent
+cj.enable_compilation_cache(sys.argv[1])
+compiled = []
+orig = persistent.PersistentProgram._compile
+def counting(self, *a, **k):
+    compiled.append(self.name)
+    return orig(self, *a, **k)
+persistent.PersistentProgram._compile = counting
+prog = persistent.PersistentProgram(lambda A, b: (jnp.linalg.solve(A, b),), "lapack_test")
+x, = prog(jnp.array([[4.0, 1.0], [1.0, 3.0]]), jnp.array([1.0, 2.0]))
+print(json.dumps({"x": [float(v) for v in x], "compiled": compiled}))
+"""
+
+
+def test_stored_program_calling_lapack_loads_in_a_fresh_process(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "CRANK_JAX_NO_CACHE"}
+    runs = []
+    for _ in range(2):
+        out = subprocess.run([sys.executable, "-c", LAPACK, str(tmp_path)], env=env,
+                             capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    assert runs[0]["compiled"] == ["lapack_test"] and runs[1]["compiled"] == []
+    assert runs[0]["x"] == runs[1]["x"]
+    assert abs(runs[0]["x"][0] - 1 / 11) < 1e-15 and abs(runs[0]["x"][1] - 7 / 11) < 1e-15

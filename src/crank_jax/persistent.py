@@ -46,7 +46,7 @@ def program_store_dir() -> Path | None:
     or None (no store) when JAX has no persistent cache, `CRANK_JAX_NO_CACHE` is set, or
     the backend is not the CPU (there JAX's own persistent cache serves alone)."""
     base = jax.config.jax_compilation_cache_dir
-    # CPU only: other backends' foreign functions are not checked by `_storable`.
+    # CPU only: other backends' foreign functions are not checked by `_custom_calls`.
     if not base or os.environ.get("CRANK_JAX_NO_CACHE") or jax.default_backend() != "cpu":
         return None
     return Path(base) / "crank-jax-programs"
@@ -219,13 +219,15 @@ class PersistentProgram:
         with self.trace_context():
             lowered = jax.jit(flat).lower(*avals)
         compiled = lowered.compile()
-        if not _storable(lowered.as_text()):
+        targets = _custom_calls(lowered.as_text())
+        if not all(t.startswith("lapack_") for t in targets):
             return compiled, None
         try:
             from jax.experimental.serialize_executable import serialize
 
             n_out = compiled.out_tree.num_leaves
-            blob = _MAGIC + n_out.to_bytes(4, "little") + serialize(compiled)[0]
+            blob = (_MAGIC + n_out.to_bytes(4, "little") + bytes([bool(targets)])
+                    + serialize(compiled)[0])
             return _deserialize(blob, len(leaves)), blob
         except Exception:  # a program that cannot be stored still runs
             return compiled, None
@@ -247,14 +249,14 @@ def _load(path: Path, n_in: int):
         return None
 
 
-def _storable(text: str) -> bool:
-    """Whether a lowered program may be stored: its custom calls (the foreign functions
-    it calls) are all LAPACK's, which [`_ready_custom_calls`][] registers before a load.
-    JAX registers custom-call targets while lowering; an executable loaded without
-    lowering, calling one that was never registered, would crash the process."""
+def _custom_calls(text: str) -> set[str]:
+    """The custom-call targets (the foreign functions) of a lowered program. A program is
+    stored only if they are all LAPACK's, which [`_ready_custom_calls`][] registers before
+    loading one that calls any: JAX registers custom-call targets while lowering, and an
+    executable loaded without lowering, calling one that was never registered, would crash
+    the process."""
     targets = set(re.findall(r"call_target_name\s*=\s*\"([^\"]+)\"", text))
-    targets |= set(re.findall(r"custom_call\s*@([\w.]+)", text))
-    return all(t.startswith("lapack_") for t in targets)
+    return targets | set(re.findall(r"custom_call\s*@([\w.]+)", text))
 
 
 def _ready_custom_calls() -> None:
@@ -275,8 +277,9 @@ def _ready_custom_calls() -> None:
 _READY = False
 
 
-# A stored program: this tag, the number of outputs (4 bytes), JAX's serialisation.
-_MAGIC = b"crank-jax program 1\n"
+# A stored program: this tag, the number of outputs (4 bytes), whether it calls LAPACK (1
+# byte), JAX's serialisation.
+_MAGIC = b"crank-jax program 2\n"
 _MAX_OUTPUTS = 4096
 
 
@@ -284,11 +287,12 @@ def _deserialize(blob: bytes, n_in: int):
     """Load a stored executable; `ValueError` for anything else."""
     from jax.experimental.serialize_executable import deserialize_and_load
 
-    head = len(_MAGIC) + 4
-    n_out = int.from_bytes(blob[len(_MAGIC):head], "little")
-    if not blob.startswith(_MAGIC) or not 0 < n_out <= _MAX_OUTPUTS:
+    head = len(_MAGIC) + 5
+    n_out = int.from_bytes(blob[len(_MAGIC):head - 1], "little")
+    if not blob.startswith(_MAGIC) or not 0 < n_out <= _MAX_OUTPUTS or len(blob) <= head:
         raise ValueError("not a stored program")
-    _ready_custom_calls()
+    if blob[head - 1]:  # it calls LAPACK (registering its targets costs ~0.15 s: only then)
+        _ready_custom_calls()
     blob = blob[head:]
     in_tree = jax.tree.structure((tuple(range(n_in)), {}))
     out_tree = jax.tree.structure(tuple(range(n_out)))

@@ -9,8 +9,9 @@ uncertainty and identifiability at the estimate ([`uncertainty`][]) and the resu
 
 Which optimiser to use:
 
-- `method="lm"` (default): Levenberg-Marquardt from optimistix, with the Jacobian by
-  forward-mode sensitivities through the ODE solve (`diffrax.ForwardMode`). Best for the
+- `method="lm"` (default): Levenberg-Marquardt (MINPACK's, through scipy, on the host),
+  with the residuals and the Jacobian from one compiled program: forward-mode
+  sensitivities through the ODE solve (`jax.jacfwd`). Best for the
   usual problem: one or a few records, up to a dozen or two parameters. It converges in a
   handful of iterations and its Jacobian is needed for the uncertainty anyway.
 - `method="optax"`: Adam, then L-BFGS, on the sum of squares with reverse-mode gradients

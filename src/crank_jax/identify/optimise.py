@@ -1,10 +1,9 @@
-"""The optimisers: Levenberg-Marquardt through `optimistix.least_squares`, and optax.
+"""The optimisers: Levenberg-Marquardt (MINPACK, through scipy) over the compiled
+residuals-and-sensitivities program, and optax.
 
-LM runs as `optx.least_squares(fn, StallTest(BestSoFarLeastSquares(LevenbergMarquardt)),
-..., throw=False)` (`lm.py`): optimistix's own loop, extended by wrapping its solver (as optimistix
-extends its solvers) rather than by copying the loop. The compiled program has no host
-callback, so JAX's persistent cache keeps it between processes; progress is shown
-between compiled chunks of [`CHUNK`][] iterations instead.
+LM's loop runs on the host (see [`least_squares`][] for why): the only compiled program
+it calls is `jacobian_at`, which has no host callback, so JAX's persistent cache and the
+program store keep it between processes, and progress is shown after every iteration.
 """
 
 from __future__ import annotations
@@ -20,19 +19,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..lazy import lazy_import
-from ..persistent import enum_name
-from .programs import Program, residuals_at
+from .programs import jacobian_at, residuals_at
 
-# Imported on first use (see lazy.py): a warm fit runs stored programs and needs neither.
+# Imported on first use (see lazy.py): only the optax method needs it.
 optax = lazy_import("optax")
-optx = lazy_import("optimistix")
 
-__all__ = ["Run", "least_squares", "minimise_optax", "evaluate", "CHUNK",
-           "STALL_STEPS", "progress_bar", "lm_chunk"]
+__all__ = ["Run", "least_squares", "minimise_optax", "evaluate", "STALL_STEPS",
+           "progress_bar"]
 
-#: LM iterations per compiled call; progress is reported between calls.
-CHUNK = 16
-#: The stall test looks this many iterations back (see `lm.StallTest`).
+#: The stall test looks this many iterations back (see `_Evaluations`).
 STALL_STEPS = 8
 
 
@@ -81,56 +76,111 @@ def evaluate(problem, z) -> tuple[float, int]:
     return 0.5 * float(r @ r), int(failed)
 
 
-#: The outcomes a chunk reports by index (names of `optx.RESULTS`).
-OUTCOMES = ("successful", "nonlinear_max_steps_reached", "nonlinear_divergence",
-            "singular", "breakdown")
+class _Stop(Exception):
+    """Ends MINPACK's loop from inside a callback (scipy passes the exception through)."""
+
+    def __init__(self, converged: bool, message: str):
+        super().__init__(message)
+        self.converged, self.message = converged, message
 
 
-def _lm_chunk_fn(model, z, history, tol, chunk):
-    from .lm import lm_chunk_fn  # optimistix: only while tracing
+class _Evaluations:
+    """The residuals and sensitivities MINPACK asks for, each point from one call of the
+    compiled [`jacobian_at`][] program (MINPACK asks for the Jacobian at a point whose
+    residuals it has just had), with what optimistix's `BestSoFarLeastSquares` and our
+    stall test added to its LM: the best point seen, and a stop when the best cost has
+    fallen by less than `0.01 sigma^2` over the last [`STALL_STEPS`][] iterations (with
+    `sigma^2 ~ 2 cost / n`). LM can crawl for hundreds of steps along a weakly determined
+    valley while moving the estimate by a tiny fraction of its confidence region."""
 
-    return lm_chunk_fn(model, z, history, tol, chunk, OUTCOMES)
+    def __init__(self, model, max_steps: int, tol: float, bar):
+        self.model, self.max_steps, self.tol, self.bar = model, max_steps, tol, bar
+        self.w = self.r = self.J = None
+        self.best_w, self.best_cost = None, math.inf
+        self.history = [math.inf] * (STALL_STEPS + 1)
+        self.iterations = 0
 
+    def _at(self, w: np.ndarray) -> None:
+        if self.w is not None and np.array_equal(w, self.w):
+            return
+        r, _, _, J = jacobian_at(self.model.problem, jnp.asarray(self.model.lift(w)))
+        # A failed solve's samples are residuals of 10 rad already (problem.py); anything
+        # non-finite left must not reach MINPACK, which has no test for it.
+        r = np.nan_to_num(np.asarray(r), nan=1e3, posinf=1e3, neginf=-1e3)
+        self.w, self.r = np.array(w), r
+        self.J = np.nan_to_num(self.model.restrict(np.asarray(J)), nan=0.0, posinf=0.0,
+                               neginf=0.0)
+        cost = 0.5 * float(r @ r)
+        if cost < self.best_cost:
+            self.best_w, self.best_cost = self.w, cost
 
-#: One compiled chunk of LM iterations: `(model, z, history, tol, chunk) -> (z, outcome
-#: index, steps, history)`.
-lm_chunk = Program(_lm_chunk_fn, "lm_chunk")
+    def residuals(self, w):
+        self._at(w)
+        return self.r
+
+    def jacobian(self, w):
+        # MINPACK asks for the Jacobian once per iteration, at the accepted point.
+        self._at(w)
+        self.iterations += 1
+        self.history = self.history[1:] + [self.best_cost]
+        self.bar.n = self.iterations
+        self.bar.set_postfix(cost=f"{self.best_cost:.4g}", refresh=True)
+        h, n = self.history, self.r.shape[0]
+        if math.isfinite(h[0]) and h[0] - h[-1] <= 0.02 * h[-1] / n:
+            raise _Stop(True, "converged")
+        # Converged when the Gauss-Newton step, the distance to the minimum the
+        # linearisation predicts, is below `tol + tol |w|` in every coordinate. MINPACK's
+        # own tests look at the damped step or the cost change, which are small also where
+        # LM crawls with a large damping; and its relative step test means little for
+        # coordinates near 0 (log-ratios to `ref`).
+        gn = np.linalg.lstsq(self.J, -self.r, rcond=None)[0]
+        if np.all(np.abs(gn) <= self.tol + self.tol * np.abs(self.w)):
+            raise _Stop(True, "converged")
+        if self.iterations > self.max_steps:
+            self.iterations = self.max_steps
+            raise _Stop(False, f"stopped after max_steps = {self.max_steps} iterations "
+                               "without converging")
+        return self.J
 
 
 def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
                   progress: bool) -> Run:
-    """Levenberg-Marquardt on `model(z) -> (r, None)` (a residual module, e.g. a
-    [`Subspace`][] of a problem), in compiled chunks with a progress bar between them.
+    """Levenberg-Marquardt on a residual view `model` (a [`Subspace`][] or [`Pinned`][]
+    problem) from `z0`, with a progress bar per iteration.
+
+    MINPACK's `lmder` (through `scipy.optimize.least_squares(method="lm")`, Marquardt's
+    scaling of the coordinates) drives the iterations on the host; each point costs one
+    call of the compiled residuals-and-sensitivities program, which the fit needs at its
+    start and at its estimate anyway. A compiled optimistix LM loop was tried first: its
+    program holds the residual solve and its linearisation inside optimistix's loop and
+    compiled in 3-5 s per problem shape, more than half of a cold `crank-jax fit`
+    (experiments/bench_end_to_end.py); each iteration costs the same solves either way.
 
     The cost reported is the best one seen (a failed solve's samples count as residuals
     of 10 rad, so a point where the solve fails never wins)."""
-    z = jnp.asarray(z0)
-    history = jnp.full(STALL_STEPS + 1, jnp.inf)
-    it, done, result = 0, False, "successful"
+    from scipy.optimize import least_squares as minpack_lm
+
+    z0 = np.asarray(z0, dtype=float)
     with progress_bar(max_steps, desc, progress) as bar:
-        while it < max_steps and not done:
-            chunk = min(CHUNK, max_steps - it)
-            z, code, steps, history = lm_chunk(model, z, history, tol, chunk)
-            it += int(steps)
-            result = enum_name(code, OUTCOMES) or "unknown"
-            done = result != "nonlinear_max_steps_reached"
-            bar.n = it
-            bar.set_postfix(cost=f"{float(history[-1]):.4g}", refresh=True)
-    zn, cost = np.asarray(z), float(history[-1])
-    if not np.all(np.isfinite(zn)):
-        return Run(np.asarray(z0), float("nan"), it, False, "the iterates became non-finite")
-    if not done:
-        return Run(zn, cost, it, False,
-                   f"stopped after max_steps = {max_steps} iterations without converging")
-    if result != "successful":
-        from .lm import outcome_message
-
-        why = outcome_message(result)
-        return Run(zn, cost, it, False, "Levenberg-Marquardt failed: " + why)
-    return Run(zn, cost, it, True, "converged")
+        ev = _Evaluations(model, max_steps, tol, bar)
+        # MINPACK's own tests at machine precision: they stop it only where it can make
+        # no further progress; the tests that decide are `_Evaluations.jacobian`'s.
+        eps = float(np.finfo(float).eps)
+        try:
+            sol = minpack_lm(ev.residuals, z0, jac=ev.jacobian, method="lm", x_scale="jac",
+                             ftol=eps, xtol=eps, gtol=eps, max_nfev=100 * (max_steps + 1))
+            converged = sol.status > 0
+            message = "converged" if converged else (
+                f"stopped after max_steps = {max_steps} iterations without converging"
+                if sol.status == 0 else "Levenberg-Marquardt failed: " + sol.message)
+        except _Stop as stop:
+            converged, message = stop.converged, stop.message
+    if ev.best_w is None or not np.all(np.isfinite(ev.best_w)):
+        return Run(z0, float("nan"), ev.iterations, False, "the iterates became non-finite")
+    return Run(ev.best_w, ev.best_cost, ev.iterations, converged, message)
 
 
-def _outcome(model, z0, cost0, z, it, done, result, max_steps) -> Run:
+def _outcome(model, z0, cost0, z, it, done, max_steps) -> Run:
     cost, failed = evaluate(model, z)
     zn = np.asarray(z)
     if not np.all(np.isfinite(zn)):
@@ -140,9 +190,6 @@ def _outcome(model, z0, cost0, z, it, done, result, max_steps) -> Run:
     if not done:
         return Run(zn, float(cost), it, False,
                    f"stopped after max_steps = {max_steps} iterations without converging")
-    if result != optx.RESULTS.successful:
-        return Run(zn, float(cost), it, False, "Levenberg-Marquardt failed: "
-                   + optx.RESULTS[result])
     return Run(zn, float(cost), it, True, "converged")
 
 
@@ -210,4 +257,4 @@ def minimise_optax(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
             if stall >= 3 or float(gmax) == 0.0:
                 converged = True
                 break
-    return _outcome(model, z0, cost0, z, it, converged, optx.RESULTS.successful, max_steps)
+    return _outcome(model, z0, cost0, z, it, converged, max_steps)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
 from ..persistent import PersistentProgram, checks_without_callbacks
@@ -60,6 +61,14 @@ class Subspace(eqx.Module):
     def __call__(self, w, args=None):
         return self.residuals(w)[0], None
 
+    def lift(self, w: np.ndarray) -> np.ndarray:
+        """On the host: the problem's coordinates `z` (p,) of the point `w` (q,)."""
+        return np.asarray(self.z0) + np.asarray(self.B) @ w
+
+    def restrict(self, J: np.ndarray) -> np.ndarray:
+        """On the host: the sensitivities `dr/dw` (N, q) from `dr/dz` (N, p)."""
+        return J @ np.asarray(self.B)
+
 
 class Pinned(eqx.Module):
     """The residuals with coordinate `j` held at `zj` (for profile likelihoods)."""
@@ -76,3 +85,11 @@ class Pinned(eqx.Module):
 
     def __call__(self, zr, args=None):
         return self.residuals(zr)[0], None
+
+    def lift(self, zr: np.ndarray) -> np.ndarray:
+        """On the host: the problem's coordinates (p,) of the free ones `zr` (p - 1,)."""
+        return np.insert(np.asarray(zr, float), self.j, float(self.zj))
+
+    def restrict(self, J: np.ndarray) -> np.ndarray:
+        """On the host: the sensitivities to the free coordinates (N, p - 1)."""
+        return np.delete(J, self.j, axis=1)
