@@ -274,9 +274,9 @@ def _end_to_end(ee) -> list[str]:
            f"Fresh processes, as a user runs them: a fit of {ee['free']} to "
            f"{ee['record']} from k = {ee['start']['k']}, c = {ee['start']['c']} "
            "(`experiments/bench_end_to_end.py`, medians). Warm runs load the stored programs "
-           "(`persistent.py`); what is left is importing JAX (~0.8 s), loading the "
-           "executables (~0.5 s) and the fit itself (this start needs multiple shooting, "
-           "24 segments).", "", "| run | wall time |", "|---|---|"]
+           "(`persistent.py`); what is left is importing JAX, loading the executables and "
+           "the fit itself (this start needs multiple shooting, 24 segments; MINPACK's LM "
+           "on the host, one call of the compiled residuals-and-Jacobian program a point).", "", "| run | wall time |", "|---|---|"]
     out += [f"| {label} | {m[key]:.2f} s |" for label, key in rows if key in m]
     other = ee["runs"].get("other", [])
     if len(other) >= 2:

@@ -15,10 +15,9 @@ from pathlib import Path
 
 import pytest
 
-# A fit (its forward-mode residuals and Jacobian, a linearisation: every stored program of
-# the CLI's fit) and a simulation. Prints the estimates and how many programs this
-# process compiled.
-SCRIPT = r"""
+# A fresh interpreter with the store in the directory argv[1], counting in `compiled` the
+# programs it compiles (rather than loads).
+PRELUDE = r"""
 import json, sys
 import jax
 jax.config.update("jax_enable_x64", True)
@@ -31,6 +30,12 @@ def counting(self, *a, **k):
     compiled.append(self.name)
     return orig(self, *a, **k)
 persistent.PersistentProgram._compile = counting
+"""
+
+# A fit (its forward-mode residuals and Jacobian, a linearisation: every stored program of
+# the CLI's fit) and a simulation. Prints the estimates and how many programs this
+# process compiled.
+SCRIPT = PRELUDE + r"""
 scene = cj.load_scene("lab-rig")
 data = cj.synthesize(scene, t1=2.0, rate=100.0, noise_std=1e-3, seed=int(sys.argv[2]))
 res = cj.fit(scene, data, free=("k", "c", "phi0", "dphi0"), init={"k": 2.4},
@@ -108,20 +113,8 @@ def test_damaged_store_is_recompiled(stored, tmp_path):
 
 # A stored program that calls LAPACK (a linear solve): a fresh process must register
 # LAPACK's custom-call targets before it runs the loaded executable, or it would crash.
-LAPACK = r"""
-import json, sys
-import jax
-jax.config.update("jax_enable_x64", True)
+LAPACK = PRELUDE + r"""
 import jax.numpy as jnp
-import crank_jax as cj
-from crank_jax import persistent
-cj.enable_compilation_cache(sys.argv[1])
-compiled = []
-orig = persistent.PersistentProgram._compile
-def counting(self, *a, **k):
-    compiled.append(self.name)
-    return orig(self, *a, **k)
-persistent.PersistentProgram._compile = counting
 prog = persistent.PersistentProgram(lambda A, b: (jnp.linalg.solve(A, b),), "lapack_test")
 x, = prog(jnp.array([[4.0, 1.0], [1.0, 3.0]]), jnp.array([1.0, 2.0]))
 print(json.dumps({"x": [float(v) for v in x], "compiled": compiled}))

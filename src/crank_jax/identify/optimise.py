@@ -87,11 +87,12 @@ class _Stop(Exception):
 class _Evaluations:
     """The residuals and sensitivities MINPACK asks for, each point from one call of the
     compiled [`jacobian_at`][] program (MINPACK asks for the Jacobian at a point whose
-    residuals it has just had), with what optimistix's `BestSoFarLeastSquares` and our
-    stall test added to its LM: the best point seen, and a stop when the best cost has
-    fallen by less than `0.01 sigma^2` over the last [`STALL_STEPS`][] iterations (with
-    `sigma^2 ~ 2 cost / n`). LM can crawl for hundreds of steps along a weakly determined
-    valley while moving the estimate by a tiny fraction of its confidence region."""
+    residuals it has just had). It keeps the best point seen (as optimistix's
+    `BestSoFarLeastSquares`) and decides when to stop: a Gauss-Newton convergence test, a
+    stall test (the best cost has fallen by less than `0.01 sigma^2` over the last
+    [`STALL_STEPS`][] iterations, with `sigma^2 ~ 2 cost / n`: LM can crawl for hundreds of
+    steps along a weakly determined valley while moving the estimate by a tiny fraction of
+    its confidence region), and the iteration budget."""
 
     def __init__(self, model, max_steps: int, tol: float, bar):
         self.model, self.max_steps, self.tol, self.bar = model, max_steps, tol, bar
@@ -164,7 +165,8 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     with progress_bar(max_steps, desc, progress) as bar:
         ev = _Evaluations(model, max_steps, tol, bar)
         # MINPACK's own tests at machine precision: they stop it only where it can make
-        # no further progress; the tests that decide are `_Evaluations.jacobian`'s.
+        # no further progress; the tests that decide are `_Evaluations.jacobian`'s. (Not
+        # below it: MINPACK's "tolerance too small" outcomes have no status in scipy.)
         eps = float(np.finfo(float).eps)
         try:
             sol = minpack_lm(ev.residuals, z0, jac=ev.jacobian, method="lm", x_scale="jac",
