@@ -119,7 +119,8 @@ def section() -> str:
                      + "." if slower else "Wherever both reach the same error, the default "
                      "is the fastest of these.") + " A concrete `simulate` call pays a "
                 "fixed host cost (input checks, the linearisation for the solver policy, "
-                "dispatch: ~3 ms on this machine, measured by profiling), so at loose "
+                "dispatch; the Gradients table below measures a concrete call against the "
+                "same solve under `jit`), so at loose "
                 "tolerances, where the solve itself is short, a lower-order diffrax solver "
                 "can be as fast; inside a user's `jit` that cost is paid once at tracing "
                 "(see the batch table's N = 1 row)."]
@@ -172,7 +173,11 @@ def section() -> str:
             out.append(f"| {r['method']} | {_ms(r['time_s'])} | {r['ratio']:.2f} | {comp} |")
         dis = ", ".join(f"{k}: {v:.1e}" for k, v in gr["max_rel_disagreement"].items())
         out += ["", f"Largest disagreement between the Jacobians, relative to each "
-                f"parameter's largest sensitivity: {dis}.", ""]
+                f"parameter's largest sensitivity: {dis}.", "",
+                "The ratios are to the forward solve as the Jacobians run it (the same "
+                "function of theta under `jit`). Before 2026-11-24 they were to a concrete "
+                "`simulate` call, whose host-side checks made them look smaller by the "
+                "concrete row's factor.", ""]
     if st:
         out += ["### Start-up", "", f"*{_machine(st['machine'])}*", "",
                 "`crank-jax simulate lab-rig --out x.csv` in a fresh process:", "",
@@ -276,7 +281,8 @@ def _end_to_end(ee) -> list[str]:
            "(`experiments/bench_end_to_end.py`, medians). Warm runs load the stored programs "
            "(`persistent.py`); what is left is importing JAX, loading the executables and "
            "the fit itself (this start needs multiple shooting, 24 segments; MINPACK's LM "
-           "on the host, one call of the compiled residuals-and-Jacobian program a point).", "", "| run | wall time |", "|---|---|"]
+           "on the host, one call of the compiled residuals-and-Jacobian program a point).",
+           "", "| run | wall time |", "|---|---|"]
     out += [f"| {label} | {m[key]:.2f} s |" for label, key in rows if key in m]
     other = ee["runs"].get("other", [])
     if len(other) >= 2:
