@@ -124,8 +124,7 @@ class Experiment(eqx.Module):
 
 
 class Problem(eqx.Module):
-    """The residual function `z -> r` of a fit (an `eqx.Module`, so it can be jitted, and
-    called as `problem(z, args) -> (r, None)` the way optimistix expects).
+    """The residual function `z -> r` of a fit (an `eqx.Module`, so it can be jitted).
 
     `r` stacks, for every record and segment, `phi_model(t_i) - phi_i` at the fitted
     samples, then the continuity defects of multiple shooting.
@@ -280,9 +279,6 @@ class Problem(eqx.Module):
                 cont.append(wgt * (phi_end - y0s[1:, 0]))
                 cont.append(wgt * (dphi_end - y0s[1:, 1]) * (e.ref_phi / e.ref_dphi))
         return jnp.concatenate(rs + cont), failed, steps
-
-    def __call__(self, z: Array, args=None):
-        return self.residuals(z)[0], None
 
 
 def linear_frequency(mech: SliderCrank, load: AbstractLoad | None = None) -> float | None:

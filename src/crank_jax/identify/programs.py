@@ -58,9 +58,6 @@ class Subspace(eqx.Module):
     def residuals(self, w):
         return self.problem.residuals(self.z0 + self.B @ w)
 
-    def __call__(self, w, args=None):
-        return self.residuals(w)[0], None
-
     def lift(self, w: np.ndarray) -> np.ndarray:
         """On the host: the problem's coordinates `z` (p,) of the point `w` (q,)."""
         return np.asarray(self.z0) + np.asarray(self.B) @ w
@@ -82,9 +79,6 @@ class Pinned(eqx.Module):
 
     def residuals(self, zr):
         return self.problem.residuals(self.full(zr))
-
-    def __call__(self, zr, args=None):
-        return self.residuals(zr)[0], None
 
     def lift(self, zr: np.ndarray) -> np.ndarray:
         """On the host: the problem's coordinates (p,) of the free ones `zr` (p - 1,)."""
