@@ -76,6 +76,11 @@ def evaluate(problem, z) -> tuple[float, int]:
     return 0.5 * float(r @ r), int(failed)
 
 
+def _budget_spent(max_steps: int) -> str:
+    """The message of a run that used its iteration budget without converging."""
+    return f"stopped after max_steps = {max_steps} iterations without converging"
+
+
 class _Stop(Exception):
     """Ends MINPACK's loop from inside a callback (scipy passes the exception through)."""
 
@@ -139,8 +144,7 @@ class _Evaluations:
             raise _Stop(True, "converged")
         if self.iterations > self.max_steps:
             self.iterations = self.max_steps
-            raise _Stop(False, f"stopped after max_steps = {self.max_steps} iterations "
-                               "without converging")
+            raise _Stop(False, _budget_spent(self.max_steps))
         return self.J
 
 
@@ -173,8 +177,8 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
                              ftol=eps, xtol=eps, gtol=eps, max_nfev=100 * (max_steps + 1))
             converged = sol.status > 0
             message = "converged" if converged else (
-                f"stopped after max_steps = {max_steps} iterations without converging"
-                if sol.status == 0 else "Levenberg-Marquardt failed: " + sol.message)
+                _budget_spent(max_steps) if sol.status == 0
+                else "Levenberg-Marquardt failed: " + sol.message)
         except _Stop as stop:
             converged, message = stop.converged, stop.message
     if ev.best_w is None or not np.all(np.isfinite(ev.best_w)):
@@ -190,8 +194,7 @@ def _outcome(model, z0, cost0, z, it, done, max_steps) -> Run:
     if failed > 0:
         return Run(zn, cost, it, False, "the ODE solve fails at the final estimate")
     if not done:
-        return Run(zn, float(cost), it, False,
-                   f"stopped after max_steps = {max_steps} iterations without converging")
+        return Run(zn, float(cost), it, False, _budget_spent(max_steps))
     return Run(zn, float(cost), it, True, "converged")
 
 
