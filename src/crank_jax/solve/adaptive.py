@@ -146,6 +146,44 @@ def _window_values(dense, taken, tw, ndim):
     return base + th * poly
 
 
+def _attempt(erk: FusedERK, f, rtol, atol):
+    """`attempt(state, t_lim) -> (state, record)`: one step attempt of `erk` on the packed
+    field `f(t, y)`, shortened to end at `t_lim`, with diffrax's error norm and an integral
+    controller. `state = (t, y, k, h, steps, rejected)` (`k = f(t, y)`, first same as
+    last); `record = (ok, t, t1, h, y, stages)` for the dense output. Inactive (no step)
+    once `t >= t_lim`."""
+    sg = jax.lax.stop_gradient
+    expo = 1.0 / erk.order
+    n_st = erk.num_stages
+
+    def attempt(c, t_lim):
+        t, y, k, h, steps, rejected = c
+        # The steps are chosen on values: t and h carry no derivative.
+        active = t < t_lim
+        h_try = sg(jnp.where(active, jnp.minimum(h, t_lim - t), 1.0))
+        ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h_try, k0=k)[:n_st]
+        y1 = erk.solution(y, h_try, ks)
+        scale = atol + rtol * jnp.maximum(jnp.abs(sg(y)), jnp.abs(sg(y1)))
+        err = _rms(sg(erk.error(h_try, ks)) / scale)
+        # A non-finite estimate (a step too long for stability) is a rejection.
+        finite = jnp.isfinite(err)
+        ok = active & (err <= 1.0)
+        t1 = jnp.where(h_try == t_lim - t, t_lim, t + h_try)
+        k1 = f(t1, y1)
+        # Integral controller; no growth right after a rejection (as scipy's DOP853).
+        fac = jnp.where(err == 0, _FAC_MAX, _SAFETY * sg(err) ** -expo)
+        fac = jnp.where(ok & rejected, jnp.minimum(fac, 1.0), fac)
+        fac = jnp.where(finite, jnp.clip(fac, _FAC_MIN, _FAC_MAX), _FAC_MIN)
+        # A step shortened to end at the window (or the end) and accepted leaves the
+        # controller's proposal `h` valid: the next step may take it again.
+        h_next = jnp.where(ok & (h_try < h), jnp.maximum(h_try * fac, h), h_try * fac)
+        new = (jnp.where(ok, t1, t), jnp.where(ok, y1, y), jnp.where(ok, k1, k),
+               jnp.where(active, sg(h_next), h), steps + active, ~ok & active)
+        return new, (ok, t, t1, h_try, y, ks + [k1])
+
+    return attempt
+
+
 def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
                    erk: FusedERK | None = None, unroll: int = UNROLL, window: int = WINDOW,
                    chunk: int = CHUNK, batched: bool = False):
@@ -185,8 +223,6 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     W, K = int(window), int(unroll)
     pack, unpack = _batch_packer(y0) if batched else packer(y0)
     sg = jax.lax.stop_gradient
-    expo = 1.0 / erk.order
-    n_st = erk.num_stages
     rtol, atol = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
 
     def f(t, yp):
@@ -203,30 +239,7 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     k0 = f(ts[0], y0p)
     h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), erk.order, t_end - t0)
 
-    def attempt(c, t_lim):
-        t, y, k, h, steps, rejected = c
-        # The steps are chosen on values: t and h carry no derivative.
-        active = t < t_lim
-        h_try = sg(jnp.where(active, jnp.minimum(h, t_lim - t), 1.0))
-        ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h_try, k0=k)[:n_st]
-        y1 = erk.solution(y, h_try, ks)
-        scale = atol + rtol * jnp.maximum(jnp.abs(sg(y)), jnp.abs(sg(y1)))
-        err = _rms(sg(erk.error(h_try, ks)) / scale)
-        # A non-finite estimate (a step too long for stability) is a rejection.
-        finite = jnp.isfinite(err)
-        ok = active & (err <= 1.0)
-        t1 = jnp.where(h_try == t_lim - t, t_lim, t + h_try)
-        k1 = f(t1, y1)
-        # Integral controller; no growth right after a rejection (as scipy's DOP853).
-        fac = jnp.where(err == 0, _FAC_MAX, _SAFETY * sg(err) ** -expo)
-        fac = jnp.where(ok & rejected, jnp.minimum(fac, 1.0), fac)
-        fac = jnp.where(finite, jnp.clip(fac, _FAC_MIN, _FAC_MAX), _FAC_MIN)
-        # A step shortened to end at the window (or the end) and accepted leaves the
-        # controller's proposal `h` valid: the next step may take it again.
-        h_next = jnp.where(ok & (h_try < h), jnp.maximum(h_try * fac, h), h_try * fac)
-        new = (jnp.where(ok, t1, t), jnp.where(ok, y1, y), jnp.where(ok, k1, k),
-               jnp.where(active, sg(h_next), h), steps + active, ~ok & active)
-        return new, (ok, t, t1, h_try, y, ks + [k1])
+    attempt = _attempt(erk, f, rtol, atol)
 
     def chunk_cond(c):
         j, i0, state, _, _ = c
