@@ -152,8 +152,10 @@ def section() -> str:
     if tp:
         out += ["### Batch throughput", "", f"*{_machine(tp['machine'])}*", "",
                 "Lab rig, c = 1e-3, phi0 = 1 rad, 10 s, 1001 samples: `jax.jit(jax.vmap(...))` "
-                f"over mechanisms (k within +-10%, chunks of {tp['chunk']}), so the "
-                "parameters are traced. The error is the largest of 4 members against a tight "
+                f"over mechanisms (k within +-10%, chunks of {tp['chunk']}): k is traced, "
+                "the other parameters are constants of the program, which XLA folds (a `jit` "
+                "over a whole traced `SliderCrank` costs more per step: see the forward solve "
+                "in the gradients table). The error is the largest of 4 members against a tight "
                 "reference; the numba columns are a single compiled trajectory's time at that "
                 "error (interpolated on its work-precision curve from the same run).", "",
                 "| method | rtol | N | per trajectory | max error | numba DP5 | numba DOP853 "
