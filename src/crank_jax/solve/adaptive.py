@@ -230,8 +230,8 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
         return pack(field(t, unpack(yp), args)).astype(dtype)
 
     y0p = pack(y0).astype(dtype)
-    # Pending save times padded with +inf and outputs with W rows, so that a window at any
-    # pending index stays in range.
+    # Pending save times padded with +inf and outputs with CH + W rows, so that a chunk at
+    # any pending index stays in range.
     CH = int(chunk)
     ts_pad = jnp.concatenate([ts, jnp.full((CH + W,), jnp.inf, dtype)])
     out0 = jnp.zeros((n + CH + W,) + y0p.shape, dtype).at[0].set(y0p)
@@ -267,11 +267,8 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
 
     def body(c):
         # One chunk: the step attempts that reach the next CH save times (or the end, or
-        # the budget), written to a small buffer, then to the output. Why two loops: XLA's
-        # CPU runtime runs a loop body's kernels one after the other in the calling thread
-        # only while every buffer they touch is small (measured with jax 0.10: a loop that
-        # carries 1 KiB costs 0.8 us more per iteration than one that carries 512 bytes,
-        # ~1.35 us per Dopri8 step), so the step loop must not carry the n outputs.
+        # the budget), written to a small buffer, then to the output; why two loops: see
+        # the module docstring (the step loop must not carry the n outputs).
         i0, state, out = c
         tc = jax.lax.dynamic_slice_in_dim(ts_pad, i0, CH + W)
         buf = jnp.zeros((CH + W,) + y0p.shape, dtype)
