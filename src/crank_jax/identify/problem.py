@@ -229,7 +229,7 @@ class Problem(eqx.Module):
                                                         jump_ts=jump_ts)
         adjoint = (diffrax.ForwardMode() if self.adjoint == "forward"
                    else diffrax.RecursiveCheckpointAdjoint())
-        field = CrankField(mech, load, torque, self.structure)
+        field = CrankField(mech, load, torque, self.structure).packed()
 
         def one(ts, y0):
             sol = diffrax.diffeqsolve(

@@ -3,9 +3,10 @@ the friction terms of DESIGN.md §1 "Beyond the paper"):
 
     M(phi) phi'' + K(phi) phi'^2 = q(phi, phi', t)
 
-`M`, `K` and `q` are written once, here, on the [`geometry`][] of the crank angle; the
-mass, Coriolis and force functions, the acceleration, the energy and [`CrankField`][] all
-call the same term builders. The tests check them against autodiff (`K = M'/2`), the
+`M`, `K` and `q` are written once, here, as the [`Coefficients`][] (the parameter parts,
+formed in `coefficients.py`) times the [`geometry`][] of the crank angle; the mass,
+Coriolis and force functions, the acceleration, the energy and [`CrankField`][] all call
+the same term builders. The tests check them against autodiff (`K = M'/2`), the
 global Newton-Euler form (`M = J^T Mbar J`), a potential (`q_conservative = -dV/dphi`) and
 the power balance (`d(T+V)/dt = power_in`).
 
@@ -23,6 +24,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
+from .coefficients import Coefficients, coefficients, pack, unpack
 from .geometry import Geometry, geometry
 from .loads import AbstractLoad, NoLoad, as_load
 from .params import SliderCrank
@@ -31,68 +33,68 @@ from .structure import Structure
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
     "kinetic_energy", "potential_energy", "power_in", "CrankField", "mass_terms",
-    "coriolis_terms", "force_terms", "dissipative_terms",
+    "coriolis_terms", "force_terms", "dissipative_terms", "PackedCrankField",
 ]
 
 _FULL = Structure()
 
 
-def mass_terms(mech: SliderCrank, g: Geometry, structure: Structure = _FULL) -> Array:
-    """M from a [`Geometry`][] (see [`mass`][]); the one place M is written."""
-    M = mech.m_c * mech.s**2 + mech.I_c + jnp.zeros_like(g.sphi)
+def mass_terms(p: Coefficients, g: Geometry, structure: Structure = _FULL) -> Array:
+    """M from [`Coefficients`][] and a [`Geometry`][] (see [`mass`][]); the one place M is
+    written: `cM0 - c2 delta' cos(phi+delta) + c3 delta'^2 + m_s lever^2`."""
+    M = p.cM0 + jnp.zeros_like(g.sphi)
     if structure.coupler:
-        r, b, d1 = mech.r, mech.b, g.d1
-        M = M + mech.m_p * (r * r - 2 * r * b * d1 * g.cpd + b * b * d1 * d1) + mech.I_p * d1 * d1
+        d1 = g.d1
+        M = M - p.c2 * d1 * g.cpd + p.c3 * d1 * d1
     if structure.slider:
-        M = M + mech.m_s * g.lever * g.lever
+        M = M + p.m_s * g.lever * g.lever
     return M
 
 
-def coriolis_terms(mech: SliderCrank, g: Geometry, structure: Structure = _FULL) -> Array:
-    """K from a [`Geometry`][] (see [`coriolis`][]); the one place K is written."""
-    K = jnp.zeros_like(g.sphi) * mech.r
+def coriolis_terms(p: Coefficients, g: Geometry, structure: Structure = _FULL) -> Array:
+    """K from [`Coefficients`][] and a [`Geometry`][] (see [`coriolis`][]); the one place K
+    is written."""
+    K = jnp.zeros_like(g.sphi) * p.r
     if structure.coupler:
-        r, b, d1, d2 = mech.r, mech.b, g.d1, g.d2
-        K = K + mech.m_p * (r * b * (d1 * (1 + d1) * g.spd - d2 * g.cpd) + b * b * d1 * d2)
-        K = K + mech.I_p * d1 * d2
+        d1, d2 = g.d1, g.d2
+        K = K + p.c2h * (d1 * (1 + d1) * g.spd - d2 * g.cpd) + p.c3 * d1 * d2
     if structure.slider:
-        K = K + mech.m_s * g.lever * g.dlever
+        K = K + p.m_s * g.lever * g.dlever
     return K
 
 
-def force_terms(mech: SliderCrank, g: Geometry, phi, dphi, t, load: AbstractLoad,
+def force_terms(p: Coefficients, g: Geometry, phi, dphi, t, load: AbstractLoad,
                 torque: AbstractLoad, structure: Structure = _FULL) -> Array:
-    """q from a [`Geometry`][] (see [`generalized_force`][]); the one place q is written.
-    `load` and `torque` must be loads (not None)."""
+    """q from [`Coefficients`][] and a [`Geometry`][] (see [`generalized_force`][]); the one
+    place q is written. `load` and `torque` must be loads (not None)."""
     q = 0.0
     if structure.gravity:
-        weight_arm = mech.m_c * mech.s * g.sphi
+        # g (m_c s sin(phi) + m_p (r sin(phi) + b delta' sin(delta)) + m_s lever)
+        q = p.gA * g.sphi
         if structure.coupler:
-            weight_arm = weight_arm + mech.m_p * (mech.r * g.sphi + mech.b * g.d1 * g.sin)
+            q = q + p.gB * g.d1 * g.sin
         if structure.slider:
-            weight_arm = weight_arm + mech.m_s * g.lever
-        q = q + mech.g * weight_arm
+            q = q + p.gC * g.lever
     if not isinstance(load, NoLoad):
         q = q + load(t) * g.lever
     if structure.spring:
-        q = q - mech.k * phi
-    return q + dissipative_terms(mech, g, dphi, structure) + (
+        q = q - p.k * phi
+    return q + dissipative_terms(p, g, dphi, structure) + (
         0.0 if isinstance(torque, NoLoad) else torque(t))
 
 
-def dissipative_terms(mech: SliderCrank, g: Geometry, dphi, structure: Structure = _FULL):
+def dissipative_terms(p: Coefficients, g: Geometry, dphi, structure: Structure = _FULL):
     """The damping and friction part of q, N*m:
     `-c phi' - T_c tanh(phi'/w_c) - c_s lever^2 phi' - F_s lever tanh(lever phi'/w_s)`."""
     q = 0.0
     if structure.damper:
-        q = q - mech.c * dphi
+        q = q - p.c * dphi
     if structure.crank_coulomb:
-        # 1/w_c is loop-invariant (hoisted), so the stage keeps a single division.
-        q = q - mech.T_c * jnp.tanh(dphi * (1.0 / mech.w_c))
+        q = q - p.T_c * jnp.tanh(dphi * p.inv_wc)
     if structure.slider_damper:
-        q = q - mech.c_s * g.lever * g.lever * dphi
+        q = q - p.c_s * g.lever * g.lever * dphi
     if structure.slider_coulomb:
-        q = q - mech.F_s * g.lever * jnp.tanh(g.lever * dphi * (1.0 / mech.w_s))
+        q = q - p.F_s * g.lever * jnp.tanh(g.lever * dphi * p.inv_ws)
     return q
 
 
@@ -105,7 +107,8 @@ def mass(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) -> Arr
     **Arguments:** `mech`; `phi`, crank angle (rad), any shape; `structure`, the static
     set of terms to include. **Returns:** an array of `phi`'s shape, always > 0.
     """
-    return mass_terms(mech, geometry(mech, phi, structure), structure)
+    p = coefficients(mech, structure)
+    return mass_terms(p, geometry(p, phi, structure), structure)
 
 
 def coriolis(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) -> Array:
@@ -119,7 +122,8 @@ def coriolis(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) ->
 
     **Returns:** an array of `phi`'s shape.
     """
-    return coriolis_terms(mech, geometry(mech, phi, structure), structure)
+    p = coefficients(mech, structure)
+    return coriolis_terms(p, geometry(p, phi, structure), structure)
 
 
 def generalized_force(
@@ -146,8 +150,9 @@ def generalized_force(
     load, torque = as_load(load), as_load(torque)
     phi, dphi = jnp.asarray(phi), jnp.asarray(dphi)
     zero = jnp.zeros(jnp.broadcast_shapes(phi.shape, dphi.shape, jnp.shape(t))) * mech.r
-    return zero + force_terms(mech, geometry(mech, phi, structure), phi, dphi, t, load,
-                              torque, structure)
+    p = coefficients(mech, structure)
+    return zero + force_terms(p, geometry(p, phi, structure), phi, dphi, t, load, torque,
+                              structure)
 
 
 def acceleration(
@@ -169,12 +174,17 @@ def acceleration(
     the fast solvers step (see [`geometry`][]).
     """
     load, torque = as_load(load), as_load(torque)
-    phi, dphi = jnp.asarray(phi), jnp.asarray(dphi)
-    g = geometry(mech, phi, structure)
-    q = force_terms(mech, g, phi, dphi, t, load, torque, structure)
+    return _acceleration(coefficients(mech, structure), jnp.asarray(phi), jnp.asarray(dphi),
+                         t, load, torque, structure, force)
+
+
+def _acceleration(p: Coefficients, phi, dphi, t, load, torque, structure, force) -> Array:
+    """[`acceleration`][] from [`Coefficients`][] (loads already loads)."""
+    g = geometry(p, phi, structure)
+    q = force_terms(p, g, phi, dphi, t, load, torque, structure)
     if force is not None:
         q = q + force(t, phi, dphi)
-    return (q - coriolis_terms(mech, g, structure) * dphi * dphi) / mass_terms(mech, g, structure)
+    return (q - coriolis_terms(p, g, structure) * dphi * dphi) / mass_terms(p, g, structure)
 
 
 def kinetic_energy(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike) -> Array:
@@ -206,8 +216,9 @@ def power_in(
     """
     load, torque = as_load(load), as_load(torque)
     phi, dphi = jnp.asarray(phi), jnp.asarray(dphi)
-    g = geometry(mech, phi)
-    gen = load(t) * g.lever + torque(t) + dissipative_terms(mech, g, dphi)
+    p = coefficients(mech)
+    g = geometry(p, phi)
+    gen = load(t) * g.lever + torque(t) + dissipative_terms(p, g, dphi)
     return gen * dphi
 
 
@@ -241,3 +252,27 @@ class CrankField(eqx.Module):
     def __call__(self, t, y, args=None):
         phi, dphi = y
         return dphi, self.acceleration(t, phi, dphi)
+
+    def packed(self) -> PackedCrankField:
+        """The same field with its [`Coefficients`][] formed once and packed in one array:
+        what a solver should step (see `coefficients.py` for why). Call it outside the
+        step loop."""
+        return PackedCrankField(pack(coefficients(self.mech, self.structure)), self.load,
+                                self.torque, self.structure, self.force)
+
+
+class PackedCrankField(eqx.Module):
+    """[`CrankField`][] with the parameters as packed [`Coefficients`][]
+    (`CrankField.packed()`): the same `field(t, y, args=None) -> (dphi, ddphi)`, the same
+    values; the leaf `coefficients` (shape (n,) + batch) is differentiable."""
+
+    coefficients: Array
+    load: AbstractLoad
+    torque: AbstractLoad
+    structure: Structure = eqx.field(static=True, default=_FULL)
+    force: Callable | None = None
+
+    def __call__(self, t, y, args=None):
+        phi, dphi = y
+        return dphi, _acceleration(unpack(self.coefficients), phi, dphi, t, self.load,
+                                   self.torque, self.structure, self.force)

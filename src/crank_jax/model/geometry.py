@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
+from .coefficients import Coefficients, coefficients
 from .params import SliderCrank
 from .structure import Structure
 
@@ -63,34 +64,51 @@ class Geometry(NamedTuple):
         return jnp.arcsin(self.sin)
 
 
-def geometry(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) -> Geometry:
+def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
+             structure: Structure = _FULL) -> Geometry:
     """The geometry at crank angle `phi`, written for XLA's CPU fusion.
 
     `w = 1/cos(delta)` is a single `rsqrt` and every other quantity is a product of it:
     XLA does not duplicate "expensive" ops (sqrt, division) into several consumers, so
-    each extra one becomes its own kernel in a solver's stage. `1/L` depends on parameters
-    only, so a loop hoists it. The whole right-hand side then fuses into ~3 kernels per
-    Runge-Kutta stage. Unused fields cost nothing under `jit` (dead-code elimination).
+    each extra one becomes its own kernel in a solver's stage. The parameters enter only
+    through [`Coefficients`][] (products of parameters alone, formed outside any step
+    loop), and `cos(delta)^2` is `1 -` a polynomial in `sin(phi)` rather than
+    `1 - sin(delta)^2`: with traced parameters the latter left `sin(delta) = (r/L) sin(phi)`
+    as a kernel of its own in every stage, and `(1 - (e/L)^2) + ...` did the same to u
+    (XLA duplicates an op of a constant and one value into several consumers, not an op
+    of two values, so such a value read by both a cheap and an expensive op is a kernel).
+    The whole right-hand side then fuses into ~2 kernels per Runge-Kutta stage, traced
+    parameters or not. Unused fields cost nothing under `jit` (dead-code elimination).
 
-    **Arguments:** `mech`, the parameters; `phi`, crank angle in rad, any shape;
-    `structure`: with `offset=False` the offset `e` is left out (it must then be 0).
+    **Arguments:** `mech`, the parameters or their [`Coefficients`][]; `phi`, crank angle
+    in rad, any shape; `structure`: with `offset=False` the offset `e` is left out (it must
+    then be 0).
 
     **Returns:** a [`Geometry`][].
     """
-    r, L, b, s = mech.r, mech.L, mech.b, mech.s
+    p = mech if isinstance(mech, Coefficients) else coefficients(mech, structure)
+    r, L, b, s = p.r, p.L, p.b, p.s
     phi = jnp.asarray(phi)
     sphi, cphi = jnp.sin(phi), jnp.cos(phi)
-    inv_L = 1.0 / L
-    lam = r * inv_L
-    sd = lam * sphi
     if structure.offset:
-        sd = sd - mech.e * inv_L
-    u = 1.0 - sd * sd  # >= 1 - ((r + |e|)/L)^2 > 0: bounded away from zero, smooth
+        sd = p.lam * sphi - p.eL
+        u = 1.0 - (p.eL2 + sphi * (p.lam2 * sphi - p.a1))
+    else:
+        sd = p.lam * sphi
+        u = 1.0 - p.lam2 * (sphi * sphi)
+    # u = cos(delta)^2 >= 1 - ((r + |e|)/L)^2 > 0: bounded away from zero, smooth.
     w = jax.lax.rsqrt(u)
     cd = u * w
-    d1 = lam * cphi * w
-    d2 = (sd * d1 * d1 - lam * sphi) * w
-    lever = r * sphi + L * d1 * sd
+    d1 = p.lam * (cphi * w)
+    # delta'' = (sin(delta) delta'^2 - (r/L) sin(phi)) / cos(delta), and
+    # (r/L) sin(phi) = sin(delta) + e/L.
+    d2 = sd * (d1 * d1 - 1.0)
+    d2 = (d2 - p.eL if structure.offset else d2) * w
+    # lever = r sin(phi) + L delta' sin(delta), and L sin(delta) = r sin(phi) - e.
+    rs = r * sphi
+    lever = rs * (1.0 + d1)
+    if structure.offset:
+        lever = lever - p.e * d1
     dlever = r * cphi + L * (d2 * sd + d1 * d1 * cd)
     spd = sphi * cd + cphi * sd
     cpd = cphi * cd - sphi * sd

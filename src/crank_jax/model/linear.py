@@ -35,6 +35,7 @@ import numpy as np
 from jaxtyping import Array
 
 from ..persistent import PersistentProgram
+from .coefficients import coefficients
 from .dynamics import force_terms, mass_terms
 from .geometry import geometry
 from .loads import AbstractLoad, ConstantLoad, NoLoad, as_load
@@ -94,7 +95,8 @@ def equilibrium(mech: SliderCrank, load: AbstractLoad | None = None,
 
 
 def _newton_step(mech: SliderCrank, loads, phi: Array) -> Array:
-    q = force_terms(mech, geometry(mech, phi), phi, 0.0, 0.0, *loads)
+    p = coefficients(mech)
+    q = force_terms(p, geometry(p, phi), phi, 0.0, 0.0, *loads)
     has_P = not isinstance(loads[0], NoLoad)
     xi = mech.k - _softening(mech, phi, loads[0].mean(), has_P)
     return jnp.where(xi != 0, q / jnp.where(xi != 0, xi, 1.0), 0.0)
@@ -155,8 +157,9 @@ def _linearize(mech: SliderCrank, loads) -> Linearization:
     has_P = not isinstance(loads[0], NoLoad)
     phi_eq = _equilibrium(mech, loads)
     at = jnp.where(jnp.isnan(phi_eq), 0.0, phi_eq)
-    g = geometry(mech, at)
-    mu = mass_terms(mech, g)
+    p = coefficients(mech)
+    g = geometry(p, at)
+    mu = mass_terms(p, g)
     chi = mech.c + mech.c_s * g.lever * g.lever
     k_crit = _softening(mech, at, loads[0].mean(), has_P) + jnp.zeros_like(mu)
     xi = mech.k - k_crit

@@ -8,8 +8,8 @@ for a plain `vmap` of the solver against 0.40 ms for the same solver stepping th
 batch with *one* step size, the largest that every member's error allows (0.53 ms in the
 run of experiments/bench_throughput.py recorded in the README).
 `jax.custom_batching.custom_vmap` gives that rule to `jax.vmap`: mapped over parameters,
-initial states or tolerances with shared save times, the batch takes shared steps;
-otherwise (save times that differ per member, a member leaf that is not a scalar) it falls
+initial states or tolerances with shared save times, the batch takes shared steps (the
+members' fields evaluated side by side); with save times that differ per member it falls
 back to a plain `vmap`. Each member's local error still meets its own tolerance; members
 that need fewer steps take the batch's.
 
@@ -61,6 +61,19 @@ def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str, f
     return ys, type(diffrax.RESULTS.successful)(code, diffrax.RESULTS), steps
 
 
+def _side_by_side(rebuild, dyn, batched):
+    """The field of a batch: each member's field (its leaves with a leading batch axis where
+    `batched`) evaluated side by side, `(t, y) -> dy` with `y`'s leaves (B,). A `vmap` of
+    the member's field, so that leaves of any shape batch (the packed coefficients, a
+    tabulated load); on scalar leaves it is the same elementwise code."""
+    axes = [0 if b else None for b in batched]
+
+    def field(t, y, args):
+        return jax.vmap(lambda d, yy: rebuild(d)(t, yy, args), in_axes=(axes, 0))(dyn, y)
+
+    return field
+
+
 def _as_float(x, like):
     return jnp.asarray(x).astype(like.dtype)
 
@@ -89,9 +102,8 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback):
         if not any(jax.tree_util.tree_leaves(in_batched)):
             # Nothing mapped (JAX's JVP of this rule asks so): one solve, not batched.
             return single(dyn, y0, ts, rtol, atol), (False, False, False)
-        scalar_members = all(jnp.ndim(x) == 1 for x, b in zip(dyn, in_batched[0]) if b)
-        if in_batched[2] or not scalar_members:
-            # Members with their own save times (or array-valued parameters): plain vmap.
+        if in_batched[2]:
+            # Members with their own save times: a plain vmap.
             axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, bt)
                          for bt in in_batched)
             out = jax.vmap(single, in_axes=axes)(dyn, y0, ts, rtol, atol)
@@ -101,8 +113,8 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback):
         rtol = rtol[:, None] if in_batched[3] else rtol
         atol = atol[:, None] if in_batched[4] else atol
         (phi, dphi), result, steps = solve_adaptive(
-            rebuild(dyn), (y0[:, 0], y0[:, 1]), ts, rtol, atol,
-            max_steps=max_steps, batched=True)
+            _side_by_side(rebuild, dyn, in_batched[0]), (y0[:, 0], y0[:, 1]), ts, rtol,
+            atol, max_steps=max_steps, batched=True)
         ys = jnp.moveaxis(_stack(phi, dphi), 1, 0)
         full = lambda x: jnp.broadcast_to(x, (axis_size,))  # noqa: E731
         return ((ys, full(_as_float(result._value, phi)), full(_as_float(steps, phi))),
