@@ -32,7 +32,6 @@ from ..persistent import (
     checks_without_callbacks,
     enum_code,
     enum_name,
-    program_store_dir,
 )
 from .inputs import check_tolerances, check_unbatched
 from .lockstep import adaptive_solve
@@ -174,9 +173,8 @@ def _controller(rtol, atol, load, torque) -> diffrax.AbstractStepSizeController:
     return diffrax.ClipStepSizeController(pid, step_ts=step_ts, jump_ts=jump_ts)
 
 
-@eqx.filter_jit
-def _solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, adjoint,
-           structure, outputs, throw, mode="checked"):
+def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, adjoint,
+                structure, outputs, throw, mode="checked"):
     # `mode`: "checked" (traced values, validated with `eqx.error_if`), "unchecked"
     # (traced values, no callbacks: `simulate(checks=False)`) or "host" (concrete values,
     # validated on the host before the call). A static argument, so each has its own
@@ -188,7 +186,10 @@ def _solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, 
     adj = {"reverse": diffrax.RecursiveCheckpointAdjoint(),
            "forward": diffrax.ForwardMode(),
            "direct": diffrax.DirectAdjoint()}[adjoint]
-    field = CrankField(mech, load, torque, structure, force)
+    crank = CrankField(mech, load, torque, structure, force)
+    # The solvers step the packed form: the parameter parts formed once, outside the step
+    # loop, in one buffer (see model/coefficients.py).
+    field = crank.packed()
     if solver == "dopri8-adaptive":
         def fallback(fld, y, ts_, r, a):
             return diffrax.diffeqsolve(
@@ -206,7 +207,7 @@ def _solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, 
         # kind gives the same autodiff as the matching diffrax adjoint.
         kind = {"reverse": "checkpointed", "forward": "lax", "direct": "bounded"}[adjoint]
         (phi, dphi), result, steps = solve_uniform(
-            field, (y0[0], y0[1]), ts, rtol, atol, rate=_rate(field), max_steps=max_steps,
+            field, (y0[0], y0[1]), ts, rtol, atol, rate=_rate(crank), max_steps=max_steps,
             kind=kind)
         ys = jnp.stack([phi, dphi], axis=1)
         if throw:
@@ -237,6 +238,9 @@ def _solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, 
             diffrax.RESULTS.nonfinite, result)
     extras = _derived(mech, load, torque, ts, phi, dphi, outputs, force)
     return Trajectory(ts, phi, dphi, extras, result, steps)
+
+
+_solve = eqx.filter_jit(_solve_impl)
 
 
 def simulate(
@@ -301,7 +305,9 @@ def simulate(
         raise ValueError(f"adjoint must be 'reverse', 'forward' or 'direct', got {adjoint!r}")
     output_columns(outputs)  # validates names
     load, torque = as_load(load), as_load(torque)
-    ts = jnp.asarray(ts, dtype=jnp.result_type(float))
+    dtype = jnp.result_type(float)
+    if not (isinstance(ts, jax.Array) and ts.dtype == dtype):
+        ts = jnp.asarray(ts, dtype=dtype)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"ts must be a 1-D array of at least 2 times, got shape {ts.shape}")
     if is_concrete(ts):
@@ -330,7 +336,6 @@ def simulate(
     if checked:
         check_time_scale(host_mech, solver, float(np.ptp(np.asarray(ts))), int(max_steps),
                          load, phi0, dphi0, lin=lin)
-    dtype = ts.dtype
     # Outside any transformation, check on the host and raise there: an `eqx.error_if` in
     # the program is a Python callback, and JAX's persistent compilation cache cannot
     # reuse a program with callbacks, so every process (every CLI call) would recompile.
@@ -347,7 +352,7 @@ def simulate(
     args = (mech, load, torque, force, y0, ts, rtol_, atol_)
     static = dict(solver=solver, max_steps=int(max_steps), adjoint=adjoint,
                   structure=structure, outputs=tuple(sorted(set(outputs))))
-    traj = _stored_solve(*args, **static) if host and force is None else None
+    traj = _program_solve(*args, **static) if host and force is None else None
     if traj is None:
         traj = _solve(*args, **static, throw=bool(throw) and not host,
                       mode="host" if host else ("checked" if checks else "unchecked"))
@@ -377,12 +382,11 @@ def _solve_flat(mech, load, torque, force, y0, ts, rtol, atol, solver, max_steps
 _solve_program = PersistentProgram(_solve_flat, "simulate", checks_without_callbacks)
 
 
-def _stored_solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps,
-                  adjoint, structure, outputs) -> Trajectory | None:
-    """`_solve` in host mode through the stored program, or None where there is no store
-    (or an unexpected outcome: the caller then runs `_solve` itself)."""
-    if program_store_dir() is None:
-        return None
+def _program_solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps,
+                   adjoint, structure, outputs) -> Trajectory | None:
+    """`_solve` in host mode through its [`PersistentProgram`][] (stored on disk, or in
+    memory without a store), or None for an unexpected outcome (the caller then runs
+    `_solve` itself)."""
     phi, dphi, code, steps, *extras = _solve_program(
         mech, load, torque, force, y0, ts, rtol, atol, solver, max_steps, adjoint,
         structure, outputs)
@@ -408,7 +412,7 @@ def _host_checks(mech: SliderCrank, y0) -> None:
     # comparisons run ~10x faster on floats than on 0-d arrays.
     values = {n: float(getattr(mech, n)) for n in FIELDS}
     for name, bad, rule in validation_rules(values):
-        if np.any(bad):
+        if bad:
             raise eqx.EquinoxRuntimeError(f"SliderCrank.{name} is invalid: {rule}.")
     if not np.all(np.isfinite(np.asarray(y0))):
         raise eqx.EquinoxRuntimeError("initial state (phi0, dphi0) must be finite")
