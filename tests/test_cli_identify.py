@@ -67,9 +67,14 @@ def test_fit_degrees_and_renamed_columns(pendulum_csv, tmp_path):
     direct = tmp_path / "direct.json"
     assert main(["fit", str(pendulum_csv), "pendulum", "--free", "c,phi0,dphi0", "--out",
                  str(direct), "--quiet"]) == 0
-    a = json.loads(out.read_text())["estimates"]["c"]["value"]
-    b = json.loads(direct.read_text())["estimates"]["c"]["value"]
-    assert a == pytest.approx(b, rel=1e-6)
+    a = json.loads(out.read_text())["estimates"]["c"]
+    b = json.loads(direct.read_text())["estimates"]["c"]
+    # The same estimate to 1% of its standard error. The conversion is exact to rounding;
+    # what is left is where Levenberg-Marquardt stops on an objective that carries the
+    # solver's own error (rtol 1e-8): 6e-4 standard errors seen (1.1e-6 relative, so a
+    # relative 1e-6 tested the stopping point, not the units). Angles read as radians
+    # instead of degrees would move c by far more than its standard error.
+    assert abs(a["value"] - b["value"]) <= 0.01 * b["stderr"]
 
 
 def test_unidentifiable_request_exits_zero_with_warning(pendulum_csv, tmp_path, capsys):
