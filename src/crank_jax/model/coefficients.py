@@ -7,13 +7,14 @@ part once; the term builders in `dynamics.py` multiply them by the geometry.
 
 Why a solver packs them ([`pack`][], [`unpack`][]): inside a step loop every parameter
 part is loop-invariant. With traced parameters (every compiled solve: a value change must
-not recompile) XLA hoists each product out of the loop as a scalar of its own, and every
-kernel of the loop body that reads one takes it as a separate operand; measured on the
-lab rig (10 s, 1001 saves, rtol 1e-9, 2-core x86 VM, inside `jit`), 272 loop-carried
-values and 517 kernel operands per step, against 20 and 173 with the parameters compiled
-in as constants. Packed in one array behind an `optimization_barrier`, the coefficients
-are one loop-carried buffer that the kernels slice (XLA does not hoist a bare slice), and
-the traced solve costs about what the constant one does (experiments/bench_fusion.py).
+not recompile) XLA hoists each one out of the loop as a scalar of its own, and every
+kernel of the loop body that reads one takes it as a separate operand. Packed in one array
+behind an `optimization_barrier`, the coefficients are one loop-carried buffer that the
+kernels slice (XLA does not hoist a bare slice), and a traced solve compiles to the same
+loop as one with the parameters as constants. Measured on the lab rig
+(experiments/bench_fusion.py, `solve_adaptive` inside `jit`): 145 loop-carried values and
+368 kernel operands per step with the parameter parts formed inside the loop, 24 and 199
+packed, 20 and 173 with the parameters as constants (29 kernels each).
 """
 
 from __future__ import annotations
