@@ -2,7 +2,8 @@
 
 The lab rig with c = 1e-3, phi0 = 1 rad, 10 s, 1001 samples; the batch varies the stiffness
 k over +-10% (member 0 is the target configuration). The batch is `jax.jit(jax.vmap(...))`
-over k (traced; the other parameters are constants of the program, which XLA folds), with
+over k (traced; the other parameters are constants of the program, packed with k into
+the field's coefficients, so a fully traced `SliderCrank` costs the same), with
 `simulate`'s default solver (`"auto"`, the lockstep `"dopri8-adaptive"`) at the default
 rtol 1e-8 / atol 1e-10 and at
 rtol 1e-9 (the loosest whose members all stay <= 1e-8 rad: issue 9 target 3), and with

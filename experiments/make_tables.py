@@ -1,6 +1,6 @@
 """Rewrite the README's performance section from the results files.
 
-Reads `experiments/results/{work_precision,throughput,gradients,startup}.json` and
+Reads `experiments/results/{work_precision,throughput,gradients,startup,fusion}.json` and
 replaces the text between `<!-- BEGIN performance (owner: performance) -->` and
 `<!-- END performance -->` in README.md. `--print` writes the section to stdout instead.
 
@@ -44,8 +44,9 @@ def _met(ok):
 
 
 def section() -> str:
-    wp, tp, gr, st, sk, ee = (_load(n) for n in ("work_precision", "throughput", "gradients",
-                                                 "startup", "structure", "end_to_end"))
+    wp, tp, gr, st, sk, ee, fu = (_load(n) for n in (
+        "work_precision", "throughput", "gradients", "startup", "structure", "end_to_end",
+        "fusion"))
     out = ["## Performance", "",
            "All numbers below come from the scripts in `experiments/` (rerun them, then "
            "`python experiments/make_tables.py` rewrites this section). Timings are medians "
@@ -70,9 +71,13 @@ def section() -> str:
             "size that every member's error allows, so the batch is plain SIMD arithmetic "
             "(no per-member scatter or select); reverse mode goes through a `custom_vjp` "
             "onto diffrax's Dopri8 at the same tolerances, forward mode through the steps. "
+            "The solvers step `CrankField.packed()`: the parameter parts of M, K, q "
+            "(`m_p r b`, `g m_s`, ...) formed once, outside the step loop, in one array, so "
+            "that a solve with traced parameters (every compiled one) compiles to the loop "
+            "XLA makes for constants (the fusion table). "
             "`simulate` called outside any transformation checks its inputs on the host "
             "instead of with `eqx.error_if`, so that JAX's persistent compilation cache can "
-            "store the program.", "",
+            "store the program, and dispatches one `jax.jit` of its array leaves.", "",
             "`\"dopri8-uniform\"` (by name) takes an integer number of equal Dopri8 steps "
             "per save interval with a summed error budget; it lands 10-1000x below its "
             "tolerance, and its JVP integrates the variational equation on the same steps "
@@ -153,11 +158,11 @@ def section() -> str:
         out += ["### Batch throughput", "", f"*{_machine(tp['machine'])}*", "",
                 "Lab rig, c = 1e-3, phi0 = 1 rad, 10 s, 1001 samples: `jax.jit(jax.vmap(...))` "
                 f"over mechanisms (k within +-10%, chunks of {tp['chunk']}): k is traced, "
-                "the other parameters are constants of the program, which XLA folds (a `jit` "
-                "over a whole traced `SliderCrank` costs more per step: see the forward solve "
-                "in the gradients table). The error is the largest of 4 members against a tight "
-                "reference; the numba columns are a single compiled trajectory's time at that "
-                "error (interpolated on its work-precision curve from the same run).", "",
+                "the other parameters are constants of the program (the solver steps the "
+                "packed coefficients either way, so a whole traced `SliderCrank` costs the "
+                "same: see the fusion table). The error is the largest of 4 members against a "
+                "tight reference; the numba columns are a single compiled trajectory's time at "
+                "that error (interpolated on its work-precision curve from the same run).", "",
                 "| method | rtol | N | per trajectory | max error | numba DP5 | numba DOP853 "
                 "| ratio to DOP853 |", "|---|---|---|---|---|---|---|---|"]
         for r in tp["rows"]:
@@ -167,6 +172,20 @@ def section() -> str:
                        f"{_us(r['per_traj_s'])} | {r['max_error']:.1e} | "
                        f"{_us(r.get('numba DP5_s_equal_error'))} | {_us(dop)} | "
                        f"{'n/a' if ratio is None else format(ratio, '.3f')} |")
+        out.append("")
+    if fu:
+        out += ["### Traced parameters cost what constants do", "", f"*{_machine(fu['machine'])}*",
+                "", "The step loop of `solve_adaptive` inside `jit` (10 s, "
+                f"{fu['samples']} saves, rtol {fu['rtol']:.0e}; experiments/bench_fusion.py): "
+                "its kernels and their operands per step, the loop-carried values, the time. "
+                "`CrankField` forms the parameter parts of M, K, q inside the loop, where XLA "
+                "hoists each one as a scalar of its own; `simulate` steps `CrankField.packed()`"
+                ", which forms them once in one array (model/coefficients.py).", "",
+                "| scene | field | kernels | kernel operands | loop-carried | time |",
+                "|---|---|---|---|---|---|"]
+        for r in fu["rows"]:
+            out.append(f"| {r['case']} | {r['field']} | {r['kernels']} | "
+                       f"{r['kernel_operands']} | {r['loop_carried']} | {_ms(r['time_s'])} |")
         out.append("")
     if gr:
         out += ["### Gradients", "", f"*{_machine(gr['machine'])}*", "",

@@ -19,6 +19,7 @@ EXP = Path(__file__).resolve().parent.parent / "experiments"
     ("bench_gradients.py", "gradients"),
     ("bench_startup.py", "startup"),
     ("bench_structure.py", "structure"),
+    ("bench_fusion.py", "fusion"),
 ])
 def test_benchmark_smoke(script, result):
     subprocess.run([sys.executable, str(EXP / script), "--smoke"], check=True, cwd=EXP,

@@ -1,0 +1,85 @@
+"""Traced parameters cost what constants do: the step loop's kernels with the packed
+coefficients (`CrankField.packed()`, model/coefficients.py) against the field that forms
+its parameter parts inside the loop, and against constants.
+
+For several scenes (the lab rig, with a slider offset, with friction, the crank-only
+pendulum, everything at once), `solve_adaptive` (10 s, 1001 saves, rtol 1e-9) is compiled
+inside `jax.jit` three ways: the plain `CrankField` with every parameter traced, its
+packed form with every parameter traced (what `simulate` steps), and the plain field with
+the parameters compiled in as constants (which XLA folds: the reference, though a value
+change would recompile). For each: the kernels (fusions) of the inner step
+loop's body and their operands per iteration (read from the optimised HLO), the
+loop-carried values, and the run time (median). Written to results/fusion.json.
+
+Run: `python experiments/bench_fusion.py [--smoke]`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+from _bench import median_time, save, setup_jax
+
+jax = setup_jax()
+import jax.numpy as jnp  # noqa: E402
+
+import crank_jax as cj  # noqa: E402
+from crank_jax.model.dynamics import CrankField, Structure  # noqa: E402
+from crank_jax.solve.adaptive import solve_adaptive  # noqa: E402
+
+
+def _step_loop(compiled) -> dict:
+    """Kernels, their operands and the loop-carried values of the innermost step loop
+    (the while body with the most fusions)."""
+    comps = [c for c in compiled.as_text().split("\n\n") if c.strip()]
+    bodies = [c for c in comps if " fusion(" in c and "arg_tuple" in c.split("\n")[0]]
+    body = max(bodies, key=lambda c: c.count(" fusion("))
+    calls = [line.split(" fusion(")[1] for line in body.split("\n") if " fusion(" in line]
+    carried = body.split("\n")[0].split("->")[0]
+    return {"kernels": len(calls),
+            "kernel_operands": sum(c.split(")")[0].count("%") for c in calls),
+            "loop_carried": len(re.findall(r"(?:f64|s64|s32|pred)\[", carried))}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--smoke", action="store_true")
+    smoke = ap.parse_args(argv).smoke
+    lab = cj.load_scene("lab-rig").mech.replace(c=1e-3)
+    cases = {"lab rig": lab}
+    if not smoke:
+        cases.update({"lab rig + offset e": lab.replace(e=0.01),
+                      "lab rig + friction": lab.replace(T_c=0.01, c_s=0.5, F_s=0.2),
+                      "pendulum (crank only)": cj.load_scene("pendulum").mech,
+                      "every term": lab.replace(e=0.01, T_c=0.01, c_s=0.5, F_s=0.2)})
+    ts = jnp.linspace(0.0, 1.0 if smoke else 10.0, 101 if smoke else 1001)
+    y0 = (jnp.array(1.0), jnp.array(0.0))
+    rows = []
+    for label, mech in cases.items():
+        st = Structure.of(mech)
+
+        def solve(m, packed, st=st):
+            field = CrankField(m, cj.NoLoad(), cj.NoLoad(), st)
+            field = field.packed() if packed else field
+            return solve_adaptive(field, y0, ts, 1e-9, 1e-11, max_steps=100_000)[0][0]
+
+        variants = {"CrankField, traced": (lambda m: solve(m, False), (mech,)),
+                    "packed, traced (simulate's)": (lambda m: solve(m, True), (mech,)),
+                    "CrankField, constants": (lambda mech=mech: solve(mech, False), ())}
+        ref = None
+        for name, (fn, args) in variants.items():
+            jitted = jax.jit(fn)
+            row = {"case": label, "field": name, **_step_loop(jitted.lower(*args).compile())}
+            phi = jitted(*args)
+            ref = phi if ref is None else ref
+            row["max_diff_rad"] = float(jnp.max(jnp.abs(phi - ref)))
+            row["time_s"] = median_time(lambda: jax.block_until_ready(jitted(*args)),
+                                        1 if smoke else 31, warmup=1 if smoke else 3)
+            rows.append(row)
+            print(row, flush=True)
+    save("fusion", {"rows": rows, "rtol": 1e-9, "samples": int(ts.shape[0])}, smoke)
+
+
+if __name__ == "__main__":
+    main()
