@@ -249,7 +249,7 @@ def section() -> str:
                    f"{'n/a' if r2 is None else f'{r2:.2f}x'} at equal error "
                    f"({t2['default_error']:.1e} rad; {wp2['machine']['date']}); "
                    f"{t2['ratio_vs_cheapest_meeting_1e-8'] or float('nan'):.2f}x against "
-                   "DOP853's cheapest run meeting 1e-8 rad.")
+                   "DOP853's cheapest run meeting 1e-8 rad" + _paired(t2.get("paired")) + ".")
     if tp and tp.get("target_3"):
         t3 = tp["target_3"]
         r3 = t3["ratio_equal_error"]
@@ -285,6 +285,16 @@ def section() -> str:
                    f"{d['warm_s']:.2f} s.")
     out.append("")
     return "\n".join(out)
+
+
+def _paired(pr) -> str:
+    """Target 2 measured in pairs (one call of each in every round), if recorded."""
+    if not pr:
+        return ""
+    q1, q3 = pr["ratio_quartiles"]
+    return (f"; measured in {pr['rounds']} paired rounds (one call of each per round, on a "
+            f"machine whose speed drifts): median {pr['ratio_median']:.2f}x, quartiles "
+            f"{q1:.2f}-{q3:.2f}x")
 
 
 def _end_to_end(ee) -> list[str]:
