@@ -36,6 +36,7 @@ from ..persistent import (
 from .inputs import check_tolerances, check_unbatched
 from .lockstep import adaptive_solve
 from .policy import check_time_scale, is_concrete, resolve_solver
+from .twin import reverse_twin
 from .uniform import solve_uniform
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
@@ -211,18 +212,15 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
                                                 max_steps=max_steps, kind=kind)
             return jnp.stack([phi, dphi], axis=1), res, n
 
-        # Derivatives of this solver come from reverse passes of the field (per leaf in
-        # forward mode, sensitivity.py; the checkpointed loop's backward pass in reverse
-        # mode): through the packed field's slices those cost 2.4x more (measured on the
-        # lab rig: Jacobian, 10 parameters, 60 -> 141 ms; `grad` 233 -> 570 ms, compiled
-        # in 38 -> 83 s). So forward mode steps the plain field, and reverse mode
-        # differentiates a solve of the plain field (`_reverse_twin`).
+        # Its derivatives come from reverse passes of the field (sensitivity.py in forward
+        # mode, the checkpointed loop's backward pass in reverse mode), 2.4x dearer through
+        # the packed slices (lab rig, 10 parameters: Jacobian 60 -> 141 ms, grad 233 -> 570
+        # ms): forward mode steps the plain field; reverse mode differentiates a plain solve.
         rate = jax.lax.stop_gradient(_rate(crank))  # a first guess only (uniform.py)
-        if kind == "checkpointed":
-            ys, result, steps = _reverse_twin(run, crank, y0, ts, rtol, atol, rate)
-        else:
-            ys, result, steps = run(crank if kind == "lax" else field, y0, ts, rtol, atol,
-                                    rate)
+        args = (y0, ts, rtol, atol, rate)
+        ys, result, steps = (reverse_twin(run, crank, CrankField.packed, *args)
+                             if kind == "checkpointed"
+                             else run(crank if kind == "lax" else field, *args))
         if throw:
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
     else:
@@ -254,39 +252,6 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
 
 
 _solve = eqx.filter_jit(_solve_impl)
-
-
-def _reverse_twin(run, crank: CrankField, *args):
-    """`run(crank.packed(), *args) -> (ys, result, steps)`, whose reverse-mode derivatives
-    (`jax.grad`, `jax.vjp`) are those of `run(crank, *args)`: the same solve on the plain
-    field, whose backward pass is cheaper (see the caller). The primal solve steps the
-    packed field, which is faster; the backward pass runs the plain solve's forward pass
-    again (one more solve). The two fields are the same function (tests/test_dynamics.py).
-    No forward mode (a `custom_vjp`)."""
-    dyn, static = eqx.partition(crank, eqx.is_array)
-
-    def arrays(field, *rest):  # a custom_vjp returns arrays: the outcome as its code
-        ys, result, steps = run(field, *rest)
-        return ys, result._value, steps
-
-    def plain(d, *rest):
-        return arrays(eqx.combine(d, static), *rest)
-
-    @jax.custom_vjp
-    def solve(d, *rest):
-        return arrays(eqx.combine(d, static).packed(), *rest)
-
-    def fwd(d, *rest):
-        return solve(d, *rest), (d,) + rest
-
-    def bwd(res, g):
-        return jax.vjp(plain, *res)[1](g)
-
-    solve.defvjp(fwd, bwd)
-    ys, code, steps = solve(dyn, *args)
-    # The outcome carries no derivative (equinox's checks cannot take one through it).
-    code, steps = jax.lax.stop_gradient(code), jax.lax.stop_gradient(steps)
-    return ys, type(diffrax.RESULTS.successful)(code, diffrax.RESULTS), steps
 
 
 def simulate(
