@@ -292,7 +292,6 @@ def test_gradient_with_respect_to_load_amplitudes():
     assert np.all(np.abs(g) > 1e-4)
 
 
-
 def test_reverse_twin_steps_packed_and_differentiates_plain(lab_rig):
     """`reverse_twin` (dopri8-uniform's reverse mode): the primal runs on the packed field,
     the backward pass on the plain one, and value and gradient equal a direct run's."""
