@@ -152,6 +152,28 @@ def test_zero_terms_are_compiled_out():
                                cj.acceleration(rich, phis, 0.3), rtol=1e-14)
 
 
+def test_traced_fields_keep_their_terms_and_zero_constants_beside_them_compile_out():
+    # Inside jit/vmap a traced field may take any value (its terms stay); a concrete zero
+    # beside it is a constant of that program, so its terms are dropped there too.
+    mech = cj.load_scene("lab-rig").mech
+    ts = jnp.linspace(0.0, 1.0, 11)
+    seen = []
+
+    def run(k, T_c):
+        m = mech.replace(k=k, T_c=T_c)
+        seen.append(cj.Structure.of(m))
+        return cj.simulate(m, 1.0, 0.0, ts).phi
+
+    batch = jax.jit(jax.vmap(run, in_axes=(0, None)))(jnp.array([1.5, 2.0]), 0.0)
+    st = seen[-1]
+    assert st.spring and st.crank_coulomb  # traced, zero or not
+    assert not (st.offset or st.slider_damper or st.slider_coulomb)  # concrete zeros
+    jaxpr = str(jax.make_jaxpr(lambda k: run(k, mech.T_c))(2.0))
+    assert "tanh" not in jaxpr  # T_c a concrete zero: no Coulomb term in the program
+    # The batch steps in lockstep (steps its two members allow): equal to the tolerance.
+    np.testing.assert_allclose(batch[1], cj.simulate(mech, 1.0, 0.0, ts).phi, atol=1e-7)
+
+
 def test_new_values_never_retrace():
     mech = cj.load_scene("lab-rig").mech
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import numpy as np
 
 from .params import SliderCrank
@@ -44,11 +45,18 @@ class Structure:
 
     @classmethod
     def of(cls, mech: SliderCrank) -> Structure:
-        """The structure of concrete (non-traced) parameters. Batched fields count a term
-        as present if any member of the batch has it."""
+        """The structure of `mech`'s values. Batched fields count a term as present if any
+        member of the batch has it; a traced field (inside `jit`, `vmap`, `grad`) counts as
+        present, and a concrete one beside it is read as it is: a zero constant in a traced
+        program stays zero, so its terms cost nothing there either (e.g. the friction and
+        offset terms of `jax.vmap(lambda k: simulate(mech.replace(k=k), ...))`)."""
         names = ("m_c", "s", "m_p", "I_p", "m_s", "g", "k", "c", "e", "T_c", "c_s", "F_s")
-        v = {n: np.asarray(getattr(mech, n)) for n in names}
-        nz = lambda x: bool((x != 0).any())  # noqa: E731  (ndarray.any: ~5x np.any's speed)
+        v = {n: getattr(mech, n) for n in names}
+
+        def nz(x):
+            if isinstance(x, jax.core.Tracer):
+                return True
+            return bool((np.asarray(x) != 0).any())  # ndarray.any: ~5x np.any's speed
         return cls(
             crank=True,  # M > 0 requires crank inertia; it is always present.
             coupler=nz(v["m_p"]) or nz(v["I_p"]),

@@ -292,8 +292,8 @@ def simulate(
       these are computed.
     - `adjoint`: `"reverse"` (default; `jax.grad`), `"forward"` (`diffrax.ForwardMode`, for
       `jax.jacfwd` and Levenberg-Marquardt) or `"direct"` (both, slower).
-    - `structure`: the static set of terms; default `Structure.of(mech)` for concrete
-      parameters, every term for traced ones.
+    - `structure`: the static set of terms; default `Structure.of(mech)`: the terms whose
+      parameters are traced or nonzero.
     - `throw`: raise on a failed solve; with `False` the failure is in `result` and the
       samples after it hold the last state reached (never NaN or inf).
     - `force`: a generalised force of your own, `force(t, phi, dphi) -> N*m`, added to q:
@@ -341,7 +341,7 @@ def simulate(
     lin = (linearize(mech, load) if concrete and is_concrete(load)
            and (solver == "auto" or checked) else None)
     if structure is None:
-        structure = Structure.of(host_mech) if concrete else Structure()
+        structure = Structure.of(host_mech if concrete else mech)
     solver = resolve_solver(solver, host_mech, rtol, atol, load=load, torque=torque, ts=ts,
                             max_steps=max_steps, lin=lin)
     if checked:
