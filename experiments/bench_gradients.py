@@ -75,6 +75,8 @@ def main(argv=None):
     variants = [("jacfwd, dopri8-adaptive (default)", jax.jacfwd, "dopri8-adaptive", "forward"),
                 ("jacfwd, dopri8-uniform", jax.jacfwd, "dopri8-uniform", "forward"),
                 ("jacfwd, diffrax Dopri8 (ForwardMode)", jax.jacfwd, "dopri8", "forward")]
+    if smoke:  # CI: the default and the reference (tests/test_uniform.py has the uniform's)
+        variants = [variants[0], variants[2]]
     if not (smoke or a.forward_only):
         variants += [("jacrev, dopri8-uniform", jax.jacrev, "dopri8-uniform", "reverse"),
                      ("jacrev, diffrax Dopri8 (RecursiveCheckpoint)", jax.jacrev, "dopri8",
