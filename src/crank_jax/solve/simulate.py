@@ -188,9 +188,9 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
            "forward": diffrax.ForwardMode(),
            "direct": diffrax.DirectAdjoint()}[adjoint]
     crank = CrankField(mech, load, torque, structure, force)
-    # The solvers step the packed form: the parameter parts formed once, outside the step
-    # loop, in one buffer (see model/coefficients.py).
-    field = crank.packed()
+    # The solvers step the packed form, `crank.packed()`: the parameter parts formed once,
+    # outside the step loop, in one buffer (see model/coefficients.py). Each branch forms
+    # it where it steps it (`dopri8-uniform`'s twin forms its own).
     if solver == "dopri8-adaptive":
         def fallback(fld, y, ts_, r, a):
             return diffrax.diffeqsolve(
@@ -199,7 +199,7 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
                 stepsize_controller=diffrax.PIDController(rtol=r, atol=a),
                 max_steps=max_steps, adjoint=adj, throw=False).ys
 
-        ys, result, steps = adaptive_solve(field, y0, ts, rtol, atol, max_steps=max_steps,
+        ys, result, steps = adaptive_solve(crank.packed(), y0, ts, rtol, atol, max_steps=max_steps,
                                            adjoint=adjoint, fallback=fallback)
         if throw:
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
@@ -220,7 +220,7 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
         args = (y0, ts, rtol, atol, rate)
         ys, result, steps = (reverse_twin(run, crank, CrankField.packed, *args)
                              if kind == "checkpointed"
-                             else run(crank if kind == "lax" else field, *args))
+                             else run(crank if kind == "lax" else crank.packed(), *args))
         if throw:
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
     else:
@@ -228,7 +228,7 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
             diffrax.ODETerm(_TERMS[mode]),
             _solver_for(solver),
             t0=ts[0], t1=ts[-1], dt0=None, y0=y0,
-            args=field,
+            args=crank.packed(),
             saveat=diffrax.SaveAt(ts=ts),
             stepsize_controller=_controller(rtol, atol, load, torque),
             max_steps=max_steps,
