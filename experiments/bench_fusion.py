@@ -9,7 +9,11 @@ packed form with every parameter traced (what `simulate` steps), and the plain f
 the parameters compiled in as constants (which XLA folds: the reference, though a value
 change would recompile). For each: the kernels (fusions) of the inner step
 loop's body and their operands per iteration (read from the optimised HLO), the
-loop-carried values, and the run time (median). Written to results/fusion.json.
+loop-carried values, and the run time (median). Also the cost per element, in a batch
+of 10^4 inside a loop, of float64 `jnp.sin` + `jnp.cos` and `jax.lax.rsqrt` against the
+arithmetic forms of model/trig.py that the geometry uses, alone and inside a kernel of
+cheap ops (where a scalar library call keeps the whole kernel from vectorising).
+Written to results/fusion.json.
 
 Run: `python experiments/bench_fusion.py [--smoke]`.
 """
@@ -25,6 +29,7 @@ jax = setup_jax()
 import jax.numpy as jnp  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.model import trig  # noqa: E402
 from crank_jax.model.dynamics import CrankField, Structure  # noqa: E402
 from crank_jax.solve.adaptive import solve_adaptive  # noqa: E402
 
@@ -40,6 +45,29 @@ def _step_loop(compiled) -> dict:
     return {"kernels": len(calls),
             "kernel_operands": sum(c.split(")")[0].count("%") for c in calls),
             "loop_carried": len(re.findall(r"(?:f64|s64|s32|pred)\[", carried))}
+
+
+def _elementwise(smoke: bool) -> list[dict]:
+    """ns per element of each function, in a jitted loop of 100 passes over 10^4 angles."""
+    x0 = jnp.linspace(-3.0, 3.0, 10_000)
+    cheap = lambda x: x * x * x * 0.1 + x * x * 0.3 + x * 0.2 + 1 / (x * x + 2)  # noqa: E731
+    cases = {"sin + cos": (lambda x: jnp.sin(x) + jnp.cos(x),
+                           lambda x: sum(trig.sincos(x))),
+             "1/sqrt": (lambda x: jax.lax.rsqrt(x * x + 1), lambda x: trig.rsqrt(x * x + 1)),
+             "1/sqrt + 10 cheap ops": (lambda x: jax.lax.rsqrt(x * x + 1) + cheap(x),
+                                       lambda x: trig.rsqrt(x * x + 1) + cheap(x))}
+    rows = []
+    for name, (lib, ours) in cases.items():
+        row = {"function": name}
+        for label, fn in (("jax_ns", lib), ("trig_ns", ours)):
+            loop = jax.jit(lambda x, fn=fn: jax.lax.fori_loop(
+                0, 100, lambda i, c: c + 1e-9 * fn(c), x))
+            t = median_time(lambda loop=loop: jax.block_until_ready(loop(x0)),
+                            1 if smoke else 21, warmup=1)
+            row[label] = t / 100 / x0.size * 1e9
+        rows.append(row)
+        print(row, flush=True)
+    return rows
 
 
 def main(argv=None):
@@ -78,7 +106,8 @@ def main(argv=None):
                                         1 if smoke else 31, warmup=1 if smoke else 3)
             rows.append(row)
             print(row, flush=True)
-    save("fusion", {"rows": rows, "rtol": 1e-9, "samples": int(ts.shape[0])}, smoke)
+    save("fusion", {"rows": rows, "rtol": 1e-9, "samples": int(ts.shape[0]),
+                    "elementwise": _elementwise(smoke)}, smoke)
 
 
 if __name__ == "__main__":

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .coefficients import Coefficients, coefficients
 from .params import SliderCrank
 from .structure import Structure
+from .trig import rsqrt, sincos
 
 __all__ = ["Geometry", "geometry", "CouplerAngle", "coupler_angle", "Kinematics", "kinematics"]
 
@@ -70,7 +70,8 @@ def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
 
     `w = 1/cos(delta)` is a single `rsqrt` and every other quantity is a product of it:
     XLA does not duplicate "expensive" ops (sqrt, division) into several consumers, so
-    each extra one becomes its own kernel in a solver's stage. The parameters enter only
+    each extra one becomes its own kernel in a solver's stage. sin, cos and rsqrt are
+    [`trig`][]'s arithmetic forms, which XLA:CPU vectorises over a batch. The parameters enter only
     through [`Coefficients`][] (products of parameters alone, formed outside any step
     loop), and `cos(delta)^2` is `1 -` a polynomial in `sin(phi)` rather than
     `1 - sin(delta)^2`: with traced parameters the latter left `sin(delta) = (r/L) sin(phi)`
@@ -89,7 +90,8 @@ def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
     p = mech if isinstance(mech, Coefficients) else coefficients(mech, structure)
     r, L, b, s = p.r, p.L, p.b, p.s
     phi = jnp.asarray(phi)
-    sphi, cphi = jnp.sin(phi), jnp.cos(phi)
+    # Plain arithmetic, not jnp.sin/cos/rsqrt: XLA:CPU vectorises it over a batch (trig.py).
+    sphi, cphi = sincos(phi)
     if structure.offset:
         sd = p.lam * sphi - p.eL
         u = 1.0 - (p.eL2 + sphi * (p.lam2 * sphi - p.a1))
@@ -97,7 +99,7 @@ def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
         sd = p.lam * sphi
         u = 1.0 - p.lam2 * (sphi * sphi)
     # u = cos(delta)^2 >= 1 - ((r + |e|)/L)^2 > 0: bounded away from zero, smooth.
-    w = jax.lax.rsqrt(u)
+    w = rsqrt(u)
     cd = u * w
     d1 = p.lam * (cphi * w)
     # delta'' = (sin(delta) delta'^2 - (r/L) sin(phi)) / cos(delta), and

@@ -32,6 +32,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ..lazy import lazy_import
+from . import trig
 from .params import as_float_array
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
@@ -106,7 +107,7 @@ class HarmonicLoad(AbstractLoad):
     phase: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
 
     def __call__(self, t: ArrayLike) -> Array:
-        return self.X0 + self.X1 * jnp.sin(2 * jnp.pi * self.freq_hz * t + self.phase)
+        return self.X0 + self.X1 * trig.sin(2 * jnp.pi * self.freq_hz * t + self.phase)
 
     def mean(self) -> Array:
         return self.X0
@@ -130,7 +131,7 @@ class MultiSineLoad(AbstractLoad):
     def __call__(self, t: ArrayLike) -> Array:
         t = jnp.asarray(t, dtype=float)[..., None]
         arg = 2 * jnp.pi * self.freqs_hz * t + self.phases
-        return self.X0 + jnp.sum(self.amplitudes * jnp.sin(arg), axis=-1)
+        return self.X0 + jnp.sum(self.amplitudes * trig.sin(arg), axis=-1)
 
     def mean(self) -> Array:
         return self.X0
