@@ -88,6 +88,47 @@ def test_vmap_steps_in_lockstep(lab_rig):
         np.testing.assert_allclose(out[i], ref, rtol=0, atol=1e-7)
 
 
+def _grouped(lab_rig, monkeypatch):
+    from crank_jax.solve import lockstep
+
+    monkeypatch.setattr(lockstep, "CHUNK", 2)
+    ts = jnp.linspace(0, 3, 301)
+    ks = jnp.array([1.5, 2.0, 3.0, 2.5, 8.0])
+    rtols = jnp.array([1e-10, 1e-10, 1e-8, 1e-8, 1e-10])
+
+    def one(k, rtol, adjoint="reverse"):
+        sol = cj.simulate(lab_rig.mech.replace(k=k), 1.0, 0.0, ts, rtol=rtol,
+                          atol=rtol * 1e-2, adjoint=adjoint)
+        return sol.phi, sol.num_steps
+
+    return ts, ks, rtols, one
+
+
+def test_a_large_batch_steps_in_groups(lab_rig, monkeypatch):
+    # On the CPU a batch larger than lockstep.CHUNK steps in groups of that many members,
+    # each group with its own steps; the last group is padded. Groups of 2 here, for 5
+    # members with their own tolerances: every member as accurate as alone, and the
+    # groups' step counts their own.
+    ts, ks, rtols, one = _grouped(lab_rig, monkeypatch)
+    phi, steps = jax.jit(jax.vmap(one))(ks, rtols)
+    steps = np.asarray(steps).tolist()
+    assert steps[0] == steps[1] and steps[2] == steps[3] and len(set(steps)) == 3
+    for i in range(5):
+        np.testing.assert_allclose(phi[i], _reference(lab_rig.mech.replace(k=ks[i]), ts),
+                                   rtol=0, atol=2e3 * float(rtols[i]))
+
+
+@pytest.mark.slow  # ~25 s of compiling
+def test_forward_mode_through_groups(lab_rig, monkeypatch):
+    _, ks, rtols, one = _grouped(lab_rig, monkeypatch)
+    final = jax.jit(jax.vmap(lambda k, r: one(k, r, "forward")[0][-1]))
+    jac = jax.jit(jax.jacfwd(final))(ks, rtols)
+    assert np.count_nonzero(np.asarray(jac) - np.diag(np.diag(jac))) == 0
+    eps = 1e-6
+    fd = (final(ks + eps, rtols) - final(ks - eps, rtols)) / (2 * eps)
+    np.testing.assert_allclose(np.diag(jac), fd, rtol=1e-4)
+
+
 @pytest.mark.slow  # ~5 s of compiling
 def test_vmap_with_save_times_per_member(lab_rig):
     # Save times that differ per member: a plain vmap of single solves, same accuracy.
