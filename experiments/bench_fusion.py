@@ -11,7 +11,7 @@ change would recompile). For each: the kernels (fusions) of the inner step
 loop's body and their operands per iteration (read from the optimised HLO), the
 loop-carried values, and the run time (median). Also the cost per element, in a batch
 of 10^4 inside a loop, of float64 `jnp.sin` + `jnp.cos` and `jax.lax.rsqrt` against the
-arithmetic forms of model/trig.py that the geometry uses, alone and inside a kernel of
+arithmetic forms of model/trig.py that a lockstep batch uses, alone and inside a kernel of
 cheap ops (where a scalar library call keeps the whole kernel from vectorising).
 Written to results/fusion.json.
 
@@ -62,6 +62,8 @@ def _elementwise(smoke: bool) -> list[dict]:
         for label, fn in (("jax_ns", lib), ("trig_ns", ours)):
             loop = jax.jit(lambda x, fn=fn: jax.lax.fori_loop(
                 0, 100, lambda i, c: c + 1e-9 * fn(c), x))
+            with trig.arithmetic(label == "trig_ns"):  # traced (and compiled) here
+                loop(x0)
             t = median_time(lambda loop=loop: jax.block_until_ready(loop(x0)),
                             1 if smoke else 21, warmup=1)
             row[label] = t / 100 / x0.size * 1e9

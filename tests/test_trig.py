@@ -1,15 +1,25 @@
 """The arithmetic sin, cos and 1/sqrt of model/trig.py against NumPy's (glibc's) and
-against their derivative identities."""
+against their derivative identities; where they are used (a lockstep batch) and where not."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from crank_jax.model.trig import rsqrt, sin, sincos
+import crank_jax as cj
+from crank_jax.model.trig import arithmetic, rsqrt, sin, sincos
 
-_sincos = jax.jit(sincos)
-_rsqrt = jax.jit(rsqrt)
+
+def _arith(fn):
+    """`fn` traced with the arithmetic forms (its own trace: a fresh function per call)."""
+    def run(*args):
+        with arithmetic():
+            return jax.jit(lambda *a: fn(*a))(*args)
+    return run
+
+
+_sincos = _arith(sincos)
+_rsqrt = _arith(rsqrt)
 
 
 def _ulps(got, want):
@@ -39,10 +49,10 @@ def test_sincos_at_the_quadrant_edges_and_tiny_angles():
 def test_sincos_derivatives_are_the_identities():
     x = jnp.linspace(-20.0, 20.0, 101)
     s, c = _sincos(x)
-    np.testing.assert_array_equal(jax.vmap(jax.grad(sin))(x), c)
-    np.testing.assert_array_equal(jax.vmap(jax.grad(lambda v: sincos(v)[1]))(x), -s)
-    np.testing.assert_array_equal(jax.vmap(jax.grad(jax.grad(sin)))(x), -s)
-    _, ds = jax.jvp(sincos, (x,), (2.0 * jnp.ones_like(x),))
+    np.testing.assert_array_equal(_arith(jax.vmap(jax.grad(sin)))(x), c)
+    np.testing.assert_array_equal(_arith(jax.vmap(jax.grad(lambda v: sincos(v)[1])))(x), -s)
+    np.testing.assert_array_equal(_arith(jax.vmap(jax.grad(jax.grad(sin))))(x), -s)
+    ds = _arith(lambda x: jax.jvp(sincos, (x,), (2.0 * jnp.ones_like(x),))[1])(x)
     np.testing.assert_array_equal(ds[0], 2.0 * c)
 
 
@@ -52,12 +62,27 @@ def test_rsqrt_is_within_two_ulp_of_numpy_and_nan_where_it_has_no_value():
     assert _ulps(np.asarray(_rsqrt(jnp.asarray(u))), 1 / np.sqrt(u)).max() <= 2
     assert np.all(np.isnan(np.asarray(_rsqrt(jnp.asarray([0.0, -1.0, -1e-300])))))
     x = jnp.linspace(0.1, 10.0, 50)
-    np.testing.assert_allclose(jax.vmap(jax.grad(rsqrt))(x), -0.5 * x**-1.5, rtol=4e-16 * 6)
+    np.testing.assert_allclose(_arith(jax.vmap(jax.grad(rsqrt)))(x), -0.5 * x**-1.5,
+                               rtol=4e-16 * 6)
 
 
 def test_other_float_types_take_jax_s_own_functions():
     x = jnp.linspace(-3.0, 3.0, 7, dtype=jnp.float32)
-    s, c = sincos(x)
+    with arithmetic():
+        s, c = sincos(x)
     assert s.dtype == c.dtype == jnp.float32
     np.testing.assert_array_equal(s, jnp.sin(x))
-    np.testing.assert_array_equal(rsqrt(x + 4), jax.lax.rsqrt(x + 4))
+    with arithmetic():
+        np.testing.assert_array_equal(rsqrt(x + 4), jax.lax.rsqrt(x + 4))
+
+
+def test_a_lockstep_batch_traces_the_arithmetic_forms_and_a_single_solve_jax_s(lab_rig):
+    ts = jnp.linspace(0.0, 0.5, 11)
+
+    def phi(k):
+        return cj.simulate(lab_rig.mech.replace(k=k), 1.0, 0.0, ts).phi
+
+    single = str(jax.make_jaxpr(phi)(2.0))
+    batch = str(jax.make_jaxpr(jax.vmap(phi))(jnp.array([2.0, 2.1])))
+    assert " sin " in single and " rsqrt " in single
+    assert " sin " not in batch and " rsqrt " not in batch and " cos " not in batch

@@ -70,8 +70,9 @@ def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
 
     `w = 1/cos(delta)` is a single `rsqrt` and every other quantity is a product of it:
     XLA does not duplicate "expensive" ops (sqrt, division) into several consumers, so
-    each extra one becomes its own kernel in a solver's stage. sin, cos and rsqrt are
-    [`trig`][]'s arithmetic forms, which XLA:CPU vectorises over a batch. The parameters enter only
+    each extra one becomes its own kernel in a solver's stage. sin, cos and rsqrt come
+    from [`trig`][]: in a lockstep batch, arithmetic that XLA:CPU vectorises over the
+    members; elsewhere JAX's own. The parameters enter only
     through [`Coefficients`][] (products of parameters alone, formed outside any step
     loop), and `cos(delta)^2` is `1 -` a polynomial in `sin(phi)` rather than
     `1 - sin(delta)^2`: with traced parameters the latter left `sin(delta) = (r/L) sin(phi)`
@@ -90,7 +91,7 @@ def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
     p = mech if isinstance(mech, Coefficients) else coefficients(mech, structure)
     r, L, b, s = p.r, p.L, p.b, p.s
     phi = jnp.asarray(phi)
-    # Plain arithmetic, not jnp.sin/cos/rsqrt: XLA:CPU vectorises it over a batch (trig.py).
+    # Arithmetic in a lockstep batch (vectorised by XLA:CPU), jnp.sin/cos elsewhere (trig.py).
     sphi, cphi = sincos(phi)
     if structure.offset:
         sd = p.lam * sphi - p.eL

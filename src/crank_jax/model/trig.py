@@ -1,45 +1,73 @@
 """sin, cos and 1/sqrt as plain arithmetic, so that XLA:CPU vectorises a batch's step.
 
-Why not `jnp.sin` and `jnp.cos`: on XLA:CPU a float64 `sin` or `cos` is a scalar call into
-the math library per element, ~7-14 ns each on the 2-core CI machine, while a multiply
-or an add over a batch costs ~0.3 ns an element (SIMD). Every field evaluation needs
-both, a Dormand-Prince 8 step has 12 of them, so in a `jax.vmap`-ed batch these two
-calls were about a third of the cost of a step (measured by experiments/bench_fusion.py,
-which times both forms). [`sincos`][] computes the pair from one range reduction and two
-short polynomials (fdlibm's `__kernel_sin` / `__kernel_cos` coefficients, as in glibc
-and musl), all multiplies, adds and selects that XLA fuses into the step's kernels:
-~1.5-2.3 ns for the pair.
-
-Accuracy (tests/test_trig.py checks it against NumPy): within 1 ulp of the correctly
-rounded value for |x| <= 1e3 rad, 2 ulp to 1e6 rad. The reduction subtracts n*pi/2 in
-three parts (Cody-Waite; each part has 33 bits, so `n * part` is exact for
-|n| < 2^20, |x| < 1.6e6 rad). Beyond that the absolute error grows like ulp(x): the
-error of the angle itself in float64, so a crank that has turned 10^6 times has lost
-those digits already in `phi`. Derivatives are the exact identities (`custom_jvp`:
-d sin = cos dx, d cos = -sin dx), not those of the polynomials.
+Why not `jnp.sin` and `jnp.cos` in a batch: on XLA:CPU a float64 `sin` or `cos` is a
+scalar call into the math library per element, ~7-20 ns each on the 2-core CI machine,
+while a multiply or an add over a batch costs ~0.3 ns an element (SIMD), and one such
+call in a fused kernel keeps LLVM from vectorising the whole kernel. Every field
+evaluation needs both, a Dormand-Prince 8 step has 12 of them. [`sincos`][] computes the
+pair from one range reduction and two short polynomials (fdlibm's `__kernel_sin` /
+`__kernel_cos` coefficients, as in glibc and musl), all multiplies, adds and selects that
+XLA fuses into the step's kernels: ~1.5-2.3 ns for the pair (experiments/bench_fusion.py
+times both forms).
 
 [`rsqrt`][] is the same story for `1/sqrt(u)` (the geometry's `1/cos(delta)`): XLA:CPU's
 float64 `rsqrt`, which is also what it makes of `1/sqrt`, is a scalar call (~4.7 ns an
-element), and one such call in a fused kernel keeps LLVM from vectorising the whole
-kernel (measured: a kernel of ten cheap ops costs 6.6 ns an element with an `rsqrt` in it
-and 1.2 ns with this one). `sqrt` and a division vectorise but are two "expensive" ops
-that XLA will not duplicate into consumers, so each became a kernel of its own per
-stage (68 kernels per step instead of 29, and a slower single trajectory). The seed is
-the bit-level estimate of `1/sqrt` (the "fast inverse square root" with the float64
-constant; relative error <= 3.5%), refined by four Newton steps (quadratic convergence:
-3.5e-2, 1.8e-3, 5e-6, 4e-11, then rounding): within 2 ulp of `1/np.sqrt` over positive
-normal floats.
+element), and with it in a kernel of ten cheap ops the kernel costs 6.6 ns an element
+against 1.2 ns with this one. `sqrt` and a division vectorise but are two "expensive"
+ops that XLA will not duplicate into consumers, so each became a kernel of its own per
+stage (68 kernels per step instead of 29). The seed is the bit-level estimate of
+`1/sqrt` (the "fast inverse square root" with the float64 constant; relative error
+<= 3.5%), refined by four Newton steps (quadratic convergence: 3.5e-2, 1.8e-3, 5e-6,
+4e-11, then rounding): within 2 ulp of `1/np.sqrt` over positive normal floats.
+
+When: only while tracing inside [`arithmetic`][], which the lockstep batch
+(solve/lockstep.py) enters; elsewhere these functions are `jnp.sin`, `jnp.cos` and
+`jax.lax.rsqrt`. A single trajectory has nothing to vectorise (measured: the same run
+time either way), and the polynomials made its programs ~20-28% slower to compile
+(the lab rig's solve 2.0 -> 2.6 s, its forward Jacobian 8.0 -> 9.7 s), which every
+command-line fit and the test suite pay. The two forms agree to 1-2 ulp, so which one a
+cached trace holds changes speed, not results.
+
+Accuracy of [`sincos`][] (tests/test_trig.py checks it against NumPy): within 1 ulp of
+the correctly rounded value for |x| <= 1e3 rad, 2 ulp to 1e6 rad. The reduction
+subtracts n*pi/2 in three parts (Cody-Waite; each part has 33 bits, so `n * part` is
+exact for |n| < 2^20, |x| < 1.6e6 rad). Beyond that the absolute error grows like
+ulp(x): the error of the angle itself in float64, so a crank that has turned 10^6 times
+has lost those digits already in `phi`. Derivatives are the exact identities
+(`custom_jvp`: d sin = cos dx, d cos = -sin dx, d u^-1/2 = -u^-3/2 du / 2), not those of
+the polynomials.
 
 GPU: the same arithmetic runs there (CUDA's own sin is a polynomial of this kind).
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-__all__ = ["sincos", "sin", "rsqrt"]
+__all__ = ["arithmetic", "sincos", "sin", "rsqrt"]
+
+_ARITHMETIC = contextvars.ContextVar("crank_jax_trig_arithmetic", default=False)
+
+
+@contextlib.contextmanager
+def arithmetic(on: bool = True):
+    """While tracing inside this context, [`sincos`][], [`sin`][] and [`rsqrt`][] are the
+    arithmetic forms (for code that runs over a batch); outside it, JAX's own functions.
+    Read at trace time only: it changes the program that is traced, not a running one."""
+    token = _ARITHMETIC.set(on)
+    try:
+        yield
+    finally:
+        _ARITHMETIC.reset(token)
+
+
+def _use_arithmetic(x) -> bool:
+    return _ARITHMETIC.get() and x.dtype == jnp.float64
 
 # pi/2 = _PIO2_1 + _PIO2_2 + _PIO2_3 (fdlibm's pio2_1, pio2_2, pio2_2t): 33 + 33 + 53 bits.
 _PIO2_1 = 1.57079632673412561417e+00
@@ -79,24 +107,28 @@ def _sincos(x):
     return sin_x, cos_x
 
 
-@jax.custom_jvp
 def sincos(x: ArrayLike) -> tuple[Array, Array]:
-    """`(sin(x), cos(x))` of an angle `x` in rad, any shape; float64 for float64 input.
+    """`(sin(x), cos(x))` of an angle `x` in rad, any shape.
 
-    Within 1 ulp of `jnp.sin`/`jnp.cos` for |x| <= 1e3 (see the module docstring), and
-    ~10x cheaper per element in a batch on XLA:CPU. Other float types are passed to
-    `jnp.sin`/`jnp.cos` (the polynomials are float64's).
+    Inside [`arithmetic`][] and for float64 the polynomial form: within 1 ulp of
+    `jnp.sin`/`jnp.cos` for |x| <= 1e3 (see the module docstring) and ~10x cheaper per
+    element in a batch on XLA:CPU. Otherwise `jnp.sin`/`jnp.cos`.
     """
     x = jnp.asarray(x)
-    if x.dtype != jnp.float64:
+    if not _use_arithmetic(x):
         return jnp.sin(x), jnp.cos(x)
+    return _sincos_arith(x)
+
+
+@jax.custom_jvp
+def _sincos_arith(x):
     return _sincos(x)
 
 
-@sincos.defjvp
+@_sincos_arith.defjvp
 def _sincos_jvp(primals, tangents):
     (x,), (dx,) = primals, tangents
-    s, c = sincos(x)
+    s, c = _sincos_arith(x)
     return (s, c), (c * dx, -s * dx)
 
 
@@ -122,18 +154,22 @@ def _rsqrt(u):
     return jnp.where(u > 0.0, w, jnp.nan)
 
 
-@jax.custom_jvp
 def rsqrt(u: ArrayLike) -> Array:
-    """`1/sqrt(u)` for positive normal float64 `u`, any shape (NaN for `u <= 0`), within 2
-    ulp; other float types go to `jax.lax.rsqrt`."""
+    """`1/sqrt(u)`, any shape. Inside [`arithmetic`][] and for float64 the Newton form:
+    within 2 ulp for positive normal `u`, NaN for `u <= 0`. Otherwise `jax.lax.rsqrt`."""
     u = jnp.asarray(u)
-    if u.dtype != jnp.float64:
+    if not _use_arithmetic(u):
         return jax.lax.rsqrt(u)
+    return _rsqrt_arith(u)
+
+
+@jax.custom_jvp
+def _rsqrt_arith(u):
     return _rsqrt(u)
 
 
-@rsqrt.defjvp
+@_rsqrt_arith.defjvp
 def _rsqrt_jvp(primals, tangents):
     (u,), (du,) = primals, tangents
-    w = rsqrt(u)
+    w = _rsqrt_arith(u)
     return w, -0.5 * (w * w * w) * du

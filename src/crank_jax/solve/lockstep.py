@@ -32,6 +32,7 @@ import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
 from ..lazy import lazy_import
+from ..model import trig
 from .adaptive import solve_adaptive
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
@@ -161,9 +162,13 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback):
             # Per-member tolerances scale that member's state (the last axis).
             rtol = rtol[:, None] if in_batched[3] else rtol
             atol = atol[:, None] if in_batched[4] else atol
-            (phi, dphi), result, steps = solve_adaptive(
-                _side_by_side(rebuild, _join(dyn_b, dyn_c, in_batched[0]), in_batched[0]),
-                (y0[:, 0], y0[:, 1]), ts, rtol, atol, max_steps=max_steps, batched=True)
+            # The geometry's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises
+            # over the members (model/trig.py).
+            with trig.arithmetic():
+                (phi, dphi), result, steps = solve_adaptive(
+                    _side_by_side(rebuild, _join(dyn_b, dyn_c, in_batched[0]),
+                                  in_batched[0]),
+                    (y0[:, 0], y0[:, 1]), ts, rtol, atol, max_steps=max_steps, batched=True)
             ys = jnp.moveaxis(_stack(phi, dphi), 1, 0)
             full = lambda x: jnp.broadcast_to(x, (n,))  # noqa: E731
             return ys, full(_as_float(result._value, phi)), full(_as_float(steps, phi))
