@@ -11,7 +11,7 @@ change would recompile). For each: the kernels (fusions) of the inner step
 loop's body and their operands per iteration (read from the optimised HLO), the
 loop-carried values, and the run time (median). Also the cost per element, in a batch
 of 10^4 inside a loop, of float64 `jnp.sin` + `jnp.cos` and `jax.lax.rsqrt` against the
-arithmetic forms of model/trig.py that a lockstep batch uses, alone and inside a kernel of
+arithmetic forms of trig.py that a lockstep batch uses, alone and inside a kernel of
 cheap ops (where a scalar library call keeps the whole kernel from vectorising).
 Written to results/fusion.json.
 
@@ -29,7 +29,7 @@ jax = setup_jax()
 import jax.numpy as jnp  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.model import trig  # noqa: E402
+from crank_jax import trig  # noqa: E402
 from crank_jax.model.dynamics import CrankField, Structure  # noqa: E402
 from crank_jax.solve.adaptive import solve_adaptive  # noqa: E402
 

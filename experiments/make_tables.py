@@ -189,7 +189,7 @@ def section() -> str:
         out.append("")
         if fu.get("elementwise"):
             out += ["float64 cost per element on XLA:CPU (a loop over 10^4 values): JAX's own "
-                    "functions against model/trig.py's arithmetic forms, which the geometry "
+                    "functions against trig.py's arithmetic forms, which a lockstep batch "
                     "uses because XLA vectorises them over a batch.", "",
                     "| function | JAX | trig.py |", "|---|---|---|"]
             out += [f"| {r['function']} | {r['jax_ns']:.2f} ns | {r['trig_ns']:.2f} ns |"

@@ -1,4 +1,4 @@
-"""The arithmetic sin, cos and 1/sqrt of model/trig.py against NumPy's (glibc's) and
+"""The arithmetic sin, cos and 1/sqrt of trig.py against NumPy's (glibc's) and
 against their derivative identities; where they are used (a lockstep batch) and where not."""
 
 import jax
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax.model.trig import arithmetic, rsqrt, sin, sincos
+from crank_jax.trig import arithmetic, rsqrt, sin, sincos
 
 
 def _arith(fn):

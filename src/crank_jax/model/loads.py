@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from .. import trig
 from ..lazy import lazy_import
-from . import trig
 from .params import as_float_array
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)

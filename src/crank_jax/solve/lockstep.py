@@ -31,8 +31,8 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
+from .. import trig
 from ..lazy import lazy_import
-from ..model import trig
 from .adaptive import solve_adaptive
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
@@ -163,7 +163,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback):
             rtol = rtol[:, None] if in_batched[3] else rtol
             atol = atol[:, None] if in_batched[4] else atol
             # The geometry's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises
-            # over the members (model/trig.py).
+            # over the members (trig.py).
             with trig.arithmetic():
                 (phi, dphi), result, steps = solve_adaptive(
                     _side_by_side(rebuild, _join(dyn_b, dyn_c, in_batched[0]),
