@@ -91,6 +91,7 @@ def _horner(z, coefs):
     return acc
 
 
+@jax.custom_jvp
 def _sincos(x):
     n = jnp.round(x * _TWO_OVER_PI)
     r = ((x - n * _PIO2_1) - n * _PIO2_2) - n * _PIO2_3  # |r| <= pi/4
@@ -117,18 +118,13 @@ def sincos(x: ArrayLike) -> tuple[Array, Array]:
     x = jnp.asarray(x)
     if not _use_arithmetic(x):
         return jnp.sin(x), jnp.cos(x)
-    return _sincos_arith(x)
-
-
-@jax.custom_jvp
-def _sincos_arith(x):
     return _sincos(x)
 
 
-@_sincos_arith.defjvp
+@_sincos.defjvp
 def _sincos_jvp(primals, tangents):
     (x,), (dx,) = primals, tangents
-    s, c = _sincos_arith(x)
+    s, c = _sincos(x)
     return (s, c), (c * dx, -s * dx)
 
 
@@ -137,10 +133,10 @@ def sin(x: ArrayLike) -> Array:
     return sincos(x)[0]
 
 
-
 _RSQRT_MAGIC = 0x5FE6EB50C7B537A9  # the float64 constant of the bit-level 1/sqrt estimate
 
 
+@jax.custom_jvp
 def _rsqrt(u):
     bits = jax.lax.bitcast_convert_type(u, jnp.int64)
     w = jax.lax.bitcast_convert_type(jnp.int64(_RSQRT_MAGIC) - (bits >> 1), jnp.float64)
@@ -160,16 +156,11 @@ def rsqrt(u: ArrayLike) -> Array:
     u = jnp.asarray(u)
     if not _use_arithmetic(u):
         return jax.lax.rsqrt(u)
-    return _rsqrt_arith(u)
-
-
-@jax.custom_jvp
-def _rsqrt_arith(u):
     return _rsqrt(u)
 
 
-@_rsqrt_arith.defjvp
+@_rsqrt.defjvp
 def _rsqrt_jvp(primals, tangents):
     (u,), (du,) = primals, tangents
-    w = _rsqrt_arith(u)
+    w = _rsqrt(u)
     return w, -0.5 * (w * w * w) * du
