@@ -424,3 +424,36 @@ def test_huge_scene_file_refused_before_reading(tmp_path, monkeypatch):
     monkeypatch.setattr(Path, "read_text", lambda *a, **k: pytest.fail("read"))
     with pytest.raises(cj.SceneError, match="not a scene file"):
         cj.load_scene(big)
+
+
+def test_a_lazy_module_is_whole_when_two_threads_touch_it_at_once(tmp_path, monkeypatch):
+    # lazy.py imports diffrax and optax on first use. Two threads touching such a module
+    # at once must both see it fully imported (the standard library's LazyLoader, before
+    # Python 3.12, let the second see it half executed). A module that takes 0.3 s to
+    # import keeps the first thread inside the import while the second arrives.
+    import sys
+    import threading
+
+    from crank_jax.lazy import lazy_import
+
+    (tmp_path / "slow_module_for_lazy_test.py").write_text(
+        "import time\ntime.sleep(0.3)\nVALUE = 42\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "slow_module_for_lazy_test", raising=False)
+    mod = lazy_import("slow_module_for_lazy_test")
+    seen, errors = [], []
+
+    def touch():
+        try:
+            seen.append(mod.VALUE)
+        except Exception as e:  # noqa: BLE001 (the failure this test looks for)
+            errors.append(repr(e))
+
+    threads = [threading.Thread(target=touch) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and seen == [42, 42]
+    with pytest.raises(ModuleNotFoundError):
+        lazy_import("no_such_module_for_lazy_test")

@@ -309,3 +309,29 @@ def test_a_free_field_that_starts_at_zero_keeps_its_term(lab_rig):
                  progress=False, warn=False)
     assert res.start["k"] == 0.0 and res.converged and res.identifiable, res.warnings
     assert abs(res.values["k"] - 2.0) < 4 * res.stderr["k"]
+
+
+def test_multiple_shooting_jacobian_from_coloured_directions_is_the_full_one(lab_rig):
+    # jacobian_at computes a multiple-shooting Jacobian from one direction per global
+    # coordinate and four for all segment states (programs.segment_coloring). Two
+    # records, of 5 and 2 segments (odd and even counts), against plain jacfwd.
+    from crank_jax.identify.programs import _jacobian, segment_coloring
+
+    recs = [(cj.synthesize(lab_rig, t1=t1, rate=100.0, noise_std=1e-3, seed=s),
+             lab_rig.load, lab_rig.torque, 1.0, 0.0) for t1, s in ((0.8, 1), (0.5, 2))]
+    prob = build_problem(lab_rig.mech, recs, ("k", "c", "phi0", "dphi0"),
+                         {"k": 2.0, "c": 0.002}, [5, 2], solver="tsit5", rtol=1e-10,
+                         atol=1e-12, max_steps=4096)
+    rng = np.random.default_rng(0)
+    z = jnp.asarray(rng.normal(0.0, 0.1, prob.p + prob.n_extra)
+                    + np.r_[prob.to_z([2.1, 0.0025, 1.0, 0.0, 0.9, 0.1]),
+                            np.zeros(prob.n_extra)])
+    color, mask = segment_coloring(prob)
+    assert color.max() + 1 == prob.p + 4 < prob.p + prob.n_extra
+    r, failed, _, J = jax.jit(_jacobian)(prob, z)
+    J_full = jax.jit(jax.jacfwd(lambda x: prob.residuals(x)[0]))(z)
+    assert int(failed) == 0 and J.shape == J_full.shape
+    # Nothing outside the colouring's pattern, and every entry equal.
+    assert np.all(np.asarray(J_full)[~mask] == 0.0)
+    np.testing.assert_allclose(J, J_full, rtol=1e-12, atol=1e-14)
+    np.testing.assert_array_equal(r, prob.residuals(z)[0])
