@@ -335,3 +335,15 @@ def test_multiple_shooting_jacobian_from_coloured_directions_is_the_full_one(lab
     assert np.all(np.asarray(J_full)[~mask] == 0.0)
     np.testing.assert_allclose(J, J_full, rtol=1e-12, atol=1e-14)
     np.testing.assert_array_equal(r, prob.residuals(z)[0])
+
+
+def test_bucket_lengths_leave_room_above_round_sample_counts():
+    from crank_jax.identify.segments import bucket
+
+    for m in range(1, 5000):
+        b = bucket(m)
+        assert b >= m and (m < 72 or b <= 1.5 * m)  # at most a third padding
+    # A record of a round duration at a round rate holds N + 1 samples; one 5% longer
+    # must still share its programs (with powers of two, 1001 -> 1024 had 2% room).
+    for n in (100, 200, 500, 1000, 2000, 5000, 10_000, 20_000, 50_000, 100_000):
+        assert bucket(int(1.05 * (n + 1))) == bucket(n + 1), n
