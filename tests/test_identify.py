@@ -334,7 +334,7 @@ def test_multiple_shooting_jacobian_from_coloured_directions_is_the_full_one(lab
     # Nothing outside the colouring's pattern, and every entry equal.
     assert np.all(np.asarray(J_full)[~mask] == 0.0)
     np.testing.assert_allclose(J, J_full, rtol=1e-12, atol=1e-14)
-    np.testing.assert_array_equal(r, prob.residuals(z)[0])
+    np.testing.assert_allclose(r, prob.residuals(z)[0], rtol=1e-12, atol=1e-14)
 
 
 def test_bucket_lengths_leave_room_above_round_sample_counts():
