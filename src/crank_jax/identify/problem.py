@@ -241,6 +241,10 @@ class Problem(eqx.Module):
             return (jnp.where(ok, sol.ys[:, 0], jnp.nan), jnp.where(ok, sol.ys[:, 1], jnp.nan),
                     sol.stats["num_steps"])
 
+        if e.seg.ts.shape[0] == 1:
+            # Single shooting: one solve, not a batch of one (a vmap of a solve of size 1
+            # still traces the batching of every loop in it: ~20% of tracing the fit).
+            return tuple(x[None] for x in one(e.seg.ts[0], y0s[0]))
         return jax.vmap(one)(e.seg.ts, y0s)
 
     def fitted(self, r) -> list[np.ndarray]:
