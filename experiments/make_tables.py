@@ -311,6 +311,8 @@ def _end_to_end(ee) -> list[str]:
             ("`crank-jax fit`, warm (loads them)", "cli_fit_warm_s"),
             ("`crank-jax fit` of other records (length, noise, start), warm",
              "cli_fit_warm_other_records_s"),
+            ("`crank-jax fit` of a record in the next length bucket (compiles once)",
+             "cli_fit_warm_new_bucket_s"),
             ("`crank-jax demo`, empty cache", "demo_cold_s"),
             ("`crank-jax demo`, warm", "demo_warm_s"),
             ("first fit inside a fresh Python process, no cache", "first_fit_in_process_s"),
@@ -331,11 +333,13 @@ def _end_to_end(ee) -> list[str]:
     if len(other) >= 2:
         a, b = (float(np.median(other[i::2])) for i in (0, 1))
         out += ["", f"The other records, each run after the first fit filled the store: "
-                f"1.03x as long (1031 samples) {a:.2f} s: it crosses a length bucket (1024) "
-                f"and compiles its programs once; 0.9x as long {b:.2f} s: it reuses them. "
-                "Record lengths are padded to 64, 96, 128, 192, ... samples and "
-                "multiple-shooting segment counts rounded to 2, 3, 4, 6, 8, 12, ..., so a "
-                "new bucket compiles once and is stored."]
+                f"1.03x as long {a:.2f} s and 0.9x as long {b:.2f} s: their lengths share "
+                "the first's bucket, so they load its programs. Record lengths are padded to "
+                "72, 108, 144, 216, ..., 1152, 1728, ... samples (9 * 2^k and 27 * 2^k, so "
+                "that N + 1 samples of a round duration at a round rate sit ~15% below an "
+                "edge) and multiple-shooting segment counts rounded to 2, 3, 4, 6, 8, 12, "
+                "...; a record 1.2x as long lands in the next bucket and compiles its "
+                "programs once (the row above), after which they are stored."]
     return out + [""]
 
 
