@@ -330,3 +330,40 @@ def test_reverse_twin_steps_packed_and_differentiates_plain(lab_rig):
     g_twin = jax.grad(loss)(k, True)
     assert seen == ["PackedCrankField", "CrankField"]  # primal packed, backward plain
     np.testing.assert_allclose(g_twin, jax.grad(loss)(k, False), rtol=1e-12)
+
+
+def test_repeated_concrete_calls_reuse_the_host_plan_and_still_check(lab_rig, monkeypatch):
+    # A concrete call keeps its host plan (checks, linearisation, solver) for calls with
+    # the same mechanism, loads, save times and tolerances (solve/policy.py `host_plan`).
+    # The plan must follow any change of those, and the checks that depend on the initial
+    # state or on invalid parameters must still raise every time.
+    import crank_jax.solve.policy as policy
+
+    calls = []
+    real = policy.linearize
+    monkeypatch.setattr(policy, "linearize", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(policy, "_PLANS", type(policy._PLANS)())
+    ts = jnp.linspace(0.0, 1.0, 51)
+    mech = lab_rig.mech
+    a = cj.simulate(mech, 0.5, 0.0, ts)
+    b = cj.simulate(mech, 0.3, 0.1, ts)  # another initial state: the same plan
+    assert len(calls) == 1
+    ref = cj.simulate(mech, 0.3, 0.1, jnp.linspace(0.0, 1.0, 51))  # new save times: new plan
+    assert len(calls) == 2
+    np.testing.assert_array_equal(b.phi, ref.phi)
+    assert not np.array_equal(a.phi, b.phi)
+    stiffer = mech.replace(k=3.0)  # a new value: a new plan
+    s = cj.simulate(stiffer, 0.5, 0.0, ts)
+    assert len(calls) == 3 and bool(s.ok) and not np.array_equal(s.phi, a.phi)
+    # The initial state's check is per call.
+    with pytest.raises(ValueError, match="turns from rest"):
+        cj.simulate(mech, 1e300, 0.0, ts)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="initial state"):
+        cj.simulate(mech, float("nan"), 0.0, ts)
+    # An invalid parameter raises on every call, also once its plan is kept (built past
+    # the constructor's own check, as a tree edit can).
+    bad = eqx.tree_at(lambda m: m.m_s, mech, jnp.asarray(-1.0))
+    for _ in range(2):
+        with pytest.raises(eqx.EquinoxRuntimeError, match="SliderCrank.m_s is invalid"):
+            cj.simulate(bad, 0.5, 0.0, ts)
+    assert len(policy._PLANS) <= policy._PLANS_KEPT

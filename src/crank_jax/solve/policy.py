@@ -13,20 +13,29 @@ solver whichever of them runs it. The rule, in order:
    `rtol = 1e-7` and `"tsit5"` above (diffrax's, whose steps end at the load's knots).
    Sweeps ask for batch-invariant results (`batch_invariant=True`) and keep the per-member
    `"dopri8-uniform"` on uniform save times.
+
+A concrete `simulate` call also takes its host-side plan from here ([`host_plan`][]: its
+input checks, the linearisation, the structure and the solver), memoised for repeated
+calls with the same inputs.
 """
 
 from __future__ import annotations
+
+import collections
+import threading
 
 import jax
 import numpy as np
 
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, SampledLoad
-from ..model.params import SliderCrank
+from ..model.params import FIELDS, SliderCrank, validation_rules
+from ..model.structure import Structure
+from .inputs import check_tolerances, check_unbatched
 from .uniform import uniform_grid
 
 __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
-           "is_concrete", "check_time_scale"]
+           "is_concrete", "check_time_scale", "check_travel", "host_plan"]
 
 #: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`.
 SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform",
@@ -219,20 +228,21 @@ def _fits_interval_budget(lin, ts: np.ndarray, max_steps: int | None) -> bool:
 
 def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int,
                      load: AbstractLoad | None = None, phi0=None, dphi0=None,
-                     lin=None) -> None:
+                     lin=None) -> float | None:
     """`ValueError` if the linearised fastest mode cannot be integrated over `span`, or
-    (given `phi0`, `dphi0`) if the initial state is too far from rest to resolve.
+    (given `phi0`, `dphi0`) if the initial state is too far from rest to resolve; else the
+    fastest rate, 1/s (None for traced values).
 
     An explicit solver needs at least `span * rate / 3.5` steps (its stability limit on the
     fastest mode, `rate` from [`fastest_mode`][]); more than `max_steps` means the solve can
     only fail. Any solver fails once `span * rate > 1e12` (or the rate overflows). Both
     happen when k, a mass or an inertia is off by orders of magnitude (k = 1e300, masses of
     1e-300), so the message names the rate and the linearisation and asks to check them.
-    The initial state is checked by [`_check_travel`][] on the same linearisation.
+    The initial state is checked by [`check_travel`][] on the same linearisation.
     Concrete values only; traced ones are skipped.
     """
     if not (is_concrete(mech) and is_concrete(load)):
-        return
+        return None
     lin = linearize(mech, load) if lin is None else lin
     rate, _ = fastest_mode(lin)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -251,10 +261,11 @@ def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int
             f"that needs ~{need:.3g} solver steps (max_steps = {max_steps}); check the units "
             f"and values of k, c and the masses and inertias")
     if phi0 is not None and is_concrete((phi0, dphi0)):
-        _check_travel(lin, top, phi0, dphi0, span, max_steps)
+        check_travel(lin, top, phi0, dphi0, span, max_steps)
+    return top
 
 
-def _check_travel(lin, top: float, phi0, dphi0, span: float, max_steps: int) -> None:
+def check_travel(lin, top: float, phi0, dphi0, span: float, max_steps: int) -> None:
     """`ValueError` if the initial state is so far from rest that the crank must turn more
     times than `max_steps` can resolve (phi0 = 1e300 rad: the spring winds the crank back
     through every one of those turns).
@@ -275,3 +286,124 @@ def _check_travel(lin, top: float, phi0, dphi0, span: float, max_steps: int) -> 
         f"is ~{amp / (2 * np.pi):.3g} turns from rest: resolving them needs more than "
         f"max_steps = {max_steps} solver steps; start within a few turns of the "
         f"equilibrium (phi is in radians, and the spring k is not periodic in it)")
+
+
+def host_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure):
+    """The host-side part of a `simulate` call that depends on neither the initial state
+    nor the user's force: input checks, the linearisation, the structure, the solver.
+    Memoised for calls whose inputs are immutable (see `_plan_key`).
+
+    **Returns:** `(solver, structure, lin, top, invalid)`: `lin` the [`Linearization`][] of
+    concrete parameters and loads (else None), `top` its fastest rate, 1/s (for the
+    initial state's check, [`check_travel`][]), `invalid` the message of the first
+    failed parameter check (raised by `simulate` when every input is concrete), or None."""
+    key = _plan_key(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure)
+    plan = _PLANS.get(key) if key is not None else None
+    if plan is None:
+        plan = _compute_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw,
+                             structure)
+        if key is not None:
+            _remember(key, plan)
+    return plan
+
+
+def _compute_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure):
+    """[`host_plan`][] without the memo."""
+    if is_concrete(ts):
+        d = np.diff(np.asarray(ts))
+        if not np.all(d > 0):
+            i = int(np.argmin(d)) + 1
+            raise ValueError(f"ts must increase strictly; it does not at index {i}")
+    check_tolerances(rtol, atol)
+    check_unbatched("SliderCrank", mech)
+    # Concrete parameters are read on the host once (np.asarray per leaf: 5x cheaper than
+    # `jax.device_get` on the CPU), and linearised once where the solver policy or the
+    # time-scale check needs it.
+    concrete = is_concrete(mech)
+    host_mech = jax.tree_util.tree_map(np.asarray, mech) if concrete else mech
+    checked = throw and is_concrete(ts)
+    lin = (linearize(mech, load) if concrete and is_concrete(load)
+           and (solver == "auto" or checked) else None)
+    if structure is None:
+        structure = Structure.of(host_mech if concrete else mech)
+    solver = resolve_solver(solver, host_mech, rtol, atol, load=load, torque=torque, ts=ts,
+                            max_steps=max_steps, lin=lin)
+    top = None
+    if checked:
+        top = check_time_scale(host_mech, solver, float(np.ptp(np.asarray(ts))),
+                               int(max_steps), load, lin=lin)
+    invalid = _invalid_parameter(host_mech) if concrete else None
+    return solver, structure, lin, top, invalid
+
+
+# Host plans of the last few concrete calls (see `_plan_key`), oldest first: a concrete
+# call with the inputs of one of them (the same mechanism, loads, save times and
+# tolerances; any initial state) skips those checks and the linearisation, ~0.5 ms of a
+# ~2 ms lab-rig solve (measured on a 2-core VM; 0.15 ms of it the linearisation, the rest
+# NumPy on 0-d arrays and equinox attribute reads). A check that raised keeps no plan; a
+# failed parameter check is kept as its message, raised again by every such call.
+_PLANS: collections.OrderedDict = collections.OrderedDict()
+_PLANS_LOCK = threading.Lock()
+_PLANS_KEPT = 8
+# A plan holds references to its save times (so that their `id` stays theirs): only
+# for these many samples or fewer (8 plans of 0.8 MB at most).
+_PLAN_MAX_SAMPLES = 100_000
+
+
+def _plan_key(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure):
+    """A key that identifies a call's host plan, or None (no memo) unless every leaf is
+    immutable: a JAX array (by identity; the key holds it, so the identity cannot be
+    reused) or a Python or NumPy scalar (by value). Under a transformation the leaves
+    are tracers, which are not memoised."""
+    if ts.shape[0] > _PLAN_MAX_SAMPLES:
+        return None
+    leaves, treedef = jax.tree_util.tree_flatten((mech, load, torque, ts, rtol, atol))
+    parts = []
+    for x in leaves:
+        if isinstance(x, jax.core.Tracer):
+            return None
+        if isinstance(x, jax.Array):
+            parts.append(x)
+        elif isinstance(x, (float, int, bool, np.generic)):
+            parts.append((type(x), x))
+        else:  # a mutable array (NumPy's) or anything else: no memo
+            return None
+    return (_Identity(tuple(parts)), treedef, solver, int(max_steps), bool(throw), structure)
+
+
+class _Identity:
+    """Hashes and compares a tuple of JAX arrays by identity (and scalars by value),
+    keeping the arrays alive while it is a key."""
+
+    __slots__ = ("parts", "_hash")
+
+    def __init__(self, parts: tuple):
+        self.parts = parts
+        self._hash = hash(tuple(p if isinstance(p, tuple) else id(p) for p in parts))
+
+    def __hash__(self):
+        return self._hash
+
+    def __eq__(self, other):
+        return (isinstance(other, _Identity) and len(self.parts) == len(other.parts)
+                and all(a is b if not isinstance(a, tuple) else a == b
+                        for a, b in zip(self.parts, other.parts)))
+
+
+def _remember(key, plan) -> None:
+    with _PLANS_LOCK:
+        _PLANS[key] = plan
+        while len(_PLANS) > _PLANS_KEPT:
+            _PLANS.popitem(last=False)
+
+
+def _invalid_parameter(mech: SliderCrank) -> str | None:
+    """The message of the first parameter check that concrete `mech` fails (the checks
+    `_solve` makes with `eqx.error_if`, same messages), or None."""
+    # Python floats: the parameters are scalars here (`check_unbatched`), and the ~45
+    # comparisons run ~10x faster on floats than on 0-d arrays.
+    values = {n: float(getattr(mech, n)) for n in FIELDS}
+    for name, bad, rule in validation_rules(values):
+        if bad:
+            return f"SliderCrank.{name} is invalid: {rule}."
+    return None

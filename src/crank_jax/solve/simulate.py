@@ -33,9 +33,8 @@ from ..persistent import (
     enum_code,
     enum_name,
 )
-from .inputs import check_tolerances, check_unbatched
 from .lockstep import adaptive_solve
-from .policy import check_time_scale, is_concrete, resolve_solver
+from .policy import check_travel, host_plan, is_concrete
 from .twin import reverse_twin
 from .uniform import solve_uniform
 
@@ -316,37 +315,21 @@ def simulate(
         raise ValueError(f"adjoint must be 'reverse', 'forward' or 'direct', got {adjoint!r}")
     output_columns(outputs)  # validates names
     load, torque = as_load(load), as_load(torque)
-    dtype = jnp.result_type(float)
+    dtype = jax.dtypes.canonicalize_dtype(jnp.float64)  # float32 without x64
     if not (isinstance(ts, jax.Array) and ts.dtype == dtype):
         ts = jnp.asarray(ts, dtype=dtype)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"ts must be a 1-D array of at least 2 times, got shape {ts.shape}")
-    if is_concrete(ts):
-        d = np.diff(np.asarray(ts))
-        if not np.all(d > 0):
-            i = int(np.argmin(d)) + 1
-            raise ValueError(f"ts must increase strictly; it does not at index {i}")
-    check_tolerances(rtol, atol)
-    check_unbatched("SliderCrank", mech)
     for name, v in (("phi0", phi0), ("dphi0", dphi0), ("rtol", rtol), ("atol", atol)):
         if np.ndim(v) > 0:
             raise ValueError(f"{name} has shape {np.shape(v)}: simulate integrates one system; "
                              f"to run a batch, map over it with jax.vmap")
-    # Concrete parameters are read on the host once (np.asarray per leaf: 5x cheaper than
-    # `jax.device_get` on the CPU), and linearised once where the solver policy or the
-    # time-scale check needs it.
-    concrete = is_concrete(mech)
-    host_mech = jax.tree_util.tree_map(np.asarray, mech) if concrete else mech
+    solver, structure, lin, top, invalid = host_plan(mech, load, torque, ts, rtol, atol,
+                                                     solver, max_steps, throw, structure)
     checked = throw and is_concrete(ts)
-    lin = (linearize(mech, load) if concrete and is_concrete(load)
-           and (solver == "auto" or checked) else None)
-    if structure is None:
-        structure = Structure.of(host_mech if concrete else mech)
-    solver = resolve_solver(solver, host_mech, rtol, atol, load=load, torque=torque, ts=ts,
-                            max_steps=max_steps, lin=lin)
-    if checked:
-        check_time_scale(host_mech, solver, float(np.ptp(np.asarray(ts))), int(max_steps),
-                         load, phi0, dphi0, lin=lin)
+    if (checked and lin is not None and is_concrete((phi0, dphi0))
+            and np.isfinite(phi0) and np.isfinite(dphi0)):  # NaN: the finite check's
+        check_travel(lin, top, phi0, dphi0, float(np.ptp(np.asarray(ts))), int(max_steps))
     # Outside any transformation, check on the host and raise there: an `eqx.error_if` in
     # the program is a Python callback, and JAX's persistent compilation cache cannot
     # reuse a program with callbacks, so every process (every CLI call) would recompile.
@@ -356,7 +339,10 @@ def simulate(
         # solve's fixed cost (the jitted solve takes them as inputs all the same).
         y0 = np.array([np.asarray(phi0), np.asarray(dphi0)], dtype=dtype)
         rtol_, atol_ = np.asarray(rtol, dtype), np.asarray(atol, dtype)
-        _host_checks(host_mech, y0)
+        if invalid:
+            raise eqx.EquinoxRuntimeError(invalid)
+        if not np.all(np.isfinite(y0)):
+            raise eqx.EquinoxRuntimeError("initial state (phi0, dphi0) must be finite")
     else:
         y0 = jnp.stack([jnp.asarray(phi0, dtype), jnp.asarray(dphi0, dtype)])
         rtol_, atol_ = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
@@ -413,20 +399,6 @@ def _succeeded(result) -> bool:
     """Whether a concrete `diffrax.RESULTS` item is `successful`, read on the host (an
     equinox comparison is an eager device op)."""
     return int(np.asarray(result._value)) == int(diffrax.RESULTS.successful._value)
-
-
-def _host_checks(mech: SliderCrank, y0) -> None:
-    """The checks `_solve` makes with `eqx.error_if`, on concrete values, same messages."""
-    from ..model.params import FIELDS, validation_rules
-
-    # Python floats: the parameters are scalars here (`check_unbatched`), and the ~45
-    # comparisons run ~10x faster on floats than on 0-d arrays.
-    values = {n: float(getattr(mech, n)) for n in FIELDS}
-    for name, bad, rule in validation_rules(values):
-        if bad:
-            raise eqx.EquinoxRuntimeError(f"SliderCrank.{name} is invalid: {rule}.")
-    if not np.all(np.isfinite(np.asarray(y0))):
-        raise eqx.EquinoxRuntimeError("initial state (phi0, dphi0) must be finite")
 
 
 def _warn_if_float32() -> None:
