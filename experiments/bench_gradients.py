@@ -29,7 +29,7 @@ import argparse
 import time
 
 import numpy as np
-from _bench import median_time, save, setup_jax, use_clock
+from _bench import RESULTS, median_time, save, setup_jax, use_clock
 
 jax = setup_jax()
 import jax.numpy as jnp  # noqa: E402
@@ -103,9 +103,32 @@ def main(argv=None):
     fwd = next(r for r in rows if r["method"] == "jacfwd, dopri8-adaptive (default)")
     target4 = {"goal": 4.0, "method": fwd["method"], "ratio": fwd["ratio"]}
     print("agreement:", agree, "\ntarget (c):", target, "\nissue 9 target 4:", target4)
+    if a.forward_only and not smoke:
+        rows += _kept_reverse_rows()
     save("gradients", {"t1": t1, "samples": samples, "params": PARAMS, "rows": rows,
                        "max_rel_disagreement": agree, "target_c": target,
                        "target_4": target4}, smoke)
+
+
+def _kept_reverse_rows() -> list[dict]:
+    """The jacrev rows of the previous results file, labelled with the run they come from
+    (a `--forward-only` run does not time them; their ratio is to that run's forward
+    solve)."""
+    import json
+
+    path = RESULTS / "gradients.json"
+    if not path.exists():
+        return []
+    old = json.loads(path.read_text())
+    when = old.get("machine", {}).get("date", "an earlier run")
+    out = []
+    for r in old.get("rows", []):
+        if r["method"].startswith("jacrev"):
+            label = r["method"] if "not rerun" in r["method"] else (
+                f"{r['method']} (not rerun: from the run of {when}, ratio to that run's "
+                "forward solve)")
+            out.append(dict(r, method=label))
+    return out
 
 
 if __name__ == "__main__":
