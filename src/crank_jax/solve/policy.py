@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import threading
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -35,7 +36,7 @@ from .inputs import check_tolerances, check_unbatched
 from .uniform import uniform_grid
 
 __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
-           "is_concrete", "check_time_scale", "check_travel", "host_plan"]
+           "is_concrete", "check_time_scale", "check_travel", "host_plan", "HostPlan"]
 
 #: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`.
 SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform",
@@ -227,18 +228,15 @@ def _fits_interval_budget(lin, ts: np.ndarray, max_steps: int | None) -> bool:
 
 
 def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int,
-                     load: AbstractLoad | None = None, phi0=None, dphi0=None,
-                     lin=None) -> float | None:
-    """`ValueError` if the linearised fastest mode cannot be integrated over `span`, or
-    (given `phi0`, `dphi0`) if the initial state is too far from rest to resolve; else the
-    fastest rate, 1/s (None for traced values).
+                     load: AbstractLoad | None = None, lin=None) -> float | None:
+    """`ValueError` if the linearised fastest mode cannot be integrated over `span`; else
+    the fastest rate, 1/s (None for traced values), for [`check_travel`][].
 
     An explicit solver needs at least `span * rate / 3.5` steps (its stability limit on the
     fastest mode, `rate` from [`fastest_mode`][]); more than `max_steps` means the solve can
     only fail. Any solver fails once `span * rate > 1e12` (or the rate overflows). Both
     happen when k, a mass or an inertia is off by orders of magnitude (k = 1e300, masses of
     1e-300), so the message names the rate and the linearisation and asks to check them.
-    The initial state is checked by [`check_travel`][] on the same linearisation.
     Concrete values only; traced ones are skipped.
     """
     if not (is_concrete(mech) and is_concrete(load)):
@@ -260,8 +258,6 @@ def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int
             f"kg*m^2, chi = {chi:.3g} N*m*s/rad, xi = {xi:.3g} N*m/rad): over {span:g} s "
             f"that needs ~{need:.3g} solver steps (max_steps = {max_steps}); check the units "
             f"and values of k, c and the masses and inertias")
-    if phi0 is not None and is_concrete((phi0, dphi0)):
-        check_travel(lin, top, phi0, dphi0, span, max_steps)
     return top
 
 
@@ -288,15 +284,24 @@ def check_travel(lin, top: float, phi0, dphi0, span: float, max_steps: int) -> N
         f"equilibrium (phi is in radians, and the spring k is not periodic in it)")
 
 
-def host_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure):
+class HostPlan(NamedTuple):
+    """What [`host_plan`][] decides for a concrete `simulate` call."""
+
+    solver: str  #: the solver that runs (never "auto")
+    structure: Structure  #: the static set of terms
+    lin: object  #: the `Linearization` of concrete parameters and loads, else None
+    top: float | None  #: its fastest rate, 1/s, where the time scale was checked, else None
+    span: float | None  #: `ts[-1] - ts[0]`, s, likewise (both for [`check_travel`][])
+    invalid: str | None  #: the first failed parameter check's message, or None
+
+
+def host_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw,
+              structure) -> HostPlan:
     """The host-side part of a `simulate` call that depends on neither the initial state
     nor the user's force: input checks, the linearisation, the structure, the solver.
-    Memoised for calls whose inputs are immutable (see `_plan_key`).
-
-    **Returns:** `(solver, structure, lin, top, invalid)`: `lin` the [`Linearization`][] of
-    concrete parameters and loads (else None), `top` its fastest rate, 1/s (for the
-    initial state's check, [`check_travel`][]), `invalid` the message of the first
-    failed parameter check (raised by `simulate` when every input is concrete), or None."""
+    Memoised for calls whose inputs are immutable (see `_plan_key`). `simulate` raises
+    `invalid` when every input is concrete, and checks the initial state with
+    [`check_travel`][] where `top` is set."""
     key = _plan_key(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure)
     plan = _PLANS.get(key) if key is not None else None
     if plan is None:
@@ -328,12 +333,12 @@ def _compute_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, 
         structure = Structure.of(host_mech if concrete else mech)
     solver = resolve_solver(solver, host_mech, rtol, atol, load=load, torque=torque, ts=ts,
                             max_steps=max_steps, lin=lin)
-    top = None
+    top = span = None
     if checked:
-        top = check_time_scale(host_mech, solver, float(np.ptp(np.asarray(ts))),
-                               int(max_steps), load, lin=lin)
+        span = float(np.ptp(np.asarray(ts)))
+        top = check_time_scale(host_mech, solver, span, int(max_steps), load, lin=lin)
     invalid = _invalid_parameter(host_mech) if concrete else None
-    return solver, structure, lin, top, invalid
+    return HostPlan(solver, structure, lin, top, span, invalid)
 
 
 # Host plans of the last few concrete calls (see `_plan_key`), oldest first: a concrete

@@ -324,12 +324,10 @@ def simulate(
         if np.ndim(v) > 0:
             raise ValueError(f"{name} has shape {np.shape(v)}: simulate integrates one system; "
                              f"to run a batch, map over it with jax.vmap")
-    solver, structure, lin, top, invalid = host_plan(mech, load, torque, ts, rtol, atol,
-                                                     solver, max_steps, throw, structure)
-    checked = throw and is_concrete(ts)
-    if (checked and lin is not None and is_concrete((phi0, dphi0))
+    plan = host_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure)
+    if (plan.top is not None and is_concrete((phi0, dphi0))
             and np.isfinite(phi0) and np.isfinite(dphi0)):  # NaN: the finite check's
-        check_travel(lin, top, phi0, dphi0, float(np.ptp(np.asarray(ts))), int(max_steps))
+        check_travel(plan.lin, plan.top, phi0, dphi0, plan.span, int(max_steps))
     # Outside any transformation, check on the host and raise there: an `eqx.error_if` in
     # the program is a Python callback, and JAX's persistent compilation cache cannot
     # reuse a program with callbacks, so every process (every CLI call) would recompile.
@@ -339,16 +337,16 @@ def simulate(
         # solve's fixed cost (the jitted solve takes them as inputs all the same).
         y0 = np.array([np.asarray(phi0), np.asarray(dphi0)], dtype=dtype)
         rtol_, atol_ = np.asarray(rtol, dtype), np.asarray(atol, dtype)
-        if invalid:
-            raise eqx.EquinoxRuntimeError(invalid)
+        if plan.invalid:
+            raise eqx.EquinoxRuntimeError(plan.invalid)
         if not np.all(np.isfinite(y0)):
             raise eqx.EquinoxRuntimeError("initial state (phi0, dphi0) must be finite")
     else:
         y0 = jnp.stack([jnp.asarray(phi0, dtype), jnp.asarray(dphi0, dtype)])
         rtol_, atol_ = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
     args = (mech, load, torque, force, y0, ts, rtol_, atol_)
-    static = dict(solver=solver, max_steps=int(max_steps), adjoint=adjoint,
-                  structure=structure, outputs=tuple(sorted(set(outputs))))
+    static = dict(solver=plan.solver, max_steps=int(max_steps), adjoint=adjoint,
+                  structure=plan.structure, outputs=tuple(sorted(set(outputs))))
     traj = _program_solve(*args, **static) if host and force is None else None
     if traj is None:
         traj = _solve(*args, **static, throw=bool(throw) and not host,
