@@ -305,11 +305,21 @@ def _paired(pr) -> str:
             f"{q1:.2f}-{q3:.2f}x")
 
 
+def _strategy(ee) -> str:
+    """The main fit's strategy and the others', as recorded."""
+    st = ee.get("strategies")
+    if not st:
+        return "this start needs multiple shooting"
+    same = all(x == st[0] for x in st)
+    return (f"{st[0]}, " + ("the same for the other records" if same
+                            else "the others: " + "; ".join(st[1:])))
+
+
 def _end_to_end(ee) -> list[str]:
     m = ee["medians"]
     rows = [("`crank-jax fit`, empty cache (compiles and stores its programs)", "cli_fit_cold_s"),
             ("`crank-jax fit`, warm (loads them)", "cli_fit_warm_s"),
-            ("`crank-jax fit` of other records (length, noise, start), warm",
+            ("`crank-jax fit` of other records (length, noise, start values), warm",
              "cli_fit_warm_other_records_s"),
             ("`crank-jax fit` of a record in the next length bucket (compiles once)",
              "cli_fit_warm_new_bucket_s"),
@@ -325,16 +335,19 @@ def _end_to_end(ee) -> list[str]:
            f"{ee['record']} from k = {ee['start']['k']}, c = {ee['start']['c']} "
            "(`experiments/bench_end_to_end.py`, medians). Warm runs load the stored programs "
            "(`persistent.py`); what is left is importing JAX, loading the executables and "
-           "the fit itself (this start needs multiple shooting, 24 segments; MINPACK's LM "
-           "on the host, one call of the compiled residuals-and-Jacobian program a point).",
+           f"the fit itself ({_strategy(ee)}; MINPACK's LM on the host, one call of the "
+           "compiled residuals-and-Jacobian program a point).",
            "", "| run | wall time |", "|---|---|"]
     out += [f"| {label} | {m[key]:.2f} s |" for label, key in rows if key in m]
     other = ee["runs"].get("other", [])
     if len(other) >= 2:
         a, b = (float(np.median(other[i::2])) for i in (0, 1))
+        starts = ee.get("other_starts") or [{"k": "?", "c": "?"}] * 2
+        sa, sb = (f"from k = {s['k']}, c = {s['c']}" for s in starts)
         out += ["", f"The other records, each run after the first fit filled the store: "
-                f"1.03x as long {a:.2f} s and 0.9x as long {b:.2f} s: their lengths share "
-                "the first's bucket, so they load its programs. Record lengths are padded to "
+                f"1.03x as long {sa} {a:.2f} s and 0.9x as long {sb} {b:.2f} s: their lengths "
+                "share the first's bucket and their segment count comes from the record "
+                "alone, so they load its programs. Record lengths are padded to "
                 "72, 108, 144, 216, ..., 1152, 1728, ... samples (9 * 2^k and 27 * 2^k, so "
                 "that N + 1 samples of a round duration at a round rate sit ~15% below an "
                 "edge) and multiple-shooting segment counts rounded to 2, 3, 4, 6, 8, 12, "

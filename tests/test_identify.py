@@ -214,6 +214,34 @@ def test_other_record_lengths_reuse_the_compiled_programs(lab_rig):
     assert shapes[0] == shapes[1]
 
 
+def _compiled(program) -> int:
+    """How many programs `program` (a PersistentProgram, without a store) has compiled."""
+    return sum(f._cache_size() for f in program._flat.values())
+
+
+def test_other_start_values_reuse_the_compiled_programs(lab_rig):
+    # The multiple-shooting segment count is a shape of the compiled programs. It comes
+    # from the record alone, so a start 10% off and one 50% off in k (which predict very
+    # different phase drifts) run the same programs: the second fit compiles nothing.
+    from crank_jax.identify.programs import jacobian_at, residuals_at
+    from crank_jax.identify.strategy import n_segments
+
+    counts = {n_segments(5.0, 0.23, pm, "auto", None)[0] for pm in (0.2, 0.21, 0.25, 0.4)}
+    assert len(counts) == 1 and counts.pop() > 1
+    data = cj.synthesize(lab_rig, t1=5.0, rate=200.0, noise_std=1e-3, seed=5)
+    res = []
+    for k0 in (2.2, 3.0):
+        before = _compiled(jacobian_at) + _compiled(residuals_at)
+        res.append(cj.fit(lab_rig, data, init={"k": k0, "c": 0.004}, progress=False,
+                          warn=False))
+        added = _compiled(jacobian_at) + _compiled(residuals_at) - before
+    assert added == 0
+    assert res[0].strategy == res[1].strategy and res[0].strategy.startswith("multiple")
+    for r in res:
+        assert r.converged, r.message
+        assert r.values["k"] == pytest.approx(2.0, rel=1e-3)
+
+
 _NO_CALLBACKS = """
 import jax
 jax.config.update("jax_enable_x64", True)

@@ -55,7 +55,7 @@ from .strategy import (
     n_segments,
     ode_budget,
     perturb,
-    segment_count,
+    record_segments,
 )
 from .uncertainty import RANK_TOL, assess, undefined
 
@@ -291,7 +291,7 @@ def _optimise(req: FitRequest, plan: _Plan) -> tuple[Run, int, list[str]]:
     tried = []
     escalate = req.shooting == "auto" and req.segments is None and req.method == "lm"
     if escalate and plan.shoot is plan.single and _stalled(first, n, plan, req):
-        nseg = [segment_count(math.ceil((d.ts[-1] - d.ts[0]) / p / 2)) if p else 2
+        nseg = [record_segments(float(d.ts[-1] - d.ts[0]), p)
                 for d, p in zip(req.records, plan.periods)]
         ms, z0 = _shooting(req, plan, nseg)
         label = f"multiple shooting ({'+'.join(map(str, nseg))} segments)"
