@@ -311,7 +311,8 @@ def _strategy(ee) -> str:
     if not st:
         return "this start needs multiple shooting"
     same = all(x == st[0] for x in st)
-    return (f"{st[0]}, " + ("the same for the other records" if same
+    st = [x.replace(" (", ", ").rstrip(")") for x in st]
+    return (f"{st[0]}; " + ("the same for the other records" if same
                             else "the others: " + "; ".join(st[1:])))
 
 
@@ -345,9 +346,9 @@ def _end_to_end(ee) -> list[str]:
         starts = ee.get("other_starts") or [{"k": "?", "c": "?"}] * 2
         sa, sb = (f"from k = {s['k']}, c = {s['c']}" for s in starts)
         out += ["", f"The other records, each run after the first fit filled the store: "
-                f"1.03x as long {sa} {a:.2f} s and 0.9x as long {sb} {b:.2f} s: their lengths "
-                "share the first's bucket and their segment count comes from the record "
-                "alone, so they load its programs. Record lengths are padded to "
+                f"1.03x as long, {sa}: {a:.2f} s; 0.9x as long, {sb}: {b:.2f} s. Their "
+                "lengths share the first's bucket and their segment count comes from the "
+                "record alone, so they load its programs. Record lengths are padded to "
                 "72, 108, 144, 216, ..., 1152, 1728, ... samples (9 * 2^k and 27 * 2^k, so "
                 "that N + 1 samples of a round duration at a round rate sit ~15% below an "
                 "edge) and multiple-shooting segment counts rounded to 2, 3, 4, 6, 8, 12, "
