@@ -30,7 +30,7 @@ SEGMENT_PERIODS = 2.0
 #: Most segments per record (longer records get longer segments): the LM's host-side
 #: linear algebra grows with the square of the coordinates (two per segment).
 MAX_SEGMENTS = 48
-#: Largest predicted phase drift (rad) over a single-shooting record or one segment.
+#: Largest predicted phase drift (rad) over a record that `"auto"` fits by single shooting.
 MAX_DRIFT = 1.0
 #: The ODE step budget of a fit's solves when the start solve is cheap, and otherwise.
 SMALL_ODE_BUDGET = 32_768
