@@ -42,6 +42,7 @@ PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true")
+    ap.add_argument("--tag", default="", help="suffix of the results file (e.g. _small_loops)")
     ap.add_argument("--forward-only", action="store_true", help="skip the jacrev variants")
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                     help="time on the wall clock or the process CPU clock (shared machines)")
@@ -105,7 +106,7 @@ def main(argv=None):
     print("agreement:", agree, "\ntarget (c):", target, "\nissue 9 target 4:", target4)
     if a.forward_only and not smoke:
         rows += _kept_reverse_rows()
-    save("gradients", {"t1": t1, "samples": samples, "params": PARAMS, "rows": rows,
+    save("gradients" + a.tag, {"t1": t1, "samples": samples, "params": PARAMS, "rows": rows,
                        "max_rel_disagreement": agree, "target_c": target,
                        "target_4": target4}, smoke)
 

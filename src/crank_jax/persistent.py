@@ -109,7 +109,10 @@ def _environment() -> str:
                 versions.append(f"{name}=-")
         _ENV = (f"{h.hexdigest()}|{','.join(versions)}|{sys.version_info[:2]}"
                 f"|{platform.machine()}")
-    return f"{_ENV}|x64={jax.config.jax_enable_x64}|{jax.default_backend()}"
+    # XLA_FLAGS change the compiled code (e.g. the CLI's small-loop threshold, see
+    # xla_flags.py), so programs compiled under other flags are other programs.
+    return (f"{_ENV}|x64={jax.config.jax_enable_x64}|{jax.default_backend()}"
+            f"|{os.environ.get('XLA_FLAGS', '')}")
 
 
 def _signature(name: str, args) -> tuple[str | None, list, object, object]:
