@@ -26,6 +26,7 @@ from _bench import save, setup_jax, wall
 setup_jax()
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.xla_flags import with_cpu_flags  # noqa: E402
 
 CLI = [sys.executable, "-m", "crank_jax"]
 HERE = Path(__file__).resolve().parent
@@ -159,6 +160,8 @@ def main(argv=None):
         "free": "k,c,phi0,dphi0", "start": {"k": STARTS[0][0], "c": STARTS[0][1]},
         "other_starts": [{"k": k, "c": c} for k, c in STARTS[1:]],
         "strategies": strategies,
+        # what the `crank-jax` program runs with (it sets the small-loop threshold itself)
+        "cli_xla_flags": with_cpu_flags(os.environ.get("XLA_FLAGS")),
         "scipy_peer_estimate": [float(v) for v in peer_x],
         "medians": med, "runs": dict(cold=cold, warm=warm, other=other, new_bucket=new_bucket,
                                      demo_cold=demo_cold,

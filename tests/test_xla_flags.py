@@ -1,5 +1,5 @@
-"""The small-loop XLA flag: the CLI program sets it, the library never does, and it changes
-how fast a solve runs, not what it returns."""
+"""crank-jax's CPU flags for XLA: the CLI program sets them, the library never does, and
+they change how fast a solve runs, not what it returns."""
 
 import json
 import os
@@ -11,24 +11,30 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax.xla_flags import SMALL_LOOP_FLAG, small_loops_set, with_small_loops
+from crank_jax.xla_flags import cpu_flags, with_cpu_flags
 
 KEY = "xla_cpu_small_while_loop_byte_threshold"
+LOOP = f"--xla_backend_extra_options={KEY}=1048576"
+WIDTH = "--xla_cpu_prefer_vector_width=512"
 
 
 @pytest.mark.parametrize("flags, expected", [
-    (None, SMALL_LOOP_FLAG),
-    ("", SMALL_LOOP_FLAG),
-    ("--xla_dump_to=/tmp/x", f"--xla_dump_to=/tmp/x {SMALL_LOOP_FLAG}"),
+    (None, "{ours}"),
+    ("", "{ours}"),
+    ("--xla_dump_to=/tmp/x", "--xla_dump_to=/tmp/x {ours}"),
     # The user's own backend options are kept: the threshold joins their list.
     ("--xla_backend_extra_options=a=1 --b",
-     f"--xla_backend_extra_options=a=1,{KEY}=1048576 --b"),
-    # The user's threshold wins.
-    (f"--xla_backend_extra_options={KEY}=0", f"--xla_backend_extra_options={KEY}=0"),
+     f"--xla_backend_extra_options=a=1,{KEY}=1048576 --b {{width}}"),
+    # The user's threshold and vector width win.
+    (f"--xla_backend_extra_options={KEY}=0", f"--xla_backend_extra_options={KEY}=0 {{width}}"),
+    (f"--xla_cpu_prefer_vector_width=256 {LOOP}", f"--xla_cpu_prefer_vector_width=256 {LOOP}"),
 ])
-def test_with_small_loops_merges_and_respects_the_user(flags, expected):
-    assert with_small_loops(flags) == expected
-    assert small_loops_set(with_small_loops(flags))
+def test_with_cpu_flags_merges_and_respects_the_user(flags, expected):
+    ours = " ".join(cpu_flags())
+    width = WIDTH if WIDTH in ours else ""
+    assert cpu_flags()[0] == LOOP
+    assert with_cpu_flags(flags) == expected.format(ours=ours, width=width).strip()
+    assert with_cpu_flags(with_cpu_flags(flags)) == with_cpu_flags(flags)  # idempotent
 
 
 def _env(**extra):
@@ -49,9 +55,10 @@ def _flags_seen_by_the_program(env) -> str:
 
 
 def test_the_program_sets_the_flag_and_the_library_does_not():
-    assert _flags_seen_by_the_program(_env()) == SMALL_LOOP_FLAG
+    assert _flags_seen_by_the_program(_env()) == " ".join(cpu_flags())
     mine = f"--xla_backend_extra_options={KEY}=2048"
-    assert _flags_seen_by_the_program(_env(XLA_FLAGS=mine)) == mine
+    seen = _flags_seen_by_the_program(_env(XLA_FLAGS=mine))
+    assert seen.startswith(mine) and seen == with_cpu_flags(mine) and "1048576" not in seen
     # Importing the library and running a solve leave XLA_FLAGS alone.
     code = ("import os, crank_jax as cj\n"
             "cj.simulate(cj.load_scene('lab-rig').mech, 1.0, 0.0, [0.0, 0.1])\n"
@@ -63,9 +70,9 @@ def test_the_program_sets_the_flag_and_the_library_does_not():
 
 
 def test_the_flag_changes_speed_not_results():
-    """A solve and a forward Jacobian in a process with the flag equal this process's (run
-    under the environment's flags) to rounding: the flag changes how XLA schedules the
-    loops, not the arithmetic."""
+    """A solve and a forward Jacobian in a process with the flags equal this process's (run
+    under the environment's flags) to rounding: the flags change how XLA schedules the
+    loops and how wide its vectors are, not the arithmetic."""
     code = (
         "import json, jax; jax.config.update('jax_enable_x64', True)\n"
         "import jax.numpy as jnp, crank_jax as cj\n"
@@ -74,7 +81,7 @@ def test_the_flag_changes_speed_not_results():
         "f = lambda k: cj.simulate(m.replace(k=k), 1.0, 0.0, ts, adjoint='forward').phi\n"
         "print(json.dumps([f(2.0).tolist(), jax.jacfwd(f)(2.0).tolist()]))\n")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       env=_env(XLA_FLAGS=SMALL_LOOP_FLAG), timeout=300)
+                       env=_env(XLA_FLAGS=with_cpu_flags(None)), timeout=300)
     assert p.returncode == 0, p.stderr
     phi, dphi_dk = (np.asarray(x) for x in json.loads(p.stdout.strip().splitlines()[-1]))
     mech = cj.load_scene("lab-rig").mech.replace(c=1e-3)

@@ -25,8 +25,10 @@ The public API, by topic (everything else is private; the subpackages
   `Validation`.
 - Monte Carlo: `sweep`, `SweepResult`, `REDUCTIONS`, `STATUS`, `VARIABLES`,
   `sweep_cost`, `initialize_distributed`, `distributions`.
-- Files and the compilation cache: `atomic_write`, `enable_compilation_cache`,
-  `default_cache_dir`.
+- Files, the compilation cache and XLA's CPU flags: `atomic_write`,
+  `enable_compilation_cache`, `default_cache_dir`, `with_cpu_flags` (an `XLA_FLAGS`
+  value for a program to set before JAX starts: faster solves on the CPU; see
+  `crank_jax.xla_flags`).
 """
 
 from . import distributions
@@ -143,6 +145,7 @@ from .validate import (
     Validation,
     validate,
 )
+from .xla_flags import with_cpu_flags
 
 __version__ = "0.1.0"
 
@@ -229,4 +232,5 @@ __all__ = [
     "Validation",
     "VARIABLES",
     "widen",
+    "with_cpu_flags",
 ]

@@ -111,8 +111,9 @@ def _environment() -> str:
                 f"|{platform.machine()}")
     # XLA_FLAGS change the compiled code (e.g. the CLI's small-loop threshold, see
     # xla_flags.py), so programs compiled under other flags are other programs.
+    # So does the device count (a batch may be spread over several CPU devices).
     return (f"{_ENV}|x64={jax.config.jax_enable_x64}|{jax.default_backend()}"
-            f"|{os.environ.get('XLA_FLAGS', '')}")
+            f"|{jax.device_count()}|{os.environ.get('XLA_FLAGS', '')}")
 
 
 def _signature(name: str, args) -> tuple[str | None, list, object, object]:

@@ -25,7 +25,7 @@ import warnings
 from collections.abc import Iterator
 
 from ..io import Terminated, note_signal, raise_if_terminated
-from ..xla_flags import with_small_loops
+from ..xla_flags import with_cpu_flags
 from . import identify, simulate, sweep, validate
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
 
@@ -194,11 +194,12 @@ def entry() -> None:
     atomically and closed before `main` returns, so only the standard streams are flushed.
     (`main` itself returns, for callers in a running interpreter.)
 
-    Before JAX starts, it raises XLA's small-loop threshold in `XLA_FLAGS` (see
-    `crank_jax.xla_flags`: solves ~2x faster on the CPU), unless `XLA_FLAGS` names it
-    already. Only here: `main` may run inside a host program whose JAX is configured.
+    Before JAX starts, it adds crank-jax's CPU flags to `XLA_FLAGS` (XLA's small-loop
+    threshold, and 512-bit vectors on AVX-512 CPUs: see `crank_jax.xla_flags`), keeping
+    any the user set. Only here: `main` may run inside a host program whose JAX is
+    configured.
     """
-    os.environ["XLA_FLAGS"] = with_small_loops(os.environ.get("XLA_FLAGS"))
+    os.environ["XLA_FLAGS"] = with_cpu_flags(os.environ.get("XLA_FLAGS"))
     code = main()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
