@@ -94,11 +94,23 @@ def main(argv=None):
         rows.append({"method": label, "time_s": t, "ratio": t / base, "compile_s": comp,
                      "shape": list(J.shape)})
         print(rows[-1], flush=True)
+    # One tangent (d phi / d k) through the default solver: what a single forward-mode
+    # direction costs, to tell the fixed cost of the tangent code from the per-direction one.
+    one = jax.jit(lambda th: jax.jvp(lambda th: phi(th, "auto", "forward"), (th,),
+                                     (jnp.eye(len(PARAMS))[PARAMS.index("k")],))[1])
+    t0 = time.perf_counter()
+    jax.block_until_ready(one(theta0))
+    comp = time.perf_counter() - t0
+    t = median_time(lambda: jax.block_until_ready(one(theta0)), repeats, warmup=0)
+    rows.append({"method": "jvp, one tangent (k), dopri8-adaptive (default)", "time_s": t,
+                 "ratio": t / base, "compile_s": comp, "shape": [samples]})
+    print(rows[-1], flush=True)
     # The Jacobians agree (relative to the largest sensitivity of each parameter).
     ref = jacs["jacfwd, diffrax Dopri8 (ForwardMode)"]
     scale = np.max(np.abs(ref), axis=0)
     agree = {k: float(np.max(np.abs(v - ref) / scale)) for k, v in jacs.items()}
-    best = min((r for r in rows if r["compile_s"] is not None),  # the Jacobians
+    best = min((r for r in rows if r["compile_s"] is not None  # the Jacobians
+                and not r["method"].startswith("jvp")),
                key=lambda r: r["time_s"])
     target = {"goal": 5.0, "best_method": best["method"], "ratio": best["ratio"]}
     fwd = next(r for r in rows if r["method"] == "jacfwd, dopri8-adaptive (default)")

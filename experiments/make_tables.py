@@ -14,7 +14,7 @@ import json
 import re
 
 import numpy as np
-from _bench import RESULTS, ROOT, interp_time
+from _bench import FIGURES, RESULTS, ROOT, interp_time
 
 BEGIN = "<!-- BEGIN performance (owner: performance) -->"
 END = "<!-- END performance -->"
@@ -82,19 +82,23 @@ def section() -> str:
             "per save interval with a summed error budget; it lands 10-1000x below its "
             "tolerance, and its JVP integrates the variational equation on the same steps "
             "(the Jacobian row below).", "",
-            "**XLA's small-loop threshold.** XLA's CPU runtime (jax >= 0.7) runs a program "
-            "as a sequence of kernels dispatched one by one, a loop body's once per "
+            "**XLA's CPU flags, and CPU devices.** XLA's CPU runtime (jax >= 0.7) runs a "
+            "program as a sequence of kernels dispatched one by one, a loop body's once per "
             "iteration; a loop whose iteration touches fewer than 1024 bytes it compiles into "
             "one function instead. A Dopri8 step touches more (13 stages, each reading the "
             "packed coefficients), so by default each step pays ~30 dispatches. The "
-            "`crank-jax` program raises the threshold to 1 MiB in `XLA_FLAGS` before JAX "
-            "starts (`crank_jax.xla_flags`; a value the user set wins); the library cannot "
-            "and does not (the setting is process-wide, read when JAX starts, and "
-            "`jax.jit`'s `compiler_options` cannot reach it), so a Python user sets it "
-            "the same way: `os.environ[\"XLA_FLAGS\"] = cj.with_cpu_flags(os.environ.get("
-            "\"XLA_FLAGS\"))` before the first JAX computation. The tables below are measured "
-            "with XLA's defaults unless they say otherwise; the section \"With the "
-            "small-loop threshold\" repeats the targets' measurements with it.", ""]
+            "`crank-jax` program raises that threshold to 1 MiB in `XLA_FLAGS` before JAX "
+            "starts, and on a CPU with AVX-512 asks for 512-bit vectors (`crank_jax."
+            "xla_flags`; a value the user set wins). The library cannot and does not: the "
+            "settings are process-wide, read when JAX starts, and `jax.jit`'s "
+            "`compiler_options` cannot reach the threshold; a Python program sets them the "
+            "same way, `os.environ[\"XLA_FLAGS\"] = cj.with_cpu_flags(os.environ.get("
+            "\"XLA_FLAGS\"))`, before its first JAX computation. Likewise a program that asks "
+            "JAX for several CPU devices (`jax_num_cpu_devices`) gets a `vmap`-ed lockstep "
+            "batch's groups spread over them, one core each (`solve/lockstep.py`; JAX's "
+            "default is one). The tables below are measured with XLA's defaults and one "
+            "device unless they say otherwise; \"With the CPU flags\" repeats the targets' "
+            "measurements with them.", ""]
     if wp:
         out += ["### Work-precision", "", f"*{_machine(wp['machine'])}*", "",
                 "![work-precision](docs/figures/work_precision.png)", "",
@@ -250,7 +254,7 @@ def section() -> str:
         out.append("")
     if ee:
         out += _end_to_end(ee)
-    out += _small_loops(wp2_of(wp), tp, gr)
+    out += _cpu_flags(wp2_of(wp), tp, gr)
     out += ["### Targets", ""]
     if wp:
         a = wp["target_a"]
@@ -272,8 +276,8 @@ def section() -> str:
                    f"({t2['default_error']:.1e} rad; {wp2['machine']['date']}); "
                    f"{t2['ratio_vs_cheapest_meeting_1e-8'] or float('nan'):.2f}x against "
                    "DOP853's cheapest run meeting 1e-8 rad" + _paired(t2.get("paired"))
-                   + _with_threshold("work_precision", "target_2", "ratio_at_equal_error",
-                                     3.0) + ".")
+                   + _with_flags("work_precision", "target_2", "ratio_at_equal_error", 3.0)
+                   + ".")
     if tp and tp.get("target_3"):
         t3 = tp["target_3"]
         r3 = t3["ratio_equal_error"]
@@ -283,7 +287,9 @@ def section() -> str:
                    f"({t3['max_error']:.1e} rad); "
                    f"{t3['ratio_vs_cheapest_meeting_1e-8'] or float('nan'):.3f}x against "
                    "DOP853's cheapest run meeting 1e-8 rad"
-                   + _with_threshold("throughput", "target_3", "ratio_equal_error", 0.15)
+                   + _with_flags("throughput", "target_3", "ratio_equal_error", 0.15)
+                   + _with_flags("throughput", "target_3", "ratio_equal_error", 0.15,
+                                 "_cpu_flags_two_devices", "with them and two CPU devices")
                    + ".")
     if gr:
         c = gr["target_c"]
@@ -294,7 +300,7 @@ def section() -> str:
             out.append(f"- (issue 9, 4) forward-sensitivity Jacobian (10 parameters, "
                        f"{gr['samples']} samples) <= 4x one forward solve: "
                        f"{_met(t4['ratio'] <= 4)}, {t4['ratio']:.2f}x ({t4['method']})"
-                       + _with_threshold("gradients", "target_4", "ratio", 4.0) + ".")
+                       + _with_flags("gradients", "target_4", "ratio", 4.0) + ".")
     if ee:
         m, t = ee["medians"], ee["targets_met"]
         out.append(f"- (issue 9, 1) `crank-jax fit` warm <= 2 s and <= half the scipy script: "
@@ -314,13 +320,14 @@ def section() -> str:
     return "\n".join(out)
 
 
-def _with_threshold(name, target, key, goal) -> str:
-    """"; with the small-loop threshold: ..." from the run tagged `_small_loops`, if any."""
-    x = _load(f"{name}_small_loops")
+def _with_flags(name, target, key, goal, tag="_cpu_flags",
+                label="with the CPU flags") -> str:
+    """"; with the CPU flags: ..." from the run tagged `tag`, if any."""
+    x = _load(f"{name}{tag}")
     r = x and (x.get(target) or {}).get(key)
     if r is None:
         return ""
-    return f"; with the small-loop threshold: {_met(r <= goal)}, {r:.3g}x"
+    return f"; {label}: {_met(r <= goal)}, {r:.3g}x"
 
 
 def wp2_of(wp):
@@ -329,26 +336,36 @@ def wp2_of(wp):
     return wp if wp and wp.get("target_2") else _load("work_precision_after")
 
 
-def _small_loops(wp2, tp, gr) -> list[str]:
-    """Issue 9's targets 2-4 measured again in processes with the small-loop threshold
-    (`XLA_FLAGS` from `crank_jax.xla_flags`; runs tagged `_small_loops`), beside the runs
-    with XLA's defaults. Each ratio is to a peer measured in the same run."""
-    swp, stp, sgr = (_load(f"{n}_small_loops") for n in
-                     ("work_precision", "throughput", "gradients"))
-    if not (swp or stp or sgr):
+def _cpu_flags(wp2, tp, gr) -> list[str]:
+    """Issue 9's targets 2-4 measured again in processes with crank-jax's CPU flags
+    (`XLA_FLAGS` from `crank_jax.with_cpu_flags`; runs tagged `_cpu_flags`), and the batch
+    also with two CPU devices (`_cpu_flags_two_devices`), beside the runs with XLA's
+    defaults. Each ratio is to a peer measured in the same run."""
+    fwp, ftp, fgr, ftp2 = (_load(n) for n in (
+        "work_precision_cpu_flags", "throughput_cpu_flags", "gradients_cpu_flags",
+        "throughput_cpu_flags_two_devices"))
+    if not (fwp or ftp or fgr or ftp2):
         return []
-    flags = next(x["machine"].get("xla_flags") for x in (swp, stp, sgr) if x)
-    out = ["### With the small-loop threshold", "",
-           f"`XLA_FLAGS={flags}` (what `crank-jax` sets). Each ratio is to a peer measured "
-           "in the same run; the default column repeats the tables above.", "",
-           "| measurement | XLA defaults | small-loop threshold | goal |", "|---|---|---|---|"]
+    flags = next(x["machine"].get("xla_flags") for x in (fwp, ftp, fgr, ftp2) if x)
+    out = ["### With the CPU flags", "",
+           f"`XLA_FLAGS=\"{flags}\"` (what `crank-jax` sets on this machine; "
+           "`cj.with_cpu_flags`), and for the batch also two CPU devices "
+           "(`JAX_NUM_CPU_DEVICES=2`, i.e. `jax.config.update(\"jax_num_cpu_devices\", 2)` "
+           "before JAX starts), over which a lockstep batch spreads its groups of members. "
+           "Each ratio is to a peer measured in the same run (the compiled numba DOP853 at "
+           "equal error, or the forward solve); the first column repeats the tables above.",
+           "", "| measurement | XLA defaults | CPU flags | CPU flags, two CPU devices | goal |",
+           "|---|---|---|---|---|"]
+
+    def when(x):
+        return x["machine"]["date"][5:16]
 
     def t2(w):
         t = w and w.get("target_2")
         if not t or t["ratio_at_equal_error"] is None:
             return "n/a"
         return (f"{_ms(t['default_time_s'])} at {t['default_error']:.1e} rad: "
-                f"**{t['ratio_at_equal_error']:.2f}x** ({w['machine']['date'][:16]})")
+                f"**{t['ratio_at_equal_error']:.2f}x** ({when(w)})")
 
     def t3(x):
         t = x and x.get("target_3")
@@ -357,7 +374,7 @@ def _small_loops(wp2, tp, gr) -> list[str]:
         r = next(r for r in x["rows"] if r["N"] == 10_000 and r["method"] == "default (auto)"
                  and r["max_error"] == t["max_error"])
         return (f"{_us(r['per_traj_s'])} per trajectory: **{t['ratio_equal_error']:.3f}x** "
-                f"({x['machine']['date'][:16]})")
+                f"({when(x)})")
 
     def one(x):
         r = x and next((r for r in x["rows"] if r["N"] == 1 and r["rtol"] == 1e-9
@@ -371,22 +388,26 @@ def _small_loops(wp2, tp, gr) -> list[str]:
         fwd = g["rows"][0]["time_s"]
         jac = next(r for r in g["rows"] if r["method"] == g["target_4"]["method"])
         return (f"{_ms(jac['time_s'])} against {_ms(fwd)}: **{g['target_4']['ratio']:.2f}x** "
-                f"({g['machine']['date'][:16]})")
+                f"({when(g)})")
 
-    out += [f"| (2) `simulate`, one trajectory, against the compiled DOP853 | {t2(wp2)} | "
-            f"{t2(swp)} | <= 3.0x |",
-            f"| one trajectory inside `jit(vmap)` (N = 1, rtol 1e-9), against DOP853 | "
-            f"{one(tp)} | {one(stp)} | |",
-            f"| (3) batch of 1e4, `jit(vmap)`, against DOP853 per trajectory | {t3(tp)} | "
-            f"{t3(stp)} | <= 0.15x |",
+    out += [f"| (2) `simulate`, one trajectory, against DOP853 | {t2(wp2)} | {t2(fwp)} | "
+            "(one device's work) | <= 3.0x |",
+            f"| one trajectory in `jit(vmap)` (N = 1, rtol 1e-9), against DOP853 | {one(tp)} "
+            f"| {one(ftp)} | {one(ftp2)} | |",
+            f"| (3) batch of 1e4 in `jit(vmap)`, against DOP853 per trajectory | {t3(tp)} | "
+            f"{t3(ftp)} | {t3(ftp2)} | <= 0.15x |",
             f"| (4) forward Jacobian (10 parameters) against one forward solve | {t4(gr)} | "
-            f"{t4(sgr)} | <= 4x |", "",
-            "The threshold takes the dispatch cost out of the step loops: one trajectory "
-            "becomes cheaper than the compiled DOP853, and a Jacobian costs about as many "
-            "forward solves as before, each ~2x cheaper (the ratio measures the tangent "
-            "arithmetic, which the threshold does not change). A 10^4 batch is bound by its "
-            "kernels' arithmetic on one core, which the threshold does not change either.",
-            ""]
+            f"{t4(fgr)} | (one device's work) | <= 4x |", "",
+            "What each setting changes: the small-loop threshold takes the dispatch cost out "
+            "of the step loops, so a single trajectory and a Jacobian get ~2x cheaper (the "
+            "Jacobian's ratio to the forward solve changes little: both lose the same "
+            "overhead, and what is left is the tangent code); 512-bit vectors make the "
+            "batch's SIMD arithmetic cheaper; a second CPU device runs half of the batch's "
+            "groups on the second core. The batch's ratio also moves with the peer's own "
+            "time, which varies between runs on this shared machine.", ""]
+    if fwp and (FIGURES / "work_precision_cpu_flags.png").exists():
+        out += ["The lab rig's work-precision figure from the run with the CPU flags:", "",
+                "![work-precision, CPU flags](docs/figures/work_precision_cpu_flags.png)", ""]
     return out
 
 
@@ -433,7 +454,7 @@ def _end_to_end(ee) -> list[str]:
            "(`persistent.py`); what is left is importing JAX, loading the executables and "
            f"the fit itself ({_strategy(ee)}; MINPACK's LM on the host, one call of the "
            "compiled residuals-and-Jacobian program a point). The `crank-jax` runs use the "
-           "small-loop threshold the program sets (see above"
+           "CPU flags the program sets (see above"
            + ("" if ee.get("cli_xla_flags") else "; this run predates it") + "); "
            "the fits inside a Python process use XLA's defaults, as a library user's do.",
            "", "| run | wall time |", "|---|---|"]
