@@ -235,13 +235,18 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback):
 
         return solve
 
-    solve = batched(spread=True)
     if adjoint != "reverse":
-        return solve(dyn, y0, ts, rtol, atol)
+        return batched(spread=True)(dyn, y0, ts, rtol, atol)
+    return _with_fallback_vjp(batched, fallback, rebuild)(dyn, y0, ts, rtol, atol)
+
+
+def _with_fallback_vjp(batched, fallback, rebuild):
+    """The solve `batched(spread)` with reverse mode through `fallback` (see the module's
+    docstring)."""
 
     @jax.custom_vjp
     def reverse(dyn, y0, ts, rtol, atol):
-        return solve(dyn, y0, ts, rtol, atol)
+        return batched(spread=True)(dyn, y0, ts, rtol, atol)
 
     def fwd(dyn, y0, ts, rtol, atol):
         # A batch being differentiated in reverse stays on one device: XLA's SPMD
@@ -258,4 +263,4 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback):
         return d_dyn, d_y0, jnp.zeros_like(ts), jnp.zeros_like(rtol), jnp.zeros_like(atol)
 
     reverse.defvjp(fwd, bwd)
-    return reverse(dyn, y0, ts, rtol, atol)
+    return reverse
