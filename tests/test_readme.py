@@ -1,0 +1,32 @@
+"""The README's quick start runs as written (in a fresh interpreter, as a user pastes it)
+and stays within its 15 lines."""
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+
+def _quick_start() -> str:
+    text = README.read_text()
+    section = text[text.index("## Quick start"):text.index("## Architecture")]
+    return re.search(r"```python\n(.*?)```", section, re.S).group(1)
+
+
+def test_quick_start_runs_and_is_short():
+    code = _quick_start()
+    assert len(code.strip().splitlines()) <= 15
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["CRANK_JAX_NO_CACHE"] = "1"
+    p = subprocess.run([sys.executable, "-c", code + "\nprint('XLA_FLAGS=' + "
+                        "os.environ['XLA_FLAGS'])\n"],
+                       capture_output=True, text=True, env=env, timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    # The fit's summary: k near its true value of 2 (the lab rig's), and converged.
+    k = re.search(r"^k\s+\S+\s+(\S+)", p.stdout, re.M)
+    assert k and abs(float(k.group(1)) - 2.0) < 1e-3, p.stdout[-2000:]
+    assert "converged after" in p.stdout
+    assert "xla_cpu_small_while_loop_byte_threshold" in p.stdout
