@@ -94,9 +94,11 @@ def section() -> str:
             "`compiler_options` cannot reach the threshold; a Python program sets them the "
             "same way, `os.environ[\"XLA_FLAGS\"] = cj.with_cpu_flags(os.environ.get("
             "\"XLA_FLAGS\"))`, before its first JAX computation. Likewise a program that asks "
-            "JAX for several CPU devices (`jax_num_cpu_devices`) gets a `vmap`-ed lockstep "
-            "batch's groups spread over them, one core each (`solve/lockstep.py`; JAX's "
-            "default is one). The tables below are measured with XLA's defaults and one "
+            "JAX for several CPU devices (`jax_num_cpu_devices`; JAX's default is one) gets a "
+            "`vmap`-ed lockstep batch's groups spread over them, one core each "
+            "(`solve/lockstep.py`), and a sweep's chunks (`sweep/run.py`). "
+            "`cj.configure_cpu()` does both, a device per core; the `crank-jax` program calls "
+            "it. The tables below are measured with XLA's defaults and one "
             "device unless they say otherwise; \"With the CPU flags\" repeats the targets' "
             "measurements with them.", ""]
     if wp:
@@ -349,7 +351,7 @@ def _cpu_flags(wp2, tp, gr) -> list[str]:
     flags = next(x["machine"].get("xla_flags") for x in (fwp, ftp, fgr, ftp2) if x)
     out = ["### With the CPU flags", "",
            f"`XLA_FLAGS=\"{flags}\"` (what `crank-jax` sets on this machine; "
-           "`cj.with_cpu_flags`), and for the batch also two CPU devices "
+           "`cj.with_cpu_flags`), and for the batch also two CPU devices, one per core "
            "(`JAX_NUM_CPU_DEVICES=2`, i.e. `jax.config.update(\"jax_num_cpu_devices\", 2)` "
            "before JAX starts), over which a lockstep batch spreads its groups of members. "
            "Each ratio is to a peer measured in the same run (the compiled numba DOP853 at "
@@ -405,6 +407,15 @@ def _cpu_flags(wp2, tp, gr) -> list[str]:
             "batch's SIMD arithmetic cheaper; a second CPU device runs half of the batch's "
             "groups on the second core. The batch's ratio also moves with the peer's own "
             "time, which varies between runs on this shared machine.", ""]
+    sd = _load("sweep_devices")
+    if sd:
+        one, many = sd["rows"][0], sd["rows"][-1]
+        out += [f"Sweeps over one CPU device per core (`experiments/bench_sweep_devices.py`, "
+                f"{when(sd)}, XLA's defaults): a warm `cj.sweep` of {sd['n']} lab rigs (k and "
+                f"c varied, default outputs) took {one['warm_s']:.2f} s on one device and "
+                f"{many['warm_s']:.2f} s on {many['devices']} "
+                f"({one['warm_s'] / many['warm_s']:.2f}x), with "
+                + ("the same results." if sd["same_results"] else "DIFFERENT results."), ""]
     if fwp and (FIGURES / "work_precision_cpu_flags.png").exists():
         out += ["The lab rig's work-precision figure from the run with the CPU flags:", "",
                 "![work-precision, CPU flags](docs/figures/work_precision_cpu_flags.png)", ""]

@@ -21,8 +21,9 @@ def test_quick_start_runs_and_is_short():
     assert len(code.strip().splitlines()) <= 15
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env["CRANK_JAX_NO_CACHE"] = "1"
-    p = subprocess.run([sys.executable, "-c", code + "\nprint('XLA_FLAGS=' + "
-                        "os.environ['XLA_FLAGS'])\n"],
+    env.pop("JAX_NUM_CPU_DEVICES", None)
+    p = subprocess.run([sys.executable, "-c", code + "\nimport os\nprint('XLA_FLAGS=' + "
+                        "os.environ['XLA_FLAGS'], 'devices=' + str(jax.device_count()))\n"],
                        capture_output=True, text=True, env=env, timeout=600)
     assert p.returncode == 0, p.stderr[-3000:]
     # The fit's summary: k near its true value of 2 (the lab rig's), and converged.
@@ -30,3 +31,4 @@ def test_quick_start_runs_and_is_short():
     assert k and abs(float(k.group(1)) - 2.0) < 1e-3, p.stdout[-2000:]
     assert "converged after" in p.stdout
     assert "xla_cpu_small_while_loop_byte_threshold" in p.stdout
+    assert f"devices={len(os.sched_getaffinity(0))}" in p.stdout

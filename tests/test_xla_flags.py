@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax.xla_flags import cpu_flags, with_cpu_flags
+from crank_jax.xla_flags import configure_cpu, cpu_flags, with_cpu_flags
 
 KEY = "xla_cpu_small_while_loop_byte_threshold"
 LOOP = f"--xla_backend_extra_options={KEY}=1048576"
@@ -38,35 +38,48 @@ def test_with_cpu_flags_merges_and_respects_the_user(flags, expected):
 
 
 def _env(**extra):
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
     env.update(extra)
     return env
 
 
-def _flags_seen_by_the_program(env) -> str:
-    code = ("import os, sys, crank_jax.cli\n"
+def _seen_by_the_program(env) -> tuple[str, int]:
+    """`XLA_FLAGS` and the CPU device count inside the `crank-jax` program."""
+    code = ("import os, sys, jax, crank_jax.cli\n"
             "m = sys.modules['crank_jax.cli.main']\n"
-            "m.main = lambda: print(os.environ.get('XLA_FLAGS')) or 0\n"
+            "m.main = lambda: print(os.environ.get('XLA_FLAGS')) or "
+            "print(jax.device_count()) or 0\n"
             "m.entry()\n")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        env=env, timeout=120)
     assert p.returncode == 0, p.stderr
-    return p.stdout.strip()
+    flags, devices = p.stdout.strip().splitlines()[-2:]
+    return flags, int(devices)
 
 
 def test_the_program_sets_the_flag_and_the_library_does_not():
-    assert _flags_seen_by_the_program(_env()) == " ".join(cpu_flags())
+    cores = len(os.sched_getaffinity(0))
+    assert _seen_by_the_program(_env()) == (" ".join(cpu_flags()), cores)
+    # What the user set wins: their threshold, their device count.
     mine = f"--xla_backend_extra_options={KEY}=2048"
-    seen = _flags_seen_by_the_program(_env(XLA_FLAGS=mine))
+    seen, devices = _seen_by_the_program(_env(XLA_FLAGS=mine, JAX_NUM_CPU_DEVICES="3"))
     assert seen.startswith(mine) and seen == with_cpu_flags(mine) and "1048576" not in seen
+    assert devices == 3
     # Importing the library and running a solve leave XLA_FLAGS alone.
-    code = ("import os, crank_jax as cj\n"
+    code = ("import os, jax, crank_jax as cj\n"
             "cj.simulate(cj.load_scene('lab-rig').mech, 1.0, 0.0, [0.0, 0.1])\n"
-            "print(os.environ.get('XLA_FLAGS'))\n")
+            "print(os.environ.get('XLA_FLAGS'), jax.device_count())\n")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        env=_env(), timeout=300)
     assert p.returncode == 0, p.stderr
-    assert p.stdout.strip() == "None"
+    assert p.stdout.strip() == "None 1"
+
+
+def test_configure_cpu_refuses_once_jax_has_started():
+    # This process has run JAX already: the settings could no longer take effect.
+    jnp.zeros(1).block_until_ready()
+    with pytest.raises(RuntimeError, match="before the first JAX computation"):
+        configure_cpu()
 
 
 def test_the_flag_changes_speed_not_results():

@@ -27,8 +27,8 @@ The public API, by topic (everything else is private; the subpackages
   `sweep_cost`, `initialize_distributed`, `distributions`.
 - Files, the compilation cache and XLA's CPU flags: `atomic_write`,
   `enable_compilation_cache`, `default_cache_dir`, `with_cpu_flags` (an `XLA_FLAGS`
-  value for a program to set before JAX starts: faster solves on the CPU; see
-  `crank_jax.xla_flags`).
+  value for a program to set before JAX starts: faster solves on the CPU),
+  `configure_cpu` (that, and a JAX CPU device per core; see `crank_jax.xla_flags`).
 """
 
 from . import distributions
@@ -145,7 +145,7 @@ from .validate import (
     Validation,
     validate,
 )
-from .xla_flags import with_cpu_flags
+from .xla_flags import configure_cpu, with_cpu_flags
 
 __version__ = "0.1.0"
 
@@ -154,6 +154,7 @@ __all__ = [
     "acceleration",
     "atomic_write",
     "choose_solver",
+    "configure_cpu",
     "ConstantLoad",
     "ConvergenceWarning",
     "coriolis",

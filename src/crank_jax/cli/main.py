@@ -25,7 +25,7 @@ import warnings
 from collections.abc import Iterator
 
 from ..io import Terminated, note_signal, raise_if_terminated
-from ..xla_flags import with_cpu_flags
+from ..xla_flags import configure_cpu
 from . import identify, simulate, sweep, validate
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
 
@@ -195,11 +195,12 @@ def entry() -> None:
     (`main` itself returns, for callers in a running interpreter.)
 
     Before JAX starts, it adds crank-jax's CPU flags to `XLA_FLAGS` (XLA's small-loop
-    threshold, and 512-bit vectors on AVX-512 CPUs: see `crank_jax.xla_flags`), keeping
-    any the user set. Only here: `main` may run inside a host program whose JAX is
-    configured.
+    threshold, and 512-bit vectors on AVX-512 CPUs) and asks for one JAX CPU device per
+    core (sweeps and batches spread over them), keeping what the user set: see
+    `crank_jax.xla_flags.configure_cpu`. Only here: `main` may run inside a host program
+    whose JAX is configured.
     """
-    os.environ["XLA_FLAGS"] = with_cpu_flags(os.environ.get("XLA_FLAGS"))
+    configure_cpu()
     code = main()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):

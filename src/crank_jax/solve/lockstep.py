@@ -144,13 +144,11 @@ def _spread(run_groups, devices):
     per device, all at once: XLA:CPU runs one program's loops one after another on one
     core, but each device of a multi-device CPU client is a thread of its own. Several CPU
     devices exist only where the program asked for them before JAX started
-    (`jax.config.update("jax_num_cpu_devices", n)`), so JAX's default of one CPU device
-    keeps this path off. Measured on 10^4 lab rigs (rtol 1e-9, 2-core AMD EPYC): 241 ->
-    133 us per trajectory with two CPU devices. The groups are independent, so nothing
-    crosses devices until the results are gathered. The `crank-jax` program does not ask
-    for several devices: its sweeps (sharded over all devices by `sweep/run.py`) ran
-    slower with two (15.2-16.4 s -> 17.0-18.7 s for 2*10^4 lab rigs), and its fits batch
-    fewer members than a group."""
+    (`jax.config.update("jax_num_cpu_devices", n)`, or `crank_jax.configure_cpu()`, which
+    the `crank-jax` program calls), so JAX's default of one CPU device keeps this path off.
+    Measured on 10^4 lab rigs (rtol 1e-9, 2-core AMD EPYC): 241 -> 133 us per trajectory
+    with two CPU devices. The groups are independent, so nothing crosses devices until the
+    results are gathered."""
     from jax.sharding import Mesh, NamedSharding
     from jax.sharding import PartitionSpec as P
 
