@@ -50,8 +50,9 @@ print(json.dumps({"sim": [float(traj.phi[-1]), float(traj.extras["energy"][-1]),
 """
 
 
-def _run(cache: Path, seed: int = 1) -> dict:
+def _run(cache: Path, seed: int = 1, devices: int = 1) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "CRANK_JAX_NO_CACHE"}
+    env["JAX_NUM_CPU_DEVICES"] = str(devices)
     out = subprocess.run([sys.executable, "-c", SCRIPT, str(cache), str(seed)], env=env,
                          capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stderr[-2000:]
@@ -79,6 +80,19 @@ def test_second_process_loads_instead_of_compiling(stored):
     assert second["sim"] == first["sim"]
     # Another record (other noise) of the same shape reuses the same programs.
     assert _run(cache, seed=2)["compiled"] == []
+
+
+def test_stored_programs_load_with_a_device_per_core(stored, tmp_path):
+    """With several CPU devices (`configure_cpu`, as the CLI runs), one-device programs
+    are stored and loaded too (JAX would load them onto every device, and they failed on
+    their first call), and give the one-device numbers."""
+    _, one = stored
+    cache = tmp_path / "two-devices"
+    first = _run(cache, devices=2)
+    assert set(first["compiled"]) >= {"jacobian", "linearize", "simulate"}
+    second = _run(cache, devices=2)
+    assert second["compiled"] == [], "a warm two-device process compiled again"
+    assert second["values"] == one["values"] and second["sim"] == one["sim"]
 
 
 def test_stored_simulate_equals_the_ordinary_one(stored, tmp_path):

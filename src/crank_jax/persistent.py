@@ -263,7 +263,7 @@ class PersistentProgram:
 
             n_out = compiled.out_tree.num_leaves
             blob = (_MAGIC + n_out.to_bytes(4, "little") + bytes([bool(targets)])
-                    + serialize(compiled)[0])
+                    + bytes([_device_count(compiled)]) + serialize(compiled)[0])
             return _deserialize(blob, len(leaves)), blob
         except Exception:  # a program that cannot be stored still runs
             return compiled, None
@@ -314,8 +314,14 @@ _READY = False
 
 
 # A stored program: this tag, the number of outputs (4 bytes), whether it calls LAPACK (1
-# byte), JAX's serialisation.
-_MAGIC = b"crank-jax program 2\n"
+# byte), the number of devices it runs on (1 byte), JAX's serialisation.
+_MAGIC = b"crank-jax program 3\n"
+
+
+def _device_count(compiled) -> int:
+    """The devices a compiled program runs on (its arguments' and results' shardings)."""
+    shardings = jax.tree.leaves((compiled.input_shardings, compiled.output_shardings))
+    return max([len(s.device_set) for s in shardings] + [1])
 _MAX_OUTPUTS = 4096
 
 
@@ -323,16 +329,22 @@ def _deserialize(blob: bytes, n_in: int):
     """Load a stored executable; `ValueError` for anything else."""
     from jax.experimental.serialize_executable import deserialize_and_load
 
-    head = len(_MAGIC) + 5
-    n_out = int.from_bytes(blob[len(_MAGIC):head - 1], "little")
-    if not blob.startswith(_MAGIC) or not 0 < n_out <= _MAX_OUTPUTS or len(blob) <= head:
+    head = len(_MAGIC) + 6
+    n_out = int.from_bytes(blob[len(_MAGIC):head - 2], "little")
+    n_dev = blob[head - 1] if len(blob) > head else 0
+    if (not blob.startswith(_MAGIC) or not 0 < n_out <= _MAX_OUTPUTS
+            or not 0 < n_dev <= jax.device_count()):
         raise ValueError("not a stored program")
-    if blob[head - 1]:  # it calls LAPACK (registering its targets costs ~0.15 s: only then)
+    if blob[head - 2]:  # it calls LAPACK (registering its targets costs ~0.15 s: only then)
         _ready_custom_calls()
     blob = blob[head:]
     in_tree = jax.tree.structure((tuple(range(n_in)), {}))
     out_tree = jax.tree.structure(tuple(range(n_out)))
-    return deserialize_and_load(blob, in_tree, out_tree)
+    # Without `execution_devices` JAX loads it onto every device of a multi-device client
+    # (e.g. one CPU device per core, `configure_cpu`), and a one-device program then fails
+    # on its first call ("Expected args ... to have 2 shards").
+    return deserialize_and_load(blob, in_tree, out_tree,
+                                execution_devices=jax.devices()[:n_dev])
 
 
 #: The store keeps at most this many programs (~1 MB each), the most recently used.
