@@ -465,7 +465,8 @@ def _end_to_end(ee) -> list[str]:
            "(`persistent.py`); what is left is importing JAX, loading the executables and "
            f"the fit itself ({_strategy(ee)}; MINPACK's LM on the host, one call of the "
            "compiled residuals-and-Jacobian program a point). The `crank-jax` runs use the "
-           "CPU flags the program sets (see above"
+           "CPU flags and the device per core that the program sets (`configure_cpu`, see "
+           "above"
            + ("" if ee.get("cli_xla_flags") else "; this run predates it") + "); "
            "the fits inside a Python process use XLA's defaults, as a library user's do.",
            "", "| run | wall time |", "|---|---|"]
