@@ -107,7 +107,8 @@ def _in_chunks(lockstep, n, dyn_b, y0, rtol, atol, rtol_b, atol_b, spread=True):
     devices when there are several (see [`_spread`][])."""
     if n <= CHUNK or jax.default_backend() != "cpu":
         return lockstep(dyn_b, y0, rtol, atol)
-    devices = jax.devices()
+    # This process's devices: in a multi-host run the caller's program is its own.
+    devices = jax.local_devices()
     groups = -(-n // CHUNK)
     shards = len(devices) if spread and groups > 1 and _can_spread() else 1
     groups = -(-groups // shards) * shards
