@@ -316,13 +316,13 @@ _READY = False
 # A stored program: this tag, the number of outputs (4 bytes), whether it calls LAPACK (1
 # byte), the number of devices it runs on (1 byte), JAX's serialisation.
 _MAGIC = b"crank-jax program 3\n"
+_MAX_OUTPUTS = 4096
 
 
 def _device_count(compiled) -> int:
     """The devices a compiled program runs on (its arguments' and results' shardings)."""
     shardings = jax.tree.leaves((compiled.input_shardings, compiled.output_shardings))
     return max([len(s.device_set) for s in shardings] + [1])
-_MAX_OUTPUTS = 4096
 
 
 def _deserialize(blob: bytes, n_in: int):
