@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .io import atomic_write
+from .xla_flags import instruction_sets
 
 __all__ = ["PersistentProgram", "program_store_dir", "checks_without_callbacks", "enum_code",
            "enum_name"]
@@ -81,15 +82,6 @@ def checks_without_callbacks():
         eqx_errors.EQX_ON_ERROR = old
 
 
-def _cpu_flags() -> str:
-    """The CPU's instruction-set flags (Linux), else the processor's name."""
-    with contextlib.suppress(OSError), open("/proc/cpuinfo") as f:
-        for line in f:
-            if line.startswith(("flags", "Features")):
-                return line
-    return platform.processor()
-
-
 _ENV: str | None = None
 
 
@@ -100,7 +92,7 @@ def _environment() -> str:
         h = hashlib.sha256()
         for p in sorted(Path(__file__).resolve().parent.rglob("*.py")):
             h.update(p.read_bytes())
-        h.update(_cpu_flags().encode())
+        h.update(instruction_sets().encode())
         versions = []
         for name in _TRACED:
             try:

@@ -41,9 +41,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+import platform
 import re
 
-__all__ = ["SMALL_LOOP_BYTES", "with_cpu_flags", "cpu_flags", "configure_cpu"]
+__all__ = ["SMALL_LOOP_BYTES", "with_cpu_flags", "cpu_flags", "configure_cpu",
+           "instruction_sets"]
 
 #: Loops touching fewer bytes per iteration than this are compiled into one function. 1 MiB
 #: takes in the solvers' step loops and the loops that write their saved samples (XLA counts
@@ -57,21 +59,27 @@ _EXTRA = "--xla_backend_extra_options="
 _VECTOR = "--xla_cpu_prefer_vector_width="
 
 
-def _has_avx512() -> bool:
-    """Whether this CPU has AVX-512 (Linux's cpuinfo; False where it cannot tell)."""
+_VECTOR_512 = f"{_VECTOR}512"
+
+
+def instruction_sets() -> str:
+    """The CPU's instruction-set flags (Linux's cpuinfo line), else the processor's name.
+    Also part of a stored program's key (persistent.py: an executable is machine code)."""
     with contextlib.suppress(OSError), open("/proc/cpuinfo") as f:
         for line in f:
-            if line.startswith("flags"):
-                return "avx512f" in line.split()
-    return False
+            if line.startswith(("flags", "Features")):
+                return line
+    return platform.processor()
+
+
+def _has_avx512() -> bool:
+    """Whether this CPU has AVX-512 (False where it cannot tell)."""
+    return "avx512f" in instruction_sets().split()
 
 
 def cpu_flags() -> list[str]:
     """The flags [`with_cpu_flags`][] adds, for this CPU."""
-    out = [f"{_EXTRA}{_LOOP_KEY}={SMALL_LOOP_BYTES}"]
-    if _has_avx512():
-        out.append(f"{_VECTOR}512")
-    return out
+    return [f"{_EXTRA}{_LOOP_KEY}={SMALL_LOOP_BYTES}"] + ([_VECTOR_512] if _has_avx512() else [])
 
 
 def with_cpu_flags(flags: str | None) -> str:
@@ -88,8 +96,8 @@ def with_cpu_flags(flags: str | None) -> str:
             flags = re.sub(re.escape(_EXTRA) + r"(\S*)", join, flags, count=1)
         else:
             flags = f"{flags} {_EXTRA}{loop}"
-    if _VECTOR not in flags:
-        flags = " ".join([flags] + [f for f in cpu_flags() if f.startswith(_VECTOR)])
+    if _VECTOR not in flags and _has_avx512():
+        flags = f"{flags} {_VECTOR_512}"
     return flags.strip()
 
 
