@@ -47,7 +47,7 @@ def machine() -> dict:
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "platform": platform.platform(), "cpu": cpu, "cores": os.cpu_count(),
         "devices": [str(d) for d in jax.devices()], "versions": vers,
-        # e.g. the small-loop threshold of crank_jax.xla_flags (runs tagged _small_loops)
+        # e.g. crank_jax.with_cpu_flags's flags (the runs tagged _cpu_flags)
         "xla_flags": os.environ.get("XLA_FLAGS") or None,
         "note": "shared machine: other jobs ran at the same time; timings are medians",
     }

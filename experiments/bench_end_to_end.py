@@ -160,7 +160,7 @@ def main(argv=None):
         "free": "k,c,phi0,dphi0", "start": {"k": STARTS[0][0], "c": STARTS[0][1]},
         "other_starts": [{"k": k, "c": c} for k, c in STARTS[1:]],
         "strategies": strategies,
-        # what the `crank-jax` program runs with (it sets the small-loop threshold itself)
+        # what the `crank-jax` program runs with (its configure_cpu adds crank-jax's flags)
         "cli_xla_flags": with_cpu_flags(os.environ.get("XLA_FLAGS")),
         "scipy_peer_estimate": [float(v) for v in peer_x],
         "medians": med, "runs": dict(cold=cold, warm=warm, other=other, new_bucket=new_bucket,

@@ -42,7 +42,7 @@ PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true")
-    ap.add_argument("--tag", default="", help="suffix of the results file (e.g. _small_loops)")
+    ap.add_argument("--tag", default="", help="suffix of the results file (e.g. _cpu_flags)")
     ap.add_argument("--forward-only", action="store_true", help="skip the jacrev variants")
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
                     help="time on the wall clock or the process CPU clock (shared machines)")
@@ -85,11 +85,7 @@ def main(argv=None):
     jacs = {}
     for label, tr, solver, adjoint in variants:
         f = jax.jit(tr(lambda th, solver=solver, adjoint=adjoint: phi(th, solver, adjoint)))
-        t0 = time.perf_counter()
-        J = jax.block_until_ready(f(theta0))
-        comp = time.perf_counter() - t0
-        t = median_time(lambda f=f: jax.block_until_ready(f(theta0)), repeats, warmup=0,
-                        budget_s=60.0)
+        J, comp, t = _compiled_and_timed(f, theta0, repeats)
         jacs[label] = np.asarray(J)
         rows.append({"method": label, "time_s": t, "ratio": t / base, "compile_s": comp,
                      "shape": list(J.shape)})
@@ -98,10 +94,7 @@ def main(argv=None):
     # direction costs, to tell the fixed cost of the tangent code from the per-direction one.
     one = jax.jit(lambda th: jax.jvp(lambda th: phi(th, "auto", "forward"), (th,),
                                      (jnp.eye(len(PARAMS))[PARAMS.index("k")],))[1])
-    t0 = time.perf_counter()
-    jax.block_until_ready(one(theta0))
-    comp = time.perf_counter() - t0
-    t = median_time(lambda: jax.block_until_ready(one(theta0)), repeats, warmup=0)
+    _, comp, t = _compiled_and_timed(one, theta0, repeats)
     rows.append({"method": "jvp, one tangent (k), dopri8-adaptive (default)", "time_s": t,
                  "ratio": t / base, "compile_s": comp, "shape": [samples]})
     print(rows[-1], flush=True)
@@ -121,6 +114,16 @@ def main(argv=None):
     save("gradients" + a.tag, {"t1": t1, "samples": samples, "params": PARAMS, "rows": rows,
                        "max_rel_disagreement": agree, "target_c": target,
                        "target_4": target4}, smoke)
+
+
+def _compiled_and_timed(f, x, repeats):
+    """(f(x), the first call's time (compilation included), the median of `repeats` more
+    calls), all of a jitted `f`."""
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(f(x))
+    comp = time.perf_counter() - t0
+    t = median_time(lambda: jax.block_until_ready(f(x)), repeats, warmup=0, budget_s=60.0)
+    return out, comp, t
 
 
 def _kept_reverse_rows() -> list[dict]:
