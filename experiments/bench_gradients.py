@@ -9,10 +9,13 @@ Measured side by side in one run (medians):
   also pays its host-side input checks and dispatch (before 2026-11-24 this concrete call
   was the baseline, which flattered every ratio by that fixed cost);
 - forward mode: `jax.jacfwd` through `simulate(adjoint="forward")`, with the default
-  `"dopri8-adaptive"` solver (tangents carried through its steps), the
-  `"dopri8-uniform"` solver (whose JVP integrates the variational equation with the same
-  steps, see `crank_jax.solve.sensitivity.attach_sensitivities`) and with diffrax's adaptive
-  Dopri8 (`diffrax.ForwardMode`);
+  `"dopri8-adaptive"` solver (whose JVP steps the variational equation beside the
+  solution, see `crank_jax.solve.variational`), the same solver with JAX's tangents carried
+  through its steps (the default's forward mode before 2026-11-26, called here on
+  `solve_adaptive` directly), the `"dopri8-uniform"` solver (whose JVP integrates the
+  variational equation with the same steps, see
+  `crank_jax.solve.sensitivity.attach_sensitivities`) and with diffrax's adaptive Dopri8
+  (`diffrax.ForwardMode`);
 - reverse mode: `jax.jacrev` through `simulate(adjoint="reverse")` (one backward pass per
   output sample, so 1001 of them, batched by `vmap`), both solvers.
 
@@ -35,6 +38,9 @@ jax = setup_jax()
 import jax.numpy as jnp  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.model.dynamics import CrankField, Structure  # noqa: E402
+from crank_jax.model.loads import as_load  # noqa: E402
+from crank_jax.solve.adaptive import solve_adaptive  # noqa: E402
 
 PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
 
@@ -50,13 +56,19 @@ def main(argv=None):
     use_clock(a.clock)
     smoke = a.smoke
     t1, samples = (1.0, 101) if smoke else (10.0, 1001)
-    repeats = 1 if smoke else 5
+    # Milliseconds each: many repeats, so that the median holds on a shared machine (the
+    # slow reverse-mode rows stop at their time budget).
+    repeats = 1 if smoke else 31
     mech = cj.load_scene("lab-rig").mech.replace(c=1e-3)
     ts = jnp.linspace(0.0, t1, samples)
     theta0 = jnp.array([float(getattr(mech, n)) for n in PARAMS])
 
     def phi(theta, solver, adjoint):
         m = mech.replace(**dict(zip(PARAMS, theta)))
+        if solver == "tangents":  # the default's solver, JAX's tangents through its steps
+            field = CrankField(m, as_load(None), as_load(None), Structure.of(m), None)
+            return solve_adaptive(field.packed(), (1.0, 0.0), ts, 1e-8, 1e-10,
+                                  max_steps=200_000)[0][0]
         return cj.simulate(m, 1.0, 0.0, ts, solver=solver, rtol=1e-8, atol=1e-10,
                            adjoint=adjoint).phi
 
@@ -74,10 +86,12 @@ def main(argv=None):
              "time_s": concrete, "ratio": concrete / base, "compile_s": None}]
     print(rows[0], rows[1], sep="\n", flush=True)
     variants = [("jacfwd, dopri8-adaptive (default)", jax.jacfwd, "dopri8-adaptive", "forward"),
+                ("jacfwd, dopri8-adaptive, tangents through the steps (before 2026-11-26)",
+                 jax.jacfwd, "tangents", "forward"),
                 ("jacfwd, dopri8-uniform", jax.jacfwd, "dopri8-uniform", "forward"),
                 ("jacfwd, diffrax Dopri8 (ForwardMode)", jax.jacfwd, "dopri8", "forward")]
     if smoke:  # CI: the default and the reference (tests/test_uniform.py has the uniform's)
-        variants = [variants[0], variants[2]]
+        variants = [variants[0], variants[3]]
     if not (smoke or a.forward_only):
         variants += [("jacrev, dopri8-uniform", jax.jacrev, "dopri8-uniform", "reverse"),
                      ("jacrev, diffrax Dopri8 (RecursiveCheckpoint)", jax.jacrev, "dopri8",
@@ -90,8 +104,9 @@ def main(argv=None):
         rows.append({"method": label, "time_s": t, "ratio": t / base, "compile_s": comp,
                      "shape": list(J.shape)})
         print(rows[-1], flush=True)
-    # One tangent (d phi / d k) through the default solver: what a single forward-mode
-    # direction costs, to tell the fixed cost of the tangent code from the per-direction one.
+    # One tangent (d phi / d k) through the default solver. Every parameter of theta has a
+    # tangent here, so the variational path steps all 10 columns: a JVP costs what the
+    # Jacobian costs (a direction through fewer parameters steps fewer columns).
     one = jax.jit(lambda th: jax.jvp(lambda th: phi(th, "auto", "forward"), (th,),
                                      (jnp.eye(len(PARAMS))[PARAMS.index("k")],))[1])
     _, comp, t = _compiled_and_timed(one, theta0, repeats)

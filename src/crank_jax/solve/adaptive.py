@@ -59,7 +59,8 @@ _FAC_MAX = 10.0
 UNROLL = 1
 WINDOW = 4
 # Save times per chunk (see `solve_adaptive`'s body): CHUNK + WINDOW rows of a (2,) state
-# are 512 bytes.
+# are 512 bytes. (A state with its sensitivities, variational.py, is larger; 2 or 28 save
+# times per chunk measured the same for the crank's 10-parameter Jacobian.)
 CHUNK = 28
 
 
@@ -72,16 +73,24 @@ def dopri8_dense() -> np.ndarray:
 
 
 def _batch_packer(y0):
-    """`(pack, unpack)` for a batch of scalar states: the members side by side, (B, N),
-    the state on the last axis."""
-    treedef = jax.tree_util.tree_structure(y0)
+    """`(pack, unpack)` for a batch of states: the members side by side, (B, N), each
+    member's state flat on the last axis (its leaves carry the batch axis first)."""
+    leaves, treedef = jax.tree_util.tree_flatten(y0)
+    shapes = [jnp.shape(x)[1:] for x in leaves]
+    sizes = [int(np.prod(s, dtype=int)) for s in shapes]
 
     def pack(y):
-        return jnp.stack(jax.tree_util.tree_leaves(y), axis=-1)
+        parts = jax.tree_util.tree_leaves(y)
+        if all(s == () for s in shapes):
+            return jnp.stack(parts, axis=-1)
+        return jnp.concatenate([x.reshape(x.shape[0], -1) for x in parts], axis=-1)
 
     def unpack(Y):
-        return jax.tree_util.tree_unflatten(treedef, [Y[..., i] for i in
-                                                      range(treedef.num_leaves)])
+        out, i = [], 0
+        for s, k in zip(shapes, sizes):
+            out.append(Y[..., i] if s == () else Y[..., i:i + k].reshape(Y.shape[:-1] + s))
+            i += k
+        return jax.tree_util.tree_unflatten(treedef, out)
 
     return pack, unpack
 
@@ -92,16 +101,17 @@ def _rms(x):
     return jnp.max(jnp.sqrt(jnp.mean(x * x, axis=-1)))
 
 
-def _initial_step(f, t0, y0, k0, rtol, atol, order, span):
+def _initial_step(f, t0, y0, k0, rtol, atol, order, span, error_size=None):
     """Hairer, Norsett & Wanner's starting step (as diffrax's and scipy's), on packed
-    (N,) states."""
-    scale = atol + rtol * jnp.abs(y0)
+    (N,) states, measured on their first `error_size` components."""
+    E = error_size
+    scale = atol + rtol * jnp.abs(y0[..., :E])
     rms = lambda x: jnp.sqrt(jnp.mean(x * x, axis=-1))  # noqa: E731
-    d0, d1 = rms(y0 / scale), rms(k0 / scale)
+    d0, d1 = rms(y0[..., :E] / scale), rms(k0[..., :E] / scale)
     h0 = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / d1)
     h0 = jnp.minimum(jnp.min(h0), span)
     k1 = f(t0 + h0, y0 + h0 * k0)
-    d2 = rms((k1 - k0) / scale) / h0
+    d2 = rms((k1 - k0)[..., :E] / scale) / h0
     h1 = jnp.where(jnp.maximum(d1, d2) <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3),
                    (0.01 / jnp.maximum(d1, d2)) ** (1.0 / order))
     return jnp.minimum(jnp.minimum(100 * h0, jnp.min(h1)), span)
@@ -146,7 +156,7 @@ def _window_values(dense, taken, tw, ndim):
     return base + th * poly
 
 
-def _attempt(erk: FusedERK, f, rtol, atol):
+def _attempt(erk: FusedERK, f, rtol, atol, error_size=None):
     """`attempt(state, t_lim) -> (state, record)`: one step attempt of `erk` on the packed
     field `f(t, y)`, shortened to end at `t_lim`, with diffrax's error norm and an integral
     controller. `state = (t, y, k, h, steps, rejected)` (`k = f(t, y)`, first same as
@@ -163,8 +173,9 @@ def _attempt(erk: FusedERK, f, rtol, atol):
         h_try = sg(jnp.where(active, jnp.minimum(h, t_lim - t), 1.0))
         ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h_try, k0=k)[:n_st]
         y1 = erk.solution(y, h_try, ks)
-        scale = atol + rtol * jnp.maximum(jnp.abs(sg(y)), jnp.abs(sg(y1)))
-        err = _rms(sg(erk.error(h_try, ks)) / scale)
+        E = error_size
+        scale = atol + rtol * jnp.maximum(jnp.abs(sg(y[..., :E])), jnp.abs(sg(y1[..., :E])))
+        err = _rms(sg(erk.error(h_try, [k[..., :E] for k in ks])) / scale)
         # A non-finite estimate (a step too long for stability) is a rejection.
         finite = jnp.isfinite(err)
         ok = active & (err <= 1.0)
@@ -186,7 +197,8 @@ def _attempt(erk: FusedERK, f, rtol, atol):
 
 def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
                    erk: FusedERK | None = None, unroll: int = UNROLL, window: int = WINDOW,
-                   chunk: int = CHUNK, batched: bool = False):
+                   chunk: int = CHUNK, batched: bool = False,
+                   error_size: int | None = None):
     """Integrate `dy/dt = field(t, y, args)` with adaptive steps of `erk`, saving at `ts`
     through the method's dense output.
 
@@ -207,6 +219,9 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     - `unroll`, `window`: step attempts per loop iteration; save times one iteration may
       write (a step is shortened so that the iteration writes no more).
     - `chunk`: save times the step loop records before the outer loop copies them out.
+    - `error_size`: the step control sees the first `error_size` components of the packed
+      state only (default all): a state that carries its sensitivities
+      (`variational.py`) steps as the solution alone would.
     - `batched`: the leaves of `y0` (and of `field`, `args` where they vary) carry a
       leading batch axis (B,), one scalar state per member: the batch steps in lockstep,
       with one step size that every member's error allows (see `lockstep.py`).
@@ -237,9 +252,10 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     out0 = jnp.zeros((n + CH + W,) + y0p.shape, dtype).at[0].set(y0p)
     t0, t_end = sg(ts[0]), sg(ts[-1])
     k0 = f(ts[0], y0p)
-    h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), erk.order, t_end - t0)
+    E = error_size
+    h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), erk.order, t_end - t0, E)
 
-    attempt = _attempt(erk, f, rtol, atol)
+    attempt = _attempt(erk, f, rtol, atol, E)
 
     def chunk_cond(c):
         j, i0, state, _, _ = c

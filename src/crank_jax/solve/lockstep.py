@@ -43,23 +43,22 @@ diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 __all__ = ["adaptive_solve"]
 
 
-def _stack(phi, dphi):
-    return jnp.stack([phi, dphi], axis=-1)
-
-
-def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str, fallback):
+def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str, fallback,
+                   error_size: int | None = None):
     """Solve with [`solve_adaptive`][] so that `jax.vmap` steps a batch in lockstep.
 
     **Arguments:** `field`, the vector field (a pytree; its array leaves may be traced or
-    batched); `y0` (2,), the state `(phi, phi')`; `ts` (n,) save times; `rtol`, `atol`
-    scalars; `max_steps`, the step budget; `adjoint`, `"reverse"`, `"forward"` or
-    `"direct"`; `fallback(field, y0, ts, rtol, atol) -> ys (n, 2)`, a reverse-
-    differentiable solve used by the backward pass of `"reverse"`.
+    batched); `y0`, one member's state, a pytree of small arrays (the crank: `(phi,
+    phi')`); `ts` (n,) save times; `rtol`, `atol` scalars; `max_steps`, the step budget;
+    `adjoint`, `"reverse"`, `"forward"` or `"direct"`; `fallback(field, y0, ts, rtol,
+    atol) -> ys`, a reverse-differentiable solve used by the backward pass of
+    `"reverse"`; `error_size`, the leading state components the step control sees (see
+    `solve_adaptive`).
 
-    **Returns:** `(ys (n, 2), result, num_steps)`, as `solve_adaptive` (`result` a
-    `diffrax.RESULTS`).
+    **Returns:** `(ys, result, num_steps)`, as `solve_adaptive` (`ys` like `y0` with a
+    leading axis n; `result` a `diffrax.RESULTS`).
     """
-    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback)
+    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_size)
     ys, code, steps = out
     # The outcome carries no derivative (equinox's checks cannot take one through it).
     code, steps = (jax.lax.stop_gradient(x).astype(jnp.int32) for x in (code, steps))
@@ -130,7 +129,7 @@ def _in_chunks(lockstep, n, dyn_b, y0, rtol, atol, rtol_b, atol_b, spread=True):
     if shards > 1:
         run_groups = _spread(run_groups, devices)
     out = run_groups(jax.tree_util.tree_map(group, per_member))
-    return tuple(x.reshape((m,) + x.shape[2:])[:n] for x in out)
+    return jax.tree_util.tree_map(lambda x: x.reshape((m,) + x.shape[2:])[:n], out)
 
 
 def _can_spread() -> bool:
@@ -168,11 +167,16 @@ def _spread(run_groups, devices):
     return call
 
 
+def _all_batched(out):
+    """`custom_vmap`'s out_batched for outputs that all carry the batch axis."""
+    return jax.tree_util.tree_map(lambda _: True, out)
+
+
 def _as_float(x, like):
     return jnp.asarray(x).astype(like.dtype)
 
 
-def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback):
+def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_size):
     # The field's arrays as a flat list: `custom_vmap` cannot take the `None` leaves that
     # `eqx.partition` leaves (jax issue 9066).
     dyn_tree, static = eqx.partition(field, eqx.is_array)
@@ -182,10 +186,10 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback):
         return eqx.combine(jax.tree_util.tree_unflatten(treedef, dyn), static)
 
     def single(dyn, y0, ts, rtol, atol):
-        (phi, dphi), result, steps = solve_adaptive(
-            rebuild(dyn), (y0[0], y0[1]), ts, rtol, atol, max_steps=max_steps)
+        ys, result, steps = solve_adaptive(rebuild(dyn), y0, ts, rtol, atol,
+                                           max_steps=max_steps, error_size=error_size)
         # Every output a float: JAX's JVP of a `custom_vmap` takes float outputs only.
-        return _stack(phi, dphi), _as_float(result._value, phi), _as_float(steps, phi)
+        return ys, _as_float(result._value, ts), _as_float(steps, ts)
 
     def batch_rule(axis_size, in_batched, dyn, y0, ts, rtol, atol, spread):
         if not any(jax.tree_util.tree_leaves(in_batched)):
@@ -196,29 +200,32 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback):
             axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, bt)
                          for bt in in_batched)
             out = jax.vmap(single, in_axes=axes)(dyn, y0, ts, rtol, atol)
-            return out, (True, True, True)
-        y0 = jnp.broadcast_to(y0, (axis_size, 2))
+            return out, _all_batched(out)
+        y0 = jax.tree_util.tree_map(
+            lambda v, b: v if b else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)),
+            y0, in_batched[1])
         dyn_b, dyn_c = _split(dyn, in_batched[0])
 
         def lockstep(dyn_b, y0, rtol, atol):
-            n = y0.shape[0]
+            n = jax.tree_util.tree_leaves(y0)[0].shape[0]
             # Per-member tolerances scale that member's state (the last axis).
             rtol = rtol[:, None] if in_batched[3] else rtol
             atol = atol[:, None] if in_batched[4] else atol
             # The geometry's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises
             # over the members (trig.py).
             with trig.arithmetic():
-                (phi, dphi), result, steps = solve_adaptive(
+                ys, result, steps = solve_adaptive(
                     _side_by_side(rebuild, _join(dyn_b, dyn_c, in_batched[0]),
                                   in_batched[0]),
-                    (y0[:, 0], y0[:, 1]), ts, rtol, atol, max_steps=max_steps, batched=True)
-            ys = jnp.moveaxis(_stack(phi, dphi), 1, 0)
+                    y0, ts, rtol, atol, max_steps=max_steps, batched=True,
+                    error_size=error_size)
+            ys = jax.tree_util.tree_map(lambda v: jnp.moveaxis(v, 1, 0), ys)
             full = lambda x: jnp.broadcast_to(x, (n,))  # noqa: E731
-            return ys, full(_as_float(result._value, phi)), full(_as_float(steps, phi))
+            return ys, full(_as_float(result._value, ts)), full(_as_float(steps, ts))
 
         out = _in_chunks(lockstep, axis_size, dyn_b, y0, rtol, atol, in_batched[3],
                          in_batched[4], spread=spread)
-        return out, (True, True, True)
+        return out, _all_batched(out)
 
     def batched(spread: bool):
         """The solve with its `vmap` rule; `spread`: whether a batch may be spread over

@@ -45,7 +45,7 @@ def attach_sensitivities(erk: FusedERK, field, args, y0, ts, ys, ms):
     return attach(diff, y0, ts, ys, ms)
 
 
-def _flatten_state(y):
+def flatten_state(y):
     """The leaves of `y` and a function from N scalar components back to `y`'s pytree."""
     leaves, treedef = jax.tree_util.tree_flatten(y)
     shapes = [np.shape(x) for x in leaves]
@@ -67,7 +67,7 @@ def _flatten_state(y):
     return components, rebuild, sum(sizes)
 
 
-def _copied_components(g, x, theta) -> list:
+def copied_components(g, x, theta) -> list:
     """For each output component of `g(x, theta)` (a tuple of scalars), the index of the
     input component of `x` that it returns unchanged, else None (read off the jaxpr)."""
     closed = jax.make_jaxpr(g)(tuple(x), theta)
@@ -106,7 +106,7 @@ def _variational_field(g, copies, flat, N, y0_cols, dtype):
     return f
 
 
-def _columns_to_tree(dys, y0):
+def columns_to_tree(dys, y0):
     """(n, N) tangent columns back to `y0`'s pytree: a leaf of shape s becomes (n,) + s."""
     n = dys.shape[0]
     out, i = [], 0
@@ -132,7 +132,7 @@ def _make_attach(erk: FusedERK, static):
         leaves, treedef = jax.tree_util.tree_flatten(params)
         dleaves = jax.tree_util.tree_leaves(tangents[0], is_leaf=is_zero)
         live = [i for i, d in enumerate(dleaves) if not is_zero(d)]
-        components, rebuild, N = _flatten_state(y0)
+        components, rebuild, N = flatten_state(y0)
         dy0_leaves = ([tangents[1]] * len(jax.tree_util.tree_leaves(y0)) if is_zero(tangents[1])
                       else jax.tree_util.tree_leaves(tangents[1], is_leaf=is_zero))
         y0_cols = N if any(not is_zero(d) for d in dy0_leaves) else 0
@@ -158,7 +158,7 @@ def _make_attach(erk: FusedERK, static):
 
         # Components of the field that merely copy a state component (the crank's
         # phi' = dphi) need no reverse pass: their sensitivity row is that component's.
-        copies = _copied_components(lambda x, th: g(ts[0], x, th), components(y0), flat)
+        copies = copied_components(lambda x, th: g(ts[0], x, th), components(y0), flat)
         f = _variational_field(g, copies, flat, N, y0_cols, dtype)
 
         def interval(Y, x):
@@ -181,7 +181,7 @@ def _make_attach(erk: FusedERK, static):
             dy0 = [jnp.zeros_like(v) if is_zero(d) else d
                    for v, d in zip(jax.tree_util.tree_leaves(y0), dy0_leaves)]
             dys = dys + S[..., P:] @ jnp.concatenate([jnp.ravel(d).astype(dtype) for d in dy0])
-        return ys, _columns_to_tree(dys, y0)
+        return ys, columns_to_tree(dys, y0)
 
     attach.defjvp(attach_jvp, symbolic_zeros=True)
     return attach

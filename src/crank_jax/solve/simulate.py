@@ -37,6 +37,7 @@ from .lockstep import adaptive_solve
 from .policy import check_travel, host_plan, is_concrete
 from .twin import reverse_twin
 from .uniform import solve_uniform
+from .variational import with_sensitivities
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
@@ -192,14 +193,24 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
     # it where it steps it (`dopri8-uniform`'s twin forms its own).
     if solver == "dopri8-adaptive":
         def fallback(fld, y, ts_, r, a):
-            return diffrax.diffeqsolve(
+            ys = diffrax.diffeqsolve(
                 diffrax.ODETerm(_TERMS[mode]), diffrax.Dopri8(), t0=ts_[0], t1=ts_[-1],
-                dt0=None, y0=y, args=fld, saveat=diffrax.SaveAt(ts=ts_),
+                dt0=None, y0=jnp.stack(y), args=fld, saveat=diffrax.SaveAt(ts=ts_),
                 stepsize_controller=diffrax.PIDController(rtol=r, atol=a),
                 max_steps=max_steps, adjoint=adj, throw=False).ys
+            return ys[:, 0], ys[:, 1]
 
-        ys, result, steps = adaptive_solve(crank.packed(), y0, ts, rtol, atol, max_steps=max_steps,
-                                           adjoint=adjoint, fallback=fallback)
+        def run(fld, y, ts_, r, a, error_size):
+            return adaptive_solve(fld, y, ts_, r, a, max_steps=max_steps, adjoint=adjoint,
+                                  fallback=fallback, error_size=error_size)
+
+        state = (y0[0], y0[1])
+        # Forward mode steps the variational equation beside the solution (variational.py):
+        # a 10-parameter Jacobian in a few forward solves rather than 11.
+        (phi, dphi), result, steps = (
+            with_sensitivities(run, crank, CrankField.packed, state, ts, rtol, atol)
+            if adjoint == "forward" else run(crank.packed(), state, ts, rtol, atol, None))
+        ys = jnp.stack([phi, dphi], axis=1)
         if throw:
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
     elif solver == "dopri8-uniform":
