@@ -107,12 +107,16 @@ def main(argv=None):
     # One tangent (d phi / d k) through the default solver. Every parameter of theta has a
     # tangent here, so the variational path steps all 10 columns: a JVP costs what the
     # Jacobian costs (a direction through fewer parameters steps fewer columns).
-    one = jax.jit(lambda th: jax.jvp(lambda th: phi(th, "auto", "forward"), (th,),
-                                     (jnp.eye(len(PARAMS))[PARAMS.index("k")],))[1])
-    _, comp, t = _compiled_and_timed(one, theta0, repeats)
-    rows.append({"method": "jvp, one tangent (k), dopri8-adaptive (default)", "time_s": t,
-                 "ratio": t / base, "compile_s": comp, "shape": [samples]})
-    print(rows[-1], flush=True)
+    for adjoint in ("forward", "direct"):
+        one = jax.jit(lambda th, adjoint=adjoint: jax.jvp(
+            lambda th: phi(th, "auto", adjoint), (th,),
+            (jnp.eye(len(PARAMS))[PARAMS.index("k")],))[1])
+        _, comp, t = _compiled_and_timed(one, theta0, repeats)
+        how = ("" if adjoint == "forward" else
+               ", adjoint=\"direct\" (tangents through the steps)")
+        rows.append({"method": f"jvp, one tangent (k), dopri8-adaptive (default){how}",
+                     "time_s": t, "ratio": t / base, "compile_s": comp, "shape": [samples]})
+        print(rows[-1], flush=True)
     # The Jacobians agree (relative to the largest sensitivity of each parameter).
     ref = jacs["jacfwd, diffrax Dopri8 (ForwardMode)"]
     scale = np.max(np.abs(ref), axis=0)

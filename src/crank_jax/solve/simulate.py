@@ -301,7 +301,12 @@ def simulate(
     - `outputs`: derived outputs to add to `Trajectory.extras` (see [`OUTPUTS`][]); only
       these are computed.
     - `adjoint`: `"reverse"` (default; `jax.grad`), `"forward"` (`diffrax.ForwardMode`, for
-      `jax.jacfwd` and Levenberg-Marquardt) or `"direct"` (both, slower).
+      `jax.jacfwd` and Levenberg-Marquardt) or `"direct"` (both, slower). With
+      `"dopri8-adaptive"`, `"forward"` steps the variational equation beside the solution
+      (solve/variational.py): a column per parameter and initial-state component that has a
+      tangent, so a Jacobian costs a few solves, and so does a single JVP through many
+      parameters; `"direct"` carries JAX's tangents through the steps instead, cheaper for
+      one direction through many parameters.
     - `structure`: the static set of terms; default `Structure.of(mech)`: the terms whose
       parameters are traced or nonzero.
     - `throw`: raise on a failed solve; with `False` the failure is in `result` and the
