@@ -160,3 +160,21 @@ def test_many_parameters_fall_back_to_tangents_through_the_solve(smooth, monkeyp
     slow = jax.jit(jax.jacfwd(lambda th: _phi(smooth, th, y0, SMOOTH)))(theta)
     scale = np.max(np.abs(slow), axis=0)
     np.testing.assert_allclose(fast / scale, slow / scale, rtol=0, atol=1e-10)
+
+
+def test_load_parameters_are_columns_too(smooth):
+    # A load's parameters are leaves of the prepared field beside the packed coefficients
+    # (not gathered by one stack, so all their elements count as read).
+    def phi(p, through_loop):
+        load, m = cj.HarmonicLoad(p[0], p[1], p[2], 0.0), smooth.replace(k=p[3])
+        if not through_loop:
+            return cj.simulate(m, 1.0, 0.3, TS, load=load, rtol=RTOL, atol=ATOL,
+                               adjoint="forward").phi
+        field = CrankField(m, as_load(load), as_load(None), Structure.of(m), None).packed()
+        return solve_adaptive(field, (1.0, 0.3), TS, RTOL, ATOL, max_steps=4096)[0][0]
+
+    p = jnp.array([0.5, 2.0, 1.3, 2.0])
+    ours = jax.jit(jax.jacfwd(lambda p: phi(p, False)))(p)
+    ref = jax.jit(jax.jacfwd(lambda p: phi(p, True)))(p)
+    scale = np.max(np.abs(ref), axis=0)
+    np.testing.assert_allclose(ours / scale, ref / scale, rtol=0, atol=1e-10)
