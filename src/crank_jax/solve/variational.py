@@ -16,12 +16,16 @@ whose slices pass their cotangents back as one array: `coefficients.unpack`), an
 rule to the parameters being differentiated, `theta`, as a constant matrix `dC/dtheta`
 formed once, outside the loop. One reverse pass costs ~1.9x a field evaluation however many
 parameters there are, and the chain rule is a few scalar-times-row products, so the whole
-Jacobian costs a few forward solves (see experiments/bench_gradients.py).
+Jacobian costs a few forward solves: 2.9-3.8x on the lab rig with the CPU flags
+(`xla_flags.py`; tangents through the solve 7-12x). With XLA's defaults, which dispatch the
+loop body's kernels one by one, it costs ~13x (the tangents ~12x): the reverse passes split
+into more kernels (experiments/bench_gradients.py).
 
 The steps are the solution's: the step control sees only the solution's components
 (`error_size`), as forward mode through the solve sees them (the steps are chosen on values,
 `stop_gradient`). So the result is the derivative of the discrete solution, as `jax.jvp`
-through the solve gives it, to rounding.
+through the solve gives it, to rounding (which sharp Coulomb friction amplifies to ~1e-5:
+tests/test_variational.py).
 """
 
 from __future__ import annotations
