@@ -178,3 +178,13 @@ def test_load_parameters_are_columns_too(smooth):
     ref = jax.jit(jax.jacfwd(lambda p: phi(p, True)))(p)
     scale = np.max(np.abs(ref), axis=0)
     np.testing.assert_allclose(ours / scale, ref / scale, rtol=0, atol=1e-10)
+
+
+def test_new_values_do_not_retrace_the_jacobian(smooth):
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def jac(mech, theta, y0):
+        return jax.jacfwd(lambda th: _phi(mech, th, y0, ("k", "c")))(theta)
+
+    jac(smooth, jnp.array([2.0, 2e-3]), jnp.array([1.0, 0.3]))
+    jac(smooth.replace(m_p=0.6), jnp.array([2.5, 3e-3]), jnp.array([0.8, 0.0]))
