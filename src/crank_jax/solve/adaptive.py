@@ -72,29 +72,6 @@ def dopri8_dense() -> np.ndarray:
     return np.asarray(diffrax.Dopri8.interpolation_cls.eval_coeffs, dtype=float)
 
 
-def _batch_packer(y0):
-    """`(pack, unpack)` for a batch of states: the members side by side, (B, N), each
-    member's state flat on the last axis (its leaves carry the batch axis first)."""
-    leaves, treedef = jax.tree_util.tree_flatten(y0)
-    shapes = [jnp.shape(x)[1:] for x in leaves]
-    sizes = [int(np.prod(s, dtype=int)) for s in shapes]
-
-    def pack(y):
-        parts = jax.tree_util.tree_leaves(y)
-        if all(s == () for s in shapes):
-            return jnp.stack(parts, axis=-1)
-        return jnp.concatenate([x.reshape(x.shape[0], -1) for x in parts], axis=-1)
-
-    def unpack(Y):
-        out, i = [], 0
-        for s, k in zip(shapes, sizes):
-            out.append(Y[..., i] if s == () else Y[..., i:i + k].reshape(Y.shape[:-1] + s))
-            i += k
-        return jax.tree_util.tree_unflatten(treedef, out)
-
-    return pack, unpack
-
-
 def _rms(x):
     """RMS over the state (the last axis), the largest over any leading batch axes: a
     batch in lockstep takes the step its least accurate member allows."""
@@ -236,7 +213,7 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     n = ts.shape[0]
     dtype = ts.dtype
     W, K = int(window), int(unroll)
-    pack, unpack = _batch_packer(y0) if batched else packer(y0)
+    pack, unpack = packer(y0, 1 if batched else 0)
     sg = jax.lax.stop_gradient
     rtol, atol = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
 
