@@ -22,12 +22,9 @@ import numpy as np
 
 from .data import MIN_SAMPLES, Data, DataError
 from .identify.fit import fit
-from .lazy import lazy_import
 from .model.linear import linearize
 from .model.loads import AbstractLoad, NoLoad
 from .scene import Scene
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["validate", "Validation", "default_init_window", "plot_validation"]
 
@@ -162,7 +159,7 @@ def validate(
     traj = scene.simulate(np.asarray(win.ts), phi0=phi0, dphi0=dphi0, load=load,
                           torque=torque, outputs=(), throw=False)
     yhat = np.asarray(traj.phi)
-    if not bool(np.asarray(traj.result == diffrax.RESULTS.successful)):
+    if not bool(traj.ok):
         raise RuntimeError(f"the prediction's solve failed ({traj.result}); check the scene's "
                            "solver settings")
     y, e = win.phi[scored], (win.phi - yhat)[scored]

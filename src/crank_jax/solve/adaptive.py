@@ -43,7 +43,7 @@ from .erk import FusedERK, dopri8, packer
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
-__all__ = ["solve_adaptive", "dopri8_dense"]
+__all__ = ["solve_adaptive", "dopri8_dense", "outcome"]
 
 # The integral controller (as scipy's DOP853 and diffrax's PIDController default): safety
 # factor, and the step growth per step kept in [_FAC_MIN, _FAC_MAX].
@@ -278,3 +278,12 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     # Save times never reached (a failed solve) hold inf, as diffrax leaves them.
     ys = jnp.where((jnp.arange(n) < i0).reshape((n,) + (1,) * y0p.ndim), out[:n], jnp.inf)
     return unpack(ys), result, steps
+
+
+def outcome(code: jax.Array, steps: jax.Array) -> tuple:
+    """`(result, steps)` from the arrays a `custom_jvp`, `custom_vjp` or `custom_vmap` solve
+    returns (such a rule returns arrays, so the `diffrax.RESULTS` travels as its code):
+    the code as a `diffrax.RESULTS` again, both with no derivative (equinox's checks on
+    the result cannot take one through it)."""
+    code, steps = (jax.lax.stop_gradient(x).astype(jnp.int32) for x in (code, steps))
+    return type(diffrax.RESULTS.successful)(code, diffrax.RESULTS), steps

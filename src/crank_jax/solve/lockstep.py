@@ -35,10 +35,7 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from .. import trig
-from ..lazy import lazy_import
-from .adaptive import solve_adaptive
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
+from .adaptive import outcome, solve_adaptive
 
 __all__ = ["adaptive_solve"]
 
@@ -60,9 +57,7 @@ def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str, f
     """
     out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_size)
     ys, code, steps = out
-    # The outcome carries no derivative (equinox's checks cannot take one through it).
-    code, steps = (jax.lax.stop_gradient(x).astype(jnp.int32) for x in (code, steps))
-    return ys, type(diffrax.RESULTS.successful)(code, diffrax.RESULTS), steps
+    return (ys, *outcome(code, steps))
 
 
 def _side_by_side(rebuild, dyn, batched):

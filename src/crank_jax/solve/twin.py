@@ -20,9 +20,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 
-from ..lazy import lazy_import
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
+from .adaptive import outcome
 
 __all__ = ["reverse_twin"]
 
@@ -61,6 +59,4 @@ def reverse_twin(run: Callable, field, prepare: Callable, *args):
 
     solve.defvjp(fwd, bwd)
     ys, code, steps = solve(dyn, *args)
-    # The outcome carries no derivative (equinox's checks cannot take one through it).
-    code, steps = jax.lax.stop_gradient(code), jax.lax.stop_gradient(steps)
-    return ys, type(diffrax.RESULTS.successful)(code, diffrax.RESULTS), steps
+    return (ys, *outcome(code, steps))

@@ -37,10 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lazy import lazy_import
+from .adaptive import outcome
 from .sensitivity import columns_to_tree, copied_components, flatten_state
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["with_sensitivities"]
 
@@ -252,8 +250,7 @@ def with_sensitivities(solve: Callable, field, prepare: Callable, y0, ts, rtol, 
 
     run.defjvp(run_jvp, symbolic_zeros=True)
     ys, code, steps = run(dyn, y0, ts, rtol, atol)
-    code, steps = jax.lax.stop_gradient(code), jax.lax.stop_gradient(steps)
-    return ys, type(diffrax.RESULTS.successful)(code, diffrax.RESULTS), steps
+    return (ys, *outcome(code, steps))
 
 
 def _augmented(inner, prepared, theta, depends, y0_cols, y0, t0) -> _Variational:
