@@ -285,5 +285,5 @@ def outcome(code: jax.Array, steps: jax.Array) -> tuple:
     returns (such a rule returns arrays, so the `diffrax.RESULTS` travels as its code):
     the code as a `diffrax.RESULTS` again, both with no derivative (equinox's checks on
     the result cannot take one through it)."""
-    code, steps = (jax.lax.stop_gradient(x).astype(jnp.int32) for x in (code, steps))
+    code, steps = jax.lax.stop_gradient(code), jax.lax.stop_gradient(steps)
     return type(diffrax.RESULTS.successful)(code, diffrax.RESULTS), steps

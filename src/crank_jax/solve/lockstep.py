@@ -57,7 +57,7 @@ def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str, f
     """
     out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_size)
     ys, code, steps = out
-    return (ys, *outcome(code, steps))
+    return (ys, *outcome(code.astype(jnp.int32), steps.astype(jnp.int32)))
 
 
 def _side_by_side(rebuild, dyn, batched):
