@@ -204,7 +204,7 @@ def with_sensitivities(solve: Callable, field, prepare: Callable, y0, ts, rtol, 
         dleaves = jax.tree_util.tree_leaves(tangents[0], is_leaf=is_zero)
         live = [i for i, d in enumerate(dleaves) if not is_zero(d)]
         dy0 = jax.tree_util.tree_leaves(tangents[1], is_leaf=is_zero)
-        components, rebuild, N = flatten_state(y0)
+        *_, N = flatten_state(y0)
         y0_cols = N if any(not is_zero(d) for d in dy0) else 0
         P = sum(int(np.size(leaves[i])) for i in live)
         if not live and not y0_cols and all(is_zero(d) for d in tangents[2:]):
@@ -223,8 +223,7 @@ def with_sensitivities(solve: Callable, field, prepare: Callable, y0, ts, rtol, 
             return jax.tree_util.tree_leaves(eqx.filter(inner, eqx.is_inexact_array))
 
         inner = prepare(eqx.combine(dyn, static))
-        inner_dyn, inner_static = eqx.partition(inner, eqx.is_inexact_array)
-        inner_leaves, inner_def = jax.tree_util.tree_flatten(inner_dyn)
+        inner_leaves = jax.tree_util.tree_leaves(eqx.filter(inner, eqx.is_inexact_array))
         depends = _depends_on_inputs(prepared, theta)
         elements = sum(int(np.size(v)) for v, d in zip(inner_leaves, depends) if d)
         if (P + y0_cols > MAX_COLUMNS or elements > MAX_ELEMENTS
@@ -261,11 +260,10 @@ def _augmented(inner, prepared, theta, depends, y0_cols, y0, t0) -> _Variational
     dtype = theta.dtype
     inner_dyn, inner_static = eqx.partition(inner, eqx.is_inexact_array)
     inner_leaves, inner_def = jax.tree_util.tree_flatten(inner_dyn)
-    elements = sum(int(np.size(v)) for v, d in zip(inner_leaves, depends) if d)
-    chain = jax.jacfwd(lambda th: jnp.concatenate(
+    chain = jax.jacfwd(lambda th: jnp.concatenate(  # (elements, theta's size)
         [jnp.ravel(v) for v, d in zip(prepared(th), depends) if d]
-        + [jnp.zeros(0, dtype)]))(theta).reshape(elements, theta.shape[0]).astype(dtype)
-    chain = jnp.concatenate([chain, jnp.zeros((elements, y0_cols), dtype)], axis=1)
+        + [jnp.zeros(0, dtype)]))(theta).astype(dtype)
+    chain = jnp.concatenate([chain, jnp.zeros((chain.shape[0], y0_cols), dtype)], axis=1)
     live = jax.tree_util.tree_unflatten(
         inner_def, [v if d else None for v, d in zip(inner_leaves, depends)])
     rest = eqx.combine(jax.tree_util.tree_unflatten(
