@@ -3,6 +3,8 @@
 here from the bodies' positions alone: a potential, a Lagrangian, each body's Newton-Euler
 equations, the energy along a simulation, autodiff of q for the linearisation."""
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -11,6 +13,7 @@ import pytest
 from conftest import random_mech
 
 import crank_jax as cj
+from crank_jax import cli
 
 LOAD = cj.HarmonicLoad(3.0, 2.0, 1.5, 0.3)
 TORQUE = cj.HarmonicLoad(-0.2, 0.5, 2.5, 1.0)
@@ -321,12 +324,87 @@ def test_invalid_values_are_named(change, rule):
     (field, value), = change.items()
     with pytest.raises(ValueError, match=rf"SliderCrank\.{field} .*{rule}"):
         cj.SliderCrank(**{**good, **change})
-
-    @jax.jit
-    def run(x):
-        m = cj.SliderCrank(**{**good, field: x})
-        return cj.simulate(m, 0.1, 0.0, jnp.linspace(0, 0.1, 3)).phi
-
-    run(jnp.asarray(0.5))  # valid: fine
+    _checked_run(field, jnp.asarray(0.5))  # valid: fine
     with pytest.raises(Exception, match=rf"SliderCrank\.{field} is invalid: {rule}"):
-        run(jnp.asarray(value))
+        _checked_run(field, jnp.asarray(value))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _checked_run(field, x):
+    """A simulation with `field` traced: its value is checked inside the program."""
+    m = cj.load_scene("lab-rig").mech.replace(**{field: x})
+    return cj.simulate(m, 0.1, 0.0, jnp.linspace(0, 0.1, 3)).phi
+
+
+_SCENE = """
+[mechanism]
+r = 0.05
+L = 0.20
+b = 0.06
+s = 0.025
+m_c = 1.0
+m_p = 0.5
+m_s = 0.4
+I_c = 2e-4
+I_p = 1.7e-3
+k = 2.0
+c = 0.01
+gravity_angle = 0.5
+"""
+
+
+def test_scene_key_round_trips(tmp_path):
+    path = tmp_path / "tilted.toml"
+    path.write_text(_SCENE)
+    sc = cj.load_scene(path)
+    assert float(sc.mech.gravity_angle) == 0.5 and float(sc.mech.g) == 9.81
+    assert sc.structure.tilt
+    text = cj.scene_to_toml(sc)
+    assert "gravity_angle = 0.5" in text
+    again = tmp_path / "again.toml"
+    again.write_text(text)
+    assert cj.load_scene(again).mech.as_dict() == sc.mech.as_dict()
+    # The default is not written: a scene without a direction reads exactly as before.
+    assert "gravity_angle" not in cj.scene_to_toml(cj.load_scene("lab-rig"))
+
+
+@pytest.mark.parametrize("line, words", [("gravity_angle = nan", "gravity_angle must be finite"),
+                                         ("gravity_angle = inf", "gravity_angle must be finite"),
+                                         ("g = -9.81", "g must be >= 0")])
+def test_cli_refuses_bad_values_in_one_line(tmp_path, capsys, line, words):
+    path = tmp_path / "bad.toml"
+    path.write_text(_SCENE.replace("gravity_angle = 0.5", line))
+    out = tmp_path / "out.csv"
+    assert cli.main(["simulate", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert words in err and err.count("\n") == 1 and not out.exists()
+
+
+def test_cli_sweep_varies_gravity_angle_like_single_simulations(tmp_path, capsys, lab_rig):
+    out = tmp_path / "s.npz"
+    rc = cli.main(["sweep", "lab-rig", "--vary", "gravity_angle=uniform(0,1)", "--n", "3",
+                   "--t1", "0.2", "--samples", "11", "--out", str(out), "--quiet",
+                   "--outputs", "final_phi,final_energy"])
+    assert rc == 0, capsys.readouterr().err
+    with np.load(out) as z:
+        gammas, ts = z["sample.gravity_angle"], z["ts"]
+        phi, energy = z["output.final_phi"], z["output.final_energy"]
+        solvers = [str(z["solver_names"][i]) for i in z["solver"]]
+    assert gammas.shape == (3,) and np.all((gammas > 0) & (gammas < 1))
+    assert len(set(gammas)) == 3
+    for i in range(2):
+        mech = lab_rig.mech.replace(gravity_angle=gammas[i])
+        tr = cj.simulate(mech, lab_rig.phi0, lab_rig.dphi0, ts, solver=solvers[i])
+        assert phi[i] == pytest.approx(float(tr.phi[-1]), rel=1e-10)
+        assert energy[i] == pytest.approx(float(cj.energy(mech, tr.phi[-1], tr.dphi[-1])),
+                                          rel=1e-10)
+
+
+def test_fit_recovers_a_free_gravity_angle(lab_rig):
+    truth = cj.Scene(lab_rig.mech.replace(gravity_angle=0.4), phi0=0.8)
+    data = cj.synthesize(truth, t1=1.5, rate=100.0, noise_std=1e-3, seed=3)
+    start = cj.Scene(lab_rig.mech, phi0=0.8)  # gravity_angle starts at 0 (compiled out)
+    res = cj.fit(start, data, free=("gravity_angle", "c"), progress=False, warn=False)
+    assert res.start["gravity_angle"] == 0.0 and res.converged, res.warnings
+    assert abs(res.values["gravity_angle"] - 0.4) < 4 * res.stderr["gravity_angle"]
+    assert res.stderr["gravity_angle"] < 0.01
