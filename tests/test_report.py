@@ -165,6 +165,23 @@ def test_report_methods_write_atomically(fitted, tmp_path):
     assert f"{val.fit_percent:.6g}" in (tmp_path / "v.html").read_text()
 
 
+def test_long_records_embed_png():
+    """Above SVG_MAX_POINTS plotted points a figure is a base64 PNG (an SVG would grow to
+    megabytes); below, inline SVG without the XML prolog."""
+    from crank_jax.plot import pyplot
+    from crank_jax.report.figures import SVG_MAX_POINTS, embed
+
+    def figure():
+        fig, ax = pyplot().subplots()
+        ax.plot(np.arange(10.0))
+        return fig
+
+    png = embed(figure(), SVG_MAX_POINTS + 1)
+    assert png.startswith('<img alt="figure" src="data:image/png;base64,iVBOR')
+    svg = embed(figure(), 10)
+    assert svg.startswith("<svg") and "<!DOCTYPE" not in svg
+
+
 def _one_error(argv, capsys) -> str:
     rc = main(argv)
     err = capsys.readouterr().err.strip().splitlines()

@@ -123,7 +123,10 @@ def fit_context(res, *, scene=None, command=None, title: str = "") -> dict:
     if scene is not None:
         from ..scene import fitted_scene
 
-        fitted = fitted_scene(scene, res)
+        try:
+            fitted = fitted_scene(scene, res)
+        except ValueError:  # a load that cannot take the estimates: show the given scene
+            fitted = None
     summary = [("parameters", str(len(res.names))), ("samples", str(doc["n_samples"])),
                ("records", str(len(res.data))),
                ("rms residual", f"{fmt(doc['rms_residual'])} rad"),
