@@ -73,21 +73,17 @@ def foreign_classes(treedefs, static_leaves) -> set[type]:
     return found
 
 
-def source_digest(classes: set[type]) -> str | None:
+@functools.cache
+def source_digest(classes: frozenset[type]) -> str | None:
     """A digest of the source of `classes` (their modules and bases' modules, and the
     user modules those import), or None when some has no source file, or one changed
-    after this process started."""
+    after this process started. (Once per process for a set of classes: a class's code
+    does not change; a module reloaded gives new classes.)"""
     names = set()
     for cls in classes:
         for c in inspect.getmro(cls):
             if not _known(c.__module__):
                 names.add(c.__module__)
-    return _modules_digest(frozenset(names))
-
-
-@functools.cache
-def _modules_digest(names: frozenset[str]) -> str | None:
-    """(Once per process for a set of modules: the code that runs does not change.)"""
     h, seen, todo = hashlib.sha256(), set(), sorted(names)
     while todo:
         name = todo.pop()

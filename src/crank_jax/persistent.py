@@ -126,7 +126,7 @@ def _signature(name: str, args) -> tuple[str | None, list, object, object]:
         return None, leaves, treedef, static
     foreign = foreign_classes((treedef, static_def), static_leaves)
     if foreign:  # a user's class: its code is in the program, so its source in the key
-        source = source_digest(foreign)
+        source = source_digest(frozenset(foreign))
         if source is None:
             return None, leaves, treedef, static
         text += "\n" + source
