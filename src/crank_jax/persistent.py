@@ -8,8 +8,12 @@ that: the first call compiles the program and stores the executable
 (`jax.experimental.serialize_executable`) under a key made of everything that decides it:
 the static part of the arguments, their shapes and dtypes, this package's source, the
 versions of JAX and of the libraries that trace into it, x64, the backend and the CPU's
-instruction-set flags (an executable is machine code). Later processes load it (tens of
-milliseconds to a few tenths of a second, by size).
+instruction-set flags (an executable is machine code), and the source of any class from
+outside crank-jax in the arguments (`foreign_code.py`: a user's load, a force of their
+own). Later processes load it (tens of milliseconds to a few tenths of a second, by size).
+Each file carries a SHA-256 of all of it, checked before anything is deserialised
+(`program_store.py`); a damaged file, or one that does not load or run here, is
+discarded and compiled again, never loaded and never fatal.
 
 The store is used only where JAX's persistent compilation cache is configured (the CLI
 does it; a library user calls `enable_compilation_cache()`): a library has no disk side
