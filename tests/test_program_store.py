@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import importlib
 import os
+import signal
 import stat
+import subprocess
 import sys
 import time
 
@@ -22,6 +24,7 @@ import numpy as np
 import pytest
 
 from crank_jax import persistent, program_store
+from crank_jax.io import atomic_write
 from crank_jax.model.loads import AbstractLoad
 from crank_jax.program_store import MAGIC, Entry
 
@@ -307,3 +310,54 @@ def test_a_class_without_source_or_edited_since_start_is_not_stored(store, tmp_p
     (out,) = _load_program()(module.Pulse(3.0), t)
     np.testing.assert_allclose(out, 3.0 * np.asarray(t))
     assert not list(store.glob("*.xla"))
+
+
+# --- temporary files of a killed writer ----------------------------------------------------
+
+KILLED = r"""
+import os, signal, sys
+from pathlib import Path
+from crank_jax import io, program_store
+
+def die(*a):
+    os.kill(os.getpid(), signal.SIGKILL)
+
+if sys.argv[1] == "output":
+    with io.atomic_write(sys.argv[2]) as f:
+        f.write("partial")
+        f.flush()
+        die()
+else:
+    program_store.os.replace = die  # killed between writing and renaming
+    program_store.write(Path(sys.argv[2]), b"partial program")
+"""
+
+
+def _killed_writer(kind: str, path) -> list:
+    out = subprocess.run([sys.executable, "-c", KILLED, kind, str(path)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == -signal.SIGKILL, out.stderr[-2000:]
+    left = list(path.parent.glob(".*.tmp"))
+    assert len(left) == 1  # what a killed process leaves (no code of its own runs)
+    return left
+
+
+def test_a_killed_writers_temporary_output_is_removed_by_the_next_write(tmp_path):
+    out = tmp_path / "traj.csv"
+    _killed_writer("output", out)
+    other = tmp_path / ".traj.csv.1.0123abcd-zzzz.tmp"  # another host's live writer
+    other.write_text("x")
+    with atomic_write(out) as f:
+        f.write("done")
+    assert out.read_text() == "done"
+    assert [p.name for p in tmp_path.glob(".*.tmp")] == [other.name]
+
+
+def test_a_killed_writers_temporary_program_is_removed_by_the_next_store(tmp_path):
+    store = tmp_path / "programs"
+    _killed_writer("store", store / "p-a.xla")
+    key = "ef" * 32
+    program_store.write(store / "p-b.xla",
+                        program_store.pack(key, Entry(1, False, 1, b"z" * 10)))
+    assert not list(store.glob(".*.tmp"))
+    assert not (store / "p-a.xla").exists()

@@ -20,10 +20,11 @@ import contextlib
 import hashlib
 import os
 import stat
-import tempfile
 import time
 from pathlib import Path
 from typing import NamedTuple
+
+from .io import remove_stale_temps, temp_file
 
 __all__ = ["Entry", "pack", "unpack", "read", "write", "discard", "evict", "MAGIC",
            "MAX_PROGRAMS", "STALE_TEMP_S"]
@@ -37,8 +38,9 @@ _DIGEST = 32
 #: The store keeps at most this many programs (~1 MB each), the most recently used.
 MAX_PROGRAMS = 256
 
-#: A temporary file of the store older than this (s) belongs to a writer that died (a
-#: write takes milliseconds) and is removed by the next eviction.
+#: A temporary file of the store untouched for this long (s) belongs to a writer that
+#: died (a write takes milliseconds), wherever it ran, and is removed by the next
+#: eviction (one of a dead process of this host at once, see `io.remove_stale_temps`).
 STALE_TEMP_S = 600.0
 
 
@@ -110,7 +112,7 @@ def write(path: Path, blob: bytes) -> None:
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        fd, tmp = temp_file(path.parent, path.name)
         with os.fdopen(fd, "wb") as f:
             f.write(blob)
         # No fsync: a store is a cache, and a file torn by a power loss fails its digest.
@@ -127,8 +129,10 @@ def write(path: Path, blob: bytes) -> None:
 
 def evict(store: Path) -> None:
     """Remove the least recently used programs beyond [`MAX_PROGRAMS`][], and temporary
-    files older than [`STALE_TEMP_S`][] (left by a writer that was killed). Only regular
-    files count: a dangling link or anything else named `*.xla` is skipped, never fatal."""
+    files left by a writer that was killed (its process is gone, or the file is older
+    than [`STALE_TEMP_S`][]). Only regular files count: a dangling link or anything else
+    named `*.xla` is skipped, never fatal."""
+    remove_stale_temps(store)
     programs, now = [], time.time()
     try:
         entries = list(os.scandir(store))
