@@ -361,3 +361,15 @@ def test_a_killed_writers_temporary_program_is_removed_by_the_next_store(tmp_pat
                         program_store.pack(key, Entry(1, False, 1, b"z" * 10)))
     assert not list(store.glob(".*.tmp"))
     assert not (store / "p-a.xla").exists()
+
+
+def test_a_user_module_edited_after_its_first_use_is_no_longer_keyed(store, tmp_path,
+                                                                   monkeypatch):
+    """The running class may now differ from both the stored program and the file (a
+    notebook's autoreload): no key, so nothing is loaded or stored for it."""
+    t = jnp.linspace(0.0, 1.0, 5)
+    module = _user_module(tmp_path, monkeypatch, "user_load_c", "self.a * t")
+    args = (module.Pulse(3.0), t)
+    assert persistent._signature("user_load", args)[0] is not None
+    os.utime(tmp_path / "user_load_c.py")
+    assert persistent._signature("user_load", args)[0] is None

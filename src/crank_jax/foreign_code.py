@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import inspect
+import os
 import site
 import sys
 import sysconfig
@@ -73,18 +74,32 @@ def foreign_classes(treedefs, static_leaves) -> set[type]:
     return found
 
 
-@functools.cache
 def source_digest(classes: frozenset[type]) -> str | None:
     """A digest of the source of `classes` (their modules and bases' modules, and the
     user modules those import), or None when some has no source file, or one changed
-    after this process started. (Once per process for a set of classes: a class's code
-    does not change; a module reloaded gives new classes.)"""
+    after this process started (checked at every call: an edit after the first use,
+    e.g. a notebook's autoreload, makes the running code differ from either version)."""
+    found = _sources(classes)
+    if found is None:
+        return None
+    digest, files = found
+    try:
+        if any(os.stat(f).st_mtime >= _STARTED for f in files):
+            return None
+    except OSError:
+        return None
+    return digest
+
+
+@functools.cache
+def _sources(classes: frozenset[type]) -> tuple[str, tuple[str, ...]] | None:
+    """(the digest, the user source files it covers) of `classes`, once per process."""
     names = set()
     for cls in classes:
         for c in inspect.getmro(cls):
             if not _known(c.__module__):
                 names.add(c.__module__)
-    h, seen, todo = hashlib.sha256(), set(), sorted(names)
+    h, seen, todo, files = hashlib.sha256(), set(), sorted(names), []
     while todo:
         name = todo.pop()
         if name in seen or _known(name):
@@ -99,14 +114,12 @@ def source_digest(classes: frozenset[type]) -> str | None:
             h.update(f"{name}={version}\n".encode())
             continue
         try:
-            path = Path(file)
-            if path.stat().st_mtime >= _STARTED:
-                return None
-            h.update(f"{name}\n".encode() + path.read_bytes())
+            h.update(f"{name}\n".encode() + Path(file).read_bytes())
         except OSError:
             return None
+        files.append(file)
         todo.extend(_imports(module))
-    return h.hexdigest()
+    return h.hexdigest(), tuple(files)
 
 
 def _imports(module) -> list[str]:
