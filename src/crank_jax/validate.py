@@ -67,6 +67,13 @@ class Validation(NamedTuple):
             "warnings": list(self.warnings),
         }
 
+    def report(self, path, *, scene=None, command=None, title: str = "") -> None:
+        """Write a self-contained HTML report to `path` (see
+        [`write_validation_report`][crank_jax.report.write_validation_report])."""
+        from .report import write_validation_report
+
+        write_validation_report(self, path, scene=scene, command=command, title=title)
+
     def summary(self) -> str:
         """One paragraph for the terminal."""
         return (f"validation on {self.source} over [{self.ts[0]:g}, {self.ts[-1]:g}] s: "
