@@ -174,8 +174,11 @@ def _plan(req: FitRequest) -> _Plan:
     mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
                                            if n in req.scene.mech.as_dict()})
     solver = pick_solver(mech_start, req.loads[0][0], float(req.scene.rtol), req.scene.solver)
-    too_far = next((a for a in (absurd_frequency(linear_frequency(mech_start, lo), p)
-                                for (lo, _), p in zip(req.loads, periods)) if a), None)
+    multi = len(req.records) > 1
+    too_far = next((f"record {d.source}: {a}" if multi else a
+                    for a, d in ((absurd_frequency(linear_frequency(mech_start, lo), p), d)
+                                 for (lo, _), p, d in zip(req.loads, periods, req.records))
+                    if a), None)
     if too_far:
         return _aborted(req, start, states, solver, too_far, notes)
     ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver)
@@ -323,7 +326,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
     z_hat = best.z[:ss.p] if np.all(np.isfinite(best.z)) else plan.z0[:ss.p]
     converged, message = best.converged, best.message
     if plan.abort:  # nothing was solved, and nothing more is
-        r_hat, values = np.full(ss.n_residuals, np.nan), np.asarray(ss.values(z_hat))
+        r_hat, values = ss.no_residuals(), np.asarray(ss.values(z_hat))
         rms, unc, more, diag = float("nan"), undefined(ss.p, "did not converge"), [], None
     else:
         r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, req.sigma)
