@@ -130,3 +130,40 @@ def test_library_refuses_out_of_range_options(demo):
     for kw in ({"sigma": 1e300}, {"max_steps": 2**31}):
         with pytest.raises(ValueError, match=next(iter(kw))):
             cj.fit(scene, data, progress=False, **kw)
+
+
+def test_record_with_no_motion_above_its_noise_is_refused_before_any_solve(lab_rig):
+    # Issue 24.8: a pure-noise angle record took minutes (its noise crossings taken for
+    # 457 periods: 48 segments, then more starts). Noise about a constant is refused at
+    # once, whatever its scale; a constant record too.
+    rng = np.random.default_rng(0)
+    ts = np.arange(2001) / 200.0
+    for phi in (rng.normal(0.0, 0.3, ts.size), 5.0 + rng.normal(0.0, 1e-4, ts.size),
+                np.full(ts.size, 0.3)):
+        res = cj.fit(lab_rig, cj.Data(ts, phi, source="noise.csv"), progress=False,
+                     warn=False)
+        assert not res.converged and res.iterations == 0
+        assert "no motion above its noise" in res.message
+
+
+def test_good_record_plus_one_of_many_turns_is_refused_by_that_record(lab_rig):
+    # Issue 24.8: a record of 10^4 turns beside a good one ran 100 s and ended with a
+    # false "common scale" claim; alone it was refused at once. Each record is judged by
+    # its own solve.
+    good = cj.synthesize(lab_rig, t1=2.0, rate=200.0, noise_std=1e-3, seed=3)
+    ts = np.arange(2001) / 200.0
+    spin = cj.Data(ts, 2 * np.pi * 1e3 * ts, source="spin.csv")
+    res = cj.fit(lab_rig, [good, spin], progress=False, warn=False)
+    assert not res.converged and res.iterations == 0
+    assert "spin.csv" in res.message and "turns" in res.message
+    assert not any("common scale" in w for w in res.warnings)
+
+
+def test_fit_messages_name_the_commands_options():
+    from crank_jax.cli.identify import cli_words
+    from crank_jax.identify.optimise import _budget_spent
+    from crank_jax.identify.strategy import absurd_start
+
+    assert "--max-steps 7" in cli_words(_budget_spent(7))
+    text = cli_words(absurd_start(10**6, 1.0, 0.5))
+    assert "--init regressor" in text and "init=" not in text

@@ -305,15 +305,16 @@ class Problem(eqx.Module):
 
     def residuals(self, z: Array) -> tuple[Array, Array, Array]:
         """(r, n_failed, steps): the stacked residual vector, how many samples failed,
-        and the most ODE steps any one solve took."""
+        and per record the most ODE steps any one of its solves took, (R,) (so that a
+        record the start values cannot follow is found by itself, see `plan.make_plan`)."""
         mech, per = self.unpack(z)
-        rs, cont, failed, steps = [], [], 0, 0
+        rs, cont, failed, steps = [], [], 0, []
         # A point outside the mechanism's valid set (a coupler shorter than the crank, a
         # centre of mass beyond the coupler) is a failed solve: rejected, never reported.
         invalid = _invalid(mech)
         for e, (load, torque, y0s) in zip(self.exps, per):
             phi, dphi, n_steps = self.simulate_segments(mech, e, load, torque, y0s)
-            steps = jnp.maximum(steps, jnp.max(n_steps))
+            steps.append(jnp.max(n_steps))
             ok = jnp.isfinite(phi) & jnp.isfinite(dphi) & ~invalid
             failed = failed + jnp.sum(~ok & (e.seg.w > 0))
             r = jnp.where(ok, phi - e.seg.phi, _FAILED_RESIDUAL)
@@ -331,7 +332,7 @@ class Problem(eqx.Module):
                 phi_end = jnp.where(ok[rows, idx], phi[rows, idx], _FAILED_RESIDUAL)
                 cont.append(wgt * (phi_end - y0s[1:, 0]))
                 cont.append(wgt * (dphi_end - y0s[1:, 1]) * (e.ref_phi / e.ref_dphi))
-        return jnp.concatenate(rs + cont), failed, steps
+        return jnp.concatenate(rs + cont), failed, jnp.stack(steps)
 
 
 def linear_frequency(mech: SliderCrank, load: AbstractLoad | None = None) -> float | None:
