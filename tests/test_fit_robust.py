@@ -14,7 +14,7 @@ from crank_jax.cli import main
 from crank_jax.cli.identify import demo_data
 from crank_jax.identify.fit import _best
 from crank_jax.identify.optimise import Run, least_squares
-from crank_jax.identify.problem import build_problem
+from crank_jax.identify.problem import build_problem, coordinate
 from crank_jax.identify.programs import Subspace, residuals_at
 from crank_jax.identify.uncertainty import analyse, fixed_scale_members
 
@@ -47,6 +47,10 @@ def _problem(demo, free, start):
 def test_folded_coordinate_is_valid_on_both_sides_and_not_flat_at_zero(demo):
     pr = _problem(demo, ("k", "T_c"), {"k": 2.0, "T_c": 0.0})
     assert pr.folded == (False, True) and pr.log == (True, False)
+    # Friction is folded from a positive start too: in log coordinates a true 0 ends as
+    # ln T_c -> -inf, reported as "not determined" rather than as 0 with a bound.
+    assert _problem(demo, ("T_c", "m_s"), {"T_c": 1e-3, "m_s": 0.0}).folded == (True, True)
+    assert coordinate("T_c", 1e-3, demo[0].mech) == (False, 1e-3)
     ref = float(pr.ref[1])
     for z in (-0.7, 0.0, 0.7):
         assert float(pr.values(jnp.asarray([0.0, z]))[1]) == pytest.approx(abs(z) * ref)

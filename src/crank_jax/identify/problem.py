@@ -8,11 +8,12 @@ Coordinates `z` (what the optimisers see, all O(1)), chosen per name by
   `z = ln(value)`: a step in `z` is a relative change, positivity needs no constraint,
   and the columns of the Jacobian are the sensitivities *scaled by the parameter values*
   that the identifiability analysis needs;
-- a field that cannot be negative and starts at 0 (a friction coefficient, an absent
-  body's mass) is *folded*: `value = ref |z|`. It stays valid whatever step the
-  optimiser takes (a step below 0 is reflected), its sensitivity at the start is not zero
-  (as it would be for `z^2` or a softplus at its floor), and a value whose truth is 0
-  converges near 0 (see `uncertainty` for its interval, cut at 0);
+- a field that cannot be negative and starts at 0 (an absent body's mass), and the
+  friction terms `T_c`, `c_s`, `F_s` whatever their start, are *folded*:
+  `value = ref |z|`. It stays valid whatever step the optimiser takes (a step below 0
+  is reflected), its sensitivity at the start is not zero (as it would be for `z^2` or
+  a softplus at its floor), and a value whose truth is 0 converges near 0 (see
+  `uncertainty` for its interval, cut at 0);
 - everything else (a signed field such as the offset `e`, the initial states and load
   amplitudes) is linear: `z = value / ref`, with `ref` a typical magnitude (the start
   value, the record's angle amplitude, that times the natural frequency).
@@ -45,7 +46,7 @@ from ..model.linear import linearize
 from ..model.loads import AbstractLoad, nonsmooth_times, set_param
 from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..solve.policy import resolve_solver
-from .request import LOAD_NAMES, SIGNED_FIELDS
+from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
 from .segments import Segments, make_segments, padded_load
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
@@ -65,13 +66,15 @@ _TINY = 1e-9
 def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None = None
                ) -> tuple[bool, float]:
     """`(log, ref)` of a global free name: log coordinates for a mechanism field that
-    cannot be negative and starts positive; otherwise linear with scale `ref`.
+    cannot be negative and starts positive (but for the friction terms [`FOLDED`][]);
+    otherwise linear with scale `ref` (folded for a field that cannot be negative, see
+    [`folded`][]).
 
     A field that starts at 0 takes its scale from the record's observed angular frequency
     `omega` (rad/s) and the linearised inertia `mu`: `mu omega^2` for k, 5% damping
     (`0.1 mu omega`) for c; an offset e takes a tenth of r.
     """
-    if name in FIELDS and name not in SIGNED_FIELDS and start > 0:
+    if name in FIELDS and name not in SIGNED_FIELDS and start > 0 and name not in FOLDED:
         return True, 1.0
     if start != 0:
         return False, abs(start)
@@ -82,6 +85,13 @@ def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None =
         if math.isfinite(mu) and mu > 0:
             return False, mu * omega**2 if name == "k" else 0.1 * mu * omega
     return False, _ZERO_START_REF
+
+
+#: Friction terms (Coulomb torque, slider friction) whose true value is often 0: always
+#: folded, whatever their start. In log coordinates a true 0 sends ln(value) to -inf,
+#: LM crawls there, and the estimate (1e-265, say) is then reported as "ln T_c not
+#: determined" instead of "0, at most v + 1.96 se".
+FOLDED = frozenset(FRICTION_SCALED)
 
 
 def folded(name: str, log: bool) -> bool:
