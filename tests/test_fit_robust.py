@@ -29,12 +29,18 @@ def test_friction_that_starts_at_zero_stays_valid_and_gets_a_one_sided_interval(
     # is 0: it converges near 0, with an interval cut at 0 that holds the truth.
     scene, data = demo
     res = cj.fit(scene, data, free=("k", "c", "T_c", "phi0", "dphi0"),
-                 init={"k": 2.4, "c": 0.004}, progress=False, warn=False)
+                 init={"k": 2.4, "c": 0.004}, profile="T_c", progress=False, warn=False)
     assert res.converged, res.message
     assert res.values["T_c"] >= 0.0 and float(res.mech.T_c) >= 0.0
     lo, hi = res.ci95["T_c"]
     assert lo == 0.0 and 0.0 < hi < 1e-3
     assert res.values["k"] == pytest.approx(2.0, rel=1e-3)
+    # Its profile stays at or above the bound and gives a one-sided interval too, no
+    # wider than the Laplace one (at the bound the likelihood rises at least as fast as
+    # its quadratic approximation there).
+    assert np.all(res.profile.values >= 0.0)
+    p_lo, p_hi = res.profile.ci95
+    assert p_lo == 0.0 and 0.2 * hi < p_hi <= 1.1 * hi
 
 
 def _problem(demo, free, start):
