@@ -25,6 +25,7 @@ from .strategy import (
     SMALL_ODE_BUDGET,
     absurd_frequency,
     absurd_start,
+    aliased,
     n_segments,
     no_motion,
     ode_budget,
@@ -91,8 +92,8 @@ def _start_solve(req, start, states, solver, periods):
         ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
         z = ss.to_z([start[n] if n in start else _state(n, states) for n in ss.names])
         r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z)))
-        absurd = any(absurd_start(int(n), sp, p) for n, sp, p in
-                     zip(np.atleast_1d(steps), spans, periods))
+        absurd = any(absurd_start(int(n), sp, p, turns=_turns(d)) for n, sp, p, d in
+                     zip(np.atleast_1d(steps), spans, periods, req.records))
         if int(failed) == 0 or budget == MAX_ODE_STEPS or absurd:
             return ss, z, r, int(failed), np.atleast_1d(steps).astype(int), J
 
@@ -150,7 +151,8 @@ def make_plan(req: FitRequest) -> Plan:
     noise = max(noises)
     multi = len(req.records) > 1
     quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in
-                  ((no_motion(d.phi, n), d) for d, n in zip(req.records, noises)) if a), None)
+                  ((no_motion(d.phi, n) or aliased(d.phi), d)
+                   for d, n in zip(req.records, noises)) if a), None)
     start, states, notes = _starts(req, periods)
     mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
                                            if n in req.scene.mech.as_dict()})
@@ -184,8 +186,13 @@ def make_plan(req: FitRequest) -> Plan:
         ss = plan.single = _problem(req, start, states, [1] * len(req.records), budget,
                                     solver)
     model = ss.fitted(r0)
-    segs = [n_segments(sp, p, observed_period(d.ts, m), req.shooting, req.segments)
+    segs = [n_segments(sp, p, observed_period(d.ts, m), req.shooting, req.segments,
+                       _turns(d), abs(float(m[-1] - m[0])) / (2 * math.pi))
             for d, sp, p, m in zip(req.records, spans, periods, model)]
+    # A crank that turns has the time of a turn for its cycle: escalation cuts its
+    # record per two turns, as an oscillation's per two periods.
+    plan.periods = [p if p else (sp / t if t >= 1 else None) for p, sp, t in
+                    zip(periods, spans, (_turns(d) for d in req.records))]
     if max(s for s, _ in segs) > 1:
         plan.shoot, plan.z0 = shooting(req, plan, [s for s, _ in segs])
         plan.strategy = f"multiple shooting ({'+'.join(str(s) for s, _ in segs)} segments)"
