@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 
 import numpy as np
@@ -142,9 +143,28 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
         raise UserError("--out, --plot, --scene-out and --report must name different files")
 
 
+#: The library's words for its options -> the command's (each message the command prints
+#: names an option the command has).
+_CLI_WORDS = (
+    (re.compile(r"init='regressor'"), "--init regressor"),
+    (re.compile(r"max_steps = (\d+)"), r"--max-steps \1"),
+    (re.compile(r"choose other start values\b(?! \()"),
+     "choose other start values (in the scene file, or --init regressor)"),
+)
+
+
+def cli_words(text: str) -> str:
+    """A fit message with the library's option names replaced by the command's."""
+    for pattern, repl in _CLI_WORDS:
+        text = pattern.sub(repl, text)
+    return text
+
+
 def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = "") -> int:
     from ..io import atomic_write
 
+    res = res._replace(message=cli_words(res.message),
+                       warnings=[cli_words(w) for w in res.warnings])
     print(res.summary())
     if truth:
         print("truth: " + ", ".join(f"{k} = {v:g}" for k, v in truth.items()))
@@ -176,17 +196,28 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
 
 
 def _fit_kwargs(a: argparse.Namespace) -> dict:
+    """The fit's options, checked (before any record is read: a mistake costs nothing)."""
+    from ..identify.request import MAX_ITERATIONS, SIGMA_RANGE, free_names
+
     free = tuple(x.strip() for x in a.free.split(",") if x.strip())
     if not free:
         raise UserError("--free is empty; name at least one parameter")
+    unknown = [n for n in free if n not in free_names()]
+    if unknown:
+        raise UserError(f"--free: unknown free parameter(s) {', '.join(unknown)}; choose "
+                        f"from {', '.join(free_names())}")
     if a.multistart < 1:
         raise UserError(f"--multistart must be >= 1, got {a.multistart}")
     if a.segments is not None and a.segments < 1:
         raise UserError(f"--segments must be >= 1, got {a.segments}")
-    if a.max_steps is not None and a.max_steps < 1:
-        raise UserError(f"--max-steps must be >= 1, got {a.max_steps}")
-    if a.sigma is not None and not (np.isfinite(a.sigma) and a.sigma > 0):
-        raise UserError(f"--sigma must be a positive number, got {a.sigma}")
+    if not 0 <= a.seed < 2**32:
+        raise UserError(f"--seed must be an integer from 0 to {2**32 - 1}, got {a.seed}")
+    if a.max_steps is not None and not 1 <= a.max_steps <= MAX_ITERATIONS:
+        raise UserError(f"--max-steps must be an integer from 1 to {MAX_ITERATIONS}, got "
+                        f"{a.max_steps}")
+    if a.sigma is not None and not SIGMA_RANGE[0] <= a.sigma <= SIGMA_RANGE[1]:
+        raise UserError(f"--sigma must be a noise level from {SIGMA_RANGE[0]:g} to "
+                        f"{SIGMA_RANGE[1]:g} rad, got {a.sigma:g}")
     lo, hi = getattr(a, "fit_t_start", None), getattr(a, "fit_t_end", None)
     if lo is not None and hi is not None and not lo < hi:
         raise UserError(f"--t-start ({lo:g}) must be before --t-end ({hi:g})")
@@ -208,12 +239,13 @@ def _fit_run(a: argparse.Namespace) -> int:
     from ..identify.fit import fit
     from ..scene import load_scene
 
+    kwargs = _fit_kwargs(a)
     scene = load_scene(a.scene)
     files = [a.data] + list(a.more_data)
     _outputs_ok(a, files + [a.scene])
     records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
                          interp=a.load_interp) for f in files]
-    res = fit(scene, records if len(records) > 1 else records[0], **_fit_kwargs(a))
+    res = fit(scene, records if len(records) > 1 else records[0], **kwargs)
     a.fitted_scene = scene
     return _report(res, a, title=f"{', '.join(files)} with {a.scene}")
 
@@ -254,13 +286,13 @@ def _demo(a: argparse.Namespace) -> int:
     _outputs_ok(a, [])
     if getattr(a, "data", None) is not None or getattr(a, "more_data", None):
         raise UserError("the demo takes no data")
+    kw = _fit_kwargs(a)  # checked before the record is synthesised
     seed = getattr(a, "noise_seed", 1)
     scene, data = demo_data(seed)
     truth_mech = scene.mech.as_dict()
     print(f"demo: {scene.description}; tau(t) = {DEMO['tau1']} sin(2 pi {DEMO['freq_hz']} t) "
           f"N*m; {DEMO['t1']:g} s at {DEMO['rate']:g} Hz with {DEMO['noise_std']:g} rad noise "
           f"(seed {seed})", file=sys.stderr)
-    kw = _fit_kwargs(a)
     if a.init == "scene":
         start = {k: v for k, v in DEMO["start"].items() if k in kw["free"]}
         kw["init"] = start

@@ -8,10 +8,19 @@ Coordinates `z` (what the optimisers see, all O(1)), chosen per name by
   `z = ln(value)`: a step in `z` is a relative change, positivity needs no constraint,
   and the columns of the Jacobian are the sensitivities *scaled by the parameter values*
   that the identifiability analysis needs;
-- everything else (a signed field such as the offset `e`, a field that starts at 0 such
-  as a friction coefficient, the initial states and load amplitudes) is linear:
-  `z = value / ref`, with `ref` a typical magnitude (the start value, the record's angle
-  amplitude, that times the natural frequency).
+- a field that cannot be negative and starts at 0 (an absent body's mass), and the
+  friction terms `T_c`, `c_s`, `F_s` whatever their start, are *folded*:
+  `value = ref |z|`. It stays valid whatever step the optimiser takes (a step below 0
+  is reflected), its sensitivity at the start is not zero (as it would be for `z^2` or
+  a softplus at its floor), and a value whose truth is 0 converges near 0 (see
+  `uncertainty` for its interval, cut at 0);
+- everything else (a signed field such as the offset `e`, the initial states and load
+  amplitudes) is linear: `z = value / ref`, with `ref` a typical magnitude (the start
+  value, the record's angle amplitude, that times the natural frequency).
+
+Every trial point is also checked against the mechanism's validation rules (e.g.
+`b <= L`, `L > r + |e|`) inside the compiled residuals: a point outside them counts as a
+failed solve, which the optimiser rejects, so no iterate the fit reports is invalid.
 
 Shapes are bucketed (each record is padded to one of a few lengths with samples of weight
 0), so records of other lengths reuse the compiled programs; and the ODE solve carries no
@@ -35,15 +44,15 @@ from ..lazy import lazy_import
 from ..model.dynamics import CrankField, Structure
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, nonsmooth_times, set_param
-from ..model.params import FIELDS, SliderCrank
+from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..solve.policy import resolve_solver
-from .request import LOAD_NAMES, SIGNED_FIELDS
+from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
 from .segments import Segments, make_segments, padded_load
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
-__all__ = ["Problem", "Experiment", "build_problem", "coordinate", "natural_period",
-           "linear_frequency", "pick_solver"]
+__all__ = ["Problem", "Experiment", "build_problem", "coordinate", "folded",
+           "natural_period", "linear_frequency", "pick_solver"]
 
 # A failed solve gives NaN samples; a large finite residual instead makes the trust
 # region reject that step, where a NaN could poison the linear algebra.
@@ -57,13 +66,15 @@ _TINY = 1e-9
 def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None = None
                ) -> tuple[bool, float]:
     """`(log, ref)` of a global free name: log coordinates for a mechanism field that
-    cannot be negative and starts positive; otherwise linear with scale `ref`.
+    cannot be negative and starts positive (but for the friction terms [`FOLDED`][]);
+    otherwise linear with scale `ref` (folded for a field that cannot be negative, see
+    [`folded`][]).
 
     A field that starts at 0 takes its scale from the record's observed angular frequency
     `omega` (rad/s) and the linearised inertia `mu`: `mu omega^2` for k, 5% damping
     (`0.1 mu omega`) for c; an offset e takes a tenth of r.
     """
-    if name in FIELDS and name not in SIGNED_FIELDS and start > 0:
+    if name in FIELDS and name not in SIGNED_FIELDS and start > 0 and name not in FOLDED:
         return True, 1.0
     if start != 0:
         return False, abs(start)
@@ -74,6 +85,32 @@ def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None =
         if math.isfinite(mu) and mu > 0:
             return False, mu * omega**2 if name == "k" else 0.1 * mu * omega
     return False, _ZERO_START_REF
+
+
+#: Friction terms (Coulomb torque, slider friction) whose true value is often 0: always
+#: folded, whatever their start. In log coordinates a true 0 sends ln(value) to -inf,
+#: LM crawls there, and the estimate (1e-265, say) is then reported as "ln T_c not
+#: determined" instead of "0, at most v + 1.96 se".
+FOLDED = frozenset(FRICTION_SCALED)
+
+
+def folded(name: str, log: bool) -> bool:
+    """True for a free name fitted as `ref |z|`: a mechanism field that cannot be negative
+    and is not in log coordinates (it starts at 0)."""
+    return name in FIELDS and name not in SIGNED_FIELDS and not log
+
+
+def _fold(z):
+    """`|z|` with derivative +1 at 0 (`jnp.abs` has 0 there, which would make a folded
+    parameter that starts at 0 look exactly flat: `fit` holds flat directions fixed)."""
+    return jnp.where(z >= 0, z, -z)
+
+
+def _invalid(mech: SliderCrank) -> Array:
+    """True when a (traced) mechanism breaks a validation rule of `model.params`."""
+    bad = [jnp.any(mask) for _, mask, _ in validation_rules(
+        {n: jnp.asarray(getattr(mech, n)) for n in FIELDS})]
+    return jnp.any(jnp.stack(bad))
 
 
 def _fit_field(t, y, field):
@@ -143,6 +180,8 @@ class Problem(eqx.Module):
     atol: Array
     max_steps: int = eqx.field(static=True)
     adjoint: str = eqx.field(static=True, default="forward")
+    # Per reported name: fitted as `ref |z|` (see `folded`); empty: none is.
+    fold: tuple[bool, ...] = eqx.field(static=True, default=())
 
     # --- coordinates ------------------------------------------------------------------
 
@@ -160,13 +199,20 @@ class Problem(eqx.Module):
     def n_residuals(self) -> int:
         return sum(int(np.asarray(e.seg.w).sum()) for e in self.exps)
 
+    @property
+    def folded(self) -> tuple[bool, ...]:
+        """(p,) whether each reported name is fitted as `ref |z|`."""
+        return self.fold or (False,) * self.p
+
     def values(self, z: Array) -> Array:
         """Physical values of the reported parameters, shape (p,)."""
-        return jnp.stack([jnp.exp(z[i]) if self.log[i] else z[i] * self.ref[i]
-                          for i in range(self.p)])
+        return jnp.stack([jnp.exp(z[i]) if self.log[i]
+                          else _fold(z[i]) * self.ref[i] if self.folded[i]
+                          else z[i] * self.ref[i] for i in range(self.p)])
 
     def to_z(self, values: Sequence[float]) -> np.ndarray:
-        """Inverse of [`values`][]: physical values (p,) -> coordinates."""
+        """Inverse of [`values`][]: physical values (p,) -> coordinates (a folded value's
+        non-negative branch)."""
         v = np.asarray(values, dtype=float)
         ref = np.asarray(self.ref)
         return np.where(self.log, np.log(np.where(self.log, v, 1.0)), v / ref)
@@ -247,6 +293,16 @@ class Problem(eqx.Module):
             return tuple(x[None] for x in one(e.seg.ts[0], y0s[0]))
         return jax.vmap(one)(e.seg.ts, y0s)
 
+    @property
+    def n_rows(self) -> int:
+        """Length of the residual vector: every record's padded samples, then the
+        continuity defects (see [`residuals`][]); `n_residuals` counts fitted samples."""
+        return sum(int(np.prod(e.seg.ts.shape)) for e in self.exps) + self.n_extra
+
+    def no_residuals(self) -> np.ndarray:
+        """NaN residuals of the right length, for a fit with no solve to show (n_rows,)."""
+        return np.full(self.n_rows, np.nan)
+
     def fitted(self, r) -> list[np.ndarray]:
         """Model angles at each record's samples, from single-shooting residuals `r`
         (r = model - data), rad."""
@@ -259,13 +315,17 @@ class Problem(eqx.Module):
 
     def residuals(self, z: Array) -> tuple[Array, Array, Array]:
         """(r, n_failed, steps): the stacked residual vector, how many samples failed,
-        and the most ODE steps any one solve took."""
+        and per record the most ODE steps any one of its solves took, (R,) (so that a
+        record the start values cannot follow is found by itself, see `plan.make_plan`)."""
         mech, per = self.unpack(z)
-        rs, cont, failed, steps = [], [], 0, 0
+        rs, cont, failed, steps = [], [], 0, []
+        # A point outside the mechanism's valid set (a coupler shorter than the crank, a
+        # centre of mass beyond the coupler) is a failed solve: rejected, never reported.
+        invalid = _invalid(mech)
         for e, (load, torque, y0s) in zip(self.exps, per):
             phi, dphi, n_steps = self.simulate_segments(mech, e, load, torque, y0s)
-            steps = jnp.maximum(steps, jnp.max(n_steps))
-            ok = jnp.isfinite(phi) & jnp.isfinite(dphi)
+            steps.append(jnp.max(n_steps))
+            ok = jnp.isfinite(phi) & jnp.isfinite(dphi) & ~invalid
             failed = failed + jnp.sum(~ok & (e.seg.w > 0))
             r = jnp.where(ok, phi - e.seg.phi, _FAILED_RESIDUAL)
             # Padding and shared samples get weight 0: zeros in r change neither the sum of
@@ -282,7 +342,7 @@ class Problem(eqx.Module):
                 phi_end = jnp.where(ok[rows, idx], phi[rows, idx], _FAILED_RESIDUAL)
                 cont.append(wgt * (phi_end - y0s[1:, 0]))
                 cont.append(wgt * (dphi_end - y0s[1:, 1]) * (e.ref_phi / e.ref_dphi))
-        return jnp.concatenate(rs + cont), failed, steps
+        return jnp.concatenate(rs + cont), failed, jnp.stack(steps)
 
 
 def linear_frequency(mech: SliderCrank, load: AbstractLoad | None = None) -> float | None:
@@ -339,6 +399,7 @@ def build_problem(
         names.append(n)
         log.append(lg)
         ref.append(rf)
+    fold = [folded(n, lg) for n, lg in zip(names, log)]
     exps = []
     multi = len(records) > 1
     for i, (data, load, torque, phi0, dphi0) in enumerate(records):
@@ -353,6 +414,7 @@ def build_problem(
                 names.append(f"{name}[{i}]" if multi else name)
                 log.append(False)
                 ref.append(r)
+                fold.append(False)
         seg = make_segments(data.ts, data.phi, n_segments[i], pad)
         exps.append(Experiment(seg, padded_load(load) if pad else load,
                                padded_load(torque) if pad else torque,
@@ -365,7 +427,7 @@ def build_problem(
     structure = Structure.of(mech_start).union(Structure.of(nonzero))
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
                    len(glob), state_free, solver, structure, jnp.asarray(rtol),
-                   jnp.asarray(atol), int(max_steps), adjoint)
+                   jnp.asarray(atol), int(max_steps), adjoint, tuple(fold))
 
 
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:

@@ -18,7 +18,7 @@ import numpy as np
 __all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "MAX_ODE_STEPS", "SMALL_ODE_BUDGET",
            "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
            "absurd_start", "absurd_frequency", "segment_count", "record_segments",
-           "MAX_SEGMENTS",
+           "MAX_SEGMENTS", "MIN_MOTION", "no_motion", "aliased",
            "perturb", "far_from_noise"]
 
 #: `shooting="auto"` uses multiple shooting above this many observed periods, whatever
@@ -35,20 +35,25 @@ MAX_DRIFT = 1.0
 #: The ODE step budget of a fit's solves when the start solve is cheap, and otherwise.
 SMALL_ODE_BUDGET = 32_768
 MAX_ODE_STEPS = 200_000
-#: A start solve that takes more steps than this per observed period of the record (or
-#: per record, if it holds less than one) is absurd: the start values make the dynamics
+#: A start solve that takes more steps than this per observed period or turn of the
+#: record (or per record, if it holds less than one) is absurd: the start values make the dynamics
 #: orders of magnitude faster or stiffer than the record shows.
 STEPS_PER_PERIOD = 4000
 #: A start model whose linearised frequency is this many times above (or below) the
 #: record's observed frequency is rejected before any solve.
 FREQUENCY_RATIO = 30.0
+#: A record whose motion (rms, noise taken out) is below this many noise levels is
+#: noise about a constant (see [`no_motion`][]); a real motion in noise of the same size
+#: is still well above it (0.34 noise levels for an amplitude of one noise level).
+MIN_MOTION = 0.2
 #: A fit whose rms residual ends above this multiple of the record's noise level (and
 #: of `sigma`, when given) is stalled far from the noise: try another strategy.
 FAR_FROM_NOISE = 3.0
 
 
 def n_segments(span: float, period_data: float | None, period_model: float | None,
-               shooting: str, segments: int | None) -> tuple[int, str]:
+               shooting: str, segments: int | None, turns_data: float = 0.0,
+               turns_model: float = 0.0) -> tuple[int, str]:
     """Shooting segments for one record and the reason, in words.
 
     The start values decide only *whether* to shoot multiply (`"auto"`: when their
@@ -59,15 +64,26 @@ def n_segments(span: float, period_data: float | None, period_model: float | Non
     **Arguments:** `span`, the record's length, s; `period_data`, its observed period, s
     (None: less than one period); `period_model`, the start model's observed period over
     the same samples; `shooting`, `"auto"`, `"single"` or `"multiple"`; `segments`, a
-    fixed count or None.
+    fixed count or None; `turns_data`, `turns_model`: the net turns of the record and of
+    the start model over it. A record with no period whose crank turns is judged by its
+    turns: the start model's drift is its turns' shortfall (times 2 pi), and segments
+    are cut per two turns.
     """
     if shooting == "single":
         return 1, "single shooting (requested)"
     if segments is not None:
         return int(segments), f"{segments} segments (requested)"
+    if period_data is None and turns_data >= 1:
+        drift = 2 * math.pi * abs(turns_model - turns_data)
+        why = (f"the crank turns {turns_data:.3g} times in the record (mean speed "
+               f"{2 * math.pi * turns_data / span:.3g} rad/s), the start model "
+               f"{turns_model:.3g} times (predicted drift {drift:.1f} rad)")
+        if shooting == "auto" and drift <= MAX_DRIFT and turns_data <= AUTO_PERIODS:
+            return 1, why
+        return record_segments(span, span / turns_data), why
     if period_data is None:
         n = 1 if shooting == "auto" else 2
-        return n, "the record holds less than one period"
+        return n, "the record holds less than one period and less than one turn"
     periods = span / period_data
     if period_model is None:
         err = 0.5  # the start model does not even oscillate like the record
@@ -120,16 +136,26 @@ def ode_budget(steps0: int) -> int:
     return SMALL_ODE_BUDGET if 20 * int(steps0) <= SMALL_ODE_BUDGET else MAX_ODE_STEPS
 
 
-def absurd_start(steps0: int, span: float, period_data: float | None) -> str | None:
+def absurd_start(steps0: int, span: float, period_data: float | None,
+                 budget: int | None = None, turns: float = 0.0) -> str | None:
     """A message when the start solve took absurdly many steps for what the record shows
-    (see [`STEPS_PER_PERIOD`][]), else None."""
-    periods = max(1.0, span / period_data) if period_data else 1.0
+    (see [`STEPS_PER_PERIOD`][]), else None. `budget`: the step budget of that solve (a
+    solve that reached it took at least that many); `turns`: the record's net turns
+    (said in the message: a crank that turns many times is no oscillation)."""
+    # A crank that turns has a turn for its cycle (it has no period): the budget counts
+    # whichever the record holds more of.
+    periods = max(1.0, span / period_data if period_data else 0.0, turns)
     if steps0 <= STEPS_PER_PERIOD * periods:
         return None
+    took = (f"more than {budget}" if budget is not None and steps0 >= budget
+            else f"{steps0}")
+    shows = (f"{span / period_data:.0f} observed periods" if period_data
+             else "less than one observed period")
+    if turns >= 1:
+        shows += f" and {turns:.3g} turns"
     return (f"the start values make the model far faster or stiffer than the record: its "
-            f"solve takes {steps0} steps for {periods:.0f} observed period(s) of the record; "
-            "choose start values nearer the truth (e.g. init='regressor', or the stiffness "
-            "from the observed period)")
+            f"solve takes {took} steps for a record of {shows}; choose start values nearer "
+            "the truth (e.g. init='regressor', or the stiffness from the observed period)")
 
 
 def absurd_frequency(omega_start: float | None, period_data: float | None) -> str | None:
@@ -147,6 +173,39 @@ def absurd_frequency(omega_start: float | None, period_data: float | None) -> st
             f"{omega_start / (2 * math.pi):.3g} Hz, {ratio:.3g} times the record's "
             f"{1 / period_data:.3g} Hz: choose start values nearer the truth (e.g. "
             "init='regressor', or a stiffness from the observed period)")
+
+
+def no_motion(phi: np.ndarray, noise: float) -> str | None:
+    """A message when a record's angle shows no motion above its noise, else None.
+
+    The motion's rms is judged as `sqrt(var(phi) - noise^2)`; below [`MIN_MOTION`][]
+    noise levels the record is noise about a constant (a pure-noise column, a crank at
+    rest): no model can explain it, and a fit would spend minutes on the crossings of
+    noise taken for periods. Decided before any solve."""
+    x = np.asarray(phi, dtype=float)
+    spread = float(np.std(x))
+    motion = math.sqrt(max(spread**2 - noise**2, 0.0))
+    # A spread of float rounding (or none) is no motion either, whatever the noise says.
+    rounding = spread <= 1e-12 * float(np.max(np.abs(x)))
+    if not (rounding or noise > 0 and motion < MIN_MOTION * noise):
+        return None
+    return (f"the angle shows no motion above its noise (spread {spread:.3g} rad, noise "
+            f"level {noise:.3g} rad): there is nothing for a model to explain; check the "
+            "angle column and its unit, or record a motion")
+
+
+def aliased(phi: np.ndarray) -> str | None:
+    """A message when a record's angle moves more than pi between most samples, else
+    None: sampled that coarsely (or with an angle column in the wrong unit), the record
+    cannot resolve the motion, whatever model and start values. Decided before any
+    solve."""
+    step = np.abs(np.diff(np.asarray(phi, dtype=float)))
+    if step.size == 0 or not float(np.median(step)) > math.pi:
+        return None
+    return (f"the angle moves {float(np.median(step)):.3g} rad between samples (median), "
+            "more than pi: the record cannot resolve the motion (a crank that turns faster "
+            "than half a turn per sample); sample it faster, or check the angle column's "
+            "unit")
 
 
 def perturb(z0: np.ndarray, names, log, rng: np.random.Generator) -> np.ndarray:
