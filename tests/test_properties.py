@@ -332,4 +332,25 @@ def test_budget_is_documented():
     assert "CRANK_JAX_PROPERTY_EXAMPLES" in (__doc__ or "")
 
 
+# --- issue 24: hostile input classes ----------------------------------------------------------
+
+_ANY_TEXT = st.text(st.characters(codec="utf-8"), max_size=40) | st.text(
+    st.sampled_from('\x00\x07\x08\t\n\x0b\x0c\r\x1b\x7f\x85\u2028"\'\\ #=[]{}ué\ufeff'),
+    max_size=12)
+
+
+@_budget(40)
+@given(_ANY_TEXT)
+def test_any_description_round_trips(text):
+    """Every string a scene can hold (any Unicode text: control characters, quotes,
+    backslashes, newlines, TOML syntax) is written by save_scene and read back equal."""
+    import dataclasses
+
+    sc = dataclasses.replace(cj.load_scene("lab-rig"), description=text)
+    with tempfile.TemporaryDirectory() as tmp:
+        cj.save_scene(sc, Path(tmp) / "s.toml")
+        again = cj.load_scene(Path(tmp) / "s.toml")
+    assert again.description == text
+
+
 pytestmark = pytest.mark.filterwarnings("ignore::hypothesis.errors.NonInteractiveExampleWarning")

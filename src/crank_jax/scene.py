@@ -268,11 +268,30 @@ def _load_table(load: AbstractLoad, side: str) -> dict[str, Any] | None:
         raise SceneError(str(e)) from None
 
 
+#: TOML's short escapes; every other control character is written as `\\uXXXX`.
+_TOML_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n",
+                 "\f": "\\f", "\r": "\\r"}
+
+
+def _toml_string(text: str) -> str:
+    """`text` as a TOML basic string that reads back equal: quotes, backslashes and every
+    control character (U+0000 to U+001F and U+007F, which TOML forbids raw) are escaped.
+    Raises [`SceneError`][] for a lone surrogate, which no UTF-8 file can hold."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise SceneError(f"the string {_short(text)} holds a lone surrogate (not Unicode "
+                         "text), which a scene file cannot hold; remove it") from None
+    out = [_TOML_ESCAPES.get(c) or (f"\\u{ord(c):04X}" if ord(c) < 0x20 or c == "\x7f" else c)
+           for c in text]
+    return '"' + "".join(out) + '"'
+
+
 def scene_to_toml(scene: Scene) -> str:
     """Serialise a scene to the TOML format that [`load_scene`][] reads."""
     def fmt(v: Any) -> str:
         if isinstance(v, str):
-            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+            return _toml_string(v)
         if isinstance(v, (list, tuple)):
             return "[" + ", ".join(fmt(x) for x in v) + "]"
         return repr(v)
@@ -331,6 +350,8 @@ def fitted_scene(scene: Scene, result) -> Scene:
 
 def save_scene(scene: Scene, path: str | os.PathLike) -> None:
     """Write a scene as TOML, atomically."""
-    with atomic_write(path) as f:
-        f.write(scene_to_toml(scene))
+    text = scene_to_toml(scene)  # before the file is opened: a failure leaves no file
+    # UTF-8 whatever the locale: load_scene reads UTF-8.
+    with atomic_write(path, "wb") as f:
+        f.write(text.encode("utf-8"))
 
