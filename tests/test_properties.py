@@ -353,4 +353,32 @@ def test_any_description_round_trips(text):
     assert again.description == text
 
 
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this platform")
+@_budget(10)
+@given(st.sampled_from(["fit DATA", "fit --more-data", "fit SCENE", "validate DATA",
+                        "validate SCENE", "simulate SCENE", "synth SCENE", "sweep SCENE"]),
+       st.sampled_from(["fifo", "dir", "chardev", "missing"]))
+def test_non_regular_inputs_exit_2_at_once(capsys, slot, kind):
+    """Every input path (record, extra record, scene) that is a FIFO (no writer: opening
+    it would wait forever), a directory, a device or missing exits 2 at once."""
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        cj.save_data(cj.synthesize(cj.load_scene("lab-rig"), t1=0.05, rate=100.0), d / "d.csv")
+        bad = {"fifo": d / "p", "dir": d, "chardev": Path(os.devnull), "missing": d / "no"}[kind]
+        if kind == "fifo":
+            os.mkfifo(bad)
+        command, where = slot.split()
+        data, scene = (bad if where == "DATA" else d / "d.csv"), (
+            bad if where == "SCENE" else "lab-rig")
+        argv = {"fit": ["fit", data, scene, "--out", d / "r.json"]
+                + (["--more-data", bad] if where == "--more-data" else []),
+                "validate": ["validate", scene, data, "--out", d / "r.json"],
+                "simulate": ["simulate", scene, "--out", d / "o.csv"],
+                "synth": ["synth", scene, "--out", d / "o.csv"],
+                "sweep": ["sweep", scene, "--n", "2", "--out", d / "x.npz"]}[command]
+        code, err = _check_contract(argv, d, ["d.csv"], capsys)
+        assert code == 2, err
+
+
 pytestmark = pytest.mark.filterwarnings("ignore::hypothesis.errors.NonInteractiveExampleWarning")

@@ -35,7 +35,7 @@ from collections.abc import Sequence
 import equinox as eqx
 import numpy as np
 
-from .io import atomic_write
+from .io import atomic_write, check_input
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
 
 __all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES",
@@ -145,7 +145,12 @@ MAX_RECORD_SAMPLES = 10**7
 
 def _open_text(path: str | os.PathLike):
     """Open a text file as pandas would read it: a UTF-8 byte-order mark (as Excel writes)
-    is dropped, a UTF-16 one selects UTF-16, and CRLF or CR line ends read as LF."""
+    is dropped, a UTF-16 one selects UTF-16, and CRLF or CR line ends read as LF. Anything
+    but a regular file (a FIFO would wait for a writer forever) is refused unopened."""
+    try:
+        check_input(path, "data file")
+    except ValueError as e:
+        raise DataError(str(e)) from None
     with open(path, "rb") as f:
         head = f.read(2)
     enc = "utf-16" if head in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"
@@ -294,7 +299,8 @@ def load_data(
 
     Raises [`DataError`][] (a `ValueError`) naming the line and column for a missing
     column, a non-numeric, NaN or infinite value, a time that does not increase, a ragged
-    row, too few samples or more than [`MAX_RECORD_SAMPLES`][]; `OSError` if the file
+    row, too few samples or more than [`MAX_RECORD_SAMPLES`][], and for a path that is not
+    a regular file (a FIFO, a device, a directory, a missing file); `OSError` if the file
     cannot be read.
     """
     if interp not in INTERPOLATIONS:

@@ -246,8 +246,9 @@ def load_scene(source: str | os.PathLike) -> Scene:
         text = importlib.resources.files("crank_jax").joinpath(f"scenes/{src}.toml").read_text()
         return scene_from_dict(tomllib.loads(text), where=f"preset {src}", name=src)
     path = Path(src)
-    if not path.is_file():
-        raise SceneError(f"{src!r} is neither a preset ({', '.join(PRESETS)}) nor a TOML file")
+    if not path.is_file():  # a FIFO or device too: opening it could wait forever
+        kind = "a TOML file" if not path.exists() else "a regular file"
+        raise SceneError(f"{src!r} is neither a preset ({', '.join(PRESETS)}) nor {kind}")
     if path.stat().st_size > MAX_SCENE_BYTES:
         raise SceneError(f"{src}: {path.stat().st_size} bytes is not a scene file (scenes are "
                          f"a few kB; the limit is {MAX_SCENE_BYTES} bytes); a record goes "

@@ -199,10 +199,13 @@ def _fit_run(a: argparse.Namespace) -> int:
         raise UserError("give both DATA and SCENE (or neither, for the built-in demo)")
     from ..data import load_data
     from ..identify.fit import fit
+    from ..io import check_input
     from ..scene import load_scene
 
-    scene = load_scene(a.scene)
     files = [a.data] + list(a.more_data)
+    for path, option in zip(files, ["DATA"] + ["--more-data"] * len(a.more_data)):
+        check_input(path, option)  # at once: a FIFO with no writer would block the read
+    scene = load_scene(a.scene)
     _outputs_ok(a, files + [a.scene])
     records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
                          interp=a.load_interp) for f in files]

@@ -68,11 +68,12 @@ def _read(a: argparse.Namespace):
 
 
 def _validate_run(a: argparse.Namespace) -> int:
-    from ..io import atomic_write, check_not_input
+    from ..io import atomic_write, check_input, check_not_input
     from ..scene import load_scene
     from ..validate import plot_validation, validate
 
     _check_numbers(a)
+    check_input(a.data, "DATA")  # at once: a FIFO with no writer would block the read
     for path in (a.out, a.plot):
         if path:
             check_not_input(path, [a.data, a.scene])
