@@ -144,6 +144,8 @@ def scene_texts(draw) -> bytes:
         else:
             doc[draw(st.sampled_from([table, "extra"]))] = {draw(_text) or "z": 1}
     text = _doc_to_toml(doc).encode()
+    if draw(st.booleans()):
+        text = b"\xef\xbb\xbf" + text  # a UTF-8 byte-order mark is not an error
     garbage = draw(st.sampled_from(["none", "none", "none", "text", "bytes"]))
     if garbage != "none":
         at = draw(st.integers(0, len(text)))
@@ -161,6 +163,14 @@ def test_any_scene_file(capsys, text):
         code, err = _check_contract(["linearize", d / "s.toml", "--json"], d, ["s.toml"],
                                     capsys)
         assert code in (0, 2), err
+        if text.startswith(b"\xef\xbb\xbf"):  # the mark changes nothing
+            (d / "plain.toml").write_bytes(text[3:])
+            try:
+                cj.load_scene(d / "plain.toml")
+            except cj.SceneError:
+                assert code == 2
+            else:
+                assert code == 0, err
 
 
 # --- CSV records ------------------------------------------------------------------------------

@@ -178,3 +178,12 @@ def test_lone_surrogate_is_refused_before_writing(tmp_path):
     with pytest.raises(cj.SceneError, match="surrogate"):
         cj.save_scene(sc, tmp_path / "s.toml")
     assert not list(tmp_path.iterdir())
+
+
+def test_byte_order_mark_is_accepted(tmp_path):
+    # Issue 24 (10): a UTF-8 byte-order mark (as Windows editors write) gave "Invalid
+    # statement (line 1, column 1)", though CSV records accept one.
+    path = tmp_path / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + TOML.encode())
+    assert cj.scene_to_toml(cj.load_scene(path)) == cj.scene_to_toml(
+        cj.load_scene(_write(tmp_path, TOML)))

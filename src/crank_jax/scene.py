@@ -254,7 +254,8 @@ def load_scene(source: str | os.PathLike) -> Scene:
                          f"a few kB; the limit is {MAX_SCENE_BYTES} bytes); a record goes "
                          "after the command as DATA, a scene second")
     try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        # utf-8-sig: a byte-order mark (as Windows editors write) is dropped, as in CSV.
+        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{src}: malformed TOML: {e}") from None
     except UnicodeDecodeError:
