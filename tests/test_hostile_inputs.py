@@ -63,3 +63,36 @@ def test_load_data_refuses_a_fifo_unopened(tmp_path):
         cj.load_data(tmp_path)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         cj.load_data(tmp_path / "nope.csv")
+
+
+def _record(path: Path, ts) -> Path:
+    path.write_text("t,phi\n" + "".join(f"{float(t)!r},{0.1 * i!r}\n" for i, t in enumerate(ts)))
+    return path
+
+
+@pytest.mark.parametrize("ts,match", [
+    # Issue 24 (7): an internal error (exit 1) from the overflowing span ...
+    ([-1.7e308, -1e308, -1.0, 0.0, 1.0, 1e308, 1.7e308], r"column 't' runs from -1.7e\+308 s "
+     r"\(line 2\) to 1.7e\+308 s \(line 8\); a record may span at most"),
+    # ... and "SVD did not converge" with numpy warnings on stderr for samples 1e-300 s apart
+    ([i * 1e-300 for i in range(8)], r"line 3: t = 1e-300 s is only 1e-300 s after the previous"),
+    # times near 1e8 s a few float64 spacings apart
+    ([1e8 + i * 1.5e-8 for i in range(8)], "subtract the start time"),
+])
+def test_unresolvable_times_are_refused_naming_the_row(tmp_path, capsys, ts, match):
+    rec = _record(tmp_path / "d.csv", ts)
+    with pytest.raises(cj.DataError, match=match):
+        cj.load_data(rec)
+    code = main(["fit", str(rec), "lab-rig", "--quiet", "--out", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.splitlines()) == 1 and err.startswith("crank-jax: error: ")
+    with pytest.raises(cj.DataError, match="after the previous|span at most"):
+        cj.Data(ts, [0.1 * i for i in range(len(ts))])  # the library's own arrays too
+
+
+def test_times_at_the_bounds_are_accepted():
+    from crank_jax.data import MAX_TIME_SPAN, MIN_TIME_STEP
+
+    cj.Data([0.0, 1.0, 2.0, 3.0, MAX_TIME_SPAN], [0.0] * 5)
+    cj.Data([i * MIN_TIME_STEP * (1 + 1e-9) for i in range(5)], [0.0] * 5)
+    cj.Data([1.7e9 + i * 1e-3 for i in range(5)], [0.0] * 5)  # Unix times, 1 kHz

@@ -391,4 +391,38 @@ def test_non_regular_inputs_exit_2_at_once(capsys, slot, kind):
         assert code == 2, err
 
 
+
+_MAGNITUDE = st.sampled_from([0.0, 1e-300, 1e-12, 1e-9, 1e-3, 1.0, 1e8, 1.7e9, 1e100, 1e308])
+
+
+@_budget(60)
+@given(_MAGNITUDE, st.booleans(), st.lists(_MAGNITUDE.filter(lambda x: x > 0), min_size=4,
+                                           max_size=8), st.booleans())
+def test_any_time_scale(t0, negative, steps, through_file):
+    """Records at any time offset and spacing (1e-300 s apart, +-1.7e308 s wide, Unix
+    times): either accepted, with a span and spacings a solver can resolve, or refused in
+    one line naming the row, never with a numpy warning (they are errors here)."""
+    from crank_jax.data import MAX_TIME_SPAN, MIN_TIME_STEP
+
+    with np.errstate(over="ignore"):
+        ts = (-t0 if negative else t0) + np.concatenate([[0.0], np.cumsum(steps)])
+    phi = np.linspace(0.0, 1.0, ts.size)
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            if through_file:
+                p = Path(tmp) / "d.csv"
+                p.write_text("t,phi\n" + "".join(f"{t!r},{x!r}\n" for t, x in zip(ts, phi)))
+                d = cj.load_data(p)
+            else:
+                d = cj.Data(ts, phi)
+        except cj.DataError as e:
+            assert "\n" not in str(e) and ("line " in str(e) or "sample " in str(e)), e
+            event("refused")
+        else:
+            event("accepted")
+            with np.errstate(over="ignore"):
+                assert d.ts[-1] - d.ts[0] <= MAX_TIME_SPAN
+            assert np.min(np.diff(d.ts)) >= MIN_TIME_STEP
+
+
 pytestmark = pytest.mark.filterwarnings("ignore::hypothesis.errors.NonInteractiveExampleWarning")

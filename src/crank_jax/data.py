@@ -39,7 +39,7 @@ from .io import atomic_write, check_input
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
 
 __all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES",
-           "MAX_RECORD_SAMPLES"]
+           "MAX_RECORD_SAMPLES", "MAX_TIME_SPAN", "MIN_TIME_STEP", "MIN_STEP_ULPS"]
 
 #: The fewest samples a record may have.
 MIN_SAMPLES = 5
@@ -65,12 +65,53 @@ def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[st
             i = int(np.argmax(bad))
             raise DataError(f"{where}: {label(i)}: column {name!r} is {float(x[i])} (NaN or inf); "
                             "remove or repair that row")
-    d = np.diff(ts)
+    with np.errstate(over="ignore", invalid="ignore"):  # +-1.7e308: the span overflows
+        d = np.diff(ts)
     if not np.all(d > 0):
         i = int(np.argmax(d <= 0)) + 1
         raise DataError(f"{where}: {label(i)}: time t = {float(ts[i])!r} does not increase "
                         f"(previous t = {float(ts[i - 1])!r}); sort the record and remove "
                         "duplicate times")
+    _check_time_scale(ts, d, where, label)
+
+
+#: The longest span a record's times may cover, s (about 32 years): a longer one is a
+#: time column in other units, or garbage; beyond float64's range it cannot be subtracted.
+MAX_TIME_SPAN = 1e9
+#: The closest two samples may be, s (a 1 GHz logger): closer ones are a time column in
+#: other units; spacings near 1e-300 s overflow every rate (1/dt) the solver computes.
+MIN_TIME_STEP = 1e-9
+#: Two samples must be at least this many float64 spacings (ulps) of the largest |t| apart,
+#: so that the solver can place steps between them (times near 1e8 s resolve only 1.5e-8 s).
+MIN_STEP_ULPS = 64
+
+
+def _check_time_scale(ts: np.ndarray, d: np.ndarray, where: str, label) -> None:
+    """Raise [`DataError`][] for times a solver cannot resolve in float64: a span beyond
+    [`MAX_TIME_SPAN`][], or two samples closer than [`MIN_TIME_STEP`][] or than
+    [`MIN_STEP_ULPS`][] float64 spacings of the largest |t|. `d` is `diff(ts)` (> 0)."""
+    with np.errstate(over="ignore"):
+        span = d.sum()
+    if not span <= MAX_TIME_SPAN:  # also +inf: the span overflowed
+        raise DataError(f"{where}: column 't' runs from {float(ts[0]):g} s ({label(0)}) to "
+                        f"{float(ts[-1]):g} s ({label(len(ts) - 1)}); a record may span at "
+                        f"most {MAX_TIME_SPAN:g} s: is the time column in seconds? (choose it "
+                        "with --t-col)")
+    ulp = float(np.spacing(max(abs(float(ts[0])), abs(float(ts[-1])))))
+    close = d < max(MIN_TIME_STEP, MIN_STEP_ULPS * ulp)
+    if not close.any():
+        return
+    i = int(np.argmax(close))  # the first such sample
+    if d[i] < MIN_TIME_STEP:
+        raise DataError(f"{where}: {label(i + 1)}: t = {float(ts[i + 1])!r} s is only "
+                        f"{float(d[i]):.3g} s after the previous sample; samples closer than "
+                        f"{MIN_TIME_STEP:g} s (a {1 / MIN_TIME_STEP:g} Hz logger) are not "
+                        "resolved: is the time column in seconds?")
+    raise DataError(f"{where}: {label(i + 1)}: t = {float(ts[i + 1])!r} s is only "
+                    f"{float(d[i]):.3g} s after the previous sample, but at times near "
+                    f"{max(abs(float(ts[0])), abs(float(ts[-1]))):g} s float64 resolves only "
+                    f"{ulp:.3g} s and the solver needs {MIN_STEP_ULPS} times that: subtract "
+                    "the start time from the t column so that it starts near 0")
 
 
 class Data(eqx.Module):
@@ -79,7 +120,9 @@ class Data(eqx.Module):
     **Fields:**
 
     - `ts`: (n,) sample times, s, strictly increasing, n >= [`MIN_SAMPLES`][]. They may
-      start anywhere and be irregular.
+      start anywhere and be irregular, but must span at most [`MAX_TIME_SPAN`][] and be
+      at least [`MIN_TIME_STEP`][] and [`MIN_STEP_ULPS`][] float64 spacings of the largest
+      |t| apart (what a solver can resolve).
     - `phi`: (n,) measured crank angle, rad.
     - `load`: the slider force P(t), N, or `None` to use the scene's when fitting.
     - `torque`: the crank torque tau(t), N*m, or `None` to use the scene's.
@@ -298,7 +341,8 @@ def load_data(
     **Returns:** a [`Data`][].
 
     Raises [`DataError`][] (a `ValueError`) naming the line and column for a missing
-    column, a non-numeric, NaN or infinite value, a time that does not increase, a ragged
+    column, a non-numeric, NaN or infinite value, a time that does not increase, times
+    too close together or spanning too long (see [`Data`][]), a ragged
     row, too few samples or more than [`MAX_RECORD_SAMPLES`][], and for a path that is not
     a regular file (a FIFO, a device, a directory, a missing file); `OSError` if the file
     cannot be read.

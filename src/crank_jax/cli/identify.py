@@ -9,6 +9,7 @@ import sys
 import numpy as np
 
 from .errors import UserError
+from .options import seed
 
 #: The demo experiment: the lab rig driven by a known harmonic crank torque (a shaker),
 #: which fixes the common scale of the inertial parameters; 5 s sampled at 200 Hz with
@@ -41,7 +42,7 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
                    help="amplitude of a start-up transient (a hand release), rad (0: none)")
     p.add_argument("--transient-time", type=float, default=0.1, metavar="S",
                    help="its decay time, s (0.1)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (0)")
+    p.add_argument("--seed", type=seed, default=0, help="noise seed (0)")
     p.add_argument("--out", required=True, help="output CSV (t,phi[,P][,tau])")
 
 
@@ -92,7 +93,7 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
                    help="auto: multiple shooting above 25 linearised periods")
     p.add_argument("--segments", type=int, help="number of multiple-shooting segments")
     p.add_argument("--multistart", type=int, default=1, help="number of starts (1)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the multistart (0)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the multistart (0)")
     p.add_argument("--max-steps", type=int, help="iteration budget per start")
     p.add_argument("--sigma", type=float, help="known noise std, rad (default: from residuals)")
     p.add_argument("--profile", metavar="NAME", help="profile likelihood of one parameter")
@@ -225,7 +226,8 @@ def _write_scene(res, a: argparse.Namespace) -> None:
 # --- demo -------------------------------------------------------------------------------
 
 def _demo_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--noise-seed", type=int, default=1, help="seed of the synthetic noise (1)")
+    p.add_argument("--noise-seed", type=seed, default=1,
+                   help="seed of the synthetic noise (1)")
     _fit_options(p)
 
 
