@@ -7,6 +7,7 @@ import os
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import crank_jax as cj
@@ -96,3 +97,58 @@ def test_times_at_the_bounds_are_accepted():
     cj.Data([0.0, 1.0, 2.0, 3.0, MAX_TIME_SPAN], [0.0] * 5)
     cj.Data([i * MIN_TIME_STEP * (1 + 1e-9) for i in range(5)], [0.0] * 5)
     cj.Data([1.7e9 + i * 1e-3 for i in range(5)], [0.0] * 5)  # Unix times, 1 kHz
+
+
+@pytest.mark.parametrize("argv,option", [
+    # Issue 24 (10): these said "expected non-negative integer", "ts must increase
+    # strictly", "sample 0: column 'phi' is inf" or "ts ... got shape (1,)".
+    (["synth", "lab-rig", "--seed", "-1"], "--seed"),
+    (["fit", "{d}/d.csv", "lab-rig", "--seed", "-1"], "--seed"),
+    (["sweep", "lab-rig", "--n", "2", "--seed", "-1", "--out", "{d}/x.npz"], "--seed"),
+    (["demo", "--noise-seed", "-5"], "--noise-seed"),
+    (["synth", "lab-rig", "--rate", "1e9", "--t-start", "1e8", "--t1", "100000000.001"],
+     "--rate"),
+    (["synth", "lab-rig", "--transient", "1e308"], "--transient"),
+    (["synth", "lab-rig", "--noise-std", "1e308"], "--noise-std"),
+    (["synth", "lab-rig", "--drop", "0.999999"], "--drop"),
+])
+def test_messages_name_the_option(tmp_path, capsys, argv, option):
+    cj.save_data(cj.synthesize(cj.load_scene("lab-rig"), t1=0.05, rate=100.0), tmp_path / "d.csv")
+    argv = [a.replace("{d}", str(tmp_path)) for a in argv]
+    if argv[0] == "synth":
+        argv += ["--out", str(tmp_path / "o.csv")]
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert option in err and "sample 0" not in err and "shape" not in err, err
+    assert not (tmp_path / "o.csv").exists()
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(seed=-1), r"seed \(--seed\) must be an integer >= 0"),
+    (dict(transient=1e308), r"transient \(--transient\) = 1e\+308 is out of range: use a finite "
+                            r"value from -1e\+06 to 1e\+06 rad"),
+    (dict(noise_std=1e308), r"noise_std \(--noise-std\) = 1e\+308 is out of range"),
+    (dict(drop=0.999999), r"drop \(--drop\) = 0.999999 left 1 of the 2001 samples"),
+    (dict(rate=1e9, t_start=1e8, t1=1e8 + 1e-3), r"rate \(--rate\) = 1e\+09 Hz .* near t1 = "
+                                                 r"1e\+08 s one spacing is 1.49e-08 s"),
+])
+def test_synthesize_names_the_argument(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        cj.synthesize(cj.load_scene("lab-rig"), **kwargs)
+
+
+def test_synthesize_rate_bound_gives_times_data_accepts():
+    # The largest rate the spacing check allows near t1 (for t1 far from 0) gives sample
+    # times t_start + i / rate that Data accepts; synthesize builds them the same way.
+    from crank_jax.data import MIN_STEP_ULPS, MIN_TIME_STEP
+
+    for t_start in (0.0, 1e-3, 1e5, 1e8, 1.7e9):
+        t1 = t_start + 1e-2
+        ulp = float(np.spacing(t1))
+        rate = 1 / (max(MIN_TIME_STEP, MIN_STEP_ULPS * ulp) + 2 * ulp)
+        with pytest.raises(ValueError, match="--rate"):  # just above the bound: refused
+            cj.synthesize(cj.load_scene("lab-rig"), t_start=t_start, t1=t1,
+                          rate=rate * (1 + 1e-6))
+        ts = t_start + np.arange(int((t1 - t_start) * rate)) / rate
+        cj.Data(ts, np.zeros_like(ts))

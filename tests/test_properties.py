@@ -425,4 +425,35 @@ def test_any_time_scale(t0, negative, steps, through_file):
             assert np.min(np.diff(d.ts)) >= MIN_TIME_STEP
 
 
+
+_HUGE = ["1e308", "-1e308", "1e300", "1e30", "-1", "-5", "0.999999", "1e-300", "1e9", "1e8",
+         "9223372036854775808", "-0.0"]
+
+
+@_budget(20)
+@given(st.lists(st.tuples(st.sampled_from(["--transient", "--noise-std", "--drop", "--rate",
+                                           "--t-start", "--seed", "--jitter-std",
+                                           "--transient-time", "--quantization", "--t1"]),
+                          st.sampled_from(_HUGE)), min_size=1, max_size=2,
+                unique_by=lambda x: x[0]))
+def test_huge_synth_options_are_named(capsys, opts):
+    """`synth` with huge, tiny or negative option values either writes a valid record or
+    exits 2 with one line naming one of the options given (never "sample 0", a shape, or
+    numpy's wording)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        argv = ["synth", "lab-rig", "--out", d / "o.csv"]
+        if "--t1" not in dict(opts):
+            argv += ["--t1", "0.05"]
+        for name, value in opts:
+            argv += [name, value]
+        code, err = _check_contract(argv, d, [], capsys)
+        if code == 2:
+            assert any(name in err for name, _ in opts), err
+            assert "sample 0" not in err and "shape" not in err, err
+        else:
+            assert code == 0, err
+            cj.load_data(d / "o.csv")
+
+
 pytestmark = pytest.mark.filterwarnings("ignore::hypothesis.errors.NonInteractiveExampleWarning")

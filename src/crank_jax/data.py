@@ -98,11 +98,12 @@ def _check_time_scale(ts: np.ndarray, d: np.ndarray, where: str, label) -> None:
                         f"most {MAX_TIME_SPAN:g} s: is the time column in seconds? (choose it "
                         "with --t-col)")
     ulp = float(np.spacing(max(abs(float(ts[0])), abs(float(ts[-1])))))
-    close = d < max(MIN_TIME_STEP, MIN_STEP_ULPS * ulp)
+    # (1 - 1e-9): a 1 GHz grid computed in float64 has spacings a few ulps under 1e-9 s.
+    close = d < max(MIN_TIME_STEP * (1 - 1e-9), MIN_STEP_ULPS * ulp)
     if not close.any():
         return
     i = int(np.argmax(close))  # the first such sample
-    if d[i] < MIN_TIME_STEP:
+    if d[i] < MIN_TIME_STEP * (1 - 1e-9):
         raise DataError(f"{where}: {label(i + 1)}: t = {float(ts[i + 1])!r} s is only "
                         f"{float(d[i]):.3g} s after the previous sample; samples closer than "
                         f"{MIN_TIME_STEP:g} s (a {1 / MIN_TIME_STEP:g} Hz logger) are not "
@@ -387,6 +388,49 @@ def save_data(data: Data, path: str | os.PathLike, comment: str = "") -> None:
 # Synthetic data
 
 
+#: The largest start-up transient amplitude and noise standard deviation `synthesize`
+#: adds, rad (about 160,000 turns): the angle stays a finite float64 that a fit can read.
+MAX_SYNTH_ANGLE = 1e6
+
+
+def _check_synth_options(t1, rate, noise_std, jitter_std, drop, t_start, seed, transient,
+                         transient_time, transient_hz, quantization) -> None:
+    """Raise `ValueError` naming the argument (and its `crank-jax synth` option) and its
+    valid range for any value [`synthesize`][] cannot turn into a valid record."""
+    for name, v, ok, valid in (
+            ("rate", rate, rate > 0, "> 0 Hz"),
+            ("noise_std", noise_std, 0 <= noise_std <= MAX_SYNTH_ANGLE,
+             f"from 0 to {MAX_SYNTH_ANGLE:g} rad"),
+            ("jitter_std", jitter_std, jitter_std >= 0, ">= 0 s"),
+            ("drop", drop, 0 <= drop < 1, "a probability in [0, 1)"),
+            ("t1", t1, t1 > 0, "> 0 s"),
+            ("t_start", t_start, 0 <= t_start < t1, f"in [0, t1 = {t1:g}) s"),
+            ("transient", transient, abs(transient) <= MAX_SYNTH_ANGLE,
+             f"from -{MAX_SYNTH_ANGLE:g} to {MAX_SYNTH_ANGLE:g} rad"),
+            ("transient_time", transient_time, transient_time > 0, "> 0 s"),
+            ("transient_hz", transient_hz, transient_hz >= 0, ">= 0 Hz")):
+        if not (math.isfinite(v) and ok):
+            raise ValueError(f"synthesize: {name} (--{name.replace('_', '-')}) = {v!r} is out "
+                             f"of range: use a finite value {valid}")
+    if quantization is not None and not (int(quantization) == quantization and quantization > 0):
+        raise ValueError(f"synthesize: quantization (--quantization) must be a positive "
+                         f"integer count per revolution, got {quantization!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"synthesize: seed (--seed) must be an integer >= 0, got {seed!r}")
+    # The samples' spacing must be one that a record may have (see Data): float64 resolves
+    # times near t1 only to spacing(t1), so a high rate far from t = 0 collapses samples.
+    # Each sample time t_start + i / rate is off by up to one spacing: two in hand.
+    dt, ulp = 1.0 / rate, float(np.spacing(t1))
+    need = max(MIN_TIME_STEP, MIN_STEP_ULPS * ulp) + 2 * ulp
+    if dt < need:
+        raise ValueError(
+            f"synthesize: rate (--rate) = {rate:g} Hz samples every {dt:.3g} s, but a record's "
+            f"samples must be at least {MIN_TIME_STEP:g} s and {MIN_STEP_ULPS} float64 "
+            f"spacings apart, and near t1 = {t1:g} s one spacing is {ulp:.3g} s: lower the rate"
+            f" to at most {1 / need:.3g} Hz or start"
+            " nearer t = 0 (--t-start, --t1)")
+
+
 def synthesize(
     scene,
     *,
@@ -425,32 +469,28 @@ def synthesize(
     them as sampled `P`/`tau` columns.
     """
     t1 = float(scene.t1 if t1 is None else t1)
-    for name, v, ok in (("rate", rate, rate > 0), ("noise_std", noise_std, noise_std >= 0),
-                        ("jitter_std", jitter_std, jitter_std >= 0),
-                        ("drop", drop, 0 <= drop < 1), ("t1", t1, t1 > 0),
-                        ("t_start", t_start, 0 <= t_start < t1),
-                        ("transient", transient, True),
-                        ("transient_time", transient_time, transient_time > 0),
-                        ("transient_hz", transient_hz, transient_hz >= 0)):
-        if not (math.isfinite(v) and ok):
-            raise ValueError(f"synthesize: {name} = {v!r} is out of range")
-    if quantization is not None and not (int(quantization) == quantization and quantization > 0):
-        raise ValueError(f"synthesize: quantization must be a positive integer count per "
-                         f"revolution, got {quantization!r}")
+    _check_synth_options(t1, rate, noise_std, jitter_std, drop, t_start, seed, transient,
+                         transient_time, transient_hz, quantization)
     rng = np.random.default_rng(seed)
     n = int(math.floor((t1 - t_start) * rate + 1e-9)) + 1
     if n < MIN_SAMPLES:
         raise ValueError(f"synthesize: only {n} samples in [{t_start}, {t1}] s at {rate} Hz; "
-                         f"need at least {MIN_SAMPLES}")
+                         f"need at least {MIN_SAMPLES}: raise rate (--rate) or t1 (--t1)")
     nominal = t_start + np.arange(n) / rate
     jitter = np.clip(rng.normal(0.0, jitter_std, n), -0.45 / rate, 0.45 / rate)
     actual = np.maximum(nominal + jitter, 0.0)
     keep = np.ones(n, dtype=bool)
     keep[1:] = rng.random(n - 1) >= drop
+    if int(keep.sum()) < MIN_SAMPLES:
+        raise ValueError(f"synthesize: drop (--drop) = {drop!r} left {int(keep.sum())} of the "
+                         f"{n} samples, but a record needs at least {MIN_SAMPLES}: lower drop "
+                         "or sample more (--rate, --t1)")
     nominal, actual = nominal[keep], actual[keep]
     # The scene's state is at t = 0, so integrate from there when the record starts later.
     sim_ts = actual if actual[0] == 0.0 else np.concatenate([[0.0], actual])
-    traj = scene.simulate(sim_ts)
+    # simulate's default budget (200,000 steps) plus one per sample: a step may end at
+    # each save time, so a dense record (10^6 samples in 1 ms) must not run out of steps.
+    traj = scene.simulate(sim_ts, max_steps=200_000 + int(sim_ts.shape[0]))
     phi = np.asarray(traj.phi)[-actual.shape[0]:]
     if transient != 0.0:
         phi = phi + transient * np.exp(-actual / transient_time) * np.cos(

@@ -52,8 +52,9 @@ def _check_record_size(a: argparse.Namespace, scene) -> None:
     t1 = scene.t1 if a.t1 is None else a.t1
     n = (t1 - a.t_start) * a.rate  # NaN or inf (a bad option) is synthesize's to name
     if np.isfinite(n) and n >= MAX_RECORD_SAMPLES:
-        raise UserError(f"--rate {a.rate:g} Hz over {t1 - a.t_start:g} s is {n:.3g} samples; "
-                        f"a record holds at most {MAX_RECORD_SAMPLES}")
+        raise UserError(f"--rate {a.rate:g} Hz over {t1 - a.t_start:g} s (--t-start to --t1) "
+                        f"is {n:.3g} samples; a record holds at most {MAX_RECORD_SAMPLES}: "
+                        "lower --rate or shorten the record (--t1)")
 
 
 def _synth_run(a: argparse.Namespace) -> int:
