@@ -152,3 +152,42 @@ def test_synthesize_rate_bound_gives_times_data_accepts():
                           rate=rate * (1 + 1e-6))
         ts = t_start + np.arange(int((t1 - t_start) * rate)) / rate
         cj.Data(ts, np.zeros_like(ts))
+
+
+@pytest.mark.parametrize("rtol", ["0.5", "0.999999", "0.0100001"])
+def test_loose_rtol_is_refused_naming_the_option(tmp_path, capsys, rtol):
+    # Issue 24 (12): a looser tolerance made a solve fail (or, near rtol = 1, finish with a
+    # wrong trajectory: near-buckling took 30 steps over 20 s) where a tighter one passed.
+    code = main(["simulate", "lab-rig", "--rtol", rtol, "--out", str(tmp_path / "o.csv")])
+    err = capsys.readouterr().err
+    assert code == 2 and "--rtol must be at most 0.01" in err, err
+    scene = tmp_path / "s.toml"
+    scene.write_text(cj.scene_to_toml(cj.load_scene("lab-rig")).replace(
+        "rtol = 1e-08", f"rtol = {rtol}"))
+    with pytest.raises(cj.SceneError, match=r"rtol <= 0.01"):
+        cj.load_scene(scene)
+
+
+def test_simulate_has_the_max_steps_its_advice_names(tmp_path, capsys):
+    # Issue 24 (12): the advice said "try increasing max_steps", which simulate lacked.
+    out = str(tmp_path / "o.csv")
+    code = main(["simulate", "lab-rig", "--max-steps", "150", "--quiet", "--out", out])
+    err = capsys.readouterr().err
+    assert code == 1 and "raise --max-steps" in err and "`max_steps`" not in err, err
+    assert not Path(out).exists()
+    assert main(["simulate", "lab-rig", "--max-steps", "5000", "--quiet", "--out", out]) == 0
+    for bad in ("0", "2147483648"):
+        assert main(["simulate", "lab-rig", "--max-steps", bad, "--out", out]) == 2
+        assert "--max-steps must be from 1 to" in capsys.readouterr().err
+
+
+def test_other_commands_name_no_option_they_lack():
+    import argparse
+
+    from crank_jax.cli.main import _solver_advice
+
+    msg = "The maximum number of solver steps was reached. Try increasing `max_steps`."
+    for command in ("synth", "fit", "validate", "demo"):
+        text = _solver_advice(msg, argparse.Namespace(command=command))
+        assert "max_steps" not in text and "--t1" in text, text
+        assert text.startswith("The maximum number of solver steps was reached.")

@@ -129,6 +129,27 @@ def _one_line(e: BaseException | Warning | str) -> str:
     return msg if len(msg) <= 500 else msg[:497] + "..."
 
 
+#: What diffrax advises when a solve runs out of steps: `max_steps` is a library argument,
+#: so the CLI names what its user can change instead.
+_MAX_STEPS_ADVICE = "Try increasing `max_steps`."
+
+
+def _solver_advice(msg: str, args: argparse.Namespace | None) -> str:
+    """`msg` with diffrax's "Try increasing `max_steps`" replaced by what this command's
+    user can change (only `simulate` has an ODE step budget option)."""
+    if _MAX_STEPS_ADVICE not in msg:
+        return msg
+    command = getattr(args, "command", None)
+    if command == "simulate":
+        fix = ("raise --max-steps (the budget per chunk of samples), or shorten the run "
+               "(--t1)")
+    else:
+        fix = ("shorten the run (--t1 or the record) or check that the scene's values are in "
+               "SI units; `crank-jax simulate SCENE --max-steps N` shows how many steps the "
+               "scene needs")
+    return msg.replace(_MAX_STEPS_ADVICE, f"The solve ran out of steps: {fix}.")
+
+
 def _debug(argv: list[str]) -> bool:
     return "--debug" in argv or os.environ.get(ENV_DEBUG, "") not in ("", "0")
 
@@ -146,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     which it returns as 0."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = _debug(argv)
+    args = None
     try:
         with _signals_raise(), _warnings_one_line():
             # --debug is accepted anywhere on the line, not only before the command.
@@ -169,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     except RuntimeError as e:
         # A solve that failed (e.g. hit max_steps) or a value rejected inside jit by
         # eqx.error_if: not a crash of ours, so no traceback, but not a success either.
-        return _fail(EXIT_FAILURE, _one_line(e), debug)
+        return _fail(EXIT_FAILURE, _solver_advice(_one_line(e), args), debug)
     except MemoryError:
         return _fail(EXIT_FAILURE, "out of memory; ask for fewer samples or a shorter run",
                      debug)
