@@ -191,3 +191,37 @@ def test_other_commands_name_no_option_they_lack():
         text = _solver_advice(msg, argparse.Namespace(command=command))
         assert "max_steps" not in text and "--t1" in text, text
         assert text.startswith("The maximum number of solver steps was reached.")
+
+
+def _constant_record(path: Path, value: float, n: int = 400, seed: int = 0) -> Path:
+    """A record at `value` rad plus rounding-sized wobble (a few ulps), 100 Hz."""
+    rng = np.random.default_rng(seed)
+    phi = value + rng.integers(-2, 3, n) * np.spacing(value)
+    path.write_text("t,phi\n" + "".join(f"{i / 100!r},{float(p)!r}\n"
+                                         for i, p in enumerate(phi)))
+    return path
+
+
+@pytest.mark.parametrize("value", [0.1, 1234.5, 1e-20])
+def test_validate_refuses_a_constant_record(tmp_path, capsys, value):
+    # Issue 24 (5): fit_percent = -5.4e17 for a constant record, whose spread was float
+    # rounding noise (only a spread of exactly 0 was caught).
+    rec = _constant_record(tmp_path / "c.csv", value)
+    out = tmp_path / "v.json"
+    code = main(["validate", "lab-rig", str(rec), "--quiet", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "constant angle" in err and "fit_percent is undefined" in err, err
+    assert not out.exists()
+    with pytest.raises(cj.DataError, match="constant angle"):
+        cj.validate(cj.load_scene("lab-rig"), cj.load_data(rec))
+
+
+def test_spread_check_passes_small_real_motion():
+    from crank_jax.validate import _check_spread
+
+    d = cj.Data(np.arange(10) * 0.01, np.zeros(10))
+    _check_spread(1234.5 + 1e-9 * np.sin(np.arange(50)), d, 0.0)  # 1 nrad at 1234.5 rad
+    _check_spread(1e-20 * np.sin(np.arange(50)), d, 0.0)  # any motion about 0
+    with pytest.raises(cj.DataError):
+        _check_spread(np.zeros(50), d, 0.0)

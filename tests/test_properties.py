@@ -470,4 +470,20 @@ def test_any_allowed_rtol_passes(capsys, preset, log_rtol):
         assert code == 0, err
 
 
+
+@_budget(20)
+@given(st.floats(-1e6, 1e6, allow_subnormal=False), st.integers(0, 8), st.integers(20, 300),
+       st.integers(0, 2**32 - 1))
+def test_degenerate_records_are_refused_by_validate(value, ulps, n, seed):
+    """A record whose scored angles are constant up to a few float64 spacings (what reading
+    or converting a constant leaves) is refused by validate before any fit, in one line,
+    instead of a fit_percent divided by rounding noise."""
+    rng = np.random.default_rng(seed)
+    phi = value + rng.integers(-ulps, ulps + 1, n) * np.spacing(value)
+    data = cj.Data(np.arange(n) * 0.05, phi)
+    with pytest.raises(cj.DataError, match="constant angle") as e:
+        cj.validate(cj.load_scene("lab-rig"), data)
+    assert "\n" not in str(e.value)
+
+
 pytestmark = pytest.mark.filterwarnings("ignore::hypothesis.errors.NonInteractiveExampleWarning")
