@@ -486,4 +486,27 @@ def test_degenerate_records_are_refused_by_validate(value, ulps, n, seed):
     assert "\n" not in str(e.value)
 
 
+
+@_budget(15)
+@given(st.sampled_from([(["--multistart", "0"], "--multistart"), (["--free", "zz"], "--free"),
+                        (["--free", "k,tau1"], "--free"), (["--profile", "zz"], "--profile"),
+                        (["--segments", "0"], "--segments"), (["--sigma", "inf"], "--sigma"),
+                        (["--max-steps", "-3"], "--max-steps"), (["--seed", "-1"], "--seed"),
+                        (["--plot", "{d}/p.xyz"], "--plot"),
+                        (["--t-start", "2", "--t-end", "1"], "--t-start")]),
+       csv_files().filter(lambda f: not f[1]), st.booleans())
+def test_fit_option_mistakes_are_named_before_the_record(capsys, mistake, file, more):
+    """A fit option mistake is reported, naming the option, whatever is wrong with the
+    record too: every option is checked before any record is read."""
+    (options, named), (raw, _) = mistake, file
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        (d / "d.csv").write_bytes(raw)
+        argv = ["fit", d / "d.csv", "lab-rig"] + [o.replace("{d}", tmp) for o in options]
+        if more:
+            argv += ["--more-data", d / "d.csv"]
+        code, err = _check_contract(argv, d, ["d.csv"], capsys)
+        assert code == 2 and named in err, err
+
+
 pytestmark = pytest.mark.filterwarnings("ignore::hypothesis.errors.NonInteractiveExampleWarning")

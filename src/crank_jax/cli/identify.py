@@ -170,10 +170,38 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
     return 0
 
 
-def _fit_kwargs(a: argparse.Namespace) -> dict:
+def _check_free(free: tuple[str, ...], a: argparse.Namespace, scene, n_records: int) -> None:
+    """Check --free and --profile against the names a fit knows and the scene's loads,
+    before any record is read (a long record takes seconds to read)."""
+    from ..identify.request import LOAD_NAMES, free_names, load_param, reported_names
+
+    unknown = [n for n in free if n not in free_names()]
+    if unknown:
+        raise UserError(f"--free: unknown free parameter(s) {', '.join(unknown)}; choose from "
+                        f"{', '.join(free_names())}")
+    for n in free:
+        if n in LOAD_NAMES:
+            side, role = LOAD_NAMES[n]
+            if load_param(getattr(scene, "load" if side == "load" else "torque"), role) is None:
+                raise UserError(f"--free: {n} cannot be free: the scene's {side} has no {n}; "
+                                f"give the scene a harmonic {side} (or, for {n[:-1]}0, a "
+                                "constant one)")
+    names = reported_names(tuple(dict.fromkeys(free)), n_records)
+    if a.profile is not None and a.profile not in names:
+        raise UserError(f"--profile {a.profile!r} is not a free parameter; choose from "
+                        f"{', '.join(names)}")
+
+
+def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
+    """The keyword arguments of `fit` from the options, every one checked (with `scene`,
+    the free names against it too)."""
     free = tuple(x.strip() for x in a.free.split(",") if x.strip())
     if not free:
         raise UserError("--free is empty; name at least one parameter")
+    if scene is not None:
+        _check_free(free, a, scene, n_records)
+    if a.shooting == "single" and a.segments is not None and a.segments > 1:
+        raise UserError(f"--segments {a.segments} needs --shooting multiple or auto")
     if a.multistart < 1:
         raise UserError(f"--multistart must be >= 1, got {a.multistart}")
     if a.segments is not None and a.segments < 1:
@@ -209,9 +237,10 @@ def _fit_run(a: argparse.Namespace) -> int:
         check_input(path, option)  # at once: a FIFO with no writer would block the read
     scene = load_scene(a.scene)
     _outputs_ok(a, files + [a.scene])
+    kwargs = _fit_kwargs(a, scene, len(files))  # every option before any record is read
     records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
                          interp=a.load_interp) for f in files]
-    res = fit(scene, records if len(records) > 1 else records[0], **_fit_kwargs(a))
+    res = fit(scene, records if len(records) > 1 else records[0], **kwargs)
     a.fitted_scene = scene
     return _report(res, a, title=f"{', '.join(files)} with {a.scene}")
 
@@ -254,12 +283,13 @@ def _demo(a: argparse.Namespace) -> int:
     if getattr(a, "data", None) is not None or getattr(a, "more_data", None):
         raise UserError("the demo takes no data")
     seed = getattr(a, "noise_seed", 1)
+    kw = _fit_kwargs(a)  # every option before the record is synthesised
     scene, data = demo_data(seed)
+    _check_free(kw["free"], a, scene, 1)
     truth_mech = scene.mech.as_dict()
     print(f"demo: {scene.description}; tau(t) = {DEMO['tau1']} sin(2 pi {DEMO['freq_hz']} t) "
           f"N*m; {DEMO['t1']:g} s at {DEMO['rate']:g} Hz with {DEMO['noise_std']:g} rad noise "
           f"(seed {seed})", file=sys.stderr)
-    kw = _fit_kwargs(a)
     if a.init == "scene":
         start = {k: v for k, v in DEMO["start"].items() if k in kw["free"]}
         kw["init"] = start
