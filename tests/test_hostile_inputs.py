@@ -258,3 +258,34 @@ def test_validate_outputs_are_checked_before_the_record_is_read(tmp_path, capsys
         assert main(argv) == 2
         err = capsys.readouterr().err
         assert option in err and "line 3" not in err, err
+
+
+def test_a_successful_run_has_an_empty_stderr(tmp_path):
+    # Issue 24 (14): a run that recovered from a stored program that does not parse (it
+    # recompiles) printed XLA's "E... wire_format_lite.cc:578] String field ... contains
+    # invalid UTF-8 data" on stderr, though it succeeded.
+    import re
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("CRANK_JAX_NO_CACHE", "JAX_LOGGING_LEVEL")}
+    env["CRANK_JAX_CACHE_DIR"] = str(tmp_path / "cache")
+
+    def run():
+        p = subprocess.run([sys.executable, "-m", "crank_jax", "linearize", "lab-rig", "--json"],
+                           env=env, capture_output=True, text=True, timeout=300)
+        assert p.returncode == 0 and p.stderr == "", p.stderr
+        return p.stdout
+
+    first = run()
+    damaged = 0
+    for f in (tmp_path / "cache").rglob("*"):
+        blob = f.read_bytes() if f.is_file() else b""
+        new = re.sub(rb"(jit_linearize_[0-9a-f]{14})[0-9a-f]{2}",
+                     lambda m: m.group(1) + b"\xff\xfe", blob)
+        if new != blob:
+            f.write_bytes(new)  # a program name that is not UTF-8: its parse fails
+            damaged += 1
+    assert damaged, "no stored program found to damage"
+    assert run() == first

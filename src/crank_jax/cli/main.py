@@ -207,6 +207,29 @@ def main(argv: list[str] | None = None) -> int:
                      "traceback)", debug)
 
 
+
+
+def _quiet_runtime_logs() -> None:
+    """Keep XLA's C++ log lines (and JAX's logger records) off a command's stderr.
+
+    XLA logs through absl at its own level: a stored program that fails to parse, say,
+    prints `E... wire_format_lite.cc:578] String field ... contains invalid UTF-8 data`
+    although the command recovers (it recompiles) and succeeds. A command's stderr holds
+    its own one-line messages only, and its failures reach the user as exceptions, so only
+    fatal records are kept: JAX's `jax_logging_level` sets absl's minimum level at run
+    time (`TF_CPP_MIN_LOG_LEVEL` is read only when jaxlib loads, which importing the
+    package has done). A level the user set, `JAX_LOGGING_LEVEL` or a
+    `TF_CPP_MIN_LOG_LEVEL` other than the "1" that `import jax` puts there by default,
+    is kept, and so is every log under `--debug`.
+    """
+    if os.environ.get("JAX_LOGGING_LEVEL") or os.environ.get("TF_CPP_MIN_LOG_LEVEL",
+                                                              "1") != "1":
+        return
+    import jax
+
+    jax.config.update("jax_logging_level", "CRITICAL")
+
+
 def entry() -> None:
     """The `crank-jax` program (console script and `python -m crank_jax`): [`main`][],
     then leave without the interpreter's teardown.
@@ -219,10 +242,13 @@ def entry() -> None:
     Before JAX starts, it adds crank-jax's CPU flags to `XLA_FLAGS` (XLA's small-loop
     threshold, and 512-bit vectors on AVX-512 CPUs) and asks for one JAX CPU device per
     core (sweeps and batches spread over them), keeping what the user set: see
-    `crank_jax.xla_flags.configure_cpu`. Only here: `main` may run inside a host program
-    whose JAX is configured.
+    `crank_jax.xla_flags.configure_cpu`; and it keeps the runtime's log lines off stderr
+    (`_quiet_runtime_logs`). Only here: `main` may run inside a host program whose JAX is
+    configured.
     """
     configure_cpu()
+    if not _debug(sys.argv[1:]):
+        _quiet_runtime_logs()
     code = main()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
