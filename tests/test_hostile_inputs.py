@@ -289,3 +289,11 @@ def test_a_successful_run_has_an_empty_stderr(tmp_path):
             damaged += 1
     assert damaged, "no stored program found to damage"
     assert run() == first
+
+
+@pytest.mark.parametrize("rtol", [0.5, 0.999999, 0.011])
+def test_library_refuses_a_loose_rtol(rtol):
+    # Issue 24 (12): the library's simulate takes the same bound as the CLI and scene files.
+    sc = cj.load_scene("lab-rig")
+    with pytest.raises(ValueError, match="rtol must be a finite number >= 1e-15 .* and <= 0.01"):
+        cj.simulate(sc.mech, 1.0, 0.0, np.linspace(0.0, 1.0, 11), rtol=rtol)

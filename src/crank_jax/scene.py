@@ -31,6 +31,7 @@ from .model.loads import (
     toml_keys,
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
+from .solve.inputs import MAX_RTOL as SOLVER_MAX_RTOL
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
 
@@ -146,10 +147,11 @@ def _number(where: str, key: str, v: Any) -> float:
     return x
 
 
-#: The loosest relative tolerance a scene or `crank-jax simulate --rtol` may ask for. Near
-#: rtol = 1 the step-size control no longer bounds the error: a solve may run out of
-#: steps (where a tighter tolerance passes) or finish with a wrong trajectory.
-MAX_RTOL = 1e-2
+#: The loosest relative tolerance a scene or `crank-jax simulate --rtol` may ask for (the
+#: solver's own bound, `solve.inputs.MAX_RTOL`). Near rtol = 1 the step-size control no
+#: longer bounds the error: a solve may run out of steps (where a tighter tolerance
+#: passes) or finish with a wrong trajectory.
+MAX_RTOL = SOLVER_MAX_RTOL
 
 #: Magnitudes a scene number may have, besides 0.
 _NUMBER_RANGE = (1e-30, 1e30)
