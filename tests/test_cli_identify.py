@@ -99,7 +99,7 @@ def test_unidentifiable_request_exits_zero_with_warning(pendulum_csv, tmp_path, 
         (["fit", "{data}"], "give both DATA and SCENE"),
         (["fit", "{data}", "pendulum", "--multistart", "0"], "--multistart must be >= 1"),
         (["synth", "pendulum", "--rate", "-5", "--out", "{tmp}/x.csv"], "rate"),
-        (["fit", "{tmp}/missing.csv", "pendulum"], "No such file"),
+        (["fit", "{tmp}/missing.csv", "pendulum"], "missing.csv' does not exist"),
     ],
 )
 def test_user_errors_exit_2(pendulum_csv, tmp_path, capsys, args, match):

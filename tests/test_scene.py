@@ -1,5 +1,7 @@
 """Scenes: presets, TOML round trip, strict parsing, static structure."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -155,3 +157,33 @@ def test_scene_simulate_uses_its_settings():
     sc = cj.load_scene("pendulum")
     tr = sc.simulate(sc.ts(1.0, 11))
     assert tr.phi.shape == (11,) and float(tr.phi[0]) == float(sc.phi0)
+
+
+@pytest.mark.parametrize("description", [
+    "line one\nline two", "tab\there", "bell\x07 and nul\x00 and del\x7f", 'quote " and \\',
+    "\\n is not a newline", "CR\r\nLF", "ünïcødé ✓ 🦀", "'''", '"""', "\ufeffbom"])
+def test_description_round_trips(tmp_path, description):
+    # Issue 24 (13): --scene-out wrote raw newlines and control characters into a TOML
+    # basic string, and the file could not be read back.
+    sc = dataclasses.replace(cj.load_scene("lab-rig"), description=description)
+    out = tmp_path / "s.toml"
+    cj.save_scene(sc, out)
+    again = cj.load_scene(out)
+    assert again.description == description
+    assert cj.scene_to_toml(again) == cj.scene_to_toml(sc)
+
+
+def test_lone_surrogate_is_refused_before_writing(tmp_path):
+    sc = dataclasses.replace(cj.load_scene("lab-rig"), description="bad \ud800")
+    with pytest.raises(cj.SceneError, match="surrogate"):
+        cj.save_scene(sc, tmp_path / "s.toml")
+    assert not list(tmp_path.iterdir())
+
+
+def test_byte_order_mark_is_accepted(tmp_path):
+    # Issue 24 (10): a UTF-8 byte-order mark (as Windows editors write) gave "Invalid
+    # statement (line 1, column 1)", though CSV records accept one.
+    path = tmp_path / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + TOML.encode())
+    assert cj.scene_to_toml(cj.load_scene(path)) == cj.scene_to_toml(
+        cj.load_scene(_write(tmp_path, TOML)))

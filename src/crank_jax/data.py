@@ -35,11 +35,18 @@ from collections.abc import Sequence
 import equinox as eqx
 import numpy as np
 
-from .io import atomic_write
+from .io import atomic_write, check_input
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
+from .record_checks import (
+    MAX_TIME_SPAN,
+    MIN_STEP_ULPS,
+    MIN_TIME_STEP,
+    check_synth_options,
+    time_scale_problem,
+)
 
 __all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES",
-           "MAX_RECORD_SAMPLES"]
+           "MAX_RECORD_SAMPLES", "MAX_TIME_SPAN", "MIN_TIME_STEP", "MIN_STEP_ULPS"]
 
 #: The fewest samples a record may have.
 MIN_SAMPLES = 5
@@ -65,12 +72,16 @@ def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[st
             i = int(np.argmax(bad))
             raise DataError(f"{where}: {label(i)}: column {name!r} is {float(x[i])} (NaN or inf); "
                             "remove or repair that row")
-    d = np.diff(ts)
+    with np.errstate(over="ignore", invalid="ignore"):  # +-1.7e308: the span overflows
+        d = np.diff(ts)
     if not np.all(d > 0):
         i = int(np.argmax(d <= 0)) + 1
         raise DataError(f"{where}: {label(i)}: time t = {float(ts[i])!r} does not increase "
                         f"(previous t = {float(ts[i - 1])!r}); sort the record and remove "
                         "duplicate times")
+    problem = time_scale_problem(ts, d, where, label)
+    if problem:
+        raise DataError(problem)
 
 
 class Data(eqx.Module):
@@ -79,7 +90,9 @@ class Data(eqx.Module):
     **Fields:**
 
     - `ts`: (n,) sample times, s, strictly increasing, n >= [`MIN_SAMPLES`][]. They may
-      start anywhere and be irregular.
+      start anywhere and be irregular, but must span at most [`MAX_TIME_SPAN`][] and be
+      at least [`MIN_TIME_STEP`][] and [`MIN_STEP_ULPS`][] float64 spacings of the largest
+      |t| apart (what a solver can resolve).
     - `phi`: (n,) measured crank angle, rad.
     - `load`: the slider force P(t), N, or `None` to use the scene's when fitting.
     - `torque`: the crank torque tau(t), N*m, or `None` to use the scene's.
@@ -145,7 +158,12 @@ MAX_RECORD_SAMPLES = 10**7
 
 def _open_text(path: str | os.PathLike):
     """Open a text file as pandas would read it: a UTF-8 byte-order mark (as Excel writes)
-    is dropped, a UTF-16 one selects UTF-16, and CRLF or CR line ends read as LF."""
+    is dropped, a UTF-16 one selects UTF-16, and CRLF or CR line ends read as LF. Anything
+    but a regular file (a FIFO would wait for a writer forever) is refused unopened."""
+    try:
+        check_input(path, "data file")
+    except ValueError as e:
+        raise DataError(str(e)) from None
     with open(path, "rb") as f:
         head = f.read(2)
     enc = "utf-16" if head in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"
@@ -293,8 +311,10 @@ def load_data(
     **Returns:** a [`Data`][].
 
     Raises [`DataError`][] (a `ValueError`) naming the line and column for a missing
-    column, a non-numeric, NaN or infinite value, a time that does not increase, a ragged
-    row, too few samples or more than [`MAX_RECORD_SAMPLES`][]; `OSError` if the file
+    column, a non-numeric, NaN or infinite value, a time that does not increase, times
+    too close together or spanning too long (see [`Data`][]), a ragged
+    row, too few samples or more than [`MAX_RECORD_SAMPLES`][], and for a path that is not
+    a regular file (a FIFO, a device, a directory, a missing file); `OSError` if the file
     cannot be read.
     """
     if interp not in INTERPOLATIONS:
@@ -375,32 +395,28 @@ def synthesize(
     them as sampled `P`/`tau` columns.
     """
     t1 = float(scene.t1 if t1 is None else t1)
-    for name, v, ok in (("rate", rate, rate > 0), ("noise_std", noise_std, noise_std >= 0),
-                        ("jitter_std", jitter_std, jitter_std >= 0),
-                        ("drop", drop, 0 <= drop < 1), ("t1", t1, t1 > 0),
-                        ("t_start", t_start, 0 <= t_start < t1),
-                        ("transient", transient, True),
-                        ("transient_time", transient_time, transient_time > 0),
-                        ("transient_hz", transient_hz, transient_hz >= 0)):
-        if not (math.isfinite(v) and ok):
-            raise ValueError(f"synthesize: {name} = {v!r} is out of range")
-    if quantization is not None and not (int(quantization) == quantization and quantization > 0):
-        raise ValueError(f"synthesize: quantization must be a positive integer count per "
-                         f"revolution, got {quantization!r}")
+    check_synth_options(t1, rate, noise_std, jitter_std, drop, t_start, seed, transient,
+                         transient_time, transient_hz, quantization)
     rng = np.random.default_rng(seed)
     n = int(math.floor((t1 - t_start) * rate + 1e-9)) + 1
     if n < MIN_SAMPLES:
         raise ValueError(f"synthesize: only {n} samples in [{t_start}, {t1}] s at {rate} Hz; "
-                         f"need at least {MIN_SAMPLES}")
+                         f"need at least {MIN_SAMPLES}: raise rate (--rate) or t1 (--t1)")
     nominal = t_start + np.arange(n) / rate
     jitter = np.clip(rng.normal(0.0, jitter_std, n), -0.45 / rate, 0.45 / rate)
     actual = np.maximum(nominal + jitter, 0.0)
     keep = np.ones(n, dtype=bool)
     keep[1:] = rng.random(n - 1) >= drop
+    if int(keep.sum()) < MIN_SAMPLES:
+        raise ValueError(f"synthesize: drop (--drop) = {drop!r} left {int(keep.sum())} of the "
+                         f"{n} samples, but a record needs at least {MIN_SAMPLES}: lower drop "
+                         "or sample more (--rate, --t1)")
     nominal, actual = nominal[keep], actual[keep]
     # The scene's state is at t = 0, so integrate from there when the record starts later.
     sim_ts = actual if actual[0] == 0.0 else np.concatenate([[0.0], actual])
-    traj = scene.simulate(sim_ts)
+    # simulate's default budget (200,000 steps) plus one per sample: a step may end at
+    # each save time, so a dense record (10^6 samples in 1 ms) must not run out of steps.
+    traj = scene.simulate(sim_ts, max_steps=200_000 + int(sim_ts.shape[0]))
     phi = np.asarray(traj.phi)[-actual.shape[0]:]
     if transient != 0.0:
         phi = phi + transient * np.exp(-actual / transient_time) * np.cos(

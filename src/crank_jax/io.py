@@ -15,9 +15,9 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import IO
 
-__all__ = ["atomic_write", "check_not_input", "check_output", "check_figure_format",
-           "default_file_mode", "Terminated", "note_signal", "raise_if_terminated",
-           "temp_file", "remove_stale_temps", "STALE_TEMP_S"]
+__all__ = ["atomic_write", "check_input", "check_not_input", "check_output",
+           "check_figure_format", "default_file_mode", "Terminated", "note_signal",
+           "raise_if_terminated", "temp_file", "remove_stale_temps", "STALE_TEMP_S"]
 
 
 class Terminated(BaseException):
@@ -114,6 +114,34 @@ def _alive(pid: int) -> bool:
     except (PermissionError, OverflowError, ValueError):
         return True
     return True
+
+
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def check_input(path: str | os.PathLike, option: str = "input") -> None:
+    """Raise `ValueError` naming `option` unless `path` is a regular file (`OSError` if it
+    does not exist or cannot be looked at).
+
+    Checked without opening it: opening a FIFO with no writer waits forever, and a device
+    such as /dev/zero or /dev/stdin never ends or can be read only once. A symbolic link
+    is followed.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{option} {str(path)!r} does not exist") from None
+    except OSError as e:
+        raise OSError(f"{option} {str(path)!r} cannot be read: {e.strerror}") from None
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"{option} {str(path)!r} is {_kind(mode)}, not a regular file; save "
+                         "its content to a file and name that")
 
 
 @contextlib.contextmanager

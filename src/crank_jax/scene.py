@@ -31,6 +31,7 @@ from .model.loads import (
     toml_keys,
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
+from .solve.inputs import MAX_RTOL as SOLVER_MAX_RTOL
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
 
@@ -146,6 +147,12 @@ def _number(where: str, key: str, v: Any) -> float:
     return x
 
 
+#: The loosest relative tolerance a scene or `crank-jax simulate --rtol` may ask for (the
+#: solver's own bound, `solve.inputs.MAX_RTOL`). Near rtol = 1 the step-size control no
+#: longer bounds the error: a solve may run out of steps (where a tighter tolerance
+#: passes) or finish with a wrong trajectory.
+MAX_RTOL = SOLVER_MAX_RTOL
+
 #: Magnitudes a scene number may have, besides 0.
 _NUMBER_RANGE = (1e-30, 1e30)
 
@@ -206,8 +213,10 @@ def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> 
                          f"{list(SOLVERS)}")
     rtol = _number(where, "solver.rtol", st.get("rtol", 1e-8))
     atol = _number(where, "solver.atol", st.get("atol", 1e-10))
-    if not (0 < rtol < 1 and 0 < atol):
-        raise SceneError(f"{where}: [solver] needs 0 < rtol < 1 and atol > 0")
+    if not (0 < rtol <= MAX_RTOL and 0 < atol):
+        raise SceneError(f"{where}: [solver] needs 0 < rtol <= {MAX_RTOL:g} and atol > 0, got "
+                         f"rtol = {rtol:g}, atol = {atol:g} (a looser rtol lets the step "
+                         "control drift far enough to fail, or to give a wrong answer)")
     out = doc.get("output", {})
     t1 = _number(where, "output.t1", out.get("t1", 10.0))
     samples = out.get("samples", 1001)
@@ -246,14 +255,16 @@ def load_scene(source: str | os.PathLike) -> Scene:
         text = importlib.resources.files("crank_jax").joinpath(f"scenes/{src}.toml").read_text()
         return scene_from_dict(tomllib.loads(text), where=f"preset {src}", name=src)
     path = Path(src)
-    if not path.is_file():
-        raise SceneError(f"{src!r} is neither a preset ({', '.join(PRESETS)}) nor a TOML file")
+    if not path.is_file():  # a FIFO or device too: opening it could wait forever
+        kind = "a TOML file" if not path.exists() else "a regular file"
+        raise SceneError(f"{src!r} is neither a preset ({', '.join(PRESETS)}) nor {kind}")
     if path.stat().st_size > MAX_SCENE_BYTES:
         raise SceneError(f"{src}: {path.stat().st_size} bytes is not a scene file (scenes are "
                          f"a few kB; the limit is {MAX_SCENE_BYTES} bytes); a record goes "
                          "after the command as DATA, a scene second")
     try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        # utf-8-sig: a byte-order mark (as Windows editors write) is dropped, as in CSV.
+        doc = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{src}: malformed TOML: {e}") from None
     except UnicodeDecodeError:
@@ -268,11 +279,30 @@ def _load_table(load: AbstractLoad, side: str) -> dict[str, Any] | None:
         raise SceneError(str(e)) from None
 
 
+#: TOML's short escapes; every other control character is written as `\\uXXXX`.
+_TOML_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n",
+                 "\f": "\\f", "\r": "\\r"}
+
+
+def _toml_string(text: str) -> str:
+    """`text` as a TOML basic string that reads back equal: quotes, backslashes and every
+    control character (U+0000 to U+001F and U+007F, which TOML forbids raw) are escaped.
+    Raises [`SceneError`][] for a lone surrogate, which no UTF-8 file can hold."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise SceneError(f"the string {_short(text)} holds a lone surrogate (not Unicode "
+                         "text), which a scene file cannot hold; remove it") from None
+    out = [_TOML_ESCAPES.get(c) or (f"\\u{ord(c):04X}" if ord(c) < 0x20 or c == "\x7f" else c)
+           for c in text]
+    return '"' + "".join(out) + '"'
+
+
 def scene_to_toml(scene: Scene) -> str:
     """Serialise a scene to the TOML format that [`load_scene`][] reads."""
     def fmt(v: Any) -> str:
         if isinstance(v, str):
-            return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+            return _toml_string(v)
         if isinstance(v, (list, tuple)):
             return "[" + ", ".join(fmt(x) for x in v) + "]"
         return repr(v)
@@ -331,6 +361,8 @@ def fitted_scene(scene: Scene, result) -> Scene:
 
 def save_scene(scene: Scene, path: str | os.PathLike) -> None:
     """Write a scene as TOML, atomically."""
-    with atomic_write(path) as f:
-        f.write(scene_to_toml(scene))
+    text = scene_to_toml(scene)  # before the file is opened: a failure leaves no file
+    # UTF-8 whatever the locale: load_scene reads UTF-8.
+    with atomic_write(path, "wb") as f:
+        f.write(text.encode("utf-8"))
 

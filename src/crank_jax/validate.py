@@ -26,7 +26,7 @@ from .model.linear import linearize
 from .model.loads import AbstractLoad, NoLoad
 from .scene import Scene
 
-__all__ = ["validate", "Validation", "default_init_window", "plot_validation"]
+__all__ = ["validate", "Validation", "default_init_window", "plot_validation", "MIN_SPREAD_EPS"]
 
 
 class Validation(NamedTuple):
@@ -109,6 +109,24 @@ def _loads(scene: Scene, data: Data, scene_loads: bool) -> tuple[AbstractLoad, A
     return out[0], out[1]
 
 
+#: The scored angles must spread (rms about their mean) by more than this many float64
+#: epsilons of their largest magnitude: a smaller spread is rounding noise of a constant
+#: record, and `fit_percent` divided by it is meaningless (it gave -5.4e17).
+MIN_SPREAD_EPS = 1024
+
+
+def _check_spread(y: np.ndarray, win: Data, t_init: float) -> None:
+    """Raise [`DataError`][] when the scored angles `y` are constant up to rounding."""
+    scale = float(np.max(np.abs(y)))
+    spread = float(np.sqrt(np.mean((y - y.mean()) ** 2)))
+    if spread <= MIN_SPREAD_EPS * np.finfo(np.float64).eps * scale or spread == 0:
+        raise DataError(
+            f"{win.source}: the {y.size} scored samples (t > {t_init:g} s) hold a constant "
+            f"angle ({float(y.mean()):.17g} rad; spread {spread:.3g} rad, float rounding "
+            "at most), so fit_percent is undefined: validate on a record in which the crank "
+            "moves after the initial-state window")
+
+
 def validate(
     scene: Scene,
     data: Data,
@@ -135,8 +153,9 @@ def validate(
 
     **Returns:** a [`Validation`][]. Raises `ValueError` (naming the argument) for a
     window with fewer than [`MIN_SAMPLES`][] samples, an initial-state window that leaves
-    fewer than that many to score, or a missing load column; `RuntimeError` if the
-    prediction's solve fails.
+    fewer than that many to score, a missing load column, or scored angles that are
+    constant up to float rounding ([`MIN_SPREAD_EPS`][]; `fit_percent` would be
+    meaningless); `RuntimeError` if the prediction's solve fails.
     """
     if not isinstance(scene, Scene) or not isinstance(data, Data):
         raise TypeError("validate(scene, data): expected a Scene and a Data record")
@@ -156,6 +175,7 @@ def validate(
                          f"the window's {win.n} samples and leaves {int(scored.sum())} to "
                          f"score; both need at least {MIN_SAMPLES}: change the window or "
                          "--init-window")
+    _check_spread(win.phi[scored], win, t_init)
     warnings: list[str] = []
     res = fit(scene, win.window(None, t_init), free=("phi0", "dphi0"), progress=progress,
               warn=False)
@@ -170,10 +190,7 @@ def validate(
         raise RuntimeError(f"the prediction's solve failed ({traj.result}); check the scene's "
                            "solver settings")
     y, e = win.phi[scored], (win.phi - yhat)[scored]
-    spread = float(np.linalg.norm(y - y.mean()))
-    fit_pct = 100.0 * (1.0 - float(np.linalg.norm(e)) / spread) if spread > 0 else -math.inf
-    if spread == 0:
-        warnings.append("the scored data are constant, so fit_percent is undefined")
+    fit_pct = 100.0 * (1.0 - float(np.linalg.norm(e)) / float(np.linalg.norm(y - y.mean())))
     return Validation(
         rms=float(np.sqrt(np.mean(e**2))), max_abs=float(np.max(np.abs(e))),
         fit_percent=fit_pct, n_samples=int(scored.sum()), phi0=float(phi0),

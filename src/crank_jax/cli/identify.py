@@ -10,6 +10,7 @@ import sys
 import numpy as np
 
 from .errors import UserError
+from .options import seed
 
 #: The demo experiment: the lab rig driven by a known harmonic crank torque (a shaker),
 #: which fixes the common scale of the inertial parameters; 5 s sampled at 200 Hz with
@@ -42,7 +43,7 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
                    help="amplitude of a start-up transient (a hand release), rad (0: none)")
     p.add_argument("--transient-time", type=float, default=0.1, metavar="S",
                    help="its decay time, s (0.1)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (0)")
+    p.add_argument("--seed", type=seed, default=0, help="noise seed (0)")
     p.add_argument("--out", required=True, help="output CSV (t,phi[,P][,tau])")
 
 
@@ -52,8 +53,9 @@ def _check_record_size(a: argparse.Namespace, scene) -> None:
     t1 = scene.t1 if a.t1 is None else a.t1
     n = (t1 - a.t_start) * a.rate  # NaN or inf (a bad option) is synthesize's to name
     if np.isfinite(n) and n >= MAX_RECORD_SAMPLES:
-        raise UserError(f"--rate {a.rate:g} Hz over {t1 - a.t_start:g} s is {n:.3g} samples; "
-                        f"a record holds at most {MAX_RECORD_SAMPLES}")
+        raise UserError(f"--rate {a.rate:g} Hz over {t1 - a.t_start:g} s (--t-start to --t1) "
+                        f"is {n:.3g} samples; a record holds at most {MAX_RECORD_SAMPLES}: "
+                        "lower --rate or shorten the record (--t1)")
 
 
 def _synth_run(a: argparse.Namespace) -> int:
@@ -96,7 +98,7 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
                    help="auto: multiple shooting above 25 linearised periods")
     p.add_argument("--segments", type=int, help="number of multiple-shooting segments")
     p.add_argument("--multistart", type=int, default=1, help="number of starts (1)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the multistart (0)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the multistart (0)")
     p.add_argument("--max-steps", type=int, help="iteration budget per start")
     p.add_argument("--sigma", type=float, help="known noise std, rad (default: from residuals)")
     p.add_argument("--profile", metavar="NAME", help="profile likelihood of one parameter")
@@ -195,17 +197,40 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
     return 0
 
 
-def _fit_kwargs(a: argparse.Namespace) -> dict:
-    """The fit's options, checked (before any record is read: a mistake costs nothing)."""
-    from ..identify.request import MAX_ITERATIONS, SIGMA_RANGE, free_names
+def _check_free(free: tuple[str, ...], a: argparse.Namespace, scene, n_records: int) -> None:
+    """Check --free and --profile against the names a fit knows and the scene's loads,
+    before any record is read (a long record takes seconds to read)."""
+    from ..identify.request import LOAD_NAMES, free_names, load_param, reported_names
+
+    unknown = [n for n in free if n not in free_names()]
+    if unknown:
+        raise UserError(f"--free: unknown free parameter(s) {', '.join(unknown)}; choose from "
+                        f"{', '.join(free_names())}")
+    for n in free:
+        if n in LOAD_NAMES:
+            side, role = LOAD_NAMES[n]
+            if load_param(getattr(scene, "load" if side == "load" else "torque"), role) is None:
+                raise UserError(f"--free: {n} cannot be free: the scene's {side} has no {n}; "
+                                f"give the scene a harmonic {side} (or, for {n[:-1]}0, a "
+                                "constant one)")
+    names = reported_names(tuple(dict.fromkeys(free)), n_records)
+    if a.profile is not None and a.profile not in names:
+        raise UserError(f"--profile {a.profile!r} is not a free parameter; choose from "
+                        f"{', '.join(names)}")
+
+
+def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
+    """The keyword arguments of `fit` from the options, every one checked (with `scene`,
+    the free names against it too)."""
+    from ..identify.request import MAX_ITERATIONS, SIGMA_RANGE
 
     free = tuple(x.strip() for x in a.free.split(",") if x.strip())
     if not free:
         raise UserError("--free is empty; name at least one parameter")
-    unknown = [n for n in free if n not in free_names()]
-    if unknown:
-        raise UserError(f"--free: unknown free parameter(s) {', '.join(unknown)}; choose "
-                        f"from {', '.join(free_names())}")
+    if scene is not None:
+        _check_free(free, a, scene, n_records)
+    if a.shooting == "single" and a.segments is not None and a.segments > 1:
+        raise UserError(f"--segments {a.segments} needs --shooting multiple or auto")
     if a.multistart < 1:
         raise UserError(f"--multistart must be >= 1, got {a.multistart}")
     if a.segments is not None and a.segments < 1:
@@ -237,12 +262,15 @@ def _fit_run(a: argparse.Namespace) -> int:
         raise UserError("give both DATA and SCENE (or neither, for the built-in demo)")
     from ..data import load_data
     from ..identify.fit import fit
+    from ..io import check_input
     from ..scene import load_scene
 
-    kwargs = _fit_kwargs(a)
-    scene = load_scene(a.scene)
     files = [a.data] + list(a.more_data)
+    for path, option in zip(files, ["DATA"] + ["--more-data"] * len(a.more_data)):
+        check_input(path, option)  # at once: a FIFO with no writer would block the read
+    scene = load_scene(a.scene)
     _outputs_ok(a, files + [a.scene])
+    kwargs = _fit_kwargs(a, scene, len(files))  # every option before any record is read
     records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
                          interp=a.load_interp) for f in files]
     res = fit(scene, records if len(records) > 1 else records[0], **kwargs)
@@ -261,7 +289,8 @@ def _write_scene(res, a: argparse.Namespace) -> None:
 # --- demo -------------------------------------------------------------------------------
 
 def _demo_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--noise-seed", type=int, default=1, help="seed of the synthetic noise (1)")
+    p.add_argument("--noise-seed", type=seed, default=1,
+                   help="seed of the synthetic noise (1)")
     _fit_options(p)
 
 
@@ -286,9 +315,10 @@ def _demo(a: argparse.Namespace) -> int:
     _outputs_ok(a, [])
     if getattr(a, "data", None) is not None or getattr(a, "more_data", None):
         raise UserError("the demo takes no data")
-    kw = _fit_kwargs(a)  # checked before the record is synthesised
     seed = getattr(a, "noise_seed", 1)
+    kw = _fit_kwargs(a)  # every option before the record is synthesised
     scene, data = demo_data(seed)
+    _check_free(kw["free"], a, scene, 1)
     truth_mech = scene.mech.as_dict()
     print(f"demo: {scene.description}; tau(t) = {DEMO['tau1']} sin(2 pi {DEMO['freq_hz']} t) "
           f"N*m; {DEMO['t1']:g} s at {DEMO['rate']:g} Hz with {DEMO['noise_std']:g} rad noise "

@@ -129,6 +129,27 @@ def _one_line(e: BaseException | Warning | str) -> str:
     return msg if len(msg) <= 500 else msg[:497] + "..."
 
 
+#: What diffrax advises when a solve runs out of steps: `max_steps` is a library argument,
+#: so the CLI names what its user can change instead.
+_MAX_STEPS_ADVICE = "Try increasing `max_steps`."
+
+
+def _solver_advice(msg: str, args: argparse.Namespace | None) -> str:
+    """`msg` with diffrax's "Try increasing `max_steps`" replaced by what this command's
+    user can change (only `simulate` has an ODE step budget option)."""
+    if _MAX_STEPS_ADVICE not in msg:
+        return msg
+    command = getattr(args, "command", None)
+    if command == "simulate":
+        fix = ("raise --max-steps (the budget per chunk of samples), or shorten the run "
+               "(--t1)")
+    else:
+        fix = ("shorten the run (--t1 or the record) or check that the scene's values are in "
+               "SI units; `crank-jax simulate SCENE --max-steps N` shows how many steps the "
+               "scene needs")
+    return msg.replace(_MAX_STEPS_ADVICE, f"The solve ran out of steps: {fix}.")
+
+
 def _debug(argv: list[str]) -> bool:
     return "--debug" in argv or os.environ.get(ENV_DEBUG, "") not in ("", "0")
 
@@ -146,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     which it returns as 0."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = _debug(argv)
+    args = None
     try:
         with _signals_raise(), _warnings_one_line():
             # --debug is accepted anywhere on the line, not only before the command.
@@ -170,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     except RuntimeError as e:
         # A solve that failed (e.g. hit max_steps) or a value rejected inside jit by
         # eqx.error_if: not a crash of ours, so no traceback, but not a success either.
-        return _fail(EXIT_FAILURE, _one_line(e), debug)
+        return _fail(EXIT_FAILURE, _solver_advice(_one_line(e), args), debug)
     except MemoryError:
         return _fail(EXIT_FAILURE, "out of memory; ask for fewer samples or a shorter run",
                      debug)
@@ -186,6 +208,29 @@ def main(argv: list[str] | None = None) -> int:
                      "traceback)", debug)
 
 
+
+
+def _quiet_runtime_logs() -> None:
+    """Keep XLA's C++ log lines (and JAX's logger records) off a command's stderr.
+
+    XLA logs through absl at its own level: a stored program that fails to parse, say,
+    prints `E... wire_format_lite.cc:578] String field ... contains invalid UTF-8 data`
+    although the command recovers (it recompiles) and succeeds. A command's stderr holds
+    its own one-line messages only, and its failures reach the user as exceptions, so only
+    fatal records are kept: JAX's `jax_logging_level` sets absl's minimum level at run
+    time (`TF_CPP_MIN_LOG_LEVEL` is read only when jaxlib loads, which importing the
+    package has done). A level the user set, `JAX_LOGGING_LEVEL` or a
+    `TF_CPP_MIN_LOG_LEVEL` other than the "1" that `import jax` puts there by default,
+    is kept, and so is every log under `--debug`.
+    """
+    if os.environ.get("JAX_LOGGING_LEVEL") or os.environ.get("TF_CPP_MIN_LOG_LEVEL",
+                                                              "1") != "1":
+        return
+    import jax
+
+    jax.config.update("jax_logging_level", "CRITICAL")
+
+
 def entry() -> None:
     """The `crank-jax` program (console script and `python -m crank_jax`): [`main`][],
     then leave without the interpreter's teardown.
@@ -198,10 +243,13 @@ def entry() -> None:
     Before JAX starts, it adds crank-jax's CPU flags to `XLA_FLAGS` (XLA's small-loop
     threshold, and 512-bit vectors on AVX-512 CPUs) and asks for one JAX CPU device per
     core (sweeps and batches spread over them), keeping what the user set: see
-    `crank_jax.xla_flags.configure_cpu`. Only here: `main` may run inside a host program
-    whose JAX is configured.
+    `crank_jax.xla_flags.configure_cpu`; and it keeps the runtime's log lines off stderr
+    (`_quiet_runtime_logs`). Only here: `main` may run inside a host program whose JAX is
+    configured.
     """
     configure_cpu()
+    if not _debug(sys.argv[1:]):
+        _quiet_runtime_logs()
     code = main()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):

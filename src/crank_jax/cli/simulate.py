@@ -36,6 +36,10 @@ MAX_SAMPLES = 10**9
 CSV_BYTES_PER_VALUE = 20
 #: Most points drawn by --plot: longer runs are decimated evenly.
 PLOT_POINTS = 20001
+#: `simulate --max-steps`: the default (the library's) and the largest budget (an int32
+#: step counter).
+DEFAULT_MAX_STEPS = 200_000
+MAX_STEPS = 2**31 - 1
 
 
 def _simulate_args(p: argparse.ArgumentParser) -> None:
@@ -47,8 +51,11 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--phi0", type=float, help="initial crank angle, rad")
     p.add_argument("--dphi0", type=float, help="initial crank rate, rad/s")
     p.add_argument("--solver", help="auto, tsit5, dopri5, dopri8 or kvaerno5")
-    p.add_argument("--rtol", type=float, help="relative tolerance")
+    p.add_argument("--rtol", type=float, help="relative tolerance (at most 1e-2)")
     p.add_argument("--atol", type=float, help="absolute tolerance")
+    p.add_argument("--max-steps", type=int, metavar="N",
+                   help=f"solver step budget per chunk of {CHUNK_SAMPLES} samples "
+                        f"({DEFAULT_MAX_STEPS}; 1 to {MAX_STEPS})")
     p.add_argument("--extras", help="comma-separated derived outputs to add as columns "
                    "(ddphi, delta, slider, energy, loads, reactions); default: the scene's")
     p.add_argument("--out", required=True, help="output CSV file (t,phi,dphi,...)")
@@ -60,6 +67,7 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
 def _check_options(a: argparse.Namespace) -> dict:
     """Check every option that needs no scene, before any work; return simulate's kwargs."""
     from ..io import check_figure_format, check_output
+    from ..scene import MAX_RTOL
     from ..solve.policy import SOLVERS
     from ..solve.simulate import output_columns
 
@@ -73,14 +81,17 @@ def _check_options(a: argparse.Namespace) -> dict:
         v = getattr(a, name)
         if v is not None and not (np.isfinite(v) and v > 0):
             raise UserError(f"--{name} must be a positive number, got {v}")
-    if a.rtol is not None and a.rtol >= 1:
-        raise UserError(f"--rtol must be < 1, got {a.rtol}")
+    if a.rtol is not None and a.rtol > MAX_RTOL:
+        raise UserError(f"--rtol must be at most {MAX_RTOL:g}, got {a.rtol:g}: a looser "
+                        "tolerance no longer bounds the solver's error")
+    if a.max_steps is not None and not 1 <= a.max_steps <= MAX_STEPS:
+        raise UserError(f"--max-steps must be from 1 to {MAX_STEPS}, got {a.max_steps}")
     for name in ("phi0", "dphi0"):
         v = getattr(a, name)
         if v is not None and not np.isfinite(v):
             raise UserError(f"--{name} must be finite, got {v}")
-    kw = {name: getattr(a, name) for name in ("phi0", "dphi0", "solver", "rtol", "atol")
-          if getattr(a, name) is not None}
+    kw = {name: getattr(a, name) for name in ("phi0", "dphi0", "solver", "rtol", "atol",
+                                              "max_steps") if getattr(a, name) is not None}
     if a.extras is not None:
         kw["outputs"] = tuple(x.strip() for x in a.extras.split(",") if x.strip())
         try:

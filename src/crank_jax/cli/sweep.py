@@ -12,6 +12,7 @@ import os
 import sys
 
 from .errors import UserError
+from .options import seed
 
 _ENV_DISTRIBUTED = "CRANK_JAX_DISTRIBUTED"
 
@@ -26,7 +27,7 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
                         "lognormal(median,sigma), loguniform(lo,hi), const(x) or a number; "
                         f"NAME is one of {', '.join(VARIABLES)}. Repeat for several.")
     p.add_argument("--n", type=int, required=True, help="number of samples")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
     p.add_argument("--out", required=True, help="output .npz file")
     p.add_argument("--outputs", default=",".join(DEFAULT_OUTPUTS),
                    help=f"comma-separated reductions from {', '.join(REDUCTIONS)} "

@@ -70,14 +70,20 @@ def _read(a: argparse.Namespace):
 
 
 def _validate_run(a: argparse.Namespace) -> int:
-    from ..io import atomic_write, check_not_input, check_output
+    from ..io import atomic_write, check_figure_format, check_input, check_output
     from ..scene import load_scene
     from ..validate import plot_validation, validate
 
     _check_numbers(a)
-    for path in (a.out, a.plot):
+    check_input(a.data, "DATA")  # at once: a FIFO with no writer would block the read
+    # Every output checked before the record is read (not when writing, after the work).
+    for path, option in ((a.out, "--out"), (a.plot, "--plot")):
         if path:
-            check_not_input(path, [a.data, a.scene])
+            check_output(path, [a.data, a.scene], option)
+    if a.plot:
+        check_figure_format(a.plot)
+    if a.plot and a.out == a.plot:
+        raise UserError("--out and --plot name the same file")
     if a.report:
         check_output(a.report, [a.data, a.scene], "--report")
     named = [p for p in (a.out, a.plot, a.report) if p]

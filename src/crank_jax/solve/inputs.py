@@ -19,14 +19,19 @@ __all__ = ["check_tolerances", "check_unbatched"]
 # estimate itself carries rounding noise of a few eps (2.2e-16), so the solver could only
 # shrink its steps until max_steps.
 MIN_RTOL = 1e-15
+# Above this the step-size control no longer bounds the error: near rtol = 1 a solve ran
+# out of steps where a tighter tolerance passed, or finished with a wrong trajectory
+# (issue 24). scene.MAX_RTOL, the scene files' and `simulate --rtol`'s bound, is this.
+MAX_RTOL = 1e-2
 
 
 def check_tolerances(rtol, atol) -> None:
-    """`ValueError` unless `MIN_RTOL <= rtol` and `atol >= 0`, both finite (concrete values
-    only; traced ones are the caller's)."""
+    """`ValueError` unless `MIN_RTOL <= rtol <= MAX_RTOL` and `atol >= 0`, both finite
+    (concrete values only; traced ones are the caller's)."""
     for name, value, ok, rule in (
-        ("rtol", rtol, lambda v: v >= MIN_RTOL,
-         f"a finite number >= {MIN_RTOL:g} (float64 resolves ~2.2e-16), e.g. rtol=1e-8"),
+        ("rtol", rtol, lambda v: (v >= MIN_RTOL) & (v <= MAX_RTOL),
+         f"a finite number >= {MIN_RTOL:g} (float64 resolves ~2.2e-16) and <= "
+         f"{MAX_RTOL:g} (a looser one does not bound the error), e.g. rtol=1e-8"),
         ("atol", atol, lambda v: v >= 0, "a finite number >= 0, e.g. atol=1e-10"),
     ):
         if isinstance(value, jax.core.Tracer):

@@ -1,0 +1,25 @@
+"""Argument types shared by the command groups (a leaf module, like `errors`): argparse
+names the option in front of the message they raise (`argument --seed: ...`)."""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["seed", "MAX_SEED"]
+
+#: The largest seed accepted: seeds are stored as int64 (a sweep's result keeps its seed).
+MAX_SEED = 2**63 - 1
+
+
+def seed(text: str) -> int:
+    """A random seed: an integer from 0 to [`MAX_SEED`][] (numpy's generators refuse a
+    negative one, with a message that names no option)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer seed from 0 to {MAX_SEED}, "
+                                         f"got {text!r}") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"a seed must be an integer from 0 to {MAX_SEED}, "
+                                         f"got {value}")
+    return value
