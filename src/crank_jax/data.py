@@ -37,6 +37,7 @@ import numpy as np
 
 from .io import atomic_write
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
+from .sensors import DEFAULT_SENSOR, Sensor
 
 __all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES",
            "MAX_RECORD_SAMPLES"]
@@ -49,17 +50,18 @@ class DataError(ValueError):
     """A data file or array is malformed; the message names the row or column."""
 
 
-def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[str] | None
-                  ) -> None:
-    """Raise [`DataError`][] naming the first bad row; `rows[i]` labels sample `i`."""
+def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[str] | None,
+                  name: str = "phi") -> None:
+    """Raise [`DataError`][] naming the first bad row; `rows[i]` labels sample `i`; `name`
+    is the column of `phi` (a channel's)."""
     label = (lambda i: rows[i]) if rows is not None else (lambda i: f"sample {i}")
     if ts.ndim != 1 or phi.shape != ts.shape:
-        raise DataError(f"{where}: t and phi must be 1-D of equal length, got shapes "
+        raise DataError(f"{where}: t and {name} must be 1-D of equal length, got shapes "
                         f"{ts.shape} and {phi.shape}")
     if ts.shape[0] < MIN_SAMPLES:
         raise DataError(f"{where}: too few samples ({ts.shape[0]}); a record needs at least "
                         f"{MIN_SAMPLES}")
-    for name, x in (("t", ts), ("phi", phi)):
+    for name, x in (("t", ts), (name, phi)):
         bad = ~np.isfinite(x)
         if bad.any():
             i = int(np.argmax(bad))
@@ -73,29 +75,72 @@ def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[st
                         "duplicate times")
 
 
+def _optional_array(x):
+    return None if x is None else np.asarray(x, dtype=np.float64)
+
+
+def _channel_arrays(x) -> dict:
+    return {str(k): np.asarray(v, dtype=np.float64) for k, v in dict(x or {}).items()}
+
+
 class Data(eqx.Module):
-    """One record of crank angles, with the loads known to have acted during it.
+    """One record: sample times and what the sensors read, with the loads known to have
+    acted during it.
 
     **Fields:**
 
     - `ts`: (n,) sample times, s, strictly increasing, n >= [`MIN_SAMPLES`][]. They may
       start anywhere and be irregular.
-    - `phi`: (n,) measured crank angle, rad.
+    - `phi`: (n,) measured crank angle, rad (the `phi` channel with no calibration), or
+      `None` when the record has no angle (its channels are in `channels`).
     - `load`: the slider force P(t), N, or `None` to use the scene's when fitting.
     - `torque`: the crank torque tau(t), N*m, or `None` to use the scene's.
     - `source`: a label (file name or "synthetic"), used in messages.
+    - `channels`: more channels, name (see [`CHANNELS`][crank_jax.sensors.CHANNELS]) ->
+      (n,) data in the channel's SI unit, e.g. `{"x_s": slide_m}`.
+    - `sensors`: the calibration of each channel ([`Sensor`][crank_jax.sensors.Sensor]:
+      `data = scale * model + offset`); a channel without one is read as the model output
+      itself (scale 1, offset 0).
 
     Construction validates the arrays and raises [`DataError`][] naming the bad sample.
     """
 
     ts: np.ndarray = eqx.field(converter=lambda x: np.asarray(x, dtype=np.float64))
-    phi: np.ndarray = eqx.field(converter=lambda x: np.asarray(x, dtype=np.float64))
+    phi: np.ndarray | None = eqx.field(converter=_optional_array, default=None)
     load: AbstractLoad | None = None
     torque: AbstractLoad | None = None
     source: str = eqx.field(static=True, default="<array>")
+    channels: dict = eqx.field(converter=_channel_arrays, default=None)
+    sensors: tuple[Sensor, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
-        _check_series(self.ts, self.phi, self.source, None)
+        if self.phi is None and not self.channels:
+            raise DataError(f"{self.source}: a record needs at least one channel: give phi "
+                            "or channels={name: values}")
+        for name, y in self.outputs_items():
+            _check_series(self.ts, y, self.source, None, name)
+        names = [s.name for s in self.sensors]
+        for s in self.sensors:
+            if names.count(s.name) > 1:
+                raise DataError(f"{self.source}: channel {s.name!r} has two sensors; give one")
+            if s.name not in self._names():
+                raise DataError(f"{self.source}: sensor {s.name!r} has no channel data")
+
+    def _names(self) -> list[str]:
+        return ([] if self.phi is None or "phi" in self.channels else ["phi"]) + list(
+            self.channels)
+
+    def outputs_items(self) -> list[tuple[str, np.ndarray]]:
+        """(channel name, data in SI) for every channel, `phi` first when present."""
+        return [(n, self.phi if n == "phi" and "phi" not in self.channels
+                 else self.channels[n]) for n in self._names()]
+
+    def outputs(self) -> list[tuple[Sensor, np.ndarray]]:
+        """([`Sensor`][crank_jax.sensors.Sensor], (n,) data in SI) for every channel, in
+        order (the first is the one a fit reports its overall rms in)."""
+        cal = {s.name: s for s in self.sensors}
+        return [(cal.get(n, DEFAULT_SENSOR if n == "phi" else Sensor(n)), y)
+                for n, y in self.outputs_items()]
 
     @property
     def n(self) -> int:
@@ -122,11 +167,24 @@ class Data(eqx.Module):
                             f"{int(keep.sum())} samples of the record's {self.n} (t from "
                             f"{self.ts[0]:g} to {self.ts[-1]:g} s); a record needs at least "
                             f"{MIN_SAMPLES}: widen the window (t_start/t_end)")
-        return Data(self.ts[keep], self.phi[keep], self.load, self.torque, source=self.source)
+        return self.select(keep)
+
+    def select(self, keep: np.ndarray) -> Data:
+        """The samples where `keep` (n,) bool is true, every channel with them; the same
+        loads and sensors."""
+        return Data(self.ts[keep], None if self.phi is None else self.phi[keep], self.load,
+                    self.torque, source=self.source,
+                    channels={n: y[keep] for n, y in self.channels.items()},
+                    sensors=self.sensors)
 
     def columns(self) -> dict[str, np.ndarray]:
-        """`t`, `phi` and the known loads sampled at `ts` (`P`, `tau`), as numpy arrays."""
-        cols = {"t": self.ts, "phi": self.phi}
+        """`t`, the channels (`phi` in rad; a channel with a sensor in its column and
+        unit) and the known loads sampled at `ts` (`P`, `tau`), as numpy arrays."""
+        cols = {"t": self.ts}
+        cal = {s.name: s for s in self.sensors}
+        for n, y in self.outputs_items():
+            s = cal.get(n)
+            cols[n if s is None else s.column] = y if s is None else s.from_si(y)
         if self.load is not None and not isinstance(self.load, NoLoad):
             cols["P"] = np.asarray(self.load(self.ts))
         if self.torque is not None and not isinstance(self.torque, NoLoad):
@@ -189,8 +247,13 @@ class _Lines:
         return f"line {self.numbers[i]}"
 
 
-def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...]):
-    """Find the header line; return (its line number, delimiter, column names)."""
+def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
+            required: Sequence[tuple[str, str]] | None = None):
+    """Find the header line; return (its line number, delimiter, column names).
+    `required`: (column, the option that names it) of every column that must be there
+    (default: `t_col` and `phi_col`)."""
+    if required is None:
+        required = ((t_col, "--t-col"), (phi_col, "--phi-col"))
     for lineno, text in lines:
         delim = "," if "," in text else (";" if ";" in text else None)
         names = _split(text, delim)
@@ -198,7 +261,7 @@ def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...]):
         if dup:
             raise DataError(f"{where}: line {lineno}: column {dup[0]!r} appears more than "
                             "once in the header; rename one")
-        for want, opt in ((t_col, "--t-col"), (phi_col, "--phi-col")):
+        for want, opt in required:
             if want in names:
                 continue
             try:
@@ -228,14 +291,15 @@ def _numbered_lines(f, where: str):
         yield i, ln.rstrip("\n")
 
 
-def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...]):
+def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
+                required: Sequence[tuple[str, str]] | None = None):
     """Read the used columns of a text table: (names, {name: array}, line numbers)."""
     where = str(path)
     with _open_text(path) as f:
         lines = _numbered_lines(f, where)
         body = ((i, ln) for i, ln in lines
                 if ln.strip() and not ln.lstrip().startswith(("#", "%")))
-        lineno, delim, names = _header(where, body, t_col, phi_col, used)
+        lineno, delim, names = _header(where, body, t_col, phi_col, used, required)
         want = [(j, n) for j, n in enumerate(names) if n in used]
         cols = {n: array("d") for _, n in want}
         numbers = array("q")
@@ -269,6 +333,7 @@ def load_data(
     P_col: str = "P",
     tau_col: str = "tau",
     interp: str = "cubic",
+    sensors: Sequence[Sensor] | None = None,
 ) -> Data:
     """Read a record from a text file with a header line.
 
@@ -285,6 +350,8 @@ def load_data(
     - `angle_unit`: `"rad"` or `"deg"` (the angle column's unit).
     - `P_col`, `tau_col`: names of the optional slider-force (N) and crank-torque (N*m)
       columns. When present they become [`SampledLoad`][]s that replace the scene's loads.
+    - `sensors`: the record's channels ([`Sensor`][crank_jax.sensors.Sensor]s: each
+      reads its column, in its unit, into SI). Default: the angle column `phi_col`.
     - `interp`: how those load columns are interpolated between samples (see
       [`INTERPOLATIONS`][]): `"cubic"` (default, a C2 not-a-knot spline: for measured,
       smooth signals), `"linear"`, or `"zoh"` (zero-order hold: exact for a command a
@@ -303,6 +370,8 @@ def load_data(
     if angle_unit not in ("rad", "deg"):
         raise DataError(f"angle unit must be 'rad' or 'deg', got {angle_unit!r}")
     where = str(path)
+    if sensors:
+        return _load_channels(path, t_col, P_col, tau_col, interp, tuple(sensors))
     names, col, numbers = _read_table(path, t_col, phi_col, (t_col, phi_col, P_col, tau_col))
     labels = _Lines(numbers)
     ts = col[t_col]
@@ -318,6 +387,39 @@ def load_data(
     load = SampledLoad(ts, col[P_col], interp) if P_col in col else None
     torque = SampledLoad(ts, col[tau_col], interp) if tau_col in col else None
     return Data(ts, phi, load, torque, source=where)
+
+
+def _check_columns(where: str, names, col: dict, labels) -> None:
+    """A NaN or inf in any column used is fatal: name its row."""
+    for name in (n for n in names if n in col):
+        bad = ~np.isfinite(col[name])
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise DataError(f"{where}: {labels[i]}: column {name!r} is {float(col[name][i])} "
+                            "(NaN or inf); remove or repair that row")
+
+
+def _load_channels(path, t_col, P_col, tau_col, interp, sensors: tuple[Sensor, ...]
+                   ) -> Data:
+    """[`load_data`][] for a record read through sensors."""
+    where = str(path)
+    dup = sorted({s.name for s in sensors if [x.name for x in sensors].count(s.name) > 1})
+    if dup:
+        raise DataError(f"channel {dup[0]!r} is given twice; give each channel once")
+    required = [(t_col, "--t-col")] + [
+        (s.column, f"--channel {s.name}=COLUMN (or the scene's [sensors] {s.name} column)")
+        for s in sensors]
+    used = tuple(dict.fromkeys([t_col, P_col, tau_col] + [s.column for s in sensors]))
+    names, col, numbers = _read_table(path, t_col, "", used, required)
+    labels = _Lines(numbers)
+    _check_columns(where, names, col, labels)
+    ts = col[t_col]
+    channels = {s.name: s.to_si(col[s.column]) for s in sensors}
+    for s in sensors:
+        _check_series(ts, channels[s.name], where, labels, s.column)
+    load = SampledLoad(ts, col[P_col], interp) if P_col in col else None
+    torque = SampledLoad(ts, col[tau_col], interp) if tau_col in col else None
+    return Data(ts, None, load, torque, source=where, channels=channels, sensors=sensors)
 
 
 def save_data(data: Data, path: str | os.PathLike, comment: str = "") -> None:
@@ -351,6 +453,7 @@ def synthesize(
     transient: float = 0.0,
     transient_time: float = 0.1,
     transient_hz: float = 15.0,
+    sensors: Sequence[Sensor] | None = None,
 ) -> Data:
     """Simulate a scene and sample it like a data logger would (see the module's noise model).
 
@@ -359,8 +462,10 @@ def synthesize(
     - `scene`: a [`Scene`][]; its state `(phi0, dphi0)` is at t = 0.
     - `t1`: end of the record, s (default: the scene's `t1`).
     - `rate`: nominal sampling rate, Hz.
-    - `noise_std`: standard deviation of the additive Gaussian angle noise, rad.
-    - `quantization`: encoder counts per revolution (`None`: no quantisation).
+    - `noise_std`: standard deviation of the additive Gaussian angle noise, rad; or, with
+      sensors, a dict channel -> standard deviation in the channel's SI unit.
+    - `quantization`: encoder counts per revolution (`None`: no quantisation); with
+      sensors, the `phi` channel's reading (SI) is rounded to steps of `2 pi / N`.
     - `jitter_std`: standard deviation of the sampling instants, s.
     - `drop`: probability that a sample (other than the first) is lost.
     - `t_start`: time of the first sample, s (`0 <= t_start < t1`): real records rarely
@@ -369,12 +474,19 @@ def synthesize(
     - `transient`: amplitude of the start-up transient, rad (0: none);
       `transient_time` (s, > 0) its decay time and `transient_hz` (Hz, >= 0) its
       frequency (see the module's noise model).
+    - `sensors`: the channels to record ([`Sensor`][crank_jax.sensors.Sensor]s; default:
+      the scene's `sensors`, and with none the angle alone). Each reads
+      `scale * h + offset` of its model output `h` (the transient is added to the angle
+      before it), then its noise.
 
     **Returns:** a [`Data`][] whose `load` and `torque` are the scene's (exact) loads, so
     a fit of in-memory synthetic data has no interpolation error; [`save_data`][] writes
     them as sampled `P`/`tau` columns.
     """
     t1 = float(scene.t1 if t1 is None else t1)
+    sensors = tuple(getattr(scene, "sensors", ()) if sensors is None else sensors)
+    noise = _channel_noise(noise_std, sensors)
+    noise_std = max(noise.values(), default=0.0)
     for name, v, ok in (("rate", rate, rate > 0), ("noise_std", noise_std, noise_std >= 0),
                         ("jitter_std", jitter_std, jitter_std >= 0),
                         ("drop", drop, 0 <= drop < 1), ("t1", t1, t1 > 0),
@@ -405,10 +517,51 @@ def synthesize(
     if transient != 0.0:
         phi = phi + transient * np.exp(-actual / transient_time) * np.cos(
             2 * math.pi * transient_hz * actual)
+    load = None if isinstance(scene.load, NoLoad) else scene.load
+    torque = None if isinstance(scene.torque, NoLoad) else scene.torque
+    if sensors:
+        dphi = np.asarray(traj.dphi)[-actual.shape[0]:]
+        channels = _read_sensors(scene, sensors, actual, phi, dphi, quantization, noise, rng)
+        return Data(nominal, None, load, torque, source="synthetic", channels=channels,
+                    sensors=sensors)
     if quantization is not None:
         step = 2 * math.pi / int(quantization)
         phi = np.round(phi / step) * step
     phi = phi + rng.normal(0.0, noise_std, phi.shape) if noise_std > 0 else phi
-    load = None if isinstance(scene.load, NoLoad) else scene.load
-    torque = None if isinstance(scene.torque, NoLoad) else scene.torque
     return Data(nominal, phi, load, torque, source="synthetic")
+
+
+def _channel_noise(noise_std, sensors) -> dict[str, float]:
+    """Noise standard deviation per channel, SI (a float is the angle's)."""
+    if isinstance(noise_std, dict):
+        names = {s.name for s in sensors} or {"phi"}
+        bad = [k for k in noise_std if k not in names]
+        if bad:
+            raise ValueError(f"synthesize: noise_std names channel {bad[0]!r}, which is not "
+                             f"recorded; the channels are {sorted(names)}")
+        out = {k: float(v) for k, v in noise_std.items()}
+    else:
+        if sensors and noise_std and "phi" not in {s.name for s in sensors}:
+            raise ValueError("synthesize: noise_std as a number is the angle's (rad); the "
+                             "sensors record no angle: give noise_std={channel: std}")
+        out = {"phi": float(noise_std)}
+    for k, v in out.items():
+        if not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"synthesize: noise_std of {k} = {v!r} is out of range")
+    return out
+
+
+def _read_sensors(scene, sensors, ts, phi, dphi, quantization, noise, rng) -> dict:
+    """Each sensor's reading at `ts` (SI) of the exact motion `phi`, `dphi` (n,)."""
+    from .model.outputs import output
+
+    out = {}
+    for s in sensors:
+        h = output(s.name, scene.mech, ts, phi, dphi, scene.load, scene.torque)
+        y = np.asarray(s.measure(np.asarray(h)), dtype=np.float64)
+        if s.name == "phi" and quantization is not None:
+            step = 2 * math.pi / int(quantization)
+            y = np.round(y / step) * step
+        sd = noise.get(s.name, 0.0)
+        out[s.name] = y + rng.normal(0.0, sd, y.shape) if sd > 0 else y
+    return out

@@ -31,6 +31,7 @@ from .model.loads import (
     toml_keys,
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
+from .sensors import Sensor, SensorError, sensors_from_table, sensors_to_table
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
 
@@ -58,6 +59,8 @@ class Scene(eqx.Module):
     - `t1`: default end time, s. `samples`: default number of uniform samples on [0, t1].
     - `solver`: a name from [`SOLVERS`][] (static). `outputs`: derived outputs (static).
     - `name`, `description`: labels (static).
+    - `sensors`: what a record of this rig measures ([`Sensor`][crank_jax.sensors.Sensor]s,
+      static; the `[sensors]` table): `synth` writes these channels, `fit` reads them.
     """
 
     mech: SliderCrank
@@ -73,6 +76,7 @@ class Scene(eqx.Module):
     outputs: tuple[str, ...] = eqx.field(static=True, default=())
     name: str = eqx.field(static=True, default="custom")
     description: str = eqx.field(static=True, default="")
+    sensors: tuple[Sensor, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
         if self.solver not in SOLVERS:
@@ -124,7 +128,7 @@ _TABLES: dict[str, tuple[str, ...]] = {
     "solver": ("name", "rtol", "atol"),
     "output": ("t1", "samples", "extras"),
 }
-_TOP_KEYS = ("description",)
+_TOP_KEYS = ("description", "sensors")
 
 
 def _number(where: str, key: str, v: Any) -> float:
@@ -221,8 +225,13 @@ def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> 
     description = doc.get("description", "")
     if not isinstance(description, str):
         raise SceneError(f"{where}: description must be a string")
+    try:
+        sensors = sensors_from_table(doc.get("sensors", {}), f"{where}: [sensors]")
+    except SensorError as e:
+        raise SceneError(str(e)) from None
     return Scene(mech, load, torque, phi0, dphi0, rtol, atol, t1=t1, samples=samples,
-                 solver=solver, outputs=tuple(extras), name=name, description=description)
+                 solver=solver, outputs=tuple(extras), name=name, description=description,
+                 sensors=sensors)
 
 
 def presets() -> dict[str, str]:
@@ -303,6 +312,11 @@ def scene_to_toml(scene: Scene) -> str:
             continue
         lines.append(f"[{table}]")
         lines += [f"{k} = {fmt(v)}" for k, v in body.items()]
+        lines.append("")
+    if scene.sensors:
+        lines.append("[sensors]")
+        lines += [f"{name} = {{ " + ", ".join(f"{k} = {fmt(v)}" for k, v in spec.items())
+                  + " }" for name, spec in sensors_to_table(scene.sensors).items()]
         lines.append("")
     return "\n".join(lines)
 
