@@ -37,6 +37,7 @@ import numpy as np
 
 from ..data import Data
 from ..scene import Scene
+from .angle import angle_estimate
 from .optimise import Run, least_squares, minimise_optax
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .profile import profile_likelihood
@@ -96,10 +97,10 @@ def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
                                      req.free, periods)
         start.update(reg)
     states = []
-    for d, per, fixed in zip(req.records, periods, req.states):
+    for d, a, per, fixed in zip(req.records, req.angles, periods, req.states):
         # The state at the first sample from a smoothed fit to the first samples: the
         # scene's state is at t = 0, and real records start anywhere.
-        ps, dps, _ = smooth_derivatives(d.ts, d.phi, half_window(d.ts, per), [0])
+        ps, dps, _ = smooth_derivatives(d.ts, a, half_window(d.ts, per), [0])
         states.append((float(ps[0]) if "phi0" in req.free else fixed[0],
                        float(dps[0]) if "dphi0" in req.free else fixed[1]))
     return start, states, notes
@@ -107,11 +108,12 @@ def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
 
 def _problem(req: FitRequest, start, states, nseg, budget, solver) -> Problem:
     recs = [(d, lo, to, s[0], s[1]) for d, (lo, to), s in zip(req.records, req.loads, states)]
-    periods = [observed_period(d.ts, d.phi) for d in req.records]
+    periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     omega = next((2 * math.pi / p for p in periods if p), None)
     return build_problem(req.scene.mech, recs, req.free, start, nseg, solver=solver,
                          rtol=float(req.scene.rtol), atol=float(req.scene.atol),
-                         max_steps=budget, adjoint="forward", omega=omega)
+                         max_steps=budget, adjoint="forward", omega=omega,
+                         angles=req.angles, sigmas=req.sigmas)
 
 
 def _start_solve(req, start, states, solver):
@@ -131,15 +133,15 @@ def _state(name: str, states) -> float:
     return states[i][STATE_NAMES.index(base)]
 
 
-def _segment_z(problem: Problem, records) -> np.ndarray:
+def _segment_z(problem: Problem, records, angles) -> np.ndarray:
     """Start coordinates of the multiple-shooting segment states (smoothed data)."""
     out = []
-    for e, d in zip(problem.exps, records):
+    for e, d, a in zip(problem.exps, records, angles):
         first = np.asarray(e.seg.first)[1:]
         if first.size == 0:
             continue
-        ps, dps, _ = smooth_derivatives(d.ts, d.phi, half_window(d.ts, observed_period(
-            d.ts, d.phi)), first)
+        ps, dps, _ = smooth_derivatives(d.ts, a, half_window(d.ts, observed_period(
+            d.ts, a)), first)
         for p_, dp in zip(ps, dps):
             out += [p_ / float(e.ref_phi), dp / float(e.ref_dphi)]
     return np.asarray(out, dtype=float)
@@ -168,8 +170,8 @@ def _basis(Bg: np.ndarray, n_coords: int) -> np.ndarray:
 
 
 def _plan(req: FitRequest) -> _Plan:
-    periods = [observed_period(d.ts, d.phi) for d in req.records]
-    noise = max(noise_level(d.ts, d.phi, p) for d, p in zip(req.records, periods))
+    periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
+    noise = req.sigmas[_first(req)]
     start, states, notes = _starts(req, periods)
     mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
                                            if n in req.scene.mech.as_dict()})
@@ -195,7 +197,7 @@ def _plan(req: FitRequest) -> _Plan:
     if budget != ss.max_steps:
         ss = plan.single = _problem(req, start, states, [1] * len(req.records), budget,
                                     solver)
-    model = ss.fitted(r0)
+    model = _model_angles(req, ss, r0)
     segs = [n_segments(sp, p, observed_period(d.ts, m), req.shooting, req.segments)
             for d, sp, p, m in zip(req.records, spans, periods, model)]
     if max(s for s, _ in segs) > 1:
@@ -204,6 +206,59 @@ def _plan(req: FitRequest) -> _Plan:
     if req.shooting == "auto" and req.segments is None:
         plan.notes.append(f"{plan.strategy}: {segs[0][1]}")
     return plan
+
+
+def _model_angles(req: FitRequest, ss: Problem, r) -> list[np.ndarray]:
+    """The start model's crank angle at each record's samples, estimated from its channel
+    readings as the data's is (`angle.py`), so the two compare like with like."""
+    out = []
+    for d, a, fitted, st in zip(req.records, req.angles, ss.fitted_channels(r), req.states):
+        model = Data(d.ts, None, d.load, d.torque, source=d.source, channels=fitted,
+                     sensors=tuple(s for s, _ in d.outputs()))
+        est = angle_estimate(model, req.scene.mech, _direction(st), float(a[0]))
+        out.append(a if est is None or not np.all(np.isfinite(est)) else est)
+    return out
+
+
+def _direction(state) -> float:
+    return -1.0 if state[1] < 0 else 1.0
+
+
+def _angles(req: FitRequest) -> tuple[np.ndarray, ...]:
+    """Each record's crank angle as its channels tell it (`angle.py`); for a record with
+    only slider speed or acceleration, the scene's motion simulated over it."""
+    out = []
+    for d, st, (load, torque) in zip(req.records, req.states, req.loads):
+        est = angle_estimate(d, req.scene.mech, _direction(st), st[0])
+        if est is None:
+            ts = d.ts if d.ts[0] == 0.0 else np.concatenate([[0.0], d.ts])
+            traj = req.scene.simulate(ts, load=load, torque=torque, throw=False)
+            est = np.asarray(traj.phi)[-d.n:]
+        out.append(np.asarray(est, dtype=float))
+    return tuple(out)
+
+
+#: A channel's noise level is at least this fraction of its data's spread (a noiseless
+#: synthetic channel would otherwise get an infinite weight).
+_MIN_RELATIVE_NOISE = 1e-9
+
+
+def _sigmas(req: FitRequest) -> dict[str, float]:
+    """Each channel's noise level, SI: given (`sigma`: a dict, or a number for the first
+    channel) or estimated from the record alone (`noise_level`, the largest over the
+    records)."""
+    given = dict(req.sigma) if isinstance(req.sigma, dict) else {}
+    if req.sigma is not None and not isinstance(req.sigma, dict):
+        given[_first(req)] = float(req.sigma)
+    out: dict[str, float] = {}
+    for d, a in zip(req.records, req.angles):
+        period = observed_period(d.ts, a)
+        for s, y in d.outputs():
+            level = max(noise_level(d.ts, y, period), _MIN_RELATIVE_NOISE * float(np.std(y)),
+                        1e-300)
+            out[s.name] = max(out.get(s.name, 0.0), level)
+    out.update(given)
+    return out
 
 
 def _aborted(req, start, states, solver, why: str, notes) -> _Plan:
@@ -218,7 +273,7 @@ def _aborted(req, start, states, solver, why: str, notes) -> _Plan:
 def _shooting(req: FitRequest, plan: _Plan, nseg) -> tuple[Problem, np.ndarray]:
     """A multiple-shooting problem and its start coordinates."""
     ms = _problem(req, plan.start_g, plan.states, nseg, plan.single.max_steps, plan.solver)
-    return ms, np.concatenate([plan.z0[:plan.single.p], _segment_z(ms, req.records)])
+    return ms, np.concatenate([plan.z0[:plan.single.p], _segment_z(ms, req.records, req.angles)])
 
 
 def _attempt(req: FitRequest, plan: _Plan, shoot: Problem, z0: np.ndarray, zk: np.ndarray,
@@ -315,7 +370,20 @@ def _optimise(req: FitRequest, plan: _Plan) -> tuple[Run, int, list[str]]:
 
 
 def _stalled(run: Run, n: int, plan: _Plan, req: FitRequest) -> bool:
-    return not run.converged or far_from_noise(_rms(run, n), plan.noise, req.sigma)
+    return not run.converged or far_from_noise(_rms(run, n), plan.noise, _known_sigma(req))
+
+
+def _known_sigma(req: FitRequest) -> float | None:
+    """The noise level of the weighted residuals (the first channel's unit) when every
+    channel's is given, else None (estimated from the residuals)."""
+    names = {s.name for d in req.records for s, _ in d.outputs()}
+    if isinstance(req.sigma, dict):
+        return req.sigmas[_first(req)] if names <= set(req.sigma) else None
+    return float(req.sigma) if req.sigma is not None and len(names) == 1 else None
+
+
+def _first(req: FitRequest) -> str:
+    return req.records[0].outputs()[0][0].name
 
 
 def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
@@ -326,7 +394,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         r_hat, values = np.full(ss.n_residuals, np.nan), np.asarray(ss.values(z_hat))
         rms, unc, more, diag = float("nan"), undefined(ss.p, "did not converge"), [], None
     else:
-        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, req.sigma)
+        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, _known_sigma(req))
     if converged and not math.isfinite(rms):
         converged, message = False, "the ODE solve fails at the final estimate"
     notes = more + notes + plan.notes
@@ -428,6 +496,8 @@ def fit(
                     segments=segments, multistart=multistart, seed=seed, max_steps=max_steps,
                     tol=tol, sigma=sigma, profile=profile, window=window, progress=progress,
                     warn=warn)
+    req = dataclasses.replace(req, angles=_angles(req))
+    req = dataclasses.replace(req, sigmas=_sigmas(req))
     plan = _plan(req)
     if plan.abort:
         best, iterations, notes = Run(plan.z0, float("nan"), 0, False, plan.abort), 0, []

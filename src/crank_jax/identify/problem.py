@@ -35,7 +35,9 @@ from ..lazy import lazy_import
 from ..model.dynamics import CrankField, Structure
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, nonsmooth_times, set_param
+from ..model.outputs import output
 from ..model.params import FIELDS, SliderCrank
+from ..sensors import OFFSET_NAMES, Sensor
 from ..solve.policy import resolve_solver
 from .request import LOAD_NAMES, SIGNED_FIELDS
 from .segments import Segments, make_segments, padded_load
@@ -103,7 +105,10 @@ _SOLVERS = {"tsit5": "Tsit5", "dopri5": "Dopri5", "dopri8": "Dopri8",
 
 
 class Experiment(eqx.Module):
-    """One record in the problem: its segments, loads and fixed initial state."""
+    """One record in the problem: its segments, loads and fixed initial state, and its
+    channels: each one's calibration (`scale`, fixed `offset`, SI) and `weight` (C,), the
+    first channel's noise level over its own (so the residuals are in the first channel's
+    unit, and every channel counts by its noise)."""
 
     seg: Segments
     load: AbstractLoad
@@ -114,6 +119,10 @@ class Experiment(eqx.Module):
     # every fit.
     ref_phi: Array
     ref_dphi: Array
+    scale: Array  # (C,)
+    offset: Array  # (C,)
+    weight: Array  # (C,)
+    channels: tuple[str, ...] = eqx.field(static=True, default=("phi",))
 
     @property
     def n(self) -> int:
@@ -158,7 +167,13 @@ class Problem(eqx.Module):
 
     @property
     def n_residuals(self) -> int:
-        return sum(int(np.asarray(e.seg.w).sum()) for e in self.exps)
+        return sum(int(np.asarray(e.seg.w).sum()) * len(e.channels) for e in self.exps)
+
+    def offsets(self, z: Array) -> dict[str, Array]:
+        """The free channel offsets, channel name -> value (SI)."""
+        vals = self.values(z)
+        return {OFFSET_NAMES[n]: vals[i] for i, n in enumerate(self.names[:self.n_global])
+                if n in OFFSET_NAMES}
 
     def values(self, z: Array) -> Array:
         """Physical values of the reported parameters, shape (p,)."""
@@ -179,7 +194,7 @@ class Problem(eqx.Module):
         for i, name in enumerate(self.names[:self.n_global]):
             if name in fields:
                 fields[name] = vals[i]
-            else:
+            elif name not in OFFSET_NAMES:
                 load_vals[name] = vals[i]
         mech = SliderCrank(**fields)
         out = []
@@ -247,30 +262,50 @@ class Problem(eqx.Module):
             return tuple(x[None] for x in one(e.seg.ts[0], y0s[0]))
         return jax.vmap(one)(e.seg.ts, y0s)
 
-    def fitted(self, r) -> list[np.ndarray]:
-        """Model angles at each record's samples, from single-shooting residuals `r`
-        (r = model - data), rad."""
+    def fitted_channels(self, r) -> list[dict[str, np.ndarray]]:
+        """What each channel's sensor reads under the model (`scale h + offset`, SI) at
+        each record's samples, from single-shooting residuals `r` (weighted
+        model - data): per record, channel name -> (n,)."""
         out, k = [], 0
+        r = np.asarray(r)
         for e in self.exps:
             size = int(np.prod(e.seg.ts.shape))
-            out.append(np.asarray(e.seg.phi[0, :e.n]) + np.asarray(r)[k:k + e.n])
-            k += size
+            w = np.asarray(e.weight)
+            out.append({name: np.asarray(e.seg.ys[c, 0, :e.n])
+                        + r[k + c * size:k + c * size + e.n] / w[c]
+                        for c, name in enumerate(e.channels)})
+            k += size * len(e.channels)
         return out
+
+    def fitted(self, r) -> list[np.ndarray]:
+        """The first channel's model reading at each record's samples (the model angle,
+        rad, for a plain angle record), from single-shooting residuals `r`."""
+        return [next(iter(f.values())) for f in self.fitted_channels(r)]
+
+    def channel_errors(self, mech, e: Experiment, load, torque, phi, dphi, offsets):
+        """(C, S, m) model reading minus data for each channel, SI (unweighted)."""
+        out = []
+        for c, name in enumerate(e.channels):
+            h = output(name, mech, e.seg.ts, phi, dphi, load, torque, self.structure)
+            out.append(e.scale[c] * h + offsets.get(name, e.offset[c]) - e.seg.ys[c])
+        return jnp.stack(out)
 
     def residuals(self, z: Array) -> tuple[Array, Array, Array]:
         """(r, n_failed, steps): the stacked residual vector, how many samples failed,
         and the most ODE steps any one solve took."""
         mech, per = self.unpack(z)
+        offsets = self.offsets(z)
         rs, cont, failed, steps = [], [], 0, 0
         for e, (load, torque, y0s) in zip(self.exps, per):
             phi, dphi, n_steps = self.simulate_segments(mech, e, load, torque, y0s)
             steps = jnp.maximum(steps, jnp.max(n_steps))
             ok = jnp.isfinite(phi) & jnp.isfinite(dphi)
             failed = failed + jnp.sum(~ok & (e.seg.w > 0))
-            r = jnp.where(ok, phi - e.seg.phi, _FAILED_RESIDUAL)
+            err = self.channel_errors(mech, e, load, torque, phi, dphi, offsets)
+            r = jnp.where(ok[None], err * e.weight[:, None, None], _FAILED_RESIDUAL)
             # Padding and shared samples get weight 0: zeros in r change neither the sum of
             # squares nor the Jacobian's rank, and keep the shapes static.
-            rs.append((e.seg.w * r).reshape(-1))
+            rs.append((e.seg.w[None] * r).reshape(-1))
             S = e.seg.ts.shape[0]
             if S > 1:
                 idx = e.seg.end[:-1]
@@ -313,6 +348,8 @@ def build_problem(
     adjoint: str = "forward",
     pad: bool = True,
     omega: float | None = None,
+    angles: Sequence[np.ndarray] | None = None,
+    sigmas: dict[str, float] | None = None,
 ) -> Problem:
     """Assemble a [`Problem`][].
 
@@ -330,6 +367,10 @@ def build_problem(
       of other lengths reuse the compiled programs.
     - `omega`: the records' observed angular frequency, rad/s (scales a free field that
       starts at 0; see [`coordinate`][]).
+    - `angles`: each record's crank angle as far as the data tell (n,), rad (default: its
+      `phi`): the scale of the state coordinates.
+    - `sigmas`: each channel's noise level, SI (default 1 each): a channel's residuals
+      are weighted by the first channel's level over its own.
     """
     glob = [n for n in free if n not in ("phi0", "dphi0")]
     state_free = (("phi0" in free), ("dphi0" in free))
@@ -341,8 +382,11 @@ def build_problem(
         ref.append(rf)
     exps = []
     multi = len(records) > 1
+    first = records[0][0].outputs()[0][0].name
+    first_sigma = (sigmas or {}).get(first, 1.0)
     for i, (data, load, torque, phi0, dphi0) in enumerate(records):
-        amp = max(float(np.max(np.abs(data.phi - np.mean(data.phi)))), 1e-3)
+        angle = data.phi if angles is None else angles[i]
+        amp = max(float(np.max(np.abs(angle - np.mean(angle)))), 1e-3)
         period = natural_period(mech, load)
         span = float(data.ts[-1] - data.ts[0])
         omega = 2 * math.pi / (period if period is not None else span)
@@ -353,11 +397,13 @@ def build_problem(
                 names.append(f"{name}[{i}]" if multi else name)
                 log.append(False)
                 ref.append(r)
-        seg = make_segments(data.ts, data.phi, n_segments[i], pad)
+        outs = data.outputs()
+        seg = make_segments(data.ts, np.stack([y for _, y in outs]), n_segments[i], pad)
         exps.append(Experiment(seg, padded_load(load) if pad else load,
                                padded_load(torque) if pad else torque,
                                jnp.asarray(phi0, float), jnp.asarray(dphi0, float),
-                               jnp.asarray(ref_phi, float), jnp.asarray(ref_dphi, float)))
+                               jnp.asarray(ref_phi, float), jnp.asarray(ref_dphi, float),
+                               *_calibration([s for s, _ in outs], sigmas, first_sigma)))
     mech_start = mech.replace(**{n: start[n] for n in glob if n in FIELDS})
     # A zero is structure (the compiled program leaves its term out), but a free field
     # that starts at 0 must keep its term, or its sensitivity would be exactly zero.
@@ -366,6 +412,14 @@ def build_problem(
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
                    len(glob), state_free, solver, structure, jnp.asarray(rtol),
                    jnp.asarray(atol), int(max_steps), adjoint)
+
+
+def _calibration(sensors: Sequence[Sensor], sigmas, first_sigma: float):
+    """(scale, offset, weight, channel names) of an [`Experiment`][]."""
+    weight = [first_sigma / (sigmas or {}).get(s.name, first_sigma) for s in sensors]
+    return (jnp.asarray([float(s.scale) for s in sensors]),
+            jnp.asarray([float(s.offset) for s in sensors]), jnp.asarray(weight, float),
+            tuple(s.name for s in sensors))
 
 
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:

@@ -19,6 +19,7 @@ from ..model.loads import LOAD_PARAMS, AbstractLoad, get_param, load_kind
 from ..model.params import FIELDS
 from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
 from ..scene import Scene
+from ..sensors import OFFSET_NAMES
 
 __all__ = ["FitRequest", "normalise", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
            "SIGNED_FIELDS", "FRICTION_SCALED", "free_names", "load_param", "reported_names",
@@ -44,9 +45,9 @@ _SHOOTING = ("auto", "single", "multiple")
 
 def free_names() -> tuple[str, ...]:
     """Every name that can be free: the mechanism fields (read from `FIELDS`, so new
-    fields can be free as soon as the model has them), the load amplitudes and the
-    initial state."""
-    return tuple(FIELDS) + tuple(LOAD_NAMES) + STATE_NAMES
+    fields can be free as soon as the model has them), the load amplitudes, the channels'
+    offsets (`phi_offset`, `x_s_offset`, ...) and the initial state."""
+    return tuple(FIELDS) + tuple(LOAD_NAMES) + tuple(OFFSET_NAMES) + STATE_NAMES
 
 
 def load_param(load: AbstractLoad, role: str) -> float | None:
@@ -96,6 +97,10 @@ class FitRequest:
     window: tuple[float, float] | None
     progress: bool
     warn: bool
+    #: Each record's crank angle as the data tell it (n,), rad (see `angle.py`), and each
+    #: channel's noise level (SI): set by `fit` once, before any solve.
+    angles: tuple | None = None
+    sigmas: dict | None = None
 
 
 def window_data(d: Data, window: tuple[float, float] | None) -> Data:
@@ -108,7 +113,7 @@ def window_data(d: Data, window: tuple[float, float] | None) -> Data:
         raise ValueError(f"window [{lo:g}, {hi:g}] s keeps {int(keep.sum())} samples of "
                          f"{d.source} (which spans [{d.ts[0]:g}, {d.ts[-1]:g}] s); widen "
                          "--t-start/--t-end")
-    return Data(d.ts[keep], d.phi[keep], d.load, d.torque, source=d.source)
+    return d.select(keep)
 
 
 def _check_scenes(scenes: list[Scene]) -> None:
@@ -143,8 +148,11 @@ def _check_options(method, shooting, segments, multistart, max_steps, tol, sigma
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
     if not (math.isfinite(tol) and tol > 0):
         raise ValueError(f"tol must be a positive number, got {tol}")
-    if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
-        raise ValueError(f"sigma must be a positive number (rad), got {sigma}")
+    for name, v in (sigma.items() if isinstance(sigma, dict) else [("", sigma)]):
+        if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)
+                                  and v > 0):
+            raise ValueError(f"sigma{' of ' + name if name else ''} must be a positive "
+                             f"number (the channel's SI unit), got {v}")
 
 
 def _check_window(window) -> tuple[float, float] | None:
@@ -177,6 +185,32 @@ def _load_starts(free, records, loads) -> dict[str, float]:
                                  f"{n[:-1]}0, a constant one)")
             start[n] = float(v)
     return start
+
+
+def _offset_starts(free, records) -> dict[str, float]:
+    """Start values of free channel offsets: the first record's sensor calibration."""
+    start = {}
+    for n in free:
+        if n not in OFFSET_NAMES:
+            continue
+        cal = next((s for d in records for s, _ in d.outputs() if s.name == OFFSET_NAMES[n]),
+                   None)
+        if cal is None:
+            have = sorted({s.name for d in records for s, _ in d.outputs()})
+            raise ValueError(f"{n} cannot be free: no record has a {OFFSET_NAMES[n]} channel "
+                             f"(the channels are {have})")
+        start[n] = float(cal.offset)
+    return start
+
+
+def _check_sigma_names(sigma, records) -> None:
+    if not isinstance(sigma, dict):
+        return
+    have = {s.name for d in records for s, _ in d.outputs()}
+    bad = [k for k in sigma if k not in have]
+    if bad:
+        raise ValueError(f"sigma names channel {bad[0]!r}, which no record has; the channels "
+                         f"are {sorted(have)}")
 
 
 def _check_start(start: dict[str, float]) -> None:
@@ -219,6 +253,8 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
     mech = scenes[0].mech
     start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}
     start.update(_load_starts(free, records, loads))
+    start.update(_offset_starts(free, records))
+    _check_sigma_names(sigma, records)
     if isinstance(init, dict):
         bad = [n for n in init if n not in start]
         if bad:

@@ -37,22 +37,24 @@ class Segments(eqx.Module):
     """
 
     ts: Array  # (S, m) save times, strictly increasing in each row
-    phi: Array  # (S, m) data
+    ys: Array  # (C, S, m) data, one row block per channel (SI)
     w: Array  # (S, m) 1 for a fitted sample, 0 for padding and the shared end sample
     end: Array  # (S,) int: index of the continuity sample in each row
     first: Array  # (S,) int: index in the record of each row's first sample
 
 
-def make_segments(ts: np.ndarray, phi: np.ndarray, n_segments: int, pad: bool = True
+def make_segments(ts: np.ndarray, ys: np.ndarray, n_segments: int, pad: bool = True
                   ) -> Segments:
     """Split a record into `n_segments` segments of nearly equal sample counts, each row
-    padded to [`bucket`][] length (when `pad`)."""
+    padded to [`bucket`][] length (when `pad`). `ys`: (n,) or (C, n), the channels' data
+    at `ts` (n,)."""
+    ys = np.atleast_2d(np.asarray(ys, dtype=float))
     n = ts.shape[0]
     S = max(1, min(int(n_segments), n // 4))
     bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
     m = int(np.max(np.diff(bounds))) + 1 if S > 1 else n
     m = bucket(m) if pad else m
-    T, P, W = np.zeros((S, m)), np.zeros((S, m)), np.zeros((S, m))
+    T, P, W = np.zeros((S, m)), np.zeros((ys.shape[0], S, m)), np.zeros((S, m))
     E, F = np.zeros(S, dtype=np.int32), np.zeros(S, dtype=np.int32)
     for s in range(S):
         a, b = bounds[s], bounds[s + 1]
@@ -62,7 +64,7 @@ def make_segments(ts: np.ndarray, phi: np.ndarray, n_segments: int, pad: bool = 
         # without extending the integration by more than a few nanoseconds.
         pad_t = seg_t[-1] + 1e-9 * np.arange(1, m - k + 1) * max(1.0, abs(seg_t[-1]))
         T[s] = np.concatenate([seg_t, pad_t])
-        P[s, :k] = phi[a:a + k]
+        P[:, s, :k] = ys[:, a:a + k]
         W[s, :k] = 1.0
         if S > 1 and s < S - 1:
             W[s, k - 1] = 0.0  # the shared sample belongs to the next segment

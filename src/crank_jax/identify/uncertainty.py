@@ -247,14 +247,29 @@ def undefined(p: int, why: str) -> Uncertainty:
 
 def sample_rows(ss) -> tuple[np.ndarray, list[int]]:
     """Indices of the fitted samples in the single-shooting residual vector of `ss` (the
-    rows in time order, padding left out), and the number of samples per record."""
+    rows in time order, padding left out), and the number of samples per series (one
+    series per record and channel)."""
     rows, lengths, k = [], [], 0
     for e in ss.exps:
         n, size = e.n, int(np.prod(e.seg.ts.shape))
-        rows.append(k + np.arange(n))
-        lengths.append(n)
-        k += size
+        for _ in e.channels:
+            rows.append(k + np.arange(n))
+            lengths.append(n)
+            k += size
     return np.concatenate(rows), lengths
+
+
+def channel_rows(ss) -> dict[str, np.ndarray]:
+    """Channel name -> its fitted rows in the single-shooting residual vector of `ss`
+    (over every record that has the channel)."""
+    out: dict[str, list] = {}
+    k = 0
+    for e in ss.exps:
+        n, size = e.n, int(np.prod(e.seg.ts.shape))
+        for name in e.channels:
+            out.setdefault(name, []).append(k + np.arange(n))
+            k += size
+    return {name: np.concatenate(r) for name, r in out.items()}
 
 
 def inflate(unc: Uncertainty, factor: np.ndarray, values: np.ndarray, log, ref
