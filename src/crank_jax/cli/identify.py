@@ -169,17 +169,28 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
 
 
 def _fit_kwargs(a: argparse.Namespace) -> dict:
+    """The fit's options, checked (before any record is read: a mistake costs nothing)."""
+    from ..identify.request import MAX_ITERATIONS, SIGMA_RANGE, free_names
+
     free = tuple(x.strip() for x in a.free.split(",") if x.strip())
     if not free:
         raise UserError("--free is empty; name at least one parameter")
+    unknown = [n for n in free if n not in free_names()]
+    if unknown:
+        raise UserError(f"--free names unknown parameter(s) {', '.join(unknown)}; choose from "
+                        f"{', '.join(free_names())}")
     if a.multistart < 1:
         raise UserError(f"--multistart must be >= 1, got {a.multistart}")
     if a.segments is not None and a.segments < 1:
         raise UserError(f"--segments must be >= 1, got {a.segments}")
-    if a.max_steps is not None and a.max_steps < 1:
-        raise UserError(f"--max-steps must be >= 1, got {a.max_steps}")
-    if a.sigma is not None and not (np.isfinite(a.sigma) and a.sigma > 0):
-        raise UserError(f"--sigma must be a positive number, got {a.sigma}")
+    if not 0 <= a.seed < 2**32:
+        raise UserError(f"--seed must be an integer from 0 to {2**32 - 1}, got {a.seed}")
+    if a.max_steps is not None and not 1 <= a.max_steps <= MAX_ITERATIONS:
+        raise UserError(f"--max-steps must be an integer from 1 to {MAX_ITERATIONS}, got "
+                        f"{a.max_steps}")
+    if a.sigma is not None and not SIGMA_RANGE[0] <= a.sigma <= SIGMA_RANGE[1]:
+        raise UserError(f"--sigma must be a noise level from {SIGMA_RANGE[0]:g} to "
+                        f"{SIGMA_RANGE[1]:g} rad, got {a.sigma:g}")
     lo, hi = getattr(a, "fit_t_start", None), getattr(a, "fit_t_end", None)
     if lo is not None and hi is not None and not lo < hi:
         raise UserError(f"--t-start ({lo:g}) must be before --t-end ({hi:g})")
@@ -201,12 +212,13 @@ def _fit_run(a: argparse.Namespace) -> int:
     from ..identify.fit import fit
     from ..scene import load_scene
 
+    kwargs = _fit_kwargs(a)
     scene = load_scene(a.scene)
     files = [a.data] + list(a.more_data)
     _outputs_ok(a, files + [a.scene])
     records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
                          interp=a.load_interp) for f in files]
-    res = fit(scene, records if len(records) > 1 else records[0], **_fit_kwargs(a))
+    res = fit(scene, records if len(records) > 1 else records[0], **kwargs)
     a.fitted_scene = scene
     return _report(res, a, title=f"{', '.join(files)} with {a.scene}")
 
@@ -247,13 +259,13 @@ def _demo(a: argparse.Namespace) -> int:
     _outputs_ok(a, [])
     if getattr(a, "data", None) is not None or getattr(a, "more_data", None):
         raise UserError("the demo takes no data")
+    kw = _fit_kwargs(a)  # checked before the record is synthesised
     seed = getattr(a, "noise_seed", 1)
     scene, data = demo_data(seed)
     truth_mech = scene.mech.as_dict()
     print(f"demo: {scene.description}; tau(t) = {DEMO['tau1']} sin(2 pi {DEMO['freq_hz']} t) "
           f"N*m; {DEMO['t1']:g} s at {DEMO['rate']:g} Hz with {DEMO['noise_std']:g} rad noise "
           f"(seed {seed})", file=sys.stderr)
-    kw = _fit_kwargs(a)
     if a.init == "scene":
         start = {k: v for k, v in DEMO["start"].items() if k in kw["free"]}
         kw["init"] = start

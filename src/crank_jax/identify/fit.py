@@ -92,9 +92,10 @@ def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
     """Start values of the global names, each record's start state, and notes."""
     start, notes = dict(req.start), []
     if req.init == "regressor":
-        reg, notes = regressor_start(req.scene.mech, [(d, lo, to) for d, (lo, to)
-                                                      in zip(req.records, req.loads)],
-                                     req.free, periods)
+        # On the angle the channels tell: the regressor form is written in phi.
+        recs = [(Data(d.ts, a, source=d.source), lo, to)
+                for d, a, (lo, to) in zip(req.records, req.angles, req.loads)]
+        reg, notes = regressor_start(req.scene.mech, recs, req.free, periods)
         start.update(reg)
     states = []
     for d, a, per, fixed in zip(req.records, req.angles, periods, req.states):
@@ -176,8 +177,11 @@ def _plan(req: FitRequest) -> _Plan:
     mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
                                            if n in req.scene.mech.as_dict()})
     solver = pick_solver(mech_start, req.loads[0][0], float(req.scene.rtol), req.scene.solver)
-    too_far = next((a for a in (absurd_frequency(linear_frequency(mech_start, lo), p)
-                                for (lo, _), p in zip(req.loads, periods)) if a), None)
+    multi = len(req.records) > 1
+    too_far = next((f"record {d.source}: {a}" if multi else a
+                    for a, d in ((absurd_frequency(linear_frequency(mech_start, lo), p), d)
+                                 for (lo, _), p, d in zip(req.loads, periods, req.records))
+                    if a), None)
     if too_far:
         return _aborted(req, start, states, solver, too_far, notes)
     ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver)
@@ -391,7 +395,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
     z_hat = best.z[:ss.p] if np.all(np.isfinite(best.z)) else plan.z0[:ss.p]
     converged, message = best.converged, best.message
     if plan.abort:  # nothing was solved, and nothing more is
-        r_hat, values = np.full(ss.n_residuals, np.nan), np.asarray(ss.values(z_hat))
+        r_hat, values = ss.no_residuals(), np.asarray(ss.values(z_hat))
         rms, unc, more, diag = float("nan"), undefined(ss.p, "did not converge"), [], None
     else:
         r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, _known_sigma(req))

@@ -81,6 +81,13 @@ def _budget_spent(max_steps: int) -> str:
     return f"stopped after max_steps = {max_steps} iterations without converging"
 
 
+def _failed_message(failed: int) -> str:
+    """The message of a run whose best point still has failed ODE solves."""
+    return (f"the ODE solve fails at every point tried ({failed} samples failed at the best "
+            "one): the parameters make the model far stiffer or faster than the record; "
+            "choose other start values")
+
+
 class _Stop(Exception):
     """Ends MINPACK's loop from inside a callback (scipy passes the exception through)."""
 
@@ -102,23 +109,29 @@ class _Evaluations:
     def __init__(self, model, max_steps: int, tol: float, bar):
         self.model, self.max_steps, self.tol, self.bar = model, max_steps, tol, bar
         self.w = self.r = self.J = None
-        self.best_w, self.best_cost = None, math.inf
+        self.failed = 0
+        self.best_w, self.best_cost, self.best_failed = None, math.inf, 0
         self.history = [math.inf] * (STALL_STEPS + 1)
         self.iterations = 0
 
     def _at(self, w: np.ndarray) -> None:
         if self.w is not None and np.array_equal(w, self.w):
             return
-        r, _, _, J = jacobian_at(self.model.problem, jnp.asarray(self.model.lift(w)))
+        r, failed, _, J = jacobian_at(self.model.problem, jnp.asarray(self.model.lift(w)))
         # A failed solve's samples are residuals of 10 rad already (problem.py); anything
         # non-finite left must not reach MINPACK, which has no test for it.
         r = np.nan_to_num(np.asarray(r), nan=1e3, posinf=1e3, neginf=-1e3)
-        self.w, self.r = np.array(w), r
+        self.w, self.r, self.failed = np.array(w), r, int(failed)
         self.J = np.nan_to_num(self.model.restrict(np.asarray(J)), nan=0.0, posinf=0.0,
                                neginf=0.0)
         cost = 0.5 * float(r @ r)
-        if cost < self.best_cost:
-            self.best_w, self.best_cost = self.w, cost
+        # A point with failed samples wins only over other failed points: its cost is
+        # a stand-in (10 rad per failed sample), not a misfit.
+        if self.best_w is None or (self.failed, cost) < (self.best_failed, self.best_cost):
+            if self.best_w is not None and self.failed < self.best_failed:
+                # Fewer failed samples, maybe a higher cost: the stall test starts afresh.
+                self.history = [math.inf] * (STALL_STEPS + 1)
+            self.best_w, self.best_cost, self.best_failed = self.w, cost, self.failed
 
     def residuals(self, w):
         self._at(w)
@@ -132,7 +145,14 @@ class _Evaluations:
         self.bar.n = self.iterations
         self.bar.set_postfix(cost=f"{self.best_cost:.4g}", refresh=True)
         h, n = self.history, self.r.shape[0]
-        if math.isfinite(h[0]) and h[0] - h[-1] <= 0.02 * h[-1] / n:
+        if self.failed:
+            # A failed solve's residuals are a constant, so its Jacobian rows are zero:
+            # the tests below would see no slope and call that convergence. With nothing
+            # left to move (every row failed, or no change over the stall window), stop
+            # as a failure.
+            if not np.any(self.J) or (math.isfinite(h[0]) and h[0] - h[-1] <= 0.0):
+                raise _Stop(False, _failed_message(self.failed))
+        elif math.isfinite(h[0]) and h[0] - h[-1] <= 0.02 * h[-1] / n:
             raise _Stop(True, "converged")
         # Converged when the Gauss-Newton step, the distance to the minimum the
         # linearisation predicts, is below `tol + tol |w|` in every coordinate. MINPACK's
@@ -140,7 +160,7 @@ class _Evaluations:
         # LM crawls with a large damping; and its relative step test means little for
         # coordinates near 0 (log-ratios to `ref`).
         gn = np.linalg.lstsq(self.J, -self.r, rcond=None)[0]
-        if np.all(np.abs(gn) <= self.tol + self.tol * np.abs(self.w)):
+        if not self.failed and np.all(np.abs(gn) <= self.tol + self.tol * np.abs(self.w)):
             raise _Stop(True, "converged")
         if self.iterations > self.max_steps:
             self.iterations = self.max_steps
@@ -161,8 +181,9 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     compiled in 3-5 s per problem shape, more than half of a cold `crank-jax fit`
     (experiments/bench_end_to_end.py); each iteration costs the same solves either way.
 
-    The cost reported is the best one seen (a failed solve's samples count as residuals
-    of 10 rad, so a point where the solve fails never wins)."""
+    The point reported is the best one seen: the lowest cost among points whose solves
+    all succeed (a failed solve's samples count as residuals of 10 rad, a stand-in, not a
+    misfit). A run whose best point still has failed samples is never `converged`."""
     from scipy.optimize import least_squares as minpack_lm
 
     z0 = np.asarray(z0, dtype=float)
@@ -183,6 +204,10 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
             converged, message = stop.converged, stop.message
     if ev.best_w is None or not np.all(np.isfinite(ev.best_w)):
         return Run(z0, float("nan"), ev.iterations, False, "the iterates became non-finite")
+    if ev.best_failed:
+        # Never "converged" where the solve fails: that cost is no misfit.
+        return Run(ev.best_w, ev.best_cost, ev.iterations, False,
+                   _failed_message(ev.best_failed))
     return Run(ev.best_w, ev.best_cost, ev.iterations, converged, message)
 
 

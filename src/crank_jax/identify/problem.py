@@ -8,10 +8,18 @@ Coordinates `z` (what the optimisers see, all O(1)), chosen per name by
   `z = ln(value)`: a step in `z` is a relative change, positivity needs no constraint,
   and the columns of the Jacobian are the sensitivities *scaled by the parameter values*
   that the identifiability analysis needs;
-- everything else (a signed field such as the offset `e`, a field that starts at 0 such
-  as a friction coefficient, the initial states and load amplitudes) is linear:
-  `z = value / ref`, with `ref` a typical magnitude (the start value, the record's angle
-  amplitude, that times the natural frequency).
+- a field that cannot be negative and starts at 0 (a friction coefficient, an absent
+  body's mass) is *folded*: `value = ref |z|`. It stays valid whatever step the
+  optimiser takes (a step below 0 is reflected), its sensitivity at the start is not zero
+  (as it would be for `z^2` or a softplus at its floor), and a value whose truth is 0
+  converges near 0 (see `uncertainty` for its interval, cut at 0);
+- everything else (a signed field such as the offset `e`, the initial states and load
+  amplitudes) is linear: `z = value / ref`, with `ref` a typical magnitude (the start
+  value, the record's angle amplitude, that times the natural frequency).
+
+Every trial point is also checked against the mechanism's validation rules (e.g.
+`b <= L`, `L > r + |e|`) inside the compiled residuals: a point outside them counts as a
+failed solve, which the optimiser rejects, so no iterate the fit reports is invalid.
 
 Shapes are bucketed (each record is padded to one of a few lengths with samples of weight
 0), so records of other lengths reuse the compiled programs; and the ODE solve carries no
@@ -36,7 +44,7 @@ from ..model.dynamics import CrankField, Structure
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, nonsmooth_times, set_param
 from ..model.outputs import output
-from ..model.params import FIELDS, SliderCrank
+from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..sensors import OFFSET_NAMES, Sensor
 from ..solve.policy import resolve_solver
 from .request import LOAD_NAMES, SIGNED_FIELDS
@@ -44,8 +52,8 @@ from .segments import Segments, make_segments, padded_load
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
-__all__ = ["Problem", "Experiment", "build_problem", "coordinate", "natural_period",
-           "linear_frequency", "pick_solver"]
+__all__ = ["Problem", "Experiment", "build_problem", "coordinate", "folded",
+           "natural_period", "linear_frequency", "pick_solver"]
 
 # A failed solve gives NaN samples; a large finite residual instead makes the trust
 # region reject that step, where a NaN could poison the linear algebra.
@@ -76,6 +84,25 @@ def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None =
         if math.isfinite(mu) and mu > 0:
             return False, mu * omega**2 if name == "k" else 0.1 * mu * omega
     return False, _ZERO_START_REF
+
+
+def folded(name: str, log: bool) -> bool:
+    """True for a free name fitted as `ref |z|`: a mechanism field that cannot be negative
+    and is not in log coordinates (it starts at 0)."""
+    return name in FIELDS and name not in SIGNED_FIELDS and not log
+
+
+def _fold(z):
+    """`|z|` with derivative +1 at 0 (`jnp.abs` has 0 there, which would make a folded
+    parameter that starts at 0 look exactly flat: `fit` holds flat directions fixed)."""
+    return jnp.where(z >= 0, z, -z)
+
+
+def _invalid(mech: SliderCrank) -> Array:
+    """True when a (traced) mechanism breaks a validation rule of `model.params`."""
+    bad = [jnp.any(mask) for _, mask, _ in validation_rules(
+        {n: jnp.asarray(getattr(mech, n)) for n in FIELDS})]
+    return jnp.any(jnp.stack(bad))
 
 
 def _fit_field(t, y, field):
@@ -152,6 +179,8 @@ class Problem(eqx.Module):
     atol: Array
     max_steps: int = eqx.field(static=True)
     adjoint: str = eqx.field(static=True, default="forward")
+    # Per reported name: fitted as `ref |z|` (see `folded`); empty: none is.
+    fold: tuple[bool, ...] = eqx.field(static=True, default=())
 
     # --- coordinates ------------------------------------------------------------------
 
@@ -175,13 +204,20 @@ class Problem(eqx.Module):
         return {OFFSET_NAMES[n]: vals[i] for i, n in enumerate(self.names[:self.n_global])
                 if n in OFFSET_NAMES}
 
+    @property
+    def folded(self) -> tuple[bool, ...]:
+        """(p,) whether each reported name is fitted as `ref |z|`."""
+        return self.fold or (False,) * self.p
+
     def values(self, z: Array) -> Array:
         """Physical values of the reported parameters, shape (p,)."""
-        return jnp.stack([jnp.exp(z[i]) if self.log[i] else z[i] * self.ref[i]
-                          for i in range(self.p)])
+        return jnp.stack([jnp.exp(z[i]) if self.log[i]
+                          else _fold(z[i]) * self.ref[i] if self.folded[i]
+                          else z[i] * self.ref[i] for i in range(self.p)])
 
     def to_z(self, values: Sequence[float]) -> np.ndarray:
-        """Inverse of [`values`][]: physical values (p,) -> coordinates."""
+        """Inverse of [`values`][]: physical values (p,) -> coordinates (a folded value's
+        non-negative branch)."""
         v = np.asarray(values, dtype=float)
         ref = np.asarray(self.ref)
         return np.where(self.log, np.log(np.where(self.log, v, 1.0)), v / ref)
@@ -262,6 +298,18 @@ class Problem(eqx.Module):
             return tuple(x[None] for x in one(e.seg.ts[0], y0s[0]))
         return jax.vmap(one)(e.seg.ts, y0s)
 
+    @property
+    def n_rows(self) -> int:
+        """Length of the residual vector: every record's padded samples in each channel,
+        then the continuity defects (see [`residuals`][]); `n_residuals` counts fitted
+        samples."""
+        return sum(int(np.prod(e.seg.ts.shape)) * len(e.channels)
+                   for e in self.exps) + self.n_extra
+
+    def no_residuals(self) -> np.ndarray:
+        """NaN residuals of the right length, for a fit with no solve to show (n_rows,)."""
+        return np.full(self.n_rows, np.nan)
+
     def fitted_channels(self, r) -> list[dict[str, np.ndarray]]:
         """What each channel's sensor reads under the model (`scale h + offset`, SI) at
         each record's samples, from single-shooting residuals `r` (weighted
@@ -296,10 +344,13 @@ class Problem(eqx.Module):
         mech, per = self.unpack(z)
         offsets = self.offsets(z)
         rs, cont, failed, steps = [], [], 0, 0
+        # A point outside the mechanism's valid set (a coupler shorter than the crank, a
+        # centre of mass beyond the coupler) is a failed solve: rejected, never reported.
+        invalid = _invalid(mech)
         for e, (load, torque, y0s) in zip(self.exps, per):
             phi, dphi, n_steps = self.simulate_segments(mech, e, load, torque, y0s)
             steps = jnp.maximum(steps, jnp.max(n_steps))
-            ok = jnp.isfinite(phi) & jnp.isfinite(dphi)
+            ok = jnp.isfinite(phi) & jnp.isfinite(dphi) & ~invalid
             failed = failed + jnp.sum(~ok & (e.seg.w > 0))
             err = self.channel_errors(mech, e, load, torque, phi, dphi, offsets)
             r = jnp.where(ok[None], err * e.weight[:, None, None], _FAILED_RESIDUAL)
@@ -380,6 +431,7 @@ def build_problem(
         names.append(n)
         log.append(lg)
         ref.append(rf)
+    fold = [folded(n, lg) for n, lg in zip(names, log)]
     exps = []
     multi = len(records) > 1
     first = records[0][0].outputs()[0][0].name
@@ -397,6 +449,7 @@ def build_problem(
                 names.append(f"{name}[{i}]" if multi else name)
                 log.append(False)
                 ref.append(r)
+                fold.append(False)
         outs = data.outputs()
         seg = make_segments(data.ts, np.stack([y for _, y in outs]), n_segments[i], pad)
         exps.append(Experiment(seg, padded_load(load) if pad else load,
@@ -411,7 +464,7 @@ def build_problem(
     structure = Structure.of(mech_start).union(Structure.of(nonzero))
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
                    len(glob), state_free, solver, structure, jnp.asarray(rtol),
-                   jnp.asarray(atol), int(max_steps), adjoint)
+                   jnp.asarray(atol), int(max_steps), adjoint, tuple(fold))
 
 
 def _calibration(sensors: Sequence[Sensor], sigmas, first_sigma: float):

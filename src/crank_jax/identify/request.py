@@ -22,8 +22,8 @@ from ..scene import Scene
 from ..sensors import OFFSET_NAMES
 
 __all__ = ["FitRequest", "normalise", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
-           "SIGNED_FIELDS", "FRICTION_SCALED", "free_names", "load_param", "reported_names",
-           "window_data"]
+           "SIGNED_FIELDS", "FRICTION_SCALED", "MAX_ITERATIONS", "SIGMA_RANGE", "free_names",
+           "load_param", "reported_names", "window_data"]
 
 STATE_NAMES = ("phi0", "dphi0")
 #: Load parameters that can be free, name -> (side, role), from the one load table
@@ -39,6 +39,12 @@ FRICTION_SCALED = ("c_s", "T_c", "F_s")
 #: every other field is >= 0, and r, L strictly positive.
 SIGNED_FIELDS = frozenset(PARAM_SIGNED_FIELDS)
 _STRICTLY_POSITIVE = frozenset({"r", "L"})
+#: Largest iteration budget per start (`max_steps`): far beyond any fit that converges
+#: (tens to hundreds of iterations), and small enough for every integer type it meets.
+MAX_ITERATIONS = 1_000_000
+#: Range of a given noise level `sigma`, rad: outside it, its square (the variance of the
+#: Laplace covariance) under- or overflows, and no angle record has such a noise.
+SIGMA_RANGE = (1e-12, 1e6)
 _METHODS = ("lm", "optax")
 _SHOOTING = ("auto", "single", "multiple")
 
@@ -144,15 +150,17 @@ def _check_options(method, shooting, segments, multistart, max_steps, tol, sigma
         raise ValueError(f"segments = {segments} is not valid with shooting={shooting!r}")
     if multistart < 1:
         raise ValueError(f"multistart must be >= 1, got {multistart}")
-    if max_steps is not None and max_steps < 1:
-        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    if max_steps is not None and not 1 <= max_steps <= MAX_ITERATIONS:
+        raise ValueError(f"max_steps must be an integer from 1 to {MAX_ITERATIONS}, got "
+                         f"{max_steps}")
     if not (math.isfinite(tol) and tol > 0):
         raise ValueError(f"tol must be a positive number, got {tol}")
     for name, v in (sigma.items() if isinstance(sigma, dict) else [("", sigma)]):
-        if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)
-                                  and v > 0):
-            raise ValueError(f"sigma{' of ' + name if name else ''} must be a positive "
-                             f"number (the channel's SI unit), got {v}")
+        if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool)
+                                  and SIGMA_RANGE[0] <= v <= SIGMA_RANGE[1]):
+            raise ValueError(f"sigma{' of ' + name if name else ''} must be a noise level "
+                             f"from {SIGMA_RANGE[0]:g} to {SIGMA_RANGE[1]:g} (the channel's "
+                             f"SI unit{'' if name else ', rad for an angle'}), got {v}")
 
 
 def _check_window(window) -> tuple[float, float] | None:

@@ -29,7 +29,7 @@ from .programs import jacobian_at
 from .request import FRICTION_SCALED, LOAD_NAMES, SCALE_GROUP
 
 __all__ = ["Uncertainty", "analyse", "assess", "undefined", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
-           "scale_message", "sample_rows", "inflate", "misfit"]
+           "scale_message", "sample_rows", "inflate", "misfit", "fixed_scale_members"]
 
 #: Two-sided 95% quantile of the standard normal distribution.
 Z95 = 1.959963984540054
@@ -97,6 +97,8 @@ def analyse(
     ref: np.ndarray,
     sigma: float | None = None,
     geometry: dict[str, float] | None = None,
+    folded: Sequence[bool] | None = None,
+    fixed_scale: Sequence[str] = (),
 ) -> Uncertainty:
     """Standard errors, intervals, correlations and identifiability of a fit.
 
@@ -110,6 +112,10 @@ def analyse(
       whether each is fitted in log space; `ref` (p,): the scale of linear coordinates.
     - `sigma`: the noise standard deviation if known; default: from the residuals.
     - `geometry`: `r`, `L`, `b`, `s` (m), to test the coupler's equivalent-mass direction.
+    - `folded` (p,): parameters that are `>= 0`, fitted in linear coordinates from 0 (see
+      `problem.folded`): their interval is the linear one cut at 0.
+    - `fixed_scale`: fixed parameters and loads that take part in the common scale and are
+      not zero (see [`fixed_scale_members`][]): when there is one, no common scale exists.
 
     **Returns:** an [`Uncertainty`][].
     """
@@ -129,7 +135,7 @@ def analyse(
     V = Vt.T  # columns: right singular vectors (unit, in z)
 
     # Known structural directions, tested explicitly so they can be stated in words.
-    known = _known_directions(names, values, log, ref, geometry)
+    known = _known_directions(names, values, log, ref, geometry, fixed_scale)
     directions: list[str] = []
     Vf = V[:, flagged]
     found = []
@@ -157,8 +163,7 @@ def analyse(
     se_z = np.sqrt(np.maximum(np.diag(cov), 0.0))
     se_z[affected] = np.nan
     stderr = np.where(log, values * se_z, ref * se_z)
-    lo = np.where(log, values * np.exp(-Z95 * se_z), values - Z95 * ref * se_z)
-    hi = np.where(log, values * np.exp(Z95 * se_z), values + Z95 * ref * se_z)
+    lo, hi = _intervals(values, se_z, log, ref, folded)
     with np.errstate(invalid="ignore", divide="ignore"):
         d = np.sqrt(np.diag(cov))
         corr = cov / np.outer(d, d)
@@ -170,8 +175,55 @@ def analyse(
                        not directions, directions, affected)
 
 
-def _known_directions(names, values, log, ref, geometry) -> list[tuple[np.ndarray, str]]:
-    """Unit vectors in z of the structural symmetries whose members are all free."""
+def _intervals(values, se_z, log, ref, folded) -> tuple[np.ndarray, np.ndarray]:
+    """95% Laplace intervals: log-normal for log coordinates, normal for linear ones, and
+    for a folded parameter (`>= 0`) the normal one cut at 0. An estimate at or near its
+    bound of 0 then gets the one-sided interval `[0, value + 1.96 se]`, which holds 0 when
+    the data cannot tell the parameter from 0."""
+    log = np.asarray(log, dtype=bool)
+    lo = np.where(log, values * np.exp(-Z95 * se_z), values - Z95 * ref * se_z)
+    hi = np.where(log, values * np.exp(Z95 * se_z), values + Z95 * ref * se_z)
+    if folded is not None:
+        lo = np.where(np.asarray(folded, dtype=bool), np.maximum(lo, 0.0), lo)
+    return lo, hi
+
+
+def fixed_scale_members(base, names: Sequence[str], loads) -> list[str]:
+    """The members of the common scale that are fixed and not zero: mechanism fields of
+    the scale group (and friction) not in `names` with a non-zero value in `base` (a
+    `SliderCrank`), and each record's load or torque with a non-zero part that is not free
+    (`loads`: `(load, torque)` per record). Any one of them fixes the scale."""
+    out = [n for n in SCALE_GROUP + FRICTION_SCALED
+           if n not in names and np.any(np.asarray(getattr(base, n)) != 0)]
+    free_roles = {LOAD_NAMES[n] for n in names if n in LOAD_NAMES}
+    for i, pair in enumerate(loads):
+        for side, obj in zip(("load", "torque"), pair):
+            label = ("P" if side == "load" else "tau") + (f" of record {i}" if i else "")
+            if _fixed_part(obj, side, free_roles) and label not in out:
+                out.append(label)
+    return out
+
+
+def _fixed_part(load, side: str, free_roles) -> bool:
+    """True when `load` has a non-zero part that is not free: a mean or amplitude that is
+    not free, a multisine's amplitudes, a sampled record."""
+    from ..model.loads import SampledLoad, get_param, load_kind
+
+    kind = load_kind(load)
+    if isinstance(load, SampledLoad):
+        return bool(np.any(np.asarray(load.values) != 0))
+    for role in ("mean", "amp"):
+        v = get_param(load, role) if role in kind.fields else None
+        if v is not None and np.any(np.asarray(v) != 0) and (side, role) not in free_roles:
+            return True
+    return any(a == "amplitudes" and np.any(np.asarray(getattr(load, a)) != 0)
+               for a in kind.arrays)
+
+
+def _known_directions(names, values, log, ref, geometry, fixed_scale=()
+                      ) -> list[tuple[np.ndarray, str]]:
+    """Unit vectors in z of the structural symmetries whose members are all free (and,
+    for the common scale, whose fixed members are all zero: `fixed_scale` is empty)."""
     p = len(names)
     idx = {n: i for i, n in enumerate(names)}
     out = []
@@ -190,7 +242,7 @@ def _known_directions(names, values, log, ref, geometry) -> list[tuple[np.ndarra
 
     # 1. Common scale: every mass, inertia, k, c and load amplitude times one factor.
     group = [n for n in names if n in SCALE_GROUP or n in LOAD_NAMES or n in FRICTION_SCALED]
-    u = vector({n: values[idx[n]] for n in group}) if group else None
+    u = vector({n: values[idx[n]] for n in group}) if group and not fixed_scale else None
     if u is not None:
         out.append((u, scale_message(group)))
     # 2. The coupler is dynamically equivalent to point masses m_p (1 - b/L) at A and
@@ -272,16 +324,15 @@ def channel_rows(ss) -> dict[str, np.ndarray]:
     return {name: np.concatenate(r) for name, r in out.items()}
 
 
-def inflate(unc: Uncertainty, factor: np.ndarray, values: np.ndarray, log, ref
-            ) -> Uncertainty:
+def inflate(unc: Uncertainty, factor: np.ndarray, values: np.ndarray, log, ref,
+            folded=None) -> Uncertainty:
     """`unc` with every standard error multiplied by `factor` (p,) >= 1 and the intervals
     and the covariance widened to match (correlations unchanged)."""
     log = np.asarray(log, dtype=bool)
     cov = unc.covariance_z * np.outer(factor, factor)
     se_z = np.sqrt(np.maximum(np.diag(cov), 0.0))
     se_z[unc.affected] = np.nan
-    lo = np.where(log, values * np.exp(-Z95 * se_z), values - Z95 * ref * se_z)
-    hi = np.where(log, values * np.exp(Z95 * se_z), values + Z95 * ref * se_z)
+    lo, hi = _intervals(values, se_z, log, ref, folded)
     return unc._replace(stderr=unc.stderr * factor, ci95=np.column_stack([lo, hi]),
                         covariance_z=cov)
 
@@ -294,7 +345,7 @@ def misfit(ss, unc: Uncertainty, r_hat, J, values, sigma):
     rob = robust_uncertainty(J[rows], r_hat[rows], lengths, sigma)
     if rob.warning is None:
         return unc, rob.diagnostics, []
-    wide = inflate(unc, rob.inflation, values, ss.log, np.asarray(ss.ref))
+    wide = inflate(unc, rob.inflation, values, ss.log, np.asarray(ss.ref), ss.folded)
     worst = float(np.max(rob.inflation))
     return wide, rob.diagnostics, [
         f"{rob.warning}; the standard errors and intervals account for the correlation "
@@ -311,7 +362,7 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
     try:
         r_hat, failed, _, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z_hat)))
     except (RuntimeError, ValueError) as e:
-        return (np.full(ss.n_residuals, np.nan), np.asarray(ss.values(jnp.asarray(z_hat))),
+        return (ss.no_residuals(), np.asarray(ss.values(jnp.asarray(z_hat))),
                 float("nan"), undefined(ss.p, f"sensitivities could not be computed: "
                                                 f"{str(e).splitlines()[0]}"), [], None)
     values = np.asarray(ss.values(jnp.asarray(z_hat)))
@@ -325,7 +376,9 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
             ss.p, "the sensitivities are undefined at the estimate (the solve failed), so "
                   "nothing can be said about identifiability"), notes, None
     unc = analyse(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
-                  geometry={k: float(getattr(ss.base, k)) for k in "rLbs"})
+                  geometry={k: float(getattr(ss.base, k)) for k in "rLbs"},
+                  folded=ss.folded, fixed_scale=fixed_scale_members(
+                      ss.base, ss.names, [(e.load, e.torque) for e in ss.exps]))
     if not unc.identifiable:
         notes += [f"not identifiable: {m}" for m in unc.directions]
         bad = [nm for nm, a in zip(ss.names, unc.affected) if a]
