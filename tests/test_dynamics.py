@@ -106,7 +106,7 @@ def test_reduced_structure_matches_full_terms_for_crank_only():
     st = cj.Structure.of(mech)
     assert st == cj.Structure(coupler=False, slider=False, spring=False, offset=False,
                                crank_coulomb=False, slider_damper=False,
-                               slider_coulomb=False)
+                               slider_coulomb=False, tilt=False)
     phis = jnp.linspace(-4, 4, 17)
     np.testing.assert_allclose(cj.mass(mech, phis, st), cj.mass(mech, phis), rtol=1e-15)
     np.testing.assert_allclose(cj.coriolis(mech, phis, st), cj.coriolis(mech, phis), atol=0)

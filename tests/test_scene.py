@@ -54,7 +54,7 @@ def test_presets_load_and_have_the_promised_character():
     pend = cj.load_scene("pendulum")
     assert pend.structure == cj.Structure(coupler=False, slider=False, spring=False, offset=False,
                                crank_coulomb=False, slider_damper=False,
-                               slider_coulomb=False)
+                               slider_coulomb=False, tilt=False)
 
 
 def test_full_scene_file(tmp_path):

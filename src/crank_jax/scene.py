@@ -114,7 +114,7 @@ class Scene(eqx.Module):
 
 #: Optional [mechanism] keys beyond the paper's (default 0), and the [friction] table's
 #: keys with the SliderCrank field each sets (default: the field's default).
-_OPTIONAL_MECH = ("e", "T_c", "c_s", "F_s")
+_OPTIONAL_MECH = ("e", "T_c", "c_s", "F_s", "gravity_angle")
 _FRICTION = {"crank_width": "w_c", "slider_width": "w_s"}
 _DEFAULT_MECH = {n: float(SliderCrank.__dataclass_fields__[n].default)
                  for n in ("g", *_OPTIONAL_MECH, *_FRICTION.values())}

@@ -62,11 +62,17 @@ class Coefficients(NamedTuple):
     """m_p b^2 + I_p, kg*m^2."""
     m_s: Array
     gA: Array
-    """g (m_c s + m_p r), N*m: the weight torque's sin(phi) part (m_p r with a coupler)."""
+    """g (m_c s + m_p r) cos(gamma), N*m: the weight torque's sin(phi) part (m_p r with a
+    coupler; gamma = gravity_angle, its factor formed only with `structure.tilt`)."""
     gB: Array
-    """g m_p b, N*m."""
+    """g m_p b cos(gamma), N*m."""
     gC: Array
-    """g m_s, N."""
+    """g m_s cos(gamma), N."""
+    gAy: Array
+    """g (m_c s + m_p r) sin(gamma), N*m: gravity's y-part, the weight torque's -cos(phi)
+    part (zero without `structure.tilt`)."""
+    gBy: Array
+    """g m_p b sin(gamma), N*m (zero without `structure.tilt`)."""
     k: Array
     c: Array
     T_c: Array
@@ -80,7 +86,8 @@ class Coefficients(NamedTuple):
 
 def coefficients(mech: SliderCrank, structure: Structure = _FULL) -> Coefficients:
     """The [`Coefficients`][] of `mech`; `structure.coupler` says whether the coupler's
-    terms join `cM0` and `gA`."""
+    terms join `cM0` and `gA`, `structure.tilt` whether gravity's direction is formed
+    (without it gravity is the paper's -x, with the paper's arithmetic)."""
     r, L, e, s, b = mech.r, mech.L, mech.e, mech.s, mech.b
     m_c, m_p, g = mech.m_c, mech.m_p, mech.g
     inv_L = 1.0 / L
@@ -88,11 +95,19 @@ def coefficients(mech: SliderCrank, structure: Structure = _FULL) -> Coefficient
     cM0, gA = m_c * s * s + mech.I_c, m_c * s
     if structure.coupler:
         cM0, gA = cM0 + m_p * r * r, gA + m_p * r
+    gA, gB, gC = g * gA, g * m_p * b, g * mech.m_s
+    if structure.tilt:
+        # Gravity along (-cos gamma, -sin gamma): the x-parts scale by cos, the y-parts by sin.
+        cg, sg = jnp.cos(mech.gravity_angle), jnp.sin(mech.gravity_angle)
+        gAy, gBy = gA * sg, gB * sg
+        gA, gB, gC = gA * cg, gB * cg, gC * cg
+    else:
+        gAy = gBy = jnp.zeros_like(gA)
     c2h = m_p * r * b
     return Coefficients(
         lam=lam, lam2=lam * lam, eL=eL, eL2=eL * eL, a1=2.0 * lam * eL, r=r, L=L, e=e,
         s=s, b=b, cM0=cM0, c2=2.0 * c2h, c2h=c2h, c3=m_p * b * b + mech.I_p, m_s=mech.m_s,
-        gA=g * gA, gB=g * m_p * b, gC=g * mech.m_s, k=mech.k, c=mech.c, T_c=mech.T_c,
+        gA=gA, gB=gB, gC=gC, gAy=gAy, gBy=gBy, k=mech.k, c=mech.c, T_c=mech.T_c,
         inv_wc=1.0 / mech.w_c, c_s=mech.c_s, F_s=mech.F_s, inv_ws=1.0 / mech.w_s)
 
 
@@ -114,9 +129,10 @@ def unpack(packed: Array) -> Coefficients:
 def _slices(packed):
     """The coefficients as slices of `packed`. Its tangent is one `unstack`, so a reverse
     pass gathers their cotangents with one `stack`: the slices' own transpose pads each
-    cotangent to the full array and adds the 25 pads, which cost ~40% more per reverse
-    pass of the field (measured on the lab rig: 137 -> 96 ns per evaluation, with the
-    chain rule of `solve/variational.py`). The primal stays slices (see `unpack`)."""
+    cotangent to the full array and adds the pads (one per coefficient, 25 then), which
+    cost ~40% more per reverse pass of the field (measured on the lab rig: 137 -> 96 ns
+    per evaluation, with the chain rule of `solve/variational.py`). The primal stays
+    slices (see `unpack`)."""
     return tuple(packed[i] for i in range(len(Coefficients._fields)))
 
 

@@ -1,5 +1,5 @@
-"""The minimal form of the equation of motion (paper eq. 30, corrected, plus the offset and
-the friction terms of DESIGN.md §1 "Beyond the paper"):
+"""The minimal form of the equation of motion (paper eq. 30, corrected, plus the offset,
+the friction terms and gravity's direction of DESIGN.md §1 "Beyond the paper"):
 
     M(phi) phi'' + K(phi) phi'^2 = q(phi, phi', t)
 
@@ -69,12 +69,19 @@ def force_terms(p: Coefficients, g: Geometry, phi, dphi, t, load: AbstractLoad,
     place q is written. `load` and `torque` must be loads (not None)."""
     q = 0.0
     if structure.gravity:
-        # g (m_c s sin(phi) + m_p (r sin(phi) + b delta' sin(delta)) + m_s lever)
+        # -dV/dphi of V = g sum m_i (x_i cos(gamma) + y_i sin(gamma)); x-part:
+        # g cos(gamma) (m_c s sin(phi) + m_p (r sin(phi) + b delta' sin(delta)) + m_s lever)
         q = p.gA * g.sphi
         if structure.coupler:
             q = q + p.gB * g.d1 * g.sin
         if structure.slider:
             q = q + p.gC * g.lever
+        if structure.tilt:
+            # y-part: g sin(gamma) (-(m_c s + m_p r) cos(phi) + m_p b delta' cos(delta)); the
+            # slider's y = e is constant, so its weight does no work along y.
+            q = q - p.gAy * g.cphi
+            if structure.coupler:
+                q = q + p.gBy * g.d1 * g.cos
     if not isinstance(load, NoLoad):
         q = q + load(t) * g.lever
     if structure.spring:
@@ -135,13 +142,15 @@ def generalized_force(
     torque: AbstractLoad | None = None,
     structure: Structure = _FULL,
 ) -> Array:
-    """Generalised force q(phi, phi', t), N*m (paper eq. 30 plus tau, offset, friction):
+    """Generalised force q(phi, phi', t), N*m (paper eq. 30 plus tau, offset, friction,
+    gravity's direction gamma = `gravity_angle`):
 
-        q = g (m_c s sin(phi) + m_p (r sin(phi) + b delta' sin(delta)) + m_s lever)
+        q = g cos(gamma) (m_c s sin(phi) + m_p (r sin(phi) + b delta' sin(delta)) + m_s lever)
+            - g sin(gamma) ((m_c s + m_p r) cos(phi) - m_p b delta' cos(delta))
             + P(t) lever - k phi - c phi' + tau(t)
             - T_c tanh(phi'/w_c) - c_s lever^2 phi' - F_s lever tanh(lever phi'/w_s)
 
-    with `lever = r sin(phi) + L delta' sin(delta)`.
+    with `lever = r sin(phi) + L delta' sin(delta)` (gamma = 0: the paper's q).
 
     **Arguments:** `phi` (rad), `dphi` (rad/s), `t` (s), broadcastable; `load`, the
     slider force P(t) in N along -x; `torque`, the crank torque tau(t) in N*m about +z;
@@ -193,11 +202,17 @@ def kinetic_energy(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike) -> Array:
 
 
 def potential_energy(mech: SliderCrank, phi: ArrayLike) -> Array:
-    """V = g (m_c x_c + m_p x_p + m_s x_s) + k phi^2 / 2, J (gravity along -x)."""
+    """V = g sum m_i (x_i cos(gamma) + y_i sin(gamma)) + k phi^2 / 2 over the crank, coupler
+    and slider centres of mass (the slider at y = e), J; gravity along
+    (-cos(gamma), -sin(gamma)), gamma = `gravity_angle` (0: the paper's -x)."""
     phi = jnp.asarray(phi)
     g = geometry(mech, phi)
-    weight = mech.m_c * g.x_c + mech.m_p * g.x_p + mech.m_s * g.x_s
-    return mech.g * weight + 0.5 * mech.k * phi**2
+    weight_x = mech.m_c * g.x_c + mech.m_p * g.x_p + mech.m_s * g.x_s
+    weight_y = mech.m_c * g.y_c + mech.m_p * g.y_p + mech.m_s * mech.e
+    gamma = mech.gravity_angle
+    # At gamma = 0 this is the paper's g * weight_x exactly (cos 0 = 1, sin 0 = 0).
+    return (mech.g * (jnp.cos(gamma) * weight_x + jnp.sin(gamma) * weight_y)
+            + 0.5 * mech.k * phi**2)
 
 
 def energy(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike) -> Array:

@@ -7,10 +7,14 @@ and 3, generalised as in DESIGN.md §1 "Beyond the paper"):
     mu  = M(phi_eq)
     chi = c + c_s lever(phi_eq)^2
     xi  = -dq/dphi (phi_eq, 0) = k - k_crit,
-    k_crit = g (m_c s cos(phi) + m_p (r cos(phi) + b (delta'' sin(delta) + delta'^2 cos(delta)))
-                + m_s lever') + P lever'        (at phi_eq; lever' = d lever / d phi)
+    k_crit = g cos(gamma) (m_c s cos(phi) + m_p (r cos(phi) + b (delta'' sin(delta)
+                                                                 + delta'^2 cos(delta)))
+                           + m_s lever')
+           + g sin(gamma) (m_c s sin(phi) + m_p (r sin(phi) + b (delta'' cos(delta)
+                                                                 - delta'^2 sin(delta))))
+           + P lever'        (at phi_eq; lever' = d lever / d phi; gamma = gravity_angle)
 
-With `e = 0` and no constant loads, `phi_eq = 0` and these are the paper's
+With `e = 0`, `gamma = 0` and no constant loads, `phi_eq = 0` and these are the paper's
 
     mu  = m_c s^2 + I_c + m_p r^2 (1 - b/L)^2 + I_p r^2/L^2
     chi = c
@@ -74,10 +78,18 @@ class Linearization(NamedTuple):
 
 
 def _softening(mech: SliderCrank, phi: Array, P: Array, has_P: bool) -> Array:
-    """k_crit(phi) = -(dq/dphi + k) at rest, N*m/rad, written by hand."""
+    """k_crit(phi) = dq/dphi + k at rest (q without its spring term, differentiated),
+    N*m/rad, written by hand."""
     g = geometry(mech, phi)
+    # Gravity's x-part, d/dphi of q's g cos(gamma) (...), and its y-part, d/dphi of
+    # -g sin(gamma) ((m_c s + m_p r) cos(phi) - m_p b delta' cos(delta)).
     coupler = mech.r * g.cphi + mech.b * (g.d2 * g.sin + g.d1 * g.d1 * g.cos)
-    soft = mech.g * (mech.m_c * mech.s * g.cphi + mech.m_p * coupler + mech.m_s * g.dlever)
+    soft_x = mech.m_c * mech.s * g.cphi + mech.m_p * coupler + mech.m_s * g.dlever
+    coupler_y = mech.r * g.sphi + mech.b * (g.d2 * g.cos - g.d1 * g.d1 * g.sin)
+    soft_y = mech.m_c * mech.s * g.sphi + mech.m_p * coupler_y
+    gamma = mech.gravity_angle
+    # At gamma = 0 this is the paper's g * soft_x exactly (cos 0 = 1, sin 0 = 0).
+    soft = mech.g * (jnp.cos(gamma) * soft_x + jnp.sin(gamma) * soft_y)
     return soft + P * g.dlever if has_P else soft
 
 

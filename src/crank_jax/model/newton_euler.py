@@ -25,7 +25,8 @@ The seven reactions `g_r` (the planar counterpart of the paper's 14) are:
 
 With an offset `e` the slider runs along `y = e`; the positions and moment arms come from
 the same geometry, and the crank bearing's friction torque `-T_c tanh(phi'/w_c)` joins the
-crank's moment row.
+crank's moment row. Each weight is `m g (-cos(gamma), -sin(gamma))` (gamma =
+`gravity_angle`): the slider's y-part is carried by the guide's normal force N.
 
 All functions here take a scalar state; `jax.vmap` them for time series.
 """
@@ -55,8 +56,8 @@ class GlobalForm(NamedTuple):
     qbar_c: Array
     """(8,) Coriolis/centripetal forces Mbar (dJ/dphi) phi'^2 (gyroscopic terms vanish)."""
     qbar_e: Array
-    """(8,) applied forces and torques (weights, P, guide friction, spring-damper, bearing
-    friction, tau)."""
+    """(8,) applied forces and torques (weights along g (-cos(gamma), -sin(gamma)), P, guide
+    friction, spring-damper, bearing friction, tau)."""
 
 
 def global_form(
@@ -83,12 +84,15 @@ def global_form(
     ])
     m = jnp.stack([mech.m_c, mech.m_c, mech.m_p, mech.m_p, mech.m_s, mech.m_s, mech.I_c, mech.I_p])
     zero = jnp.zeros_like(sp)
+    # Gravity's vector, m/s^2: g (-cos(gamma), -sin(gamma)), gamma = gravity_angle.
+    gx, gy = -g * jnp.cos(mech.gravity_angle), -g * jnp.sin(mech.gravity_angle)
     crank_torque = (-mech.k * phi - mech.c * dphi + torque(t)
                     - mech.T_c * jnp.tanh(dphi / mech.w_c))
     qbar_e = jnp.stack([
-        -mech.m_c * g + zero, zero,
-        -mech.m_p * g + zero, zero,
-        -load(t) - mech.m_s * g + guide_friction(mech, J[4] * dphi) + zero, zero,
+        mech.m_c * gx + zero, mech.m_c * gy + zero,
+        mech.m_p * gx + zero, mech.m_p * gy + zero,
+        -load(t) + mech.m_s * gx + guide_friction(mech, J[4] * dphi) + zero,
+        mech.m_s * gy + zero,
         crank_torque + zero, zero,
     ])
     return GlobalForm(jnp.diag(m), J, m * dJ * dphi**2, qbar_e)

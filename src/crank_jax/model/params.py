@@ -1,6 +1,6 @@
-"""Physical parameters of the slider-crank: geometry, inertia, crank-axis shaft, gravity,
-slider offset and joint friction; their validation (one rule list, used for concrete values
-at construction and for traced values inside `jit`)."""
+"""Physical parameters of the slider-crank: geometry, inertia, crank-axis shaft, gravity
+(strength and in-plane direction), slider offset and joint friction; their validation (one
+rule list, used for concrete values at construction and for traced values inside `jit`)."""
 
 from __future__ import annotations
 
@@ -19,10 +19,12 @@ __all__ = ["SliderCrank", "FIELDS", "PAPER_FIELDS", "SIGNED_FIELDS", "WIDTH_FIEL
 PAPER_FIELDS: tuple[str, ...] = ("r", "L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k",
                                  "c", "g")
 #: Every field: the paper's, then the slider offset and the friction terms (DESIGN.md §1
-#: "Beyond the paper"), each zero by default except the two smoothing widths.
-FIELDS: tuple[str, ...] = PAPER_FIELDS + ("e", "T_c", "w_c", "c_s", "F_s", "w_s")
+#: "Beyond the paper"), each zero by default except the two smoothing widths, then the
+#: direction of gravity (§1 "Beyond the paper, second step"; 0 is the paper's -x).
+FIELDS: tuple[str, ...] = PAPER_FIELDS + ("e", "T_c", "w_c", "c_s", "F_s", "w_s",
+                                          "gravity_angle")
 #: Fields that may be negative (log coordinates do not apply to them).
-SIGNED_FIELDS: tuple[str, ...] = ("e",)
+SIGNED_FIELDS: tuple[str, ...] = ("e", "gravity_angle")
 #: Smoothing widths of the Coulomb terms: numerical choices, not physical parameters.
 WIDTH_FIELDS: tuple[str, ...] = ("w_c", "w_s")
 
@@ -30,9 +32,10 @@ UNITS: dict[str, str] = {
     "r": "m", "L": "m", "b": "m", "s": "m", "m_c": "kg", "m_p": "kg", "m_s": "kg",
     "I_c": "kg*m^2", "I_p": "kg*m^2", "k": "N*m/rad", "c": "N*m*s/rad", "g": "m/s^2",
     "e": "m", "T_c": "N*m", "w_c": "rad/s", "c_s": "N*s/m", "F_s": "N", "w_s": "m/s",
+    "gravity_angle": "rad",
 }
 _DEFAULTS = {"g": 9.81, "e": 0.0, "T_c": 0.0, "w_c": 0.01, "c_s": 0.0, "F_s": 0.0,
-             "w_s": 0.001}
+             "w_s": 0.001, "gravity_angle": 0.0}
 
 
 def as_float_array(x: ArrayLike) -> Array:
@@ -84,6 +87,8 @@ def validation_rules(v: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, st
         ("I_c", v["m_c"] * v["s"] ** 2 + v["I_c"] <= 0,
          "m_c*s^2 + I_c must be > 0 so that M(phi) > 0: give the crank an inertia I_c"),
         ("k", v["k"] < 0, "k must be >= 0 (torsional stiffness, N*m/rad)"),
+        ("g", v["g"] < 0, "g must be >= 0 (m/s^2; 0 for a horizontal table): give its "
+         "direction with gravity_angle, e.g. pi for gravity along +x"),
         ("c", v["c"] < 0, "c must be >= 0 (torsional damping, N*m*s/rad)"),
     ]
     for name in ("T_c", "c_s", "F_s"):
@@ -120,7 +125,8 @@ class SliderCrank(eqx.Module):
     - `I_c`, `I_p`: moments of inertia of crank and coupler about z at their centres of
       mass, kg*m^2 (`>= 0`, and `m_c*s^2 + I_c > 0`).
     - `k`: torsional stiffness of the crank axis, N*m/rad. `c`: its damping, N*m*s/rad.
-    - `g`: gravitational acceleration along -x, m/s^2 (0 switches gravity off).
+    - `g`: gravitational acceleration, m/s^2 (`>= 0`; 0 switches gravity off: a horizontal
+      table), along `(-cos(gravity_angle), -sin(gravity_angle))`.
     - `e`: offset of the slider's line from O, m (the slider runs along `y = e`; signed;
       `L > r + |e|`).
     - `T_c`: Coulomb friction torque of the crank bearing, N*m (`>= 0`), smoothed as
@@ -128,6 +134,9 @@ class SliderCrank(eqx.Module):
     - `c_s`: viscous friction of the slider guide, N*s/m (`>= 0`). `F_s`: its Coulomb
       friction force, N (`>= 0`), smoothed as `F_s tanh(v_s/w_s)`; `w_s`: its width, m/s
       (`> 0`, default 0.001).
+    - `gravity_angle`: direction of gravity in the mechanism's plane, rad (any finite
+      value, default 0): gravity pulls along `(-cos, -sin)` of it, x along the slider's
+      line, y perpendicular to it. 0 is the paper's -x, pi/2 pulls along -y.
 
     Every field but the paper's twelve defaults to zero (the widths to the values above); a
     zero term is compiled out (see `Structure`). Field shapes must broadcast together.
@@ -155,6 +164,8 @@ class SliderCrank(eqx.Module):
     c_s: Float[Array, ...] = eqx.field(converter=as_float_array, default=_DEFAULTS["c_s"])
     F_s: Float[Array, ...] = eqx.field(converter=as_float_array, default=_DEFAULTS["F_s"])
     w_s: Float[Array, ...] = eqx.field(converter=as_float_array, default=_DEFAULTS["w_s"])
+    gravity_angle: Float[Array, ...] = eqx.field(converter=as_float_array,
+                                                 default=_DEFAULTS["gravity_angle"])
 
     def __check_init__(self):
         values = {name: getattr(self, name) for name in FIELDS}

@@ -42,6 +42,9 @@ class Structure:
     """c_s nonzero (viscous friction of the slider guide)."""
     slider_coulomb: bool = True
     """F_s nonzero (Coulomb friction of the slider guide)."""
+    tilt: bool = True
+    """gravity_angle nonzero (gravity off the paper's -x: its y-part and the cos(gravity_angle)
+    factor of its x-part are formed)."""
 
     @classmethod
     def of(cls, mech: SliderCrank) -> Structure:
@@ -50,7 +53,8 @@ class Structure:
         present, and a concrete one beside it is read as it is: a zero constant in a traced
         program stays zero, so its terms cost nothing there either (e.g. the friction and
         offset terms of `jax.vmap(lambda k: simulate(mech.replace(k=k), ...))`)."""
-        names = ("m_c", "s", "m_p", "I_p", "m_s", "g", "k", "c", "e", "T_c", "c_s", "F_s")
+        names = ("m_c", "s", "m_p", "I_p", "m_s", "g", "k", "c", "e", "T_c", "c_s", "F_s",
+                 "gravity_angle")
         v = {n: getattr(mech, n) for n in names}
 
         def nz(x):
@@ -68,6 +72,7 @@ class Structure:
             crank_coulomb=nz(v["T_c"]),
             slider_damper=nz(v["c_s"]),
             slider_coulomb=nz(v["F_s"]),
+            tilt=nz(v["gravity_angle"]),
         )
 
     def union(self, other: Structure) -> Structure:
