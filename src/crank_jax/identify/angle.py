@@ -25,8 +25,9 @@ import numpy as np
 from ..data import Data
 from ..model.geometry import geometry
 from ..model.params import SliderCrank
+from .start import observed_period
 
-__all__ = ["angle_estimate", "slide_angle", "ROTATING_STROKE"]
+__all__ = ["angle_estimate", "slide_angle", "motion_period", "ROTATING_STROKE"]
 
 #: A slide record spanning more than this fraction of the full stroke is a turning crank.
 ROTATING_STROKE = 0.8
@@ -108,3 +109,14 @@ def _passes(dx: np.ndarray, want_max: bool) -> np.ndarray:
     changes sign."""
     s = np.sign(dx if want_max else -dx)
     return np.flatnonzero((s[:-1] > 0) & (s[1:] <= 0)) + 1
+
+
+def motion_period(ts: np.ndarray, angle: np.ndarray) -> float | None:
+    """The record's natural time scale, s: the mean time per revolution of a crank that
+    turns at least one full revolution over the record (its angle, unwrapped, has no zero
+    crossings), else the observed period of its oscillation (`observed_period`), or None.
+    """
+    turned = abs(float(angle[-1] - angle[0]))
+    if turned >= 2 * math.pi:
+        return 2 * math.pi * float(ts[-1] - ts[0]) / turned
+    return observed_period(ts, angle)

@@ -37,14 +37,14 @@ import numpy as np
 
 from ..data import Data
 from ..scene import Scene
-from .angle import angle_estimate
+from .angle import angle_estimate, motion_period
 from .optimise import Run, least_squares, minimise_optax
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .profile import profile_likelihood
 from .programs import Subspace, jacobian_at
 from .request import STATE_NAMES, FitRequest, free_names, normalise
 from .result import ConvergenceWarning, FitResult, IdentifiabilityWarning, Profile
-from .start import half_window, noise_level, observed_period, regressor_start, smooth_derivatives
+from .start import half_window, noise_level, regressor_start, smooth_derivatives
 from .strategy import (
     AUTO_PERIODS,
     MAX_ODE_STEPS,
@@ -109,7 +109,7 @@ def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
 
 def _problem(req: FitRequest, start, states, nseg, budget, solver) -> Problem:
     recs = [(d, lo, to, s[0], s[1]) for d, (lo, to), s in zip(req.records, req.loads, states)]
-    periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
+    periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     omega = next((2 * math.pi / p for p in periods if p), None)
     return build_problem(req.scene.mech, recs, req.free, start, nseg, solver=solver,
                          rtol=float(req.scene.rtol), atol=float(req.scene.atol),
@@ -141,7 +141,7 @@ def _segment_z(problem: Problem, records, angles) -> np.ndarray:
         first = np.asarray(e.seg.first)[1:]
         if first.size == 0:
             continue
-        ps, dps, _ = smooth_derivatives(d.ts, a, half_window(d.ts, observed_period(
+        ps, dps, _ = smooth_derivatives(d.ts, a, half_window(d.ts, motion_period(
             d.ts, a)), first)
         for p_, dp in zip(ps, dps):
             out += [p_ / float(e.ref_phi), dp / float(e.ref_dphi)]
@@ -171,7 +171,7 @@ def _basis(Bg: np.ndarray, n_coords: int) -> np.ndarray:
 
 
 def _plan(req: FitRequest) -> _Plan:
-    periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
+    periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     noise = req.sigmas[_first(req)]
     start, states, notes = _starts(req, periods)
     mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
@@ -202,7 +202,7 @@ def _plan(req: FitRequest) -> _Plan:
         ss = plan.single = _problem(req, start, states, [1] * len(req.records), budget,
                                     solver)
     model = _model_angles(req, ss, r0)
-    segs = [n_segments(sp, p, observed_period(d.ts, m), req.shooting, req.segments)
+    segs = [n_segments(sp, p, motion_period(d.ts, m), req.shooting, req.segments)
             for d, sp, p, m in zip(req.records, spans, periods, model)]
     if max(s for s, _ in segs) > 1:
         plan.shoot, plan.z0 = _shooting(req, plan, [s for s, _ in segs])
@@ -256,7 +256,7 @@ def _sigmas(req: FitRequest) -> dict[str, float]:
         given[_first(req)] = float(req.sigma)
     out: dict[str, float] = {}
     for d, a in zip(req.records, req.angles):
-        period = observed_period(d.ts, a)
+        period = motion_period(d.ts, a)
         for s, y in d.outputs():
             level = max(noise_level(d.ts, y, period), _MIN_RELATIVE_NOISE * float(np.std(y)),
                         1e-300)
