@@ -56,9 +56,10 @@ def _check_record_size(a: argparse.Namespace, scene) -> None:
 
 
 def _synth_run(a: argparse.Namespace) -> int:
-    from ..data import save_data, synthesize
+    from ..data import save_data
     from ..io import check_output
     from ..scene import load_scene
+    from ..synth import synthesize
 
     check_output(a.out, [a.scene])
     scene = load_scene(a.scene)
@@ -240,9 +241,9 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
 
 def demo_data(seed: int = 1):
     """The demo's scene (the lab rig with its known shaker torque) and synthetic record."""
-    from ..data import synthesize
     from ..model.loads import HarmonicLoad
     from ..scene import load_scene
+    from ..synth import synthesize
 
     base = load_scene(DEMO["scene"])
     scene = base.__class__(base.mech, torque=HarmonicLoad(0.0, DEMO["tau1"], DEMO["freq_hz"]),

@@ -37,14 +37,16 @@ import numpy as np
 
 from ..data import Data
 from ..scene import Scene
-from .angle import angle_estimate, motion_period
+from . import channels as ch
+from .angle import motion_period
+from .measurement import fitted_channels
 from .optimise import Run, least_squares, minimise_optax
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .profile import profile_likelihood
 from .programs import Subspace, jacobian_at
 from .request import STATE_NAMES, FitRequest, free_names, normalise
 from .result import ConvergenceWarning, FitResult, IdentifiabilityWarning, Profile
-from .start import half_window, noise_level, regressor_start, smooth_derivatives
+from .start import half_window, regressor_start, smooth_derivatives
 from .strategy import (
     AUTO_PERIODS,
     MAX_ODE_STEPS,
@@ -93,9 +95,7 @@ def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
     start, notes = dict(req.start), []
     if req.init == "regressor":
         # On the angle the channels tell: the regressor form is written in phi.
-        recs = [(Data(d.ts, a, source=d.source), lo, to)
-                for d, a, (lo, to) in zip(req.records, req.angles, req.loads)]
-        reg, notes = regressor_start(req.scene.mech, recs, req.free, periods)
+        reg, notes = regressor_start(req.scene.mech, ch.angle_records(req), req.free, periods)
         start.update(reg)
     states = []
     for d, a, per, fixed in zip(req.records, req.angles, periods, req.states):
@@ -134,20 +134,6 @@ def _state(name: str, states) -> float:
     return states[i][STATE_NAMES.index(base)]
 
 
-def _segment_z(problem: Problem, records, angles) -> np.ndarray:
-    """Start coordinates of the multiple-shooting segment states (smoothed data)."""
-    out = []
-    for e, d, a in zip(problem.exps, records, angles):
-        first = np.asarray(e.seg.first)[1:]
-        if first.size == 0:
-            continue
-        ps, dps, _ = smooth_derivatives(d.ts, a, half_window(d.ts, motion_period(
-            d.ts, a)), first)
-        for p_, dp in zip(ps, dps):
-            out += [p_ / float(e.ref_phi), dp / float(e.ref_dphi)]
-    return np.asarray(out, dtype=float)
-
-
 def _flat_basis(J0: np.ndarray) -> np.ndarray:
     """(p, q) basis of the directions to optimise, from the sensitivities at the start
     (N, p). Directions in which the residuals are exactly flat (the common scale) are held
@@ -172,7 +158,7 @@ def _basis(Bg: np.ndarray, n_coords: int) -> np.ndarray:
 
 def _plan(req: FitRequest) -> _Plan:
     periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
-    noise = req.sigmas[_first(req)]
+    noise = req.sigmas[ch.first_channel(req)]
     start, states, notes = _starts(req, periods)
     mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
                                            if n in req.scene.mech.as_dict()})
@@ -201,7 +187,7 @@ def _plan(req: FitRequest) -> _Plan:
     if budget != ss.max_steps:
         ss = plan.single = _problem(req, start, states, [1] * len(req.records), budget,
                                     solver)
-    model = _model_angles(req, ss, r0)
+    model = ch.model_angles(req, ss, r0)
     segs = [n_segments(sp, p, motion_period(d.ts, m), req.shooting, req.segments)
             for d, sp, p, m in zip(req.records, spans, periods, model)]
     if max(s for s, _ in segs) > 1:
@@ -210,59 +196,6 @@ def _plan(req: FitRequest) -> _Plan:
     if req.shooting == "auto" and req.segments is None:
         plan.notes.append(f"{plan.strategy}: {segs[0][1]}")
     return plan
-
-
-def _model_angles(req: FitRequest, ss: Problem, r) -> list[np.ndarray]:
-    """The start model's crank angle at each record's samples, estimated from its channel
-    readings as the data's is (`angle.py`), so the two compare like with like."""
-    out = []
-    for d, a, fitted, st in zip(req.records, req.angles, ss.fitted_channels(r), req.states):
-        model = Data(d.ts, None, d.load, d.torque, source=d.source, channels=fitted,
-                     sensors=tuple(s for s, _ in d.outputs()))
-        est = angle_estimate(model, req.scene.mech, _direction(st), float(a[0]))
-        out.append(a if est is None or not np.all(np.isfinite(est)) else est)
-    return out
-
-
-def _direction(state) -> float:
-    return -1.0 if state[1] < 0 else 1.0
-
-
-def _angles(req: FitRequest) -> tuple[np.ndarray, ...]:
-    """Each record's crank angle as its channels tell it (`angle.py`); for a record with
-    only slider speed or acceleration, the scene's motion simulated over it."""
-    out = []
-    for d, st, (load, torque) in zip(req.records, req.states, req.loads):
-        est = angle_estimate(d, req.scene.mech, _direction(st), st[0])
-        if est is None:
-            ts = d.ts if d.ts[0] == 0.0 else np.concatenate([[0.0], d.ts])
-            traj = req.scene.simulate(ts, load=load, torque=torque, throw=False)
-            est = np.asarray(traj.phi)[-d.n:]
-        out.append(np.asarray(est, dtype=float))
-    return tuple(out)
-
-
-#: A channel's noise level is at least this fraction of its data's spread (a noiseless
-#: synthetic channel would otherwise get an infinite weight).
-_MIN_RELATIVE_NOISE = 1e-9
-
-
-def _sigmas(req: FitRequest) -> dict[str, float]:
-    """Each channel's noise level, SI: given (`sigma`: a dict, or a number for the first
-    channel) or estimated from the record alone (`noise_level`, the largest over the
-    records)."""
-    given = dict(req.sigma) if isinstance(req.sigma, dict) else {}
-    if req.sigma is not None and not isinstance(req.sigma, dict):
-        given[_first(req)] = float(req.sigma)
-    out: dict[str, float] = {}
-    for d, a in zip(req.records, req.angles):
-        period = motion_period(d.ts, a)
-        for s, y in d.outputs():
-            level = max(noise_level(d.ts, y, period), _MIN_RELATIVE_NOISE * float(np.std(y)),
-                        1e-300)
-            out[s.name] = max(out.get(s.name, 0.0), level)
-    out.update(given)
-    return out
 
 
 def _aborted(req, start, states, solver, why: str, notes) -> _Plan:
@@ -277,7 +210,7 @@ def _aborted(req, start, states, solver, why: str, notes) -> _Plan:
 def _shooting(req: FitRequest, plan: _Plan, nseg) -> tuple[Problem, np.ndarray]:
     """A multiple-shooting problem and its start coordinates."""
     ms = _problem(req, plan.start_g, plan.states, nseg, plan.single.max_steps, plan.solver)
-    return ms, np.concatenate([plan.z0[:plan.single.p], _segment_z(ms, req.records, req.angles)])
+    return ms, np.concatenate([plan.z0[:plan.single.p], ch.segment_states(ms, req)])
 
 
 def _attempt(req: FitRequest, plan: _Plan, shoot: Problem, z0: np.ndarray, zk: np.ndarray,
@@ -374,20 +307,8 @@ def _optimise(req: FitRequest, plan: _Plan) -> tuple[Run, int, list[str]]:
 
 
 def _stalled(run: Run, n: int, plan: _Plan, req: FitRequest) -> bool:
-    return not run.converged or far_from_noise(_rms(run, n), plan.noise, _known_sigma(req))
+    return not run.converged or far_from_noise(_rms(run, n), plan.noise, ch.known_sigma(req))
 
-
-def _known_sigma(req: FitRequest) -> float | None:
-    """The noise level of the weighted residuals (the first channel's unit) when every
-    channel's is given, else None (estimated from the residuals)."""
-    names = {s.name for d in req.records for s, _ in d.outputs()}
-    if isinstance(req.sigma, dict):
-        return req.sigmas[_first(req)] if names <= set(req.sigma) else None
-    return float(req.sigma) if req.sigma is not None and len(names) == 1 else None
-
-
-def _first(req: FitRequest) -> str:
-    return req.records[0].outputs()[0][0].name
 
 
 def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
@@ -398,7 +319,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         r_hat, values = ss.no_residuals(), np.asarray(ss.values(z_hat))
         rms, unc, more, diag = float("nan"), undefined(ss.p, "did not converge"), [], None
     else:
-        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, _known_sigma(req))
+        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, ch.known_sigma(req))
     if converged and not math.isfinite(rms):
         converged, message = False, "the ODE solve fails at the final estimate"
     notes = more + notes + plan.notes
@@ -433,7 +354,9 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         shooting=("multiple" + plan.strategy.split("multiple shooting", 1)[1].split(",")[0]
                   if plan.strategy.startswith("multiple") else "single"),
         mech=ss.unpack(jnp.asarray(z_hat))[0], data=list(req.records),
-        fitted=ss.fitted(r_hat), profile=prof, strategy=plan.strategy, diagnostics=diag)
+        fitted=ss.fitted(r_hat), profile=prof, strategy=plan.strategy, diagnostics=diag,
+        channels=ch.channel_report(ss, r_hat, req.sigmas, converged),
+        fitted_channels=fitted_channels(ss, r_hat))
 
 
 def fit(
@@ -500,13 +423,13 @@ def fit(
                     segments=segments, multistart=multistart, seed=seed, max_steps=max_steps,
                     tol=tol, sigma=sigma, profile=profile, window=window, progress=progress,
                     warn=warn)
-    req = dataclasses.replace(req, angles=_angles(req))
-    req = dataclasses.replace(req, sigmas=_sigmas(req))
+    req = ch.with_channels(req)
     plan = _plan(req)
     if plan.abort:
         best, iterations, notes = Run(plan.z0, float("nan"), 0, False, plan.abort), 0, []
     else:
         best, iterations, notes = _optimise(req, plan)
+        req, best, iterations = ch.reweight(req, plan, best, iterations, notes, _attempt)
     res = _result(req, plan, best, iterations, notes, t_begin)
     if req.warn:
         if res.identifiable is False:

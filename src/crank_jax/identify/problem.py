@@ -43,10 +43,10 @@ from ..lazy import lazy_import
 from ..model.dynamics import CrankField, Structure
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, nonsmooth_times, set_param
-from ..model.outputs import output
 from ..model.params import FIELDS, SliderCrank, validation_rules
-from ..sensors import OFFSET_NAMES, Sensor
+from ..sensors import OFFSET_NAMES
 from ..solve.policy import resolve_solver
+from .measurement import calibration, channel_errors, fitted_channels
 from .request import LOAD_NAMES, SIGNED_FIELDS
 from .segments import Segments, make_segments, padded_load
 
@@ -200,8 +200,7 @@ class Problem(eqx.Module):
 
     def offsets(self, z: Array) -> dict[str, Array]:
         """The free channel offsets, channel name -> value (SI)."""
-        vals = self.values(z)
-        return {OFFSET_NAMES[n]: vals[i] for i, n in enumerate(self.names[:self.n_global])
+        return {OFFSET_NAMES[n]: v for n, v in zip(self.names, self.values(z))
                 if n in OFFSET_NAMES}
 
     @property
@@ -310,33 +309,10 @@ class Problem(eqx.Module):
         """NaN residuals of the right length, for a fit with no solve to show (n_rows,)."""
         return np.full(self.n_rows, np.nan)
 
-    def fitted_channels(self, r) -> list[dict[str, np.ndarray]]:
-        """What each channel's sensor reads under the model (`scale h + offset`, SI) at
-        each record's samples, from single-shooting residuals `r` (weighted
-        model - data): per record, channel name -> (n,)."""
-        out, k = [], 0
-        r = np.asarray(r)
-        for e in self.exps:
-            size = int(np.prod(e.seg.ts.shape))
-            w = np.asarray(e.weight)
-            out.append({name: np.asarray(e.seg.ys[c, 0, :e.n])
-                        + r[k + c * size:k + c * size + e.n] / w[c]
-                        for c, name in enumerate(e.channels)})
-            k += size * len(e.channels)
-        return out
-
     def fitted(self, r) -> list[np.ndarray]:
         """The first channel's model reading at each record's samples (the model angle,
         rad, for a plain angle record), from single-shooting residuals `r`."""
-        return [next(iter(f.values())) for f in self.fitted_channels(r)]
-
-    def channel_errors(self, mech, e: Experiment, load, torque, phi, dphi, offsets):
-        """(C, S, m) model reading minus data for each channel, SI (unweighted)."""
-        out = []
-        for c, name in enumerate(e.channels):
-            h = output(name, mech, e.seg.ts, phi, dphi, load, torque, self.structure)
-            out.append(e.scale[c] * h + offsets.get(name, e.offset[c]) - e.seg.ys[c])
-        return jnp.stack(out)
+        return [next(iter(f.values())) for f in fitted_channels(self, r)]
 
     def residuals(self, z: Array) -> tuple[Array, Array, Array]:
         """(r, n_failed, steps): the stacked residual vector, how many samples failed,
@@ -352,7 +328,7 @@ class Problem(eqx.Module):
             steps = jnp.maximum(steps, jnp.max(n_steps))
             ok = jnp.isfinite(phi) & jnp.isfinite(dphi) & ~invalid
             failed = failed + jnp.sum(~ok & (e.seg.w > 0))
-            err = self.channel_errors(mech, e, load, torque, phi, dphi, offsets)
+            err = channel_errors(mech, e, load, torque, phi, dphi, offsets, self.structure)
             r = jnp.where(ok[None], err * e.weight[:, None, None], _FAILED_RESIDUAL)
             # Padding and shared samples get weight 0: zeros in r change neither the sum of
             # squares nor the Jacobian's rank, and keep the shapes static.
@@ -456,7 +432,7 @@ def build_problem(
                                padded_load(torque) if pad else torque,
                                jnp.asarray(phi0, float), jnp.asarray(dphi0, float),
                                jnp.asarray(ref_phi, float), jnp.asarray(ref_dphi, float),
-                               *_calibration([s for s, _ in outs], sigmas, first_sigma)))
+                               *calibration([s for s, _ in outs], sigmas, first_sigma)))
     mech_start = mech.replace(**{n: start[n] for n in glob if n in FIELDS})
     # A zero is structure (the compiled program leaves its term out), but a free field
     # that starts at 0 must keep its term, or its sensitivity would be exactly zero.
@@ -465,14 +441,6 @@ def build_problem(
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
                    len(glob), state_free, solver, structure, jnp.asarray(rtol),
                    jnp.asarray(atol), int(max_steps), adjoint, tuple(fold))
-
-
-def _calibration(sensors: Sequence[Sensor], sigmas, first_sigma: float):
-    """(scale, offset, weight, channel names) of an [`Experiment`][]."""
-    weight = [first_sigma / (sigmas or {}).get(s.name, first_sigma) for s in sensors]
-    return (jnp.asarray([float(s.scale) for s in sensors]),
-            jnp.asarray([float(s.offset) for s in sensors]), jnp.asarray(weight, float),
-            tuple(s.name for s in sensors))
 
 
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:

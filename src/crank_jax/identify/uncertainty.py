@@ -311,17 +311,20 @@ def sample_rows(ss) -> tuple[np.ndarray, list[int]]:
     return np.concatenate(rows), lengths
 
 
-def channel_rows(ss) -> dict[str, np.ndarray]:
-    """Channel name -> its fitted rows in the single-shooting residual vector of `ss`
-    (over every record that has the channel)."""
-    out: dict[str, list] = {}
+def channel_rows(ss) -> dict[str, tuple[np.ndarray, list[int], float]]:
+    """Channel name -> (its fitted rows in the single-shooting residual vector of `ss`,
+    over every record that has the channel; the samples per record; the channel's weight
+    in the residuals)."""
+    out: dict[str, tuple[list, list, float]] = {}
     k = 0
     for e in ss.exps:
         n, size = e.n, int(np.prod(e.seg.ts.shape))
-        for name in e.channels:
-            out.setdefault(name, []).append(k + np.arange(n))
+        for c, name in enumerate(e.channels):
+            rows, lengths, _ = out.setdefault(name, ([], [], float(e.weight[c])))
+            rows.append(k + np.arange(n))
+            lengths.append(n)
             k += size
-    return {name: np.concatenate(r) for name, r in out.items()}
+    return {name: (np.concatenate(r), ln, w) for name, (r, ln, w) in out.items()}
 
 
 def inflate(unc: Uncertainty, factor: np.ndarray, values: np.ndarray, log, ref,
