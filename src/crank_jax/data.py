@@ -24,7 +24,7 @@ from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
 from .sensors import DEFAULT_SENSOR, Sensor
 
 __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
-           "MAX_RECORD_SAMPLES"]
+           "MAX_RECORD_SAMPLES", "header_columns"]
 
 #: The fewest samples a record may have.
 MIN_SAMPLES = 5
@@ -306,6 +306,17 @@ def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
                                     f"{fields[j][:40]!r} is not a number") from None
             numbers.append(ln)
     return names, {n: np.array(c, dtype=np.float64) for n, c in cols.items()}, numbers
+
+
+def header_columns(path: str | os.PathLike) -> list[str]:
+    """The column names in a record's header line (the first line that is not blank or a
+    comment); [`DataError`][] when there is none."""
+    where = str(path)
+    with _open_text(path) as f:
+        for _, text in _numbered_lines(f, where):
+            if text.strip() and not text.lstrip().startswith(("#", "%")):
+                return _split(text, "," if "," in text else (";" if ";" in text else None))
+    raise DataError(f"{where}: no header line (the file is empty or all comments)")
 
 
 def load_data(
