@@ -7,6 +7,7 @@ load from TOML (see the README for the format) and ship as presets.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.resources
 import math
 import os
@@ -328,7 +329,8 @@ def fitted_scene(scene: Scene, result) -> Scene:
     loads are data, not scene, so the scene's loads are kept for them.
 
     **Arguments:** `scene`, the scene the fit started from; `result`, its
-    [`FitResult`][crank_jax.FitResult]. **Returns:** a [`Scene`][].
+    [`FitResult`][crank_jax.FitResult]. **Returns:** a [`Scene`][]; fitted channel
+    offsets (`x_s_offset`, ...) become its sensors' offsets.
     """
     loads = {"load": scene.load, "torque": scene.torque}
     for name, value in result.values.items():
@@ -336,6 +338,10 @@ def fitted_scene(scene: Scene, result) -> Scene:
             side, role = LOAD_PARAMS[name]
             loads[side] = set_param(loads[side], role, as_float_array(value), side)
     state = {n: result.values.get(n, result.values.get(f"{n}[0]")) for n in ("phi0", "dphi0")}
+    # Fitted channel offsets become the scene's sensor calibration.
+    sensors = tuple(dataclasses.replace(s, offset=float(result.values[f"{s.name}_offset"]))
+                    if f"{s.name}_offset" in result.values else s for s in scene.sensors)
+    scene = dataclasses.replace(scene, sensors=sensors) if sensors != scene.sensors else scene
     return eqx.tree_at(
         lambda s: (s.mech, s.load, s.torque, s.phi0, s.dphi0), scene,
         (result.mech, loads["load"], loads["torque"],
