@@ -20,7 +20,7 @@ import equinox as eqx
 import numpy as np
 
 from .io import atomic_write
-from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
+from .model.loads import INTERPOLATIONS, AbstractLoad, InputLoad, NoLoad, SampledLoad
 from .sensors import DEFAULT_SENSOR, Sensor
 
 __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
@@ -85,6 +85,9 @@ class Data(eqx.Module):
     - `sensors`: the calibration of each channel ([`Sensor`][crank_jax.sensors.Sensor]:
       `data = scale * model + offset`); a channel without one is read as the model output
       itself (scale 1, offset 0).
+    - `inputs`: measured inputs that drive loads through gains (an
+      [`InputLoad`][crank_jax.model.loads.InputLoad]'s column, e.g. a motor voltage):
+      column name -> [`SampledLoad`][] of its samples.
 
     Construction validates the arrays and raises [`DataError`][] naming the bad sample.
     """
@@ -96,6 +99,7 @@ class Data(eqx.Module):
     source: str = eqx.field(static=True, default="<array>")
     channels: dict = eqx.field(converter=_channel_arrays, default=None)
     sensors: tuple[Sensor, ...] = eqx.field(static=True, default=())
+    inputs: dict = eqx.field(default=None, converter=lambda x: dict(x or {}))
 
     def __check_init__(self):
         if self.phi is None and not self.channels:
@@ -125,6 +129,19 @@ class Data(eqx.Module):
         cal = {s.name: s for s in self.sensors}
         return [(cal.get(n, DEFAULT_SENSOR if n == "phi" else Sensor(n)), y)
                 for n, y in self.outputs_items()]
+
+    def bind(self, load: AbstractLoad, side: str = "load") -> AbstractLoad:
+        """`load` with its measured input's samples from this record, when it is an
+        [`InputLoad`][crank_jax.model.loads.InputLoad] without them; [`DataError`][]
+        naming the column when the record lacks it."""
+        if not isinstance(load, InputLoad) or load.signal is not None:
+            return load
+        if load.column not in self.inputs:
+            raise DataError(f"{self.source}: the {side} is driven by the input "
+                            f"{load.column!r}, which the record does not carry; read it "
+                            f"with load_data(..., inputs=[{load.column!r}])")
+        return eqx.tree_at(lambda x: x.signal, load, self.inputs[load.column],
+                           is_leaf=lambda x: x is None)
 
     @property
     def n(self) -> int:
@@ -159,7 +176,7 @@ class Data(eqx.Module):
         return Data(self.ts[keep], None if self.phi is None else self.phi[keep], self.load,
                     self.torque, source=self.source,
                     channels={n: y[keep] for n, y in self.channels.items()},
-                    sensors=self.sensors)
+                    sensors=self.sensors, inputs=self.inputs)
 
     def columns(self) -> dict[str, np.ndarray]:
         """`t`, the channels (`phi` in rad; a channel with a sensor in its column and
@@ -173,6 +190,7 @@ class Data(eqx.Module):
             cols["P"] = np.asarray(self.load(self.ts))
         if self.torque is not None and not isinstance(self.torque, NoLoad):
             cols["tau"] = np.asarray(self.torque(self.ts))
+        cols.update({n: np.asarray(u(self.ts)) for n, u in self.inputs.items()})
         return cols
 
 
@@ -329,6 +347,7 @@ def load_data(
     tau_col: str = "tau",
     interp: str = "cubic",
     sensors: Sequence[Sensor] | None = None,
+    inputs: Sequence[str] = (),
 ) -> Data:
     """Read a record from a text file with a header line.
 
@@ -347,6 +366,8 @@ def load_data(
       columns. When present they become [`SampledLoad`][]s that replace the scene's loads.
     - `sensors`: the record's channels ([`Sensor`][crank_jax.sensors.Sensor]s: each
       reads its column, in its unit, into SI). Default: the angle column `phi_col`.
+    - `inputs`: columns of measured inputs (an `InputLoad`'s, e.g. `"volts"`), read into
+      `Data.inputs` and interpolated like the load columns.
     - `interp`: how those load columns are interpolated between samples (see
       [`INTERPOLATIONS`][]): `"cubic"` (default, a C2 not-a-knot spline: for measured,
       smooth signals), `"linear"`, or `"zoh"` (zero-order hold: exact for a command a
@@ -365,8 +386,9 @@ def load_data(
     if angle_unit not in ("rad", "deg"):
         raise DataError(f"angle unit must be 'rad' or 'deg', got {angle_unit!r}")
     where = str(path)
-    if sensors:
-        return _load_channels(path, t_col, P_col, tau_col, interp, tuple(sensors))
+    if sensors or inputs:
+        sensors = tuple(sensors or (Sensor("phi", phi_col, angle_unit),))
+        return _load_channels(path, t_col, P_col, tau_col, interp, sensors, tuple(inputs))
     names, col, numbers = _read_table(path, t_col, phi_col, (t_col, phi_col, P_col, tau_col))
     labels = _Lines(numbers)
     ts = col[t_col]
@@ -394,17 +416,19 @@ def _check_columns(where: str, names, col: dict, labels) -> None:
                             "(NaN or inf); remove or repair that row")
 
 
-def _load_channels(path, t_col, P_col, tau_col, interp, sensors: tuple[Sensor, ...]
-                   ) -> Data:
-    """[`load_data`][] for a record read through sensors."""
+def _load_channels(path, t_col, P_col, tau_col, interp, sensors: tuple[Sensor, ...],
+                   inputs: tuple[str, ...] = ()) -> Data:
+    """[`load_data`][] for a record read through sensors, or with inputs."""
     where = str(path)
     dup = sorted({s.name for s in sensors if [x.name for x in sensors].count(s.name) > 1})
     if dup:
         raise DataError(f"channel {dup[0]!r} is given twice; give each channel once")
     required = [(t_col, "--t-col")] + [
         (s.column, f"--channel {s.name}=COLUMN (or the scene's [sensors] {s.name} column)")
-        for s in sensors]
-    used = tuple(dict.fromkeys([t_col, P_col, tau_col] + [s.column for s in sensors]))
+        for s in sensors] + [(c, f"the scene's input = {c!r} (a load's input column)")
+                             for c in inputs]
+    used = tuple(dict.fromkeys([t_col, P_col, tau_col] + [s.column for s in sensors]
+                               + list(inputs)))
     names, col, numbers = _read_table(path, t_col, "", used, required)
     labels = _Lines(numbers)
     _check_columns(where, names, col, labels)
@@ -414,7 +438,13 @@ def _load_channels(path, t_col, P_col, tau_col, interp, sensors: tuple[Sensor, .
         _check_series(ts, channels[s.name], where, labels, s.column)
     load = SampledLoad(ts, col[P_col], interp) if P_col in col else None
     torque = SampledLoad(ts, col[tau_col], interp) if tau_col in col else None
-    return Data(ts, None, load, torque, source=where, channels=channels, sensors=sensors)
+    ins = {c: SampledLoad(ts, col[c], interp) for c in inputs}
+    plain = len(sensors) == 1 and sensors[0].name == "phi" and sensors[0].scale == 1.0 \
+        and sensors[0].offset == 0.0
+    if plain:  # an angle column as measured: the record's phi
+        return Data(ts, channels["phi"], load, torque, source=where, inputs=ins)
+    return Data(ts, None, load, torque, source=where, channels=channels, sensors=sensors,
+                inputs=ins)
 
 
 def save_data(data: Data, path: str | os.PathLike, comment: str = "") -> None:

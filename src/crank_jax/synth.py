@@ -27,7 +27,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .data import MIN_SAMPLES, Data
-from .model.loads import NoLoad
+from .model.loads import InputLoad, NoLoad
 from .sensors import Sensor
 
 __all__ = ["synthesize"]
@@ -111,18 +111,21 @@ def synthesize(
     if transient != 0.0:
         phi = phi + transient * np.exp(-actual / transient_time) * np.cos(
             2 * math.pi * transient_hz * actual)
-    load = None if isinstance(scene.load, NoLoad) else scene.load
-    torque = None if isinstance(scene.torque, NoLoad) else scene.torque
+    # An input-driven load is not data: the record carries its input's column instead.
+    load, torque = (None if isinstance(x, (NoLoad, InputLoad)) else x
+                    for x in (scene.load, scene.torque))
+    inputs = {x.column: x.signal for x in (scene.load, scene.torque)
+              if isinstance(x, InputLoad)}
     if sensors:
         dphi = np.asarray(traj.dphi)[-actual.shape[0]:]
         channels = _read_sensors(scene, sensors, actual, phi, dphi, quantization, noise, rng)
         return Data(nominal, None, load, torque, source="synthetic", channels=channels,
-                    sensors=sensors)
+                    sensors=sensors, inputs=inputs)
     if quantization is not None:
         step = 2 * math.pi / int(quantization)
         phi = np.round(phi / step) * step
     phi = phi + rng.normal(0.0, noise_std, phi.shape) if noise_std > 0 else phi
-    return Data(nominal, phi, load, torque, source="synthetic")
+    return Data(nominal, phi, load, torque, source="synthetic", inputs=inputs)
 
 
 def _channel_noise(noise_std, sensors) -> dict[str, float]:

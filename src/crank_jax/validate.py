@@ -27,7 +27,7 @@ import numpy as np
 from .data import MIN_SAMPLES, Data, DataError
 from .identify.fit import fit
 from .model.linear import linearize
-from .model.loads import AbstractLoad, NoLoad
+from .model.loads import AbstractLoad, InputLoad, NoLoad
 from .model.outputs import SI_UNITS, output
 from .scene import Scene
 
@@ -112,6 +112,8 @@ def _loads(scene: Scene, data: Data, scene_loads: bool) -> tuple[AbstractLoad, A
                                   (data.torque, scene.torque, "tau", "crank torque tau")):
         if own is not None:
             out.append(own)
+        elif isinstance(model, InputLoad):
+            out.append(data.bind(model, what))
         elif isinstance(model, NoLoad) or scene_loads:
             out.append(model)
         else:
@@ -156,7 +158,7 @@ def validate(
     win = data.window(t_start, t_end)
     load, torque = _loads(scene, win, scene_loads)
     win = Data(win.ts, win.phi, load, torque, source=win.source, channels=win.channels,
-               sensors=win.sensors)
+               sensors=win.sensors, inputs=win.inputs)
     if init_window is None:
         s = default_init_window(scene, load)
         init_window = max(s, float(win.ts[min(MIN_SAMPLES, win.n) - 1] - win.ts[0]))

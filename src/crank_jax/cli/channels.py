@@ -8,7 +8,7 @@ import math
 
 from .errors import UserError
 
-__all__ = ["add_channel_options", "parse_sigma", "record_sensors"]
+__all__ = ["add_channel_options", "parse_sigma", "record_sensors", "scene_inputs"]
 
 
 def add_channel_options(p: argparse.ArgumentParser) -> None:
@@ -72,3 +72,11 @@ def record_sensors(a: argparse.Namespace, scene, path: str):
     if not channels and found == select_sensors([], ()):
         return None  # no scene sensor in this record: its angle column, as without any
     return found
+
+
+def scene_inputs(scene) -> tuple[str, ...]:
+    """The record columns the scene's input-driven loads read (`[load]`/`[torque]`
+    `input = COLUMN`)."""
+    from ..model.loads import InputLoad
+
+    return tuple(x.column for x in (scene.load, scene.torque) if isinstance(x, InputLoad))

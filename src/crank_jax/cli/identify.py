@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from .channels import add_channel_options, parse_sigma, record_sensors
+from .channels import add_channel_options, parse_sigma, record_sensors, scene_inputs
 from .errors import UserError
 
 #: The demo experiment: the lab rig driven by a known harmonic crank torque (a shaker),
@@ -223,7 +223,8 @@ def _fit_run(a: argparse.Namespace) -> int:
     files = [a.data] + list(a.more_data)
     _outputs_ok(a, files + [a.scene])
     records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
-                         interp=a.load_interp, sensors=record_sensors(a, scene, f))
+                         interp=a.load_interp, sensors=record_sensors(a, scene, f),
+                         inputs=scene_inputs(scene))
                for f in files]
     res = fit(scene, records if len(records) > 1 else records[0], **kwargs)
     a.fitted_scene = scene

@@ -8,7 +8,7 @@ import json
 import math
 import sys
 
-from .channels import add_channel_options, record_sensors
+from .channels import add_channel_options, record_sensors, scene_inputs
 from .errors import UserError
 
 __all__ = ["COMMANDS", "LOAD_INTERP"]
@@ -58,7 +58,7 @@ def _read(a: argparse.Namespace, scene):
     from ..data import load_data
 
     kw = dict(t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
-              sensors=record_sensors(a, scene, a.data))
+              sensors=record_sensors(a, scene, a.data), inputs=scene_inputs(scene))
     if a.load_interp is not None:
         if "interp" in inspect.signature(load_data).parameters:
             kw["interp"] = a.load_interp

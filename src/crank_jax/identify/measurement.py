@@ -16,11 +16,18 @@ from ..sensors import Sensor
 __all__ = ["calibration", "channel_errors", "fitted_channels"]
 
 
-def calibration(sensors: Sequence[Sensor], sigmas, first_sigma: float):
-    """(scale, offset, weight, channel names) of an `Experiment`."""
+def calibration(sensors: Sequence[Sensor], sigmas, first_sigma: float, mech,
+                omega: float):
+    """(scale, offset, weight, per_radian, channel names) of an `Experiment`: `per_radian`
+    is the first channel's typical reading change per radian of crank (1 for an angle;
+    `|scale| r` for the slider's position, times `omega` (rad/s) per time derivative)."""
     weight = [first_sigma / (sigmas or {}).get(s.name, first_sigma) for s in sensors]
+    first = sensors[0]
+    r = float(mech.r)
+    per = {"phi": 1.0, "dphi": omega, "x_s": r, "v_s": r * omega, "a_s": r * omega**2}
     return (jnp.asarray([float(s.scale) for s in sensors]),
             jnp.asarray([float(s.offset) for s in sensors]), jnp.asarray(weight, float),
+            jnp.asarray(abs(float(first.scale)) * per[first.name], float),
             tuple(s.name for s in sensors))
 
 

@@ -149,6 +149,7 @@ class Experiment(eqx.Module):
     scale: Array  # (C,)
     offset: Array  # (C,)
     weight: Array  # (C,)
+    per_radian: Array  # the first channel's typical reading change per radian of crank
     channels: tuple[str, ...] = eqx.field(static=True, default=("phi",))
 
     @property
@@ -339,7 +340,9 @@ class Problem(eqx.Module):
                 rows = jnp.arange(S - 1)
                 # Continuity of the state at each shared sample, weighted like a segment's
                 # worth of data so that the defects end up well below the noise.
-                wgt = math.sqrt(e.seg.ts.shape[1])
+                # In the first channel's unit (its reading's change per radian), so the
+                # defects weigh against the data alike whatever the sensor.
+                wgt = math.sqrt(e.seg.ts.shape[1]) * e.per_radian
                 dphi_end = jnp.where(ok[rows, idx], dphi[rows, idx], _FAILED_RESIDUAL)
                 phi_end = jnp.where(ok[rows, idx], phi[rows, idx], _FAILED_RESIDUAL)
                 cont.append(wgt * (phi_end - y0s[1:, 0]))
@@ -432,7 +435,8 @@ def build_problem(
                                padded_load(torque) if pad else torque,
                                jnp.asarray(phi0, float), jnp.asarray(dphi0, float),
                                jnp.asarray(ref_phi, float), jnp.asarray(ref_dphi, float),
-                               *calibration([s for s, _ in outs], sigmas, first_sigma)))
+                               *calibration([s for s, _ in outs], sigmas, first_sigma,
+                                            mech, ref_dphi / ref_phi)))
     mech_start = mech.replace(**{n: start[n] for n in glob if n in FIELDS})
     # A zero is structure (the compiled program leaves its term out), but a free field
     # that starts at 0 must keep its term, or its sensitivity would be exactly zero.

@@ -27,8 +27,9 @@ __all__ = ["FitRequest", "normalise", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP"
 
 STATE_NAMES = ("phi0", "dphi0")
 #: Load parameters that can be free, name -> (side, role), from the one load table
-#: (`model.loads.LOAD_PARAMS`): each load's mean and amplitude (they enter linearly).
-LOAD_NAMES = {n: sr for n, sr in LOAD_PARAMS.items() if sr[1] in ("mean", "amp")}
+#: (`model.loads.LOAD_PARAMS`): each load's mean, amplitude and input gain (they enter
+#: linearly).
+LOAD_NAMES = {n: sr for n, sr in LOAD_PARAMS.items() if sr[1] in ("mean", "amp", "gain")}
 #: Parameters that enter the equation of motion linearly: scaling all of them (and every
 #: load) by one factor leaves the motion unchanged (DESIGN.md section 3).
 SCALE_GROUP = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
@@ -187,10 +188,12 @@ def _load_starts(free, records, loads) -> dict[str, float]:
             obj = load if which == "load" else torque
             v = load_param(obj, role)
             if v is None:
+                fix = (f"an input-driven {which} (input = COLUMN, gain = ...)"
+                       if role == "gain" else
+                       f"a harmonic {which} (or, for {n[:-1]}0, a constant one)")
                 raise ValueError(f"{n} cannot be free: the scene's {which} is "
                                  f"{type(obj).__name__} ({load_kind(obj).name}), which has "
-                                 f"no {n}; give the scene a harmonic {which} (or, for "
-                                 f"{n[:-1]}0, a constant one)")
+                                 f"no {n}; give the scene {fix}")
             start[n] = float(v)
     return start
 
@@ -255,8 +258,8 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
     _check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
     window = _check_window(window)
     records = [window_data(d, window) for d in records]
-    loads = tuple((d.load if d.load is not None else sc.load,
-                   d.torque if d.torque is not None else sc.torque)
+    loads = tuple((d.bind(d.load if d.load is not None else sc.load, "slider force"),
+                   d.bind(d.torque if d.torque is not None else sc.torque, "crank torque"))
                   for d, sc in zip(records, scenes))
     mech = scenes[0].mech
     start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..model.loads import AbstractLoad, SampledLoad
+from ..model.loads import AbstractLoad, InputLoad, SampledLoad
 
 __all__ = ["bucket", "Segments", "make_segments", "padded_load"]
 
@@ -76,6 +76,8 @@ def make_segments(ts: np.ndarray, ys: np.ndarray, n_segments: int, pad: bool = T
 def padded_load(load: AbstractLoad) -> AbstractLoad:
     # A sampled load's length is a shape: pad it (holding its last value, as it is held
     # outside its samples anyway) so records of other lengths reuse the programs.
+    if isinstance(load, InputLoad) and load.signal is not None:
+        return eqx.tree_at(lambda x: x.signal, load, padded_load(load.signal))
     if not isinstance(load, SampledLoad):
         return load
     ts, vs = np.asarray(load.ts), np.asarray(load.values)

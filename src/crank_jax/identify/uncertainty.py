@@ -212,7 +212,7 @@ def _fixed_part(load, side: str, free_roles) -> bool:
     kind = load_kind(load)
     if isinstance(load, SampledLoad):
         return bool(np.any(np.asarray(load.values) != 0))
-    for role in ("mean", "amp"):
+    for role in ("mean", "amp", "gain"):
         v = get_param(load, role) if role in kind.fields else None
         if v is not None and np.any(np.asarray(v) != 0) and (side, role) not in free_roles:
             return True
