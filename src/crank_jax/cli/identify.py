@@ -129,6 +129,9 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
                    help="interpolation of the record's P/tau columns: cubic (C2 spline, for "
                         "measured signals; default), linear, or zoh (a held digital command)")
     add_channel_options(p)
+    p.add_argument("--per-record", default="", metavar="NAMES",
+                   help="comma-separated free parameters that take a separate value in each "
+                        "record (with --more-data), e.g. tau_gain or T_c; the rest are shared")
     _fit_options(p)
 
 
@@ -197,6 +200,11 @@ def _fit_kwargs(a: argparse.Namespace) -> dict:
         raise UserError(f"--max-steps must be an integer from 1 to {MAX_ITERATIONS}, got "
                         f"{a.max_steps}")
     sigma = parse_sigma(a.sigma)
+    per_record = tuple(x.strip() for x in getattr(a, "per_record", "").split(",") if x.strip())
+    bad = [n for n in per_record if n not in free]
+    if bad:
+        raise UserError(f"--per-record names {', '.join(bad)}, which is not free; add it to "
+                        "--free or leave it out of --per-record")
     lo, hi = getattr(a, "fit_t_start", None), getattr(a, "fit_t_end", None)
     if lo is not None and hi is not None and not lo < hi:
         raise UserError(f"--t-start ({lo:g}) must be before --t-end ({hi:g})")
@@ -204,7 +212,7 @@ def _fit_kwargs(a: argparse.Namespace) -> dict:
     return dict(free=free, init=a.init, method=a.method, shooting=a.shooting,
                 segments=a.segments, multistart=a.multistart, seed=a.seed,
                 max_steps=a.max_steps, sigma=sigma, profile=a.profile, window=window,
-                progress=not a.quiet, warn=False)
+                progress=not a.quiet, warn=False, per_record=per_record)
 
 
 def _fit_run(a: argparse.Namespace) -> int:

@@ -114,7 +114,7 @@ def _problem(req: FitRequest, start, states, nseg, budget, solver) -> Problem:
     return build_problem(req.scene.mech, recs, req.free, start, nseg, solver=solver,
                          rtol=float(req.scene.rtol), atol=float(req.scene.atol),
                          max_steps=budget, adjoint="forward", omega=omega,
-                         angles=req.angles, sigmas=req.sigmas)
+                         angles=req.angles, sigmas=req.sigmas, per_record=req.per_record)
 
 
 def _start_solve(req, start, states, solver):
@@ -122,14 +122,16 @@ def _start_solve(req, start, states, solver):
     start coordinates, and there the residuals, failures, steps and sensitivities."""
     for budget in (SMALL_ODE_BUDGET, MAX_ODE_STEPS):
         ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
-        z = ss.to_z([start[n] if n in start else _state(n, states) for n in ss.names])
+        z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
         r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z)))
         if int(failed) == 0 or budget == MAX_ODE_STEPS:
             return ss, z, r, int(failed), int(steps), J
 
 
-def _state(name: str, states) -> float:
+def _state(name: str, states, start) -> float:
     base, _, idx = name.partition("[")
+    if base not in STATE_NAMES:  # a per-record parameter starts where its name does
+        return start[base]
     i = int(idx[:-1]) if idx else 0
     return states[i][STATE_NAMES.index(base)]
 
@@ -201,7 +203,7 @@ def _plan(req: FitRequest) -> _Plan:
 def _aborted(req, start, states, solver, why: str, notes) -> _Plan:
     """A plan that stops before any solve (see `absurd_frequency`)."""
     ss = _problem(req, start, states, [1] * len(req.records), SMALL_ODE_BUDGET, solver)
-    z = ss.to_z([start[n] if n in start else _state(n, states) for n in ss.names])
+    z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
     full = {n: float(v) for n, v in zip(ss.names, np.asarray(ss.values(z)))}
     return _Plan(ss, ss, z, np.eye(ss.p), full, float("nan"), [], notes, "none", start,
                  states, solver, abort=why)
@@ -377,6 +379,7 @@ def fit(
     window: tuple[float | None, float | None] | None = None,
     progress: bool = True,
     warn: bool = True,
+    per_record: Sequence[str] = (),
 ) -> FitResult:
     """Fit free parameters of a scene to crank-angle records by least squares.
 
@@ -422,7 +425,7 @@ def fit(
     req = normalise(scene, data, free, init=init, method=method, shooting=shooting,
                     segments=segments, multistart=multistart, seed=seed, max_steps=max_steps,
                     tol=tol, sigma=sigma, profile=profile, window=window, progress=progress,
-                    warn=warn)
+                    warn=warn, per_record=per_record)
     req = ch.with_channels(req)
     plan = _plan(req)
     if plan.abort:

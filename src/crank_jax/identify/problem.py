@@ -48,7 +48,7 @@ from ..sensors import OFFSET_NAMES
 from ..solve.policy import resolve_solver
 from .measurement import calibration, channel_errors, fitted_channels
 from .request import LOAD_NAMES, SIGNED_FIELDS
-from .segments import Segments, make_segments, padded_load
+from .segments import Experiment, make_segments, padded_load
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
@@ -131,35 +131,6 @@ _SOLVERS = {"tsit5": "Tsit5", "dopri5": "Dopri5", "dopri8": "Dopri8",
             "dopri8-uniform": "Dopri8", "dopri8-adaptive": "Dopri8", "kvaerno5": "Kvaerno5"}
 
 
-class Experiment(eqx.Module):
-    """One record in the problem: its segments, loads and fixed initial state, and its
-    channels: each one's calibration (`scale`, fixed `offset`, SI) and `weight` (C,), the
-    first channel's noise level over its own (so the residuals are in the first channel's
-    unit, and every channel counts by its noise)."""
-
-    seg: Segments
-    load: AbstractLoad
-    torque: AbstractLoad
-    phi0: Array  # used when phi0 is not free
-    dphi0: Array
-    # Arrays, not static floats: a static value that depends on the data would recompile
-    # every fit.
-    ref_phi: Array
-    ref_dphi: Array
-    scale: Array  # (C,)
-    offset: Array  # (C,)
-    weight: Array  # (C,)
-    per_radian: Array  # the first channel's typical reading change per radian of crank
-    channels: tuple[str, ...] = eqx.field(static=True, default=("phi",))
-
-    @property
-    def n(self) -> int:
-        """Number of fitted samples (host side)."""
-        return int(np.asarray(self.seg.w).sum())
-
-
-
-
 class Problem(eqx.Module):
     """The residual function `z -> r` of a fit (an `eqx.Module`, so it can be jitted).
 
@@ -182,6 +153,8 @@ class Problem(eqx.Module):
     adjoint: str = eqx.field(static=True, default="forward")
     # Per reported name: fitted as `ref |z|` (see `folded`); empty: none is.
     fold: tuple[bool, ...] = eqx.field(static=True, default=())
+    # Free names with one value per record (`name[i]`, before each record's states).
+    per_record: tuple[str, ...] = eqx.field(static=True, default=())
 
     # --- coordinates ------------------------------------------------------------------
 
@@ -223,7 +196,8 @@ class Problem(eqx.Module):
         return np.where(self.log, np.log(np.where(self.log, v, 1.0)), v / ref)
 
     def unpack(self, z: Array):
-        """(mechanism, [(load, torque, y0s)] per record) from coordinates `z`."""
+        """(mechanism, [(load, torque, y0s, own)] per record) from coordinates `z`; `own`
+        holds the record's per-record values (name -> value)."""
         vals = self.values(z)
         fields = {n: getattr(self.base, n) for n in FIELDS}
         load_vals = {}
@@ -238,7 +212,11 @@ class Problem(eqx.Module):
         x = self.p  # segment states start after the reported parameters
         for e in self.exps:
             load, torque = e.load, e.torque
-            for name, v in load_vals.items():
+            own = {n: vals[k + j] for j, n in enumerate(self.per_record)}
+            k += len(self.per_record)
+            for name, v in {**load_vals, **own}.items():
+                if name not in LOAD_NAMES:
+                    continue
                 side, role = LOAD_NAMES[name]
                 if side == "load":
                     load = set_param(load, role, v, side)
@@ -256,7 +234,7 @@ class Problem(eqx.Module):
             for _ in range(S - 1):
                 y0.append(jnp.stack([z[x] * e.ref_phi, z[x + 1] * e.ref_dphi]))
                 x += 2
-            out.append((load, torque, jnp.stack(y0)))
+            out.append((load, torque, jnp.stack(y0), own))
         return mech, out
 
     # --- residuals --------------------------------------------------------------------
@@ -323,13 +301,17 @@ class Problem(eqx.Module):
         rs, cont, failed, steps = [], [], 0, 0
         # A point outside the mechanism's valid set (a coupler shorter than the crank, a
         # centre of mass beyond the coupler) is a failed solve: rejected, never reported.
-        invalid = _invalid(mech)
-        for e, (load, torque, y0s) in zip(self.exps, per):
-            phi, dphi, n_steps = self.simulate_segments(mech, e, load, torque, y0s)
+        for e, (load, torque, y0s, own) in zip(self.exps, per):
+            mech_e = SliderCrank(**{**{f: getattr(mech, f) for f in FIELDS},
+                                    **{n: v for n, v in own.items() if n in FIELDS}})
+            offsets_e = {**offsets, **{OFFSET_NAMES[n]: v for n, v in own.items()
+                                       if n in OFFSET_NAMES}}
+            invalid = _invalid(mech_e)
+            phi, dphi, n_steps = self.simulate_segments(mech_e, e, load, torque, y0s)
             steps = jnp.maximum(steps, jnp.max(n_steps))
             ok = jnp.isfinite(phi) & jnp.isfinite(dphi) & ~invalid
             failed = failed + jnp.sum(~ok & (e.seg.w > 0))
-            err = channel_errors(mech, e, load, torque, phi, dphi, offsets, self.structure)
+            err = channel_errors(mech_e, e, load, torque, phi, dphi, offsets_e, self.structure)
             r = jnp.where(ok[None], err * e.weight[:, None, None], _FAILED_RESIDUAL)
             # Padding and shared samples get weight 0: zeros in r change neither the sum of
             # squares nor the Jacobian's rank, and keep the shapes static.
@@ -380,6 +362,7 @@ def build_problem(
     omega: float | None = None,
     angles: Sequence[np.ndarray] | None = None,
     sigmas: dict[str, float] | None = None,
+    per_record: Sequence[str] = (),
 ) -> Problem:
     """Assemble a [`Problem`][].
 
@@ -401,8 +384,11 @@ def build_problem(
       `phi`): the scale of the state coordinates.
     - `sigmas`: each channel's noise level, SI (default 1 each): a channel's residuals
       are weighted by the first channel's level over its own.
+    - `per_record`: free names with a separate value per record (`name[i]`).
     """
-    glob = [n for n in free if n not in ("phi0", "dphi0")]
+    per_record = tuple(per_record)
+    glob = [n for n in free if n not in ("phi0", "dphi0") and n not in per_record]
+    omega_obs = omega
     state_free = (("phi0" in free), ("dphi0" in free))
     names, log, ref = [], [], []
     for n in glob:
@@ -422,6 +408,12 @@ def build_problem(
         span = float(data.ts[-1] - data.ts[0])
         omega = 2 * math.pi / (period if period is not None else span)
         ref_phi, ref_dphi = max(amp, abs(phi0)), max(amp * omega, abs(dphi0))
+        for n in per_record:
+            lg, rf = coordinate(n, float(start[n]), mech, omega_obs)
+            names.append(f"{n}[{i}]")
+            log.append(lg)
+            ref.append(rf)
+            fold.append(folded(n, lg))
         for name, flag, r in (("phi0", state_free[0], ref_phi),
                               ("dphi0", state_free[1], ref_dphi)):
             if flag:
@@ -437,14 +429,16 @@ def build_problem(
                                jnp.asarray(ref_phi, float), jnp.asarray(ref_dphi, float),
                                *calibration([s for s, _ in outs], sigmas, first_sigma,
                                             mech, ref_dphi / ref_phi)))
+    n_global = len(glob)
+    glob = glob + list(per_record)  # their start values and structure, as the globals'
     mech_start = mech.replace(**{n: start[n] for n in glob if n in FIELDS})
     # A zero is structure (the compiled program leaves its term out), but a free field
     # that starts at 0 must keep its term, or its sensitivity would be exactly zero.
     nonzero = mech_start.replace(**{n: _TINY for n in glob if n in FIELDS and start[n] == 0})
     structure = Structure.of(mech_start).union(Structure.of(nonzero))
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
-                   len(glob), state_free, solver, structure, jnp.asarray(rtol),
-                   jnp.asarray(atol), int(max_steps), adjoint, tuple(fold))
+                   n_global, state_free, solver, structure, jnp.asarray(rtol),
+                   jnp.asarray(atol), int(max_steps), adjoint, tuple(fold), per_record)
 
 
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:

@@ -64,14 +64,16 @@ def load_param(load: AbstractLoad, role: str) -> float | None:
     return None if v is None else float(np.asarray(v))
 
 
-def reported_names(free: Sequence[str], n_records: int) -> tuple[str, ...]:
-    """The names a fit reports: the global free names, then `phi0[i]`/`dphi0[i]` per
-    record (no suffix for a single record)."""
-    glob = [n for n in free if n not in STATE_NAMES]
+def reported_names(free: Sequence[str], n_records: int, per_record: Sequence[str] = ()
+                   ) -> tuple[str, ...]:
+    """The names a fit reports: the global free names, then per record `n[i]` for each
+    name of `per_record` and `phi0[i]`/`dphi0[i]` (no suffix for a single record)."""
+    glob = [n for n in free if n not in STATE_NAMES and n not in per_record]
     states = [n for n in STATE_NAMES if n in free]
     if n_records == 1:
-        return tuple(glob + states)
-    return tuple(glob + [f"{n}[{i}]" for i in range(n_records) for n in states])
+        return tuple(glob + list(per_record) + states)
+    return tuple(glob + [f"{n}[{i}]" for i in range(n_records)
+                         for n in list(per_record) + states])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,6 +110,8 @@ class FitRequest:
     #: channel's noise level (SI): set by `fit` once, before any solve.
     angles: tuple | None = None
     sigmas: dict | None = None
+    #: Free names with a separate value per record (`n[i]`), besides the states.
+    per_record: tuple = ()
 
 
 def window_data(d: Data, window: tuple[float, float] | None) -> Data:
@@ -236,8 +240,20 @@ def _check_start(start: dict[str, float]) -> None:
                              f"init={{'{n}': ...}}")
 
 
+def _check_per_record(per_record, free) -> tuple[str, ...]:
+    per_record = tuple(dict.fromkeys(per_record or ()))
+    for n in per_record:
+        if n in STATE_NAMES:
+            raise ValueError(f"per_record names {n}, which is already one per record")
+        if n not in free:
+            raise ValueError(f"per_record names {n!r}, which is not free; free it (--free) "
+                             "or leave it out of per_record (--per-record)")
+    return per_record
+
+
 def normalise(scene, data, free, *, init, method, shooting, segments, multistart, seed,
-              max_steps, tol, sigma, profile, window, progress, warn) -> FitRequest:
+              max_steps, tol, sigma, profile, window, progress, warn, per_record=()
+              ) -> FitRequest:
     """Check a fit request and bring it to one form (the arguments are those of [`fit`][]).
 
     **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
@@ -256,6 +272,7 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
         raise ValueError(f"unknown free parameter(s) {unknown}; choose from {list(free_names())}"
                          if unknown else "free must name at least one parameter")
     _check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
+    per_record = _check_per_record(per_record, free)
     window = _check_window(window)
     records = [window_data(d, window) for d in records]
     loads = tuple((d.bind(d.load if d.load is not None else sc.load, "slider force"),
@@ -278,7 +295,8 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
     else:
         raise ValueError(f"init must be 'scene', 'regressor' or a dict, got {init!r}")
     _check_start(start)
-    names = reported_names(free, len(records))
+    per_record = per_record if len(records) > 1 else ()
+    names = reported_names(free, len(records), per_record)
     if profile is not None and profile not in names:
         raise ValueError(f"profile {profile!r} is not a free parameter; choose from "
                          f"{list(names)}")
@@ -294,4 +312,4 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
         max_steps=int(max_steps if max_steps is not None else
                       (100 if method == "lm" else 2000)),
         tol=float(tol), sigma=sigma, profile=profile, window=window, progress=bool(progress),
-        warn=bool(warn))
+        warn=bool(warn), per_record=per_record)

@@ -1,5 +1,6 @@
 """Records as shooting segments, padded to a few bucket lengths (so that records of other
-lengths reuse the compiled programs; the padding has weight 0)."""
+lengths reuse the compiled programs; the padding has weight 0), and a record as the fit's
+problem holds it ([`Experiment`][])."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from jaxtyping import Array
 
 from ..model.loads import AbstractLoad, InputLoad, SampledLoad
 
-__all__ = ["bucket", "Segments", "make_segments", "padded_load"]
+__all__ = ["bucket", "Segments", "Experiment", "make_segments", "padded_load"]
 
 
 def bucket(m: int) -> int:
@@ -41,6 +42,35 @@ class Segments(eqx.Module):
     w: Array  # (S, m) 1 for a fitted sample, 0 for padding and the shared end sample
     end: Array  # (S,) int: index of the continuity sample in each row
     first: Array  # (S,) int: index in the record of each row's first sample
+
+
+class Experiment(eqx.Module):
+    """One record in the problem: its segments, loads and fixed initial state, and its
+    channels: each one's calibration (`scale`, fixed `offset`, SI) and `weight` (C,), the
+    first channel's noise level over its own (so the residuals are in the first channel's
+    unit, and every channel counts by its noise)."""
+
+    seg: Segments
+    load: AbstractLoad
+    torque: AbstractLoad
+    phi0: Array  # used when phi0 is not free
+    dphi0: Array
+    # Arrays, not static floats: a static value that depends on the data would recompile
+    # every fit.
+    ref_phi: Array
+    ref_dphi: Array
+    scale: Array  # (C,)
+    offset: Array  # (C,)
+    weight: Array  # (C,)
+    per_radian: Array  # the first channel's typical reading change per radian of crank
+    channels: tuple[str, ...] = eqx.field(static=True, default=("phi",))
+
+    @property
+    def n(self) -> int:
+        """Number of fitted samples (host side)."""
+        return int(np.asarray(self.seg.w).sum())
+
+
 
 
 def make_segments(ts: np.ndarray, ys: np.ndarray, n_segments: int, pad: bool = True
