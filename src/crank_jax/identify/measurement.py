@@ -31,11 +31,11 @@ def calibration(sensors: Sequence[Sensor], sigmas, first_sigma: float, mech,
             tuple(s.name for s in sensors))
 
 
-def channel_errors(mech, e, load, torque, phi, dphi, offsets, structure):
+def channel_errors(mech, e, load, torque, phi, dphi, offsets, structure, force=None):
     """(C, S, m) model reading minus data for each channel, SI (unweighted)."""
     out = []
     for c, name in enumerate(e.channels):
-        h = output(name, mech, e.seg.ts, phi, dphi, load, torque, structure)
+        h = output(name, mech, e.seg.ts, phi, dphi, load, torque, structure, force)
         out.append(e.scale[c] * h + offsets.get(name, e.offset[c]) - e.seg.ys[c])
     return jnp.stack(out)
 

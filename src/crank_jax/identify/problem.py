@@ -49,6 +49,7 @@ from ..solve.policy import resolve_solver
 from .measurement import calibration, channel_errors, fitted_channels
 from .request import LOAD_NAMES, SIGNED_FIELDS
 from .segments import Experiment, make_segments, padded_load
+from .userforce import PREFIX, with_force_values
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
@@ -155,6 +156,7 @@ class Problem(eqx.Module):
     fold: tuple[bool, ...] = eqx.field(static=True, default=())
     # Free names with one value per record (`name[i]`, before each record's states).
     per_record: tuple[str, ...] = eqx.field(static=True, default=())
+    force: object = None  # a user's force term (`userforce.py`), its free fields set by z
 
     # --- coordinates ------------------------------------------------------------------
 
@@ -171,11 +173,6 @@ class Problem(eqx.Module):
     @property
     def n_residuals(self) -> int:
         return sum(int(np.asarray(e.seg.w).sum()) * len(e.channels) for e in self.exps)
-
-    def offsets(self, z: Array) -> dict[str, Array]:
-        """The free channel offsets, channel name -> value (SI)."""
-        return {OFFSET_NAMES[n]: v for n, v in zip(self.names, self.values(z))
-                if n in OFFSET_NAMES}
 
     @property
     def folded(self) -> tuple[bool, ...]:
@@ -196,15 +193,16 @@ class Problem(eqx.Module):
         return np.where(self.log, np.log(np.where(self.log, v, 1.0)), v / ref)
 
     def unpack(self, z: Array):
-        """(mechanism, [(load, torque, y0s, own)] per record) from coordinates `z`; `own`
-        holds the record's per-record values (name -> value)."""
+        """(mechanism, [(load, torque, y0s, own)] per record) from coordinates `z`; `own`:
+        every value but the shared mechanism fields' (name -> value), and under `"force."`
+        the record's force term."""
         vals = self.values(z)
         fields = {n: getattr(self.base, n) for n in FIELDS}
         load_vals = {}
         for i, name in enumerate(self.names[:self.n_global]):
             if name in fields:
                 fields[name] = vals[i]
-            elif name not in OFFSET_NAMES:
+            else:
                 load_vals[name] = vals[i]
         mech = SliderCrank(**fields)
         out = []
@@ -212,9 +210,11 @@ class Problem(eqx.Module):
         x = self.p  # segment states start after the reported parameters
         for e in self.exps:
             load, torque = e.load, e.torque
-            own = {n: vals[k + j] for j, n in enumerate(self.per_record)}
+            own = {**load_vals, **{n: vals[k + j] for j, n in enumerate(self.per_record)}}
+            force = with_force_values(self.force, {n: v for n, v in own.items()
+                                                   if n.startswith(PREFIX)})
             k += len(self.per_record)
-            for name, v in {**load_vals, **own}.items():
+            for name, v in own.items():
                 if name not in LOAD_NAMES:
                     continue
                 side, role = LOAD_NAMES[name]
@@ -234,12 +234,12 @@ class Problem(eqx.Module):
             for _ in range(S - 1):
                 y0.append(jnp.stack([z[x] * e.ref_phi, z[x + 1] * e.ref_dphi]))
                 x += 2
-            out.append((load, torque, jnp.stack(y0), own))
+            out.append((load, torque, jnp.stack(y0), {**own, PREFIX: force}))
         return mech, out
 
     # --- residuals --------------------------------------------------------------------
 
-    def simulate_segments(self, mech, e: Experiment, load, torque, y0s):
+    def simulate_segments(self, mech, e: Experiment, load, torque, y0s, force=None):
         """Model angles and rates on every segment: (phi, dphi), each (S, m), NaN after a
         failed solve, and the ODE steps each segment's solve took (S,).
 
@@ -258,7 +258,7 @@ class Problem(eqx.Module):
                                                         jump_ts=jump_ts)
         adjoint = (diffrax.ForwardMode() if self.adjoint == "forward"
                    else diffrax.RecursiveCheckpointAdjoint())
-        field = CrankField(mech, load, torque, self.structure).packed()
+        field = CrankField(mech, load, torque, self.structure, force).packed()
 
         def one(ts, y0):
             sol = diffrax.diffeqsolve(
@@ -297,21 +297,21 @@ class Problem(eqx.Module):
         """(r, n_failed, steps): the stacked residual vector, how many samples failed,
         and the most ODE steps any one solve took."""
         mech, per = self.unpack(z)
-        offsets = self.offsets(z)
         rs, cont, failed, steps = [], [], 0, 0
         # A point outside the mechanism's valid set (a coupler shorter than the crank, a
         # centre of mass beyond the coupler) is a failed solve: rejected, never reported.
         for e, (load, torque, y0s, own) in zip(self.exps, per):
             mech_e = SliderCrank(**{**{f: getattr(mech, f) for f in FIELDS},
                                     **{n: v for n, v in own.items() if n in FIELDS}})
-            offsets_e = {**offsets, **{OFFSET_NAMES[n]: v for n, v in own.items()
-                                       if n in OFFSET_NAMES}}
+            offsets_e = {OFFSET_NAMES[n]: v for n, v in own.items() if n in OFFSET_NAMES}
             invalid = _invalid(mech_e)
-            phi, dphi, n_steps = self.simulate_segments(mech_e, e, load, torque, y0s)
+            force = own.pop(PREFIX)
+            phi, dphi, n_steps = self.simulate_segments(mech_e, e, load, torque, y0s, force)
             steps = jnp.maximum(steps, jnp.max(n_steps))
             ok = jnp.isfinite(phi) & jnp.isfinite(dphi) & ~invalid
             failed = failed + jnp.sum(~ok & (e.seg.w > 0))
-            err = channel_errors(mech_e, e, load, torque, phi, dphi, offsets_e, self.structure)
+            err = channel_errors(mech_e, e, load, torque, phi, dphi, offsets_e, self.structure,
+                                 force)
             r = jnp.where(ok[None], err * e.weight[:, None, None], _FAILED_RESIDUAL)
             # Padding and shared samples get weight 0: zeros in r change neither the sum of
             # squares nor the Jacobian's rank, and keep the shapes static.
@@ -363,6 +363,7 @@ def build_problem(
     angles: Sequence[np.ndarray] | None = None,
     sigmas: dict[str, float] | None = None,
     per_record: Sequence[str] = (),
+    force=None,
 ) -> Problem:
     """Assemble a [`Problem`][].
 
@@ -385,6 +386,7 @@ def build_problem(
     - `sigmas`: each channel's noise level, SI (default 1 each): a channel's residuals
       are weighted by the first channel's level over its own.
     - `per_record`: free names with a separate value per record (`name[i]`).
+    - `force`: a user's force term (its free fields are `force.<field>` names).
     """
     per_record = tuple(per_record)
     glob = [n for n in free if n not in ("phi0", "dphi0") and n not in per_record]
@@ -438,7 +440,7 @@ def build_problem(
     structure = Structure.of(mech_start).union(Structure.of(nonzero))
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
                    n_global, state_free, solver, structure, jnp.asarray(rtol),
-                   jnp.asarray(atol), int(max_steps), adjoint, tuple(fold), per_record)
+                   jnp.asarray(atol), int(max_steps), adjoint, tuple(fold), per_record, force)
 
 
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:
