@@ -1,8 +1,9 @@
-"""Rewrite the README's performance section from the results files.
+"""Rewrite the docs site's performance page from the results files.
 
 Reads `experiments/results/{work_precision,throughput,gradients,startup,fusion}.json` and
 replaces the text between `<!-- BEGIN performance (owner: performance) -->` and
-`<!-- END performance -->` in README.md. `--print` writes the section to stdout instead.
+`<!-- END performance -->` in docs/benchmarks/performance.md (figure links made relative
+to that page). `--print` writes the section to stdout instead.
 
 Run: `python experiments/make_tables.py [--print]`.
 """
@@ -508,13 +509,14 @@ def main(argv=None):
     if a.print:
         print(text)
         return
-    readme = ROOT / "README.md"
-    src = readme.read_text()
+    page = ROOT / "docs" / "benchmarks" / "performance.md"
+    src = page.read_text()
     pat = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
     if not pat.search(src):
-        raise SystemExit("README.md has no performance section markers")
-    readme.write_text(pat.sub(lambda _: f"{BEGIN}\n{text}\n{END}", src))
-    print("rewrote the performance section of README.md")
+        raise SystemExit(f"{page} has no performance section markers")
+    text = text.replace("](docs/figures/", "](../figures/")  # relative to the page
+    page.write_text(pat.sub(lambda _: f"{BEGIN}\n{text}\n{END}", src))
+    print(f"rewrote the performance section of {page.relative_to(ROOT)}")
 
 
 if __name__ == "__main__":

@@ -108,21 +108,50 @@ def test_stored_simulate_equals_the_ordinary_one(stored, tmp_path):
                                 float(traj.extras["N"][7]), int(traj.num_steps)]
 
 
+def _flip(i):
+    def damage(b):
+        b = bytearray(b)
+        b[i % len(b)] ^= 0x01
+        return bytes(b)
+    return damage
+
+
 def test_damaged_store_is_recompiled(stored, tmp_path):
+    """Issue 24 defect 1: a damaged stored program, whatever byte is damaged, is a miss:
+    the next process recompiles it, gets the clean numbers, and replaces the file. A
+    dangling `*.xla` link and a temporary file left by a killed writer do no harm."""
+    from crank_jax.program_store import MAGIC, STALE_TEMP_S, unpack
+
     cache, first = stored
     copy = tmp_path / "cache"
-    (copy / "crank-jax-programs").mkdir(parents=True)
-    damages = (lambda b: b[: len(b) // 2], lambda b: b"\0garbage" * 100, lambda b: b"",
-               lambda b: b[:4])
+    store = copy / "crank-jax-programs"
+    store.mkdir(parents=True)
+    count = len(MAGIC) + 64  # the output count's first byte
+    damages = {  # by program: the issue's cases on the programs they were seen on
+        "simulate": _flip(-40),  # a flip near the end: wrong phi with exit 0, or SIGSEGV
+        "jacobian": _flip(count),  # "Too few leaves for PyTreeDef" on every run
+        "linearize": lambda b: b + b"\0",
+    }
+    others = [lambda b: b[: len(b) // 2], lambda b: b"\0garbage" * 100, lambda b: b"",
+              lambda b: b[:4], _flip(len(MAGIC) + 80)]
     files = sorted((cache / "crank-jax-programs").glob("*.xla"))
-    assert len(files) >= 4  # so that every kind of damage is tried
+    assert len(files) >= 4
     for i, p in enumerate(files):
-        # truncated, garbage, empty or a bare header: each must be a miss, never a crash
-        (copy / "crank-jax-programs" / p.name).write_bytes(damages[i % 4](p.read_bytes()))
+        damage = damages.get(p.name.split("-")[0], others[i % len(others)])
+        (store / p.name).write_bytes(damage(p.read_bytes()))
+    (store / "dangling.xla").symlink_to(tmp_path / "gone.xla")
+    stale = store / f".{files[0].name}.x1y2z3.tmp"
+    stale.write_bytes(b"partial")
+    old = os.stat(stale).st_mtime - STALE_TEMP_S - 60
+    os.utime(stale, (old, old))
     again = _run(copy)
-    assert again["values"] == first["values"]
-    assert set(again["compiled"]) == {"jacobian", "linearize", "simulate"}
-    assert all(p.stat().st_size > 1000 for p in (copy / "crank-jax-programs").glob("*.xla"))
+    assert again["values"] == first["values"] and again["stderr"] == first["stderr"]
+    assert again["sim"] == first["sim"]
+    assert set(again["compiled"]) == {p.name.split("-")[0] for p in files}
+    for p in files:  # every damaged file replaced by an intact one
+        blob = (store / p.name).read_bytes()
+        unpack(blob, blob[len(MAGIC):len(MAGIC) + 64].decode())
+    assert not stale.exists()
 
 
 # A stored program that calls LAPACK (a linear solve): a fresh process must register
@@ -146,3 +175,53 @@ def test_stored_program_calling_lapack_loads_in_a_fresh_process(tmp_path):
     assert runs[0]["compiled"] == ["lapack_test"] and runs[1]["compiled"] == []
     assert runs[0]["x"] == runs[1]["x"]
     assert abs(runs[0]["x"][0] - 1 / 11) < 1e-15 and abs(runs[0]["x"][1] - 7 / 11) < 1e-15
+
+
+# Issue 26 item 6: a user's load class (a module file of their own) edited between two
+# runs. The program holds the class's code, so the store must not hand the second run the
+# first run's executable.
+USER_LOAD = """
+import jax.numpy as jnp
+from crank_jax.model.loads import AbstractLoad
+
+class Push(AbstractLoad):
+    a: float
+
+    def __call__(self, t):
+        return self.a * {expr}
+
+    def mean(self):
+        return jnp.asarray(0.0)
+"""
+
+USER_SCRIPT = PRELUDE + r"""
+sys.path.insert(0, sys.argv[2])
+import numpy as np
+import userload
+mech = cj.load_scene("lab-rig").mech
+traj = cj.simulate(mech, 0.3, 0.0, np.linspace(0.0, 0.5, 11), load=userload.Push(a=40.0))
+print(json.dumps({"phi": float(traj.phi[-1]), "compiled": sorted(compiled)}))
+"""
+
+
+def test_user_load_class_edited_between_runs(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "CRANK_JAX_NO_CACHE"}
+    env["PYTHONDONTWRITEBYTECODE"] = "1"  # the edit keeps the file's size: no stale .pyc
+    code = tmp_path / "code"
+    code.mkdir()
+
+    def run(expr: str) -> dict:
+        (code / "userload.py").write_text(USER_LOAD.format(expr=expr))
+        out = subprocess.run([sys.executable, "-c", USER_SCRIPT, str(tmp_path / "cache"),
+                              str(code)], env=env, capture_output=True, text=True,
+                             timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    first = run("jnp.sin(t)")
+    assert "simulate" in first["compiled"]
+    edited = run("jnp.cos(t)")
+    assert "simulate" in edited["compiled"], "the edited class loaded the old program"
+    assert edited["phi"] != first["phi"]
+    again = run("jnp.cos(t)")  # unchanged: the user's class is stored, and loaded
+    assert again["compiled"] == [] and again["phi"] == edited["phi"]

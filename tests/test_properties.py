@@ -34,6 +34,7 @@ import tempfile
 import tomllib
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, event, given, settings
@@ -326,6 +327,64 @@ def test_any_command_line(capsys, argv, existing_out):
         if argv[0] != "simulate":
             assert code == 2, err
         assert code in (0, 2), err
+
+
+# --- damaged program store (issue 24 defect 1) ------------------------------------------------
+
+@st.composite
+def store_damages(draw):
+    """A damage to a stored program's bytes: a flipped byte at any position (header,
+    output count, executable, digest), a truncation to any length, or any bytes appended."""
+    kind = draw(st.sampled_from(["flip", "truncate", "append"]))
+    if kind == "flip":
+        i, x = draw(st.integers(0, 10**9)), draw(st.integers(1, 255))
+        return f"flip {i} ^ {x}", lambda b: b[:i % len(b)] + bytes([b[i % len(b)] ^ x]) \
+            + b[i % len(b) + 1:]
+    if kind == "truncate":
+        n = draw(st.integers(0, 10**9))
+        return f"truncate {n}", lambda b: b[:n % len(b)]
+    extra = draw(st.binary(min_size=1, max_size=64))
+    return f"append {extra!r}", lambda b: b + extra
+
+
+def _store_program():
+    from crank_jax.persistent import PersistentProgram
+
+    class Counted(PersistentProgram):
+        compiled = 0
+
+        def _compile(self, *a):
+            self.compiled += 1
+            return super()._compile(*a)
+
+    return Counted(lambda x, w: (jnp.sin(x) * w, jnp.cumsum(x), jnp.sum(x)), "prop_store")
+
+
+@_budget(8)
+@given(store_damages())
+def test_any_damaged_stored_program_is_recompiled_to_the_clean_result(damage):
+    """A stored program damaged anywhere is a miss before it is deserialised: the call
+    compiles again, returns the clean result, and stores an intact file in its place."""
+    from crank_jax import persistent, program_store
+
+    name, hurt = damage
+    event(name.split()[0])
+    x, w = jnp.linspace(0.0, 1.0, 5), jnp.asarray(2.0)
+    with tempfile.TemporaryDirectory() as d, pytest.MonkeyPatch.context() as mp:
+        store = Path(d)
+        mp.setattr(persistent, "program_store_dir", lambda: store)
+        clean = _store_program()(x, w)
+        (path,) = store.glob("*.xla")
+        blob = path.read_bytes()
+        key = blob[len(program_store.MAGIC):len(program_store.MAGIC) + 64].decode()
+        damaged = hurt(blob)
+        path.write_bytes(damaged)
+        prog = _store_program()
+        out = prog(x, w)
+        assert prog.compiled == 1, name
+        for a, b in zip(out, clean, strict=True):
+            np.testing.assert_array_equal(a, b)
+        program_store.unpack(path.read_bytes(), key)  # replaced by an intact file
 
 
 def test_budget_is_documented():

@@ -4,15 +4,20 @@ file, and checks of output paths made before any work."""
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
+import re
+import socket
 import stat
 import tempfile
+import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import IO
 
 __all__ = ["atomic_write", "check_not_input", "check_output", "check_figure_format",
-           "default_file_mode", "Terminated", "note_signal", "raise_if_terminated"]
+           "default_file_mode", "Terminated", "note_signal", "raise_if_terminated",
+           "temp_file", "remove_stale_temps", "STALE_TEMP_S"]
 
 
 class Terminated(BaseException):
@@ -64,6 +69,53 @@ def _is_special(path: Path) -> bool:
     return not stat.S_ISREG(mode) and not stat.S_ISDIR(mode)
 
 
+#: A temporary file untouched for this long (s) is a dead writer's, wherever it ran.
+STALE_TEMP_S = 3600.0
+_HOST = hashlib.sha256(socket.gethostname().encode()).hexdigest()[:8]
+_TEMP = r"\.(\d+)\.([0-9a-f]{8})-\w+\.tmp"  # after `.{name}`: `.{pid}.{host}-{random}.tmp`
+
+
+def temp_file(directory: Path, name: str) -> tuple[int, str]:
+    """`tempfile.mkstemp` for a file `name` in `directory`, named after this process
+    (`.{name}.{pid}.{host}-{random}.tmp`) so that a later writer can tell a dead writer's
+    file from a live one; removes the stale ones of `name` first
+    ([`remove_stale_temps`][]). A process killed (SIGKILL, a crash) before it renames or
+    removes its file leaves it only until the next write of the same name."""
+    remove_stale_temps(directory, name)
+    return tempfile.mkstemp(prefix=f".{name}.{os.getpid()}.{_HOST}-", suffix=".tmp",
+                            dir=directory)
+
+
+def remove_stale_temps(directory: Path, name: str | None = None) -> None:
+    """Remove the [`temp_file`][]s of `name` (any name if None) whose writer is gone: a
+    process of this host that no longer runs, or a file untouched for
+    [`STALE_TEMP_S`][]. Never an error."""
+    pattern = re.compile((re.escape(f".{name}") if name is not None else r"\..+") + _TEMP)
+    now = time.time()
+    try:
+        entries = list(os.scandir(directory))
+    except OSError:
+        return
+    for e in entries:
+        m = pattern.fullmatch(e.name)
+        with contextlib.suppress(OSError):
+            if m and e.is_file(follow_symlinks=False) and (
+                    (m[2] == _HOST and not _alive(int(m[1])))
+                    or now - e.stat(follow_symlinks=False).st_mtime > STALE_TEMP_S):
+                os.unlink(e.path)
+
+
+def _alive(pid: int) -> bool:
+    """Whether process `pid` runs on this host (one of another user counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return True
+    return True
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
     """Open a temporary file beside `path`; on success rename it over `path` atomically.
@@ -92,7 +144,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
         file_mode = stat.S_IMODE(os.stat(path).st_mode)
     except OSError:
         file_mode = default_file_mode()
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    fd, tmp = temp_file(directory, path.name)
     try:
         with os.fdopen(fd, mode) as f:
             os.fchmod(f.fileno(), file_mode)

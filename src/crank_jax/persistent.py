@@ -8,8 +8,12 @@ that: the first call compiles the program and stores the executable
 (`jax.experimental.serialize_executable`) under a key made of everything that decides it:
 the static part of the arguments, their shapes and dtypes, this package's source, the
 versions of JAX and of the libraries that trace into it, x64, the backend and the CPU's
-instruction-set flags (an executable is machine code). Later processes load it (tens of
-milliseconds to a few tenths of a second, by size).
+instruction-set flags (an executable is machine code), and the source of any class from
+outside crank-jax in the arguments (`foreign_code.py`: a user's load, a force of their
+own). Later processes load it (tens of milliseconds to a few tenths of a second, by size).
+Each file carries a SHA-256 of all of it, checked before anything is deserialised
+(`program_store.py`); a damaged file, or one that does not load or run here, is
+discarded and compiled again, never loaded and never fatal.
 
 The store is used only where JAX's persistent compilation cache is configured (the CLI
 does it; a library user calls `enable_compilation_cache()`): a library has no disk side
@@ -33,7 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .io import atomic_write
+from . import program_store
+from .foreign_code import foreign_classes, source_digest
 from .xla_flags import instruction_sets
 
 __all__ = ["PersistentProgram", "program_store_dir", "checks_without_callbacks", "enum_code",
@@ -110,7 +115,9 @@ def _environment() -> str:
 
 def _signature(name: str, args) -> tuple[str | None, list, object, object]:
     """(key, array leaves, their treedef, the static part) of a call; the key is None when
-    the static part names an object by its address (a user's function: no stable key)."""
+    the static part names an object by its address (a user's function: no stable key),
+    or holds a class from outside crank-jax whose source cannot be keyed (see
+    `foreign_code.py`)."""
     dyn, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree.flatten(dyn)
     static_leaves, static_def = jax.tree.flatten(static)
@@ -121,6 +128,12 @@ def _signature(name: str, args) -> tuple[str | None, list, object, object]:
               for x in leaves])])
     if " at 0x" in text:
         return None, leaves, treedef, static
+    foreign = foreign_classes((treedef, static_def), static_leaves)
+    if foreign:  # a user's class: its code is in the program, so its source in the key
+        source = source_digest(frozenset(foreign))
+        if source is None:
+            return None, leaves, treedef, static
+        text += "\n" + source
     return hashlib.sha256(text.encode()).hexdigest(), leaves, treedef, static
 
 
@@ -167,21 +180,22 @@ class PersistentProgram:
         if call is not None:
             return self._jit(args) if call is _UNSTORED else tuple(call(*leaves))
         path = store / f"{self.name}-{key[:32]}.xla"
-        call = _load(path, len(leaves))
+        call = _load(path, key, len(leaves))
         if call is not None:
             out = self._try(call, leaves)
             if out is not None:
                 self._loaded[key] = call
                 return out
+            program_store.discard(path)  # it does not run here: compiled and stored anew
         # The program's name carries the key, and a retry a random tag: JAX's own cache
         # then never supplies the executable (one it supplies cannot be serialised again:
         # loaded in another process it fails with "Function ... not found").
         for tag in (key[:16], f"{key[:16]}_{os.urandom(4).hex()}"):
-            call, blob = self._compile(leaves, treedef, static, tag)
+            call, blob = self._compile(leaves, treedef, static, key, tag)
             out = self._try(call, leaves)
             if out is not None:
                 if blob is not None:  # stored only once it has run
-                    _store(path, blob)
+                    program_store.write(path, blob)
                 self._loaded[key] = call
                 return out
         self._loaded[key] = _UNSTORED
@@ -189,10 +203,12 @@ class PersistentProgram:
 
     @staticmethod
     def _try(call, leaves):
-        """`call(*leaves)` as a tuple, or None if the executable does not run here."""
+        """`call(*leaves)` as a tuple, or None if the executable does not run here (a
+        failed call is never fatal: the caller compiles, or runs the program unstored,
+        which raises any error of the program's own)."""
         try:
             return jax.block_until_ready(tuple(call(*leaves)))
-        except jax.errors.JaxRuntimeError:
+        except Exception:
             return None
 
     def lower(self, *args):
@@ -231,7 +247,7 @@ class PersistentProgram:
 
         return flat
 
-    def _compile(self, leaves, treedef, static, tag: str):
+    def _compile(self, leaves, treedef, static, key: str, tag: str):
         """(the executable to run, its serialised bytes or None): the bytes are loaded
         back at once, so what runs now is what later processes will load."""
         fn = self.fn
@@ -253,10 +269,9 @@ class PersistentProgram:
         try:
             from jax.experimental.serialize_executable import serialize
 
-            n_out = compiled.out_tree.num_leaves
-            blob = (_MAGIC + n_out.to_bytes(4, "little") + bytes([bool(targets)])
-                    + bytes([_device_count(compiled)]) + serialize(compiled)[0])
-            return _deserialize(blob, len(leaves)), blob
+            entry = program_store.Entry(compiled.out_tree.num_leaves, bool(targets),
+                                        _device_count(compiled), serialize(compiled)[0])
+            return _deserialize(entry, len(leaves)), program_store.pack(key, entry)
         except Exception:  # a program that cannot be stored still runs
             return compiled, None
 
@@ -264,16 +279,17 @@ class PersistentProgram:
 _UNSTORED = object()  # marks a program that runs unstored in this process
 
 
-def _load(path: Path, n_in: int):
-    """The stored executable at `path`, or None (missing, truncated, foreign)."""
-    try:
-        blob = path.read_bytes()
-        os.utime(path)  # recently used: kept by `_evict`
-    except OSError:
+def _load(path: Path, key: str, n_in: int):
+    """The executable stored at `path` under `key`, or None: missing, damaged (its digest
+    is checked before anything is deserialised, `program_store.read`) or one that does
+    not load here (then discarded, to be compiled and stored anew)."""
+    entry = program_store.read(path, key)
+    if entry is None:
         return None
     try:
-        return _deserialize(blob, n_in)
+        return _deserialize(entry, n_in)
     except Exception:
+        program_store.discard(path)
         return None
 
 
@@ -305,9 +321,6 @@ def _ready_custom_calls() -> None:
 _READY = False
 
 
-# A stored program: this tag, the number of outputs (4 bytes), whether it calls LAPACK (1
-# byte), the number of devices it runs on (1 byte), JAX's serialisation.
-_MAGIC = b"crank-jax program 3\n"
 _MAX_OUTPUTS = 4096
 
 
@@ -317,47 +330,19 @@ def _device_count(compiled) -> int:
     return max([len(s.device_set) for s in shardings] + [1])
 
 
-def _deserialize(blob: bytes, n_in: int):
-    """Load a stored executable; `ValueError` for anything else."""
+def _deserialize(entry: program_store.Entry, n_in: int):
+    """Load a stored (intact) executable; `ValueError` for a header it cannot have."""
     from jax.experimental.serialize_executable import deserialize_and_load
 
-    head = len(_MAGIC) + 6
-    n_out = int.from_bytes(blob[len(_MAGIC):head - 2], "little")
-    n_dev = blob[head - 1] if len(blob) > head else 0
-    if (not blob.startswith(_MAGIC) or not 0 < n_out <= _MAX_OUTPUTS
-            or not 0 < n_dev <= jax.device_count()):
-        raise ValueError("not a stored program")
-    if blob[head - 2]:  # it calls LAPACK (registering its targets costs ~0.15 s: only then)
+    if not 0 < entry.n_out <= _MAX_OUTPUTS or not 0 < entry.n_dev <= jax.device_count():
+        raise ValueError("not a program for this process")
+    if entry.lapack:  # it calls LAPACK (registering its targets costs ~0.15 s: only then)
         _ready_custom_calls()
-    blob = blob[head:]
     in_tree = jax.tree.structure((tuple(range(n_in)), {}))
-    out_tree = jax.tree.structure(tuple(range(n_out)))
+    out_tree = jax.tree.structure(tuple(range(entry.n_out)))
     # Without `execution_devices` JAX loads it onto every device of a multi-device client
     # (e.g. one CPU device per core, `configure_cpu`), and a one-device program then fails
     # on its first call ("Expected args ... to have 2 shards").
-    return deserialize_and_load(blob, in_tree, out_tree,
-                                execution_devices=jax.devices()[:n_dev])
+    return deserialize_and_load(entry.payload, in_tree, out_tree,
+                                execution_devices=jax.devices()[:entry.n_dev])
 
-
-#: The store keeps at most this many programs (~1 MB each), the most recently used.
-MAX_PROGRAMS = 256
-
-
-def _store(path: Path, blob: bytes) -> None:
-    """Write `blob` atomically (`io.atomic_write`); a store that cannot be written is
-    not an error."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_write(path, "wb") as f:
-            f.write(blob)
-        _evict(path.parent)
-    except OSError:
-        pass
-
-
-def _evict(store: Path) -> None:
-    """Remove the least recently used programs beyond [`MAX_PROGRAMS`][]."""
-    files = sorted(store.glob("*.xla"), key=lambda p: p.stat().st_mtime)
-    for p in files[:max(0, len(files) - MAX_PROGRAMS)]:
-        with contextlib.suppress(OSError):
-            p.unlink()

@@ -81,6 +81,13 @@ class Validation(NamedTuple):
                          for n, c in (self.channels or {}).items()},
         }
 
+    def report(self, path, *, scene=None, command=None, title: str = "") -> None:
+        """Write a self-contained HTML report to `path` (see
+        [`write_validation_report`][crank_jax.report.write_validation_report])."""
+        from .report import write_validation_report
+
+        write_validation_report(self, path, scene=scene, command=command, title=title)
+
     def summary(self) -> str:
         """One paragraph for the terminal."""
         chans = self.channels or {"phi": {"unit": "rad"}}

@@ -88,6 +88,9 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
                         "fields, P0, P1, tau0, tau1, phi0, dphi0")
     p.add_argument("--out", help="write the report as JSON to this file")
     p.add_argument("--plot", help="draw data vs fit, residuals and correlations to this PNG")
+    p.add_argument("--report", metavar="HTML",
+                   help="write a self-contained HTML report (estimates, correlations, "
+                        "figures, verdicts, provenance) to this file")
     p.add_argument("--init", default="scene", choices=("scene", "regressor"),
                    help="start values: the scene's, or from the linear regressor form")
     p.add_argument("--method", default="lm", choices=("lm", "optax"),
@@ -139,7 +142,7 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
     from ..io import check_figure_format, check_output
 
     outs = ((a.out, "--out"), (a.plot, "--plot"), (getattr(a, "scene_out", None),
-                                                   "--scene-out"))
+                                                   "--scene-out"), (a.report, "--report"))
     for path, option in outs:
         if path:
             check_output(path, inputs, option)
@@ -147,7 +150,7 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
         check_figure_format(a.plot)
     named = [path for path, _ in outs if path]
     if len(set(named)) < len(named):
-        raise UserError("--out, --plot and --scene-out must name different files")
+        raise UserError("--out, --plot, --scene-out and --report must name different files")
 
 
 def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = "") -> int:
@@ -172,6 +175,10 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
 
         plot_fit(res, a.plot, title)
         print(f"wrote {a.plot}", file=sys.stderr)
+    if a.report:
+        res.report(a.report, scene=a.fitted_scene, command=getattr(a, "_argv", None),
+                   title=title)
+        print(f"wrote {a.report}", file=sys.stderr)
     if getattr(a, "scene_out", None):
         _write_scene(res, a)
         print(f"wrote {a.scene_out}", file=sys.stderr)

@@ -150,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
         with _signals_raise(), _warnings_one_line():
             # --debug is accepted anywhere on the line, not only before the command.
             args = build_parser().parse_args([a for a in argv if a != "--debug"])
+            args._argv = ["crank-jax"] + argv  # the command line, for reports
             _setup_jax()
             code = int(args._run(args) or 0)
             raise_if_terminated()  # a signal whose exception was dropped: still its exit

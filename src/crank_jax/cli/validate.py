@@ -38,6 +38,8 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
     add_channel_options(p)
     p.add_argument("--out", required=True, help="write the scores as JSON to this file")
     p.add_argument("--plot", help="draw data, prediction and error to this PNG")
+    p.add_argument("--report", metavar="HTML",
+                   help="write a self-contained HTML report (scores, figures, provenance)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -71,7 +73,7 @@ def _read(a: argparse.Namespace, scene):
 
 
 def _validate_run(a: argparse.Namespace) -> int:
-    from ..io import atomic_write, check_not_input
+    from ..io import atomic_write, check_not_input, check_output
     from ..scene import load_scene
     from ..validate import plot_validation, validate
 
@@ -79,8 +81,11 @@ def _validate_run(a: argparse.Namespace) -> int:
     for path in (a.out, a.plot):
         if path:
             check_not_input(path, [a.data, a.scene])
-    if a.plot and a.out == a.plot:
-        raise UserError("--out and --plot name the same file")
+    if a.report:
+        check_output(a.report, [a.data, a.scene], "--report")
+    named = [p for p in (a.out, a.plot, a.report) if p]
+    if len(set(named)) < len(named):
+        raise UserError("--out, --plot and --report must name different files")
     scene = load_scene(a.scene)
     data = _read(a, scene)
     val = validate(scene, data, t_start=a.t_start, t_end=a.t_end, init_window=a.init_window,
@@ -95,6 +100,10 @@ def _validate_run(a: argparse.Namespace) -> int:
     if a.plot:
         plot_validation(val, a.plot, title=f"{a.data} predicted by {a.scene}")
         print(f"wrote {a.plot}", file=sys.stderr)
+    if a.report:
+        val.report(a.report, scene=scene, command=getattr(a, "_argv", None),
+                   title=f"{a.data} predicted by {a.scene}")
+        print(f"wrote {a.report}", file=sys.stderr)
     return 0
 
 

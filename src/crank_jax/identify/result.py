@@ -129,6 +129,13 @@ class FitResult(NamedTuple):
                          for n, c in (self.channels or {}).items()},
         }
 
+    def report(self, path, *, scene=None, command=None, title: str = "") -> None:
+        """Write a self-contained HTML report to `path` (see
+        [`write_fit_report`][crank_jax.report.write_fit_report]); `scene`: the fit's."""
+        from ..report import write_fit_report
+
+        write_fit_report(self, path, scene=scene, command=command, title=title)
+
     def summary(self) -> str:
         """A human-readable table of the estimates with their 95% intervals."""
         lines = [f"{'parameter':<10} {'start':>12} {'estimate':>12} {'stderr':>11} "

@@ -268,7 +268,7 @@ def check_travel(lin, top: float, phi0, dphi0, span: float, max_steps: int) -> N
 
     The crank travels at least `A = |phi0 - phi_eq| + |dphi0| / omega` (omega: the fastest
     linear mode `top`, or 1/span without one) once it moves for a time `1/omega`, and every
-    turn needs at least [`_MIN_STEPS_PER_TURN`][] steps.
+    turn needs at least `_MIN_STEPS_PER_TURN` steps.
     """
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         eq = np.nan_to_num(np.asarray(lin.phi_eq, dtype=float))

@@ -1,0 +1,102 @@
+"""The report's figures, drawn with matplotlib and embedded in the page: inline SVG
+(sharp when printed), or a base64 PNG above [`SVG_MAX_POINTS`][] plotted points, where
+an SVG would grow to megabytes."""
+
+from __future__ import annotations
+
+import base64
+import io
+
+import numpy as np
+
+from ..identify.diagnostics import plot_acf
+from ..plot import pyplot
+
+__all__ = ["embed", "fit_figures", "validation_figures", "SVG_MAX_POINTS"]
+
+#: Plotted points above which a figure is embedded as PNG rather than SVG.
+SVG_MAX_POINTS = 20_000
+
+
+def embed(fig, points: int = 0) -> str:
+    """The figure as HTML markup (an `<svg>` element or a `data:` PNG `<img>`); closes it."""
+    buf = io.BytesIO()
+    try:
+        if points <= SVG_MAX_POINTS:
+            # No date: the same result gives the same page.
+            fig.savefig(buf, format="svg", bbox_inches="tight", metadata={"Date": None})
+            text = buf.getvalue().decode("utf-8")
+            return text[text.index("<svg"):]  # drop the XML prolog and DOCTYPE
+        fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+        data = base64.b64encode(buf.getvalue()).decode("ascii")
+        return f'<img alt="figure" src="data:image/png;base64,{data}">'
+    finally:
+        pyplot().close(fig)
+
+
+def _data_and_residuals(result):
+    plt = pyplot()
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True,
+                                   gridspec_kw={"height_ratios": [2, 1]})
+    for i, (d, f) in enumerate(zip(result.data, result.fitted)):
+        label = f" (record {i})" if len(result.data) > 1 else ""
+        ax1.plot(d.ts, d.phi, ".", ms=2, color=f"C{2 * i}", label="data" + label)
+        ax1.plot(d.ts, f, "-", lw=1, color=f"C{2 * i + 1}", label="fit" + label)
+        ax2.plot(d.ts, d.phi - np.asarray(f), ".", ms=2, color=f"C{2 * i}")
+    ax1.set_ylabel("phi [rad]")
+    ax1.legend(loc="upper right", fontsize=8)
+    ax2.set_ylabel("data - fit [rad]")
+    ax2.set_xlabel("t [s]")
+    for ax in (ax1, ax2):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig, 2 * sum(d.n for d in result.data)
+
+
+def _acf(diag):
+    fig, ax = pyplot().subplots(figsize=(7, 3.2))
+    plot_acf(ax, diag)
+    fig.tight_layout()
+    return fig
+
+
+def fit_figures(result) -> list[dict]:
+    """Data against fit with the residuals, and the residuals' autocorrelation (when the
+    fit has residual diagnostics), as `{"title", "markup"}` dicts."""
+    fig, points = _data_and_residuals(result)
+    out = [{"title": "Data against fit, and the residuals", "markup": embed(fig, points)}]
+    if result.diagnostics is not None:
+        out.append({"title": "Autocorrelation of the residuals",
+                    "markup": embed(_acf(result.diagnostics))})
+    return out
+
+
+def _prediction(val):
+    plt = pyplot()
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True,
+                                   gridspec_kw={"height_ratios": [2, 1]})
+    t0 = float(val.ts[0])
+    for ax in (ax1, ax2):
+        ax.axvspan(t0, t0 + val.init_window, color="0.9", zorder=0)
+        ax.grid(alpha=0.3)
+    ax1.plot(val.ts, val.phi, ".", ms=2, color="C0", label="data")
+    ax1.plot(val.ts, val.predicted, "-", lw=1, color="C1", label="prediction (open loop)")
+    ax1.set_ylabel("phi [rad]")
+    ax1.legend(loc="upper right", fontsize=8)
+    ax2.plot(val.ts, val.phi - val.predicted, "-", lw=0.8, color="C3")
+    ax2.set_ylabel("data - prediction [rad]")
+    ax2.set_xlabel("t [s] (shaded: initial-state window)")
+    fig.tight_layout()
+    return fig, 3 * len(val.ts)
+
+
+def validation_figures(val, diag) -> list[dict]:
+    """Data against the open-loop prediction with its error, and the error's
+    autocorrelation over the scored samples (`diag`, or `None`)."""
+    fig, points = _prediction(val)
+    out = [{"title": "Data against the open-loop prediction, and the error",
+            "markup": embed(fig, points)}]
+    if diag is not None:
+        out.append({"title": "Autocorrelation of the prediction error (scored samples)",
+                    "markup": embed(_acf(diag))})
+    return out
