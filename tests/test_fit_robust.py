@@ -14,7 +14,7 @@ from crank_jax.cli import main
 from crank_jax.cli.identify import demo_data
 from crank_jax.identify.fit import _best
 from crank_jax.identify.optimise import Run, least_squares
-from crank_jax.identify.problem import build_problem
+from crank_jax.identify.problem import build_problem, coordinate
 from crank_jax.identify.programs import Subspace, residuals_at
 from crank_jax.identify.uncertainty import analyse, fixed_scale_members
 
@@ -47,6 +47,10 @@ def _problem(demo, free, start):
 def test_folded_coordinate_is_valid_on_both_sides_and_not_flat_at_zero(demo):
     pr = _problem(demo, ("k", "T_c"), {"k": 2.0, "T_c": 0.0})
     assert pr.folded == (False, True) and pr.log == (True, False)
+    # Friction is folded from a positive start too: in log coordinates a true 0 ends as
+    # ln T_c -> -inf, reported as "not determined" rather than as 0 with a bound.
+    assert _problem(demo, ("T_c", "m_s"), {"T_c": 1e-3, "m_s": 0.0}).folded == (True, True)
+    assert coordinate("T_c", 1e-3, demo[0].mech) == (False, 1e-3)
     ref = float(pr.ref[1])
     for z in (-0.7, 0.0, 0.7):
         assert float(pr.values(jnp.asarray([0.0, z]))[1]) == pytest.approx(abs(z) * ref)
@@ -130,3 +134,40 @@ def test_library_refuses_out_of_range_options(demo):
     for kw in ({"sigma": 1e300}, {"max_steps": 2**31}):
         with pytest.raises(ValueError, match=next(iter(kw))):
             cj.fit(scene, data, progress=False, **kw)
+
+
+def test_record_with_no_motion_above_its_noise_is_refused_before_any_solve(lab_rig):
+    # Issue 24.8: a pure-noise angle record took minutes (its noise crossings taken for
+    # 457 periods: 48 segments, then more starts). Noise about a constant is refused at
+    # once, whatever its scale; a constant record too.
+    rng = np.random.default_rng(0)
+    ts = np.arange(2001) / 200.0
+    for phi in (rng.normal(0.0, 0.3, ts.size), 5.0 + rng.normal(0.0, 1e-4, ts.size),
+                np.full(ts.size, 0.3)):
+        res = cj.fit(lab_rig, cj.Data(ts, phi, source="noise.csv"), progress=False,
+                     warn=False)
+        assert not res.converged and res.iterations == 0
+        assert "no motion above its noise" in res.message
+
+
+def test_good_record_plus_one_of_many_turns_is_refused_by_that_record(lab_rig):
+    # Issue 24.8: a record of 10^4 turns beside a good one ran 100 s and ended with a
+    # false "common scale" claim; alone it was refused at once. Each record is judged by
+    # its own solve.
+    good = cj.synthesize(lab_rig, t1=2.0, rate=200.0, noise_std=1e-3, seed=3)
+    ts = np.arange(2001) / 200.0
+    spin = cj.Data(ts, 2 * np.pi * 1e3 * ts, source="spin.csv")
+    res = cj.fit(lab_rig, [good, spin], progress=False, warn=False)
+    assert not res.converged and res.iterations == 0
+    assert "spin.csv" in res.message and "turns" in res.message
+    assert not any("common scale" in w for w in res.warnings)
+
+
+def test_fit_messages_name_the_commands_options():
+    from crank_jax.cli.identify import cli_words
+    from crank_jax.identify.optimise import _budget_spent
+    from crank_jax.identify.strategy import absurd_start
+
+    assert "--max-steps 7" in cli_words(_budget_spent(7))
+    text = cli_words(absurd_start(10**6, 1.0, 0.5))
+    assert "--init regressor" in text and "init=" not in text

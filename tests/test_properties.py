@@ -292,6 +292,8 @@ def other_argvs(draw):
         ["fit", "{d}/d.csv", "{d}/s.toml", "--out", "{d}/s.toml"],
         ["fit", "{d}/d.csv", "lab-rig", "--multistart", "0"],
         ["fit", "{d}/d.csv", "lab-rig", "--sigma", "nan"],
+        ["fit", "{d}/d.csv", "lab-rig", "--sigma", "1e300"],
+        ["fit", "{d}/d.csv", "lab-rig", "--max-steps", "2147483648"],
         ["fit", "{d}/d.csv", "lab-rig", "--free", ","],
         ["fit", "{d}/d.csv"],
         ["demo", "--plot", "{d}/p.xyz"],
@@ -385,6 +387,46 @@ def test_any_damaged_stored_program_is_recompiled_to_the_clean_result(damage):
         for a, b in zip(out, clean, strict=True):
             np.testing.assert_array_equal(a, b)
         program_store.unpack(path.read_bytes(), key)  # replaced by an intact file
+
+
+# --- fits on generated requests (issue 24.3, 24.8) ---------------------------------------------
+
+_ZERO_START = ("T_c", "c_s", "F_s")  # >= 0 and 0 in the lab rig: fitted from 0
+
+
+@_budget(2)
+@given(st.lists(st.sampled_from(_ZERO_START), min_size=1, max_size=2, unique=True))
+def test_sign_constrained_parameters_starting_at_zero_stay_valid(free):
+    # A parameter that must be >= 0 and starts at 0: the fit never steps it below 0,
+    # never raises, and its interval (when given) is cut at 0.
+    scene = cj.load_scene("lab-rig")
+    data = cj.synthesize(scene, t1=1.5, rate=100.0, noise_std=1e-3, seed=1)
+    res = cj.fit(scene, data, free=("k", *free, "phi0", "dphi0"), progress=False, warn=False)
+    for n in free:
+        assert res.values[n] >= 0.0 and float(getattr(res.mech, n)) >= 0.0
+        assert res.ci95[n] is None or res.ci95[n][0] >= 0.0
+    assert all(math.isfinite(v) for v in res.values.values())
+
+
+@st.composite
+def degenerate_records(draw):
+    """Records with no motion above their noise: a constant at any level, or Gaussian
+    noise of any scale about any level (a pure-noise column, a crank at rest)."""
+    n = draw(st.integers(20, 400))
+    ts = np.arange(n) / draw(st.sampled_from([10.0, 200.0, 1e4]))
+    level = draw(st.floats(-100.0, 100.0))
+    scale = draw(st.sampled_from([0.0, 1e-9, 1e-3, 0.3, 10.0]))
+    rng = np.random.default_rng(draw(st.integers(0, 2**16)))
+    return cj.Data(ts, level + scale * rng.normal(size=n), source="degenerate.csv")
+
+
+@_budget(6)
+@given(degenerate_records())
+def test_degenerate_records_are_refused_before_any_solve(data):
+    res = cj.fit(cj.load_scene("lab-rig"), data, progress=False, warn=False)
+    assert not res.converged and res.iterations == 0, res.message
+    assert "no motion above its noise" in res.message
+    assert all(math.isfinite(v) for v in res.values.values())
 
 
 def test_budget_is_documented():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 
 import numpy as np
@@ -153,9 +154,28 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
         raise UserError("--out, --plot, --scene-out and --report must name different files")
 
 
+#: The library's words for its options -> the command's (each message the command prints
+#: names an option the command has).
+_CLI_WORDS = (
+    (re.compile(r"init='regressor'"), "--init regressor"),
+    (re.compile(r"max_steps = (\d+)"), r"--max-steps \1"),
+    (re.compile(r"choose other start values\b(?! \()"),
+     "choose other start values (in the scene file, or --init regressor)"),
+)
+
+
+def cli_words(text: str) -> str:
+    """A fit message with the library's option names replaced by the command's."""
+    for pattern, repl in _CLI_WORDS:
+        text = pattern.sub(repl, text)
+    return text
+
+
 def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = "") -> int:
     from ..io import atomic_write
 
+    res = res._replace(message=cli_words(res.message),
+                       warnings=[cli_words(w) for w in res.warnings])
     print(res.summary())
     if truth:
         print("truth: " + ", ".join(f"{k} = {v:g}" for k, v in truth.items()))
@@ -195,8 +215,8 @@ def _fit_kwargs(a: argparse.Namespace) -> dict:
         raise UserError("--free is empty; name at least one parameter")
     unknown = [n for n in free if n not in free_names()]
     if unknown:
-        raise UserError(f"--free names unknown parameter(s) {', '.join(unknown)}; choose from "
-                        f"{', '.join(free_names())}")
+        raise UserError(f"--free: unknown free parameter(s) {', '.join(unknown)}; choose "
+                        f"from {', '.join(free_names())}")
     if a.multistart < 1:
         raise UserError(f"--multistart must be >= 1, got {a.multistart}")
     if a.segments is not None and a.segments < 1:

@@ -2,7 +2,8 @@
 
 `fit` reads as its steps, each in its own module: check the request
 ([`request`][]), take start values from the data ([`start`][]), build the least-squares
-problem ([`problem`][]), plan the shooting and the step budget ([`strategy`][]), optimise
+problem ([`problem`][]), plan the shooting and the step budget ([`plan`][],
+[`strategy`][]), optimise
 ([`optimise`][]), escalate if the fit stalls far from the noise level, then the
 uncertainty and identifiability at the estimate ([`uncertainty`][]) and the result
 ([`result`][]).
@@ -38,29 +39,23 @@ import numpy as np
 from ..data import Data
 from ..scene import Scene
 from . import channels as ch
-from .angle import motion_period
 from .measurement import fitted_channels
 from .optimise import Run, least_squares, minimise_optax
-from .problem import Problem, build_problem, linear_frequency, pick_solver
+from .plan import Plan, basis, make_plan, shooting
+from .problem import Problem
 from .profile import profile_likelihood
-from .programs import Subspace, jacobian_at
-from .request import STATE_NAMES, FitRequest, free_names, normalise
+from .programs import Subspace
+from .request import FitRequest, free_names, normalise
 from .result import ConvergenceWarning, FitResult, IdentifiabilityWarning, Profile
-from .start import half_window, regressor_start, smooth_derivatives
+from .start import regressor_start
 from .strategy import (
     AUTO_PERIODS,
-    MAX_ODE_STEPS,
     SEGMENT_PERIODS,
-    SMALL_ODE_BUDGET,
-    absurd_frequency,
-    absurd_start,
     far_from_noise,
-    n_segments,
-    ode_budget,
     perturb,
     record_segments,
 )
-from .uncertainty import RANK_TOL, assess, undefined
+from .uncertainty import assess, undefined
 
 __all__ = ["fit", "FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning",
            "FREE_NAMES", "AUTO_PERIODS", "SEGMENT_PERIODS", "regressor_start"]
@@ -69,158 +64,17 @@ __all__ = ["fit", "FitResult", "Profile", "IdentifiabilityWarning", "Convergence
 FREE_NAMES: tuple[str, ...] = free_names()
 #: Extra starts tried when a fit stalls far from the noise level.
 ESCALATION_STARTS = 4
+#: The extra starts stop once they have taken as long as the first attempt, or this
+#: many seconds if that was quicker (see `_optimise`).
+ESCALATION_SECONDS = 3.0
 
 
-@dataclasses.dataclass
-class _Plan:
-    """What the fit works with, once the start solve has been looked at."""
-
-    single: Problem  # single shooting, with the fit's step budget
-    shoot: Problem  # the problem optimised (multiple shooting, or `single`)
-    z0: np.ndarray  # start coordinates of `shoot`
-    Bg: np.ndarray  # (p, q) basis of the global directions optimised (flat ones held)
-    start: dict  # start value of every reported name
-    noise: float  # the records' noise level, rad
-    periods: list  # observed period of each record, s (or None)
-    notes: list
-    strategy: str
-    start_g: dict  # start values of the global names
-    states: list  # start state of each record
-    solver: str
-    abort: str | None = None
-
-
-def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
-    """Start values of the global names, each record's start state, and notes."""
-    start, notes = dict(req.start), []
-    if req.init == "regressor":
-        # On the angle the channels tell: the regressor form is written in phi.
-        reg, notes = regressor_start(req.scene.mech, ch.angle_records(req), req.free, periods)
-        start.update(reg)
-    states = []
-    for d, a, per, fixed in zip(req.records, req.angles, periods, req.states):
-        # The state at the first sample from a smoothed fit to the first samples: the
-        # scene's state is at t = 0, and real records start anywhere.
-        ps, dps, _ = smooth_derivatives(d.ts, a, half_window(d.ts, per), [0])
-        states.append((float(ps[0]) if "phi0" in req.free else fixed[0],
-                       float(dps[0]) if "dphi0" in req.free else fixed[1]))
-    return start, states, notes
-
-
-def _problem(req: FitRequest, start, states, nseg, budget, solver) -> Problem:
-    recs = [(d, lo, to, s[0], s[1]) for d, (lo, to), s in zip(req.records, req.loads, states)]
-    periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
-    omega = next((2 * math.pi / p for p in periods if p), None)
-    return build_problem(req.scene.mech, recs, req.free, start, nseg, solver=solver,
-                         rtol=float(req.scene.rtol), atol=float(req.scene.atol),
-                         max_steps=budget, adjoint="forward", omega=omega,
-                         angles=req.angles, sigmas=req.sigmas, per_record=req.per_record)
-
-
-def _start_solve(req, start, states, solver):
-    """The single-shooting problem at the smallest budget that solves the start, the
-    start coordinates, and there the residuals, failures, steps and sensitivities."""
-    for budget in (SMALL_ODE_BUDGET, MAX_ODE_STEPS):
-        ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
-        z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
-        r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z)))
-        if int(failed) == 0 or budget == MAX_ODE_STEPS:
-            return ss, z, r, int(failed), int(steps), J
-
-
-def _state(name: str, states, start) -> float:
-    base, _, idx = name.partition("[")
-    if base not in STATE_NAMES:  # a per-record parameter starts where its name does
-        return start[base]
-    i = int(idx[:-1]) if idx else 0
-    return states[i][STATE_NAMES.index(base)]
-
-
-def _flat_basis(J0: np.ndarray) -> np.ndarray:
-    """(p, q) basis of the directions to optimise, from the sensitivities at the start
-    (N, p). Directions in which the residuals are exactly flat (the common scale) are held
-    fixed: the optimiser would otherwise wander along them, and the reported point is the
-    one on the ridge nearest to the start."""
-    p = J0.shape[1]
-    if not np.all(np.isfinite(J0)):
-        return np.eye(p)
-    _, s0, Vt0 = np.linalg.svd(J0, full_matrices=False)
-    keep = s0 > RANK_TOL * s0[0]
-    return np.eye(p) if np.all(keep) else Vt0[keep].T
-
-
-def _basis(Bg: np.ndarray, n_coords: int) -> np.ndarray:
-    """The global basis, with every segment state (after the p globals) free."""
-    p, q = Bg.shape
-    B = np.zeros((n_coords, q + n_coords - p))
-    B[:p, :q] = Bg
-    B[p:, q:] = np.eye(n_coords - p)
-    return B
-
-
-def _plan(req: FitRequest) -> _Plan:
-    periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
-    noise = req.sigmas[ch.first_channel(req)]
-    start, states, notes = _starts(req, periods)
-    mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
-                                           if n in req.scene.mech.as_dict()})
-    solver = pick_solver(mech_start, req.loads[0][0], float(req.scene.rtol), req.scene.solver)
-    multi = len(req.records) > 1
-    too_far = next((f"record {d.source}: {a}" if multi else a
-                    for a, d in ((absurd_frequency(linear_frequency(mech_start, lo), p), d)
-                                 for (lo, _), p, d in zip(req.loads, periods, req.records))
-                    if a), None)
-    if too_far:
-        return _aborted(req, start, states, solver, too_far, notes)
-    ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver)
-    full_start = {n: float(v) for n, v in zip(ss.names, np.asarray(ss.values(z_start)))}
-    plan = _Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, notes,
-                 "single shooting", start, states, solver)
-    spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
-    if failed0 > 0:
-        plan.abort = "the ODE solve fails at the start values; choose other start values"
-        return plan
-    plan.abort = next((a for a in (absurd_start(steps0, sp, p) for sp, p
-                                   in zip(spans, periods)) if a), None)
-    if plan.abort:
-        return plan
-    plan.Bg = _flat_basis(J0)
-    budget = ode_budget(steps0)
-    if budget != ss.max_steps:
-        ss = plan.single = _problem(req, start, states, [1] * len(req.records), budget,
-                                    solver)
-    model = ch.model_angles(req, ss, r0)
-    segs = [n_segments(sp, p, motion_period(d.ts, m), req.shooting, req.segments)
-            for d, sp, p, m in zip(req.records, spans, periods, model)]
-    if max(s for s, _ in segs) > 1:
-        plan.shoot, plan.z0 = _shooting(req, plan, [s for s, _ in segs])
-        plan.strategy = f"multiple shooting ({'+'.join(str(s) for s, _ in segs)} segments)"
-    if req.shooting == "auto" and req.segments is None:
-        plan.notes.append(f"{plan.strategy}: {segs[0][1]}")
-    return plan
-
-
-def _aborted(req, start, states, solver, why: str, notes) -> _Plan:
-    """A plan that stops before any solve (see `absurd_frequency`)."""
-    ss = _problem(req, start, states, [1] * len(req.records), SMALL_ODE_BUDGET, solver)
-    z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
-    full = {n: float(v) for n, v in zip(ss.names, np.asarray(ss.values(z)))}
-    return _Plan(ss, ss, z, np.eye(ss.p), full, float("nan"), [], notes, "none", start,
-                 states, solver, abort=why)
-
-
-def _shooting(req: FitRequest, plan: _Plan, nseg) -> tuple[Problem, np.ndarray]:
-    """A multiple-shooting problem and its start coordinates."""
-    ms = _problem(req, plan.start_g, plan.states, nseg, plan.single.max_steps, plan.solver)
-    return ms, np.concatenate([plan.z0[:plan.single.p], ch.segment_states(ms, req)])
-
-
-def _attempt(req: FitRequest, plan: _Plan, shoot: Problem, z0: np.ndarray, zk: np.ndarray,
+def _attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.ndarray,
              desc: str) -> Run:
     """One optimisation of `shoot` from `zk` (flat directions held at `z0`), then a
     single-shooting polish when `shoot` is multiple shooting."""
     ss = plan.single
-    B = _basis(plan.Bg, z0.shape[0])
+    B = basis(plan.Bg, z0.shape[0])
     problem = shoot if req.method == "lm" else dataclasses.replace(shoot, adjoint="reverse")
     run_fn = least_squares if req.method == "lm" else minimise_optax
     run = _guarded(run_fn, Subspace(problem, jnp.asarray(z0), jnp.asarray(B)),
@@ -243,22 +97,39 @@ def _guarded(run, *args) -> Run:
         return run(*args)
     except (RuntimeError, ValueError, FloatingPointError) as e:
         first = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), type(e).__name__)
-        return Run(np.asarray(args[1]), float("nan"), 0, False, f"the fit failed: {first}")
+        return Run(np.asarray(args[1]), float("nan"), 0, False,
+                   f"the fit failed: {_solver_words(first)}")
 
 
-def _multistart(req, plan, shoot, z0, count, seed, label) -> list[tuple[Run, str]]:
+def _solver_words(message: str) -> str:
+    """A solver's message in the fit's words: diffrax advises "Try increasing
+    `max_steps`", an ODE step budget that the fit sets itself (`strategy.ode_budget`) and
+    that no option of `fit` sets (its `max_steps` counts LM iterations)."""
+    if "maximum number of solver steps" in message.lower():
+        return ("the ODE solve ran out of its step budget: the parameters make the model far "
+                "stiffer or faster than the record; choose start values nearer the truth")
+    return message
+
+
+def _multistart(req, plan, shoot, z0, count, seed, label, until=None
+                ) -> list[tuple[Run, str]]:
     """`count` optimisations: from `z0` (unless `label` names an escalation), then from
-    perturbed points. Each run comes with its label, e.g. "multistart start 2 of 4"."""
+    perturbed points. Each run comes with its label, e.g. "multistart start 2 of 4".
+    `until(runs)`: when given and true after a run, the rest are not started."""
     rng = np.random.default_rng(seed)
     out = []
     for k in range(count):
         zk = z0 if k == 0 and not label else perturb(z0, shoot.names, shoot.log, rng)
         name = (label + (f" start {k + 1} of {count}" if count > 1 else "")).strip()
         out.append((_attempt(req, plan, shoot, z0, zk, f"fit {name}".strip()), name))
+        if until is not None and until(out):
+            break
     return out
 
 
 def _best(runs):
+    """The run to report, with its label: the lowest-cost converged run; if none
+    converged, the lowest-cost one (a run with no finite cost only if no other is left)."""
     ok = [(r, lab) for r, lab in runs if np.isfinite(r.cost)]
     return min(ok, key=lambda x: (not x[0].converged, x[0].cost)) if ok else runs[0]
 
@@ -267,12 +138,21 @@ def _rms(run: Run, n: int) -> float:
     return math.sqrt(2 * run.cost / max(n, 1)) if np.isfinite(run.cost) else math.inf
 
 
-def _optimise(req: FitRequest, plan: _Plan) -> tuple[Run, int, list[str]]:
+def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
     """The planned optimisation(s), escalated when they stall far from the noise level:
     multiple shooting (one segment per two observed periods), then more starts.
 
+    Escalation is for what it can mend: a phase slip over a record's periods. A record
+    with no observed period (a transient, a creep, a step) cannot slip a cycle, so its
+    stall is the model's answer, reported at once. The extra starts stop at the first
+    that reaches the noise level, or once they have taken as long as the first attempt
+    (at least [`ESCALATION_SECONDS`][]): a record that cannot be explained costs little
+    more than one ordinary fit.
+
     **Returns:** the best run, the total iterations, notes."""
+    t0 = time.perf_counter()
     runs = _multistart(req, plan, plan.shoot, plan.z0, req.multistart, req.seed, "")
+    spent = time.perf_counter() - t0
     notes = []
     if req.multistart > 1:
         best = _best(runs)[0]
@@ -283,34 +163,50 @@ def _optimise(req: FitRequest, plan: _Plan) -> tuple[Run, int, list[str]]:
     n = plan.single.n_residuals
     first = _best(runs)[0]
     tried = []
-    escalate = req.shooting == "auto" and req.segments is None and req.method == "lm"
+    escalate = (req.shooting == "auto" and req.segments is None and req.method == "lm"
+                and any(p is not None for p in plan.periods))
     if escalate and plan.shoot is plan.single and _stalled(first, n, plan, req):
         nseg = [record_segments(float(d.ts[-1] - d.ts[0]), p)
                 for d, p in zip(req.records, plan.periods)]
-        ms, z0 = _shooting(req, plan, nseg)
+        ms, z0 = shooting(req, plan, nseg)
         label = f"multiple shooting ({'+'.join(map(str, nseg))} segments)"
         runs += [(r, lab) for r, lab in _multistart(req, plan, ms, z0, 1, req.seed, label)]
         tried.append(label)
     if escalate and req.multistart == 1 and _stalled(_best(runs)[0], n, plan, req):
-        runs += _multistart(req, plan, plan.shoot, plan.z0, ESCALATION_STARTS, req.seed + 1,
-                            "multistart")
-        tried.append(f"{ESCALATION_STARTS} more starts")
+        deadline = time.perf_counter() + max(ESCALATION_SECONDS, spent)
+
+        def enough(done):
+            return (not _stalled(done[-1][0], n, plan, req)
+                    or time.perf_counter() > deadline)
+
+        more = _multistart(req, plan, plan.shoot, plan.z0, ESCALATION_STARTS, req.seed + 1,
+                           "multistart", until=enough)
+        runs += more
+        tried.append(f"{len(more)} more start{'s' if len(more) > 1 else ''}"
+                     + (f" (of {ESCALATION_STARTS}: out of time)"
+                        if len(more) < ESCALATION_STARTS and _stalled(more[-1][0], n, plan,
+                                                                      req) else ""))
     best, label = _best(runs)
     if tried:
         won = "the first attempt" if best is first else label
-        notes.append(f"the {plan.strategy} fit stalled at rms {_rms(first, n):.3g} rad, far "
-                     f"above the record's noise level ({plan.noise:.3g} rad); tried "
-                     f"{' and '.join(tried)}; the best (rms {_rms(best, n):.3g} rad) is "
-                     f"{won}")
+        why = "did not converge" if not first.converged else (
+            f"stalled at rms {_rms(first, n):.3g} rad, far above the record's noise level "
+            f"({plan.noise:.3g} rad)")
+        notes.append(f"the {plan.strategy} fit {why}; tried {' and '.join(tried)}; the "
+                     f"result is {won} (rms {_rms(best, n):.3g} rad"
+                     + (", the lowest-cost converged try)" if best.converged
+                        else ", the lowest-cost try: none converged)"))
         if best is not first:
             plan.strategy = (label if label.startswith("multiple")
                              else f"{plan.strategy}, {label}")
+    elif len(runs) > 1 and not best.converged:
+        notes.append(f"none of the {len(runs)} starts converged; the result is the "
+                     f"lowest-cost one ({label}, rms {_rms(best, n):.3g} rad)")
     return best, sum(r.iterations for r, _ in runs), notes
 
 
-def _stalled(run: Run, n: int, plan: _Plan, req: FitRequest) -> bool:
+def _stalled(run: Run, n: int, plan: Plan, req: FitRequest) -> bool:
     return not run.converged or far_from_noise(_rms(run, n), plan.noise, ch.known_sigma(req))
-
 
 
 def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
@@ -380,6 +276,7 @@ def fit(
     progress: bool = True,
     warn: bool = True,
     per_record: Sequence[str] = (),
+    force=None,
 ) -> FitResult:
     """Fit free parameters of a scene to crank-angle records by least squares.
 
@@ -414,6 +311,17 @@ def fit(
       e.g. to trim a release transient.
     - `progress`: show progress bars on stderr. `warn`: emit Python warnings
       ([`IdentifiabilityWarning`][], [`ConvergenceWarning`][]) besides `result.warnings`.
+    - `per_record`: free names that take a separate value in each record (reported as
+      `name[i]`); the others are shared.
+    - `force`: a user's force term, as `simulate` takes it (an `eqx.Module` callable
+      `f(t, phi, dphi) -> N*m`); its float fields can be freed as `force.<field>` (or
+      `force.<field>[i]` for an array's elements).
+
+    Records may carry any sensor channels (`phi`, `dphi`, `x_s`, `v_s`, `a_s`, see
+    [`Data`][]): each is compared with the model's reading `scale h + offset` and
+    weighted by its noise level (`sigma` a dict, channel -> SI level; a number is the
+    first channel's; unknown levels are estimated from the record, then from the
+    residuals). Offsets can be freed as `<channel>_offset`.
 
     **Returns:** a [`FitResult`][]. A fit that fails or does not converge returns
     `converged=False` with a message (and finite values: the last good iterate or the
@@ -425,9 +333,9 @@ def fit(
     req = normalise(scene, data, free, init=init, method=method, shooting=shooting,
                     segments=segments, multistart=multistart, seed=seed, max_steps=max_steps,
                     tol=tol, sigma=sigma, profile=profile, window=window, progress=progress,
-                    warn=warn, per_record=per_record)
+                    warn=warn, per_record=per_record, force=force)
     req = ch.with_channels(req)
-    plan = _plan(req)
+    plan = make_plan(req)
     if plan.abort:
         best, iterations, notes = Run(plan.z0, float("nan"), 0, False, plan.abort), 0, []
     else:

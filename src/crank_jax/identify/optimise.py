@@ -78,7 +78,8 @@ def evaluate(problem, z) -> tuple[float, int]:
 
 def _budget_spent(max_steps: int) -> str:
     """The message of a run that used its iteration budget without converging."""
-    return f"stopped after max_steps = {max_steps} iterations without converging"
+    return (f"stopped after {max_steps} iterations without converging (max_steps = "
+            f"{max_steps}: raise it to go on)")
 
 
 def _failed_message(failed: int) -> str:

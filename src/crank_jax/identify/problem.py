@@ -8,11 +8,12 @@ Coordinates `z` (what the optimisers see, all O(1)), chosen per name by
   `z = ln(value)`: a step in `z` is a relative change, positivity needs no constraint,
   and the columns of the Jacobian are the sensitivities *scaled by the parameter values*
   that the identifiability analysis needs;
-- a field that cannot be negative and starts at 0 (a friction coefficient, an absent
-  body's mass) is *folded*: `value = ref |z|`. It stays valid whatever step the
-  optimiser takes (a step below 0 is reflected), its sensitivity at the start is not zero
-  (as it would be for `z^2` or a softplus at its floor), and a value whose truth is 0
-  converges near 0 (see `uncertainty` for its interval, cut at 0);
+- a field that cannot be negative and starts at 0 (an absent body's mass), and the
+  friction terms `T_c`, `c_s`, `F_s` whatever their start, are *folded*:
+  `value = ref |z|`. It stays valid whatever step the optimiser takes (a step below 0
+  is reflected), its sensitivity at the start is not zero (as it would be for `z^2` or
+  a softplus at its floor), and a value whose truth is 0 converges near 0 (see
+  `uncertainty` for its interval, cut at 0);
 - everything else (a signed field such as the offset `e`, the initial states and load
   amplitudes) is linear: `z = value / ref`, with `ref` a typical magnitude (the start
   value, the record's angle amplitude, that times the natural frequency).
@@ -47,7 +48,8 @@ from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..sensors import OFFSET_NAMES
 from ..solve.policy import resolve_solver
 from .measurement import calibration, channel_errors, fitted_channels
-from .request import LOAD_NAMES, SIGNED_FIELDS
+from .odeterm import FIT_SOLVERS, ode_term
+from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
 from .segments import Experiment, make_segments, padded_load
 from .userforce import PREFIX, with_force_values
 
@@ -68,13 +70,15 @@ _TINY = 1e-9
 def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None = None
                ) -> tuple[bool, float]:
     """`(log, ref)` of a global free name: log coordinates for a mechanism field that
-    cannot be negative and starts positive; otherwise linear with scale `ref`.
+    cannot be negative and starts positive (but for the friction terms [`FOLDED`][]);
+    otherwise linear with scale `ref` (folded for a field that cannot be negative, see
+    [`folded`][]).
 
     A field that starts at 0 takes its scale from the record's observed angular frequency
     `omega` (rad/s) and the linearised inertia `mu`: `mu omega^2` for k, 5% damping
     (`0.1 mu omega`) for c; an offset e takes a tenth of r.
     """
-    if name in FIELDS and name not in SIGNED_FIELDS and start > 0:
+    if name in FIELDS and name not in SIGNED_FIELDS and start > 0 and name not in FOLDED:
         return True, 1.0
     if start != 0:
         return False, abs(start)
@@ -85,6 +89,13 @@ def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None =
         if math.isfinite(mu) and mu > 0:
             return False, mu * omega**2 if name == "k" else 0.1 * mu * omega
     return False, _ZERO_START_REF
+
+
+#: Friction terms (Coulomb torque, slider friction) whose true value is often 0: always
+#: folded, whatever their start. In log coordinates a true 0 sends ln(value) to -inf,
+#: LM crawls there, and the estimate (1e-265, say) is then reported as "ln T_c not
+#: determined" instead of "0, at most v + 1.96 se".
+FOLDED = frozenset(FRICTION_SCALED)
 
 
 def folded(name: str, log: bool) -> bool:
@@ -104,32 +115,6 @@ def _invalid(mech: SliderCrank) -> Array:
     bad = [jnp.any(mask) for _, mask, _ in validation_rules(
         {n: jnp.asarray(getattr(mech, n)) for n in FIELDS})]
     return jnp.any(jnp.stack(bad))
-
-
-def _fit_field(t, y, field):
-    """The fit's own ODETerm adapter on the model's vector field (a function object of its
-    own: diffrax caches traces by it, see `Problem.simulate_segments`)."""
-    return jnp.stack(field(t, (y[0], y[1])))
-
-
-def _fit_field_no_callbacks(t, y, field):
-    """As `_fit_field`, for traces made with equinox's checks as NaN
-    (`persistent.checks_without_callbacks`): a separate object, so a trace made in one mode
-    (with host callbacks) is never reused in the other."""
-    return jnp.stack(field(t, (y[0], y[1])))
-
-
-def _ode_term() -> diffrax.ODETerm:
-    import equinox._errors as eqx_errors  # the same switch `checks_without_callbacks` sets
-
-    nan = getattr(eqx_errors, "EQX_ON_ERROR", None) == "nan"
-    return diffrax.ODETerm(_fit_field_no_callbacks if nan else _fit_field)
-
-
-# The fit's residuals use diffrax's adaptive solvers; "dopri8-uniform" (uniform save
-# times only) runs as the same Dopri8 tableau, adaptively, on the padded segment times.
-_SOLVERS = {"tsit5": "Tsit5", "dopri5": "Dopri5", "dopri8": "Dopri8",
-            "dopri8-uniform": "Dopri8", "dopri8-adaptive": "Dopri8", "kvaerno5": "Kvaerno5"}
 
 
 class Problem(eqx.Module):
@@ -262,7 +247,7 @@ class Problem(eqx.Module):
 
         def one(ts, y0):
             sol = diffrax.diffeqsolve(
-                _ode_term(), getattr(diffrax, _SOLVERS[self.solver])(), t0=ts[0],
+                ode_term(), getattr(diffrax, FIT_SOLVERS[self.solver])(), t0=ts[0],
                 t1=ts[-1], dt0=None, y0=y0, args=field, saveat=diffrax.SaveAt(ts=ts),
                 stepsize_controller=controller, max_steps=self.max_steps, adjoint=adjoint,
                 throw=False)
@@ -295,9 +280,10 @@ class Problem(eqx.Module):
 
     def residuals(self, z: Array) -> tuple[Array, Array, Array]:
         """(r, n_failed, steps): the stacked residual vector, how many samples failed,
-        and the most ODE steps any one solve took."""
+        and per record the most ODE steps any one of its solves took, (R,) (so that a
+        record the start values cannot follow is found by itself, see `plan.make_plan`)."""
         mech, per = self.unpack(z)
-        rs, cont, failed, steps = [], [], 0, 0
+        rs, cont, failed, steps = [], [], 0, []
         # A point outside the mechanism's valid set (a coupler shorter than the crank, a
         # centre of mass beyond the coupler) is a failed solve: rejected, never reported.
         for e, (load, torque, y0s, own) in zip(self.exps, per):
@@ -307,7 +293,7 @@ class Problem(eqx.Module):
             invalid = _invalid(mech_e)
             force = own.pop(PREFIX)
             phi, dphi, n_steps = self.simulate_segments(mech_e, e, load, torque, y0s, force)
-            steps = jnp.maximum(steps, jnp.max(n_steps))
+            steps.append(jnp.max(n_steps))
             ok = jnp.isfinite(phi) & jnp.isfinite(dphi) & ~invalid
             failed = failed + jnp.sum(~ok & (e.seg.w > 0))
             err = channel_errors(mech_e, e, load, torque, phi, dphi, offsets_e, self.structure,
@@ -329,7 +315,7 @@ class Problem(eqx.Module):
                 phi_end = jnp.where(ok[rows, idx], phi[rows, idx], _FAILED_RESIDUAL)
                 cont.append(wgt * (phi_end - y0s[1:, 0]))
                 cont.append(wgt * (dphi_end - y0s[1:, 1]) * (e.ref_phi / e.ref_dphi))
-        return jnp.concatenate(rs + cont), failed, steps
+        return jnp.concatenate(rs + cont), failed, jnp.stack(steps)
 
 
 def linear_frequency(mech: SliderCrank, load: AbstractLoad | None = None) -> float | None:

@@ -20,6 +20,7 @@ from ..model.params import FIELDS
 from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
 from ..scene import Scene
 from ..sensors import OFFSET_NAMES
+from .userforce import force_names, force_starts
 
 __all__ = ["FitRequest", "normalise", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
            "SIGNED_FIELDS", "FRICTION_SCALED", "MAX_ITERATIONS", "SIGMA_RANGE", "free_names",
@@ -112,6 +113,8 @@ class FitRequest:
     sigmas: dict | None = None
     #: Free names with a separate value per record (`n[i]`), besides the states.
     per_record: tuple = ()
+    #: A user's force term (`fit(force=...)`), its free fields named `force.<field>`.
+    force: object = None
 
 
 def window_data(d: Data, window: tuple[float, float] | None) -> Data:
@@ -252,8 +255,8 @@ def _check_per_record(per_record, free) -> tuple[str, ...]:
 
 
 def normalise(scene, data, free, *, init, method, shooting, segments, multistart, seed,
-              max_steps, tol, sigma, profile, window, progress, warn, per_record=()
-              ) -> FitRequest:
+              max_steps, tol, sigma, profile, window, progress, warn, per_record=(),
+              force=None) -> FitRequest:
     """Check a fit request and bring it to one form (the arguments are those of [`fit`][]).
 
     **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
@@ -267,9 +270,10 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
                          "Scene, or one per record")
     _check_scenes(scenes)
     free = tuple(dict.fromkeys(free))
-    unknown = [n for n in free if n not in free_names()]
+    known = free_names() + tuple(force_names(force))
+    unknown = [n for n in free if n not in known]
     if unknown or not free:
-        raise ValueError(f"unknown free parameter(s) {unknown}; choose from {list(free_names())}"
+        raise ValueError(f"unknown free parameter(s) {unknown}; choose from {list(known)}"
                          if unknown else "free must name at least one parameter")
     _check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
     per_record = _check_per_record(per_record, free)
@@ -282,6 +286,7 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
     start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}
     start.update(_load_starts(free, records, loads))
     start.update(_offset_starts(free, records))
+    start.update(force_starts(force, free))
     _check_sigma_names(sigma, records)
     if isinstance(init, dict):
         bad = [n for n in init if n not in start]
@@ -312,4 +317,4 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
         max_steps=int(max_steps if max_steps is not None else
                       (100 if method == "lm" else 2000)),
         tol=float(tol), sigma=sigma, profile=profile, window=window, progress=bool(progress),
-        warn=bool(warn), per_record=per_record)
+        warn=bool(warn), per_record=per_record, force=force)

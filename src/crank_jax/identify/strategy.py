@@ -18,7 +18,7 @@ import numpy as np
 __all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "MAX_ODE_STEPS", "SMALL_ODE_BUDGET",
            "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
            "absurd_start", "absurd_frequency", "segment_count", "record_segments",
-           "MAX_SEGMENTS",
+           "MAX_SEGMENTS", "MIN_MOTION", "no_motion",
            "perturb", "far_from_noise"]
 
 #: `shooting="auto"` uses multiple shooting above this many observed periods, whatever
@@ -42,6 +42,10 @@ STEPS_PER_PERIOD = 4000
 #: A start model whose linearised frequency is this many times above (or below) the
 #: record's observed frequency is rejected before any solve.
 FREQUENCY_RATIO = 30.0
+#: A record whose motion (rms, noise taken out) is below this many noise levels is
+#: noise about a constant (see [`no_motion`][]); a real motion in noise of the same size
+#: is still well above it (0.34 noise levels for an amplitude of one noise level).
+MIN_MOTION = 0.2
 #: A fit whose rms residual ends above this multiple of the record's noise level (and
 #: of `sigma`, when given) is stalled far from the noise: try another strategy.
 FAR_FROM_NOISE = 3.0
@@ -120,16 +124,24 @@ def ode_budget(steps0: int) -> int:
     return SMALL_ODE_BUDGET if 20 * int(steps0) <= SMALL_ODE_BUDGET else MAX_ODE_STEPS
 
 
-def absurd_start(steps0: int, span: float, period_data: float | None) -> str | None:
+def absurd_start(steps0: int, span: float, period_data: float | None,
+                 budget: int | None = None, turns: float = 0.0) -> str | None:
     """A message when the start solve took absurdly many steps for what the record shows
-    (see [`STEPS_PER_PERIOD`][]), else None."""
+    (see [`STEPS_PER_PERIOD`][]), else None. `budget`: the step budget of that solve (a
+    solve that reached it took at least that many); `turns`: the record's net turns
+    (said in the message: a crank that turns many times is no oscillation)."""
     periods = max(1.0, span / period_data) if period_data else 1.0
     if steps0 <= STEPS_PER_PERIOD * periods:
         return None
+    took = (f"more than {budget}" if budget is not None and steps0 >= budget
+            else f"{steps0}")
+    shows = (f"{span / period_data:.0f} observed periods" if period_data
+             else "less than one observed period")
+    if turns >= 1:
+        shows += f" and {turns:.3g} turns"
     return (f"the start values make the model far faster or stiffer than the record: its "
-            f"solve takes {steps0} steps for {periods:.0f} observed period(s) of the record; "
-            "choose start values nearer the truth (e.g. init='regressor', or the stiffness "
-            "from the observed period)")
+            f"solve takes {took} steps for a record of {shows}; choose start values nearer "
+            "the truth (e.g. init='regressor', or the stiffness from the observed period)")
 
 
 def absurd_frequency(omega_start: float | None, period_data: float | None) -> str | None:
@@ -147,6 +159,25 @@ def absurd_frequency(omega_start: float | None, period_data: float | None) -> st
             f"{omega_start / (2 * math.pi):.3g} Hz, {ratio:.3g} times the record's "
             f"{1 / period_data:.3g} Hz: choose start values nearer the truth (e.g. "
             "init='regressor', or a stiffness from the observed period)")
+
+
+def no_motion(phi: np.ndarray, noise: float) -> str | None:
+    """A message when a record's angle shows no motion above its noise, else None.
+
+    The motion's rms is judged as `sqrt(var(phi) - noise^2)`; below [`MIN_MOTION`][]
+    noise levels the record is noise about a constant (a pure-noise column, a crank at
+    rest): no model can explain it, and a fit would spend minutes on the crossings of
+    noise taken for periods. Decided before any solve."""
+    x = np.asarray(phi, dtype=float)
+    spread = float(np.std(x))
+    motion = math.sqrt(max(spread**2 - noise**2, 0.0))
+    # A spread of float rounding (or none) is no motion either, whatever the noise says.
+    rounding = spread <= 1e-12 * float(np.max(np.abs(x)))
+    if not (rounding or noise > 0 and motion < MIN_MOTION * noise):
+        return None
+    return (f"the angle shows no motion above its noise (spread {spread:.3g} rad, noise "
+            f"level {noise:.3g} rad): there is nothing for a model to explain; check the "
+            "angle column and its unit, or record a motion")
 
 
 def perturb(z0: np.ndarray, names, log, rng: np.random.Generator) -> np.ndarray:

@@ -282,6 +282,10 @@ def _describe(Vf: np.ndarray, names, log, se_dir, out: list[str]) -> None:
         out.append(f"the combination {combo} is not determined by the data: fix one of "
                    f"{_name_list(involved)}, or make the experiment richer (a larger amplitude, "
                    "a known load)")
+    elif len(involved) <= d:
+        out.append(f"none of {_name_list(involved)} is determined by the data, alone or in "
+                   "combination: fix them, or make the experiment richer (a larger "
+                   "amplitude, a known load)")
     else:
         out.append(f"{_name_list(involved)} enter the data only through "
                    f"{max(len(involved) - d, 0)} combinations ({d} directions are not "

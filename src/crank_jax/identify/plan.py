@@ -1,0 +1,204 @@
+"""The plan of a fit, before any optimisation: start values from the data, the
+start solve, and what it decides (refuse at once, the step budget, the flat directions
+held fixed, single or multiple shooting). See [`fit`][] for the steps that follow.
+
+Each record is judged by itself: a record with no motion above its noise, or one the
+start values cannot follow (its solve absurdly long for what it shows), refuses the
+start before any optimisation, named in the message when there are several.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from . import channels as ch
+from .angle import motion_period
+from .problem import Problem, build_problem, linear_frequency, pick_solver
+from .programs import jacobian_at
+from .request import STATE_NAMES, FitRequest
+from .start import half_window, noise_level, regressor_start, smooth_derivatives
+from .strategy import (
+    MAX_ODE_STEPS,
+    SMALL_ODE_BUDGET,
+    absurd_frequency,
+    absurd_start,
+    n_segments,
+    no_motion,
+    ode_budget,
+)
+from .uncertainty import RANK_TOL
+
+__all__ = ["Plan", "make_plan", "shooting", "basis"]
+
+
+@dataclasses.dataclass
+class Plan:
+    """What the fit works with, once the start solve has been looked at."""
+
+    single: Problem  # single shooting, with the fit's step budget
+    shoot: Problem  # the problem optimised (multiple shooting, or `single`)
+    z0: np.ndarray  # start coordinates of `shoot`
+    Bg: np.ndarray  # (p, q) basis of the global directions optimised (flat ones held)
+    start: dict  # start value of every reported name
+    noise: float  # the records' noise level, rad
+    periods: list  # observed period of each record, s (or None)
+    notes: list
+    strategy: str
+    start_g: dict  # start values of the global names
+    states: list  # start state of each record
+    solver: str
+    abort: str | None = None
+
+
+def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
+    """Start values of the global names, each record's start state, and notes."""
+    start, notes = dict(req.start), []
+    if req.init == "regressor":
+        # On the angle the channels tell: the regressor form is written in phi.
+        reg, notes = regressor_start(req.scene.mech, ch.angle_records(req), req.free, periods)
+        start.update(reg)
+    states = []
+    for d, a, per, fixed in zip(req.records, req.angles, periods, req.states):
+        # The state at the first sample from a smoothed fit to the first samples: the
+        # scene's state is at t = 0, and real records start anywhere.
+        ps, dps, _ = smooth_derivatives(d.ts, a, half_window(d.ts, per), [0])
+        states.append((float(ps[0]) if "phi0" in req.free else fixed[0],
+                       float(dps[0]) if "dphi0" in req.free else fixed[1]))
+    return start, states, notes
+
+
+def _problem(req: FitRequest, start, states, nseg, budget, solver) -> Problem:
+    recs = [(d, lo, to, s[0], s[1]) for d, (lo, to), s in zip(req.records, req.loads, states)]
+    periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
+    omega = next((2 * math.pi / p for p in periods if p), None)
+    return build_problem(req.scene.mech, recs, req.free, start, nseg, solver=solver,
+                         rtol=float(req.scene.rtol), atol=float(req.scene.atol),
+                         max_steps=budget, adjoint="forward", omega=omega,
+                         angles=req.angles, sigmas=req.sigmas, per_record=req.per_record,
+                         force=req.force)
+
+
+def _start_solve(req, start, states, solver, periods):
+    """The single-shooting problem at the smallest budget that solves the start, the
+    start coordinates, and there the residuals, failures, steps per record (R,) and
+    sensitivities. A record whose solve runs out of the small budget, which is already
+    absurd for what it shows (see `absurd_start`), is not tried again at the large one:
+    that is seconds to learn what is known."""
+    spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
+    for budget in (SMALL_ODE_BUDGET, MAX_ODE_STEPS):
+        ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
+        z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
+        r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z)))
+        absurd = any(absurd_start(int(n), sp, p) for n, sp, p in
+                     zip(np.atleast_1d(steps), spans, periods))
+        if int(failed) == 0 or budget == MAX_ODE_STEPS or absurd:
+            return ss, z, r, int(failed), np.atleast_1d(steps).astype(int), J
+
+
+def _turns(angle: np.ndarray) -> float:
+    """Net turns of a record's crank (its angle as the channels tell it), first sample to
+    last."""
+    return abs(float(angle[-1] - angle[0])) / (2 * math.pi)
+
+
+def _state(name: str, states, start) -> float:
+    base, _, idx = name.partition("[")
+    if base not in STATE_NAMES:  # a per-record parameter starts where its name does
+        return start[base]
+    i = int(idx[:-1]) if idx else 0
+    return states[i][STATE_NAMES.index(base)]
+
+
+def _flat_basis(J0: np.ndarray) -> np.ndarray:
+    """(p, q) basis of the directions to optimise, from the sensitivities at the start
+    (N, p). Directions in which the residuals are exactly flat (the common scale) are held
+    fixed: the optimiser would otherwise wander along them, and the reported point is the
+    one on the ridge nearest to the start."""
+    p = J0.shape[1]
+    if not np.all(np.isfinite(J0)):
+        return np.eye(p)
+    _, s0, Vt0 = np.linalg.svd(J0, full_matrices=False)
+    keep = s0 > RANK_TOL * s0[0]
+    return np.eye(p) if np.all(keep) else Vt0[keep].T
+
+
+def basis(Bg: np.ndarray, n_coords: int) -> np.ndarray:
+    """The global basis, with every segment state (after the p globals) free."""
+    p, q = Bg.shape
+    B = np.zeros((n_coords, q + n_coords - p))
+    B[:p, :q] = Bg
+    B[p:, q:] = np.eye(n_coords - p)
+    return B
+
+
+def make_plan(req: FitRequest) -> Plan:
+    periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
+    # Motion is judged on the angle the channels tell; the fit's residuals and their
+    # noise level are in the first channel's unit.
+    noises = [noise_level(d.ts, a, p) for d, a, p in zip(req.records, req.angles, periods)]
+    noise = req.sigmas[ch.first_channel(req)]
+    multi = len(req.records) > 1
+    quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in
+                  ((no_motion(ang, n), d) for d, ang, n in zip(req.records, req.angles, noises))
+                  if a), None)
+    start, states, notes = _starts(req, periods)
+    mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
+                                           if n in req.scene.mech.as_dict()})
+    solver = pick_solver(mech_start, req.loads[0][0], float(req.scene.rtol), req.scene.solver)
+    too_far = quiet or next((f"record {d.source}: {a}" if multi else a
+                    for a, d in ((absurd_frequency(linear_frequency(mech_start, lo), p), d)
+                                 for (lo, _), p, d in zip(req.loads, periods, req.records))
+                    if a), None)
+    if too_far:
+        return _aborted(req, start, states, solver, too_far, notes)
+    ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
+    full_start = {n: float(v) for n, v in zip(ss.names, np.asarray(ss.values(z_start)))}
+    plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, notes,
+                 "single shooting", start, states, solver)
+    spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
+    # Each record judged by its own solve: one absurd record among good ones is as
+    # absurd as alone (the steps of the slowest record against the periods of another
+    # let a record of 10^4 turns through).
+    plan.abort = next(((f"record {d.source}: {a}" if multi else a)
+                       for a, d in ((absurd_start(int(n), sp, p, ss.max_steps, _turns(ang)), d)
+                                    for n, sp, p, d, ang in zip(steps0, spans, periods,
+                                                                req.records, req.angles))
+                       if a), None)
+    if plan.abort:
+        return plan
+    if failed0 > 0:
+        plan.abort = "the ODE solve fails at the start values; choose other start values"
+        return plan
+    plan.Bg = _flat_basis(J0)
+    budget = ode_budget(int(np.max(steps0)))
+    if budget != ss.max_steps:
+        ss = plan.single = _problem(req, start, states, [1] * len(req.records), budget,
+                                    solver)
+    model = ch.model_angles(req, ss, r0)
+    segs = [n_segments(sp, p, motion_period(d.ts, m), req.shooting, req.segments)
+            for d, sp, p, m in zip(req.records, spans, periods, model)]
+    if max(s for s, _ in segs) > 1:
+        plan.shoot, plan.z0 = shooting(req, plan, [s for s, _ in segs])
+        plan.strategy = f"multiple shooting ({'+'.join(str(s) for s, _ in segs)} segments)"
+    if req.shooting == "auto" and req.segments is None:
+        plan.notes.append(f"{plan.strategy}: {segs[0][1]}")
+    return plan
+
+
+def _aborted(req, start, states, solver, why: str, notes) -> Plan:
+    """A plan that stops before any solve (see `absurd_frequency`)."""
+    ss = _problem(req, start, states, [1] * len(req.records), SMALL_ODE_BUDGET, solver)
+    z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
+    full = {n: float(v) for n, v in zip(ss.names, np.asarray(ss.values(z)))}
+    return Plan(ss, ss, z, np.eye(ss.p), full, float("nan"), [], notes, "none", start,
+                 states, solver, abort=why)
+
+
+def shooting(req: FitRequest, plan: Plan, nseg) -> tuple[Problem, np.ndarray]:
+    """A multiple-shooting problem and its start coordinates."""
+    ms = _problem(req, plan.start_g, plan.states, nseg, plan.single.max_steps, plan.solver)
+    return ms, np.concatenate([plan.z0[:plan.single.p], ch.segment_states(ms, req)])
