@@ -106,12 +106,33 @@ def equilibrium(mech: SliderCrank, load: AbstractLoad | None = None,
     return _equilibrium(mech, _mean_loads(load, torque))
 
 
-def _newton_step(mech: SliderCrank, loads, phi: Array) -> Array:
+def _q_xi(mech: SliderCrank, loads, phi: Array) -> tuple[Array, Array]:
+    """q(phi, 0) (N*m) and xi = -dq/dphi (N*m/rad), loads at their means."""
     p = coefficients(mech)
     q = force_terms(p, geometry(p, phi), phi, 0.0, 0.0, *loads)
     has_P = not isinstance(loads[0], NoLoad)
-    xi = mech.k - _softening(mech, phi, loads[0].mean(), has_P)
+    return q, mech.k - _softening(mech, phi, loads[0].mean(), has_P)
+
+
+def _newton_step(mech: SliderCrank, loads, phi: Array) -> Array:
+    q, xi = _q_xi(mech, loads, phi)
     return jnp.where(xi != 0, q / jnp.where(xi != 0, xi, 1.0), 0.0)
+
+
+def _search_step(mech: SliderCrank, loads, phi: Array) -> Array:
+    """A clipped Newton step; on a flat point (xi zero to rounding, e.g. phi = 0 of a crank
+    without spring under gravity along -y, where cos(pi/2) leaves ~1e-17 of the x-part) a
+    full clipped step downhill, along q = -dV/dphi: Newton would stop there and call the
+    flat point a root (xi = 0), or take a direction from rounding alone."""
+    q, xi = _q_xi(mech, loads, phi)
+    m = mech
+    # A bound on the stiffness terms' size, N*m/rad: xi below 1e-12 of it is rounding.
+    size = (jnp.abs(m.k) + jnp.abs(m.g) * (m.m_c * m.s + m.m_p * (m.r + m.b)
+                                             + m.m_s * (m.r + m.L))
+            + jnp.abs(loads[0].mean()) * (m.r + m.L))
+    flat = jnp.abs(xi) <= 1e-12 * size
+    step = jnp.where(flat, jnp.sign(q) * _MAX_STEP, q / jnp.where(flat, 1.0, xi))
+    return jnp.clip(step, -_MAX_STEP, _MAX_STEP)
 
 
 # Jitted at module level so that eager calls (every concrete `simulate` asks the solver
@@ -123,7 +144,7 @@ def _equilibrium(mech: SliderCrank, loads) -> Array:
 
     def body(_, carry):
         phi, _ = carry
-        step = jnp.clip(_newton_step(*frozen, phi), -_MAX_STEP, _MAX_STEP)
+        step = _search_step(*frozen, phi)
         return phi + step, step
 
     zero = jnp.zeros(shape, jnp.result_type(float))
