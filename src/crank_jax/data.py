@@ -20,7 +20,7 @@ import equinox as eqx
 import numpy as np
 
 from .io import atomic_write
-from .model.loads import INTERPOLATIONS, AbstractLoad, InputLoad, NoLoad, SampledLoad
+from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
 from .sensors import DEFAULT_SENSOR, Sensor
 
 __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
@@ -129,19 +129,6 @@ class Data(eqx.Module):
         cal = {s.name: s for s in self.sensors}
         return [(cal.get(n, DEFAULT_SENSOR if n == "phi" else Sensor(n)), y)
                 for n, y in self.outputs_items()]
-
-    def bind(self, load: AbstractLoad, side: str = "load") -> AbstractLoad:
-        """`load` with its measured input's samples from this record, when it is an
-        [`InputLoad`][crank_jax.model.loads.InputLoad] without them; [`DataError`][]
-        naming the column when the record lacks it."""
-        if not isinstance(load, InputLoad) or load.signal is not None:
-            return load
-        if load.column not in self.inputs:
-            raise DataError(f"{self.source}: the {side} is driven by the input "
-                            f"{load.column!r}, which the record does not carry; read it "
-                            f"with load_data(..., inputs=[{load.column!r}])")
-        return eqx.tree_at(lambda x: x.signal, load, self.inputs[load.column],
-                           is_leaf=lambda x: x is None)
 
     @property
     def n(self) -> int:

@@ -48,6 +48,7 @@ def synthesize(
     transient_time: float = 0.1,
     transient_hz: float = 15.0,
     sensors: Sequence[Sensor] | None = None,
+    force=None,
 ) -> Data:
     """Simulate a scene and sample it like a data logger would (see the module's noise model).
 
@@ -72,6 +73,8 @@ def synthesize(
       the scene's `sensors`, and with none the angle alone). Each reads
       `scale * h + offset` of its model output `h` (the transient is added to the angle
       before it), then its noise.
+    - `force`: a user's force term `f(t, phi, dphi) -> N*m` in the motion (as
+      `simulate` takes it).
 
     **Returns:** a [`Data`][] whose `load` and `torque` are the scene's (exact) loads, so
     a fit of in-memory synthetic data has no interpolation error; [`save_data`][] writes
@@ -106,7 +109,7 @@ def synthesize(
     nominal, actual = nominal[keep], actual[keep]
     # The scene's state is at t = 0, so integrate from there when the record starts later.
     sim_ts = actual if actual[0] == 0.0 else np.concatenate([[0.0], actual])
-    traj = scene.simulate(sim_ts)
+    traj = scene.simulate(sim_ts) if force is None else scene.simulate(sim_ts, force=force)
     phi = np.asarray(traj.phi)[-actual.shape[0]:]
     if transient != 0.0:
         phi = phi + transient * np.exp(-actual / transient_time) * np.cos(
@@ -118,7 +121,8 @@ def synthesize(
               if isinstance(x, InputLoad)}
     if sensors:
         dphi = np.asarray(traj.dphi)[-actual.shape[0]:]
-        channels = _read_sensors(scene, sensors, actual, phi, dphi, quantization, noise, rng)
+        channels = _read_sensors(scene, sensors, actual, phi, dphi, quantization, noise, rng,
+                                 force)
         return Data(nominal, None, load, torque, source="synthetic", channels=channels,
                     sensors=sensors, inputs=inputs)
     if quantization is not None:
@@ -148,13 +152,13 @@ def _channel_noise(noise_std, sensors) -> dict[str, float]:
     return out
 
 
-def _read_sensors(scene, sensors, ts, phi, dphi, quantization, noise, rng) -> dict:
+def _read_sensors(scene, sensors, ts, phi, dphi, quantization, noise, rng, force) -> dict:
     """Each sensor's reading at `ts` (SI) of the exact motion `phi`, `dphi` (n,)."""
     from .model.outputs import output
 
     out = {}
     for s in sensors:
-        h = output(s.name, scene.mech, ts, phi, dphi, scene.load, scene.torque)
+        h = output(s.name, scene.mech, ts, phi, dphi, scene.load, scene.torque, force=force)
         y = np.asarray(s.measure(np.asarray(h)), dtype=np.float64)
         if s.name == "phi" and quantization is not None:
             step = 2 * math.pi / int(quantization)

@@ -29,6 +29,7 @@ from .identify.fit import fit
 from .model.linear import linearize
 from .model.loads import AbstractLoad, InputLoad, NoLoad
 from .model.outputs import SI_UNITS, output
+from .model.sampled import bind_input
 from .scene import Scene
 
 __all__ = ["validate", "Validation", "default_init_window", "plot_validation"]
@@ -120,7 +121,7 @@ def _loads(scene: Scene, data: Data, scene_loads: bool) -> tuple[AbstractLoad, A
         if own is not None:
             out.append(own)
         elif isinstance(model, InputLoad):
-            out.append(data.bind(model, what))
+            out.append(bind_input(model, data.inputs, data.source, what))
         elif isinstance(model, NoLoad) or scene_loads:
             out.append(model)
         else:

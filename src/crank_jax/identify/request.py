@@ -18,6 +18,7 @@ from ..data import Data
 from ..model.loads import LOAD_PARAMS, AbstractLoad, get_param, load_kind
 from ..model.params import FIELDS
 from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
+from ..model.sampled import bind_input
 from ..scene import Scene
 from ..sensors import OFFSET_NAMES
 from .userforce import force_names, force_starts
@@ -279,8 +280,10 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
     per_record = _check_per_record(per_record, free)
     window = _check_window(window)
     records = [window_data(d, window) for d in records]
-    loads = tuple((d.bind(d.load if d.load is not None else sc.load, "slider force"),
-                   d.bind(d.torque if d.torque is not None else sc.torque, "crank torque"))
+    loads = tuple((bind_input(d.load if d.load is not None else sc.load, d.inputs, d.source,
+                              "slider force"),
+                   bind_input(d.torque if d.torque is not None else sc.torque, d.inputs,
+                              d.source, "crank torque"))
                   for d, sc in zip(records, scenes))
     mech = scenes[0].mech
     start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}

@@ -16,7 +16,7 @@ from .params import as_float_array
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
-__all__ = ["SampledLoad", "InputLoad", "is_sampled", "INTERPOLATIONS"]
+__all__ = ["SampledLoad", "InputLoad", "is_sampled", "bind_input", "INTERPOLATIONS"]
 
 #: Interpolations of a [`SampledLoad`][] (and of the `P`/`tau` columns of a data file).
 INTERPOLATIONS: tuple[str, ...] = ("cubic", "linear", "zoh")
@@ -177,6 +177,21 @@ class InputLoad(AbstractLoad):
         """This load with the input's samples `(ts, values)` (a record's column)."""
         return eqx.tree_at(lambda x: x.signal, self, SampledLoad(ts, values, interp),
                            is_leaf=lambda x: x is None)
+
+
+def bind_input(load: AbstractLoad, inputs: dict, where: str, side: str = "load"
+               ) -> AbstractLoad:
+    """`load` with its measured input's samples from a record's `inputs` (column ->
+    [`SampledLoad`][]), when it is an [`InputLoad`][] without them; `ValueError` naming
+    the record (`where`) and the column when it lacks it."""
+    if not isinstance(load, InputLoad) or load.signal is not None:
+        return load
+    if load.column not in inputs:
+        raise ValueError(f"{where}: the {side} is driven by the input {load.column!r}, which "
+                         f"the record does not carry; read it with load_data(..., "
+                         f"inputs=[{load.column!r}])")
+    return eqx.tree_at(lambda x: x.signal, load, inputs[load.column],
+                       is_leaf=lambda x: x is None)
 
 
 def is_sampled(load: AbstractLoad) -> bool:
