@@ -261,3 +261,84 @@ def test_cli_synth_fit_and_bad_channels(tmp_path, capsys):
         assert main(["fit", str(rec), str(scene_path), "--quiet", *args]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], err
+
+
+# --- measured inputs through gains, per-record names, a user's force term ----------------
+
+
+def test_input_load_table_round_trips_and_needs_its_column(tmp_path):
+    from crank_jax.model.loads import InputLoad, load_from_table, load_to_table
+
+    load = load_from_table({"input": "volts", "gain": 0.02, "tau0": 0.1}, "torque")
+    assert isinstance(load, InputLoad) and load.column == "volts"
+    assert load_to_table(load, "torque") == {"kind": "input", "tau0": 0.1, "tau1": 0.0,
+                                             "freq_hz": 0.0, "phase": 0.0, "gain": 0.02,
+                                             "input": "volts"}
+    ts = np.linspace(0, 1, 11)
+    bound = load.bind(ts, 2 * ts)
+    np.testing.assert_allclose(bound(ts), 0.1 + 0.02 * 2 * ts, atol=1e-12)
+    with pytest.raises(ValueError, match="input 'volts' has no samples"):
+        load(0.5)
+    path = tmp_path / "rec.csv"
+    path.write_text("t,phi,volts\n0,0,1\n0.1,0.1,nan\n0.2,0.2,1\n0.3,0.3,1\n0.4,0.4,1\n")
+    with pytest.raises(cj.DataError, match="line 3: column 'volts' is nan"):
+        cj.load_data(path, inputs=("volts",))
+
+
+def _motor_rig(gain, volts, ts, **mech):
+    from crank_jax.model.loads import InputLoad
+
+    torque = InputLoad(gain=gain, column="volts")
+    if volts is not None:
+        torque = torque.bind(ts, volts)
+    return rotating_scene((SLIDE,), **mech).__class__(
+        rotating_scene(**mech).mech, torque=torque, phi0=0.0, dphi0=10.0, t1=1.0,
+        sensors=(SLIDE,))
+
+
+def test_motor_gain_fitted_from_the_voltage_column(tmp_path):
+    ts = np.linspace(0, 1.0, 51)
+    volts = 5.0 + 0.5 * np.sin(2 * np.pi * 1.3 * ts)
+    data = cj.synthesize(_motor_rig(0.01, volts, ts), rate=50, noise_std={"x_s": 2e-5}, seed=3)
+    path = tmp_path / "motor.csv"
+    cj.save_data(data, path)
+    assert path.read_text().splitlines()[0] == "t,slide_mm,volts"
+    back = cj.load_data(path, sensors=(SLIDE,), inputs=("volts",))
+    res = cj.fit(_motor_rig(0.015, None, ts), back, free=("tau_gain", "phi0", "dphi0"),
+                 progress=False, warn=False)
+    assert res.converged
+    lo, hi = res.ci95["tau_gain"]
+    assert lo <= 0.01 <= hi and hi - lo < 1e-3
+    with pytest.raises(ValueError, match="per_record names 'c', which is not free"):
+        cj.fit(_motor_rig(0.015, None, ts), [back, back], free=("tau_gain", "phi0"),
+               per_record=("c",), progress=False)
+
+
+def test_cli_per_record_must_name_a_free_parameter(tmp_path, capsys):
+    rec = tmp_path / "rec.csv"
+    cj.save_data(cj.synthesize(rotating_scene(), rate=50), rec)
+    scene_path = tmp_path / "rig.toml"
+    cj.save_scene(rotating_scene(), scene_path)
+    code = main(["fit", str(rec), str(scene_path), "--more-data", str(rec), "--free", "c",
+                 "--per-record", "tau0", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--per-record names tau0" in err[0]
+
+
+def test_a_users_force_term_is_fitted():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
+    try:
+        import unbalance_force
+    finally:
+        sys.path.pop(0)
+    truth, res = unbalance_force.run(seed=1)
+    assert res.converged
+    for name, want in (("force.a", float(truth.a)), ("force.b", float(truth.b))):
+        lo, hi = res.ci95[name]
+        assert lo <= want <= hi, (name, res.values[name], res.ci95[name])
+    with pytest.raises(ValueError, match=r"unknown free parameter\(s\) \['force.q'\]"):
+        cj.fit(unbalance_force.rig(), cj.synthesize(unbalance_force.rig(), rate=50),
+               free=("force.q",), force=truth, progress=False)

@@ -31,11 +31,11 @@ def force_names(force) -> dict[str, tuple[str, int | None]]:
     of `force`'s float fields."""
     out = {}
     for name, v in _fields(force):
-        a = np.asarray(v)
-        if a.ndim == 0:
+        # Shapes only (static under tracing): the values may be traced.
+        if jnp.ndim(v) == 0:
             out[f"{PREFIX}{name}"] = (name, None)
         else:
-            for i in range(a.size):
+            for i in range(int(jnp.size(v))):
                 out[f"{PREFIX}{name}[{i}]"] = (name, i)
     return out
 
