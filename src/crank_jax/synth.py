@@ -49,6 +49,7 @@ def synthesize(
     transient_hz: float = 15.0,
     sensors: Sequence[Sensor] | None = None,
     force=None,
+    timestamps: str = "nominal",
 ) -> Data:
     """Simulate a scene and sample it like a data logger would (see the module's noise model).
 
@@ -73,6 +74,9 @@ def synthesize(
       the scene's `sensors`, and with none the angle alone). Each reads
       `scale * h + offset` of its model output `h` (the transient is added to the angle
       before it), then its noise.
+    - `timestamps`: `"nominal"` (the logger writes `t_start + i / rate`, so jitter is an
+      error the fit does not see) or `"actual"` (it writes the instant each sample was
+      taken: irregular times, which a fit uses as recorded).
     - `force`: a user's force term `f(t, phi, dphi) -> N*m` in the motion (as
       `simulate` takes it).
 
@@ -107,6 +111,11 @@ def synthesize(
     keep = np.ones(n, dtype=bool)
     keep[1:] = rng.random(n - 1) >= drop
     nominal, actual = nominal[keep], actual[keep]
+    if timestamps not in ("nominal", "actual"):
+        raise ValueError(f"synthesize: timestamps must be 'nominal' or 'actual', got "
+                         f"{timestamps!r}")
+    if timestamps == "actual":
+        nominal = actual
     # The scene's state is at t = 0, so integrate from there when the record starts later.
     sim_ts = actual if actual[0] == 0.0 else np.concatenate([[0.0], actual])
     traj = scene.simulate(sim_ts) if force is None else scene.simulate(sim_ts, force=force)
