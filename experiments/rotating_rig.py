@@ -149,7 +149,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--coverage", type=int, metavar="N",
                    help="repeat over N seeds per channel configuration (slow)")
-    p.add_argument("--out", default="rotating_rig_coverage.json",
+    p.add_argument("--out", default="experiments/results/rotating_rig_coverage.json",
                    help="results file of --coverage")
     a = p.parse_args()
     if a.coverage:
