@@ -29,12 +29,18 @@ def test_friction_that_starts_at_zero_stays_valid_and_gets_a_one_sided_interval(
     # is 0: it converges near 0, with an interval cut at 0 that holds the truth.
     scene, data = demo
     res = cj.fit(scene, data, free=("k", "c", "T_c", "phi0", "dphi0"),
-                 init={"k": 2.4, "c": 0.004}, progress=False, warn=False)
+                 init={"k": 2.4, "c": 0.004}, profile="T_c", progress=False, warn=False)
     assert res.converged, res.message
     assert res.values["T_c"] >= 0.0 and float(res.mech.T_c) >= 0.0
     lo, hi = res.ci95["T_c"]
     assert lo == 0.0 and 0.0 < hi < 1e-3
     assert res.values["k"] == pytest.approx(2.0, rel=1e-3)
+    # Its profile stays at or above the bound and gives a one-sided interval too, no
+    # wider than the Laplace one (at the bound the likelihood rises at least as fast as
+    # its quadratic approximation there).
+    assert np.all(res.profile.values >= 0.0)
+    p_lo, p_hi = res.profile.ci95
+    assert p_lo == 0.0 and 0.2 * hi < p_hi <= 1.1 * hi
 
 
 def _problem(demo, free, start):
@@ -153,14 +159,28 @@ def test_record_with_no_motion_above_its_noise_is_refused_before_any_solve(lab_r
 def test_good_record_plus_one_of_many_turns_is_refused_by_that_record(lab_rig):
     # Issue 24.8: a record of 10^4 turns beside a good one ran 100 s and ended with a
     # false "common scale" claim; alone it was refused at once. Each record is judged by
-    # its own solve.
+    # itself: 5 turns between samples cannot be resolved.
     good = cj.synthesize(lab_rig, t1=2.0, rate=200.0, noise_std=1e-3, seed=3)
     ts = np.arange(2001) / 200.0
     spin = cj.Data(ts, 2 * np.pi * 1e3 * ts, source="spin.csv")
     res = cj.fit(lab_rig, [good, spin], progress=False, warn=False)
     assert not res.converged and res.iterations == 0
-    assert "spin.csv" in res.message and "turns" in res.message
+    assert "spin.csv" in res.message and "between samples" in res.message
     assert not any("common scale" in w for w in res.warnings)
+
+
+def test_each_record_is_judged_by_its_own_solve():
+    # The start solve's steps are per record: one absurd record among good ones is
+    # refused by name (the slowest record's steps against another's periods let it pass),
+    # and a crank that turns is allowed steps per turn, as an oscillation per period.
+    from crank_jax.identify.strategy import STEPS_PER_PERIOD, absurd_start
+
+    assert absurd_start(10 * STEPS_PER_PERIOD, 10.0, None) is not None
+    assert absurd_start(10 * STEPS_PER_PERIOD, 10.0, None, turns=20.0) is None
+    assert absurd_start(10 * STEPS_PER_PERIOD, 10.0, 0.5) is None
+    msg = absurd_start(10 * STEPS_PER_PERIOD, 10.0, None, budget=10 * STEPS_PER_PERIOD,
+                       turns=2.0)
+    assert "more than 40000 steps" in msg and "2 turns" in msg
 
 
 def test_fit_messages_name_the_commands_options():
@@ -171,3 +191,23 @@ def test_fit_messages_name_the_commands_options():
     assert "--max-steps 7" in cli_words(_budget_spent(7))
     text = cli_words(absurd_start(10**6, 1.0, 0.5))
     assert "--init regressor" in text and "init=" not in text
+
+
+def test_a_crank_that_turns_is_judged_by_its_turns():
+    # Issue 25.2: a rotating crank has no zero crossings; "the record holds less than one
+    # period" and single shooting were chosen whatever its motion.
+    from crank_jax.identify.strategy import n_segments, record_segments
+
+    n, why = n_segments(4.0, None, None, "auto", None, turns_data=17.0, turns_model=0.6)
+    assert n == record_segments(4.0, 4.0 / 17.0) > 1
+    assert "turns 17 times" in why and "mean speed 26.7 rad/s" in why
+    n, why = n_segments(4.0, None, None, "auto", None, turns_data=17.0, turns_model=17.05)
+    assert n == 1 and "drift 0.3 rad" in why
+    assert n_segments(4.0, None, None, "auto", None)[1].endswith("less than one turn")
+
+
+def test_aliased_record_is_refused_before_any_solve(lab_rig):
+    ts = np.arange(400) / 50.0
+    res = cj.fit(lab_rig, cj.Data(ts, 4.0 * np.arange(400), source="enc.csv"),
+                 progress=False, warn=False)
+    assert not res.converged and res.iterations == 0 and "between samples" in res.message

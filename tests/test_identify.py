@@ -12,7 +12,7 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.cli.identify import DEMO, demo_data
-from crank_jax.identify import fit as fit_module
+from crank_jax.identify import plan as plan_module
 from crank_jax.identify.problem import build_problem, coordinate
 from crank_jax.identify.start import observed_period, smooth_derivatives
 
@@ -176,7 +176,7 @@ def test_request_is_checked_before_any_compute(lab_rig, monkeypatch):
     def no_compute(*args, **kwargs):
         raise AssertionError("the request should have been rejected before any compute")
 
-    monkeypatch.setattr(fit_module, "build_problem", no_compute)
+    monkeypatch.setattr(plan_module, "build_problem", no_compute)
     with pytest.raises(ValueError, match="profile 'm_s' is not a free parameter"):
         cj.fit(lab_rig, data, free=("k", "c"), profile="m_s")
     with pytest.raises(ValueError, match="window"):

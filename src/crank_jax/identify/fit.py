@@ -290,8 +290,10 @@ def fit(
     - `free`: names from [`FREE_NAMES`][]: the mechanism fields, the load amplitudes `P0`,
       `P1`, `tau0`, `tau1` (the scene's constant or harmonic load) and `phi0`, `dphi0`
       (the state at each record's first sample). A field that cannot be negative and
-      starts positive is fitted in log space; others (a signed offset, a friction that
-      starts at 0) in linear coordinates.
+      starts positive is fitted in log space; the friction terms `T_c`, `c_s`, `F_s` and
+      any field that cannot be negative and starts at 0 as `ref |z|` (always valid; a
+      true 0 gets the interval `[0, v + 1.96 se]`); the others (a signed offset, the
+      loads and states) in linear coordinates.
     - `init`: `"scene"` (the scene's values), `"regressor"` (masses, inertias, k and c
       from the linear regressor form) or a dict of start values. Free `phi0`/`dphi0` always
       start from a local fit to the first samples.
@@ -301,11 +303,14 @@ def fit(
       above the record's noise level), `"single"` or `"multiple"`; `segments` fixes their
       number.
     - `multistart`: number of starts (the first is `init`; the others perturb the
-      log-parameters by a factor `exp(N(0, 0.5^2))`); the lowest cost wins.
+      log-parameters by a factor `exp(N(0, 0.5^2))`); the lowest-cost converged start
+      wins (if none converged, the lowest-cost one, and the warnings say so).
     - `seed`: seed of the multistart perturbations.
-    - `max_steps`: iteration budget per start (default 100 for LM, 2000 for optax).
+    - `max_steps`: iteration budget per start, 1 to `request.MAX_ITERATIONS` (default
+      100 for LM, 2000 for optax).
     - `tol`: relative and absolute tolerance of the optimiser's termination test.
-    - `sigma`: the noise standard deviation (rad) if known; default: from the residuals.
+    - `sigma`: the noise standard deviation (rad) if known, within `request.SIGMA_RANGE`;
+      default: from the residuals.
     - `profile`: a reported name whose profile likelihood to compute.
     - `window`: `(t_start, t_end)`, s: fit only the samples in it (either end None: open),
       e.g. to trim a release transient.
@@ -325,9 +330,12 @@ def fit(
 
     **Returns:** a [`FitResult`][]. A fit that fails or does not converge returns
     `converged=False` with a message (and finite values: the last good iterate or the
-    start); it never raises for a numerical failure. Mistakes in the request (unknown
-    names, too few samples, a start value outside a parameter's domain, a profile of a
-    name that is not free) raise `ValueError` before any compute.
+    start); it never raises for a numerical failure. A record with no motion above its
+    noise, one that moves more than pi between samples, or one the start values cannot
+    follow is refused before any optimisation, with `converged=False` and a message
+    naming it. Mistakes in the request (unknown names, too few samples, a start value
+    outside a parameter's domain, a profile of a name that is not free, an option out
+    of its range) raise `ValueError` before any compute.
     """
     t_begin = time.perf_counter()
     req = normalise(scene, data, free, init=init, method=method, shooting=shooting,

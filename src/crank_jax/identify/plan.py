@@ -20,12 +20,13 @@ from .angle import motion_period
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at
 from .request import STATE_NAMES, FitRequest
-from .start import half_window, noise_level, regressor_start, smooth_derivatives
+from .start import half_window, noise_level, observed_period, regressor_start, smooth_derivatives
 from .strategy import (
     MAX_ODE_STEPS,
     SMALL_ODE_BUDGET,
     absurd_frequency,
     absurd_start,
+    aliased,
     n_segments,
     no_motion,
     ode_budget,
@@ -93,8 +94,8 @@ def _start_solve(req, start, states, solver, periods):
         ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
         z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
         r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z)))
-        absurd = any(absurd_start(int(n), sp, p) for n, sp, p in
-                     zip(np.atleast_1d(steps), spans, periods))
+        absurd = any(absurd_start(int(n), sp, p, turns=_turns(a)) for n, sp, p, a in
+                     zip(np.atleast_1d(steps), spans, periods, req.angles))
         if int(failed) == 0 or budget == MAX_ODE_STEPS or absurd:
             return ss, z, r, int(failed), np.atleast_1d(steps).astype(int), J
 
@@ -136,15 +137,15 @@ def basis(Bg: np.ndarray, n_coords: int) -> np.ndarray:
 
 
 def make_plan(req: FitRequest) -> Plan:
-    periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
+    periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     # Motion is judged on the angle the channels tell; the fit's residuals and their
     # noise level are in the first channel's unit.
     noises = [noise_level(d.ts, a, p) for d, a, p in zip(req.records, req.angles, periods)]
     noise = req.sigmas[ch.first_channel(req)]
     multi = len(req.records) > 1
     quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in
-                  ((no_motion(ang, n), d) for d, ang, n in zip(req.records, req.angles, noises))
-                  if a), None)
+                  ((no_motion(ang, n) or aliased(ang), d)
+                   for d, ang, n in zip(req.records, req.angles, noises)) if a), None)
     start, states, notes = _starts(req, periods)
     mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
                                            if n in req.scene.mech.as_dict()})
@@ -179,8 +180,13 @@ def make_plan(req: FitRequest) -> Plan:
         ss = plan.single = _problem(req, start, states, [1] * len(req.records), budget,
                                     solver)
     model = ch.model_angles(req, ss, r0)
-    segs = [n_segments(sp, p, motion_period(d.ts, m), req.shooting, req.segments)
-            for d, sp, p, m in zip(req.records, spans, periods, model)]
+    segs = [n_segments(sp, p, observed_period(d.ts, m), req.shooting, req.segments,
+                       _turns(a), _turns(m))
+            for d, a, sp, p, m in zip(req.records, req.angles, spans, periods, model)]
+    # A crank that turns has the time of a turn for its cycle: escalation cuts its
+    # record per two turns, as an oscillation's per two periods.
+    plan.periods = [p if p else (sp / t if t >= 1 else None) for p, sp, t in
+                    zip(periods, spans, (_turns(a) for a in req.angles))]
     if max(s for s, _ in segs) > 1:
         plan.shoot, plan.z0 = shooting(req, plan, [s for s, _ in segs])
         plan.strategy = f"multiple shooting ({'+'.join(str(s) for s, _ in segs)} segments)"

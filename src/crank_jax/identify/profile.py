@@ -27,8 +27,14 @@ def profile_likelihood(problem: Problem, z_hat, j: int, se_z: float, n: int, max
     """
     half = 3 * se_z if math.isfinite(se_z) and se_z > 0 else (
         math.log(2) if problem.log[j] else 0.5)
-    grid = np.linspace(-half, half, 9)
-    z_hat = np.asarray(z_hat)
+    z_hat = np.array(z_hat, dtype=float)
+    fold = problem.folded[j]
+    if fold:
+        # A parameter >= 0 fitted as ref |z|: its profile stops at its bound, 0.
+        z_hat[j] = abs(z_hat[j])
+        grid = np.linspace(max(-half, -z_hat[j]), half, 9)
+    else:
+        grid = np.linspace(-half, half, 9)
     rss_min = 2 * evaluate(problem, z_hat)[0]
     rss = np.full(grid.shape, np.nan)
     centre = int(np.argmin(np.abs(grid)))
@@ -46,8 +52,11 @@ def profile_likelihood(problem: Problem, z_hat, j: int, se_z: float, n: int, max
     rss_min = min(rss_min, float(np.nanmin(rss))) if np.any(np.isfinite(rss)) else rss_min
     dev = n * np.log(rss / rss_min)
     zs = z_hat[j] + grid
-    values = np.exp(zs) if problem.log[j] else zs * float(problem.ref[j])
-    return Profile(problem.names[j], values, dev, _crossings(values, dev, centre))
+    values = np.exp(zs) if problem.log[j] else np.abs(zs) * float(problem.ref[j])
+    lo, hi = _crossings(values, dev, centre)
+    if fold and lo is None and values[0] == 0.0 and np.all(np.isfinite(dev[:centre + 1])):
+        lo = 0.0  # the deviance stays below the threshold down to the bound
+    return Profile(problem.names[j], values, dev, (lo, hi))
 
 
 def _crossings(values, dev, centre) -> tuple[float | None, float | None]:

@@ -18,7 +18,7 @@ import numpy as np
 __all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "MAX_ODE_STEPS", "SMALL_ODE_BUDGET",
            "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
            "absurd_start", "absurd_frequency", "segment_count", "record_segments",
-           "MAX_SEGMENTS", "MIN_MOTION", "no_motion",
+           "MAX_SEGMENTS", "MIN_MOTION", "no_motion", "aliased",
            "perturb", "far_from_noise"]
 
 #: `shooting="auto"` uses multiple shooting above this many observed periods, whatever
@@ -35,8 +35,8 @@ MAX_DRIFT = 1.0
 #: The ODE step budget of a fit's solves when the start solve is cheap, and otherwise.
 SMALL_ODE_BUDGET = 32_768
 MAX_ODE_STEPS = 200_000
-#: A start solve that takes more steps than this per observed period of the record (or
-#: per record, if it holds less than one) is absurd: the start values make the dynamics
+#: A start solve that takes more steps than this per observed period or turn of the
+#: record (or per record, if it holds less than one) is absurd: the start values make the dynamics
 #: orders of magnitude faster or stiffer than the record shows.
 STEPS_PER_PERIOD = 4000
 #: A start model whose linearised frequency is this many times above (or below) the
@@ -52,7 +52,8 @@ FAR_FROM_NOISE = 3.0
 
 
 def n_segments(span: float, period_data: float | None, period_model: float | None,
-               shooting: str, segments: int | None) -> tuple[int, str]:
+               shooting: str, segments: int | None, turns_data: float = 0.0,
+               turns_model: float = 0.0) -> tuple[int, str]:
     """Shooting segments for one record and the reason, in words.
 
     The start values decide only *whether* to shoot multiply (`"auto"`: when their
@@ -63,15 +64,26 @@ def n_segments(span: float, period_data: float | None, period_model: float | Non
     **Arguments:** `span`, the record's length, s; `period_data`, its observed period, s
     (None: less than one period); `period_model`, the start model's observed period over
     the same samples; `shooting`, `"auto"`, `"single"` or `"multiple"`; `segments`, a
-    fixed count or None.
+    fixed count or None; `turns_data`, `turns_model`: the net turns of the record and of
+    the start model over it. A record with no period whose crank turns is judged by its
+    turns: the start model's drift is its turns' shortfall (times 2 pi), and segments
+    are cut per two turns.
     """
     if shooting == "single":
         return 1, "single shooting (requested)"
     if segments is not None:
         return int(segments), f"{segments} segments (requested)"
+    if period_data is None and turns_data >= 1:
+        drift = 2 * math.pi * abs(turns_model - turns_data)
+        why = (f"the crank turns {turns_data:.3g} times in the record (mean speed "
+               f"{2 * math.pi * turns_data / span:.3g} rad/s), the start model "
+               f"{turns_model:.3g} times (predicted drift {drift:.1f} rad)")
+        if shooting == "auto" and drift <= MAX_DRIFT and turns_data <= AUTO_PERIODS:
+            return 1, why
+        return record_segments(span, span / turns_data), why
     if period_data is None:
         n = 1 if shooting == "auto" else 2
-        return n, "the record holds less than one period"
+        return n, "the record holds less than one period and less than one turn"
     periods = span / period_data
     if period_model is None:
         err = 0.5  # the start model does not even oscillate like the record
@@ -130,7 +142,9 @@ def absurd_start(steps0: int, span: float, period_data: float | None,
     (see [`STEPS_PER_PERIOD`][]), else None. `budget`: the step budget of that solve (a
     solve that reached it took at least that many); `turns`: the record's net turns
     (said in the message: a crank that turns many times is no oscillation)."""
-    periods = max(1.0, span / period_data) if period_data else 1.0
+    # A crank that turns has a turn for its cycle (it has no period): the budget counts
+    # whichever the record holds more of.
+    periods = max(1.0, span / period_data if period_data else 0.0, turns)
     if steps0 <= STEPS_PER_PERIOD * periods:
         return None
     took = (f"more than {budget}" if budget is not None and steps0 >= budget
@@ -178,6 +192,20 @@ def no_motion(phi: np.ndarray, noise: float) -> str | None:
     return (f"the angle shows no motion above its noise (spread {spread:.3g} rad, noise "
             f"level {noise:.3g} rad): there is nothing for a model to explain; check the "
             "angle column and its unit, or record a motion")
+
+
+def aliased(phi: np.ndarray) -> str | None:
+    """A message when a record's angle moves more than pi between most samples, else
+    None: sampled that coarsely (or with an angle column in the wrong unit), the record
+    cannot resolve the motion, whatever model and start values. Decided before any
+    solve."""
+    step = np.abs(np.diff(np.asarray(phi, dtype=float)))
+    if step.size == 0 or not float(np.median(step)) > math.pi:
+        return None
+    return (f"the angle moves {float(np.median(step)):.3g} rad between samples (median), "
+            "more than pi: the record cannot resolve the motion (a crank that turns faster "
+            "than half a turn per sample); sample it faster, or check the angle column's "
+            "unit")
 
 
 def perturb(z0: np.ndarray, names, log, rng: np.random.Generator) -> np.ndarray:
