@@ -30,7 +30,7 @@ from .uncertainty import channel_rows
 
 __all__ = ["channel_angles", "channel_sigmas", "model_angles", "known_sigma", "first_channel",
            "reweighted", "reweight", "unknown_levels", "new_levels", "channel_report",
-           "residual_levels", "with_channels", "angle_records", "segment_states",
+           "residual_levels", "with_channels", "first_unit", "angle_records", "segment_states",
            "REWEIGHT_TOLERANCE", "REWEIGHT_ROUNDS"]
 
 #: Refit while a channel's estimated noise level moves by more than this factor.
@@ -49,6 +49,13 @@ def model_angles(req: FitRequest, ss: Problem, r) -> list[np.ndarray]:
         est = angle_estimate(model, req.scene.mech, _direction(st), float(a[0]))
         out.append(a if est is None or not np.all(np.isfinite(est)) else est)
     return out
+
+
+def first_unit(req: FitRequest) -> str:
+    """The SI unit of the first channel, the unit of the fit's residuals."""
+    from ..model.outputs import SI_UNITS
+
+    return SI_UNITS[first_channel(req)]
 
 
 def with_channels(req: FitRequest) -> FitRequest:

@@ -187,13 +187,14 @@ def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
                         if len(more) < ESCALATION_STARTS and _stalled(more[-1][0], n, plan,
                                                                       req) else ""))
     best, label = _best(runs)
+    unit = ch.first_unit(req)  # the residuals are in the first channel's unit
     if tried:
         won = "the first attempt" if best is first else label
         why = "did not converge" if not first.converged else (
-            f"stalled at rms {_rms(first, n):.3g} rad, far above the record's noise level "
-            f"({plan.noise:.3g} rad)")
+            f"stalled at rms {_rms(first, n):.3g} {unit}, far above the record's noise "
+            f"level ({plan.noise:.3g} {unit})")
         notes.append(f"the {plan.strategy} fit {why}; tried {' and '.join(tried)}; the "
-                     f"result is {won} (rms {_rms(best, n):.3g} rad"
+                     f"result is {won} (rms {_rms(best, n):.3g} {unit}"
                      + (", the lowest-cost converged try)" if best.converged
                         else ", the lowest-cost try: none converged)"))
         if best is not first:
@@ -201,7 +202,7 @@ def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
                              else f"{plan.strategy}, {label}")
     elif len(runs) > 1 and not best.converged:
         notes.append(f"none of the {len(runs)} starts converged; the result is the "
-                     f"lowest-cost one ({label}, rms {_rms(best, n):.3g} rad)")
+                     f"lowest-cost one ({label}, rms {_rms(best, n):.3g} {unit})")
     return best, sum(r.iterations for r, _ in runs), notes
 
 
