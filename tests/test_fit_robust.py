@@ -78,7 +78,7 @@ def test_invalid_point_is_a_failed_solve_and_never_converges(demo):
     assert int(failed) == pr.n_residuals
     run = least_squares(Subspace(pr, jnp.asarray(z_bad), jnp.eye(1)), np.zeros(1), 20, 1e-8,
                         "", False)
-    assert not run.converged and "fails" in run.message
+    assert not run.converged and "fails" in run.message and math.isnan(run.cost)
 
 
 def test_best_is_lowest_cost_converged_else_lowest_cost():

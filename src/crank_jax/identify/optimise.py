@@ -184,7 +184,8 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
 
     The point reported is the best one seen: the lowest cost among points whose solves
     all succeed (a failed solve's samples count as residuals of 10 rad, a stand-in, not a
-    misfit). A run whose best point still has failed samples is never `converged`."""
+    misfit). A run whose best point still has failed samples is never `converged`, and
+    its cost is NaN."""
     from scipy.optimize import least_squares as minpack_lm
 
     z0 = np.asarray(z0, dtype=float)
@@ -206,8 +207,9 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     if ev.best_w is None or not np.all(np.isfinite(ev.best_w)):
         return Run(z0, float("nan"), ev.iterations, False, "the iterates became non-finite")
     if ev.best_failed:
-        # Never "converged" where the solve fails: that cost is no misfit.
-        return Run(ev.best_w, ev.best_cost, ev.iterations, False,
+        # Never "converged" where the solve fails, and no cost: the stand-ins are no
+        # misfit, so such a run never ranks above one whose solves succeed.
+        return Run(ev.best_w, float("nan"), ev.iterations, False,
                    _failed_message(ev.best_failed))
     return Run(ev.best_w, ev.best_cost, ev.iterations, converged, message)
 
