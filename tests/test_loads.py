@@ -190,4 +190,4 @@ def test_table_refusals():
     with pytest.raises(ValueError, match="cannot be written to a scene file"):
         load_to_table(cj.SampledLoad([0.0, 1.0], [1.0, 2.0]), "load")
     assert {k.name for k in LOAD_KINDS} == {"none", "constant", "harmonic", "multisine",
-                                            "sampled"}
+                                            "sampled", "input"}
