@@ -46,7 +46,8 @@ class Plan:
     Bg: np.ndarray  # (p, q) basis of the global directions optimised (flat ones held)
     start: dict  # start value of every reported name
     noise: float  # the records' noise level, rad
-    periods: list  # observed period of each record, s (or None)
+    periods: list  # each record's cycle, s: its observed period, or the time of a turn
+    # for a crank that turns (None: neither), once planned
     notes: list
     strategy: str
     start_g: dict  # start values of the global names
