@@ -9,7 +9,7 @@ import crank_jax as cj
 from crank_jax.cli import main
 
 KEYS = ["estimates", "identifiable", "unidentifiable_directions", "rms_residual", "n_samples",
-        "converged", "iterations", "seconds", "warnings", "diagnostics"]
+        "converged", "iterations", "seconds", "warnings", "diagnostics", "channels"]
 
 
 @pytest.fixture(scope="module")

@@ -147,8 +147,8 @@ def test_load_data_takes_the_interpolation(tmp_path):
 # --- the table --------------------------------------------------------------------------
 
 def test_table_names_and_roles():
-    assert set(LOAD_PARAMS) == {"P0", "P1", "P_freq_hz", "P_phase", "tau0", "tau1",
-                                "tau_freq_hz", "tau_phase"}
+    assert set(LOAD_PARAMS) == {"P0", "P1", "P_freq_hz", "P_phase", "P_gain", "tau0", "tau1",
+                                "tau_freq_hz", "tau_phase", "tau_gain"}
     h = cj.HarmonicLoad(1.0, 2.0, 3.0, 0.5)
     assert [float(get_param(h, r)) for r in ("mean", "amp", "freq_hz", "phase")] == \
         [1.0, 2.0, 3.0, 0.5]
@@ -190,4 +190,4 @@ def test_table_refusals():
     with pytest.raises(ValueError, match="cannot be written to a scene file"):
         load_to_table(cj.SampledLoad([0.0, 1.0], [1.0, 2.0]), "load")
     assert {k.name for k in LOAD_KINDS} == {"none", "constant", "harmonic", "multisine",
-                                            "sampled"}
+                                            "sampled", "input"}

@@ -41,7 +41,6 @@ from .data import (
     DataError,
     load_data,
     save_data,
-    synthesize,
 )
 from .identify.diagnostics import (
     Diagnostics,
@@ -120,6 +119,7 @@ from .scene import (
     save_scene,
     scene_to_toml,
 )
+from .sensors import Sensor, SensorError
 from .solve.policy import (
     SOLVERS,
     choose_solver,
@@ -141,6 +141,7 @@ from .sweep.run import (
     sweep,
     sweep_cost,
 )
+from .synth import synthesize
 from .validate import (
     Validation,
     validate,
@@ -228,6 +229,8 @@ __all__ = [
     "sweep_cost",
     "SweepResult",
     "synthesize",
+    "Sensor",
+    "SensorError",
     "Trajectory",
     "validate",
     "Validation",

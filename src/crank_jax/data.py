@@ -1,27 +1,11 @@
-"""Measured or synthetic crank-angle records: CSV in and out, validation, and synthetic
-data with a documented noise model.
+"""Measured or synthetic crank-angle records: the [`Data`][] record, CSV in and out, and
+validation ([`synthesize`][crank_jax.synth.synthesize], in `synth.py`, makes synthetic
+records with a documented noise model).
 
-A record is a [`Data`][]: sample times `ts` (s), crank angles `phi` (rad), and optionally
-the loads that acted during it (slider force P, N; crank torque tau, N*m). Loads that
-come from a file are [`SampledLoad`][]s and replace the scene's loads when fitting.
-
-**Noise model of [`synthesize`][]** (applied in this order to the exact solution):
-
-1. *Sample-time jitter*: sample `i` is taken at `t_i + e_i`, `e_i ~ N(0, jitter_std^2)`
-   (clipped to +-0.45 sample periods so the order never changes), but logged at the
-   nominal time `t_i = t_start + i / rate`. The fit sees only `t_i`.
-2. *Dropped samples*: each sample after the first is lost with probability `drop`.
-3. *Encoder quantisation*: with `quantization = N` counts per revolution the angle is
-   rounded to the nearest multiple of `2 pi / N`.
-4. *Gaussian noise*: `N(0, noise_std^2)` is added, independently per sample.
-
-Before these, an optional *start-up transient* (`transient`, rad) is added to the exact
-angle: `transient * exp(-t / transient_time) * cos(2 pi transient_hz t)` with `t` the time
-since the release (t = 0), by default a 15 Hz ringing that decays in 0.1 s. It stands for
-what a hand release or a motor start puts into the first tenths of a second of a real
-record (a wobble of the rig, a coupling, a slipping grip): nothing in the model explains
-it, so a fit has to trim it (a window, [`Data.window`][]). Coulomb friction, the other
-thing real records contain, comes through the scene.
+A record is a [`Data`][]: sample times `ts` (s), crank angles `phi` (rad) or other sensor
+channels (see [`sensors`][crank_jax.sensors]), and optionally the loads that acted during
+it (slider force P, N; crank torque tau, N*m). Loads that come from a file are
+[`SampledLoad`][]s and replace the scene's loads when fitting.
 """
 
 from __future__ import annotations
@@ -37,16 +21,12 @@ import numpy as np
 
 from .io import atomic_write, check_input
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
-from .record_checks import (
-    MAX_TIME_SPAN,
-    MIN_STEP_ULPS,
-    MIN_TIME_STEP,
-    check_synth_options,
-    time_scale_problem,
-)
+from .record_checks import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP, time_scale_problem
+from .sensors import DEFAULT_SENSOR, Sensor
 
-__all__ = ["Data", "load_data", "save_data", "synthesize", "DataError", "MIN_SAMPLES",
-           "MAX_RECORD_SAMPLES", "MAX_TIME_SPAN", "MIN_TIME_STEP", "MIN_STEP_ULPS"]
+__all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
+           "MAX_RECORD_SAMPLES", "header_columns", "MAX_TIME_SPAN", "MIN_TIME_STEP",
+           "MIN_STEP_ULPS"]
 
 #: The fewest samples a record may have.
 MIN_SAMPLES = 5
@@ -56,17 +36,18 @@ class DataError(ValueError):
     """A data file or array is malformed; the message names the row or column."""
 
 
-def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[str] | None
-                  ) -> None:
-    """Raise [`DataError`][] naming the first bad row; `rows[i]` labels sample `i`."""
+def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[str] | None,
+                  name: str = "phi") -> None:
+    """Raise [`DataError`][] naming the first bad row; `rows[i]` labels sample `i`; `name`
+    is the column of `phi` (a channel's)."""
     label = (lambda i: rows[i]) if rows is not None else (lambda i: f"sample {i}")
     if ts.ndim != 1 or phi.shape != ts.shape:
-        raise DataError(f"{where}: t and phi must be 1-D of equal length, got shapes "
+        raise DataError(f"{where}: t and {name} must be 1-D of equal length, got shapes "
                         f"{ts.shape} and {phi.shape}")
     if ts.shape[0] < MIN_SAMPLES:
         raise DataError(f"{where}: too few samples ({ts.shape[0]}); a record needs at least "
                         f"{MIN_SAMPLES}")
-    for name, x in (("t", ts), ("phi", phi)):
+    for name, x in (("t", ts), (name, phi)):
         bad = ~np.isfinite(x)
         if bad.any():
             i = int(np.argmax(bad))
@@ -84,8 +65,17 @@ def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[st
         raise DataError(problem)
 
 
+def _optional_array(x):
+    return None if x is None else np.asarray(x, dtype=np.float64)
+
+
+def _channel_arrays(x) -> dict:
+    return {str(k): np.asarray(v, dtype=np.float64) for k, v in dict(x or {}).items()}
+
+
 class Data(eqx.Module):
-    """One record of crank angles, with the loads known to have acted during it.
+    """One record: sample times and what the sensors read, with the loads known to have
+    acted during it.
 
     **Fields:**
 
@@ -93,22 +83,60 @@ class Data(eqx.Module):
       start anywhere and be irregular, but must span at most [`MAX_TIME_SPAN`][] and be
       at least [`MIN_TIME_STEP`][] and [`MIN_STEP_ULPS`][] float64 spacings of the largest
       |t| apart (what a solver can resolve).
-    - `phi`: (n,) measured crank angle, rad.
+    - `phi`: (n,) measured crank angle, rad (the `phi` channel with no calibration), or
+      `None` when the record has no angle (its channels are in `channels`).
     - `load`: the slider force P(t), N, or `None` to use the scene's when fitting.
     - `torque`: the crank torque tau(t), N*m, or `None` to use the scene's.
     - `source`: a label (file name or "synthetic"), used in messages.
+    - `channels`: more channels, name (see [`CHANNELS`][crank_jax.sensors.CHANNELS]) ->
+      (n,) data in the channel's SI unit, e.g. `{"x_s": slide_m}`.
+    - `sensors`: the calibration of each channel ([`Sensor`][crank_jax.sensors.Sensor]:
+      `data = scale * model + offset`); a channel without one is read as the model output
+      itself (scale 1, offset 0).
+    - `inputs`: measured inputs that drive loads through gains (an
+      [`InputLoad`][crank_jax.model.loads.InputLoad]'s column, e.g. a motor voltage):
+      column name -> [`SampledLoad`][] of its samples.
 
     Construction validates the arrays and raises [`DataError`][] naming the bad sample.
     """
 
     ts: np.ndarray = eqx.field(converter=lambda x: np.asarray(x, dtype=np.float64))
-    phi: np.ndarray = eqx.field(converter=lambda x: np.asarray(x, dtype=np.float64))
+    phi: np.ndarray | None = eqx.field(converter=_optional_array, default=None)
     load: AbstractLoad | None = None
     torque: AbstractLoad | None = None
     source: str = eqx.field(static=True, default="<array>")
+    channels: dict = eqx.field(converter=_channel_arrays, default=None)
+    sensors: tuple[Sensor, ...] = eqx.field(static=True, default=())
+    inputs: dict = eqx.field(default=None, converter=lambda x: dict(x or {}))
 
     def __check_init__(self):
-        _check_series(self.ts, self.phi, self.source, None)
+        if self.phi is None and not self.channels:
+            raise DataError(f"{self.source}: a record needs at least one channel: give phi "
+                            "or channels={name: values}")
+        for name, y in self.outputs_items():
+            _check_series(self.ts, y, self.source, None, name)
+        names = [s.name for s in self.sensors]
+        for s in self.sensors:
+            if names.count(s.name) > 1:
+                raise DataError(f"{self.source}: channel {s.name!r} has two sensors; give one")
+            if s.name not in self._names():
+                raise DataError(f"{self.source}: sensor {s.name!r} has no channel data")
+
+    def _names(self) -> list[str]:
+        return ([] if self.phi is None or "phi" in self.channels else ["phi"]) + list(
+            self.channels)
+
+    def outputs_items(self) -> list[tuple[str, np.ndarray]]:
+        """(channel name, data in SI) for every channel, `phi` first when present."""
+        return [(n, self.phi if n == "phi" and "phi" not in self.channels
+                 else self.channels[n]) for n in self._names()]
+
+    def outputs(self) -> list[tuple[Sensor, np.ndarray]]:
+        """([`Sensor`][crank_jax.sensors.Sensor], (n,) data in SI) for every channel, in
+        order (the first is the one a fit reports its overall rms in)."""
+        cal = {s.name: s for s in self.sensors}
+        return [(cal.get(n, DEFAULT_SENSOR if n == "phi" else Sensor(n)), y)
+                for n, y in self.outputs_items()]
 
     @property
     def n(self) -> int:
@@ -135,15 +163,29 @@ class Data(eqx.Module):
                             f"{int(keep.sum())} samples of the record's {self.n} (t from "
                             f"{self.ts[0]:g} to {self.ts[-1]:g} s); a record needs at least "
                             f"{MIN_SAMPLES}: widen the window (t_start/t_end)")
-        return Data(self.ts[keep], self.phi[keep], self.load, self.torque, source=self.source)
+        return self.select(keep)
+
+    def select(self, keep: np.ndarray) -> Data:
+        """The samples where `keep` (n,) bool is true, every channel with them; the same
+        loads and sensors."""
+        return Data(self.ts[keep], None if self.phi is None else self.phi[keep], self.load,
+                    self.torque, source=self.source,
+                    channels={n: y[keep] for n, y in self.channels.items()},
+                    sensors=self.sensors, inputs=self.inputs)
 
     def columns(self) -> dict[str, np.ndarray]:
-        """`t`, `phi` and the known loads sampled at `ts` (`P`, `tau`), as numpy arrays."""
-        cols = {"t": self.ts, "phi": self.phi}
+        """`t`, the channels (`phi` in rad; a channel with a sensor in its column and
+        unit) and the known loads sampled at `ts` (`P`, `tau`), as numpy arrays."""
+        cols = {"t": self.ts}
+        cal = {s.name: s for s in self.sensors}
+        for n, y in self.outputs_items():
+            s = cal.get(n)
+            cols[n if s is None else s.column] = y if s is None else s.from_si(y)
         if self.load is not None and not isinstance(self.load, NoLoad):
             cols["P"] = np.asarray(self.load(self.ts))
         if self.torque is not None and not isinstance(self.torque, NoLoad):
             cols["tau"] = np.asarray(self.torque(self.ts))
+        cols.update({n: np.asarray(u(self.ts)) for n, u in self.inputs.items()})
         return cols
 
 
@@ -207,8 +249,13 @@ class _Lines:
         return f"line {self.numbers[i]}"
 
 
-def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...]):
-    """Find the header line; return (its line number, delimiter, column names)."""
+def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
+            required: Sequence[tuple[str, str]] | None = None):
+    """Find the header line; return (its line number, delimiter, column names).
+    `required`: (column, the option that names it) of every column that must be there
+    (default: `t_col` and `phi_col`)."""
+    if required is None:
+        required = ((t_col, "--t-col"), (phi_col, "--phi-col"))
     for lineno, text in lines:
         delim = "," if "," in text else (";" if ";" in text else None)
         names = _split(text, delim)
@@ -216,7 +263,7 @@ def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...]):
         if dup:
             raise DataError(f"{where}: line {lineno}: column {dup[0]!r} appears more than "
                             "once in the header; rename one")
-        for want, opt in ((t_col, "--t-col"), (phi_col, "--phi-col")):
+        for want, opt in required:
             if want in names:
                 continue
             try:
@@ -246,14 +293,15 @@ def _numbered_lines(f, where: str):
         yield i, ln.rstrip("\n")
 
 
-def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...]):
+def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
+                required: Sequence[tuple[str, str]] | None = None):
     """Read the used columns of a text table: (names, {name: array}, line numbers)."""
     where = str(path)
     with _open_text(path) as f:
         lines = _numbered_lines(f, where)
         body = ((i, ln) for i, ln in lines
                 if ln.strip() and not ln.lstrip().startswith(("#", "%")))
-        lineno, delim, names = _header(where, body, t_col, phi_col, used)
+        lineno, delim, names = _header(where, body, t_col, phi_col, used, required)
         want = [(j, n) for j, n in enumerate(names) if n in used]
         cols = {n: array("d") for _, n in want}
         numbers = array("q")
@@ -278,6 +326,17 @@ def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...]):
     return names, {n: np.array(c, dtype=np.float64) for n, c in cols.items()}, numbers
 
 
+def header_columns(path: str | os.PathLike) -> list[str]:
+    """The column names in a record's header line (the first line that is not blank or a
+    comment); [`DataError`][] when there is none."""
+    where = str(path)
+    with _open_text(path) as f:
+        for _, text in _numbered_lines(f, where):
+            if text.strip() and not text.lstrip().startswith(("#", "%")):
+                return _split(text, "," if "," in text else (";" if ";" in text else None))
+    raise DataError(f"{where}: no header line (the file is empty or all comments)")
+
+
 def load_data(
     path: str | os.PathLike,
     *,
@@ -287,6 +346,8 @@ def load_data(
     P_col: str = "P",
     tau_col: str = "tau",
     interp: str = "cubic",
+    sensors: Sequence[Sensor] | None = None,
+    inputs: Sequence[str] = (),
 ) -> Data:
     """Read a record from a text file with a header line.
 
@@ -303,6 +364,10 @@ def load_data(
     - `angle_unit`: `"rad"` or `"deg"` (the angle column's unit).
     - `P_col`, `tau_col`: names of the optional slider-force (N) and crank-torque (N*m)
       columns. When present they become [`SampledLoad`][]s that replace the scene's loads.
+    - `sensors`: the record's channels ([`Sensor`][crank_jax.sensors.Sensor]s: each
+      reads its column, in its unit, into SI). Default: the angle column `phi_col`.
+    - `inputs`: columns of measured inputs (an `InputLoad`'s, e.g. `"volts"`), read into
+      `Data.inputs` and interpolated like the load columns.
     - `interp`: how those load columns are interpolated between samples (see
       [`INTERPOLATIONS`][]): `"cubic"` (default, a C2 not-a-knot spline: for measured,
       smooth signals), `"linear"`, or `"zoh"` (zero-order hold: exact for a command a
@@ -323,6 +388,9 @@ def load_data(
     if angle_unit not in ("rad", "deg"):
         raise DataError(f"angle unit must be 'rad' or 'deg', got {angle_unit!r}")
     where = str(path)
+    if sensors or inputs:
+        sensors = tuple(sensors or (Sensor("phi", phi_col, angle_unit),))
+        return _load_channels(path, t_col, P_col, tau_col, interp, sensors, tuple(inputs))
     names, col, numbers = _read_table(path, t_col, phi_col, (t_col, phi_col, P_col, tau_col))
     labels = _Lines(numbers)
     ts = col[t_col]
@@ -340,6 +408,47 @@ def load_data(
     return Data(ts, phi, load, torque, source=where)
 
 
+def _check_columns(where: str, names, col: dict, labels) -> None:
+    """A NaN or inf in any column used is fatal: name its row."""
+    for name in (n for n in names if n in col):
+        bad = ~np.isfinite(col[name])
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise DataError(f"{where}: {labels[i]}: column {name!r} is {float(col[name][i])} "
+                            "(NaN or inf); remove or repair that row")
+
+
+def _load_channels(path, t_col, P_col, tau_col, interp, sensors: tuple[Sensor, ...],
+                   inputs: tuple[str, ...] = ()) -> Data:
+    """[`load_data`][] for a record read through sensors, or with inputs."""
+    where = str(path)
+    dup = sorted({s.name for s in sensors if [x.name for x in sensors].count(s.name) > 1})
+    if dup:
+        raise DataError(f"channel {dup[0]!r} is given twice; give each channel once")
+    required = [(t_col, "--t-col")] + [
+        (s.column, f"--channel {s.name}=COLUMN (or the scene's [sensors] {s.name} column)")
+        for s in sensors] + [(c, f"the scene's input = {c!r} (a load's input column)")
+                             for c in inputs]
+    used = tuple(dict.fromkeys([t_col, P_col, tau_col] + [s.column for s in sensors]
+                               + list(inputs)))
+    names, col, numbers = _read_table(path, t_col, "", used, required)
+    labels = _Lines(numbers)
+    _check_columns(where, names, col, labels)
+    ts = col[t_col]
+    channels = {s.name: s.to_si(col[s.column]) for s in sensors}
+    for s in sensors:
+        _check_series(ts, channels[s.name], where, labels, s.column)
+    load = SampledLoad(ts, col[P_col], interp) if P_col in col else None
+    torque = SampledLoad(ts, col[tau_col], interp) if tau_col in col else None
+    ins = {c: SampledLoad(ts, col[c], interp) for c in inputs}
+    plain = len(sensors) == 1 and sensors[0].name == "phi" and sensors[0].scale == 1.0 \
+        and sensors[0].offset == 0.0
+    if plain:  # an angle column as measured: the record's phi
+        return Data(ts, channels["phi"], load, torque, source=where, inputs=ins)
+    return Data(ts, None, load, torque, source=where, channels=channels, sensors=sensors,
+                inputs=ins)
+
+
 def save_data(data: Data, path: str | os.PathLike, comment: str = "") -> None:
     """Write a record as CSV (`t,phi[,P][,tau]`, full precision), atomically.
 
@@ -351,80 +460,3 @@ def save_data(data: Data, path: str | os.PathLike, comment: str = "") -> None:
             f.write(f"# {line}\n")
         f.write(",".join(cols) + "\n")
         np.savetxt(f, np.column_stack(list(cols.values())), delimiter=",", fmt="%.17g")
-
-
-# ---------------------------------------------------------------------------------------
-# Synthetic data
-
-
-def synthesize(
-    scene,
-    *,
-    t1: float | None = None,
-    rate: float = 200.0,
-    noise_std: float = 0.0,
-    quantization: int | None = None,
-    jitter_std: float = 0.0,
-    drop: float = 0.0,
-    t_start: float = 0.0,
-    seed: int = 0,
-    transient: float = 0.0,
-    transient_time: float = 0.1,
-    transient_hz: float = 15.0,
-) -> Data:
-    """Simulate a scene and sample it like a data logger would (see the module's noise model).
-
-    **Arguments:**
-
-    - `scene`: a [`Scene`][]; its state `(phi0, dphi0)` is at t = 0.
-    - `t1`: end of the record, s (default: the scene's `t1`).
-    - `rate`: nominal sampling rate, Hz.
-    - `noise_std`: standard deviation of the additive Gaussian angle noise, rad.
-    - `quantization`: encoder counts per revolution (`None`: no quantisation).
-    - `jitter_std`: standard deviation of the sampling instants, s.
-    - `drop`: probability that a sample (other than the first) is lost.
-    - `t_start`: time of the first sample, s (`0 <= t_start < t1`): real records rarely
-      start at the release.
-    - `seed`: seed of the noise (numpy's `default_rng`).
-    - `transient`: amplitude of the start-up transient, rad (0: none);
-      `transient_time` (s, > 0) its decay time and `transient_hz` (Hz, >= 0) its
-      frequency (see the module's noise model).
-
-    **Returns:** a [`Data`][] whose `load` and `torque` are the scene's (exact) loads, so
-    a fit of in-memory synthetic data has no interpolation error; [`save_data`][] writes
-    them as sampled `P`/`tau` columns.
-    """
-    t1 = float(scene.t1 if t1 is None else t1)
-    check_synth_options(t1, rate, noise_std, jitter_std, drop, t_start, seed, transient,
-                         transient_time, transient_hz, quantization)
-    rng = np.random.default_rng(seed)
-    n = int(math.floor((t1 - t_start) * rate + 1e-9)) + 1
-    if n < MIN_SAMPLES:
-        raise ValueError(f"synthesize: only {n} samples in [{t_start}, {t1}] s at {rate} Hz; "
-                         f"need at least {MIN_SAMPLES}: raise rate (--rate) or t1 (--t1)")
-    nominal = t_start + np.arange(n) / rate
-    jitter = np.clip(rng.normal(0.0, jitter_std, n), -0.45 / rate, 0.45 / rate)
-    actual = np.maximum(nominal + jitter, 0.0)
-    keep = np.ones(n, dtype=bool)
-    keep[1:] = rng.random(n - 1) >= drop
-    if int(keep.sum()) < MIN_SAMPLES:
-        raise ValueError(f"synthesize: drop (--drop) = {drop!r} left {int(keep.sum())} of the "
-                         f"{n} samples, but a record needs at least {MIN_SAMPLES}: lower drop "
-                         "or sample more (--rate, --t1)")
-    nominal, actual = nominal[keep], actual[keep]
-    # The scene's state is at t = 0, so integrate from there when the record starts later.
-    sim_ts = actual if actual[0] == 0.0 else np.concatenate([[0.0], actual])
-    # simulate's default budget (200,000 steps) plus one per sample: a step may end at
-    # each save time, so a dense record (10^6 samples in 1 ms) must not run out of steps.
-    traj = scene.simulate(sim_ts, max_steps=200_000 + int(sim_ts.shape[0]))
-    phi = np.asarray(traj.phi)[-actual.shape[0]:]
-    if transient != 0.0:
-        phi = phi + transient * np.exp(-actual / transient_time) * np.cos(
-            2 * math.pi * transient_hz * actual)
-    if quantization is not None:
-        step = 2 * math.pi / int(quantization)
-        phi = np.round(phi / step) * step
-    phi = phi + rng.normal(0.0, noise_std, phi.shape) if noise_std > 0 else phi
-    load = None if isinstance(scene.load, NoLoad) else scene.load
-    torque = None if isinstance(scene.torque, NoLoad) else scene.torque
-    return Data(nominal, phi, load, torque, source="synthetic")

@@ -7,6 +7,7 @@ load from TOML (see the README for the format) and ship as presets.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.resources
 import math
 import os
@@ -31,6 +32,7 @@ from .model.loads import (
     toml_keys,
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
+from .sensors import Sensor, SensorError, sensors_from_table, sensors_to_table
 from .solve.inputs import MAX_RTOL as SOLVER_MAX_RTOL
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
@@ -59,6 +61,8 @@ class Scene(eqx.Module):
     - `t1`: default end time, s. `samples`: default number of uniform samples on [0, t1].
     - `solver`: a name from [`SOLVERS`][] (static). `outputs`: derived outputs (static).
     - `name`, `description`: labels (static).
+    - `sensors`: what a record of this rig measures ([`Sensor`][crank_jax.sensors.Sensor]s,
+      static; the `[sensors]` table): `synth` writes these channels, `fit` reads them.
     """
 
     mech: SliderCrank
@@ -74,6 +78,7 @@ class Scene(eqx.Module):
     outputs: tuple[str, ...] = eqx.field(static=True, default=())
     name: str = eqx.field(static=True, default="custom")
     description: str = eqx.field(static=True, default="")
+    sensors: tuple[Sensor, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
         if self.solver not in SOLVERS:
@@ -125,7 +130,7 @@ _TABLES: dict[str, tuple[str, ...]] = {
     "solver": ("name", "rtol", "atol"),
     "output": ("t1", "samples", "extras"),
 }
-_TOP_KEYS = ("description",)
+_TOP_KEYS = ("description", "sensors")
 
 
 def _number(where: str, key: str, v: Any) -> float:
@@ -230,8 +235,13 @@ def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> 
     description = doc.get("description", "")
     if not isinstance(description, str):
         raise SceneError(f"{where}: description must be a string")
+    try:
+        sensors = sensors_from_table(doc.get("sensors", {}), f"{where}: [sensors]")
+    except SensorError as e:
+        raise SceneError(str(e)) from None
     return Scene(mech, load, torque, phi0, dphi0, rtol, atol, t1=t1, samples=samples,
-                 solver=solver, outputs=tuple(extras), name=name, description=description)
+                 solver=solver, outputs=tuple(extras), name=name, description=description,
+                 sensors=sensors)
 
 
 def presets() -> dict[str, str]:
@@ -334,6 +344,11 @@ def scene_to_toml(scene: Scene) -> str:
         lines.append(f"[{table}]")
         lines += [f"{k} = {fmt(v)}" for k, v in body.items()]
         lines.append("")
+    if scene.sensors:
+        lines.append("[sensors]")
+        lines += [f"{name} = {{ " + ", ".join(f"{k} = {fmt(v)}" for k, v in spec.items())
+                  + " }" for name, spec in sensors_to_table(scene.sensors).items()]
+        lines.append("")
     return "\n".join(lines)
 
 
@@ -344,7 +359,8 @@ def fitted_scene(scene: Scene, result) -> Scene:
     loads are data, not scene, so the scene's loads are kept for them.
 
     **Arguments:** `scene`, the scene the fit started from; `result`, its
-    [`FitResult`][crank_jax.FitResult]. **Returns:** a [`Scene`][].
+    [`FitResult`][crank_jax.FitResult]. **Returns:** a [`Scene`][]; fitted channel
+    offsets (`x_s_offset`, ...) become its sensors' offsets.
     """
     loads = {"load": scene.load, "torque": scene.torque}
     for name, value in result.values.items():
@@ -352,6 +368,10 @@ def fitted_scene(scene: Scene, result) -> Scene:
             side, role = LOAD_PARAMS[name]
             loads[side] = set_param(loads[side], role, as_float_array(value), side)
     state = {n: result.values.get(n, result.values.get(f"{n}[0]")) for n in ("phi0", "dphi0")}
+    # Fitted channel offsets become the scene's sensor calibration.
+    sensors = tuple(dataclasses.replace(s, offset=float(result.values[f"{s.name}_offset"]))
+                    if f"{s.name}_offset" in result.values else s for s in scene.sensors)
+    scene = dataclasses.replace(scene, sensors=sensors) if sensors != scene.sensors else scene
     return eqx.tree_at(
         lambda s: (s.mech, s.load, s.torque, s.phi0, s.dphi0), scene,
         (result.mech, loads["load"], loads["torque"],

@@ -10,6 +10,10 @@ when it has them, and scores the prediction on the samples after the initial-sta
 - `fit_percent = 100 (1 - |y - yhat| / |y - mean(y)|)` with 2-norms (MATLAB's `compare`):
   100 is a perfect prediction, 0 is no better than the record's mean, and it can be
   negative.
+
+A record with several channels (see [`sensors`][crank_jax.sensors]) is predicted and
+scored in each (what its sensor reads under the model, `scale h + offset`, SI); the
+top-level scores are the first channel's.
 """
 
 from __future__ import annotations
@@ -23,7 +27,9 @@ import numpy as np
 from .data import MIN_SAMPLES, Data, DataError
 from .identify.fit import fit
 from .model.linear import linearize
-from .model.loads import AbstractLoad, NoLoad
+from .model.loads import AbstractLoad, InputLoad, NoLoad
+from .model.outputs import SI_UNITS, output
+from .model.sampled import bind_input
 from .scene import Scene
 
 __all__ = ["validate", "Validation", "default_init_window", "plot_validation", "MIN_SPREAD_EPS"]
@@ -52,6 +58,12 @@ class Validation(NamedTuple):
     init_window: float
     source: str
     warnings: list[str]
+    channels: dict | None = None
+    """Per channel: `rms`, `max_abs`, `fit_percent`, `n_samples` (SI), `unit`."""
+    predicted_channels: dict | None = None
+    """Per channel: the prediction (m,), SI."""
+    data_channels: dict | None = None
+    """Per channel: the data (m,), SI."""
 
     def to_json(self) -> dict:
         """The `VAL.json` document."""
@@ -65,6 +77,9 @@ class Validation(NamedTuple):
             "t_start": float(self.ts[0]), "t_end": float(self.ts[-1]),
             "init_window": float(self.init_window), "source": self.source,
             "warnings": list(self.warnings),
+            "channels": {n: {k: num(v) if k != "n_samples" else int(v)
+                             for k, v in c.items() if k != "unit"}
+                         for n, c in (self.channels or {}).items()},
         }
 
     def report(self, path, *, scene=None, command=None, title: str = "") -> None:
@@ -76,11 +91,17 @@ class Validation(NamedTuple):
 
     def summary(self) -> str:
         """One paragraph for the terminal."""
-        return (f"validation on {self.source} over [{self.ts[0]:g}, {self.ts[-1]:g}] s: "
+        chans = self.channels or {"phi": {"unit": "rad"}}
+        unit = next(iter(chans.values()))["unit"]
+        text = (f"validation on {self.source} over [{self.ts[0]:g}, {self.ts[-1]:g}] s: "
                 f"initial state phi0 = {self.phi0:.6g} rad, dphi0 = {self.dphi0:.6g} rad/s "
                 f"from the first {self.init_window:g} s; predicted {self.n_samples} samples "
-                f"open-loop: rms {self.rms:.4g} rad, max |error| {self.max_abs:.4g} rad, fit "
-                f"{self.fit_percent:.2f}%")
+                f"open-loop: rms {self.rms:.4g} {unit}, max |error| {self.max_abs:.4g} "
+                f"{unit}, fit {self.fit_percent:.2f}%")
+        for n, c in chans.items() if len(chans) > 1 else ():
+            text += (f"\nchannel {n}: rms {c['rms']:.4g} {c['unit']}, max |error| "
+                     f"{c['max_abs']:.4g} {c['unit']}, fit {c['fit_percent']:.2f}%")
+        return text
 
 
 def default_init_window(scene: Scene, load: AbstractLoad | None = None) -> float:
@@ -99,6 +120,8 @@ def _loads(scene: Scene, data: Data, scene_loads: bool) -> tuple[AbstractLoad, A
                                   (data.torque, scene.torque, "tau", "crank torque tau")):
         if own is not None:
             out.append(own)
+        elif isinstance(model, InputLoad):
+            out.append(bind_input(model, data.inputs, data.source, what))
         elif isinstance(model, NoLoad) or scene_loads:
             out.append(model)
         else:
@@ -115,14 +138,16 @@ def _loads(scene: Scene, data: Data, scene_loads: bool) -> tuple[AbstractLoad, A
 MIN_SPREAD_EPS = 1024
 
 
-def _check_spread(y: np.ndarray, win: Data, t_init: float) -> None:
-    """Raise [`DataError`][] when the scored angles `y` are constant up to rounding."""
+def _check_spread(y: np.ndarray, win: Data, t_init: float, name: str = "phi") -> None:
+    """Raise [`DataError`][] when channel `name`'s scored data `y` (SI) are constant up to
+    rounding."""
     scale = float(np.max(np.abs(y)))
     spread = float(np.sqrt(np.mean((y - y.mean()) ** 2)))
     if spread <= MIN_SPREAD_EPS * np.finfo(np.float64).eps * scale or spread == 0:
         raise DataError(
             f"{win.source}: the {y.size} scored samples (t > {t_init:g} s) hold a constant "
-            f"angle ({float(y.mean()):.17g} rad; spread {spread:.3g} rad, float rounding "
+            f"{name} ({float(y.mean()):.17g} {SI_UNITS[name]}; spread {spread:.3g} "
+            f"{SI_UNITS[name]}, float rounding "
             "at most), so fit_percent is undefined: validate on a record in which the crank "
             "moves after the initial-state window")
 
@@ -161,7 +186,8 @@ def validate(
         raise TypeError("validate(scene, data): expected a Scene and a Data record")
     win = data.window(t_start, t_end)
     load, torque = _loads(scene, win, scene_loads)
-    win = Data(win.ts, win.phi, load, torque, source=win.source)
+    win = Data(win.ts, win.phi, load, torque, source=win.source, channels=win.channels,
+               sensors=win.sensors, inputs=win.inputs)
     if init_window is None:
         s = default_init_window(scene, load)
         init_window = max(s, float(win.ts[min(MIN_SAMPLES, win.n) - 1] - win.ts[0]))
@@ -175,7 +201,8 @@ def validate(
                          f"the window's {win.n} samples and leaves {int(scored.sum())} to "
                          f"score; both need at least {MIN_SAMPLES}: change the window or "
                          "--init-window")
-    _check_spread(win.phi[scored], win, t_init)
+    for sensor, y in win.outputs():
+        _check_spread(np.asarray(y)[scored], win, t_init, sensor.name)
     warnings: list[str] = []
     res = fit(scene, win.window(None, t_init), free=("phi0", "dphi0"), progress=progress,
               warn=False)
@@ -185,40 +212,65 @@ def validate(
     phi0, dphi0 = res.values["phi0"], res.values["dphi0"]
     traj = scene.simulate(np.asarray(win.ts), phi0=phi0, dphi0=dphi0, load=load,
                           torque=torque, outputs=(), throw=False)
-    yhat = np.asarray(traj.phi)
     if not bool(traj.ok):
         raise RuntimeError(f"the prediction's solve failed ({traj.result}); check the scene's "
                            "solver settings")
-    y, e = win.phi[scored], (win.phi - yhat)[scored]
-    fit_pct = 100.0 * (1.0 - float(np.linalg.norm(e)) / float(np.linalg.norm(y - y.mean())))
+    predicted, scores = {}, {}
+    for sensor, y in win.outputs():
+        h = output(sensor.name, scene.mech, np.asarray(win.ts), traj.phi, traj.dphi, load,
+                   torque)
+        predicted[sensor.name] = np.asarray(sensor.measure(np.asarray(h)))
+        scores[sensor.name] = _scores(y[scored], predicted[sensor.name][scored], warnings,
+                                      sensor.name)
+    (first, y0), = win.outputs()[:1]
+    top = scores[first.name]
     return Validation(
-        rms=float(np.sqrt(np.mean(e**2))), max_abs=float(np.max(np.abs(e))),
-        fit_percent=fit_pct, n_samples=int(scored.sum()), phi0=float(phi0),
-        dphi0=float(dphi0), ts=np.asarray(win.ts), phi=np.asarray(win.phi), predicted=yhat,
-        scored=scored, init_window=float(init_window), source=win.source, warnings=warnings)
+        rms=top["rms"], max_abs=top["max_abs"], fit_percent=top["fit_percent"],
+        n_samples=int(scored.sum()), phi0=float(phi0), dphi0=float(dphi0),
+        ts=np.asarray(win.ts), phi=np.asarray(y0), predicted=predicted[first.name],
+        scored=scored, init_window=float(init_window), source=win.source, warnings=warnings,
+        channels=scores, predicted_channels=predicted, data_channels=dict(win.outputs_items()))
+
+
+def _scores(y: np.ndarray, yhat: np.ndarray, warnings: list[str], name: str) -> dict:
+    """rms, max |error|, fit percent and count of one channel's scored samples (SI)."""
+    e = y - yhat
+    spread = float(np.linalg.norm(y - y.mean()))
+    fit_pct = 100.0 * (1.0 - float(np.linalg.norm(e)) / spread) if spread > 0 else -math.inf
+    if spread == 0:
+        warnings.append(f"the scored {name} data are constant, so fit_percent is undefined")
+    return {"rms": float(np.sqrt(np.mean(e**2))), "max_abs": float(np.max(np.abs(e))),
+            "fit_percent": fit_pct, "n_samples": int(y.shape[0]), "unit": SI_UNITS[name]}
 
 
 def plot_validation(val: Validation, path: str | os.PathLike, title: str = "") -> None:
-    """Draw data and prediction (top) and the error (bottom); the initial-state window is
-    shaded."""
+    """Draw, for each channel, data and prediction and below them the error; the
+    initial-state window is shaded."""
     from .plot import pyplot, save_figure
 
     plt = pyplot()
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True,
-                                   gridspec_kw={"height_ratios": [2, 1]})
+    chans = val.channels or {"phi": {"unit": "rad"}}
+    preds = val.predicted_channels or {"phi": val.predicted}
+    data = val.data_channels or {"phi": val.phi}
+    fig, axes = plt.subplots(2 * len(chans), 1, figsize=(9, 1 + 5 * len(chans)), sharex=True,
+                             gridspec_kw={"height_ratios": [2, 1] * len(chans)})
     t0 = float(val.ts[0])
-    for ax in (ax1, ax2):
+    for ax in axes:
         ax.axvspan(t0, t0 + val.init_window, color="0.9", zorder=0)
         ax.grid(alpha=0.3)
-    ax1.plot(val.ts, val.phi, ".", ms=2, color="C0", label="data")
-    ax1.plot(val.ts, val.predicted, "-", lw=1, color="C1", label="prediction (open loop)")
-    ax1.set_ylabel("phi [rad]")
-    ax1.legend(loc="upper right", fontsize=8)
-    ax2.plot(val.ts, val.phi - val.predicted, "-", lw=0.8, color="C3")
-    ax2.set_ylabel("data - prediction [rad]")
-    ax2.set_xlabel("t [s] (shaded: initial-state window)")
-    ax1.set_title((title + "\n" if title else "") + f"fit {val.fit_percent:.2f}%, rms "
-                  f"{val.rms:.3g} rad, max |error| {val.max_abs:.3g} rad over "
-                  f"{val.n_samples} samples", fontsize=9)
+    for c, (name, info) in enumerate(chans.items()):
+        ax1, ax2 = axes[2 * c], axes[2 * c + 1]
+        y = data[name]
+        ax1.plot(val.ts, y, ".", ms=2, color="C0", label="data")
+        ax1.plot(val.ts, preds[name], "-", lw=1, color="C1", label="prediction (open loop)")
+        ax1.set_ylabel(f"{name} [{info['unit']}]")
+        ax1.legend(loc="upper right", fontsize=8)
+        ax2.plot(val.ts, y - preds[name], "-", lw=0.8, color="C3")
+        ax2.set_ylabel(f"data - prediction [{info['unit']}]")
+    axes[-1].set_xlabel("t [s] (shaded: initial-state window)")
+    unit = next(iter(chans.values()))["unit"]
+    axes[0].set_title((title + "\n" if title else "") + f"fit {val.fit_percent:.2f}%, rms "
+                      f"{val.rms:.3g} {unit}, max |error| {val.max_abs:.3g} {unit} over "
+                      f"{val.n_samples} samples", fontsize=9)
     fig.tight_layout()
     save_figure(fig, path)

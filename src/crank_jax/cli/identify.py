@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 
+from .channels import add_channel_options, parse_sigma, record_sensors, scene_inputs
 from .errors import UserError
 from .options import seed
 
@@ -29,8 +30,9 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", help="preset name or TOML scene file")
     p.add_argument("--t1", type=float, help="end of the record, s (default: the scene's t1)")
     p.add_argument("--rate", type=float, default=200.0, help="sampling rate, Hz (200)")
-    p.add_argument("--noise-std", type=float, default=0.0,
-                   help="standard deviation of Gaussian angle noise, rad (0)")
+    p.add_argument("--noise-std", action="append", metavar="[NAME=]STD",
+                   help="standard deviation of Gaussian noise: STD for the angle, rad (0), or "
+                        "NAME=STD for a scene sensor's channel in its SI unit (repeatable)")
     p.add_argument("--quantization", type=int,
                    help="encoder counts per revolution (default: no quantisation)")
     p.add_argument("--jitter-std", type=float, default=0.0,
@@ -59,19 +61,21 @@ def _check_record_size(a: argparse.Namespace, scene) -> None:
 
 
 def _synth_run(a: argparse.Namespace) -> int:
-    from ..data import save_data, synthesize
+    from ..data import save_data
     from ..io import check_output
     from ..scene import load_scene
+    from ..synth import synthesize
 
     check_output(a.out, [a.scene])
     scene = load_scene(a.scene)
     _check_record_size(a, scene)
-    data = synthesize(scene, t1=a.t1, rate=a.rate, noise_std=a.noise_std,
+    noise = parse_sigma(a.noise_std, "--noise-std", zero=True)
+    data = synthesize(scene, t1=a.t1, rate=a.rate, noise_std=0.0 if noise is None else noise,
                       quantization=a.quantization, jitter_std=a.jitter_std, drop=a.drop,
                       t_start=a.t_start, seed=a.seed, transient=a.transient,
                       transient_time=a.transient_time)
     comment = (f"crank-jax synth {a.scene}: t1={a.t1 if a.t1 is not None else scene.t1} "
-               f"rate={a.rate} noise_std={a.noise_std} quantization={a.quantization} "
+               f"rate={a.rate} noise_std={noise or 0.0} quantization={a.quantization} "
                f"jitter_std={a.jitter_std} drop={a.drop} t_start={a.t_start} seed={a.seed}")
     save_data(data, a.out, comment)
     print(f"wrote {a.out}: {data.n} samples of {', '.join(data.columns())} over "
@@ -100,7 +104,10 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--multistart", type=int, default=1, help="number of starts (1)")
     p.add_argument("--seed", type=seed, default=0, help="seed of the multistart (0)")
     p.add_argument("--max-steps", type=int, help="iteration budget per start")
-    p.add_argument("--sigma", type=float, help="known noise std, rad (default: from residuals)")
+    p.add_argument("--sigma", action="append", metavar="[NAME=]VALUE",
+                   help="known noise std: VALUE for the first channel (rad for an angle), or "
+                        "NAME=VALUE per channel in its SI unit (repeatable; default: "
+                        "estimated from the record and the residuals)")
     p.add_argument("--profile", metavar="NAME", help="profile likelihood of one parameter")
     p.add_argument("--t-start", type=float, dest="fit_t_start",
                    help="fit only samples at or after this time, s (e.g. to trim a release "
@@ -127,6 +134,10 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--load-interp", default="cubic", choices=("cubic", "linear", "zoh"),
                    help="interpolation of the record's P/tau columns: cubic (C2 spline, for "
                         "measured signals; default), linear, or zoh (a held digital command)")
+    add_channel_options(p)
+    p.add_argument("--per-record", default="", metavar="NAMES",
+                   help="comma-separated free parameters that take a separate value in each "
+                        "record (with --more-data), e.g. tau_gain or T_c; the rest are shared")
     _fit_options(p)
 
 
@@ -222,7 +233,7 @@ def _check_free(free: tuple[str, ...], a: argparse.Namespace, scene, n_records: 
 def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
     """The keyword arguments of `fit` from the options, every one checked (with `scene`,
     the free names against it too)."""
-    from ..identify.request import MAX_ITERATIONS, SIGMA_RANGE
+    from ..identify.request import MAX_ITERATIONS
 
     free = tuple(x.strip() for x in a.free.split(",") if x.strip())
     if not free:
@@ -240,17 +251,20 @@ def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
     if a.max_steps is not None and not 1 <= a.max_steps <= MAX_ITERATIONS:
         raise UserError(f"--max-steps must be an integer from 1 to {MAX_ITERATIONS}, got "
                         f"{a.max_steps}")
-    if a.sigma is not None and not SIGMA_RANGE[0] <= a.sigma <= SIGMA_RANGE[1]:
-        raise UserError(f"--sigma must be a noise level from {SIGMA_RANGE[0]:g} to "
-                        f"{SIGMA_RANGE[1]:g} rad, got {a.sigma:g}")
+    sigma = parse_sigma(a.sigma)
+    per_record = tuple(x.strip() for x in getattr(a, "per_record", "").split(",") if x.strip())
+    bad = [n for n in per_record if n not in free]
+    if bad:
+        raise UserError(f"--per-record names {', '.join(bad)}, which is not free; add it to "
+                        "--free or leave it out of --per-record")
     lo, hi = getattr(a, "fit_t_start", None), getattr(a, "fit_t_end", None)
     if lo is not None and hi is not None and not lo < hi:
         raise UserError(f"--t-start ({lo:g}) must be before --t-end ({hi:g})")
     window = None if lo is None and hi is None else (lo, hi)
     return dict(free=free, init=a.init, method=a.method, shooting=a.shooting,
                 segments=a.segments, multistart=a.multistart, seed=a.seed,
-                max_steps=a.max_steps, sigma=a.sigma, profile=a.profile, window=window,
-                progress=not a.quiet, warn=False)
+                max_steps=a.max_steps, sigma=sigma, profile=a.profile, window=window,
+                progress=not a.quiet, warn=False, per_record=per_record)
 
 
 def _fit_run(a: argparse.Namespace) -> int:
@@ -272,7 +286,9 @@ def _fit_run(a: argparse.Namespace) -> int:
     _outputs_ok(a, files + [a.scene])
     kwargs = _fit_kwargs(a, scene, len(files))  # every option before any record is read
     records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
-                         interp=a.load_interp) for f in files]
+                         interp=a.load_interp, sensors=record_sensors(a, scene, f),
+                         inputs=scene_inputs(scene))
+               for f in files]
     res = fit(scene, records if len(records) > 1 else records[0], **kwargs)
     a.fitted_scene = scene
     return _report(res, a, title=f"{', '.join(files)} with {a.scene}")
@@ -296,9 +312,9 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
 
 def demo_data(seed: int = 1):
     """The demo's scene (the lab rig with its known shaker torque) and synthetic record."""
-    from ..data import synthesize
     from ..model.loads import HarmonicLoad
     from ..scene import load_scene
+    from ..synth import synthesize
 
     base = load_scene(DEMO["scene"])
     scene = base.__class__(base.mech, torque=HarmonicLoad(0.0, DEMO["tau1"], DEMO["freq_hz"]),

@@ -8,6 +8,7 @@ import json
 import math
 import sys
 
+from .channels import add_channel_options, record_sensors, scene_inputs
 from .errors import UserError
 
 __all__ = ["COMMANDS", "LOAD_INTERP"]
@@ -34,6 +35,7 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--phi-col", default="phi", help="name of the angle column (phi)")
     p.add_argument("--angle-unit", default="rad", choices=("rad", "deg"),
                    help="unit of the angle column (rad)")
+    add_channel_options(p)
     p.add_argument("--out", required=True, help="write the scores as JSON to this file")
     p.add_argument("--plot", help="draw data, prediction and error to this PNG")
     p.add_argument("--report", metavar="HTML",
@@ -54,10 +56,11 @@ def _check_numbers(a: argparse.Namespace) -> None:
                         f"{', '.join(LOAD_INTERP)}")
 
 
-def _read(a: argparse.Namespace):
+def _read(a: argparse.Namespace, scene):
     from ..data import load_data
 
-    kw = dict(t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit)
+    kw = dict(t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
+              sensors=record_sensors(a, scene, a.data), inputs=scene_inputs(scene))
     if a.load_interp is not None:
         if "interp" in inspect.signature(load_data).parameters:
             kw["interp"] = a.load_interp
@@ -90,7 +93,7 @@ def _validate_run(a: argparse.Namespace) -> int:
     if len(set(named)) < len(named):
         raise UserError("--out, --plot and --report must name different files")
     scene = load_scene(a.scene)
-    data = _read(a)
+    data = _read(a, scene)
     val = validate(scene, data, t_start=a.t_start, t_end=a.t_end, init_window=a.init_window,
                    scene_loads=a.scene_loads, progress=not a.quiet)
     print(val.summary())

@@ -38,6 +38,8 @@ import numpy as np
 
 from ..data import Data
 from ..scene import Scene
+from . import channels as ch
+from .measurement import fitted_channels
 from .optimise import Run, least_squares, minimise_optax
 from .plan import Plan, basis, make_plan, shooting
 from .problem import Problem
@@ -185,13 +187,14 @@ def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
                         if len(more) < ESCALATION_STARTS and _stalled(more[-1][0], n, plan,
                                                                       req) else ""))
     best, label = _best(runs)
+    unit = ch.first_unit(req)  # the residuals are in the first channel's unit
     if tried:
         won = "the first attempt" if best is first else label
         why = "did not converge" if not first.converged else (
-            f"stalled at rms {_rms(first, n):.3g} rad, far above the record's noise level "
-            f"({plan.noise:.3g} rad)")
+            f"stalled at rms {_rms(first, n):.3g} {unit}, far above the record's noise "
+            f"level ({plan.noise:.3g} {unit})")
         notes.append(f"the {plan.strategy} fit {why}; tried {' and '.join(tried)}; the "
-                     f"result is {won} (rms {_rms(best, n):.3g} rad"
+                     f"result is {won} (rms {_rms(best, n):.3g} {unit}"
                      + (", the lowest-cost converged try)" if best.converged
                         else ", the lowest-cost try: none converged)"))
         if best is not first:
@@ -199,12 +202,12 @@ def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
                              else f"{plan.strategy}, {label}")
     elif len(runs) > 1 and not best.converged:
         notes.append(f"none of the {len(runs)} starts converged; the result is the "
-                     f"lowest-cost one ({label}, rms {_rms(best, n):.3g} rad)")
+                     f"lowest-cost one ({label}, rms {_rms(best, n):.3g} {unit})")
     return best, sum(r.iterations for r, _ in runs), notes
 
 
 def _stalled(run: Run, n: int, plan: Plan, req: FitRequest) -> bool:
-    return not run.converged or far_from_noise(_rms(run, n), plan.noise, req.sigma)
+    return not run.converged or far_from_noise(_rms(run, n), plan.noise, ch.known_sigma(req))
 
 
 def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
@@ -215,7 +218,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         r_hat, values = ss.no_residuals(), np.asarray(ss.values(z_hat))
         rms, unc, more, diag = float("nan"), undefined(ss.p, "did not converge"), [], None
     else:
-        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, req.sigma)
+        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, ch.known_sigma(req))
     if converged and not math.isfinite(rms):
         converged, message = False, "the ODE solve fails at the final estimate"
     notes = more + notes + plan.notes
@@ -250,7 +253,9 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         shooting=("multiple" + plan.strategy.split("multiple shooting", 1)[1].split(",")[0]
                   if plan.strategy.startswith("multiple") else "single"),
         mech=ss.unpack(jnp.asarray(z_hat))[0], data=list(req.records),
-        fitted=ss.fitted(r_hat), profile=prof, strategy=plan.strategy, diagnostics=diag)
+        fitted=ss.fitted(r_hat), profile=prof, strategy=plan.strategy, diagnostics=diag,
+        channels=ch.channel_report(ss, r_hat, req.sigmas, converged),
+        fitted_channels=fitted_channels(ss, r_hat))
 
 
 def fit(
@@ -271,6 +276,8 @@ def fit(
     window: tuple[float | None, float | None] | None = None,
     progress: bool = True,
     warn: bool = True,
+    per_record: Sequence[str] = (),
+    force=None,
 ) -> FitResult:
     """Fit free parameters of a scene to crank-angle records by least squares.
 
@@ -310,6 +317,17 @@ def fit(
       e.g. to trim a release transient.
     - `progress`: show progress bars on stderr. `warn`: emit Python warnings
       ([`IdentifiabilityWarning`][], [`ConvergenceWarning`][]) besides `result.warnings`.
+    - `per_record`: free names that take a separate value in each record (reported as
+      `name[i]`); the others are shared.
+    - `force`: a user's force term, as `simulate` takes it (an `eqx.Module` callable
+      `f(t, phi, dphi) -> N*m`); its float fields can be freed as `force.<field>` (or
+      `force.<field>[i]` for an array's elements).
+
+    Records may carry any sensor channels (`phi`, `dphi`, `x_s`, `v_s`, `a_s`, see
+    [`Data`][]): each is compared with the model's reading `scale h + offset` and
+    weighted by its noise level (`sigma` a dict, channel -> SI level; a number is the
+    first channel's; unknown levels are estimated from the record, then from the
+    residuals). Offsets can be freed as `<channel>_offset`.
 
     **Returns:** a [`FitResult`][]. A fit that fails or does not converge returns
     `converged=False` with a message (and finite values: the last good iterate or the
@@ -324,12 +342,14 @@ def fit(
     req = normalise(scene, data, free, init=init, method=method, shooting=shooting,
                     segments=segments, multistart=multistart, seed=seed, max_steps=max_steps,
                     tol=tol, sigma=sigma, profile=profile, window=window, progress=progress,
-                    warn=warn)
+                    warn=warn, per_record=per_record, force=force)
+    req = ch.with_channels(req)
     plan = make_plan(req)
     if plan.abort:
         best, iterations, notes = Run(plan.z0, float("nan"), 0, False, plan.abort), 0, []
     else:
         best, iterations, notes = _optimise(req, plan)
+        req, best, iterations = ch.reweight(req, plan, best, iterations, notes, _attempt)
     res = _result(req, plan, best, iterations, notes, t_begin)
     if req.warn:
         if res.identifiable is False:

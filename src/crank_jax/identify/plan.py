@@ -15,7 +15,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ..data import Data
+from . import channels as ch
+from .angle import motion_period
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at
 from .request import STATE_NAMES, FitRequest
@@ -59,15 +60,14 @@ def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
     """Start values of the global names, each record's start state, and notes."""
     start, notes = dict(req.start), []
     if req.init == "regressor":
-        reg, notes = regressor_start(req.scene.mech, [(d, lo, to) for d, (lo, to)
-                                                      in zip(req.records, req.loads)],
-                                     req.free, periods)
+        # On the angle the channels tell: the regressor form is written in phi.
+        reg, notes = regressor_start(req.scene.mech, ch.angle_records(req), req.free, periods)
         start.update(reg)
     states = []
-    for d, per, fixed in zip(req.records, periods, req.states):
+    for d, a, per, fixed in zip(req.records, req.angles, periods, req.states):
         # The state at the first sample from a smoothed fit to the first samples: the
         # scene's state is at t = 0, and real records start anywhere.
-        ps, dps, _ = smooth_derivatives(d.ts, d.phi, half_window(d.ts, per), [0])
+        ps, dps, _ = smooth_derivatives(d.ts, a, half_window(d.ts, per), [0])
         states.append((float(ps[0]) if "phi0" in req.free else fixed[0],
                        float(dps[0]) if "dphi0" in req.free else fixed[1]))
     return start, states, notes
@@ -75,11 +75,13 @@ def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
 
 def _problem(req: FitRequest, start, states, nseg, budget, solver) -> Problem:
     recs = [(d, lo, to, s[0], s[1]) for d, (lo, to), s in zip(req.records, req.loads, states)]
-    periods = [observed_period(d.ts, d.phi) for d in req.records]
+    periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     omega = next((2 * math.pi / p for p in periods if p), None)
     return build_problem(req.scene.mech, recs, req.free, start, nseg, solver=solver,
                          rtol=float(req.scene.rtol), atol=float(req.scene.atol),
-                         max_steps=budget, adjoint="forward", omega=omega)
+                         max_steps=budget, adjoint="forward", omega=omega,
+                         angles=req.angles, sigmas=req.sigmas, per_record=req.per_record,
+                         force=req.force)
 
 
 def _start_solve(req, start, states, solver, periods):
@@ -91,37 +93,26 @@ def _start_solve(req, start, states, solver, periods):
     spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
     for budget in (SMALL_ODE_BUDGET, MAX_ODE_STEPS):
         ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
-        z = ss.to_z([start[n] if n in start else _state(n, states) for n in ss.names])
+        z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
         r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z)))
-        absurd = any(absurd_start(int(n), sp, p, turns=_turns(d)) for n, sp, p, d in
-                     zip(np.atleast_1d(steps), spans, periods, req.records))
+        absurd = any(absurd_start(int(n), sp, p, turns=_turns(a)) for n, sp, p, a in
+                     zip(np.atleast_1d(steps), spans, periods, req.angles))
         if int(failed) == 0 or budget == MAX_ODE_STEPS or absurd:
             return ss, z, r, int(failed), np.atleast_1d(steps).astype(int), J
 
 
-def _turns(d: Data) -> float:
-    """Net turns of a record's crank, first sample to last."""
-    return abs(float(d.phi[-1] - d.phi[0])) / (2 * math.pi)
+def _turns(angle: np.ndarray) -> float:
+    """Net turns of a record's crank (its angle as the channels tell it), first sample to
+    last."""
+    return abs(float(angle[-1] - angle[0])) / (2 * math.pi)
 
 
-def _state(name: str, states) -> float:
+def _state(name: str, states, start) -> float:
     base, _, idx = name.partition("[")
+    if base not in STATE_NAMES:  # a per-record parameter starts where its name does
+        return start[base]
     i = int(idx[:-1]) if idx else 0
     return states[i][STATE_NAMES.index(base)]
-
-
-def _segment_z(problem: Problem, records) -> np.ndarray:
-    """Start coordinates of the multiple-shooting segment states (smoothed data)."""
-    out = []
-    for e, d in zip(problem.exps, records):
-        first = np.asarray(e.seg.first)[1:]
-        if first.size == 0:
-            continue
-        ps, dps, _ = smooth_derivatives(d.ts, d.phi, half_window(d.ts, observed_period(
-            d.ts, d.phi)), first)
-        for p_, dp in zip(ps, dps):
-            out += [p_ / float(e.ref_phi), dp / float(e.ref_dphi)]
-    return np.asarray(out, dtype=float)
 
 
 def _flat_basis(J0: np.ndarray) -> np.ndarray:
@@ -147,13 +138,15 @@ def basis(Bg: np.ndarray, n_coords: int) -> np.ndarray:
 
 
 def make_plan(req: FitRequest) -> Plan:
-    periods = [observed_period(d.ts, d.phi) for d in req.records]
-    noises = [noise_level(d.ts, d.phi, p) for d, p in zip(req.records, periods)]
-    noise = max(noises)
+    periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
+    # Motion is judged on the angle the channels tell; the fit's residuals and their
+    # noise level are in the first channel's unit.
+    noises = [noise_level(d.ts, a, p) for d, a, p in zip(req.records, req.angles, periods)]
+    noise = req.sigmas[ch.first_channel(req)]
     multi = len(req.records) > 1
     quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in
-                  ((no_motion(d.phi, n) or aliased(d.phi), d)
-                   for d, n in zip(req.records, noises)) if a), None)
+                  ((no_motion(ang, n) or aliased(ang), d)
+                   for d, ang, n in zip(req.records, req.angles, noises)) if a), None)
     start, states, notes = _starts(req, periods)
     mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
                                            if n in req.scene.mech.as_dict()})
@@ -173,9 +166,10 @@ def make_plan(req: FitRequest) -> Plan:
     # absurd as alone (the steps of the slowest record against the periods of another
     # let a record of 10^4 turns through).
     plan.abort = next(((f"record {d.source}: {a}" if multi else a)
-                       for a, d in ((absurd_start(int(n), sp, p, ss.max_steps, _turns(d)), d)
-                                    for n, sp, p, d in zip(steps0, spans, periods,
-                                                           req.records)) if a), None)
+                       for a, d in ((absurd_start(int(n), sp, p, ss.max_steps, _turns(ang)), d)
+                                    for n, sp, p, d, ang in zip(steps0, spans, periods,
+                                                                req.records, req.angles))
+                       if a), None)
     if plan.abort:
         return plan
     if failed0 > 0:
@@ -186,14 +180,14 @@ def make_plan(req: FitRequest) -> Plan:
     if budget != ss.max_steps:
         ss = plan.single = _problem(req, start, states, [1] * len(req.records), budget,
                                     solver)
-    model = ss.fitted(r0)
+    model = ch.model_angles(req, ss, r0)
     segs = [n_segments(sp, p, observed_period(d.ts, m), req.shooting, req.segments,
-                       _turns(d), abs(float(m[-1] - m[0])) / (2 * math.pi))
-            for d, sp, p, m in zip(req.records, spans, periods, model)]
+                       _turns(a), _turns(m))
+            for d, a, sp, p, m in zip(req.records, req.angles, spans, periods, model)]
     # A crank that turns has the time of a turn for its cycle: escalation cuts its
     # record per two turns, as an oscillation's per two periods.
     plan.periods = [p if p else (sp / t if t >= 1 else None) for p, sp, t in
-                    zip(periods, spans, (_turns(d) for d in req.records))]
+                    zip(periods, spans, (_turns(a) for a in req.angles))]
     if max(s for s, _ in segs) > 1:
         plan.shoot, plan.z0 = shooting(req, plan, [s for s, _ in segs])
         plan.strategy = f"multiple shooting ({'+'.join(str(s) for s, _ in segs)} segments)"
@@ -205,7 +199,7 @@ def make_plan(req: FitRequest) -> Plan:
 def _aborted(req, start, states, solver, why: str, notes) -> Plan:
     """A plan that stops before any solve (see `absurd_frequency`)."""
     ss = _problem(req, start, states, [1] * len(req.records), SMALL_ODE_BUDGET, solver)
-    z = ss.to_z([start[n] if n in start else _state(n, states) for n in ss.names])
+    z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
     full = {n: float(v) for n, v in zip(ss.names, np.asarray(ss.values(z)))}
     return Plan(ss, ss, z, np.eye(ss.p), full, float("nan"), [], notes, "none", start,
                  states, solver, abort=why)
@@ -214,4 +208,4 @@ def _aborted(req, start, states, solver, why: str, notes) -> Plan:
 def shooting(req: FitRequest, plan: Plan, nseg) -> tuple[Problem, np.ndarray]:
     """A multiple-shooting problem and its start coordinates."""
     ms = _problem(req, plan.start_g, plan.states, nseg, plan.single.max_steps, plan.solver)
-    return ms, np.concatenate([plan.z0[:plan.single.p], _segment_z(ms, req.records)])
+    return ms, np.concatenate([plan.z0[:plan.single.p], ch.segment_states(ms, req)])

@@ -13,31 +13,28 @@ __all__ = ["plot_fit"]
 
 
 def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
-    """Draw a [`FitResult`][]: phi data and fit (top), residuals (middle), the
+    """Draw a [`FitResult`][]: for each channel its data and fit, then its residuals; the
     correlation matrix of the estimates (bottom left; blank where undefined) and the
     residuals' autocorrelation with its white-noise band (bottom right)."""
     plt = pyplot()
-    fig = plt.figure(figsize=(10, 9))
-    gs = fig.add_gridspec(3, 2, height_ratios=[2, 1, 2])
-    ax1 = fig.add_subplot(gs[0, :])
-    ax2 = fig.add_subplot(gs[1, :], sharex=ax1)
-    for i, (d, f) in enumerate(zip(result.data, result.fitted)):
-        label = f" (record {i})" if len(result.data) > 1 else ""
-        ax1.plot(d.ts, d.phi, ".", ms=2, color=f"C{2 * i}", label="data" + label)
-        ax1.plot(d.ts, f, "-", lw=1, color=f"C{2 * i + 1}", label="fit" + label)
-        ax2.plot(d.ts, d.phi - f, ".", ms=2, color=f"C{2 * i}")
-    ax1.set_ylabel("phi [rad]")
-    ax1.legend(loc="upper right", fontsize=8)
-    ax2.set_ylabel("data - fit [rad]")
-    ax2.set_xlabel("t [s]")
-    for ax in (ax1, ax2):
-        ax.grid(alpha=0.3)
+    names_ch = list(result.channels or {"phi": None})
+    rows = 2 * len(names_ch)
+    fig = plt.figure(figsize=(10, 5 + 4 * len(names_ch)))
+    gs = fig.add_gridspec(rows + 1, 2, height_ratios=[2, 1] * len(names_ch) + [2])
+    first = None
+    for c, name in enumerate(names_ch):
+        ax1 = fig.add_subplot(gs[2 * c, :], sharex=first)
+        ax2 = fig.add_subplot(gs[2 * c + 1, :], sharex=ax1)
+        first = first or ax1
+        _plot_channel(ax1, ax2, result, name)
     state = "converged" if result.converged else "NOT converged"
     ident = ", NOT identifiable" if result.identifiable is False else ""
-    ax1.set_title((title + "\n" if title else "") + f"{state}{ident}; rms residual "
-                  f"{result.rms_residual:.3g} rad; condition number "
-                  f"{result.condition_number:.3g}", fontsize=9)
-    ax3 = fig.add_subplot(gs[2, 0])
+    unit = (result.channels or {}).get(names_ch[0], {}) or {}
+    first.set_title((title + "\n" if title else "") + f"{state}{ident}; rms residual "
+                    f"{result.rms_residual:.3g} {unit.get('unit', 'rad')}; condition number "
+                    f"{result.condition_number:.3g}", fontsize=9)
+    gs_last = rows
+    ax3 = fig.add_subplot(gs[gs_last, 0])
     corr = np.ma.masked_invalid(np.asarray(result.correlation, dtype=float))
     im = ax3.imshow(corr, vmin=-1, vmax=1, cmap="RdBu_r")
     names = list(result.names)
@@ -49,7 +46,7 @@ def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
                 ax3.text(j, i, f"{corr[i, j]:.2f}", ha="center", va="center", fontsize=7)
     ax3.set_title("correlation of the estimates", fontsize=9)
     fig.colorbar(im, ax=ax3, shrink=0.8)
-    ax4 = fig.add_subplot(gs[2, 1])
+    ax4 = fig.add_subplot(gs[gs_last, 1])
     if result.diagnostics is not None:
         plot_acf(ax4, result.diagnostics)
     else:
@@ -58,3 +55,23 @@ def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
         ax4.set_axis_off()
     fig.tight_layout()
     save_figure(fig, path)
+
+
+def _plot_channel(ax1, ax2, result, name: str) -> None:
+    """One channel's data against the fit (ax1) and its residuals (ax2), SI."""
+    fitted = result.fitted_channels or [{"phi": f} for f in result.fitted]
+    unit = ((result.channels or {}).get(name) or {}).get("unit", "rad")
+    for i, (d, f) in enumerate(zip(result.data, fitted)):
+        y = dict((s.name, v) for s, v in d.outputs()).get(name)
+        if y is None or name not in f:
+            continue
+        label = f" (record {i})" if len(result.data) > 1 else ""
+        ax1.plot(d.ts, y, ".", ms=2, color=f"C{2 * i}", label="data" + label)
+        ax1.plot(d.ts, f[name], "-", lw=1, color=f"C{2 * i + 1}", label="fit" + label)
+        ax2.plot(d.ts, y - f[name], ".", ms=2, color=f"C{2 * i}")
+    ax1.set_ylabel(f"{name} [{unit}]")
+    ax1.legend(loc="upper right", fontsize=8)
+    ax2.set_ylabel(f"data - fit [{unit}]")
+    ax2.set_xlabel("t [s]")
+    for ax in (ax1, ax2):
+        ax.grid(alpha=0.3)

@@ -45,9 +45,13 @@ from ..model.dynamics import CrankField, Structure
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, nonsmooth_times, set_param
 from ..model.params import FIELDS, SliderCrank, validation_rules
+from ..sensors import OFFSET_NAMES
 from ..solve.policy import resolve_solver
+from .measurement import calibration, channel_errors, fitted_channels
+from .odeterm import FIT_SOLVERS, ode_term
 from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
-from .segments import Segments, make_segments, padded_load
+from .segments import Experiment, make_segments, padded_load
+from .userforce import PREFIX, with_force_values
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
@@ -113,53 +117,6 @@ def _invalid(mech: SliderCrank) -> Array:
     return jnp.any(jnp.stack(bad))
 
 
-def _fit_field(t, y, field):
-    """The fit's own ODETerm adapter on the model's vector field (a function object of its
-    own: diffrax caches traces by it, see `Problem.simulate_segments`)."""
-    return jnp.stack(field(t, (y[0], y[1])))
-
-
-def _fit_field_no_callbacks(t, y, field):
-    """As `_fit_field`, for traces made with equinox's checks as NaN
-    (`persistent.checks_without_callbacks`): a separate object, so a trace made in one mode
-    (with host callbacks) is never reused in the other."""
-    return jnp.stack(field(t, (y[0], y[1])))
-
-
-def _ode_term() -> diffrax.ODETerm:
-    import equinox._errors as eqx_errors  # the same switch `checks_without_callbacks` sets
-
-    nan = getattr(eqx_errors, "EQX_ON_ERROR", None) == "nan"
-    return diffrax.ODETerm(_fit_field_no_callbacks if nan else _fit_field)
-
-
-# The fit's residuals use diffrax's adaptive solvers; "dopri8-uniform" (uniform save
-# times only) runs as the same Dopri8 tableau, adaptively, on the padded segment times.
-_SOLVERS = {"tsit5": "Tsit5", "dopri5": "Dopri5", "dopri8": "Dopri8",
-            "dopri8-uniform": "Dopri8", "dopri8-adaptive": "Dopri8", "kvaerno5": "Kvaerno5"}
-
-
-class Experiment(eqx.Module):
-    """One record in the problem: its segments, loads and fixed initial state."""
-
-    seg: Segments
-    load: AbstractLoad
-    torque: AbstractLoad
-    phi0: Array  # used when phi0 is not free
-    dphi0: Array
-    # Arrays, not static floats: a static value that depends on the data would recompile
-    # every fit.
-    ref_phi: Array
-    ref_dphi: Array
-
-    @property
-    def n(self) -> int:
-        """Number of fitted samples (host side)."""
-        return int(np.asarray(self.seg.w).sum())
-
-
-
-
 class Problem(eqx.Module):
     """The residual function `z -> r` of a fit (an `eqx.Module`, so it can be jitted).
 
@@ -182,6 +139,9 @@ class Problem(eqx.Module):
     adjoint: str = eqx.field(static=True, default="forward")
     # Per reported name: fitted as `ref |z|` (see `folded`); empty: none is.
     fold: tuple[bool, ...] = eqx.field(static=True, default=())
+    # Free names with one value per record (`name[i]`, before each record's states).
+    per_record: tuple[str, ...] = eqx.field(static=True, default=())
+    force: object = None  # a user's force term (`userforce.py`), its free fields set by z
 
     # --- coordinates ------------------------------------------------------------------
 
@@ -197,7 +157,7 @@ class Problem(eqx.Module):
 
     @property
     def n_residuals(self) -> int:
-        return sum(int(np.asarray(e.seg.w).sum()) for e in self.exps)
+        return sum(int(np.asarray(e.seg.w).sum()) * len(e.channels) for e in self.exps)
 
     @property
     def folded(self) -> tuple[bool, ...]:
@@ -218,7 +178,9 @@ class Problem(eqx.Module):
         return np.where(self.log, np.log(np.where(self.log, v, 1.0)), v / ref)
 
     def unpack(self, z: Array):
-        """(mechanism, [(load, torque, y0s)] per record) from coordinates `z`."""
+        """(mechanism, [(load, torque, y0s, own)] per record) from coordinates `z`; `own`:
+        every value but the shared mechanism fields' (name -> value), and under `"force."`
+        the record's force term."""
         vals = self.values(z)
         fields = {n: getattr(self.base, n) for n in FIELDS}
         load_vals = {}
@@ -233,7 +195,13 @@ class Problem(eqx.Module):
         x = self.p  # segment states start after the reported parameters
         for e in self.exps:
             load, torque = e.load, e.torque
-            for name, v in load_vals.items():
+            own = {**load_vals, **{n: vals[k + j] for j, n in enumerate(self.per_record)}}
+            force = with_force_values(self.force, {n: v for n, v in own.items()
+                                                   if n.startswith(PREFIX)})
+            k += len(self.per_record)
+            for name, v in own.items():
+                if name not in LOAD_NAMES:
+                    continue
                 side, role = LOAD_NAMES[name]
                 if side == "load":
                     load = set_param(load, role, v, side)
@@ -251,12 +219,12 @@ class Problem(eqx.Module):
             for _ in range(S - 1):
                 y0.append(jnp.stack([z[x] * e.ref_phi, z[x + 1] * e.ref_dphi]))
                 x += 2
-            out.append((load, torque, jnp.stack(y0)))
+            out.append((load, torque, jnp.stack(y0), {**own, PREFIX: force}))
         return mech, out
 
     # --- residuals --------------------------------------------------------------------
 
-    def simulate_segments(self, mech, e: Experiment, load, torque, y0s):
+    def simulate_segments(self, mech, e: Experiment, load, torque, y0s, force=None):
         """Model angles and rates on every segment: (phi, dphi), each (S, m), NaN after a
         failed solve, and the ODE steps each segment's solve took (S,).
 
@@ -275,11 +243,11 @@ class Problem(eqx.Module):
                                                         jump_ts=jump_ts)
         adjoint = (diffrax.ForwardMode() if self.adjoint == "forward"
                    else diffrax.RecursiveCheckpointAdjoint())
-        field = CrankField(mech, load, torque, self.structure).packed()
+        field = CrankField(mech, load, torque, self.structure, force).packed()
 
         def one(ts, y0):
             sol = diffrax.diffeqsolve(
-                _ode_term(), getattr(diffrax, _SOLVERS[self.solver])(), t0=ts[0],
+                ode_term(), getattr(diffrax, FIT_SOLVERS[self.solver])(), t0=ts[0],
                 t1=ts[-1], dt0=None, y0=y0, args=field, saveat=diffrax.SaveAt(ts=ts),
                 stepsize_controller=controller, max_steps=self.max_steps, adjoint=adjoint,
                 throw=False)
@@ -295,23 +263,20 @@ class Problem(eqx.Module):
 
     @property
     def n_rows(self) -> int:
-        """Length of the residual vector: every record's padded samples, then the
-        continuity defects (see [`residuals`][]); `n_residuals` counts fitted samples."""
-        return sum(int(np.prod(e.seg.ts.shape)) for e in self.exps) + self.n_extra
+        """Length of the residual vector: every record's padded samples in each channel,
+        then the continuity defects (see [`residuals`][]); `n_residuals` counts fitted
+        samples."""
+        return sum(int(np.prod(e.seg.ts.shape)) * len(e.channels)
+                   for e in self.exps) + self.n_extra
 
     def no_residuals(self) -> np.ndarray:
         """NaN residuals of the right length, for a fit with no solve to show (n_rows,)."""
         return np.full(self.n_rows, np.nan)
 
     def fitted(self, r) -> list[np.ndarray]:
-        """Model angles at each record's samples, from single-shooting residuals `r`
-        (r = model - data), rad."""
-        out, k = [], 0
-        for e in self.exps:
-            size = int(np.prod(e.seg.ts.shape))
-            out.append(np.asarray(e.seg.phi[0, :e.n]) + np.asarray(r)[k:k + e.n])
-            k += size
-        return out
+        """The first channel's model reading at each record's samples (the model angle,
+        rad, for a plain angle record), from single-shooting residuals `r`."""
+        return [next(iter(f.values())) for f in fitted_channels(self, r)]
 
     def residuals(self, z: Array) -> tuple[Array, Array, Array]:
         """(r, n_failed, steps): the stacked residual vector, how many samples failed,
@@ -321,23 +286,31 @@ class Problem(eqx.Module):
         rs, cont, failed, steps = [], [], 0, []
         # A point outside the mechanism's valid set (a coupler shorter than the crank, a
         # centre of mass beyond the coupler) is a failed solve: rejected, never reported.
-        invalid = _invalid(mech)
-        for e, (load, torque, y0s) in zip(self.exps, per):
-            phi, dphi, n_steps = self.simulate_segments(mech, e, load, torque, y0s)
+        for e, (load, torque, y0s, own) in zip(self.exps, per):
+            mech_e = SliderCrank(**{**{f: getattr(mech, f) for f in FIELDS},
+                                    **{n: v for n, v in own.items() if n in FIELDS}})
+            offsets_e = {OFFSET_NAMES[n]: v for n, v in own.items() if n in OFFSET_NAMES}
+            invalid = _invalid(mech_e)
+            force = own.pop(PREFIX)
+            phi, dphi, n_steps = self.simulate_segments(mech_e, e, load, torque, y0s, force)
             steps.append(jnp.max(n_steps))
             ok = jnp.isfinite(phi) & jnp.isfinite(dphi) & ~invalid
             failed = failed + jnp.sum(~ok & (e.seg.w > 0))
-            r = jnp.where(ok, phi - e.seg.phi, _FAILED_RESIDUAL)
+            err = channel_errors(mech_e, e, load, torque, phi, dphi, offsets_e, self.structure,
+                                 force)
+            r = jnp.where(ok[None], err * e.weight[:, None, None], _FAILED_RESIDUAL)
             # Padding and shared samples get weight 0: zeros in r change neither the sum of
             # squares nor the Jacobian's rank, and keep the shapes static.
-            rs.append((e.seg.w * r).reshape(-1))
+            rs.append((e.seg.w[None] * r).reshape(-1))
             S = e.seg.ts.shape[0]
             if S > 1:
                 idx = e.seg.end[:-1]
                 rows = jnp.arange(S - 1)
                 # Continuity of the state at each shared sample, weighted like a segment's
                 # worth of data so that the defects end up well below the noise.
-                wgt = math.sqrt(e.seg.ts.shape[1])
+                # In the first channel's unit (its reading's change per radian), so the
+                # defects weigh against the data alike whatever the sensor.
+                wgt = math.sqrt(e.seg.ts.shape[1]) * e.per_radian
                 dphi_end = jnp.where(ok[rows, idx], dphi[rows, idx], _FAILED_RESIDUAL)
                 phi_end = jnp.where(ok[rows, idx], phi[rows, idx], _FAILED_RESIDUAL)
                 cont.append(wgt * (phi_end - y0s[1:, 0]))
@@ -373,6 +346,10 @@ def build_problem(
     adjoint: str = "forward",
     pad: bool = True,
     omega: float | None = None,
+    angles: Sequence[np.ndarray] | None = None,
+    sigmas: dict[str, float] | None = None,
+    per_record: Sequence[str] = (),
+    force=None,
 ) -> Problem:
     """Assemble a [`Problem`][].
 
@@ -390,8 +367,16 @@ def build_problem(
       of other lengths reuse the compiled programs.
     - `omega`: the records' observed angular frequency, rad/s (scales a free field that
       starts at 0; see [`coordinate`][]).
+    - `angles`: each record's crank angle as far as the data tell (n,), rad (default: its
+      `phi`): the scale of the state coordinates.
+    - `sigmas`: each channel's noise level, SI (default 1 each): a channel's residuals
+      are weighted by the first channel's level over its own.
+    - `per_record`: free names with a separate value per record (`name[i]`).
+    - `force`: a user's force term (its free fields are `force.<field>` names).
     """
-    glob = [n for n in free if n not in ("phi0", "dphi0")]
+    per_record = tuple(per_record)
+    glob = [n for n in free if n not in ("phi0", "dphi0") and n not in per_record]
+    omega_obs = omega
     state_free = (("phi0" in free), ("dphi0" in free))
     names, log, ref = [], [], []
     for n in glob:
@@ -402,12 +387,21 @@ def build_problem(
     fold = [folded(n, lg) for n, lg in zip(names, log)]
     exps = []
     multi = len(records) > 1
+    first = records[0][0].outputs()[0][0].name
+    first_sigma = (sigmas or {}).get(first, 1.0)
     for i, (data, load, torque, phi0, dphi0) in enumerate(records):
-        amp = max(float(np.max(np.abs(data.phi - np.mean(data.phi)))), 1e-3)
+        angle = data.phi if angles is None else angles[i]
+        amp = max(float(np.max(np.abs(angle - np.mean(angle)))), 1e-3)
         period = natural_period(mech, load)
         span = float(data.ts[-1] - data.ts[0])
         omega = 2 * math.pi / (period if period is not None else span)
         ref_phi, ref_dphi = max(amp, abs(phi0)), max(amp * omega, abs(dphi0))
+        for n in per_record:
+            lg, rf = coordinate(n, float(start[n]), mech, omega_obs)
+            names.append(f"{n}[{i}]")
+            log.append(lg)
+            ref.append(rf)
+            fold.append(folded(n, lg))
         for name, flag, r in (("phi0", state_free[0], ref_phi),
                               ("dphi0", state_free[1], ref_dphi)):
             if flag:
@@ -415,19 +409,24 @@ def build_problem(
                 log.append(False)
                 ref.append(r)
                 fold.append(False)
-        seg = make_segments(data.ts, data.phi, n_segments[i], pad)
+        outs = data.outputs()
+        seg = make_segments(data.ts, np.stack([y for _, y in outs]), n_segments[i], pad)
         exps.append(Experiment(seg, padded_load(load) if pad else load,
                                padded_load(torque) if pad else torque,
                                jnp.asarray(phi0, float), jnp.asarray(dphi0, float),
-                               jnp.asarray(ref_phi, float), jnp.asarray(ref_dphi, float)))
+                               jnp.asarray(ref_phi, float), jnp.asarray(ref_dphi, float),
+                               *calibration([s for s, _ in outs], sigmas, first_sigma,
+                                            mech, ref_dphi / ref_phi)))
+    n_global = len(glob)
+    glob = glob + list(per_record)  # their start values and structure, as the globals'
     mech_start = mech.replace(**{n: start[n] for n in glob if n in FIELDS})
     # A zero is structure (the compiled program leaves its term out), but a free field
     # that starts at 0 must keep its term, or its sensitivity would be exactly zero.
     nonzero = mech_start.replace(**{n: _TINY for n in glob if n in FIELDS and start[n] == 0})
     structure = Structure.of(mech_start).union(Structure.of(nonzero))
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
-                   len(glob), state_free, solver, structure, jnp.asarray(rtol),
-                   jnp.asarray(atol), int(max_steps), adjoint, tuple(fold))
+                   n_global, state_free, solver, structure, jnp.asarray(rtol),
+                   jnp.asarray(atol), int(max_steps), adjoint, tuple(fold), per_record, force)
 
 
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:

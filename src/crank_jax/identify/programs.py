@@ -45,23 +45,26 @@ def segment_coloring(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     nonzeros). Host-side, from the problem's static shapes."""
     p = problem.p
     n_z = p + problem.n_extra
-    sizes = [tuple(e.seg.ts.shape) for e in problem.exps]  # (S, m) per record
-    n_data = sum(S * m for S, m in sizes)
-    n_rows = n_data + sum(2 * (S - 1) for S, _ in sizes)
+    # (S, m, channels) per record; each channel's rows are a block of S * m
+    sizes = [tuple(e.seg.ts.shape) + (len(e.channels),) for e in problem.exps]
+    n_data = sum(S * m * C for S, m, C in sizes)
+    n_rows = n_data + sum(2 * (S - 1) for S, _, _ in sizes)
     color = np.arange(n_z)
     mask = np.zeros((n_rows, n_z), dtype=bool)
     mask[:, :p] = True
     row, cont, col = 0, n_data, p
-    for S, m in sizes:
+    for S, m, C in sizes:
         for s in range(1, S):  # segment s's state; segment 0's is a global (or fixed)
             for c in range(2):
                 j = col + 2 * (s - 1) + c
                 color[j] = p + 2 * (s % 2) + c
-                mask[row + s * m: row + (s + 1) * m, j] = True  # its samples
+                for ch in range(C):  # its samples, in every channel
+                    base = row + ch * S * m
+                    mask[base + s * m: base + (s + 1) * m, j] = True
                 for d in (s - 1, s):  # the defects at its start and its end
                     if d < S - 1:
                         mask[[cont + d, cont + S - 1 + d], j] = True
-        row, cont, col = row + S * m, cont + 2 * (S - 1), col + 2 * (S - 1)
+        row, cont, col = row + S * m * C, cont + 2 * (S - 1), col + 2 * (S - 1)
     return color, mask
 
 

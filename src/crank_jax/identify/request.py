@@ -18,7 +18,10 @@ from ..data import Data
 from ..model.loads import LOAD_PARAMS, AbstractLoad, get_param, load_kind
 from ..model.params import FIELDS
 from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
+from ..model.sampled import bind_input
 from ..scene import Scene
+from ..sensors import OFFSET_NAMES
+from .userforce import force_names, force_starts
 
 __all__ = ["FitRequest", "normalise", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
            "SIGNED_FIELDS", "FRICTION_SCALED", "MAX_ITERATIONS", "SIGMA_RANGE", "free_names",
@@ -26,8 +29,9 @@ __all__ = ["FitRequest", "normalise", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP"
 
 STATE_NAMES = ("phi0", "dphi0")
 #: Load parameters that can be free, name -> (side, role), from the one load table
-#: (`model.loads.LOAD_PARAMS`): each load's mean and amplitude (they enter linearly).
-LOAD_NAMES = {n: sr for n, sr in LOAD_PARAMS.items() if sr[1] in ("mean", "amp")}
+#: (`model.loads.LOAD_PARAMS`): each load's mean, amplitude and input gain (they enter
+#: linearly).
+LOAD_NAMES = {n: sr for n, sr in LOAD_PARAMS.items() if sr[1] in ("mean", "amp", "gain")}
 #: Parameters that enter the equation of motion linearly: scaling all of them (and every
 #: load) by one factor leaves the motion unchanged (DESIGN.md section 3).
 SCALE_GROUP = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
@@ -50,9 +54,9 @@ _SHOOTING = ("auto", "single", "multiple")
 
 def free_names() -> tuple[str, ...]:
     """Every name that can be free: the mechanism fields (read from `FIELDS`, so new
-    fields can be free as soon as the model has them), the load amplitudes and the
-    initial state."""
-    return tuple(FIELDS) + tuple(LOAD_NAMES) + STATE_NAMES
+    fields can be free as soon as the model has them), the load amplitudes, the channels'
+    offsets (`phi_offset`, `x_s_offset`, ...) and the initial state."""
+    return tuple(FIELDS) + tuple(LOAD_NAMES) + tuple(OFFSET_NAMES) + STATE_NAMES
 
 
 def load_param(load: AbstractLoad, role: str) -> float | None:
@@ -62,14 +66,16 @@ def load_param(load: AbstractLoad, role: str) -> float | None:
     return None if v is None else float(np.asarray(v))
 
 
-def reported_names(free: Sequence[str], n_records: int) -> tuple[str, ...]:
-    """The names a fit reports: the global free names, then `phi0[i]`/`dphi0[i]` per
-    record (no suffix for a single record)."""
-    glob = [n for n in free if n not in STATE_NAMES]
+def reported_names(free: Sequence[str], n_records: int, per_record: Sequence[str] = ()
+                   ) -> tuple[str, ...]:
+    """The names a fit reports: the global free names, then per record `n[i]` for each
+    name of `per_record` and `phi0[i]`/`dphi0[i]` (no suffix for a single record)."""
+    glob = [n for n in free if n not in STATE_NAMES and n not in per_record]
     states = [n for n in STATE_NAMES if n in free]
     if n_records == 1:
-        return tuple(glob + states)
-    return tuple(glob + [f"{n}[{i}]" for i in range(n_records) for n in states])
+        return tuple(glob + list(per_record) + states)
+    return tuple(glob + [f"{n}[{i}]" for i in range(n_records)
+                         for n in list(per_record) + states])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,6 +108,14 @@ class FitRequest:
     window: tuple[float, float] | None
     progress: bool
     warn: bool
+    #: Each record's crank angle as the data tell it (n,), rad (see `angle.py`), and each
+    #: channel's noise level (SI): set by `fit` once, before any solve.
+    angles: tuple | None = None
+    sigmas: dict | None = None
+    #: Free names with a separate value per record (`n[i]`), besides the states.
+    per_record: tuple = ()
+    #: A user's force term (`fit(force=...)`), its free fields named `force.<field>`.
+    force: object = None
 
 
 def window_data(d: Data, window: tuple[float, float] | None) -> Data:
@@ -114,7 +128,7 @@ def window_data(d: Data, window: tuple[float, float] | None) -> Data:
         raise ValueError(f"window [{lo:g}, {hi:g}] s keeps {int(keep.sum())} samples of "
                          f"{d.source} (which spans [{d.ts[0]:g}, {d.ts[-1]:g}] s); widen "
                          "--t-start/--t-end")
-    return Data(d.ts[keep], d.phi[keep], d.load, d.torque, source=d.source)
+    return d.select(keep)
 
 
 def _check_scenes(scenes: list[Scene]) -> None:
@@ -150,9 +164,12 @@ def _check_options(method, shooting, segments, multistart, max_steps, tol, sigma
                          f"{max_steps}")
     if not (math.isfinite(tol) and tol > 0):
         raise ValueError(f"tol must be a positive number, got {tol}")
-    if sigma is not None and not SIGMA_RANGE[0] <= sigma <= SIGMA_RANGE[1]:
-        raise ValueError(f"sigma must be a noise level from {SIGMA_RANGE[0]:g} to "
-                         f"{SIGMA_RANGE[1]:g} rad, got {sigma}")
+    for name, v in (sigma.items() if isinstance(sigma, dict) else [("", sigma)]):
+        if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool)
+                                  and SIGMA_RANGE[0] <= v <= SIGMA_RANGE[1]):
+            raise ValueError(f"sigma{' of ' + name if name else ''} must be a noise level "
+                             f"from {SIGMA_RANGE[0]:g} to {SIGMA_RANGE[1]:g} (the channel's "
+                             f"SI unit{'' if name else ', rad for an angle'}), got {v}")
 
 
 def _check_window(window) -> tuple[float, float] | None:
@@ -179,12 +196,40 @@ def _load_starts(free, records, loads) -> dict[str, float]:
             obj = load if which == "load" else torque
             v = load_param(obj, role)
             if v is None:
+                fix = (f"an input-driven {which} (input = COLUMN, gain = ...)"
+                       if role == "gain" else
+                       f"a harmonic {which} (or, for {n[:-1]}0, a constant one)")
                 raise ValueError(f"{n} cannot be free: the scene's {which} is "
                                  f"{type(obj).__name__} ({load_kind(obj).name}), which has "
-                                 f"no {n}; give the scene a harmonic {which} (or, for "
-                                 f"{n[:-1]}0, a constant one)")
+                                 f"no {n}; give the scene {fix}")
             start[n] = float(v)
     return start
+
+
+def _offset_starts(free, records) -> dict[str, float]:
+    """Start values of free channel offsets: the first record's sensor calibration."""
+    start = {}
+    for n in free:
+        if n not in OFFSET_NAMES:
+            continue
+        cal = next((s for d in records for s, _ in d.outputs() if s.name == OFFSET_NAMES[n]),
+                   None)
+        if cal is None:
+            have = sorted({s.name for d in records for s, _ in d.outputs()})
+            raise ValueError(f"{n} cannot be free: no record has a {OFFSET_NAMES[n]} channel "
+                             f"(the channels are {have})")
+        start[n] = float(cal.offset)
+    return start
+
+
+def _check_sigma_names(sigma, records) -> None:
+    if not isinstance(sigma, dict):
+        return
+    have = {s.name for d in records for s, _ in d.outputs()}
+    bad = [k for k in sigma if k not in have]
+    if bad:
+        raise ValueError(f"sigma names channel {bad[0]!r}, which no record has; the channels "
+                         f"are {sorted(have)}")
 
 
 def _check_start(start: dict[str, float]) -> None:
@@ -199,8 +244,20 @@ def _check_start(start: dict[str, float]) -> None:
                              f"init={{'{n}': ...}}")
 
 
+def _check_per_record(per_record, free) -> tuple[str, ...]:
+    per_record = tuple(dict.fromkeys(per_record or ()))
+    for n in per_record:
+        if n in STATE_NAMES:
+            raise ValueError(f"per_record names {n}, which is already one per record")
+        if n not in free:
+            raise ValueError(f"per_record names {n!r}, which is not free; free it (--free) "
+                             "or leave it out of per_record (--per-record)")
+    return per_record
+
+
 def normalise(scene, data, free, *, init, method, shooting, segments, multistart, seed,
-              max_steps, tol, sigma, profile, window, progress, warn) -> FitRequest:
+              max_steps, tol, sigma, profile, window, progress, warn, per_record=(),
+              force=None) -> FitRequest:
     """Check a fit request and bring it to one form (the arguments are those of [`fit`][]).
 
     **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
@@ -214,19 +271,26 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
                          "Scene, or one per record")
     _check_scenes(scenes)
     free = tuple(dict.fromkeys(free))
-    unknown = [n for n in free if n not in free_names()]
+    known = free_names() + tuple(force_names(force))
+    unknown = [n for n in free if n not in known]
     if unknown or not free:
-        raise ValueError(f"unknown free parameter(s) {unknown}; choose from {list(free_names())}"
+        raise ValueError(f"unknown free parameter(s) {unknown}; choose from {list(known)}"
                          if unknown else "free must name at least one parameter")
     _check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
+    per_record = _check_per_record(per_record, free)
     window = _check_window(window)
     records = [window_data(d, window) for d in records]
-    loads = tuple((d.load if d.load is not None else sc.load,
-                   d.torque if d.torque is not None else sc.torque)
+    loads = tuple((bind_input(d.load if d.load is not None else sc.load, d.inputs, d.source,
+                              "slider force"),
+                   bind_input(d.torque if d.torque is not None else sc.torque, d.inputs,
+                              d.source, "crank torque"))
                   for d, sc in zip(records, scenes))
     mech = scenes[0].mech
     start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}
     start.update(_load_starts(free, records, loads))
+    start.update(_offset_starts(free, records))
+    start.update(force_starts(force, free))
+    _check_sigma_names(sigma, records)
     if isinstance(init, dict):
         bad = [n for n in init if n not in start]
         if bad:
@@ -239,7 +303,8 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
     else:
         raise ValueError(f"init must be 'scene', 'regressor' or a dict, got {init!r}")
     _check_start(start)
-    names = reported_names(free, len(records))
+    per_record = per_record if len(records) > 1 else ()
+    names = reported_names(free, len(records), per_record)
     if profile is not None and profile not in names:
         raise ValueError(f"profile {profile!r} is not a free parameter; choose from "
                          f"{list(names)}")
@@ -255,4 +320,4 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
         max_steps=int(max_steps if max_steps is not None else
                       (100 if method == "lm" else 2000)),
         tol=float(tol), sigma=sigma, profile=profile, window=window, progress=bool(progress),
-        warn=bool(warn))
+        warn=bool(warn), per_record=per_record, force=force)

@@ -80,6 +80,12 @@ class FitResult(NamedTuple):
     """Whiteness of the residuals at a converged estimate (Ljung-Box p-value, lag-1
     autocorrelation, effective samples); when they are not white the standard errors
     and intervals above already account for the correlation."""
+    channels: dict | None = None
+    """Per channel (the first is the one `rms_residual` is in): `rms` of its residuals,
+    `sigma` the noise level its residuals were weighted by (given, or estimated from
+    them), `n_samples`, `ljung_box_p` (None unless converged), `unit` (its SI unit)."""
+    fitted_channels: list | None = None
+    """Per record, channel name -> what its sensor reads under the fitted model (n,), SI."""
 
     def to_json(self) -> dict:
         """The `fit.json` document (exactly the documented top-level keys)."""
@@ -116,6 +122,11 @@ class FitResult(NamedTuple):
             "warnings": list(self.warnings),
             "diagnostics": (None if self.diagnostics is None
                             else self.diagnostics.to_json()),
+            "channels": {n: {"rms": num(c["rms"]), "sigma": num(c["sigma"]),
+                             "n_samples": int(c["n_samples"]),
+                             "ljung_box_p": (None if c["ljung_box_p"] is None
+                                             else num(c["ljung_box_p"]))}
+                         for n, c in (self.channels or {}).items()},
         }
 
     def report(self, path, *, scene=None, command=None, title: str = "") -> None:
@@ -144,6 +155,15 @@ class FitResult(NamedTuple):
         lines.append("identifiable: " + ("not judged (the fit did not converge)"
                                          if self.identifiable is None
                                          else "yes" if self.identifiable else "NO"))
+        unit = next(iter((self.channels or {}).values()), {}).get("unit", "rad")
+        if unit != "rad":  # the overall rms is in the first channel's unit
+            lines = [ln.replace(" rad over ", f" {unit} over ") if "rms residual" in ln
+                     else ln for ln in lines]
+        for n, c in (self.channels or {}).items() if len(self.channels or {}) > 1 else ():
+            lb = c["ljung_box_p"]
+            lines.append(f"channel {n}: rms {c['rms']:.3g} {c['unit']} (noise level "
+                         f"{c['sigma']:.3g} {c['unit']}) over {c['n_samples']} samples"
+                         + (f", Ljung-Box p = {lb:.3g}" if lb is not None else ""))
         d = self.diagnostics
         if d is not None:
             lines.append(f"residuals: {'white' if d.white else 'NOT white'} (Ljung-Box p = "

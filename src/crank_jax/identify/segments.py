@@ -1,5 +1,6 @@
 """Records as shooting segments, padded to a few bucket lengths (so that records of other
-lengths reuse the compiled programs; the padding has weight 0)."""
+lengths reuse the compiled programs; the padding has weight 0), and a record as the fit's
+problem holds it ([`Experiment`][])."""
 
 from __future__ import annotations
 
@@ -8,9 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..model.loads import AbstractLoad, SampledLoad
+from ..model.loads import AbstractLoad, InputLoad, SampledLoad
 
-__all__ = ["bucket", "Segments", "make_segments", "padded_load"]
+__all__ = ["bucket", "Segments", "Experiment", "make_segments", "padded_load"]
 
 
 def bucket(m: int) -> int:
@@ -37,22 +38,53 @@ class Segments(eqx.Module):
     """
 
     ts: Array  # (S, m) save times, strictly increasing in each row
-    phi: Array  # (S, m) data
+    ys: Array  # (C, S, m) data, one row block per channel (SI)
     w: Array  # (S, m) 1 for a fitted sample, 0 for padding and the shared end sample
     end: Array  # (S,) int: index of the continuity sample in each row
     first: Array  # (S,) int: index in the record of each row's first sample
 
 
-def make_segments(ts: np.ndarray, phi: np.ndarray, n_segments: int, pad: bool = True
+class Experiment(eqx.Module):
+    """One record in the problem: its segments, loads and fixed initial state, and its
+    channels: each one's calibration (`scale`, fixed `offset`, SI) and `weight` (C,), the
+    first channel's noise level over its own (so the residuals are in the first channel's
+    unit, and every channel counts by its noise)."""
+
+    seg: Segments
+    load: AbstractLoad
+    torque: AbstractLoad
+    phi0: Array  # used when phi0 is not free
+    dphi0: Array
+    # Arrays, not static floats: a static value that depends on the data would recompile
+    # every fit.
+    ref_phi: Array
+    ref_dphi: Array
+    scale: Array  # (C,)
+    offset: Array  # (C,)
+    weight: Array  # (C,)
+    per_radian: Array  # the first channel's typical reading change per radian of crank
+    channels: tuple[str, ...] = eqx.field(static=True, default=("phi",))
+
+    @property
+    def n(self) -> int:
+        """Number of fitted samples (host side)."""
+        return int(np.asarray(self.seg.w).sum())
+
+
+
+
+def make_segments(ts: np.ndarray, ys: np.ndarray, n_segments: int, pad: bool = True
                   ) -> Segments:
     """Split a record into `n_segments` segments of nearly equal sample counts, each row
-    padded to [`bucket`][] length (when `pad`)."""
+    padded to [`bucket`][] length (when `pad`). `ys`: (n,) or (C, n), the channels' data
+    at `ts` (n,)."""
+    ys = np.atleast_2d(np.asarray(ys, dtype=float))
     n = ts.shape[0]
     S = max(1, min(int(n_segments), n // 4))
     bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
     m = int(np.max(np.diff(bounds))) + 1 if S > 1 else n
     m = bucket(m) if pad else m
-    T, P, W = np.zeros((S, m)), np.zeros((S, m)), np.zeros((S, m))
+    T, P, W = np.zeros((S, m)), np.zeros((ys.shape[0], S, m)), np.zeros((S, m))
     E, F = np.zeros(S, dtype=np.int32), np.zeros(S, dtype=np.int32)
     for s in range(S):
         a, b = bounds[s], bounds[s + 1]
@@ -62,7 +94,7 @@ def make_segments(ts: np.ndarray, phi: np.ndarray, n_segments: int, pad: bool = 
         # without extending the integration by more than a few nanoseconds.
         pad_t = seg_t[-1] + 1e-9 * np.arange(1, m - k + 1) * max(1.0, abs(seg_t[-1]))
         T[s] = np.concatenate([seg_t, pad_t])
-        P[s, :k] = phi[a:a + k]
+        P[:, s, :k] = ys[:, a:a + k]
         W[s, :k] = 1.0
         if S > 1 and s < S - 1:
             W[s, k - 1] = 0.0  # the shared sample belongs to the next segment
@@ -74,6 +106,8 @@ def make_segments(ts: np.ndarray, phi: np.ndarray, n_segments: int, pad: bool = 
 def padded_load(load: AbstractLoad) -> AbstractLoad:
     # A sampled load's length is a shape: pad it (holding its last value, as it is held
     # outside its samples anyway) so records of other lengths reuse the programs.
+    if isinstance(load, InputLoad) and load.signal is not None:
+        return eqx.tree_at(lambda x: x.signal, load, padded_load(load.signal))
     if not isinstance(load, SampledLoad):
         return load
     ts, vs = np.asarray(load.ts), np.asarray(load.values)

@@ -212,7 +212,7 @@ def _fixed_part(load, side: str, free_roles) -> bool:
     kind = load_kind(load)
     if isinstance(load, SampledLoad):
         return bool(np.any(np.asarray(load.values) != 0))
-    for role in ("mean", "amp"):
+    for role in ("mean", "amp", "gain"):
         v = get_param(load, role) if role in kind.fields else None
         if v is not None and np.any(np.asarray(v) != 0) and (side, role) not in free_roles:
             return True
@@ -303,14 +303,32 @@ def undefined(p: int, why: str) -> Uncertainty:
 
 def sample_rows(ss) -> tuple[np.ndarray, list[int]]:
     """Indices of the fitted samples in the single-shooting residual vector of `ss` (the
-    rows in time order, padding left out), and the number of samples per record."""
+    rows in time order, padding left out), and the number of samples per series (one
+    series per record and channel)."""
     rows, lengths, k = [], [], 0
     for e in ss.exps:
         n, size = e.n, int(np.prod(e.seg.ts.shape))
-        rows.append(k + np.arange(n))
-        lengths.append(n)
-        k += size
+        for _ in e.channels:
+            rows.append(k + np.arange(n))
+            lengths.append(n)
+            k += size
     return np.concatenate(rows), lengths
+
+
+def channel_rows(ss) -> dict[str, tuple[np.ndarray, list[int], float]]:
+    """Channel name -> (its fitted rows in the single-shooting residual vector of `ss`,
+    over every record that has the channel; the samples per record; the channel's weight
+    in the residuals)."""
+    out: dict[str, tuple[list, list, float]] = {}
+    k = 0
+    for e in ss.exps:
+        n, size = e.n, int(np.prod(e.seg.ts.shape))
+        for c, name in enumerate(e.channels):
+            rows, lengths, _ = out.setdefault(name, ([], [], float(e.weight[c])))
+            rows.append(k + np.arange(n))
+            lengths.append(n)
+            k += size
+    return {name: (np.concatenate(r), ln, w) for name, (r, ln, w) in out.items()}
 
 
 def inflate(unc: Uncertainty, factor: np.ndarray, values: np.ndarray, log, ref,

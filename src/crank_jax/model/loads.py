@@ -15,6 +15,11 @@ slider force, prefix `P`) or `"torque"` (prefix `tau`); a *role* is one of [`ROL
 | `amp`     | `P1`, `tau1`       | `P1`, `tau1`                      |
 | `freq_hz` | `P_freq_hz`, ...   | `freq_hz`                         |
 | `phase`   | `P_phase`, ...     | `phase`                           |
+| `gain`    | `P_gain`, `tau_gain` | `gain`                          |
+
+An [`InputLoad`][] is driven by a measured input `u(t)` (a record's column, e.g. a motor
+voltage) through a gain: `X(t) = X0 + X1 sin(2 pi f t + phase) + gain u(t)`; its TOML
+table names the column, `input = "volts"`.
 
 Each kind declares which roles it has (a [`MultiSineLoad`][] has only `mean`; a
 [`SampledLoad`][] none), so asking a kind for a role it lacks is refused by name.
@@ -22,55 +27,25 @@ Each kind declares which roles it has (a [`MultiSineLoad`][] has only `mean`; a
 
 from __future__ import annotations
 
-import abc
 from typing import NamedTuple
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import trig
-from ..lazy import lazy_import
+from .load_base import AbstractLoad, Nonsmooth
 from .params import as_float_array
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
+from .sampled import INTERPOLATIONS, InputLoad, SampledLoad, is_sampled
 
 __all__ = ["AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineLoad",
-           "SampledLoad", "as_load", "INTERPOLATIONS", "Nonsmooth", "nonsmooth_times",
+           "SampledLoad", "InputLoad", "is_sampled", "as_load", "INTERPOLATIONS", "Nonsmooth",
+           "nonsmooth_times",
            "ROLES", "SIDES", "LoadKind", "LOAD_KINDS", "LOAD_PARAMS", "load_kind",
            "param_name", "toml_key", "get_param", "set_param", "promote", "toml_keys",
            "load_from_table", "load_to_table"]
 
-#: Interpolations of a [`SampledLoad`][] (and of the `P`/`tau` columns of a data file).
-INTERPOLATIONS: tuple[str, ...] = ("cubic", "linear", "zoh")
-
-
-class Nonsmooth(NamedTuple):
-    """Where a load is not smooth, as a step-size controller takes it (each (k,) times in
-    s, or `None`): `step_ts`, where the load or one of its first three derivatives jumps
-    (steps end exactly there); `jump_ts`, where the load itself jumps (steps end just
-    before and restart just after)."""
-
-    step_ts: Array | None = None
-    jump_ts: Array | None = None
-
-
-class AbstractLoad(eqx.Module):
-    """A scalar function of time. Subclasses are final."""
-
-    @abc.abstractmethod
-    def __call__(self, t: ArrayLike) -> Array:
-        """The load at time `t` (s); returns an array of `t`'s shape."""
-
-    @abc.abstractmethod
-    def mean(self) -> Array:
-        """The time-average, used by the linearisation (a constant load shifts xi)."""
-
-    def nonsmooth(self) -> Nonsmooth:
-        """Times where the load is not smooth enough for a high-order step (none here)."""
-        return Nonsmooth()
 
 
 class NoLoad(AbstractLoad):
@@ -137,120 +112,6 @@ class MultiSineLoad(AbstractLoad):
         return self.X0
 
 
-def _spline_second_derivatives(ts: Array, ys: Array) -> Array:
-    """Second derivatives (n,) at the knots of the not-a-knot cubic spline through
-    `(ts, ys)`: C2, and exact for cubic polynomials (so its error is O(h^4))."""
-    n = ts.shape[0]
-    h = jnp.diff(ts)
-    delta = jnp.diff(ys) / h
-    if n == 2:
-        return jnp.zeros_like(ys)
-    if n == 3:  # not-a-knot on three points: the parabola through them
-        return jnp.full_like(ys, 2 * (delta[1] - delta[0]) / (h[0] + h[1]))
-    # Rows for knots 1..n-2: h[i-1] M[i-1] + 2 (h[i-1] + h[i]) M[i] + h[i] M[i+1]
-    # = 6 (delta[i] - delta[i-1]); M[0] and M[n-1] are eliminated with the not-a-knot
-    # conditions (the third derivative is continuous at knots 1 and n-2).
-    lo, hi = h[:-1], h[1:]
-    diag = 2 * (lo + hi)
-    dl = lo.at[0].set(0.0)
-    du = hi.at[-1].set(0.0)
-    diag = diag.at[0].add(h[0] * (1 + h[0] / h[1]))
-    du = du.at[0].add(-h[0] ** 2 / h[1])
-    diag = diag.at[-1].add(h[-1] * (1 + h[-1] / h[-2]))
-    dl = dl.at[-1].add(-h[-1] ** 2 / h[-2])
-    rhs = 6 * jnp.diff(delta)
-    inner = jax.lax.linalg.tridiagonal_solve(dl, diag, du, rhs[:, None])[:, 0]
-    first = inner[0] * (1 + h[0] / h[1]) - inner[1] * h[0] / h[1]
-    last = inner[-1] * (1 + h[-1] / h[-2]) - inner[-2] * h[-1] / h[-2]
-    return jnp.concatenate([first[None], inner, last[None]])
-
-
-def _spline_coeffs(ts: Array, ys: Array) -> tuple[Array, Array, Array, Array]:
-    """`(d, c, b, a)`, each (n-1,), as `diffrax.CubicInterpolation` takes them:
-    `y = a + b u + c u^2 + d u^3` with `u = t - ts[i]` on interval i."""
-    M = _spline_second_derivatives(ts, ys)
-    h = jnp.diff(ts)
-    b = jnp.diff(ys) / h - h * (2 * M[:-1] + M[1:]) / 6
-    return (jnp.diff(M) / (6 * h), M[:-1] / 2, b, ys[:-1])
-
-
-def _check_samples(ts: Array, vs: Array, interp: str) -> None:
-    if interp not in INTERPOLATIONS:
-        raise ValueError(f"SampledLoad interp {interp!r} is unknown; choose from "
-                         f"{list(INTERPOLATIONS)}")
-    if ts.ndim != 1 or vs.shape != ts.shape or ts.shape[0] < 2:
-        raise ValueError(f"SampledLoad needs 1-D ts and values of equal length >= 2, got "
-                         f"shapes {ts.shape} and {vs.shape}")
-    if not isinstance(ts, jax.core.Tracer):
-        d = np.diff(np.asarray(ts))
-        if not np.all(d > 0):
-            raise ValueError(f"SampledLoad.ts must increase strictly (sample "
-                             f"{int(np.argmin(d)) + 1})")
-
-
-class SampledLoad(AbstractLoad):
-    """A measured load: samples `(ts, values)` joined by an interpolation, and held at
-    the first and last value outside `[ts[0], ts[-1]]`.
-
-    **Arguments:**
-
-    - `ts`: sample times, s, shape `(n,)`, strictly increasing, `n >= 2`.
-    - `values`: the samples (N or N*m), shape `(n,)`.
-    - `interp` (static): `"cubic"` (default; the not-a-knot cubic spline, C2, exact for
-      cubics, for measured smooth signals), `"linear"` (C0: its slope jumps at every
-      sample) or `"zoh"` (zero-order hold, `X(t) = values[i]` on `[ts[i], ts[i+1])`:
-      exact for a command that a digital controller holds between samples).
-
-    The spline coefficients are computed once here (a tridiagonal solve, differentiable
-    in `values`), not at every evaluation: build a new `SampledLoad` rather than
-    replacing `values` with `eqx.tree_at`.
-    """
-
-    ts: Float[Array, " n"]
-    values: Float[Array, " n"]
-    coeffs: tuple[Array, Array, Array, Array] | None
-    interp: str = eqx.field(static=True)
-
-    def __init__(self, ts: ArrayLike, values: ArrayLike, interp: str = "cubic"):
-        ts, values = as_float_array(ts), as_float_array(values)
-        _check_samples(ts, values, interp)
-        self.ts, self.values, self.interp = ts, values, interp
-        self.coeffs = _spline_coeffs(ts, values) if interp == "cubic" else None
-
-    def __call__(self, t: ArrayLike) -> Array:
-        t = jnp.asarray(t, dtype=self.ts.dtype)
-        if self.interp == "linear":
-            return jnp.interp(t, self.ts, self.values)
-        if self.interp == "zoh":
-            i = jnp.clip(jnp.searchsorted(self.ts, t, side="right") - 1, 0,
-                         self.ts.shape[0] - 1)
-            return self.values[i]
-        spline = diffrax.CubicInterpolation(self.ts, self.coeffs)
-        # Clamping holds the end values outside the samples (the polynomial would run off).
-        return jnp.vectorize(spline.evaluate)(jnp.clip(t, self.ts[0], self.ts[-1]))
-
-    def mean(self) -> Array:
-        span = self.ts[-1] - self.ts[0]
-        h = jnp.diff(self.ts)
-        if self.interp == "linear":
-            return jnp.trapezoid(self.values, self.ts) / span
-        if self.interp == "zoh":
-            return jnp.sum(self.values[:-1] * h) / span
-        d, c, b, a = self.coeffs
-        return jnp.sum(h * (a + h * (b / 2 + h * (c / 3 + h * d / 4)))) / span
-
-    def nonsmooth(self) -> Nonsmooth:
-        # zoh: the value jumps at every sample; linear: the slope does. The cubic spline
-        # is C2, but its third derivative jumps at every knot, which a Dopri8 step across
-        # a knot sees. Measured (experiments/sampled_load_bias.py, 250 Hz multisine):
-        # ending steps at the knots gives Dopri8 a 220x smaller error with 9% fewer steps
-        # at rtol 1e-8 (2.9x fewer at 1e-10), and Tsit5 a 2-3x smaller error for 1-16%
-        # more steps.
-        if self.interp == "zoh":
-            return Nonsmooth(jump_ts=self.ts)
-        return Nonsmooth(step_ts=self.ts)
-
-
 def as_load(x: AbstractLoad | ArrayLike | None) -> AbstractLoad:
     """`None` -> [`NoLoad`][]; a number -> [`ConstantLoad`][]; a load -> itself."""
     if x is None:
@@ -274,7 +135,7 @@ def nonsmooth_times(*loads: AbstractLoad) -> Nonsmooth:
 # The table of load kinds and parameter names
 
 #: Parameter roles a load kind may have (see the module docstring).
-ROLES: tuple[str, ...] = ("mean", "amp", "freq_hz", "phase")
+ROLES: tuple[str, ...] = ("mean", "amp", "freq_hz", "phase", "gain")
 #: Side -> the prefix of its parameter names.
 SIDES: dict[str, str] = {"load": "P", "torque": "tau"}
 
@@ -304,6 +165,9 @@ LOAD_KINDS: tuple[LoadKind, ...] = (
     LoadKind("multisine", MultiSineLoad, {"mean": "X0"},
              ("amplitudes", "freqs_hz", "phases")),
     LoadKind("sampled", SampledLoad, {}, toml=False),
+    LoadKind("input", InputLoad,
+             {"mean": "X0", "amp": "X1", "freq_hz": "freq_hz", "phase": "phase",
+              "gain": "gain"}),
 )
 _PROMOTABLE = LOAD_KINDS[:3]
 
@@ -382,7 +246,7 @@ def promote(load: AbstractLoad, roles, side: str = "load") -> AbstractLoad:
 def toml_keys(side: str) -> tuple[str, ...]:
     """Every key a scene's `[load]`/`[torque]` table may hold."""
     keys = ["kind"] + [toml_key(side, r) for r in ROLES]
-    return tuple(keys + [a for k in LOAD_KINDS for a in k.arrays])
+    return tuple(keys + [a for k in LOAD_KINDS for a in k.arrays] + ["input"])
 
 
 def _toml_number(side: str, key: str, v) -> float:
@@ -398,7 +262,7 @@ def load_from_table(table: dict, side: str) -> AbstractLoad:
     amplitude gives a constant load, nothing at all gives [`NoLoad`][] (whose terms the
     compiled program then skips). Raises `ValueError` naming the table and key.
     """
-    name = table.get("kind")
+    name = table.get("kind", "input" if "input" in table else None)
     kind = next((k for k in LOAD_KINDS if k.name == ("harmonic" if name is None else name)),
                 None)
     if kind is None or not kind.toml:
@@ -407,7 +271,8 @@ def load_from_table(table: dict, side: str) -> AbstractLoad:
             else ""
         raise ValueError(f"[{side}] kind {name!r} cannot be used in a scene{why}; choose "
                          f"from {ok}")
-    allowed = {toml_key(side, r) for r in kind.fields} | set(kind.arrays) | {"kind"}
+    allowed = ({toml_key(side, r) for r in kind.fields} | set(kind.arrays) | {"kind"}
+               | ({"input"} if kind.cls is InputLoad else set()))
     for key in table:
         if key not in allowed:
             raise ValueError(f"[{side}] key {key!r} does not apply to kind {kind.name!r}; "
@@ -429,6 +294,12 @@ def load_from_table(table: dict, side: str) -> AbstractLoad:
     if kind.name == "multisine" and min(arrays["freqs_hz"]) < 0:
         raise ValueError(f"[{side}] freqs_hz must be >= 0")
     fields = {kind.fields[r]: v for r, v in vals.items() if r in kind.fields}
+    if kind.cls is InputLoad:
+        column = table.get("input")
+        if not (isinstance(column, str) and column):
+            raise ValueError(f"[{side}] kind 'input' needs input = the record's column of the "
+                             "input (e.g. input = \"volts\")")
+        return InputLoad(column=column, **fields)
     return kind.cls(**fields, **arrays)
 
 
@@ -445,4 +316,6 @@ def load_to_table(load: AbstractLoad, side: str) -> dict | None:
     out.update({toml_key(side, r): float(np.asarray(getattr(load, f)))
                 for r, f in kind.fields.items()})
     out.update({a: [float(x) for x in np.asarray(getattr(load, a))] for a in kind.arrays})
+    if isinstance(load, InputLoad):
+        out["input"] = load.column
     return out

@@ -29,7 +29,7 @@ import jax
 import numpy as np
 
 from ..model.linear import linearize
-from ..model.loads import AbstractLoad, SampledLoad
+from ..model.loads import AbstractLoad, is_sampled
 from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..model.structure import Structure
 from .inputs import check_tolerances, check_unbatched
@@ -182,7 +182,7 @@ def resolve_solver(
     if lin is None and is_concrete(mech) and is_concrete(load):
         lin = linearize(mech, load)  # once, for the stiffness test and the interval budget
     name = choose_solver(mech, rtol_host, load, span=span, lin=lin)
-    sampled = any(isinstance(x, SampledLoad) for x in (load, torque))
+    sampled = any(is_sampled(x) for x in (load, torque))
     if batch_invariant:
         if (name in ("tsit5", "dopri8") and concrete_ts and not sampled
                 and uniform_grid(np.asarray(ts))

@@ -1,0 +1,122 @@
+"""The crank angle as far as a record's channels tell it, for start values and planning.
+
+The fit itself compares every channel with the model; but its start state, its scales and
+its shooting plan are judged from the crank's motion, so a record without an angle
+channel needs one estimated from what it has:
+
+- `phi`: the calibration undone, `(data - offset) / scale`;
+- `dphi`: integrated from the start angle;
+- `x_s`: `x_s(phi)` inverted. Each slider position has two crank angles, one on each
+  half-turn between the slider's ends. A crank that turns (the record spans most of the
+  stroke) takes the half-turn its direction and the slider's motion imply, and the angle
+  is unwrapped; a crank that swings about an end takes the side that flips each time the
+  slider passes that end (the start angle's side first). Which side is a guess that the
+  dynamics and the start values then decide (DESIGN.md section 1);
+- only `v_s` or `a_s`: nothing to invert (returns None; the caller simulates the start
+  model instead).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..data import Data
+from ..model.geometry import geometry
+from ..model.params import SliderCrank
+from .start import observed_period
+
+__all__ = ["angle_estimate", "slide_angle", "motion_period", "ROTATING_STROKE"]
+
+#: A slide record spanning more than this fraction of the full stroke is a turning crank.
+ROTATING_STROKE = 0.8
+_GRID = 4096
+
+
+def angle_estimate(data: Data, mech: SliderCrank, direction: float = 1.0,
+                   phi_start: float = 0.0) -> np.ndarray | None:
+    """The crank angle (n,) at the record's samples, rad, or None when its channels do not
+    tell it (only `v_s`/`a_s`). `direction`: the sign of the crank's rotation when it
+    turns (+1: increasing phi); `phi_start`: the angle near the first sample, rad (which
+    turn an unwrapped angle starts on, and which side a swing starts on)."""
+    outs = {s.name: (s, y) for s, y in data.outputs()}
+    if "phi" in outs:
+        s, y = outs["phi"]
+        return np.asarray(s.model(y), dtype=float)
+    if "dphi" in outs:
+        s, y = outs["dphi"]
+        w = np.asarray(s.model(y), dtype=float)
+        steps = 0.5 * (w[1:] + w[:-1]) * np.diff(data.ts)
+        return phi_start + np.concatenate([[0.0], np.cumsum(steps)])
+    if "x_s" in outs:
+        s, y = outs["x_s"]
+        return slide_angle(mech, data.ts, np.asarray(s.model(y), dtype=float), direction,
+                           phi_start)
+    return None
+
+
+def _arcs(mech: SliderCrank):
+    """The two half-turns between the slider's ends: (x ascending, phi) for the half-turn
+    on which x falls as phi grows (a), and for the one on which it rises (b)."""
+    grid = np.linspace(0.0, 2 * math.pi, _GRID, endpoint=False)
+    xg = np.asarray(geometry(mech, grid).x_s, dtype=float)
+    top, bot = grid[np.argmax(xg)], grid[np.argmin(xg)]
+    down = np.linspace(0.0, (bot - top) % (2 * math.pi), _GRID) + top
+    up = np.linspace(0.0, (top - bot) % (2 * math.pi), _GRID) + bot
+    xa = np.asarray(geometry(mech, down).x_s, dtype=float)
+    xb = np.asarray(geometry(mech, up).x_s, dtype=float)
+    return (xa[::-1], down[::-1]), (xb, up), float(xg.min()), float(xg.max()), top
+
+
+def _smooth(x: np.ndarray, k: int) -> np.ndarray:
+    if k <= 1 or x.shape[0] < 3 * k:
+        return x
+    pad = np.pad(x, (k, k), mode="edge")
+    return np.convolve(pad, np.ones(2 * k + 1) / (2 * k + 1), mode="same")[k:-k]
+
+
+def slide_angle(mech: SliderCrank, ts: np.ndarray, x: np.ndarray, direction: float = 1.0,
+                phi_start: float = 0.0) -> np.ndarray:
+    """The crank angle (n,), rad, whose slider position is `x` (n,), m (see the module)."""
+    (xa, pa), (xb, pb), lo, hi, top = _arcs(mech)
+    xc = np.clip(x, lo, hi)
+    phi_a, phi_b = np.interp(xc, *(xa, pa)), np.interp(xc, *(xb, pb))
+    xs = _smooth(x, max(1, x.shape[0] // 200))
+    dx = np.gradient(xs, ts)
+    lo_q, hi_q = np.quantile(x, [0.02, 0.98])
+    if hi_q - lo_q > ROTATING_STROKE * (hi - lo):
+        # x falls on half-turn a while phi grows: turning forwards, falling x means a.
+        phi = np.where(dx * np.sign(direction or 1.0) < 0, phi_a, phi_b)
+        phi = np.unwrap(phi)
+        return phi + 2 * math.pi * round((phi_start - phi[0]) / (2 * math.pi))
+    # A swing about one end of the stroke: the side flips each time x passes that end.
+    near_top = abs(float(np.median(x)) - hi) < abs(float(np.median(x)) - lo)
+    a_side = np.angle(np.exp(1j * (phi_a - top)))  # signed distance from the top, rad
+    b_side = np.angle(np.exp(1j * (phi_b - top)))
+    dist = np.minimum(np.abs(a_side), np.abs(b_side))
+    ends = _passes(dx, want_max=near_top)
+    side = np.cumsum(np.isin(np.arange(x.shape[0]), ends)) % 2
+    start_side = 1.0 if np.angle(np.exp(1j * (phi_start - top))) >= 0 else -1.0
+    sign = start_side * np.where(side == 0, 1.0, -1.0)
+    if near_top:
+        return top + sign * dist
+    return top + math.pi - sign * (math.pi - dist)
+
+
+def _passes(dx: np.ndarray, want_max: bool) -> np.ndarray:
+    """Indices where x has a local maximum (`want_max`) or minimum: where its slope
+    changes sign."""
+    s = np.sign(dx if want_max else -dx)
+    return np.flatnonzero((s[:-1] > 0) & (s[1:] <= 0)) + 1
+
+
+def motion_period(ts: np.ndarray, angle: np.ndarray) -> float | None:
+    """The record's natural time scale, s: the mean time per revolution of a crank that
+    turns at least one full revolution over the record (its angle, unwrapped, has no zero
+    crossings), else the observed period of its oscillation (`observed_period`), or None.
+    """
+    turned = abs(float(angle[-1] - angle[0]))
+    if turned >= 2 * math.pi:
+        return 2 * math.pi * float(ts[-1] - ts[0]) / turned
+    return observed_period(ts, angle)

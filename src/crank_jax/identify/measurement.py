@@ -1,0 +1,56 @@
+"""The measurement side of the fit's residuals: each channel's model reading
+`scale * h(x) + offset` against its data (DESIGN.md section 4: nothing in the solver
+knows about sensors; a channel's Jacobian is `dh/dx dx/dtheta` by forward mode through
+[`output`][crank_jax.model.outputs.output])."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.outputs import output
+from ..sensors import Sensor
+
+__all__ = ["calibration", "channel_errors", "fitted_channels"]
+
+
+def calibration(sensors: Sequence[Sensor], sigmas, first_sigma: float, mech,
+                omega: float):
+    """(scale, offset, weight, per_radian, channel names) of an `Experiment`: `per_radian`
+    is the first channel's typical reading change per radian of crank (1 for an angle;
+    `|scale| r` for the slider's position, times `omega` (rad/s) per time derivative)."""
+    weight = [first_sigma / (sigmas or {}).get(s.name, first_sigma) for s in sensors]
+    first = sensors[0]
+    r = float(mech.r)
+    per = {"phi": 1.0, "dphi": omega, "x_s": r, "v_s": r * omega, "a_s": r * omega**2}
+    return (jnp.asarray([float(s.scale) for s in sensors]),
+            jnp.asarray([float(s.offset) for s in sensors]), jnp.asarray(weight, float),
+            jnp.asarray(abs(float(first.scale)) * per[first.name], float),
+            tuple(s.name for s in sensors))
+
+
+def channel_errors(mech, e, load, torque, phi, dphi, offsets, structure, force=None):
+    """(C, S, m) model reading minus data for each channel, SI (unweighted)."""
+    out = []
+    for c, name in enumerate(e.channels):
+        h = output(name, mech, e.seg.ts, phi, dphi, load, torque, structure, force)
+        out.append(e.scale[c] * h + offsets.get(name, e.offset[c]) - e.seg.ys[c])
+    return jnp.stack(out)
+
+
+def fitted_channels(problem, r) -> list[dict[str, np.ndarray]]:
+    """What each channel's sensor reads under the model (`scale h + offset`, SI) at
+    each record's samples, from single-shooting residuals `r` (weighted
+    model - data): per record, channel name -> (n,)."""
+    out, k = [], 0
+    r = np.asarray(r)
+    for e in problem.exps:
+        size = int(np.prod(e.seg.ts.shape))
+        w = np.asarray(e.weight)
+        out.append({name: np.asarray(e.seg.ys[c, 0, :e.n])
+                    + r[k + c * size:k + c * size + e.n] / w[c]
+                    for c, name in enumerate(e.channels)})
+        k += size * len(e.channels)
+    return out
