@@ -19,7 +19,7 @@ The public API, by topic (everything else is private; the subpackages
   `PRESETS`.
 - Data: `Data`, `DataError`, `load_data`, `save_data`, `synthesize`.
 - Identification: `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
-  `IdentifiabilityWarning`, `ConvergenceWarning`.
+  `IdentifiabilityWarning`, `ConvergenceWarning`; `posterior`, `Posterior` (NUTS).
 - Residual diagnostics and validation: `residual_diagnostics`, `Diagnostics`,
   `hac_covariance`, `widen`, `robust_uncertainty`, `RobustUncertainty`, `validate`,
   `Validation`.
@@ -60,6 +60,7 @@ from .identify.fit import (
     fit,
     regressor_start,
 )
+from .identify.posterior import Posterior, posterior
 from .io import (
     atomic_write,
 )
@@ -203,6 +204,8 @@ __all__ = [
     "power_in",
     "presets",
     "PRESETS",
+    "Posterior",
+    "posterior",
     "Profile",
     "reactions",
     "Reactions",

@@ -96,7 +96,9 @@ class Posterior:
     def to_json(self) -> dict:
         """The JSON form the CLI writes (`parameters`, `divergences`, `draws`, `chains`,
         and the sampler's settings and the fit it started from)."""
-        return {"parameters": self.summary(), "divergences": int(self.divergences),
+        summary = {n: {k: (v if np.isfinite(v) else None) for k, v in s.items()}
+                   for n, s in self.summary().items()}  # NaN (one chain's R-hat): null
+        return {"parameters": summary, "divergences": int(self.divergences),
                 "draws": int(self.n_draws), "chains": int(self.chains),
                 "warmup": int(self.warmup), "priors": dict(self.priors),
                 "step_size": [float(s) for s in self.step_size],
