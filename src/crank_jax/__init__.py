@@ -19,7 +19,8 @@ The public API, by topic (everything else is private; the subpackages
   `PRESETS`.
 - Data: `Data`, `DataError`, `load_data`, `save_data`, `synthesize`.
 - Identification: `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
-  `IdentifiabilityWarning`, `ConvergenceWarning`; `posterior`, `Posterior` (NUTS).
+  `IdentifiabilityWarning`, `ConvergenceWarning`; `posterior`, `Posterior` (NUTS);
+  `design`, `Design` (a multisine torque for the Fisher information).
 - Residual diagnostics and validation: `residual_diagnostics`, `Diagnostics`,
   `hac_covariance`, `widen`, `robust_uncertainty`, `RobustUncertainty`, `validate`,
   `Validation`.
@@ -43,6 +44,7 @@ from .data import (
     save_data,
     synthesize,
 )
+from .identify.design import Design, design
 from .identify.diagnostics import (
     Diagnostics,
     RobustUncertainty,
@@ -166,6 +168,8 @@ __all__ = [
     "Data",
     "DataError",
     "default_cache_dir",
+    "Design",
+    "design",
     "Diagnostics",
     "distribution_matrix",
     "distributions",

@@ -98,8 +98,91 @@ def _posterior_run(a: argparse.Namespace) -> int:
     return 0
 
 
+# --- design -----------------------------------------------------------------------------
+
+
+def _design_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", help="preset name or TOML scene file (the design point)")
+    p.add_argument("--free", required=True,
+                   help="comma-separated parameters to identify, e.g. m_s,I_p,k,c")
+    p.add_argument("--t1", type=float, required=True, help="record duration, s")
+    p.add_argument("--rate", type=float, required=True, help="sample rate, Hz")
+    p.add_argument("--torque-amplitude", type=float, required=True,
+                   help="bound on the crank torque's magnitude, N*m")
+    p.add_argument("--tones", type=int, default=6, help="sines in the multisine (6)")
+    p.add_argument("--criterion", default="D", choices=("D", "c"),
+                   help="D: max log det Fisher (default); c: min the variance of --target")
+    p.add_argument("--target", help="the parameter whose variance criterion c minimises")
+    p.add_argument("--noise-std", type=float, default=1e-3,
+                   help="angle noise, rad (1e-3; scales the predicted standard errors)")
+    p.add_argument("--iterations", type=int, default=60, help="Adam iterations (60)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the start phases (0)")
+    p.add_argument("--scene-out", required=True,
+                   help="the designed scene (TOML, its [torque] the multisine)")
+    p.add_argument("--out", required=True, help="the design report (JSON)")
+    p.add_argument("--plot", help="the torque and the before/after intervals (PNG)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _design_run(a: argparse.Namespace) -> int:
+    from ..identify.design import design
+    from ..io import atomic_write, check_figure_format, check_output
+    from ..scene import load_scene, save_scene
+
+    free = tuple(x.strip() for x in a.free.split(",") if x.strip())
+    if not free:
+        raise UserError("--free is empty; name at least one parameter")
+    if not a.torque_amplitude > 0:
+        raise UserError(f"--torque-amplitude must be > 0 N*m, got {a.torque_amplitude:g}")
+    if a.criterion == "c" and a.target is None:
+        raise UserError("--criterion c needs --target NAME (a free parameter)")
+    if a.target is not None and a.target not in free:
+        raise UserError(f"--target {a.target} is not free; choose from {', '.join(free)}")
+    outs = [(a.out, "--out"), (a.scene_out, "--scene-out")] + (
+        [(a.plot, "--plot")] if a.plot else [])
+    for path, option in outs:
+        check_output(path, [a.scene], option)
+    if len({p for p, _ in outs}) < len(outs):
+        raise UserError("--out, --scene-out and --plot must name different files")
+    if a.plot:
+        check_figure_format(a.plot)
+    scene = load_scene(a.scene)
+    try:
+        d = design(scene, free, a.t1, a.rate, amplitude=a.torque_amplitude, tones=a.tones,
+                   criterion=a.criterion, target=a.target, noise_std=a.noise_std,
+                   iterations=a.iterations, seed=a.seed, progress=not a.quiet)
+    except ValueError as e:  # name the CLI's option, not the function's argument
+        msg = str(e)
+        for arg, opt in (("tones", "--tones"), ("t1", "--t1"), ("rate", "--rate"),
+                         ("noise_std", "--noise-std"), ("iterations", "--iterations"),
+                         ("free", "--free")):
+            if msg.startswith(arg + " ") or msg.startswith(arg + ":"):
+                msg = opt + msg[len(arg):]
+                break
+        raise UserError(msg) from None
+    print(f"log det Fisher: designed {d.log_det_fisher:.4g}, baseline "
+          f"{d.baseline_log_det_fisher:.4g}")
+    for n, se in d.predicted_stderr.items():
+        ratio = se["baseline"] / se["designed"] if se["designed"] > 0 else float("inf")
+        print(f"{n:>8}: predicted stderr {se['designed']:.3g} (baseline {se['baseline']:.3g}, "
+              f"{ratio:.3g}x smaller)")
+    save_scene(d.scene, a.scene_out)
+    with atomic_write(a.out) as f:
+        json.dump(d.to_json(), f, indent=1)
+        f.write("\n")
+    print(f"wrote {a.scene_out} and {a.out}", file=sys.stderr)
+    if a.plot:
+        from ..identify.corner import plot_design
+
+        plot_design(d, a.plot)
+        print(f"wrote {a.plot}", file=sys.stderr)
+    return 0
+
+
 #: Subcommands added to `crank-jax` (see `cli.main` for the tuple layout).
 COMMANDS: list = [
     ("posterior", "sample the Bayesian posterior of free parameters (NUTS), with R-hat, ESS "
                   "and divergences", _posterior_args, _posterior_run),
+    ("design", "design a multisine crank torque that makes free parameters identifiable "
+               "(max log det Fisher, or min one variance)", _design_args, _design_run),
 ]

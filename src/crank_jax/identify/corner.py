@@ -8,7 +8,7 @@ import numpy as np
 
 from ..plot import pyplot, save_figure
 
-__all__ = ["plot_corner", "CHI2_2_95"]
+__all__ = ["plot_corner", "plot_design", "CHI2_2_95"]
 
 #: sqrt of the 95% quantile of chi-square with 2 degrees of freedom: the radius, in
 #: standard deviations, of a 2-d Gaussian's 95% ellipse.
@@ -62,4 +62,29 @@ def plot_corner(post, path: str | os.PathLike, title: str = "") -> None:
     fig.suptitle((title + "\n" if title else "") + f"posterior: {post.chains} chains x "
                  f"{post.n_draws} draws, {post.divergences} divergences; red: Laplace 95%",
                  fontsize=9)
+    save_figure(fig, path)
+
+
+def plot_design(d, path: str | os.PathLike) -> None:
+    """Draw a [`Design`][crank_jax.Design]: the designed torque over the record (top) and
+    each parameter's predicted 95% interval, relative to its value, designed against
+    baseline (bottom, log scale)."""
+    plt = pyplot()
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6))
+    ts = np.linspace(0.0, d.scene.t1, 4000)
+    ax1.plot(ts, np.asarray(d.torque(ts)), lw=0.8)
+    ax1.set_xlabel("t [s]")
+    ax1.set_ylabel("tau [N*m]")
+    ax1.set_title(f"designed torque ({d.criterion}-optimal), peak {d.peak:.3g} N*m", fontsize=9)
+    names = list(d.names)
+    mech = d.scene.mech.as_dict()
+    for k, (label, color) in enumerate((("baseline", "C7"), ("designed", "C0"))):
+        rel = [1.96 * d.predicted_stderr[n][label] / abs(mech.get(n, 1.0) or 1.0)
+               for n in names]
+        ax2.bar(np.arange(len(names)) + 0.4 * k - 0.2, rel, 0.4, color=color, label=label)
+    ax2.set_yscale("log")
+    ax2.set_xticks(np.arange(len(names)), names)
+    ax2.set_ylabel("predicted 95% half-width / value")
+    ax2.legend(fontsize=8)
+    fig.tight_layout()
     save_figure(fig, path)
