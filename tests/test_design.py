@@ -71,3 +71,13 @@ def test_cli_design_writes_a_scene_and_report(tmp_path, capsys):
     scene = cj.load_scene(sc)
     assert isinstance(scene.torque, cj.MultiSineLoad)
     assert np.asarray(scene.torque.amplitudes).shape == (2,)
+
+
+@pytest.mark.parametrize("command", ["posterior", "design"])
+def test_help(capsys, command):
+    with pytest.raises(SystemExit) as e:
+        from crank_jax.cli.main import build_parser
+
+        build_parser().parse_args([command, "--help"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.startswith("usage: crank-jax")
