@@ -104,3 +104,45 @@ def test_cli_posterior_writes_summary(tmp_path, capsys, short_record):
     assert doc["draws"] == 30 and doc["chains"] == 2 and isinstance(doc["divergences"], int)
     assert set(doc["parameters"]["k"]) == {"mean", "sd", "q2.5", "q97.5", "rhat", "ess_bulk"}
     assert len(doc["samples"]["k"]) == 2 and len(doc["samples"]["k"][0]) == 30
+
+
+class _Coords:
+    """A stand-in for the fit's problem: one log coordinate and one linear (ref 2)."""
+
+    log = (True, False)
+
+    def values(self, z):
+        import jax.numpy as jnp
+
+        return jnp.stack([jnp.exp(z[0]), 2.0 * z[1]])
+
+
+@pytest.mark.parametrize("spec, expect", [
+    # density of z = ln x under lognormal(m, s) is N(z; ln m, s): no Jacobian term left
+    ("lognormal(2, 0.5)", lambda z: -0.5 * ((z - np.log(2)) / 0.5) ** 2),
+    # loguniform is flat in ln x inside its bounds
+    ("loguniform(0.5, 8)", lambda z: 0.0 * z),
+    # uniform in x is e^z in z
+    ("uniform(0.5, 8)", lambda z: z),
+])
+def test_log_prior_is_the_density_of_the_coordinate(spec, expect):
+    from crank_jax.identify.priors import log_prior, prior_arrays
+
+    priors = parse_priors({"k": spec, "phi0": "normal(1, 0.1)"}, ("k", "phi0"))
+    codes, params = prior_arrays(("k", "phi0"), priors, _Coords.log)
+    z1, z2 = np.log(1.3), np.log(3.1)
+    lp = [float(log_prior(np.array([z, 0.45]), _Coords(), codes, params)) for z in (z1, z2)]
+    assert lp[1] - lp[0] == pytest.approx(expect(z2) - expect(z1), abs=1e-12)
+    # phi0 = 2 * 0.45 = 0.9 under normal(1, 0.1): one sd below the mean
+    base = float(log_prior(np.array([z1, 0.5]), _Coords(), codes, params))
+    assert lp[0] - base == pytest.approx(-0.5, abs=1e-12)
+    out = float(log_prior(np.array([np.log(20.0), 0.5]), _Coords(), codes, params))
+    assert out == (-np.inf if "uniform" in spec else out)
+
+
+def test_flat_prior_keeps_a_nonnegative_linear_field_nonnegative():
+    from crank_jax.identify.priors import log_prior, prior_arrays
+
+    codes, params = prior_arrays(("k", "c_s"), {}, (True, False))
+    assert float(log_prior(np.array([0.0, 0.1]), _Coords(), codes, params)) == 0.0
+    assert float(log_prior(np.array([0.0, -0.1]), _Coords(), codes, params)) == -np.inf

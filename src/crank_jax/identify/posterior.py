@@ -216,7 +216,7 @@ def posterior(
             raise ValueError(f"priors.{n}: the data put {n} at {res.values[bad[0]]:.6g}, "
                              f"outside its prior {d}'s support; widen the prior")
     problem, z_hat = _problem_at(req, res)
-    codes, params = prior_arrays(problem.names, prior)
+    codes, params = prior_arrays(problem.names, prior, problem.log)
     L = np.linalg.cholesky(_laplace_z(problem, z_hat))
     zL = (jnp.asarray(z_hat), jnp.asarray(L))
     key = jax.random.PRNGKey(seed)

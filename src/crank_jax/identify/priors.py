@@ -33,7 +33,7 @@ __all__ = ["PRIOR_FAMILIES", "parse_priors", "load_priors", "prior_arrays", "log
 #: fixed parameter: leave it out of `free`).
 PRIOR_FAMILIES = ("normal", "uniform", "lognormal", "loguniform")
 # Codes of the families inside the compiled program (static).
-_FLAT, _NORMAL, _UNIFORM, _LOGNORMAL, _LOGUNIFORM = range(5)
+_FLAT, _NORMAL, _UNIFORM, _LOGNORMAL, _LOGUNIFORM, _FLAT_NONNEGATIVE = range(6)
 
 
 def base_name(name: str) -> str:
@@ -98,13 +98,16 @@ def load_priors(path: str | Path) -> dict[str, str]:
     return dict(table)
 
 
-def prior_arrays(names, priors) -> tuple[tuple[int, ...], np.ndarray]:
+def prior_arrays(names, priors, log=None) -> tuple[tuple[int, ...], np.ndarray]:
     """Static family codes (p,) and parameters (p, 2) of the priors on the coordinates."""
     codes, params = [], []
     for n in names:
         d = priors.get(n, priors.get(base_name(n)))
         if d is None:
-            codes.append(_FLAT)
+            # Flat, within the valid values: a field >= 0 in linear coordinates (a
+            # friction that starts at 0) must not go negative.
+            linear = log is not None and not log[len(codes)]
+            codes.append(_FLAT_NONNEGATIVE if linear and _nonnegative(n) else _FLAT)
             params.append((0.0, 0.0))
         elif isinstance(d, Normal):
             codes.append(_NORMAL)
@@ -128,6 +131,9 @@ def log_prior(z, problem: Problem, codes, params):
     total = 0.0
     for i, code in enumerate(codes):
         if code == _FLAT:
+            continue
+        if code == _FLAT_NONNEGATIVE:
+            total = total + jnp.where(x[i] >= 0, 0.0, -jnp.inf)
             continue
         a, b = params[i, 0], params[i, 1]
         xi, lx = x[i], jnp.log(jnp.abs(x[i]))
