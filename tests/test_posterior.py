@@ -110,6 +110,7 @@ class _Coords:
     """A stand-in for the fit's problem: one log coordinate and one linear (ref 2)."""
 
     log = (True, False)
+    ref = (1.0, 2.0)
 
     def values(self, z):
         import jax.numpy as jnp
@@ -146,3 +147,14 @@ def test_flat_prior_keeps_a_nonnegative_linear_field_nonnegative():
     codes, params = prior_arrays(("k", "c_s"), {}, (True, False))
     assert float(log_prior(np.array([0.0, 0.1]), _Coords(), codes, params)) == 0.0
     assert float(log_prior(np.array([0.0, -0.1]), _Coords(), codes, params)) == -np.inf
+
+
+def test_prior_precision_in_the_coordinates():
+    """lognormal(m, s) on a log coordinate has sd s in z; normal(mu, sd) on a linear one
+    with ref 2 has sd sd / 2 in z."""
+    from crank_jax.identify.priors import prior_arrays, prior_precision
+
+    priors = parse_priors({"k": "lognormal(2, 0.5)", "phi0": "normal(1, 0.1)"}, ("k", "phi0"))
+    codes, params = prior_arrays(("k", "phi0"), priors, _Coords.log)
+    prec = prior_precision(codes, params, _Coords(), np.array([0.3, 0.5]))
+    assert prec == pytest.approx([1 / 0.5**2, 1 / 0.05**2], rel=1e-12)

@@ -42,7 +42,7 @@ from ..scene import Scene
 from ..sweep.distributions import AbstractDistribution
 from .fit import fit
 from .nuts import adaptation, initial_carry, run_chains, schedule
-from .priors import base_name, in_support, parse_priors, prior_arrays
+from .priors import base_name, in_support, parse_priors, prior_arrays, prior_precision
 from .problem import Problem, build_problem, pick_solver
 from .programs import jacobian_at
 from .request import STATE_NAMES, normalise
@@ -148,15 +148,21 @@ def _problem_at(req, res: FitResult) -> tuple[Problem, np.ndarray]:
     return problem, z
 
 
-def _laplace_z(problem: Problem, z: np.ndarray) -> np.ndarray:
-    """(p, p) Laplace covariance of the coordinates at z (noise from the residuals)."""
+def _laplace_z(problem: Problem, z: np.ndarray, codes, params) -> np.ndarray:
+    """(p, p) Laplace covariance of the coordinates at z (noise from the residuals), with
+    the priors' precisions added (roughly: only the chains' starts and whitening use it),
+    so that a direction the data leave open but a prior closes keeps a finite scale."""
     r, failed, _, J = (np.asarray(x) for x in jacobian_at(problem, jnp.asarray(z)))
     n = problem.n_residuals
     s2 = float(r @ r) / max(n - problem.p, 1)
-    cov = s2 * np.linalg.pinv(J.T @ J)
-    if int(failed) or not np.all(np.isfinite(cov)):
+    H = J.T @ J / max(s2, 1e-300) + np.diag(prior_precision(codes, params, problem, z))
+    if int(failed) or not np.all(np.isfinite(H)):
         return np.eye(problem.p)
-    return 0.5 * (cov + cov.T) + 1e-12 * np.eye(problem.p)
+    w, V = np.linalg.eigh(0.5 * (H + H.T))
+    # A direction neither data nor prior determine (the posterior refuses those) or a
+    # numerically flat one: a unit scale, which the warm-up's mass matrix then adapts.
+    w = np.where(w > 1e-12 * max(w.max(), 1e-300), w, 1.0)
+    return (V / w) @ V.T
 
 
 def posterior(
@@ -175,7 +181,7 @@ def posterior(
     """Sample the posterior of the free parameters with NUTS (blackjax).
 
     First [`fit`][] finds the least-squares estimate and its Laplace covariance; the chains
-    start around it, with that covariance as the first guess of the mass matrix. Warm-up
+    start around it, in coordinates whitened by that covariance (priors included). Warm-up
     then adapts the step size and a dense mass matrix on Stan's windows, and every chain
     draws `draws` samples (chains run together, vmapped).
 
@@ -217,7 +223,7 @@ def posterior(
                              f"outside its prior {d}'s support; widen the prior")
     problem, z_hat = _problem_at(req, res)
     codes, params = prior_arrays(problem.names, prior, problem.log)
-    L = np.linalg.cholesky(_laplace_z(problem, z_hat))
+    L = np.linalg.cholesky(_laplace_z(problem, z_hat, codes, params))
     zL = (jnp.asarray(z_hat), jnp.asarray(L))
     key = jax.random.PRNGKey(seed)
     key, k0 = jax.random.split(key)

@@ -27,6 +27,7 @@ from ..sweep.distributions import (
 from .problem import Problem
 
 __all__ = ["PRIOR_FAMILIES", "parse_priors", "load_priors", "prior_arrays", "log_prior",
+           "prior_precision",
            "in_support", "base_name"]
 
 #: Prior families (the sweep's distribution syntax), without `const` (a constant is a
@@ -122,6 +123,29 @@ def prior_arrays(names, priors, log=None) -> tuple[tuple[int, ...], np.ndarray]:
             codes.append(_LOGUNIFORM)
             params.append((math.log(d.lo), math.log(d.hi)))
     return tuple(codes), np.asarray(params, dtype=float).reshape(len(names), 2)
+
+
+def prior_precision(codes, params, problem: Problem, z) -> np.ndarray:
+    """(p,) approximate precision of each prior in the coordinate z (0 for flat): its
+    variance carried to z at the point z (for a start scale, not for the density)."""
+    x = np.asarray(problem.values(z), dtype=float)
+    out = np.zeros(len(codes))
+    for i, code in enumerate(codes):
+        a, b = float(params[i, 0]), float(params[i, 1])
+        # dz/dx: 1/x for log coordinates, 1/ref for linear ones
+        dzdx = 1.0 / abs(x[i]) if problem.log[i] else 1.0 / float(np.asarray(problem.ref)[i])
+        if code == _NORMAL:
+            sd_z = b * dzdx
+        elif code == _UNIFORM:
+            sd_z = (b - a) / math.sqrt(12) * dzdx
+        elif code == _LOGNORMAL:  # sd of ln x is b; of z: b for log coordinates
+            sd_z = b if problem.log[i] else b * abs(x[i]) * dzdx
+        elif code == _LOGUNIFORM:
+            sd_z = (b - a) / math.sqrt(12) * (1.0 if problem.log[i] else abs(x[i]) * dzdx)
+        else:
+            continue
+        out[i] = 1.0 / max(sd_z, 1e-300) ** 2
+    return out
 
 
 def log_prior(z, problem: Problem, codes, params):
