@@ -19,7 +19,8 @@ The public API, by topic (everything else is private; the subpackages
   `PRESETS`.
 - Data: `Data`, `DataError`, `load_data`, `save_data`, `synthesize`.
 - Identification: `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
-  `IdentifiabilityWarning`, `ConvergenceWarning`.
+  `IdentifiabilityWarning`, `ConvergenceWarning`; `posterior`, `Posterior` (NUTS);
+  `design`, `Design` (a multisine torque for the Fisher information).
 - Residual diagnostics and validation: `residual_diagnostics`, `Diagnostics`,
   `hac_covariance`, `widen`, `robust_uncertainty`, `RobustUncertainty`, `validate`,
   `Validation`.
@@ -42,6 +43,7 @@ from .data import (
     load_data,
     save_data,
 )
+from .identify.design import Design, design
 from .identify.diagnostics import (
     Diagnostics,
     RobustUncertainty,
@@ -59,6 +61,7 @@ from .identify.fit import (
     fit,
     regressor_start,
 )
+from .identify.posterior import Posterior, posterior
 from .io import (
     atomic_write,
 )
@@ -166,6 +169,8 @@ __all__ = [
     "Data",
     "DataError",
     "default_cache_dir",
+    "Design",
+    "design",
     "Diagnostics",
     "distribution_matrix",
     "distributions",
@@ -204,6 +209,8 @@ __all__ = [
     "power_in",
     "presets",
     "PRESETS",
+    "Posterior",
+    "posterior",
     "Profile",
     "reactions",
     "Reactions",

@@ -130,7 +130,8 @@ _TABLES: dict[str, tuple[str, ...]] = {
     "solver": ("name", "rtol", "atol"),
     "output": ("t1", "samples", "extras"),
 }
-_TOP_KEYS = ("description", "sensors")
+# [priors] belongs to the posterior (identify/posterior.py reads and checks it).
+_TOP_KEYS = ("description", "sensors", "priors")
 
 
 def _number(where: str, key: str, v: Any) -> float:

@@ -1,0 +1,188 @@
+"""`crank-jax posterior` (NUTS over a fit's parameters) and `crank-jax design` (an
+excitation chosen for the Fisher information)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from .errors import UserError
+
+# --- posterior --------------------------------------------------------------------------
+
+
+def _posterior_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("data", help="CSV record (t,phi[,P][,tau])")
+    p.add_argument("scene", help="preset name or TOML scene file (its [priors] table gives "
+                                 'priors, e.g. k = "lognormal(2, 0.5)"; default flat)')
+    p.add_argument("--more-data", action="append", default=[], metavar="CSV",
+                   help="another record of the same mechanism (repeatable)")
+    p.add_argument("--free", default="k,c,phi0,dphi0",
+                   help="comma-separated free parameters (default k,c,phi0,dphi0)")
+    p.add_argument("--draws", type=int, default=1000, help="draws per chain (1000)")
+    p.add_argument("--chains", type=int, default=4, help="chains (4)")
+    p.add_argument("--warmup", type=int, default=500, help="warm-up steps per chain (500)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the sampler (0)")
+    p.add_argument("--t-start", type=float, dest="fit_t_start",
+                   help="use only samples at or after this time, s")
+    p.add_argument("--t-end", type=float, dest="fit_t_end",
+                   help="use only samples at or before this time, s")
+    p.add_argument("--out", required=True, help="posterior summary and draws (JSON)")
+    p.add_argument("--plot", help="corner plot with the Laplace ellipses (PNG)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
+    from ..io import check_figure_format, check_output
+
+    free = tuple(x.strip() for x in a.free.split(",") if x.strip())
+    if not free:
+        raise UserError("--free is empty; name at least one parameter")
+    for option, value, lo in (("--draws", a.draws, 1), ("--chains", a.chains, 1),
+                              ("--warmup", a.warmup, 0)):
+        if value < lo:
+            raise UserError(f"{option} must be >= {lo}, got {value}")
+    if a.chains > 1 and a.draws < 4:
+        raise UserError(f"--draws must be >= 4 with several chains, got {a.draws}")
+    inputs = [a.data, *a.more_data, a.scene]
+    check_output(a.out, inputs, "--out")
+    if a.plot:
+        check_output(a.plot, inputs, "--plot")
+        check_figure_format(a.plot)
+        if a.plot == a.out:
+            raise UserError("--out and --plot must name different files")
+    return free
+
+
+def _posterior_run(a: argparse.Namespace) -> int:
+    from ..data import load_data
+    from ..identify.posterior import posterior
+    from ..identify.priors import load_priors, parse_priors
+    from ..io import atomic_write
+    from ..scene import load_scene
+
+    free = _posterior_check(a)
+    scene = load_scene(a.scene)
+    priors = parse_priors(load_priors(a.scene), free, where=f"{a.scene}: [priors]")
+    files = [a.data, *a.more_data]
+    records = [load_data(f) for f in files]
+    lo, hi = a.fit_t_start, a.fit_t_end
+    window = None if lo is None and hi is None else (lo, hi)
+    post = posterior(scene, records if len(records) > 1 else records[0], free, priors,
+                     draws=a.draws, chains=a.chains, seed=a.seed, warmup=a.warmup,
+                     window=window, progress=not a.quiet)
+    print(f"{'name':>10} {'mean':>12} {'sd':>10} {'q2.5':>12} {'q97.5':>12} {'rhat':>6} "
+          f"{'ess':>6}")
+    for n, s in post.summary().items():
+        print(f"{n:>10} {s['mean']:12.6g} {s['sd']:10.3g} {s['q2.5']:12.6g} "
+              f"{s['q97.5']:12.6g} {s['rhat']:6.3f} {s['ess_bulk']:6.0f}")
+    print(f"{post.chains} chains x {post.n_draws} draws after {post.warmup} warm-up steps in "
+          f"{post.seconds:.1f} s; {post.divergences} divergences")
+    if post.divergences:
+        print(f"crank-jax: warning: {post.divergences} divergent transitions: the posterior "
+              "may be under-explored; try a longer --warmup or priors", file=sys.stderr)
+    bad = [n for n, r in post.rhat.items() if r > 1.01]
+    if bad:
+        print(f"crank-jax: warning: R-hat above 1.01 for {', '.join(bad)}: the chains "
+              "disagree; run more --draws or --warmup", file=sys.stderr)
+    with atomic_write(a.out) as f:
+        json.dump(post.to_json(), f, indent=1, allow_nan=True)
+        f.write("\n")
+    print(f"wrote {a.out}", file=sys.stderr)
+    if a.plot:
+        from ..identify.corner import plot_corner
+
+        plot_corner(post, a.plot, title=f"{', '.join(files)} with {a.scene}")
+        print(f"wrote {a.plot}", file=sys.stderr)
+    return 0
+
+
+# --- design -----------------------------------------------------------------------------
+
+
+def _design_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", help="preset name or TOML scene file (the design point)")
+    p.add_argument("--free", required=True,
+                   help="comma-separated parameters to identify, e.g. m_s,I_p,k,c")
+    p.add_argument("--t1", type=float, required=True, help="record duration, s")
+    p.add_argument("--rate", type=float, required=True, help="sample rate, Hz")
+    p.add_argument("--torque-amplitude", type=float, required=True,
+                   help="bound on the crank torque's magnitude, N*m")
+    p.add_argument("--tones", type=int, default=6, help="sines in the multisine (6)")
+    p.add_argument("--criterion", default="D", choices=("D", "c"),
+                   help="D: max log det Fisher (default); c: min the variance of --target")
+    p.add_argument("--target", help="the parameter whose variance criterion c minimises")
+    p.add_argument("--noise-std", type=float, default=1e-3,
+                   help="angle noise, rad (1e-3; scales the predicted standard errors)")
+    p.add_argument("--iterations", type=int, default=60, help="Adam iterations (60)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the start phases (0)")
+    p.add_argument("--scene-out", required=True,
+                   help="the designed scene (TOML, its [torque] the multisine)")
+    p.add_argument("--out", required=True, help="the design report (JSON)")
+    p.add_argument("--plot", help="the torque and the before/after intervals (PNG)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _design_run(a: argparse.Namespace) -> int:
+    from ..identify.design import design
+    from ..io import atomic_write, check_figure_format, check_output
+    from ..scene import load_scene, save_scene
+
+    free = tuple(x.strip() for x in a.free.split(",") if x.strip())
+    if not free:
+        raise UserError("--free is empty; name at least one parameter")
+    if not a.torque_amplitude > 0:
+        raise UserError(f"--torque-amplitude must be > 0 N*m, got {a.torque_amplitude:g}")
+    if a.criterion == "c" and a.target is None:
+        raise UserError("--criterion c needs --target NAME (a free parameter)")
+    if a.target is not None and a.target not in free:
+        raise UserError(f"--target {a.target} is not free; choose from {', '.join(free)}")
+    outs = [(a.out, "--out"), (a.scene_out, "--scene-out")] + (
+        [(a.plot, "--plot")] if a.plot else [])
+    for path, option in outs:
+        check_output(path, [a.scene], option)
+    if len({p for p, _ in outs}) < len(outs):
+        raise UserError("--out, --scene-out and --plot must name different files")
+    if a.plot:
+        check_figure_format(a.plot)
+    scene = load_scene(a.scene)
+    try:
+        d = design(scene, free, a.t1, a.rate, amplitude=a.torque_amplitude, tones=a.tones,
+                   criterion=a.criterion, target=a.target, noise_std=a.noise_std,
+                   iterations=a.iterations, seed=a.seed, progress=not a.quiet)
+    except ValueError as e:  # name the CLI's option, not the function's argument
+        msg = str(e)
+        for arg, opt in (("tones", "--tones"), ("t1", "--t1"), ("rate", "--rate"),
+                         ("noise_std", "--noise-std"), ("iterations", "--iterations"),
+                         ("free", "--free")):
+            if msg.startswith(arg + " ") or msg.startswith(arg + ":"):
+                msg = opt + msg[len(arg):]
+                break
+        raise UserError(msg) from None
+    print(f"log det Fisher: designed {d.log_det_fisher:.4g}, baseline "
+          f"{d.baseline_log_det_fisher:.4g}")
+    for n, se in d.predicted_stderr.items():
+        ratio = se["baseline"] / se["designed"] if se["designed"] > 0 else float("inf")
+        print(f"{n:>8}: predicted stderr {se['designed']:.3g} (baseline {se['baseline']:.3g}, "
+              f"{ratio:.3g}x smaller)")
+    save_scene(d.scene, a.scene_out)
+    with atomic_write(a.out) as f:
+        json.dump(d.to_json(), f, indent=1)
+        f.write("\n")
+    print(f"wrote {a.scene_out} and {a.out}", file=sys.stderr)
+    if a.plot:
+        from ..identify.corner import plot_design
+
+        plot_design(d, a.plot)
+        print(f"wrote {a.plot}", file=sys.stderr)
+    return 0
+
+
+#: Subcommands added to `crank-jax` (see `cli.main` for the tuple layout).
+COMMANDS: list = [
+    ("posterior", "sample the Bayesian posterior of free parameters (NUTS), with R-hat, ESS "
+                  "and divergences", _posterior_args, _posterior_run),
+    ("design", "design a multisine crank torque that makes free parameters identifiable "
+               "(max log det Fisher, or min one variance)", _design_args, _design_run),
+]

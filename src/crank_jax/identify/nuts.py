@@ -1,0 +1,198 @@
+"""NUTS (blackjax) on the posterior's log density, with Stan's window warm-up, run in
+chunks of compiled steps so that a progress bar follows warm-up and sampling.
+
+The log density is that of [`posterior`][crank_jax.identify.posterior]: the fit's
+residual program, the noise level integrated out, the priors; sampled in coordinates
+whitened by the Laplace covariance.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..lazy import lazy_import
+from .priors import log_prior
+from .problem import Problem
+from .programs import checks_without_callbacks
+
+blackjax = lazy_import("blackjax")  # imported on first use (see lazy.py)
+
+__all__ = ["log_density", "adaptation", "schedule", "initial_carry", "run_chains", "CHUNK"]
+
+# Steps of NUTS per compiled chunk: the progress bar moves once per chunk.
+CHUNK = 50
+
+
+def _record_rows(problem: Problem) -> tuple[tuple[int, int, int], ...]:
+    """(first row, rows, fitted samples) of each record's block of the residual vector
+    (the count traced: the padded weights are arrays)."""
+    out, k = [], 0
+    for e in problem.exps:
+        size = int(np.prod(e.seg.ts.shape))
+        out.append((k, size, jnp.sum(e.seg.w > 0)))
+        k += size
+    return tuple(out)
+
+
+def _loglik_and_grad(problem: Problem, z):
+    """Marginal log likelihood (sigma integrated out per record) and its gradient, with
+    the sensitivities by forward mode through the solve."""
+    def f(x):
+        r, failed, _ = problem.residuals(x)
+        return r, (r, failed)
+
+    J, (r, failed) = jax.jacfwd(f, has_aux=True)(z)
+    value, grad = 0.0, jnp.zeros_like(z)
+    for first, size, n in _record_rows(problem):
+        rk, Jk = r[first:first + size], J[first:first + size]
+        rss = jnp.sum(rk**2)
+        value = value - 0.5 * n * jnp.log(rss)
+        grad = grad - (n / rss) * (Jk.T @ rk)
+    ok = (failed == 0) & jnp.isfinite(value)
+    return jnp.where(ok, value, -jnp.inf), jnp.where(ok, grad, 0.0)
+
+
+def log_density(problem: Problem, codes, params, z_hat, L):
+    """`w -> log posterior density` (up to a constant) in whitened coordinates
+    `z = z_hat + L w` (L: Cholesky factor of the Laplace covariance), differentiable by
+    `jax.grad` (the likelihood's gradient is forward mode, through a custom VJP).
+
+    Whitened, because the posterior in `z` can be very narrow (relative widths of 1e-5
+    on a clean record): Stan's mass-matrix estimate regularises towards `1e-3 I`, which
+    at that scale would swamp it. In `w` the posterior is close to `N(0, I)`, and an
+    affine map leaves a flat prior flat."""
+    @jax.custom_vjp
+    def loglik(z):
+        return _loglik_and_grad(problem, z)[0]
+
+    def fwd(z):
+        v, g = _loglik_and_grad(problem, z)
+        return v, g
+
+    def bwd(g, ct):
+        return (ct * g,)
+
+    loglik.defvjp(fwd, bwd)
+
+    def density(w):
+        z = z_hat + L @ w
+        return loglik(z) + log_prior(z, problem, codes, params)
+
+    return density
+
+
+def adaptation():
+    ad = blackjax.adaptation
+    return (ad.step_size.dual_averaging_adaptation(0.8),
+            ad.mass_matrix.mass_matrix_adaptation(is_diagonal_matrix=False))
+
+
+def _chunk(problem, codes, params, z_hat, L, carry, keys, stages):
+    """`keys.shape[1]` NUTS transitions of every chain (vmapped), adapting the step size
+    and the (dense) mass matrix on Stan's schedule while warming up.
+
+    `stages` (K, 2) int: `(stage, window_end)` with stage 0 fast (step size only), 1 slow
+    (mass matrix too), 2 sampling (nothing adapted), -1 padding (nothing happens).
+    **Returns:** `(carry, positions (C, K, p), divergent (C, K), tree_steps (C, K))`."""
+    logdensity = log_density(problem, codes, params, z_hat, L)
+    kernel = blackjax.nuts.build_kernel()
+    (da_init, da_update, da_final), (_, mm_update, mm_final) = adaptation()
+
+    def one(c, xs):
+        key, (stage, end) = xs
+        state, da, mm, eps, imm = c
+        new, info = kernel(key, state, logdensity, eps, imm)
+        acc = jnp.where(jnp.isfinite(info.acceptance_rate), info.acceptance_rate, 0.0)
+        da2 = da_update(da, acc)
+        mm2 = jax.tree.map(lambda a, b: jnp.where(stage == 1, a, b),
+                           mm_update(mm, new.position), mm)
+        eps2 = jnp.exp(da2.log_step_size)
+        fin = mm_final(mm2)
+        da3 = da_init(da_final(da2))
+        is_end = (stage == 1) & (end == 1)
+        pick = lambda a, b, cond: jax.tree.map(lambda x, y: jnp.where(cond, x, y), a, b)  # noqa: E731
+        mm2, da2 = pick(fin, mm2, is_end), pick(da3, da2, is_end)
+        eps2 = jnp.where(is_end, jnp.exp(da3.log_step_size), eps2)
+        imm2 = jnp.where(is_end, fin.inverse_mass_matrix, imm)
+        adapt = (stage == 0) | (stage == 1)
+        out = (pick(new, state, stage >= 0), pick(da2, da, adapt), pick(mm2, mm, adapt),
+               jnp.where(adapt, eps2, eps), jnp.where(adapt, imm2, imm))
+        return out, (new.position, info.is_divergent & (stage >= 0), info.num_integration_steps)
+
+    def chain(c, ks):
+        return jax.lax.scan(one, c, (ks, stages))
+
+    carry, (pos, div, steps) = jax.vmap(chain)(carry, keys)
+    return carry, pos, div, steps
+
+
+_chunk_jit = eqx.filter_jit(_chunk)
+
+
+def _chunk_program(*args):
+    # Traced with equinox's checks as NaN, like the fit's programs (no host callback, so
+    # JAX's persistent cache can keep it; a failed check is a rejected trial point).
+    with checks_without_callbacks():
+        return _chunk_jit(*args)
+
+
+def schedule(warmup: int) -> np.ndarray:
+    """(warmup, 2) Stan window schedule (blackjax's `build_schedule`)."""
+    from blackjax.adaptation.window_adaptation import build_schedule
+
+    if warmup == 0:
+        return np.zeros((0, 2), dtype=np.int32)
+    return np.asarray(build_schedule(warmup), dtype=np.int32).reshape(warmup, 2)
+
+
+def initial_carry(problem, codes, params, z_hat, L, chains, key):
+    """Chain starts drawn from the Laplace approximation (`w ~ N(0, I)`; a start with zero
+    density falls back to the estimate), and the adaptation states, stacked over chains."""
+    p = problem.p
+    starts = np.array(jax.random.normal(key, (chains, p)))
+    logdensity = log_density(problem, codes, jnp.asarray(params), jnp.asarray(z_hat),
+                              jnp.asarray(L))
+    lp = np.asarray(jax.jit(jax.vmap(logdensity))(jnp.asarray(starts)))
+    starts[~np.isfinite(lp)] = 0.0
+    (da_init, _, _), (mm_init, _, _) = adaptation()
+    states = jax.jit(jax.vmap(lambda x: blackjax.nuts.init(x, logdensity)))(jnp.asarray(starts))
+    eps0 = 1.0 / math.sqrt(p)
+    da = jax.vmap(lambda _: da_init(eps0))(jnp.arange(chains))
+    mm = jax.vmap(lambda _: mm_init(p))(jnp.arange(chains))
+    return (states, da, mm, jnp.full(chains, eps0), jnp.broadcast_to(jnp.eye(p), (chains, p, p)))
+
+
+def run_chains(problem, codes, params, zL, carry, key, stages, desc, progress):
+    """Run the schedule `stages` (n, 2) in chunks; positions (C, n, p), divergences,
+    leapfrog steps."""
+    from tqdm.auto import tqdm
+
+    n = stages.shape[0]
+    chains = carry[3].shape[0]
+    pos, div, steps = [], [], []
+    with tqdm(total=n, desc=desc, unit="step", disable=not progress or n == 0,
+              leave=False) as bar:
+        for start in range(0, n, CHUNK):
+            block = stages[start:start + CHUNK]
+            m = block.shape[0]
+            pad = np.full((CHUNK - m, 2), -1, dtype=np.int32)
+            key, sub = jax.random.split(key)
+            keys = jax.random.split(sub, chains * CHUNK).reshape(chains, CHUNK, -1)
+            carry, x, d, s = _chunk_program(problem, codes, params, *zL, carry, keys,
+                                            jnp.asarray(np.concatenate([block, pad])))
+            pos.append(np.asarray(x)[:, :m])
+            div.append(np.asarray(d)[:, :m])
+            steps.append(np.asarray(s)[:, :m])
+            bar.update(m)
+    p = problem.p
+
+    def cat(xs, shape):
+        return np.concatenate(xs, axis=1) if xs else np.zeros(shape)
+
+    return (carry, key, cat(pos, (chains, 0, p)), cat(div, (chains, 0)),
+            cat(steps, (chains, 0)))
