@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import compat
 from ..lazy import lazy_import
 from .erk import FusedERK, dopri8, packer
 
@@ -70,7 +71,7 @@ def dopri8_dense() -> np.ndarray:
     """diffrax's Dopri8 dense output: `y(t0 + theta h) = y0 + theta sum_i P_i(theta) h k_i`,
     `P_i` the polynomial in row i (highest power first) over the 14 stages (the 14th is
     `f(t1, y1)`, first same as last). Shape (14, powers)."""
-    return np.asarray(diffrax.Dopri8.interpolation_cls.eval_coeffs, dtype=float)
+    return compat.dopri8_dense_coefficients()
 
 
 def _rms(x):
@@ -348,4 +349,4 @@ def outcome(code: jax.Array, steps: jax.Array) -> tuple:
     the code as a `diffrax.RESULTS` again, both with no derivative (equinox's checks on
     the result cannot take one through it)."""
     code, steps = jax.lax.stop_gradient(code), jax.lax.stop_gradient(steps)
-    return type(diffrax.RESULTS.successful)(code, diffrax.RESULTS), steps
+    return compat.result_from_code(code), steps

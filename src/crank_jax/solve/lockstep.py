@@ -41,6 +41,7 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from .. import trig
+from ..compat import result_code
 from .adaptive import outcome, solve_adaptive
 
 __all__ = ["adaptive_solve"]
@@ -192,7 +193,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_siz
         ys, result, steps = solve_adaptive(rebuild(dyn), y0, ts, rtol, atol,
                                            max_steps=max_steps, error_size=error_size)
         # Every output a float: JAX's JVP of a `custom_vmap` takes float outputs only.
-        return ys, _as_float(result._value, ts), _as_float(steps, ts)
+        return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
     def batch_rule(axis_size, in_batched, dyn, y0, ts, rtol, atol, spread):
         if not any(jax.tree_util.tree_leaves(in_batched)):
@@ -222,7 +223,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_siz
                     y0, ts, rtol, atol, max_steps=max_steps, batched=True,
                     error_size=error_size)
             ys = jax.tree_util.tree_map(lambda v: jnp.moveaxis(v, 1, 0), ys)
-            return ys, _as_float(result._value, ts), _as_float(steps, ts)
+            return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
         out = _in_chunks(lockstep, axis_size, dyn_b, y0, rtol, atol, in_batched[3],
                          in_batched[4], spread=spread)
