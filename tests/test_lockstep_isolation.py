@@ -37,3 +37,19 @@ def test_stiff_and_failing_members_leave_the_others_alone(lab_rig):
         # Its own steps, not the stiff member's: a few more than alone where its steps are
         # cut at the end of the save window that the slowest member holds back.
         assert 0.99 * alone.num_steps <= batch.num_steps[i] <= 1.25 * alone.num_steps
+
+
+def test_a_sweep_keeps_its_healthy_samples(lab_rig):
+    # A sweep with solver="dopri8-adaptive" batches a chunk through the same lockstep
+    # rule: one sample out of budget there made every sample of its chunk "max_steps"
+    # with zero outputs (before issue 26). Now it is the only one.
+    kw = dict(t1=2.0, num_saves=201, solver="dopri8-adaptive", chunk_size=4,
+              max_steps=2000, sort=False)
+    outs = ("final_phi", "peak_phi")
+    mixed = cj.sweep(lab_rig, {"k": np.array([2.0, 1e7, 3.0])}, outs, **kw)
+    healthy = cj.sweep(lab_rig, {"k": np.array([2.0, 3.0])}, outs, **kw)
+    ok, failed = cj.STATUS.index("ok"), cj.STATUS.index("max_steps")
+    assert mixed.status.tolist() == [ok, failed, ok]
+    for name in outs:
+        np.testing.assert_allclose(mixed.outputs[name][[0, 2]], healthy.outputs[name],
+                                   rtol=0, atol=1e-7)
