@@ -75,6 +75,9 @@ def test_coulomb_friction_and_failures(lab_rig):
 
 
 def test_vmap_steps_in_lockstep(lab_rig):
+    # One loop for the batch, but each member with its own steps: its step count is what
+    # it takes alone, or a few more where its steps are cut at the end of the save window
+    # that the slowest member holds back.
     ts = jnp.linspace(0, 3, 301)
     ks = jnp.array([1.5, 2.0, 3.0])
     phis = jnp.array([0.5, 1.0, -1.0])
@@ -82,7 +85,9 @@ def test_vmap_steps_in_lockstep(lab_rig):
     out = jax.jit(jax.vmap(lambda k, p: cj.simulate(mech.replace(k=k), p, 0.0, ts).phi))(
         ks, phis)
     steps = jax.vmap(lambda k: cj.simulate(mech.replace(k=k), 1.0, 0.0, ts).num_steps)(ks)
-    assert len(set(np.asarray(steps).tolist())) == 1  # one step sequence for the batch
+    alone = [int(cj.simulate(mech.replace(k=k), 1.0, 0.0, ts).num_steps) for k in ks]
+    assert np.all(np.asarray(steps) >= 0.99 * np.array(alone))
+    assert np.all(np.asarray(steps) <= 1.25 * np.array(alone))
     for i in range(3):
         ref = _reference(mech.replace(k=ks[i]), ts, phis[i])
         np.testing.assert_allclose(out[i], ref, rtol=0, atol=1e-7)
@@ -106,13 +111,12 @@ def _grouped(lab_rig, monkeypatch):
 
 def test_a_large_batch_steps_in_groups(lab_rig, monkeypatch):
     # On the CPU a batch larger than lockstep.CHUNK steps in groups of that many members,
-    # each group with its own steps; the last group is padded. Groups of 2 here, for 5
-    # members with their own tolerances: every member as accurate as alone, and the
-    # groups' step counts their own.
+    # one group after another; the last group is padded. Groups of 2 here, for 5
+    # members with their own tolerances: every member as accurate as alone, and its step
+    # count its own (the padding copies change nothing).
     ts, ks, rtols, one = _grouped(lab_rig, monkeypatch)
     phi, steps = jax.jit(jax.vmap(one))(ks, rtols)
-    steps = np.asarray(steps).tolist()
-    assert steps[0] == steps[1] and steps[2] == steps[3] and len(set(steps)) == 3
+    assert len(set(np.asarray(steps).tolist())) == 5
     for i in range(5):
         np.testing.assert_allclose(phi[i], _reference(lab_rig.mech.replace(k=ks[i]), ts),
                                    rtol=0, atol=2e3 * float(rtols[i]))

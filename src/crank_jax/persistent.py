@@ -74,17 +74,10 @@ def checks_without_callbacks():
     increasing by construction, so the check never fires. (Only the tracing of the stored
     programs is affected; the previous mode is restored on exit.)
     """
-    import equinox._errors as eqx_errors
+    from .compat import checks_as_nan  # equinox's private switch: see compat.py
 
-    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
-    if old is None:  # another equinox: leave it alone
+    with checks_as_nan():
         yield
-        return
-    eqx_errors.EQX_ON_ERROR = "nan"
-    try:
-        yield
-    finally:
-        eqx_errors.EQX_ON_ERROR = old
 
 
 _ENV: str | None = None
@@ -309,12 +302,9 @@ def _ready_custom_calls() -> None:
     global _READY
     if _READY:
         return
-    try:  # JAX's own initialiser (private; 0.1 s cheaper than lowering a QR)
-        from jax._src.lax.linalg import initialize_lapack
+    from .compat import initialize_lapack  # JAX's private initialiser: see compat.py
 
-        initialize_lapack()
-    except Exception:
-        jax.jit(jnp.linalg.qr).lower(jax.ShapeDtypeStruct((2, 2), jnp.float32))
+    initialize_lapack()
     _READY = True
 
 

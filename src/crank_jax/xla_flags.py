@@ -119,9 +119,10 @@ def configure_cpu(devices: int | None = None) -> None:
     computation; afterwards it raises `RuntimeError` (it would change nothing).
     """
     import jax
-    from jax._src import xla_bridge
 
-    if xla_bridge.backends_are_initialized():
+    from .compat import backends_are_initialized
+
+    if backends_are_initialized():
         raise RuntimeError("configure_cpu() must run before the first JAX computation (JAX "
                            "reads XLA_FLAGS and its CPU device count when it starts); call "
                            "it right after the imports")

@@ -27,9 +27,9 @@ def _fit_field_no_callbacks(t, y, field):
 
 
 def ode_term() -> diffrax.ODETerm:
-    import equinox._errors as eqx_errors  # the same switch `checks_without_callbacks` sets
+    from ..compat import checks_are_nan  # the switch `checks_without_callbacks` sets
 
-    nan = getattr(eqx_errors, "EQX_ON_ERROR", None) == "nan"
+    nan = checks_are_nan()
     return diffrax.ODETerm(_fit_field_no_callbacks if nan else _fit_field)
 
 

@@ -33,11 +33,13 @@ The steps are chosen on values (`stop_gradient`), so forward mode (`jax.jvp`,
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import compat
 from ..lazy import lazy_import
 from .erk import FusedERK, dopri8, packer
 
@@ -69,34 +71,34 @@ def dopri8_dense() -> np.ndarray:
     """diffrax's Dopri8 dense output: `y(t0 + theta h) = y0 + theta sum_i P_i(theta) h k_i`,
     `P_i` the polynomial in row i (highest power first) over the 14 stages (the 14th is
     `f(t1, y1)`, first same as last). Shape (14, powers)."""
-    return np.asarray(diffrax.Dopri8.interpolation_cls.eval_coeffs, dtype=float)
+    return compat.dopri8_dense_coefficients()
 
 
 def _rms(x):
-    """RMS over the state (the last axis), the largest over any leading batch axes: a
-    batch in lockstep takes the step its least accurate member allows."""
-    return jnp.max(jnp.sqrt(jnp.mean(x * x, axis=-1)))
+    """RMS over the state (the last axis), kept as a trailing axis of size 1: one error
+    per member of a batch, each member controlling its own step."""
+    return jnp.sqrt(jnp.mean(x * x, axis=-1, keepdims=True))
 
 
 def _initial_step(f, t0, y0, k0, rtol, atol, order, span, error_size=None):
     """Hairer, Norsett & Wanner's starting step (as diffrax's and scipy's), on packed
-    (N,) states, measured on their first `error_size` components."""
+    (..., N) states, measured on their first `error_size` components: shape (..., 1), one
+    per member of a batch."""
     E = error_size
     scale = atol + rtol * jnp.abs(y0[..., :E])
-    rms = lambda x: jnp.sqrt(jnp.mean(x * x, axis=-1))  # noqa: E731
-    d0, d1 = rms(y0[..., :E] / scale), rms(k0[..., :E] / scale)
+    d0, d1 = _rms(y0[..., :E] / scale), _rms(k0[..., :E] / scale)
     h0 = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / d1)
-    h0 = jnp.minimum(jnp.min(h0), span)
+    h0 = jnp.minimum(h0, span)
     k1 = f(t0 + h0, y0 + h0 * k0)
-    d2 = rms((k1 - k0)[..., :E] / scale) / h0
+    d2 = _rms((k1 - k0)[..., :E] / scale) / h0
     h1 = jnp.where(jnp.maximum(d1, d2) <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3),
                    (0.01 / jnp.maximum(d1, d2)) ** (1.0 / order))
-    return jnp.minimum(jnp.minimum(100 * h0, jnp.min(h1)), span)
+    return jnp.minimum(jnp.minimum(100 * h0, h1), span)
 
 
 def _dense_coefficients(coeffs, h, ks):
     """The dense output's polynomial coefficients times h, highest power first: a list of
-    (N,) arrays, one per power (unrolled over the nonzero stage weights)."""
+    (..., N) arrays, one per power (unrolled over the nonzero stage weights)."""
     d = []
     for j in range(coeffs.shape[1]):
         acc = None
@@ -110,43 +112,75 @@ def _dense_coefficients(coeffs, h, ks):
 
 def _window_values(dense, taken, tw, ndim):
     """The dense output at the window's save times `tw` (W,): each one that lies in
-    `(t, t1]` of an accepted attempt in `taken` takes that attempt's coefficients (a select
-    per attempt), then one polynomial evaluation for the whole window. Save times no
-    attempt covers get zeros (they are pending and written by a later block).
-    Shape (W,) + the packed state's shape."""
+    `(t, t1]` of an accepted attempt in `taken` (per member of a batch) takes that
+    attempt's coefficients (a select per attempt), then one polynomial evaluation for the
+    whole window.
+
+    **Returns:** `(values, covered)`: values of shape (W,) + the packed state's shape,
+    and where an attempt covered the save time, shape (W,) + (..., 1) (save times no
+    attempt covers are pending: their values are zeros, written by a later block)."""
     W = tw.shape[0]
-    shape = (W,) + (1,) * ndim
-    theta = jnp.zeros((W,), tw.dtype)
-    base = coef = None
-    for ok, ta, t1a, ha, ya, ks in taken:
-        mine = ok & (tw > ta) & (tw <= t1a)
-        d = _dense_coefficients(dense, ha, ks)
-        m = mine.reshape(shape)
-        theta = jnp.where(mine, (tw - ta) / ha, theta)
-        base = jnp.where(m, ya[None], 0.0 if base is None else base)
-        coef = [jnp.where(m, dj[None], 0.0 if coef is None else cj)
+    twr = tw.reshape((W,) + (1,) * ndim)
+    theta = covered = base = coef = None
+    for rec in taken:
+        mine = rec.ok[None] & (twr > rec.t[None]) & (twr <= rec.t1[None])
+        d = _dense_coefficients(dense, rec.h, rec.ks)
+        th = (twr - rec.t[None]) / rec.h[None]
+        theta = jnp.where(mine, th, 0.0 if theta is None else theta)
+        covered = mine if covered is None else covered | mine
+        base = jnp.where(mine, rec.y[None], 0.0 if base is None else base)
+        coef = [jnp.where(mine, dj[None], 0.0 if coef is None else cj)
                 for dj, cj in zip(d, coef or [None] * len(d))]
-    th = theta.reshape(shape)
     poly = coef[0]
     for cj in coef[1:]:
-        poly = poly * th + cj
-    return base + th * poly
+        poly = poly * theta + cj
+    return base + theta * poly, covered
 
 
-def _attempt(erk: FusedERK, f, rtol, atol, error_size=None):
+class _Step(NamedTuple):
+    """The step loop's state. Batched, every field but `y` and `k` has shape (B, 1): each
+    member of a lockstep batch has its own time, step size and step count.
+
+    - `t`: the time reached (s); `y`, `k`: the packed state there and `f(t, y)` (first
+      same as last);
+    - `h`: the controller's next step size (s);
+    - `steps`: step attempts so far, accepted and rejected (stops at the budget);
+    - `rejected`: whether the last attempt was rejected (no growth right after one)."""
+
+    t: jax.Array
+    y: jax.Array
+    k: jax.Array
+    h: jax.Array
+    steps: jax.Array
+    rejected: jax.Array
+
+
+class _Attempt(NamedTuple):
+    """One step attempt, for the dense output: accepted (`ok`), from `t` to `t1` with step
+    `h`, starting at `y`; `ks` the stages, the last `f(t1, y1)`."""
+
+    ok: jax.Array
+    t: jax.Array
+    t1: jax.Array
+    h: jax.Array
+    y: jax.Array
+    ks: list
+
+
+def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None):
     """`attempt(state, t_lim) -> (state, record)`: one step attempt of `erk` on the packed
-    field `f(t, y)`, shortened to end at `t_lim`, with diffrax's error norm and an integral
-    controller. `state = (t, y, k, h, steps, rejected)` (`k = f(t, y)`, first same as
-    last); `record = (ok, t, t1, h, y, stages)` for the dense output. Inactive (no step)
-    once `t >= t_lim`."""
+    field `f(t, y)` per member, shortened to end at `t_lim`, with diffrax's error norm and
+    an integral controller (a [`_Step`][] and an [`_Attempt`][]). A member is inactive
+    (takes no step, its state frozen) once `t >= t_lim` or its budget `max_steps` is
+    spent."""
     sg = jax.lax.stop_gradient
     expo = 1.0 / erk.order
     n_st = erk.num_stages
 
-    def attempt(c, t_lim):
+    def attempt(c: _Step, t_lim):
         t, y, k, h, steps, rejected = c
         # The steps are chosen on values: t and h carry no derivative.
-        active = t < t_lim
+        active = (t < t_lim) & (steps < max_steps)
         h_try = sg(jnp.where(active, jnp.minimum(h, t_lim - t), 1.0))
         ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h_try, k0=k)[:n_st]
         y1 = erk.solution(y, h_try, ks)
@@ -165,9 +199,10 @@ def _attempt(erk: FusedERK, f, rtol, atol, error_size=None):
         # A step shortened to end at the window (or the end) and accepted leaves the
         # controller's proposal `h` valid: the next step may take it again.
         h_next = jnp.where(ok & (h_try < h), jnp.maximum(h_try * fac, h), h_try * fac)
-        new = (jnp.where(ok, t1, t), jnp.where(ok, y1, y), jnp.where(ok, k1, k),
-               jnp.where(active, sg(h_next), h), steps + active, ~ok & active)
-        return new, (ok, t, t1, h_try, y, ks + [k1])
+        new = _Step(jnp.where(ok, t1, t), jnp.where(ok, y1, y), jnp.where(ok, k1, k),
+                    jnp.where(active, sg(h_next), h), steps + active,
+                    jnp.where(active, ~ok, rejected))
+        return new, _Attempt(ok, t, t1, h_try, y, ks + [k1])
 
     return attempt
 
@@ -182,7 +217,7 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     **Arguments:**
 
     - `field`: the vector field `field(t, y, args) -> dy/dt`, a callable pytree; its
-      inexact-array leaves are differentiable parameters.
+      inexact-array leaves are differentiable parameters. Batched, `t` has shape (B,).
     - `y0`: the state at `ts[0]`, a pytree of arrays (small: the stages are unrolled).
     - `ts` (n,): increasing save times, any spacing; `rtol`, `atol`: tolerances of the
       local error per step as diffrax's `PIDController` scales them (RMS over the state of
@@ -200,43 +235,73 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
       state only (default all): a state that carries its sensitivities
       (`variational.py`) steps as the solution alone would.
     - `batched`: the leaves of `y0` (and of `field`, `args` where they vary) carry a
-      leading batch axis (B,), one scalar state per member: the batch steps in lockstep,
-      with one step size that every member's error allows (see `lockstep.py`).
+      leading batch axis (B,): the batch runs in one loop (lockstep), but each member has
+      its own time, step size, accept/reject decisions, step budget and outcome, as if
+      solved alone; a member that is done, or out of budget, is frozen while the others
+      go on (see `lockstep.py`).
 
     **Returns:** `(ys, result, num_steps)`: `ys` a pytree like `y0` with a leading axis n
     (batched: leaves (n, B)); `result` a `diffrax.RESULTS` (`max_steps_reached` if the
-    budget ran out before `ts[-1]`); `num_steps`, the step attempts, accepted and
-    rejected.
+    budget ran out before `ts[-1]`; batched: shape (B,)); `num_steps`, the step attempts,
+    accepted and rejected (batched: (B,)).
     """
     erk = dopri8() if erk is None else erk
-    dense = dopri8_dense()
     n = ts.shape[0]
     dtype = ts.dtype
-    W, K = int(window), int(unroll)
     pack, unpack = packer(y0, 1 if batched else 0)
     sg = jax.lax.stop_gradient
     rtol, atol = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
 
     def f(t, yp):
-        # One packed (N,) array: fewer, larger fusions than the state's leaves.
-        return pack(field(t, unpack(yp), args)).astype(dtype)
+        # One packed (N,) array: fewer, larger fusions than the state's leaves. `t` is
+        # (..., 1), one time per member of a batch.
+        return pack(field(t[..., 0], unpack(yp), args)).astype(dtype)
 
     y0p = pack(y0).astype(dtype)
+    # Times, step sizes and counts have the state's leading (batch) axes and a trailing 1.
+    lead = y0p.shape[:-1] + (1,)
+    t0 = jnp.broadcast_to(sg(ts[0]), lead)
+    k0 = f(t0, y0p)
+    h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), erk.order,
+                       sg(ts[-1]) - sg(ts[0]), error_size)
+    state0 = _Step(t0, y0p, k0, h0, jnp.zeros(lead, int), jnp.zeros(lead, bool))
+    attempt = _attempt(erk, f, rtol, atol, max_steps, error_size)
+    state, out = _step_loop(attempt, state0, y0p, ts, window, unroll, chunk, max_steps)
+    t_end = sg(ts[-1])
+    done = state.t >= t_end
+    outcome_of = lambda d: diffrax.RESULTS.where(  # noqa: E731
+        d, diffrax.RESULTS.successful, diffrax.RESULTS.max_steps_reached)
+    # One outcome per member (`RESULTS.where` takes a scalar predicate).
+    for _ in range(done.ndim - 1):
+        outcome_of = jax.vmap(outcome_of)
+    result = outcome_of(done[..., 0])
+    # Save times a member never reached (a failed solve) hold inf, as diffrax leaves them.
+    reached = ts.reshape((n,) + (1,) * y0p.ndim) <= state.t[None]
+    ys = jnp.where(reached, out[:n], jnp.inf)
+    return unpack(ys), result, state.steps[..., 0]
+
+
+def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps):
+    """The step attempts from `state0` to `ts[-1]`, recording the dense output at `ts`.
+
+    **Returns:** `(state, out)`: the last [`_Step`][] and the outputs, (n + chunk + window,)
+    + the packed state's shape (rows past a member's last time are not valid)."""
+    dense = dopri8_dense()
+    n, dtype = ts.shape[0], ts.dtype
+    W, K, CH = int(window), int(unroll), int(chunk)
+    t_end = jax.lax.stop_gradient(ts[-1])
     # Pending save times padded with +inf and outputs with CH + W rows, so that a chunk at
     # any pending index stays in range.
-    CH = int(chunk)
     ts_pad = jnp.concatenate([ts, jnp.full((CH + W,), jnp.inf, dtype)])
     out0 = jnp.zeros((n + CH + W,) + y0p.shape, dtype).at[0].set(y0p)
-    t0, t_end = sg(ts[0]), sg(ts[-1])
-    k0 = f(ts[0], y0p)
-    E = error_size
-    h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), erk.order, t_end - t0, E)
 
-    attempt = _attempt(erk, f, rtol, atol, E)
+    def waiting(state):
+        # Members still to step: neither at the end nor out of budget.
+        return (state.t < t_end) & (state.steps < max_steps)
 
     def chunk_cond(c):
         j, i0, state, _, _ = c
-        return (j < CH) & (i0 + j < n) & (state[4] < max_steps)
+        return (j < CH) & (i0 + j < n) & jnp.any(waiting(state))
 
     def chunk_body(c):
         j, i0, state, buf, tc = c
@@ -247,16 +312,20 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
         for _ in range(K):
             state, rec = attempt(state, t_lim)
             taken.append(rec)
-        t_now = state[0]
-        values = _window_values(dense, taken, tw, y0p.ndim)
-        # Rows from j on are pending; those this block does not reach are written again
-        # by a later block.
-        buf = jax.lax.dynamic_update_slice_in_dim(buf, values, j, 0)
-        reached = jnp.sum((tw <= t_now) & (i0 + j + jnp.arange(W) < n))
+        values, covered = _window_values(dense, taken, tw, y0p.ndim)
+        # Rows from j on are pending: each member's covered rows are written, the others
+        # keep what an earlier block wrote (members step on their own).
+        old = jax.lax.dynamic_slice_in_dim(buf, j, W)
+        buf = jax.lax.dynamic_update_slice_in_dim(buf, jnp.where(covered, values, old), j, 0)
+        # The window moves on past the save times every member still stepping has reached.
+        twr = tw.reshape((W,) + (1,) * y0p.ndim)
+        past = (twr <= state.t[None]) | ~waiting(state)[None]
+        past = jnp.all(past.reshape(W, -1), axis=1)
+        reached = jnp.sum(past & (i0 + j + jnp.arange(W) < n))
         return j + reached, i0, state, buf, tc
 
     def cond(c):
-        return (c[0] < n) & (c[1][4] < max_steps)
+        return (c[0] < n) & jnp.any(waiting(c[1]))
 
     def body(c):
         # One chunk: the step attempts that reach the next CH save times (or the end, or
@@ -264,20 +333,14 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
         # the module docstring (the step loop must not carry the n outputs).
         i0, state, out = c
         tc = jax.lax.dynamic_slice_in_dim(ts_pad, i0, CH + W)
-        buf = jnp.zeros((CH + W,) + y0p.shape, dtype)
+        buf = jax.lax.dynamic_slice_in_dim(out, i0, CH + W)
         j, _, state, buf, _ = jax.lax.while_loop(
             chunk_cond, chunk_body, (jnp.array(0), i0, state, buf, tc))
         out = jax.lax.dynamic_update_slice_in_dim(out, buf, i0, 0)
         return i0 + j, state, out
 
-    state0 = (t0, y0p, k0, h0, jnp.array(0), jnp.array(False))
-    i0, state, out = jax.lax.while_loop(cond, body, (jnp.array(1), state0, out0))
-    steps = state[4]
-    result = diffrax.RESULTS.where(i0 >= n, diffrax.RESULTS.successful,
-                                   diffrax.RESULTS.max_steps_reached)
-    # Save times never reached (a failed solve) hold inf, as diffrax leaves them.
-    ys = jnp.where((jnp.arange(n) < i0).reshape((n,) + (1,) * y0p.ndim), out[:n], jnp.inf)
-    return unpack(ys), result, steps
+    _, state, out = jax.lax.while_loop(cond, body, (jnp.array(1), state0, out0))
+    return state, out
 
 
 def outcome(code: jax.Array, steps: jax.Array) -> tuple:
@@ -286,4 +349,4 @@ def outcome(code: jax.Array, steps: jax.Array) -> tuple:
     the code as a `diffrax.RESULTS` again, both with no derivative (equinox's checks on
     the result cannot take one through it)."""
     code, steps = jax.lax.stop_gradient(code), jax.lax.stop_gradient(steps)
-    return type(diffrax.RESULTS.successful)(code, diffrax.RESULTS), steps
+    return compat.result_from_code(code), steps

@@ -1,20 +1,26 @@
 """`"dopri8-adaptive"` under JAX's transformations: a `jax.vmap`-ed batch steps in lockstep.
 
 A `vmap` of an adaptive solve already runs in lockstep (the loop runs until its slowest
-member is done), but each member keeps its own step size and save position, so every
-output update becomes a batched scatter and every carry a select. Measured while building
-this on 10^4 lab rigs (rtol 1e-8, 10 s, 1001 saves, 2-core CPU): 1.56 ms per trajectory
-for a plain `vmap` of the solver against 0.40 ms for the same solver stepping the whole
-batch with *one* step size, the largest that every member's error allows (0.53 ms in the
-run of experiments/bench_throughput.py recorded in the README).
+member is done), but each member keeps its own save position, so every output update
+becomes a batched scatter and every carry a select. Measured while building this on 10^4
+lab rigs (rtol 1e-8, 10 s, 1001 saves, 2-core CPU): 1.56 ms per trajectory for a plain
+`vmap` of the solver against 0.40 ms for the batched solver of `solve_adaptive`, whose
+members share the loop and the window of save times being written.
 `jax.custom_batching.custom_vmap` gives that rule to `jax.vmap`: mapped over parameters,
-initial states or tolerances with shared save times, the batch takes shared steps (the
-members' fields evaluated side by side); with save times that differ per member it falls
-back to a plain `vmap`. Each member's local error still meets its own tolerance; members
-that need fewer steps take the batch's. On the CPU a batch of more than `CHUNK` members
-steps in groups of `CHUNK`, one group after another, each with its own steps (see `CHUNK`);
-where the program made several CPU devices (`jax_num_cpu_devices`), the groups are spread
-over them, one core each (`_spread`), with the same groups and so the same results.
+initial states or tolerances with shared save times, the members' fields are evaluated
+side by side; with save times that differ per member it falls back to a plain `vmap`.
+
+Every member gets its own answer: each has its own time, step size, accept/reject
+decisions, step budget and outcome (`solve_adaptive`, `batched=True`), so a member that
+needs tiny steps or runs out of budget changes neither the others' results nor their
+statuses (a single shared step size, as before issue 26, let one stiff member fail the
+whole batch). A member that is done with the current save window, or out of budget,
+waits, frozen, while the others step; the window moves on when every member still
+stepping has passed it. What that costs on a uniform batch:
+experiments/bench_batch_isolation.py. On the CPU a batch of more than `CHUNK` members
+steps in groups of `CHUNK`, one group after another (see `CHUNK`); where the program made
+several CPU devices (`jax_num_cpu_devices`), the groups are spread over them, one core
+each (`_spread`), with the same results.
 
 Differentiation: forward mode (`jax.jvp`, `jax.jacfwd`; `adjoint="forward"`) goes through
 the solve along the chosen steps (`custom_vmap` has a JVP rule). Reverse mode
@@ -35,6 +41,7 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from .. import trig
+from ..compat import result_code
 from .adaptive import outcome, solve_adaptive
 
 __all__ = ["adaptive_solve"]
@@ -64,17 +71,19 @@ def _side_by_side(rebuild, dyn, batched):
     """The field of a batch: each member's field (its leaves with a leading batch axis where
     `batched`) evaluated side by side, `(t, y) -> dy` with `y`'s leaves (B,). A `vmap` of
     the member's field, so that leaves of any shape batch (the packed coefficients, a
-    tabulated load); on scalar leaves it is the same elementwise code."""
+    tabulated load); on scalar leaves it is the same elementwise code. `t` (B,): each
+    member's own time."""
     axes = [0 if b else None for b in batched]
 
     def field(t, y, args):
-        return jax.vmap(lambda d, yy: rebuild(d)(t, yy, args), in_axes=(axes, 0))(dyn, y)
+        return jax.vmap(lambda d, tt, yy: rebuild(d)(tt, yy, args),
+                        in_axes=(axes, 0, 0))(dyn, t, y)
 
     return field
 
 
 # Members per lockstep group on the CPU. A batch steps in groups of this many, one after
-# another, each group with the step its own members allow. Why: the step's stage kernels
+# another. Why: the step's stage kernels
 # read and write (n, 2) arrays, ~13 per step; at 10^4 members that working set (~2 MB)
 # leaves the core's L2 cache, and each kernel then streams from memory. Measured on
 # 10^4 lab rigs (rtol 1e-9, 2-core AMD EPYC): 516 us per trajectory in one group, 363 us
@@ -184,7 +193,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_siz
         ys, result, steps = solve_adaptive(rebuild(dyn), y0, ts, rtol, atol,
                                            max_steps=max_steps, error_size=error_size)
         # Every output a float: JAX's JVP of a `custom_vmap` takes float outputs only.
-        return ys, _as_float(result._value, ts), _as_float(steps, ts)
+        return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
     def batch_rule(axis_size, in_batched, dyn, y0, ts, rtol, atol, spread):
         if not any(jax.tree_util.tree_leaves(in_batched)):
@@ -202,7 +211,6 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_siz
         dyn_b, dyn_c = _split(dyn, in_batched[0])
 
         def lockstep(dyn_b, y0, rtol, atol):
-            n = jax.tree_util.tree_leaves(y0)[0].shape[0]
             # Per-member tolerances scale that member's state (the last axis).
             rtol = rtol[:, None] if in_batched[3] else rtol
             atol = atol[:, None] if in_batched[4] else atol
@@ -215,8 +223,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_siz
                     y0, ts, rtol, atol, max_steps=max_steps, batched=True,
                     error_size=error_size)
             ys = jax.tree_util.tree_map(lambda v: jnp.moveaxis(v, 1, 0), ys)
-            full = lambda x: jnp.broadcast_to(x, (n,))  # noqa: E731
-            return ys, full(_as_float(result._value, ts)), full(_as_float(steps, ts))
+            return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
         out = _in_chunks(lockstep, axis_size, dyn_b, y0, rtol, atol, in_batched[3],
                          in_batched[4], spread=spread)

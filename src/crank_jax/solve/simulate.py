@@ -412,7 +412,7 @@ def _program_solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max
 def _succeeded(result) -> bool:
     """Whether a concrete `diffrax.RESULTS` item is `successful`, read on the host (an
     equinox comparison is an eager device op)."""
-    return int(np.asarray(result._value)) == int(diffrax.RESULTS.successful._value)
+    return bool(np.asarray(result == diffrax.RESULTS.successful))
 
 
 def _warn_if_float32() -> None:

@@ -20,6 +20,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 
+from ..compat import result_code
 from .adaptive import outcome
 
 __all__ = ["reverse_twin"]
@@ -42,7 +43,7 @@ def reverse_twin(run: Callable, field, prepare: Callable, *args):
 
     def arrays(fld, *rest):  # a custom_vjp returns arrays: the outcome as its code
         ys, result, steps = run(fld, *rest)
-        return ys, result._value, steps
+        return ys, result_code(result), steps
 
     def plain(d, *rest):
         return arrays(eqx.combine(d, static), *rest)

@@ -26,11 +26,11 @@ way. The sum of the lower-order estimates over-estimates the error of the soluti
 from __future__ import annotations
 
 import equinox as eqx
-import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import compat
 from ..lazy import lazy_import
 from .erk import FusedERK, dopri8, packer, rms_error
 from .sensitivity import attach_sensitivities
@@ -104,7 +104,7 @@ def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
                     e = rms_error(*jax.lax.stop_gradient((err, yy, y1)), rtol, atol)
                     return i + 1, y1, Ei + e
 
-                _, y1, Ei = eqxi.while_loop(lambda c: c[0] < m, body,
+                _, y1, Ei = compat.while_loop(lambda c: c[0] < m, body,
                                             (jnp.array(0), y, jnp.zeros((), dtype)),
                                             max_steps=max_sub, kind=kind)
                 return y1, jnp.where(_all_finite(y1), Ei, jnp.inf)
@@ -128,7 +128,7 @@ def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
                 y1, Ei = run(m)
                 return j + 1, m, y1, Ei, s + m
 
-            _, m, y, Ei, steps = eqxi.while_loop(
+            _, m, y, Ei, steps = compat.while_loop(
                 try_cond, try_body, (jnp.array(0), m, y, jnp.zeros((), dtype), steps),
                 max_steps=_TRIES, kind=kind)
             want = grow_to(m, Ei)
@@ -162,7 +162,7 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
     - `rate`: a rate scale of the motion, 1/s (e.g. a natural frequency plus a decay
       rate): it sets the first guess and the stability floor on the steps. A guess only:
       the step counts are measured.
-    - `max_steps`: the step budget; `kind`, the `equinox.internal.while_loop` kind that
+    - `max_steps`: the step budget; `kind`, the `compat.while_loop` kind that
       sets which autodiff works: `"lax"` (forward, through the sensitivities),
       `"checkpointed"` (reverse), `"bounded"` (both).
     - `erk`: the method, default [`dopri8`][]`()`.
@@ -258,7 +258,7 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
     ys0 = jnp.zeros((n,) + pack(y0).shape, dtype)
     init = (aim0, m_floor0, ys0, jnp.zeros(n_int, jnp.int32), jnp.asarray(jnp.inf, dtype),
             pilot_steps, jnp.array(False), jnp.array(0))
-    _, _, ys, ms, E, steps, _, _ = eqxi.while_loop(sel_cond, sel_body, init,
+    _, _, ys, ms, E, steps, _, _ = compat.while_loop(sel_cond, sel_body, init,
                                                    max_steps=_MAX_PASSES, kind=kind)
     result = diffrax.RESULTS.where(E <= 1, diffrax.RESULTS.successful,
                                    diffrax.RESULTS.max_steps_reached)

@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..compat import result_code
 from .adaptive import outcome
 from .sensitivity import columns_to_tree, copied_components, flatten_state
 
@@ -190,7 +191,7 @@ def with_sensitivities(solve: Callable, field, prepare: Callable, y0, ts, rtol, 
 
     def primal(dyn, y0, ts, rtol, atol):
         ys, result, steps = solve(prepare(eqx.combine(dyn, static)), y0, ts, rtol, atol, None)
-        return ys, result._value, steps
+        return ys, result_code(result), steps
 
     @jax.custom_jvp
     def run(dyn, y0, ts, rtol, atol):
@@ -244,7 +245,7 @@ def with_sensitivities(solve: Callable, field, prepare: Callable, y0, ts, rtol, 
                                        else jnp.ravel(t).astype(dtype)
                                        for v, t in zip(jax.tree_util.tree_leaves(y0), dy0)])
         dys = S @ d  # (n, N)
-        out = (ys, result._value, steps)
+        out = (ys, result_code(result), steps)
         return out, (columns_to_tree(dys, y0),) + _no_tangents(out)[1:]
 
     run.defjvp(run_jvp, symbolic_zeros=True)
