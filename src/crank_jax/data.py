@@ -21,7 +21,7 @@ import numpy as np
 
 from .io import atomic_write, check_input
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
-from .record_checks import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP, time_scale_problem
+from .record_checks import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP, series_problem
 from .sensors import DEFAULT_SENSOR, Sensor
 
 __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
@@ -40,27 +40,7 @@ def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[st
                   name: str = "phi") -> None:
     """Raise [`DataError`][] naming the first bad row; `rows[i]` labels sample `i`; `name`
     is the column of `phi` (a channel's)."""
-    label = (lambda i: rows[i]) if rows is not None else (lambda i: f"sample {i}")
-    if ts.ndim != 1 or phi.shape != ts.shape:
-        raise DataError(f"{where}: t and {name} must be 1-D of equal length, got shapes "
-                        f"{ts.shape} and {phi.shape}")
-    if ts.shape[0] < MIN_SAMPLES:
-        raise DataError(f"{where}: too few samples ({ts.shape[0]}); a record needs at least "
-                        f"{MIN_SAMPLES}")
-    for name, x in (("t", ts), (name, phi)):
-        bad = ~np.isfinite(x)
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise DataError(f"{where}: {label(i)}: column {name!r} is {float(x[i])} (NaN or inf); "
-                            "remove or repair that row")
-    with np.errstate(over="ignore", invalid="ignore"):  # +-1.7e308: the span overflows
-        d = np.diff(ts)
-    if not np.all(d > 0):
-        i = int(np.argmax(d <= 0)) + 1
-        raise DataError(f"{where}: {label(i)}: time t = {float(ts[i])!r} does not increase "
-                        f"(previous t = {float(ts[i - 1])!r}); sort the record and remove "
-                        "duplicate times")
-    problem = time_scale_problem(ts, d, where, label)
+    problem = series_problem(ts, phi, where, rows, name, MIN_SAMPLES)
     if problem:
         raise DataError(problem)
 

@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 __all__ = ["MAX_TIME_SPAN", "MIN_TIME_STEP", "MIN_STEP_ULPS", "MAX_SYNTH_ANGLE",
-           "time_scale_problem", "check_synth_options"]
+           "time_scale_problem", "series_problem", "check_synth_options"]
 
 
 #: The longest span a record's times may cover, s (about 32 years): a longer one is a
@@ -96,3 +96,30 @@ def check_synth_options(t1, rate, noise_std, jitter_std, drop, t_start, seed, tr
             f"spacings apart, and near t1 = {t1:g} s one spacing is {ulp:.3g} s: lower the rate"
             f" to at most {1 / need:.3g} Hz or start"
             " nearer t = 0 (--t-start, --t1)")
+
+
+def series_problem(ts: np.ndarray, phi: np.ndarray, where: str, rows, name: str,
+                   min_samples: int) -> str | None:
+    """The message naming the first bad row of a record's times `ts` (n,) and one column
+    `phi` (n,) (named `name`), or None; `rows[i]` labels sample `i` (None: "sample i")."""
+    label = (lambda i: rows[i]) if rows is not None else (lambda i: f"sample {i}")
+    if ts.ndim != 1 or phi.shape != ts.shape:
+        return (f"{where}: t and {name} must be 1-D of equal length, got shapes "
+                f"{ts.shape} and {phi.shape}")
+    if ts.shape[0] < min_samples:
+        return (f"{where}: too few samples ({ts.shape[0]}); a record needs at least "
+                f"{min_samples}")
+    for name, x in (("t", ts), (name, phi)):
+        bad = ~np.isfinite(x)
+        if bad.any():
+            i = int(np.argmax(bad))
+            return (f"{where}: {label(i)}: column {name!r} is {float(x[i])} (NaN or inf); "
+                    "remove or repair that row")
+    with np.errstate(over="ignore", invalid="ignore"):  # +-1.7e308: the span overflows
+        d = np.diff(ts)
+    if not np.all(d > 0):
+        i = int(np.argmax(d <= 0)) + 1
+        return (f"{where}: {label(i)}: time t = {float(ts[i])!r} does not increase "
+                f"(previous t = {float(ts[i - 1])!r}); sort the record and remove "
+                "duplicate times")
+    return time_scale_problem(ts, d, where, label)

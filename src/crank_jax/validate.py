@@ -138,6 +138,10 @@ def _loads(scene: Scene, data: Data, scene_loads: bool) -> tuple[AbstractLoad, A
 MIN_SPREAD_EPS = 1024
 
 
+_WHAT = {"phi": "angle", "dphi": "crank rate (dphi)", "x_s": "slider position (x_s)",
+         "v_s": "slider speed (v_s)", "a_s": "slider acceleration (a_s)"}
+
+
 def _check_spread(y: np.ndarray, win: Data, t_init: float, name: str = "phi") -> None:
     """Raise [`DataError`][] when channel `name`'s scored data `y` (SI) are constant up to
     rounding."""
@@ -146,7 +150,8 @@ def _check_spread(y: np.ndarray, win: Data, t_init: float, name: str = "phi") ->
     if spread <= MIN_SPREAD_EPS * np.finfo(np.float64).eps * scale or spread == 0:
         raise DataError(
             f"{win.source}: the {y.size} scored samples (t > {t_init:g} s) hold a constant "
-            f"{name} ({float(y.mean()):.17g} {SI_UNITS[name]}; spread {spread:.3g} "
+            f"{_WHAT.get(name, name)} ({float(y.mean()):.17g} {SI_UNITS[name]}; spread "
+            f"{spread:.3g} "
             f"{SI_UNITS[name]}, float rounding "
             "at most), so fit_percent is undefined: validate on a record in which the crank "
             "moves after the initial-state window")

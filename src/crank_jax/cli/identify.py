@@ -280,11 +280,11 @@ def _fit_run(a: argparse.Namespace) -> int:
     from ..scene import load_scene
 
     files = [a.data] + list(a.more_data)
-    for path, option in zip(files, ["DATA"] + ["--more-data"] * len(a.more_data)):
-        check_input(path, option)  # at once: a FIFO with no writer would block the read
     scene = load_scene(a.scene)
-    _outputs_ok(a, files + [a.scene])
     kwargs = _fit_kwargs(a, scene, len(files))  # every option before any record is read
+    for path, option in zip(files, ["DATA"] + ["--more-data"] * len(a.more_data)):
+        check_input(path, option)  # unopened: a FIFO with no writer would block the read
+    _outputs_ok(a, files + [a.scene])
     records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
                          interp=a.load_interp, sensors=record_sensors(a, scene, f),
                          inputs=scene_inputs(scene))
