@@ -27,8 +27,9 @@ How a sweep runs ([`make_plan`][] checks everything first):
 
 Memory: the result holds, per sample, 8 bytes per varied field and per scalar output,
 `8 n_t` per trajectory output, and 10 bytes of status, steps and solver; a sweep whose
-result exceeds half the host's memory is refused before any work (`max_memory=`
-overrides). Beyond the result, a block of `SORT_BLOCK` samples needs about 30 MB of NumPy
+result, or whose chunk's working memory (`plan.chunk_bytes`, about `chunk * num_saves *
+32` bytes, 104 with `peak_O`), exceeds half the host's memory is refused before any work
+(`max_memory=` overrides). Beyond the result, a block of `SORT_BLOCK` samples needs about 30 MB of NumPy
 arrays on the host (measured) and about as much again for its linearisation, whatever
 `n`; a chunk needs about `chunk_size * num_saves * 16` bytes of trajectory on the device.
 """
@@ -241,8 +242,9 @@ def sweep(
     - `devices`: devices to shard each chunk over (default: all of `jax.devices()`, which
       spans every host after [`initialize_distributed`][]).
     - `progress`: show a tqdm bar on stderr. `callback(done, total)`: called per chunk.
-    - `max_memory`: refuse (`ValueError`) a result larger than this many bytes (default
-      half the host's memory; see the module docstring for the sizes).
+    - `max_memory`: refuse (`ValueError`) a result, or one chunk's working memory
+      (`plan.chunk_bytes`: it grows with `num_saves`), larger than this many bytes
+      (default half the host's memory; see the module docstring for the sizes).
 
     **Returns:** a [`SweepResult`][] in the original sample order.
     """
