@@ -29,9 +29,9 @@ Memory: the result holds, per sample, 8 bytes per varied field and per scalar ou
 `8 n_t` per trajectory output, and 10 bytes of status, steps and solver; a sweep whose
 result, or whose chunk's working memory (`plan.chunk_bytes`, about `chunk * num_saves *
 32` bytes, 104 with `peak_O`), exceeds half the host's memory is refused before any work
-(`max_memory=` overrides). Beyond the result, a block of `SORT_BLOCK` samples needs about 30 MB of NumPy
-arrays on the host (measured) and about as much again for its linearisation, whatever
-`n`; a chunk needs about `chunk_size * num_saves * 16` bytes of trajectory on the device.
+(`max_memory=` overrides). Beyond the result, a block of `SORT_BLOCK` samples needs about
+30 MB of NumPy arrays on the host (measured) and about as much again for its
+linearisation, whatever `n`.
 """
 
 from __future__ import annotations
