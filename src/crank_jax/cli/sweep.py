@@ -38,6 +38,9 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk-size", type=int, default=1024,
                    help="samples per compiled call (bounds device memory; the samples drawn "
                         "do not depend on it)")
+    p.add_argument("--checkpoint", metavar="DIR",
+                   help="save each finished chunk in DIR; rerunning the same command after "
+                        "an interruption computes only the missing chunks")
     p.add_argument("--summary", action="store_true",
                    help="print statistics of every output (JSON) on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -106,7 +109,7 @@ def _sweep_run(a: argparse.Namespace) -> int:
     scene = load_scene(a.scene)
     result = sweep(scene, spec, outputs, n=a.n, seed=a.seed, t1=a.t1, num_saves=a.samples,
                    solver=a.solver, max_steps=a.max_steps, chunk_size=a.chunk_size,
-                   progress=not a.quiet)
+                   progress=not a.quiet, checkpoint=a.checkpoint)
     if jax.process_index() == 0:
         result.save(a.out)
         counts = result.counts()

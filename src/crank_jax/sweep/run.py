@@ -37,6 +37,7 @@ linearisation, whatever `n`.
 from __future__ import annotations
 
 import math
+import os
 import sys
 from collections.abc import Callable, Mapping, Sequence
 
@@ -50,6 +51,7 @@ from ..model.dynamics import Structure
 from ..model.loads import SIDES
 from ..solve.policy import SOLVERS, resolve_solver
 from ..solve.simulate import simulate
+from .checkpoint import Checkpoint
 from .distributions import AbstractDistribution
 from .plan import SORT_BLOCK, VARIABLES, Plan, make_plan
 from .reductions import DEFAULT_OUTPUTS, REDUCTIONS, TRAJECTORY_OUTPUTS, reduce
@@ -178,11 +180,18 @@ class _Devices:
                                     *calls))
 
 
-def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps, sink):
+def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps, sink,
+               ckpt=None, b0=0):
     """Run the valid samples `order` of one block in chunks; `sink(idx, res, st, ns,
-    solver_index)` receives each chunk's results (host arrays, `idx` into the block)."""
+    solver_index)` receives each chunk's results (host arrays, `idx` into the block). With
+    a [`Checkpoint`][] `ckpt`, a chunk saved there is read instead of computed, and each
+    computed chunk is saved."""
     for start in range(0, order.size, chunk):
         idx = order[start:start + chunk]
+        saved = ckpt.load(b0, start, idx) if ckpt is not None else None
+        if saved is not None:
+            sink(idx, *saved)
+            continue
         # Pad the last chunk with its own first sample: one shape, one compilation.
         padded = np.concatenate([idx, np.full(chunk - idx.size, idx[0])])
         mech, load, torque, phi0, dphi0 = plan.batch({k: v[padded] for k, v in cols.items()})
@@ -193,7 +202,10 @@ def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps,
                               **_fixed(plan), solver=name, structure=plan.structure,
                               reductions=plan.reductions, max_steps=int(max_steps))
         m = idx.size
-        sink(idx, {k: v[:m] for k, v in res.items()}, st[:m], ns[:m], SOLVERS.index(name))
+        got = ({k: v[:m] for k, v in res.items()}, st[:m], ns[:m], SOLVERS.index(name))
+        if ckpt is not None:
+            ckpt.save(b0, start, idx, *got)
+        sink(idx, *got)
 
 
 # ---------------------------------------------------------------------------------------
@@ -217,6 +229,7 @@ def sweep(
     progress: bool = False,
     callback: Callable[[int, int], None] | None = None,
     max_memory: int | None = None,
+    checkpoint: str | os.PathLike | None = None,
 ) -> SweepResult:
     """Simulate a [`Scene`][] for many sampled values at once.
 
@@ -245,6 +258,9 @@ def sweep(
     - `max_memory`: refuse (`ValueError`) a result, or one chunk's working memory
       (`plan.chunk_bytes`: it grows with `num_saves`), larger than this many bytes
       (default half the host's memory; see the module docstring for the sizes).
+    - `checkpoint`: a directory where each finished chunk is saved (created if missing); a
+      rerun of the same sweep computes only the chunks missing there, and a different
+      sweep is refused (`ValueError` naming what differs). See `sweep/checkpoint.py`.
 
     **Returns:** a [`SweepResult`][] in the original sample order.
     """
@@ -253,6 +269,11 @@ def sweep(
     n = plan.n
     dev = _Devices(list(jax.devices() if devices is None else devices))
     chunk = int(math.ceil(min(chunk_size, n) / dev.n) * dev.n)
+    ckpt = None
+    if checkpoint is not None:
+        if jax.process_count() > 1:
+            raise ValueError("checkpoint= is not supported in a multi-process run yet")
+        ckpt = Checkpoint(checkpoint, plan, chunk, max_steps)
     block = max(chunk, SORT_BLOCK // chunk * chunk)
     n_t = plan.ts.shape[0]
     out = {k: np.zeros((n, n_t) if k in TRAJECTORY_OUTPUTS else n) for k in plan.reductions}
@@ -288,7 +309,7 @@ def sweep(
             if callback is not None:
                 callback(done, n)
 
-        _run_block(plan, cols, order, chunk, dev, consts, max_steps, sink)
+        _run_block(plan, cols, order, chunk, dev, consts, max_steps, sink, ckpt, b0)
     if bar is not None:
         bar.close()
     return SweepResult(values, out, status, steps, solver_used, plan.ts, plan.structure,
