@@ -37,9 +37,18 @@ def _digest(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def _plan_manifest(plan, chunk: int, max_steps: int) -> dict:
-    from .. import __version__
+def _version() -> str:
+    # The installed distribution's version (the package's own `__init__` would be an
+    # import cycle).
+    from importlib import metadata
 
+    try:
+        return metadata.version("crank-jax")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _plan_manifest(plan, chunk: int, max_steps: int) -> dict:
     spec = plan.spec
     samples = {k: str(v) for k, v in spec.dists.items()}
     samples.update({k: "array sha256 " + _digest({"a": np.asarray(v)})
@@ -47,7 +56,7 @@ def _plan_manifest(plan, chunk: int, max_steps: int) -> dict:
     leaves, treedef = jax.tree.flatten(plan.scene)
     scene = _digest({f"{i:04d}": np.asarray(x) for i, x in enumerate(leaves)}
                     | {"tree": np.frombuffer(str(treedef).encode(), np.uint8)})
-    return {"crank_jax_version": __version__, "scene": scene,
+    return {"crank_jax_version": _version(), "scene": scene,
             "samples": samples, "n": int(plan.n), "seed": int(plan.seed),
             "outputs": list(plan.reductions),
             "save_times": _digest({"ts": np.asarray(plan.ts)}), "solver": plan.solver,
