@@ -80,6 +80,15 @@ def initialize_distributed(**kwargs) -> None:
     """
     global _distributed_ready
     if not _distributed_ready:
+        # JAX itself reads only the coordinator's address from the environment; the
+        # documented JAX_NUM_PROCESSES and JAX_PROCESS_ID are read here.
+        for key, env in (("num_processes", "JAX_NUM_PROCESSES"),
+                         ("process_id", "JAX_PROCESS_ID")):
+            if kwargs.get(key) is None and os.environ.get(env, "").strip():
+                try:
+                    kwargs[key] = int(os.environ[env])
+                except ValueError:
+                    raise ValueError(f"{env}={os.environ[env]!r} is not an integer") from None
         jax.distributed.initialize(**kwargs)
         _distributed_ready = True
 
