@@ -49,3 +49,20 @@ def test_two_processes_write_what_one_process_writes(tmp_path):
         assert a.files == b.files
         for k in a.files:
             np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_an_unreachable_coordinator_ends_with_one_line_in_bounded_time(tmp_path):
+    import time
+
+    t0 = time.monotonic()
+    p = subprocess.run(
+        [sys.executable, "-m", "crank_jax", *ARGS, "--out", str(tmp_path / "x.npz"),
+         "--distributed"], cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        env=_env(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{_free_port()}", JAX_NUM_PROCESSES="2",
+                 JAX_PROCESS_ID="1", JAX_NUM_CPU_DEVICES="1",
+                 CRANK_JAX_DISTRIBUTED_TIMEOUT="5"))
+    assert p.returncode == 1, p.stderr[-2000:]
+    lines = [ln for ln in p.stderr.splitlines() if ln.startswith("crank-jax: error:")]
+    assert len(lines) == 1 and "did not answer within 5 s" in lines[0], p.stderr[-2000:]
+    assert time.monotonic() - t0 < 120
+    assert not (tmp_path / "x.npz").exists()
