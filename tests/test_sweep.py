@@ -270,3 +270,56 @@ def test_cli_sweep_never_overwrites_its_input(tmp_path, capsys, lab_rig):
     assert cli.main(["sweep", str(scene), "--n", "2", "--out", str(scene), "--quiet"]) == 2
     assert "input file" in capsys.readouterr().err
     assert scene.read_bytes() == before
+
+
+# --- memory bounded by the save times, errors inside JAX -------------------------------
+
+@pytest.mark.parametrize("samples", ["100000000", "1000000000", "1000000000000"])
+def test_cli_sweep_refuses_save_times_beyond_memory_at_once(tmp_path, capsys, samples):
+    # issue 24, 6: n = 2 with --samples 10^8 used 5.8 GB before RESOURCE_EXHAUSTED, 10^9
+    # ran into the memory limit. The working memory of a chunk is refused up front, before
+    # even the save times are made, naming the option and the largest that fits.
+    argv = ["sweep", "lab-rig", "--vary", "k=normal(2,0.1)", "--n", "2", "--samples",
+            samples, "--outputs", "peak_phi,peak_O", "--out", str(tmp_path / "x.npz"),
+            "--quiet"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "GiB of working memory" in err and "--samples) <=" in err
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_the_working_memory_bound_is_the_chunk_not_n(lab_rig):
+    from crank_jax.sweep.plan import chunk_bytes
+
+    per_save = chunk_bytes(1, ("peak_phi",), 1)
+    assert per_save > 0
+    # the bound grows with the save times and the chunk, and peak_O's extra outputs
+    assert chunk_bytes(4, ("peak_phi",), 10) == 40 * per_save
+    assert chunk_bytes(1, ("peak_O",), 1) > per_save
+    with pytest.raises(ValueError,
+                       match=r"limit is .* \(max_memory\); use num_saves \(--samples\) <= 1000,"):
+        cj.sweep(lab_rig, {"k": "normal(2,0.1)"}, ("peak_phi",), n=100, chunk_size=10,
+                 num_saves=1001, max_memory=per_save * 10 * 1000 + per_save)
+    # a smaller chunk fits the same save times
+    cj.sweep(lab_rig, {"k": "normal(2,0.1)"}, ("peak_phi",), n=2, chunk_size=2, t1=0.2,
+             num_saves=1001, max_memory=per_save * 10 * 1000 + per_save)
+
+
+def test_a_value_error_inside_jax_is_an_internal_error_not_a_user_mistake(monkeypatch,
+                                                                           capsys):
+    # issue 24, 2: a sharding failure inside JAX was reported as the user's mistake (exit 2)
+    import importlib
+
+    import jax.numpy as jnp
+
+    cli_main = importlib.import_module("crank_jax.cli.main")
+
+    def run(args):
+        jnp.linspace(0.0, 1.0, -1)  # raises ValueError inside jax
+
+    name, help_, add, _ = cli_main.sweep.COMMANDS[0]
+    monkeypatch.setattr(cli_main.sweep, "COMMANDS", [(name, help_, add, run)])
+    assert cli.main(["sweep", "lab-rig", "--n", "2", "--out", "x.npz"]) == 1
+    err = capsys.readouterr().err
+    assert "internal error: ValueError" in err and "please report" in err
+    assert err.count("\n") == 1

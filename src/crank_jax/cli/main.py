@@ -48,6 +48,9 @@ def _setup_jax() -> None:
     from ..cache import enable_compilation_cache
 
     jax.config.update("jax_enable_x64", True)
+    # Keep JAX's own frames in tracebacks: they tell a failure inside JAX (ours to fix,
+    # exit 1) from a value crank-jax refused (the user's, exit 2); see `_raised_inside_jax`.
+    jax.config.update("jax_traceback_filtering", "off")
     # The CLI is a program, not a library: it may configure JAX, and every call after the
     # first reuses the compiled programs from the persistent cache.
     enable_compilation_cache()
@@ -161,6 +164,24 @@ def _fail(code: int, msg: str, debug: bool) -> int:
     return code
 
 
+def _internal(e: BaseException) -> str:
+    return (f"internal error: {type(e).__name__}: {_one_line(e)} (please report it; run "
+            f"with --debug or {ENV_DEBUG}=1 for the traceback)")
+
+
+#: Packages whose ValueErrors are never the user's: crank-jax checks its inputs before it
+#: hands them on, so one of these raising means a bug of ours (e.g. a sharding mismatch).
+_INTERNAL_PACKAGES = ("jax", "jaxlib", "equinox", "lineax", "diffrax", "optimistix")
+
+
+def _raised_inside_jax(e: BaseException) -> bool:
+    tb = e.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    module = tb.tb_frame.f_globals.get("__name__", "") if tb is not None else ""
+    return module.split(".")[0] in _INTERNAL_PACKAGES
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of `crank-jax`; returns the exit status (0, 1 or 2; 128 + the signal's
     number when interrupted). Never raises, except `SystemExit` from `--help`'s exit 0,
@@ -183,7 +204,10 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(EXIT_USAGE, _one_line(e), debug)
     except (ValueError, OSError) as e:
         # SceneError, data errors and bad values are ValueErrors with a message that names
-        # the field and the fix; file problems are OSErrors. Either is the user's to fix.
+        # the field and the fix; file problems are OSErrors. Either is the user's to fix,
+        # unless JAX or a library under it raised it: that is a failure of ours.
+        if isinstance(e, ValueError) and _raised_inside_jax(e):
+            return _fail(EXIT_FAILURE, _internal(e), debug)
         if isinstance(e, BrokenPipeError):  # `crank-jax ... | head`: not an error
             with contextlib.suppress(OSError):
                 sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (silence the exit flush)
@@ -203,9 +227,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"crank-jax: terminated by {signal.Signals(e.signum).name}", file=sys.stderr)
         return 128 + e.signum
     except Exception as e:  # any other class is a bug of ours: say so in one line
-        return _fail(EXIT_FAILURE, f"internal error: {type(e).__name__}: {_one_line(e)} "
-                     f"(please report it; run with --debug or {ENV_DEBUG}=1 for the "
-                     "traceback)", debug)
+        return _fail(EXIT_FAILURE, _internal(e), debug)
 
 
 

@@ -15,6 +15,8 @@ from .errors import UserError
 from .options import seed
 
 _ENV_DISTRIBUTED = "CRANK_JAX_DISTRIBUTED"
+#: Seconds to wait for the coordinator and every process when joining (default 60).
+_ENV_TIMEOUT = "CRANK_JAX_DISTRIBUTED_TIMEOUT"
 
 
 def _sweep_args(p: argparse.ArgumentParser) -> None:
@@ -39,6 +41,9 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk-size", type=int, default=1024,
                    help="samples per compiled call (bounds device memory; the samples drawn "
                         "do not depend on it)")
+    p.add_argument("--checkpoint", metavar="DIR",
+                   help="save each finished chunk in DIR; rerunning the same command after "
+                        "an interruption computes only the missing chunks")
     p.add_argument("--summary", action="store_true",
                    help="print statistics of every output (JSON) on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -70,11 +75,45 @@ def _parse_vary(items: list[str]) -> dict[str, object]:
     return spec
 
 
+def _wait_for_coordinator(wait: int) -> None:
+    """A process other than 0 first waits (at most `wait` s) until the coordinator accepts
+    connections: JAX aborts the whole process, with a C++ stack dump, when it cannot reach
+    it, so the clear one-line error has to come from here."""
+    import socket
+    import time
+
+    address = os.environ.get("JAX_COORDINATOR_ADDRESS", "")
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit() or os.environ.get("JAX_PROCESS_ID", "0") == "0":
+        return
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            socket.create_connection((host.strip("[]"), int(port)), timeout=2).close()
+            return
+        except OSError as e:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"--distributed: the coordinator {address} did not answer "
+                                   f"within {wait} s ({e.strerror or e}); start process 0 "
+                                   f"first, or set {_ENV_TIMEOUT}") from None
+            time.sleep(0.5)
+
+
 def _sweep_run(a: argparse.Namespace) -> int:
     if a.distributed or os.environ.get(_ENV_DISTRIBUTED, "") not in ("", "0"):
         from ..sweep.run import initialize_distributed
 
-        initialize_distributed()
+        # Bounded: JAX waits 300 s for a missing coordinator or peer by default.
+        wait = int(os.environ.get(_ENV_TIMEOUT, "60") or 60)
+        _wait_for_coordinator(wait)
+        try:
+            initialize_distributed(initialization_timeout=wait)
+        except (RuntimeError, ValueError) as e:
+            first = (str(e).strip().splitlines() or [type(e).__name__])[0][:300]
+            raise RuntimeError(
+                f"--distributed: could not join the run (coordinator "
+                f"{os.environ.get('JAX_COORDINATOR_ADDRESS', 'auto-detected')}) within {wait}"
+                f" s ({_ENV_TIMEOUT} sets the wait): {first}") from None
     import jax
     import numpy as np
 
@@ -107,7 +146,7 @@ def _sweep_run(a: argparse.Namespace) -> int:
     scene = load_scene(a.scene)
     result = sweep(scene, spec, outputs, n=a.n, seed=a.seed, t1=a.t1, num_saves=a.samples,
                    solver=a.solver, max_steps=a.max_steps, chunk_size=a.chunk_size,
-                   progress=not a.quiet)
+                   progress=not a.quiet, checkpoint=a.checkpoint)
     if jax.process_index() == 0:
         result.save(a.out)
         counts = result.counts()

@@ -149,9 +149,19 @@ def reactions(
     equation of motion: it is the projection D'Alembert's principle keeps.
     """
     gf = global_form(mech, phi, dphi, t, load, torque)
-    rhs = gf.Mbar @ gf.J * ddphi + gf.qbar_c - gf.qbar_e
-    Q = distribution_matrix(mech, phi)
-    keep = jnp.array([0, 1, 2, 3, 4, 5, 7])
-    g_r = jnp.linalg.solve(Q[keep], rhs[keep])
-    return Reactions(O=g_r[0:2], A=g_r[2:4], B=g_r[4:6], N=g_r[6],
+    h = gf.Mbar @ gf.J * ddphi + gf.qbar_c - gf.qbar_e
+    # The kept rows of `distribution_matrix` are triangular once ordered from the slider
+    # inwards, so they are solved by substitution, not by an LU: a batched LAPACK kernel
+    # waits on XLA:CPU's intra-op threads, and with a program on every CPU device (a
+    # sweep's shard_map) each device's kernel holds a thread the others wait for, a
+    # deadlock (jax 0.10). Rows: 4 -> B_x, 2 -> A_x, 0 -> O_x; 7 (the coupler's moment,
+    # with A_y = B_y - h3 from row 3) -> B_y; then 3, 1 and 5. cos(delta) > 0 (L > r+|e|).
+    ca = coupler_angle(mech, phi)
+    b, L = mech.b, mech.L
+    B_x = -h[4]
+    A_x = B_x - h[2]
+    B_y = (h[7] - b * ca.sin * A_x - (L - b) * ca.sin * B_x + b * ca.cos * h[3]) / (L * ca.cos)
+    A_y = B_y - h[3]
+    return Reactions(O=jnp.stack([h[0] - A_x, h[1] - A_y]), A=jnp.stack([A_x, A_y]),
+                     B=jnp.stack([B_x, B_y]), N=h[5] + B_y,
                      F=guide_friction(mech, gf.J[4] * dphi))

@@ -37,7 +37,7 @@ from .distributions import AbstractDistribution, Spec, draw, parse_spec
 from .reductions import REDUCTIONS, TRAJECTORY_OUTPUTS
 
 __all__ = ["VARIABLES", "STATE_NAMES", "SORT_BLOCK", "Plan", "make_plan", "result_bytes",
-           "host_memory"]
+           "chunk_bytes", "host_memory"]
 
 STATE_NAMES = ("phi0", "dphi0")
 #: Names a sweep can vary: the mechanism's fields, the initial state and the loads'
@@ -65,6 +65,15 @@ def result_bytes(n: int, n_varied: int, reductions: Sequence[str], n_t: int) -> 
     per = 8 * n_varied + 1 + 8 + 1
     per += sum(8 * n_t if r in TRAJECTORY_OUTPUTS else 8 for r in reductions)
     return int(n) * per
+
+
+def chunk_bytes(chunk: int, reductions: Sequence[str], n_t: int) -> int:
+    """Working memory of one chunk of `chunk` samples, bytes, about: every sample's saved
+    trajectory (phi, dphi and the solver's copies of them, 8 bytes each per save time),
+    plus phi'' and the eight reaction outputs per save time when `peak_O` is asked for.
+    It grows with the number of save times, not with `n`."""
+    per_save = 4 + (9 if "peak_O" in reductions else 0)
+    return int(chunk) * int(n_t) * 8 * per_save
 
 
 class Plan(eqx.Module):
@@ -194,18 +203,31 @@ def make_plan(scene, samples, outputs, *, n=None, seed=0, t1=None, num_saves=Non
         raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
     solver = check_solver(scene.solver if solver is None else solver)
     spec = parse_spec(samples, n if samples else int(n or 1))
-    ts = np.linspace(0.0, scene.t1 if t1 is None else float(t1),
-                     scene.samples if num_saves is None else int(num_saves))
-    if not (ts[-1] > 0 and ts.shape[0] >= 2):
+    t_end = scene.t1 if t1 is None else float(t1)
+    n_t = int(scene.samples if num_saves is None else num_saves)
+    if not (t_end > 0 and n_t >= 2):
         raise ValueError("a sweep needs t1 > 0 and at least 2 save times")
-    need = result_bytes(spec.n, len(spec.names), reductions, ts.shape[0])
+    # Both bounds are checked before the save times themselves are made (10^9 of them
+    # would already take 8 GB).
     limit = host_memory() // 2 if max_memory is None else int(max_memory)
+    why = "half this host's memory" if max_memory is None else "max_memory"
+    need = result_bytes(spec.n, len(spec.names), reductions, n_t)
     if limit and need > limit:
         per = need // spec.n
         raise ValueError(f"n = {spec.n} samples need {need / 2**30:.1f} GiB for the result "
                          f"({per} bytes per sample) but the limit is {limit / 2**30:.1f} GiB "
-                         f"(half this host's memory); use n <= {limit // per}, or run "
+                         f"({why}); use n <= {limit // per}, or run "
                          "several sweeps with different seeds")
+    chunk = min(chunk_size, spec.n)
+    work = chunk_bytes(chunk, reductions, n_t)
+    if limit and work > limit:
+        per = work // n_t
+        raise ValueError(f"{n_t} save times need {work / 2**30:.1f} GiB of working memory "
+                         f"for a chunk of {chunk} samples but the limit is "
+                         f"{limit / 2**30:.1f} GiB ({why}); use num_saves "
+                         f"(--samples) <= {max(limit // per, 2)}, or a smaller chunk_size "
+                         "(--chunk-size)")
+    ts = np.linspace(0.0, t_end, n_t)
     loads = {side: _load_plan(scene, spec, side) for side in SIDES}
     # A result's seed is -1 when nothing was drawn at random (arrays and constants only).
     random = any(isinstance(v, (AbstractDistribution, str)) for v in samples.values())

@@ -19,22 +19,25 @@ How a sweep runs ([`make_plan`][] checks everything first):
    `"dopri8-uniform"` whenever the chunk is not stiff and no load is sampled (a sweep's
    save times are always uniform). Not `"dopri8-adaptive"`, whose `vmap` steps a batch in
    lockstep: a sweep's samples get exactly their own solve, whatever chunk they land in.
-5. Each chunk is one compiled call (no recompilation: the last chunk is padded), sharded
-   over a 1-D mesh of all devices along the batch axis. Only the requested reductions
-   leave the device; full trajectories only when `"phi"`/`"dphi"` are asked for.
+5. Each chunk is one compiled program (no recompilation: the last chunk is padded), run
+   on every device at once, each on its equal part of the chunk (see `_Devices`). Only
+   the requested reductions leave the device; full trajectories only when
+   `"phi"`/`"dphi"` are asked for.
 6. Results are written into the original sample order.
 
 Memory: the result holds, per sample, 8 bytes per varied field and per scalar output,
 `8 n_t` per trajectory output, and 10 bytes of status, steps and solver; a sweep whose
-result exceeds half the host's memory is refused before any work (`max_memory=`
-overrides). Beyond the result, a block of `SORT_BLOCK` samples needs about 30 MB of NumPy
-arrays on the host (measured) and about as much again for its linearisation, whatever
-`n`; a chunk needs about `chunk_size * num_saves * 16` bytes of trajectory on the device.
+result, or whose chunk's working memory (`plan.chunk_bytes`, about `chunk * num_saves *
+32` bytes, 104 with `peak_O`), exceeds half the host's memory is refused before any work
+(`max_memory=` overrides). Beyond the result, a block of `SORT_BLOCK` samples needs about
+30 MB of NumPy arrays on the host (measured) and about as much again for its
+linearisation, whatever `n`.
 """
 
 from __future__ import annotations
 
 import math
+import os
 import sys
 from collections.abc import Callable, Mapping, Sequence
 
@@ -42,13 +45,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
 
 from ..lazy import lazy_import
 from ..model.dynamics import Structure
 from ..model.loads import SIDES
 from ..solve.policy import SOLVERS, resolve_solver
 from ..solve.simulate import simulate
+from .checkpoint import Checkpoint
 from .distributions import AbstractDistribution
 from .plan import SORT_BLOCK, VARIABLES, Plan, make_plan
 from .reductions import DEFAULT_OUTPUTS, REDUCTIONS, TRAJECTORY_OUTPUTS, reduce
@@ -77,22 +80,28 @@ def initialize_distributed(**kwargs) -> None:
     """
     global _distributed_ready
     if not _distributed_ready:
+        # JAX itself reads only the coordinator's address from the environment; the
+        # documented JAX_NUM_PROCESSES and JAX_PROCESS_ID are read here.
+        for key, env in (("num_processes", "JAX_NUM_PROCESSES"),
+                         ("process_id", "JAX_PROCESS_ID")):
+            if kwargs.get(key) is None and os.environ.get(env, "").strip():
+                try:
+                    kwargs[key] = int(os.environ[env])
+                except ValueError:
+                    raise ValueError(f"{env}={os.environ[env]!r} is not an integer") from None
         jax.distributed.initialize(**kwargs)
         _distributed_ready = True
 
 
-def _to_global(x: np.ndarray, sharding) -> Array:
-    # Every process holds the same host array (the samples come from the seed), so each
-    # fills in the shards it owns; the same call works with one process.
-    return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
+def _gather(tree):
+    """This process's part of a chunk's results, joined with every other process's, in
+    process order (identity with one process)."""
+    if jax.process_count() == 1:
+        return tree
+    from jax.experimental import multihost_utils
 
-
-def _to_host(x: Array) -> np.ndarray:
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
-
-        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-    return np.asarray(x)
+    return jax.tree.map(lambda x: np.concatenate(list(x)),
+                        multihost_utils.process_allgather(tree, tiled=False))
 
 
 # ---------------------------------------------------------------------------------------
@@ -101,27 +110,12 @@ def _to_host(x: Array) -> np.ndarray:
 
 @eqx.filter_jit
 def _run_chunk(mech, load, torque, phi0, dphi0, ts, rtol, atol, *, load_fixed, torque_fixed,
-               solver, structure, reductions, max_steps, mesh=None):
-    """One chunk: `_solve_chunk` over the whole batch, or, on a mesh of several devices,
-    on each device's part of it by itself (`shard_map`). Why not let XLA partition the
-    batched solve: its step loops run until the slowest member is done, so a partitioned
-    loop agrees on its condition across devices at every step (a collective per step);
-    measured on 2*10^4 lab rigs over two CPU devices, that made the sweep slower than on
-    one. Each device's loop here runs until *its* slowest member is done."""
-    kw = dict(load_fixed=load_fixed, torque_fixed=torque_fixed, solver=solver,
-              structure=structure, reductions=reductions, max_steps=max_steps)
-    if mesh is None:
-        return _solve_chunk(mech, load, torque, phi0, dphi0, ts, rtol, atol, **kw)
-    from jax.sharding import PartitionSpec as P
-
-    def spec(fixed):
-        return P() if fixed else P("batch")
-
-    body = jax.shard_map(
-        lambda *a: _solve_chunk(*a, ts, rtol, atol, **kw), mesh=mesh,
-        in_specs=(P("batch"), spec(load_fixed), spec(torque_fixed), P("batch"), P("batch")),
-        out_specs=P("batch"), check_vma=False)
-    return body(mech, load, torque, phi0, dphi0)
+               solver, structure, reductions, max_steps):
+    """One chunk (or one device's part of one, see [`_Devices`][]): `_solve_chunk`, the
+    same program on one device or several."""
+    return _solve_chunk(mech, load, torque, phi0, dphi0, ts, rtol, atol,
+                        load_fixed=load_fixed, torque_fixed=torque_fixed, solver=solver,
+                        structure=structure, reductions=reductions, max_steps=max_steps)
 
 
 def _solve_chunk(mech, load, torque, phi0, dphi0, ts, rtol, atol, *, load_fixed,
@@ -154,48 +148,73 @@ def _fixed(plan: Plan) -> dict[str, bool]:
 
 
 class _Devices:
-    """Puts a chunk's arrays on the devices: sharded along the batch, or replicated."""
+    """The devices a sweep runs on, and this process's share of them.
+
+    Each device runs the one-device program on its equal part of a chunk; JAX dispatches
+    each call without waiting, so the devices run at once, and each device's step loop
+    runs until *its* slowest member is done. Why not one program over a mesh: letting XLA
+    partition the batched solve makes its step loops agree on their condition across
+    devices at every step (a collective per step; measured on 2*10^4 lab rigs over two CPU
+    devices, slower than one device), and a `shard_map` body is traced under a manual
+    mesh, where arrays closed over from outside and library code that builds its own
+    (a load's `zeros_like(t)`, lineax's structure checks in an implicit solver) fail. The
+    same program on every device also gives bit-identical results on one device or many.
+    In a multi-process run each process runs the parts of its own devices and the parts
+    are gathered from every process (`_gather`).
+    """
 
     def __init__(self, devices):
+        devices = list(devices)
         self.n = len(devices)
-        self.batch = self.replicated = None
-        self.mesh = None
-        if self.n > 1:
-            mesh = self.mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
-            self.batch = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-            self.replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+        me = jax.process_index()
+        owners = [d.process_index for d in devices]
+        if owners != sorted(owners) or len({owners.count(p) for p in set(owners)}) != 1:
+            raise ValueError("devices must hold the same number of devices of every process, "
+                             "grouped by process (as jax.devices() lists them)")
+        self.slots = [(i, d) for i, d in enumerate(devices) if d.process_index == me]
 
-    def shard(self, tree):
-        if self.batch is None:
-            return tree
-        return jax.tree.map(lambda x: _to_global(np.asarray(x), self.batch), tree)
+    def run(self, part: int, batched, shared, **static):
+        """`_run_chunk` on every local device, device `i` on samples `[i part, (i+1)
+        part)` of `batched = (mech, load, torque, phi0, dphi0)` (a load that is not
+        batched is whole, `static` says which); `shared = (ts, rtol, atol)`. Returns this
+        process's results and every other process's, joined in device order, on the
+        host."""
+        whole = (False, static["load_fixed"], static["torque_fixed"], False, False)
+        calls = []
+        for i, d in self.slots:
+            args = [x if w else jax.tree.map(lambda a, i=i: a[i * part:(i + 1) * part], x)
+                    for x, w in zip(batched, whole, strict=True)]
+            calls.append(_run_chunk(*jax.device_put((*args, *shared), d), **static))
+        return _gather(jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]),
+                                    *calls))
 
-    def replicate(self, tree):
-        return tree if self.replicated is None else jax.device_put(tree, self.replicated)
 
-
-def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps, sink):
+def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps, sink,
+               ckpt=None, b0=0):
     """Run the valid samples `order` of one block in chunks; `sink(idx, res, st, ns,
-    solver_index)` receives each chunk's results (host arrays, `idx` into the block)."""
+    solver_index)` receives each chunk's results (host arrays, `idx` into the block). With
+    a [`Checkpoint`][] `ckpt`, a chunk saved there is read instead of computed, and each
+    computed chunk is saved."""
     for start in range(0, order.size, chunk):
         idx = order[start:start + chunk]
+        saved = ckpt.load(b0, start, idx) if ckpt is not None else None
+        if saved is not None:
+            sink(idx, *saved)
+            continue
         # Pad the last chunk with its own first sample: one shape, one compilation.
         padded = np.concatenate([idx, np.full(chunk - idx.size, idx[0])])
         mech, load, torque, phi0, dphi0 = plan.batch({k: v[padded] for k, v in cols.items()})
         name = resolve_solver(plan.solver, mech, plan.rtol, plan.atol, load=load,
                               torque=torque, ts=plan.ts, max_steps=int(max_steps),
                               batch_invariant=True)
-        fixed = _fixed(plan)
-        load = dev.replicate(load) if fixed["load_fixed"] else dev.shard(load)
-        torque = dev.replicate(torque) if fixed["torque_fixed"] else dev.shard(torque)
-        mech, phi0, dphi0 = dev.shard((mech, jnp.asarray(phi0), jnp.asarray(dphi0)))
-        res, st, ns = _run_chunk(mech, load, torque, phi0, dphi0, *consts, **fixed,
-                                 solver=name, structure=plan.structure,
-                                 reductions=plan.reductions, max_steps=int(max_steps),
-                                 mesh=dev.mesh)
+        res, st, ns = dev.run(chunk // dev.n, (mech, load, torque, phi0, dphi0), consts,
+                              **_fixed(plan), solver=name, structure=plan.structure,
+                              reductions=plan.reductions, max_steps=int(max_steps))
         m = idx.size
-        sink(idx, {k: _to_host(v)[:m] for k, v in res.items()}, _to_host(st)[:m],
-             _to_host(ns)[:m], SOLVERS.index(name))
+        got = ({k: v[:m] for k, v in res.items()}, st[:m], ns[:m], SOLVERS.index(name))
+        if ckpt is not None:
+            ckpt.save(b0, start, idx, *got)
+        sink(idx, *got)
 
 
 # ---------------------------------------------------------------------------------------
@@ -219,6 +238,7 @@ def sweep(
     progress: bool = False,
     callback: Callable[[int, int], None] | None = None,
     max_memory: int | None = None,
+    checkpoint: str | os.PathLike | None = None,
 ) -> SweepResult:
     """Simulate a [`Scene`][] for many sampled values at once.
 
@@ -244,8 +264,12 @@ def sweep(
     - `devices`: devices to shard each chunk over (default: all of `jax.devices()`, which
       spans every host after [`initialize_distributed`][]).
     - `progress`: show a tqdm bar on stderr. `callback(done, total)`: called per chunk.
-    - `max_memory`: refuse (`ValueError`) a result larger than this many bytes (default
-      half the host's memory; see the module docstring for the sizes).
+    - `max_memory`: refuse (`ValueError`) a result, or one chunk's working memory
+      (`plan.chunk_bytes`: it grows with `num_saves`), larger than this many bytes
+      (default half the host's memory; see the module docstring for the sizes).
+    - `checkpoint`: a directory where each finished chunk is saved (created if missing); a
+      rerun of the same sweep computes only the chunks missing there, and a different
+      sweep is refused (`ValueError` naming what differs). See `sweep/checkpoint.py`.
 
     **Returns:** a [`SweepResult`][] in the original sample order.
     """
@@ -254,6 +278,11 @@ def sweep(
     n = plan.n
     dev = _Devices(list(jax.devices() if devices is None else devices))
     chunk = int(math.ceil(min(chunk_size, n) / dev.n) * dev.n)
+    ckpt = None
+    if checkpoint is not None:
+        if jax.process_count() > 1:
+            raise ValueError("checkpoint= is not supported in a multi-process run yet")
+        ckpt = Checkpoint(checkpoint, plan, chunk, max_steps)
     block = max(chunk, SORT_BLOCK // chunk * chunk)
     n_t = plan.ts.shape[0]
     out = {k: np.zeros((n, n_t) if k in TRAJECTORY_OUTPUTS else n) for k in plan.reductions}
@@ -261,8 +290,7 @@ def sweep(
     status = np.full(n, INVALID, np.int8)
     steps = np.zeros(n, np.int64)
     solver_used = np.full(n, -1, np.int8)
-    consts = dev.replicate((jnp.asarray(plan.ts), jnp.asarray(plan.rtol),
-                            jnp.asarray(plan.atol)))
+    consts = (np.asarray(plan.ts), np.asarray(plan.rtol), np.asarray(plan.atol))
     bar = None
     if progress:
         from tqdm import tqdm
@@ -290,7 +318,7 @@ def sweep(
             if callback is not None:
                 callback(done, n)
 
-        _run_block(plan, cols, order, chunk, dev, consts, max_steps, sink)
+        _run_block(plan, cols, order, chunk, dev, consts, max_steps, sink, ckpt, b0)
     if bar is not None:
         bar.close()
     return SweepResult(values, out, status, steps, solver_used, plan.ts, plan.structure,

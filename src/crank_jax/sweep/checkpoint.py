@@ -1,0 +1,130 @@
+"""Resumable sweeps: each finished chunk is written to a checkpoint directory, and a rerun
+of the same plan computes only the chunks that are missing.
+
+The directory holds `manifest.json` (the plan: scene, samples, seed, outputs, save times,
+solver, step budget, chunk size, sorting, crank-jax's version) and one `chunk-B-S.npz` per
+finished chunk (block start `B`, start `S` within the block's sorted order), each written
+atomically with a SHA-256 of its arrays inside. A rerun whose plan differs from the
+manifest is refused, naming what differs; a chunk file that cannot be read or whose
+checksum does not match is computed again. A chunk's samples are fixed by the plan (the
+samples depend on the seed only, the sorting on the samples, the chunks on the chunk size),
+so resumed and uninterrupted runs give identical results.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from ..io import atomic_write
+
+__all__ = ["Checkpoint"]
+
+_MANIFEST = "manifest.json"
+
+
+def _digest(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for k in sorted(arrays):
+        a = np.ascontiguousarray(arrays[k])
+        h.update(f"{k}:{a.dtype.str}:{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _version() -> str:
+    # The installed distribution's version (the package's own `__init__` would be an
+    # import cycle).
+    from importlib import metadata
+
+    try:
+        return metadata.version("crank-jax")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _plan_manifest(plan, chunk: int, max_steps: int) -> dict:
+    spec = plan.spec
+    samples = {k: str(v) for k, v in spec.dists.items()}
+    samples.update({k: "array sha256 " + _digest({"a": np.asarray(v)})
+                    for k, v in spec.arrays.items()})
+    leaves, treedef = jax.tree.flatten(plan.scene)
+    scene = _digest({f"{i:04d}": np.asarray(x) for i, x in enumerate(leaves)}
+                    | {"tree": np.frombuffer(str(treedef).encode(), np.uint8)})
+    return {"crank_jax_version": _version(), "scene": scene,
+            "samples": samples, "n": int(plan.n), "seed": int(plan.seed),
+            "outputs": list(plan.reductions),
+            "save_times": _digest({"ts": np.asarray(plan.ts)}), "solver": plan.solver,
+            "max_steps": int(max_steps), "chunk_size": int(chunk), "sort": bool(plan.sort)}
+
+
+class Checkpoint:
+    """A checkpoint directory for one plan (see the module docstring). `writer`: whether
+    this process writes (process 0 of a multi-process run)."""
+
+    def __init__(self, path, plan, chunk: int, max_steps: int, writer: bool = True):
+        self.dir = Path(path)
+        self.writer = writer
+        if self.dir.exists() and not self.dir.is_dir():
+            raise ValueError(f"checkpoint {str(self.dir)!r} is a file, not a directory; "
+                             "give a directory (it is created if missing)")
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ValueError(f"checkpoint {str(self.dir)!r}: cannot create the directory "
+                             f"({e.strerror})") from None
+        if writer and not os.access(self.dir, os.W_OK | os.X_OK):
+            raise ValueError(f"checkpoint {str(self.dir)!r} is not writable; give a "
+                             "directory you may write to")
+        want = _plan_manifest(plan, chunk, max_steps)
+        path = self.dir / _MANIFEST
+        if path.exists():
+            try:
+                have = json.loads(path.read_text())
+            except (OSError, ValueError):
+                have = None
+            if not isinstance(have, dict):
+                raise ValueError(f"checkpoint {str(self.dir)!r}: {_MANIFEST} is unreadable; "
+                                 "delete the directory or give another one")
+            differ = [k for k in want if have.get(k) != want[k]]
+            if differ:
+                raise ValueError(f"checkpoint {str(self.dir)!r} holds another sweep: its "
+                                 f"{', '.join(differ)} differ from this one's; give another "
+                                 "directory, or delete it to start again")
+        elif writer:
+            with atomic_write(path, "w") as f:
+                json.dump(want, f, indent=1)
+
+    def _file(self, b0: int, start: int) -> Path:
+        return self.dir / f"chunk-{b0}-{start}.npz"
+
+    def load(self, b0: int, start: int, idx: np.ndarray):
+        """The chunk's saved `(res, st, ns, solver_index)`, or `None` when it is missing,
+        unreadable, damaged, or of other samples (it is then computed again)."""
+        path = self._file(b0, start)
+        if not path.exists():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files if k != "sha256"}
+                ok = str(z["sha256"]) == _digest(arrays)
+        except Exception:  # noqa: BLE001 (any damage: BadZipFile, zlib, pickle refusal...)
+            return None  # computed again
+        if not ok or not np.array_equal(arrays.get("idx"), idx):
+            return None
+        res = {k[4:]: v for k, v in arrays.items() if k.startswith("out.")}
+        return res, arrays["status"], arrays["steps"], int(arrays["solver"])
+
+    def save(self, b0: int, start: int, idx, res, st, ns, solver_index: int) -> None:
+        if not self.writer:
+            return
+        arrays = {"idx": np.asarray(idx), "status": np.asarray(st), "steps": np.asarray(ns),
+                  "solver": np.asarray(solver_index)}
+        arrays.update({f"out.{k}": np.asarray(v) for k, v in res.items()})
+        with atomic_write(self._file(b0, start), "wb") as f:
+            np.savez(f, sha256=np.asarray(_digest(arrays)), **arrays)
