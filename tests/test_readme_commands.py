@@ -1,5 +1,5 @@
 """Every concrete `crank-jax` command line in README.md and in the docs pages its command
-line and sweep sections moved to (docs/guide/cli.md, docs/guide/sweeps.md) runs as written.
+line, sweep and identification sections moved to (`PAGES`) runs as written.
 
 The lines are taken from those pages' fenced code blocks (continuations joined, comments
 dropped; a `[--option ...]` group is run with its options; usage lines with placeholders
@@ -23,7 +23,8 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"
 #: The pages read, in order: the README and the guide pages its CLI sections moved to.
-PAGES = (README, ROOT / "docs" / "guide" / "cli.md", ROOT / "docs" / "guide" / "sweeps.md")
+PAGES = (README, *(ROOT / "docs" / p for p in (
+    "guide/cli.md", "guide/sweeps.md", "guide/identification.md", "benchmarks/identification.md")))
 #: The one sweep the issue found failing on several devices; quick, so never marked slow.
 QUICK_SWEEP = ("crank-jax sweep lab-rig --vary 'k=normal(2,0.1)' --n 4 "
                "--outputs peak_phi,peak_O --out x.npz")

@@ -142,7 +142,7 @@ def _problem_at(req, res: FitResult) -> tuple[Problem, np.ndarray]:
     problem = build(MAX_ODE_STEPS)
     z = problem.to_z([values[n] for n in problem.names])
     _, _, steps, _ = jacobian_at(problem, jnp.asarray(z))
-    budget = ode_budget(int(steps))
+    budget = ode_budget(int(np.max(np.asarray(steps))))
     if budget != problem.max_steps:
         problem = build(budget)
     return problem, z
