@@ -65,5 +65,6 @@ def test_tutorials_run(tmp_path):
     _build(site, run_tutorials=True, timeout=1800)
     assert "converged after" in _page(site, "tutorials/free-decay")
     assert "fit 99." in _page(site, "tutorials/validation")
+    assert "channel x_s: rms" in _page(site, "tutorials/rotating-rig")
     assert "rms angle error" in _page(site, "tutorials/user-term")
     assert "Output not shown" not in _page(site, "tutorials/sweep")
