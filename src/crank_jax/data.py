@@ -376,12 +376,7 @@ def load_data(
     ts = col[t_col]
     phi = col[phi_col] * (math.pi / 180 if angle_unit == "deg" else 1.0)
     # Check every column used (not just t and phi): a NaN in a load column is as fatal.
-    for name in (n for n in names if n in col):
-        bad = ~np.isfinite(col[name])
-        if bad.any():
-            i = int(np.argmax(bad))
-            raise DataError(f"{where}: {labels[i]}: column {name!r} is {float(col[name][i])} "
-                            "(NaN or inf); remove or repair that row")
+    _check_columns(where, names, col, labels)
     _check_series(ts, phi, where, labels)
     load = SampledLoad(ts, col[P_col], interp) if P_col in col else None
     torque = SampledLoad(ts, col[tau_col], interp) if tau_col in col else None

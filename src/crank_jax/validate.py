@@ -225,8 +225,7 @@ def validate(
         h = output(sensor.name, scene.mech, np.asarray(win.ts), traj.phi, traj.dphi, load,
                    torque)
         predicted[sensor.name] = np.asarray(sensor.measure(np.asarray(h)))
-        scores[sensor.name] = _scores(y[scored], predicted[sensor.name][scored], warnings,
-                                      sensor.name)
+        scores[sensor.name] = _scores(y[scored], predicted[sensor.name][scored], sensor.name)
     (first, y0), = win.outputs()[:1]
     top = scores[first.name]
     return Validation(
@@ -237,13 +236,11 @@ def validate(
         channels=scores, predicted_channels=predicted, data_channels=dict(win.outputs_items()))
 
 
-def _scores(y: np.ndarray, yhat: np.ndarray, warnings: list[str], name: str) -> dict:
-    """rms, max |error|, fit percent and count of one channel's scored samples (SI)."""
+def _scores(y: np.ndarray, yhat: np.ndarray, name: str) -> dict:
+    """rms, max |error|, fit percent and count of one channel's scored samples (SI). The
+    data spread: `_check_spread` refused a constant channel before the fit."""
     e = y - yhat
-    spread = float(np.linalg.norm(y - y.mean()))
-    fit_pct = 100.0 * (1.0 - float(np.linalg.norm(e)) / spread) if spread > 0 else -math.inf
-    if spread == 0:
-        warnings.append(f"the scored {name} data are constant, so fit_percent is undefined")
+    fit_pct = 100.0 * (1.0 - float(np.linalg.norm(e)) / float(np.linalg.norm(y - y.mean())))
     return {"rms": float(np.sqrt(np.mean(e**2))), "max_abs": float(np.max(np.abs(e))),
             "fit_percent": fit_pct, "n_samples": int(y.shape[0]), "unit": SI_UNITS[name]}
 
