@@ -8,6 +8,7 @@ import json
 import sys
 
 from .errors import UserError
+from .options import free_list
 
 # --- posterior --------------------------------------------------------------------------
 
@@ -36,9 +37,7 @@ def _posterior_args(p: argparse.ArgumentParser) -> None:
 def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
     from ..io import check_figure_format, check_output
 
-    free = tuple(x.strip() for x in a.free.split(",") if x.strip())
-    if not free:
-        raise UserError("--free is empty; name at least one parameter")
+    free = free_list(a.free)
     for option, value, lo in (("--draws", a.draws, 1), ("--chains", a.chains, 1),
                               ("--warmup", a.warmup, 0)):
         if value < lo:
@@ -129,9 +128,7 @@ def _design_run(a: argparse.Namespace) -> int:
     from ..io import atomic_write, check_figure_format, check_output
     from ..scene import load_scene, save_scene
 
-    free = tuple(x.strip() for x in a.free.split(",") if x.strip())
-    if not free:
-        raise UserError("--free is empty; name at least one parameter")
+    free = free_list(a.free)
     if not a.torque_amplitude > 0:
         raise UserError(f"--torque-amplitude must be > 0 N*m, got {a.torque_amplitude:g}")
     if a.criterion == "c" and a.target is None:

@@ -11,7 +11,7 @@ import numpy as np
 
 from .channels import add_channel_options, parse_sigma, record_sensors, scene_inputs
 from .errors import UserError
-from .options import seed
+from .options import free_list, seed
 
 #: The demo experiment: the lab rig driven by a known harmonic crank torque (a shaker),
 #: which fixes the common scale of the inertial parameters; 5 s sampled at 200 Hz with
@@ -235,9 +235,7 @@ def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
     the free names against it too)."""
     from ..identify.request import MAX_ITERATIONS
 
-    free = tuple(x.strip() for x in a.free.split(",") if x.strip())
-    if not free:
-        raise UserError("--free is empty; name at least one parameter")
+    free = free_list(a.free)
     if scene is not None:
         _check_free(free, a, scene, n_records)
     if a.shooting == "single" and a.segments is not None and a.segments > 1:

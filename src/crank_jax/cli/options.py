@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["seed", "MAX_SEED"]
+from .errors import UserError
+
+__all__ = ["seed", "MAX_SEED", "free_list"]
 
 #: The largest seed accepted: seeds are stored as int64 (a sweep's result keeps its seed).
 MAX_SEED = 2**63 - 1
@@ -23,3 +25,12 @@ def seed(text: str) -> int:
         raise argparse.ArgumentTypeError(f"a seed must be an integer from 0 to {MAX_SEED}, "
                                          f"got {value}")
     return value
+
+
+def free_list(text: str) -> tuple[str, ...]:
+    """`--free a,b,c` -> ("a", "b", "c"), blanks dropped; [`UserError`][] when it names
+    nothing."""
+    free = tuple(x.strip() for x in text.split(",") if x.strip())
+    if not free:
+        raise UserError("--free is empty; name at least one parameter")
+    return free
