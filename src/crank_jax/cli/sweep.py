@@ -93,27 +93,44 @@ def _wait_for_coordinator(wait: int) -> None:
             return
         except OSError as e:
             if time.monotonic() > deadline:
-                raise RuntimeError(f"--distributed: the coordinator {address} did not answer "
+                raise UserError(f"--distributed: the coordinator {address} did not answer "
                                    f"within {wait} s ({e.strerror or e}); start process 0 "
                                    f"first, or set {_ENV_TIMEOUT}") from None
             time.sleep(0.5)
 
 
+def _join(a: argparse.Namespace) -> int | None:
+    """Join the distributed run (`--distributed`). The command first runs itself as a
+    child under `supervise` (JAX aborts a process whose peer or coordinator goes away);
+    returns the child's exit status, or `None` in the child, once every process joined."""
+    from .supervise import ENV_CHILD, JOINED, die_with_parent, supervise
+
+    # Bounded: JAX waits 300 s for a missing coordinator or peer by default, and 100 s
+    # for a silent peer's heartbeat.
+    wait = int(os.environ.get(_ENV_TIMEOUT, "60") or 60)
+    address = os.environ.get("JAX_COORDINATOR_ADDRESS", "auto-detected")
+    if not os.environ.get(ENV_CHILD):
+        return supervise(a._argv[1:], address, wait)
+    from ..sweep.run import initialize_distributed
+
+    die_with_parent()
+    _wait_for_coordinator(wait)
+    try:
+        initialize_distributed(initialization_timeout=wait,
+                               heartbeat_timeout_seconds=max(wait, 10))
+    except (RuntimeError, ValueError) as e:
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:300]
+        raise UserError(f"--distributed: could not join the run (coordinator {address}) "
+                        f"within {wait} s ({_ENV_TIMEOUT} sets the wait): {first}") from None
+    print(JOINED, file=sys.stderr, flush=True)
+    return None
+
+
 def _sweep_run(a: argparse.Namespace) -> int:
     if a.distributed or os.environ.get(_ENV_DISTRIBUTED, "") not in ("", "0"):
-        from ..sweep.run import initialize_distributed
-
-        # Bounded: JAX waits 300 s for a missing coordinator or peer by default.
-        wait = int(os.environ.get(_ENV_TIMEOUT, "60") or 60)
-        _wait_for_coordinator(wait)
-        try:
-            initialize_distributed(initialization_timeout=wait)
-        except (RuntimeError, ValueError) as e:
-            first = (str(e).strip().splitlines() or [type(e).__name__])[0][:300]
-            raise RuntimeError(
-                f"--distributed: could not join the run (coordinator "
-                f"{os.environ.get('JAX_COORDINATOR_ADDRESS', 'auto-detected')}) within {wait}"
-                f" s ({_ENV_TIMEOUT} sets the wait): {first}") from None
+        code = _join(a)
+        if code is not None:
+            return code
     import jax
     import numpy as np
 

@@ -51,7 +51,8 @@ from ..model.dynamics import Structure
 from ..model.loads import SIDES
 from ..solve.policy import SOLVERS, resolve_solver
 from ..solve.simulate import simulate
-from .checkpoint import Checkpoint
+from .checkpoint import Checkpoint, SharedCheckpoint
+from .collective import gather
 from .distributions import AbstractDistribution
 from .plan import SORT_BLOCK, VARIABLES, Plan, make_plan
 from .reductions import DEFAULT_OUTPUTS, REDUCTIONS, TRAJECTORY_OUTPUTS, reduce
@@ -91,17 +92,6 @@ def initialize_distributed(**kwargs) -> None:
                     raise ValueError(f"{env}={os.environ[env]!r} is not an integer") from None
         jax.distributed.initialize(**kwargs)
         _distributed_ready = True
-
-
-def _gather(tree):
-    """This process's part of a chunk's results, joined with every other process's, in
-    process order (identity with one process)."""
-    if jax.process_count() == 1:
-        return tree
-    from jax.experimental import multihost_utils
-
-    return jax.tree.map(lambda x: np.concatenate(list(x)),
-                        multihost_utils.process_allgather(tree, tiled=False))
 
 
 # ---------------------------------------------------------------------------------------
@@ -160,7 +150,7 @@ class _Devices:
     (a load's `zeros_like(t)`, lineax's structure checks in an implicit solver) fail. The
     same program on every device also gives bit-identical results on one device or many.
     In a multi-process run each process runs the parts of its own devices and the parts
-    are gathered from every process (`_gather`).
+    are gathered from every process (`collective.gather`).
     """
 
     def __init__(self, devices):
@@ -185,7 +175,7 @@ class _Devices:
             args = [x if w else jax.tree.map(lambda a, i=i: a[i * part:(i + 1) * part], x)
                     for x, w in zip(batched, whole, strict=True)]
             calls.append(_run_chunk(*jax.device_put((*args, *shared), d), **static))
-        return _gather(jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]),
+        return gather(jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]),
                                     *calls))
 
 
@@ -280,9 +270,8 @@ def sweep(
     chunk = int(math.ceil(min(chunk_size, n) / dev.n) * dev.n)
     ckpt = None
     if checkpoint is not None:
-        if jax.process_count() > 1:
-            raise ValueError("checkpoint= is not supported in a multi-process run yet")
-        ckpt = Checkpoint(checkpoint, plan, chunk, max_steps)
+        ckpt = (Checkpoint if jax.process_count() == 1 else SharedCheckpoint)(
+            checkpoint, plan, chunk, max_steps)
     block = max(chunk, SORT_BLOCK // chunk * chunk)
     n_t = plan.ts.shape[0]
     out = {k: np.zeros((n, n_t) if k in TRAJECTORY_OUTPUTS else n) for k in plan.reductions}
