@@ -49,9 +49,10 @@ def _start(argvs, tmp_path, port, **env):
 
 
 def _cli(tmp_path, *extra, args=ARGS, tag="p", n=2):
-    """`crank-jax sweep --distributed` argv lists, process i writing --out tag{i}.npz."""
-    return [["-m", "crank_jax", *args, "--distributed", *extra, "--out",
-             str(tmp_path / f"{tag}{i}.npz")] for i in range(n)]
+    """`crank-jax sweep --distributed` argv lists, process i writing --out tag{i}.npz
+    (and `{i}` in `extra` replaced by i)."""
+    return [["-m", "crank_jax", *args, "--distributed", *(a.format(i=i) for a in extra),
+             "--out", str(tmp_path / f"{tag}{i}.npz")] for i in range(n)]
 
 
 def _finish(procs, timeout=600):
@@ -62,10 +63,10 @@ def _finish(procs, timeout=600):
     return out
 
 
-def _one_process(tmp_path, args=ARGS) -> Path:
+def _one_process(tmp_path, *extra, args=ARGS) -> Path:
     """The reference: one process with as many devices (2) as the two processes hold."""
     path = tmp_path / "one.npz"
-    subprocess.run([sys.executable, "-m", "crank_jax", *args, "--out", str(path)],
+    subprocess.run([sys.executable, "-m", "crank_jax", *args, *extra, "--out", str(path)],
                    env=_env(JAX_NUM_CPU_DEVICES="2"), check=True, timeout=600,
                    capture_output=True)
     return path
@@ -80,13 +81,26 @@ def _assert_same_file(a, b):
 
 def test_two_processes_write_what_one_process_writes_and_share_a_checkpoint(tmp_path):
     ck = tmp_path / "ck"
-    for code, err in _finish(_start(_cli(tmp_path, "--checkpoint", str(ck)), tmp_path,
-                                    _free_port())):
+    for code, err in _finish(_start(_cli(tmp_path, "--checkpoint", str(ck),
+                                         "--save-trajectories", str(tmp_path / "tr{i}"),
+                                         "--save-every", "2"), tmp_path, _free_port())):
         assert code == 0, err[-2000:]
-    # Process 0 writes --out; process 1 was given another --out and writes nothing.
+    # Process 0 writes --out and the trajectories; process 1 was given other paths and
+    # writes nothing.
     assert (tmp_path / "p0.npz").exists() and not (tmp_path / "p1.npz").exists()
-    one = _one_process(tmp_path)
+    assert not (tmp_path / "tr1").exists()
+    one = _one_process(tmp_path, "--save-trajectories", str(tmp_path / "tr"),
+                       "--save-every", "2")
     _assert_same_file(tmp_path / "p0.npz", one)
+    saved = sorted(p.name for p in (tmp_path / "tr").iterdir())
+    assert saved == sorted(p.name for p in (tmp_path / "tr0").iterdir())
+    assert len(saved) == 1 + 3 * 3  # the manifest, 3 files for each of 3 chunks
+    for name in saved:
+        a, b = tmp_path / "tr" / name, tmp_path / "tr0" / name
+        if name.endswith(".npy"):
+            np.testing.assert_array_equal(np.load(a), np.load(b), err_msg=name)
+        else:
+            assert a.read_text() == b.read_text()
     # Process 0 wrote every chunk (6 samples in chunks of 2).
     chunks = sorted(ck.glob("chunk-*.npz"))
     assert len(chunks) == 3

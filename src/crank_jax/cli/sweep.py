@@ -44,6 +44,12 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", metavar="DIR",
                    help="save each finished chunk in DIR; rerunning the same command after "
                         "an interruption computes only the missing chunks")
+    p.add_argument("--save-trajectories", metavar="DIR",
+                   help="stream every solved sample's phi and dphi to DIR, chunk by chunk "
+                        "(.npy files and a manifest.json; read lazily with "
+                        "crank_jax.load_trajectories or np.load(mmap_mode='r'))")
+    p.add_argument("--save-every", type=int, default=1, metavar="K",
+                   help="with --save-trajectories: keep every K-th save time (default 1)")
     p.add_argument("--summary", action="store_true",
                    help="print statistics of every output (JSON) on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -156,6 +162,8 @@ def _sweep_run(a: argparse.Namespace) -> int:
         raise UserError(f"--samples must be >= 2, got {a.samples}")
     if a.max_steps < 1 or a.chunk_size < 1:
         raise UserError("--max-steps and --chunk-size must be >= 1")
+    if a.save_every < 1:
+        raise UserError(f"--save-every must be >= 1, got {a.save_every}")
     if not a.out.endswith(".npz"):
         # np.savez would silently append ".npz" to another name; say so instead.
         raise UserError(f"--out must end in .npz, got {a.out!r}")
@@ -163,7 +171,8 @@ def _sweep_run(a: argparse.Namespace) -> int:
     scene = load_scene(a.scene)
     result = sweep(scene, spec, outputs, n=a.n, seed=a.seed, t1=a.t1, num_saves=a.samples,
                    solver=a.solver, max_steps=a.max_steps, chunk_size=a.chunk_size,
-                   progress=not a.quiet, checkpoint=a.checkpoint)
+                   progress=not a.quiet, checkpoint=a.checkpoint,
+                   save_trajectories=a.save_trajectories, trajectory_every=a.save_every)
     if jax.process_index() == 0:
         result.save(a.out)
         counts = result.counts()

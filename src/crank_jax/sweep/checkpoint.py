@@ -28,9 +28,9 @@ import jax
 import numpy as np
 
 from ..io import atomic_write
-from .collective import broadcast
+from .collective import broadcast, on_process_0
 
-__all__ = ["Checkpoint", "SharedCheckpoint"]
+__all__ = ["Checkpoint", "SharedCheckpoint", "plan_manifest"]
 
 _MANIFEST = "manifest.json"
 
@@ -55,7 +55,7 @@ def _version() -> str:
         return "unknown"
 
 
-def _plan_manifest(plan, chunk: int, max_steps: int) -> dict:
+def plan_manifest(plan, chunk: int, max_steps: int) -> dict:
     spec = plan.spec
     samples = {k: str(v) for k, v in spec.dists.items()}
     samples.update({k: "array sha256 " + _digest({"a": np.asarray(v)})
@@ -77,6 +77,9 @@ class Checkpoint:
     def __init__(self, path, plan, chunk: int, max_steps: int, writer: bool = True):
         self.dir = Path(path)
         self.writer = writer
+        #: Also needed for a saved chunk to count, `require(b0, start, idx) -> bool` (its
+        #: saved trajectories, see `sweep(save_trajectories=)`).
+        self.require = None
         if self.dir.exists() and not self.dir.is_dir():
             raise ValueError(f"checkpoint {str(self.dir)!r} is a file, not a directory; "
                              "give a directory (it is created if missing)")
@@ -88,7 +91,7 @@ class Checkpoint:
         if writer and not os.access(self.dir, os.W_OK | os.X_OK):
             raise ValueError(f"checkpoint {str(self.dir)!r} is not writable; give a "
                              "directory you may write to")
-        want = _plan_manifest(plan, chunk, max_steps)
+        want = plan_manifest(plan, chunk, max_steps)
         path = self.dir / _MANIFEST
         if path.exists():
             try:
@@ -124,6 +127,8 @@ class Checkpoint:
             return None  # computed again
         if not ok or not np.array_equal(arrays.get("idx"), idx):
             return None
+        if self.require is not None and not self.require(b0, start, idx):
+            return None
         res = {k[4:]: v for k, v in arrays.items() if k.startswith("out.")}
         return res, arrays["status"], arrays["steps"], int(arrays["solver"])
 
@@ -142,18 +147,8 @@ class SharedCheckpoint:
     `load`/`save` as [`Checkpoint`][], called by every process at the same chunks."""
 
     def __init__(self, path, plan, chunk: int, max_steps: int):
-        self.inner, err = None, None
-        if jax.process_index() == 0:
-            try:
-                self.inner = Checkpoint(path, plan, chunk, max_steps)
-            except ValueError as e:
-                err = e
-        ok = broadcast(np.array([err is None], np.int8))[0]
-        if err is not None:
-            raise err
-        if not ok:
-            raise ValueError(f"checkpoint {str(path)!r} was refused by process 0 (its "
-                             "message says why)")
+        self.inner = on_process_0(lambda: Checkpoint(path, plan, chunk, max_steps),
+                                  f"checkpoint {str(path)!r}")
         self.n_t = int(np.shape(plan.ts)[0])
         self.outputs = tuple(plan.reductions)
 
@@ -167,6 +162,15 @@ class SharedCheckpoint:
         return {"res": {k: np.asarray(res[k], np.float64) for k in self.outputs},
                 "st": np.asarray(st, np.int8), "ns": np.asarray(ns, np.int64),
                 "si": np.asarray([si], np.int64)}
+
+    @property
+    def require(self):
+        return None if self.inner is None else self.inner.require
+
+    @require.setter
+    def require(self, fn) -> None:
+        if self.inner is not None:
+            self.inner.require = fn
 
     def load(self, b0: int, start: int, idx: np.ndarray):
         got = self.inner.load(b0, start, idx) if self.inner is not None else None

@@ -8,7 +8,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-__all__ = ["gather", "broadcast", "lost"]
+__all__ = ["gather", "broadcast", "lost", "on_process_0"]
 
 
 def lost(e: Exception) -> RuntimeError:
@@ -49,3 +49,21 @@ def broadcast(tree):
     except Exception as e:  # noqa: BLE001 (as in `gather`)
         raise lost(e) from None
     return jax.tree.map(lambda b, a: np.asarray(b).view(a.dtype).reshape(a.shape), got, tree)
+
+
+def on_process_0(make, what: str):
+    """`make()` on process 0 only (which alone touches the disk), and its `ValueError`
+    raised on every process, so that no process waits for a refused one. Returns what
+    `make` returned on process 0, `None` elsewhere."""
+    obj, err = None, None
+    if jax.process_index() == 0:
+        try:
+            obj = make()
+        except ValueError as e:
+            err = e
+    ok = broadcast(np.array([err is None], np.int8))[0]
+    if err is not None:
+        raise err
+    if not ok:
+        raise ValueError(f"{what} was refused by process 0 (its message says why)")
+    return obj

@@ -51,12 +51,13 @@ from ..model.dynamics import Structure
 from ..model.loads import SIDES
 from ..solve.policy import SOLVERS, resolve_solver
 from ..solve.simulate import simulate
-from .checkpoint import Checkpoint, SharedCheckpoint
-from .collective import gather
+from .checkpoint import Checkpoint, SharedCheckpoint, plan_manifest
+from .collective import gather, on_process_0
 from .distributions import AbstractDistribution
 from .plan import SORT_BLOCK, VARIABLES, Plan, make_plan
 from .reductions import DEFAULT_OUTPUTS, REDUCTIONS, TRAJECTORY_OUTPUTS, reduce
 from .result import FAILED, INVALID, MAX_STEPS, NONFINITE, OK, STATUS, SweepResult
+from .trajectories import TrajectoryStore
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
@@ -180,13 +181,22 @@ class _Devices:
 
 
 def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps, sink,
-               ckpt=None, b0=0):
+               ckpt=None, b0=0, store=None, trajectories=False):
     """Run the valid samples `order` of one block in chunks; `sink(idx, res, st, ns,
     solver_index)` receives each chunk's results (host arrays, `idx` into the block). With
     a [`Checkpoint`][] `ckpt`, a chunk saved there is read instead of computed, and each
-    computed chunk is saved."""
+    computed chunk is saved. With a [`TrajectoryStore`][] `store` (process 0 of a run
+    that saves trajectories), each computed chunk's trajectories are written there before
+    the chunk is checkpointed (so a checkpointed chunk has them), and every chunk is
+    listed. `store` is `None` on the other processes of a run that saves them: they
+    compute the trajectories (`trajectories=True`) for process 0 to gather."""
+    reductions = plan.reductions
+    if trajectories:
+        reductions += tuple(k for k in TRAJECTORY_OUTPUTS if k not in reductions)
     for start in range(0, order.size, chunk):
         idx = order[start:start + chunk]
+        if store is not None:
+            store.chunks.append((b0, start))
         saved = ckpt.load(b0, start, idx) if ckpt is not None else None
         if saved is not None:
             sink(idx, *saved)
@@ -199,9 +209,11 @@ def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps,
                               batch_invariant=True)
         res, st, ns = dev.run(chunk // dev.n, (mech, load, torque, phi0, dphi0), consts,
                               **_fixed(plan), solver=name, structure=plan.structure,
-                              reductions=plan.reductions, max_steps=int(max_steps))
+                              reductions=reductions, max_steps=int(max_steps))
         m = idx.size
-        got = ({k: v[:m] for k, v in res.items()}, st[:m], ns[:m], SOLVERS.index(name))
+        if store is not None:
+            store.save(b0, start, idx, {k: res[k][:m] for k in TRAJECTORY_OUTPUTS})
+        got = ({k: res[k][:m] for k in plan.reductions}, st[:m], ns[:m], SOLVERS.index(name))
         if ckpt is not None:
             ckpt.save(b0, start, idx, *got)
         sink(idx, *got)
@@ -229,6 +241,8 @@ def sweep(
     callback: Callable[[int, int], None] | None = None,
     max_memory: int | None = None,
     checkpoint: str | os.PathLike | None = None,
+    save_trajectories: str | os.PathLike | None = None,
+    trajectory_every: int = 1,
 ) -> SweepResult:
     """Simulate a [`Scene`][] for many sampled values at once.
 
@@ -260,6 +274,11 @@ def sweep(
     - `checkpoint`: a directory where each finished chunk is saved (created if missing); a
       rerun of the same sweep computes only the chunks missing there, and a different
       sweep is refused (`ValueError` naming what differs). See `sweep/checkpoint.py`.
+    - `save_trajectories`: a directory where every solved sample's `phi` and `dphi` at
+      the save times `ts[::trajectory_every]` are written, chunk by chunk (`.npy` files
+      and a manifest; read them lazily with [`load_trajectories`][]). They never stay in
+      memory. Refused before any work when they would not fit on the disk (`ValueError`
+      naming the size). With `checkpoint`, a resumed sweep keeps the chunks saved there.
 
     **Returns:** a [`SweepResult`][] in the original sample order.
     """
@@ -272,6 +291,13 @@ def sweep(
     if checkpoint is not None:
         ckpt = (Checkpoint if jax.process_count() == 1 else SharedCheckpoint)(
             checkpoint, plan, chunk, max_steps)
+    store = None
+    if save_trajectories is not None:
+        store = on_process_0(lambda: TrajectoryStore(
+            save_trajectories, plan_manifest(plan, chunk, max_steps), plan.ts,
+            trajectory_every, n), f"save_trajectories {str(save_trajectories)!r}")
+        if ckpt is not None:
+            ckpt.require = store.has if store is not None else None
     block = max(chunk, SORT_BLOCK // chunk * chunk)
     n_t = plan.ts.shape[0]
     out = {k: np.zeros((n, n_t) if k in TRAJECTORY_OUTPUTS else n) for k in plan.reductions}
@@ -307,9 +333,12 @@ def sweep(
             if callback is not None:
                 callback(done, n)
 
-        _run_block(plan, cols, order, chunk, dev, consts, max_steps, sink, ckpt, b0)
+        _run_block(plan, cols, order, chunk, dev, consts, max_steps, sink, ckpt, b0, store,
+                   save_trajectories is not None)
     if bar is not None:
         bar.close()
+    if store is not None:
+        store.finish()
     return SweepResult(values, out, status, steps, solver_used, plan.ts, plan.structure,
                        plan.seed if plan.random else -1)
 
