@@ -12,17 +12,19 @@ How a sweep runs ([`make_plan`][] checks everything first):
    field may switch on; a varied load parameter promotes the scene's load (none ->
    constant -> harmonic) through the load table. Nothing else is compiled.
 4. Within a block, samples are sorted by their linearised fastest rate `|lambda_fast|`
-   (which sets an adaptive solver's step count), then cut into fixed-size chunks. A
-   `vmap`-ed solve runs in lockstep, so a chunk costs its slowest member's steps: sorting
-   keeps one stiff sample from slowing every chunk. `"auto"` is decided per chunk by the
-   solver policy ([`resolve_solver`][], with `batch_invariant=True`): the fused
-   `"dopri8-uniform"` whenever the chunk is not stiff and no load is sampled (a sweep's
-   save times are always uniform). Not `"dopri8-adaptive"`, whose `vmap` steps a batch in
-   lockstep: a sweep's samples get exactly their own solve, whatever chunk they land in.
+   (which sets an adaptive solver's step count), then cut into fixed-size chunks. Each
+   member of a `vmap`-ed solve has its own step control, but the batch's loop runs until
+   its slowest member is done (the others wait), so a chunk costs its slowest member's
+   steps: sorting keeps one stiff sample from slowing every chunk. `"auto"` is decided
+   per chunk by the solver policy ([`resolve_solver`][], with `batch_invariant=True`):
+   the fused `"dopri8-uniform"` whenever the chunk is not stiff and no load is sampled
+   (a sweep's save times are always uniform), whose steps are per member by
+   construction: a sweep's samples get exactly their own solve, whatever chunk they
+   land in.
 5. Each chunk is one compiled program (no recompilation: the last chunk is padded), run
    on every device at once, each on its equal part of the chunk (see `_Devices`). Only
    the requested reductions leave the device; full trajectories only when
-   `"phi"`/`"dphi"` are asked for.
+   `"phi"`/`"dphi"` are asked for, or to be streamed to disk (`save_trajectories`).
 6. Results are written into the original sample order.
 
 Memory: the result holds, per sample, 8 bytes per varied field and per scalar output,
