@@ -69,8 +69,13 @@ def supervise(argv: list[str], address: str, wait: int) -> int:
         raise
     if code >= 0 and fatal is None:
         return code
+    if fatal is None:
+        # Killed from outside (the OOM killer, a user's SIGKILL), not a JAX abort.
+        print(f"crank-jax: error: --distributed: the sweep's process was ended by "
+              f"{signal.Signals(-code).name}; --out was not written", file=sys.stderr)
+        return 1
     status = re.search(r"absl::Status: ([^\n]*)", fatal or "")
-    why = (status.group(1) if status else fatal or "JAX aborted it").split(". ")[0][:200]
+    why = (status.group(1) if status else fatal).split(". ")[0][:200]
     if not joined:
         print(f"crank-jax: error: --distributed: the run did not form: not every process "
               f"joined the coordinator {address} within {wait} s ({why}); start all "
@@ -78,7 +83,7 @@ def supervise(argv: list[str], address: str, wait: int) -> int:
               "CRANK_JAX_DISTRIBUTED_TIMEOUT", file=sys.stderr)
         return 2
     print(f"crank-jax: error: --distributed: another process of the run, or its "
-          f"coordinator {address}, went away ({why}); nothing was written. Rerun every "
+          f"coordinator {address}, went away ({why}); --out was not written. Rerun every "
           "process (with --checkpoint only the missing chunks are computed)",
           file=sys.stderr)
     return 1
