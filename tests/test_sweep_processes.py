@@ -187,3 +187,24 @@ def test_a_run_that_never_forms_ends_with_one_line_in_bounded_time_exit_2(tmp_pa
     assert "did not answer within 5 s" in e1
     assert "not every process joined" in e0 and "within 5 s" in e0
     assert not list(tmp_path.glob("x*.npz"))
+
+
+@pytest.mark.slow
+def test_two_processes_resume_after_both_are_killed(tmp_path):
+    """SIGKILL both processes in the middle of a checkpointed run, rerun both: the result
+    is the uninterrupted one-process result, bit for bit."""
+    ck = tmp_path / "ck"
+    args = [*ARGS[:ARGS.index("--n") + 1], "200", *ARGS[ARGS.index("--n") + 2:]]
+    procs = _start(_cli(tmp_path, "--checkpoint", str(ck), args=args), tmp_path,
+                   _free_port())
+    _wait_for(lambda: len(list(ck.glob("chunk-*.npz"))) >= 3)
+    for p in procs:
+        p.send_signal(signal.SIGKILL)
+    for p in procs:
+        p.communicate()
+    done = len(list(ck.glob("chunk-*.npz")))
+    assert 3 <= done < 100 and not (tmp_path / "p0.npz").exists()
+    for code, err in _finish(_start(_cli(tmp_path, "--checkpoint", str(ck), args=args),
+                                    tmp_path, _free_port())):
+        assert code == 0, err[-2000:]
+    _assert_same_file(tmp_path / "p0.npz", _one_process(tmp_path, args=args))
