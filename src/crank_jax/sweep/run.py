@@ -81,6 +81,12 @@ def initialize_distributed(**kwargs) -> None:
     SLURM/MPI/cloud auto-detection). Afterwards `jax.devices()` lists every host's devices
     and a [`sweep`][] shards its chunks across all of them; every host draws the same
     samples from the seed and gets the whole result.
+
+    When a process dies in a sweep, the others' next collective fails and the sweep
+    raises a `RuntimeError` saying a process was lost; when the coordinator (process 0)
+    dies, JAX ends the other processes itself with an abort (at once when its socket
+    closes, else within `heartbeat_timeout_seconds`, 100 s by default). The CLI turns
+    both into one line.
     """
     global _distributed_ready
     if not _distributed_ready:
@@ -275,12 +281,15 @@ def sweep(
       (default half the host's memory; see the module docstring for the sizes).
     - `checkpoint`: a directory where each finished chunk is saved (created if missing); a
       rerun of the same sweep computes only the chunks missing there, and a different
-      sweep is refused (`ValueError` naming what differs). See `sweep/checkpoint.py`.
+      sweep is refused (`ValueError` naming what differs). In a multi-process run
+      process 0 alone reads and writes it. See `sweep/checkpoint.py`.
     - `save_trajectories`: a directory where every solved sample's `phi` and `dphi` at
       the save times `ts[::trajectory_every]` are written, chunk by chunk (`.npy` files
       and a manifest; read them lazily with [`load_trajectories`][]). They never stay in
       memory. Refused before any work when they would not fit on the disk (`ValueError`
       naming the size). With `checkpoint`, a resumed sweep keeps the chunks saved there.
+      In a multi-process run process 0 alone writes them. See `sweep/trajectories.py`.
+    - `trajectory_every`: keep every `trajectory_every`-th save time (>= 1).
 
     **Returns:** a [`SweepResult`][] in the original sample order.
     """
