@@ -25,7 +25,8 @@ The public API, by topic (everything else is private; the subpackages
   `hac_covariance`, `widen`, `robust_uncertainty`, `RobustUncertainty`, `validate`,
   `Validation`.
 - Monte Carlo: `sweep`, `SweepResult`, `REDUCTIONS`, `STATUS`, `VARIABLES`,
-  `sweep_cost`, `initialize_distributed`, `distributions`.
+  `sweep_cost`, `initialize_distributed`, `distributions`, `load_trajectories`,
+  `Trajectories` (a sweep's saved trajectories, read lazily).
 - Files, the compilation cache and XLA's CPU flags: `atomic_write`,
   `enable_compilation_cache`, `default_cache_dir`, `with_cpu_flags` (an `XLA_FLAGS`
   value for a program to set before JAX starts: faster solves on the CPU),
@@ -144,6 +145,7 @@ from .sweep.run import (
     sweep,
     sweep_cost,
 )
+from .sweep.trajectories import Trajectories, load_trajectories
 from .synth import synthesize
 from .validate import (
     Validation,
@@ -198,6 +200,7 @@ __all__ = [
     "Linearization",
     "linearize",
     "load_data",
+    "load_trajectories",
     "LOAD_PARAMS",
     "load_scene",
     "mass",
@@ -238,6 +241,7 @@ __all__ = [
     "synthesize",
     "Sensor",
     "SensorError",
+    "Trajectories",
     "Trajectory",
     "validate",
     "Validation",

@@ -44,6 +44,12 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", metavar="DIR",
                    help="save each finished chunk in DIR; rerunning the same command after "
                         "an interruption computes only the missing chunks")
+    p.add_argument("--save-trajectories", metavar="DIR",
+                   help="stream every solved sample's phi and dphi to DIR, chunk by chunk "
+                        "(.npy files and a manifest.json; read lazily with "
+                        "crank_jax.load_trajectories or np.load(mmap_mode='r'))")
+    p.add_argument("--save-every", type=int, default=1, metavar="K",
+                   help="with --save-trajectories: keep every K-th save time (default 1)")
     p.add_argument("--summary", action="store_true",
                    help="print statistics of every output (JSON) on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -93,27 +99,44 @@ def _wait_for_coordinator(wait: int) -> None:
             return
         except OSError as e:
             if time.monotonic() > deadline:
-                raise RuntimeError(f"--distributed: the coordinator {address} did not answer "
+                raise UserError(f"--distributed: the coordinator {address} did not answer "
                                    f"within {wait} s ({e.strerror or e}); start process 0 "
                                    f"first, or set {_ENV_TIMEOUT}") from None
             time.sleep(0.5)
 
 
+def _join(a: argparse.Namespace) -> int | None:
+    """Join the distributed run (`--distributed`). The command first runs itself as a
+    child under `supervise` (JAX aborts a process whose peer or coordinator goes away);
+    returns the child's exit status, or `None` in the child, once every process joined."""
+    from .supervise import ENV_CHILD, JOINED, die_with_parent, supervise
+
+    # Bounded: JAX waits 300 s for a missing coordinator or peer by default, and 100 s
+    # for a silent peer's heartbeat.
+    wait = int(os.environ.get(_ENV_TIMEOUT, "60") or 60)
+    address = os.environ.get("JAX_COORDINATOR_ADDRESS", "auto-detected")
+    if not os.environ.get(ENV_CHILD):
+        return supervise(a._argv[1:], address, wait)
+    from ..sweep.run import initialize_distributed
+
+    die_with_parent()
+    _wait_for_coordinator(wait)
+    try:
+        initialize_distributed(initialization_timeout=wait,
+                               heartbeat_timeout_seconds=max(wait, 10))
+    except (RuntimeError, ValueError) as e:
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:300]
+        raise UserError(f"--distributed: could not join the run (coordinator {address}) "
+                        f"within {wait} s ({_ENV_TIMEOUT} sets the wait): {first}") from None
+    print(JOINED, file=sys.stderr, flush=True)
+    return None
+
+
 def _sweep_run(a: argparse.Namespace) -> int:
     if a.distributed or os.environ.get(_ENV_DISTRIBUTED, "") not in ("", "0"):
-        from ..sweep.run import initialize_distributed
-
-        # Bounded: JAX waits 300 s for a missing coordinator or peer by default.
-        wait = int(os.environ.get(_ENV_TIMEOUT, "60") or 60)
-        _wait_for_coordinator(wait)
-        try:
-            initialize_distributed(initialization_timeout=wait)
-        except (RuntimeError, ValueError) as e:
-            first = (str(e).strip().splitlines() or [type(e).__name__])[0][:300]
-            raise RuntimeError(
-                f"--distributed: could not join the run (coordinator "
-                f"{os.environ.get('JAX_COORDINATOR_ADDRESS', 'auto-detected')}) within {wait}"
-                f" s ({_ENV_TIMEOUT} sets the wait): {first}") from None
+        code = _join(a)
+        if code is not None:
+            return code
     import jax
     import numpy as np
 
@@ -139,6 +162,8 @@ def _sweep_run(a: argparse.Namespace) -> int:
         raise UserError(f"--samples must be >= 2, got {a.samples}")
     if a.max_steps < 1 or a.chunk_size < 1:
         raise UserError("--max-steps and --chunk-size must be >= 1")
+    if a.save_every < 1:
+        raise UserError(f"--save-every must be >= 1, got {a.save_every}")
     if not a.out.endswith(".npz"):
         # np.savez would silently append ".npz" to another name; say so instead.
         raise UserError(f"--out must end in .npz, got {a.out!r}")
@@ -146,7 +171,8 @@ def _sweep_run(a: argparse.Namespace) -> int:
     scene = load_scene(a.scene)
     result = sweep(scene, spec, outputs, n=a.n, seed=a.seed, t1=a.t1, num_saves=a.samples,
                    solver=a.solver, max_steps=a.max_steps, chunk_size=a.chunk_size,
-                   progress=not a.quiet, checkpoint=a.checkpoint)
+                   progress=not a.quiet, checkpoint=a.checkpoint,
+                   save_trajectories=a.save_trajectories, trajectory_every=a.save_every)
     if jax.process_index() == 0:
         result.save(a.out)
         counts = result.counts()

@@ -9,6 +9,12 @@ manifest is refused, naming what differs; a chunk file that cannot be read or wh
 checksum does not match is computed again. A chunk's samples are fixed by the plan (the
 samples depend on the seed only, the sorting on the samples, the chunks on the chunk size),
 so resumed and uninterrupted runs give identical results.
+
+In a multi-process run ([`SharedCheckpoint`][]) process 0 alone reads and writes the
+directory (it holds every chunk's gathered results; the others need not see the
+directory at all) and, per chunk, tells the others whether the chunk is saved and sends
+them its arrays. So the resumed run may use another number of processes, as long as the
+device count (and so the rounded chunk size, which the manifest holds) is the same.
 """
 
 from __future__ import annotations
@@ -22,8 +28,9 @@ import jax
 import numpy as np
 
 from ..io import atomic_write
+from .collective import broadcast, on_process_0
 
-__all__ = ["Checkpoint"]
+__all__ = ["Checkpoint", "SharedCheckpoint", "plan_manifest"]
 
 _MANIFEST = "manifest.json"
 
@@ -48,7 +55,7 @@ def _version() -> str:
         return "unknown"
 
 
-def _plan_manifest(plan, chunk: int, max_steps: int) -> dict:
+def plan_manifest(plan, chunk: int, max_steps: int) -> dict:
     spec = plan.spec
     samples = {k: str(v) for k, v in spec.dists.items()}
     samples.update({k: "array sha256 " + _digest({"a": np.asarray(v)})
@@ -70,6 +77,9 @@ class Checkpoint:
     def __init__(self, path, plan, chunk: int, max_steps: int, writer: bool = True):
         self.dir = Path(path)
         self.writer = writer
+        #: Also needed for a saved chunk to count, `require(b0, start, idx) -> bool` (its
+        #: saved trajectories, see `sweep(save_trajectories=)`).
+        self.require = None
         if self.dir.exists() and not self.dir.is_dir():
             raise ValueError(f"checkpoint {str(self.dir)!r} is a file, not a directory; "
                              "give a directory (it is created if missing)")
@@ -81,7 +91,7 @@ class Checkpoint:
         if writer and not os.access(self.dir, os.W_OK | os.X_OK):
             raise ValueError(f"checkpoint {str(self.dir)!r} is not writable; give a "
                              "directory you may write to")
-        want = _plan_manifest(plan, chunk, max_steps)
+        want = plan_manifest(plan, chunk, max_steps)
         path = self.dir / _MANIFEST
         if path.exists():
             try:
@@ -117,6 +127,8 @@ class Checkpoint:
             return None  # computed again
         if not ok or not np.array_equal(arrays.get("idx"), idx):
             return None
+        if self.require is not None and not self.require(b0, start, idx):
+            return None
         res = {k[4:]: v for k, v in arrays.items() if k.startswith("out.")}
         return res, arrays["status"], arrays["steps"], int(arrays["solver"])
 
@@ -128,3 +140,45 @@ class Checkpoint:
         arrays.update({f"out.{k}": np.asarray(v) for k, v in res.items()})
         with atomic_write(self._file(b0, start), "wb") as f:
             np.savez(f, sha256=np.asarray(_digest(arrays)), **arrays)
+
+
+class SharedCheckpoint:
+    """The checkpoint of a multi-process run (see the module docstring): the same
+    `load`/`save` as [`Checkpoint`][], called by every process at the same chunks."""
+
+    def __init__(self, path, plan, chunk: int, max_steps: int):
+        self.inner = on_process_0(lambda: Checkpoint(path, plan, chunk, max_steps),
+                                  f"checkpoint {str(path)!r}")
+        self.n_t = int(np.shape(plan.ts)[0])
+        self.outputs = tuple(plan.reductions)
+
+    def _canonical(self, got, m: int):
+        from .reductions import TRAJECTORY_OUTPUTS
+
+        if got is None:
+            got = ({k: np.zeros((m, self.n_t) if k in TRAJECTORY_OUTPUTS else m)
+                    for k in self.outputs}, np.zeros(m), np.zeros(m), 0)
+        res, st, ns, si = got
+        return {"res": {k: np.asarray(res[k], np.float64) for k in self.outputs},
+                "st": np.asarray(st, np.int8), "ns": np.asarray(ns, np.int64),
+                "si": np.asarray([si], np.int64)}
+
+    @property
+    def require(self):
+        return None if self.inner is None else self.inner.require
+
+    @require.setter
+    def require(self, fn) -> None:
+        if self.inner is not None:
+            self.inner.require = fn
+
+    def load(self, b0: int, start: int, idx: np.ndarray):
+        got = self.inner.load(b0, start, idx) if self.inner is not None else None
+        if not broadcast(np.array([got is not None], np.int8))[0]:
+            return None
+        t = broadcast(self._canonical(got, idx.size))
+        return t["res"], t["st"], t["ns"], int(t["si"][0])
+
+    def save(self, b0: int, start: int, idx, res, st, ns, solver_index: int) -> None:
+        if self.inner is not None:
+            self.inner.save(b0, start, idx, res, st, ns, solver_index)

@@ -12,17 +12,19 @@ How a sweep runs ([`make_plan`][] checks everything first):
    field may switch on; a varied load parameter promotes the scene's load (none ->
    constant -> harmonic) through the load table. Nothing else is compiled.
 4. Within a block, samples are sorted by their linearised fastest rate `|lambda_fast|`
-   (which sets an adaptive solver's step count), then cut into fixed-size chunks. A
-   `vmap`-ed solve runs in lockstep, so a chunk costs its slowest member's steps: sorting
-   keeps one stiff sample from slowing every chunk. `"auto"` is decided per chunk by the
-   solver policy ([`resolve_solver`][], with `batch_invariant=True`): the fused
-   `"dopri8-uniform"` whenever the chunk is not stiff and no load is sampled (a sweep's
-   save times are always uniform). Not `"dopri8-adaptive"`, whose `vmap` steps a batch in
-   lockstep: a sweep's samples get exactly their own solve, whatever chunk they land in.
+   (which sets an adaptive solver's step count), then cut into fixed-size chunks. Each
+   member of a `vmap`-ed solve has its own step control, but the batch's loop runs until
+   its slowest member is done (the others wait), so a chunk costs its slowest member's
+   steps: sorting keeps one stiff sample from slowing every chunk. `"auto"` is decided
+   per chunk by the solver policy ([`resolve_solver`][], with `batch_invariant=True`):
+   the fused `"dopri8-uniform"` whenever the chunk is not stiff and no load is sampled
+   (a sweep's save times are always uniform), whose steps are per member by
+   construction: a sweep's samples get exactly their own solve, whatever chunk they
+   land in.
 5. Each chunk is one compiled program (no recompilation: the last chunk is padded), run
    on every device at once, each on its equal part of the chunk (see `_Devices`). Only
    the requested reductions leave the device; full trajectories only when
-   `"phi"`/`"dphi"` are asked for.
+   `"phi"`/`"dphi"` are asked for, or to be streamed to disk (`save_trajectories`).
 6. Results are written into the original sample order.
 
 Memory: the result holds, per sample, 8 bytes per varied field and per scalar output,
@@ -51,11 +53,13 @@ from ..model.dynamics import Structure
 from ..model.loads import SIDES
 from ..solve.policy import SOLVERS, resolve_solver
 from ..solve.simulate import simulate
-from .checkpoint import Checkpoint
+from .checkpoint import Checkpoint, SharedCheckpoint, plan_manifest
+from .collective import gather, on_process_0
 from .distributions import AbstractDistribution
 from .plan import SORT_BLOCK, VARIABLES, Plan, make_plan
 from .reductions import DEFAULT_OUTPUTS, REDUCTIONS, TRAJECTORY_OUTPUTS, reduce
 from .result import FAILED, INVALID, MAX_STEPS, NONFINITE, OK, STATUS, SweepResult
+from .trajectories import TrajectoryStore
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
@@ -77,6 +81,12 @@ def initialize_distributed(**kwargs) -> None:
     SLURM/MPI/cloud auto-detection). Afterwards `jax.devices()` lists every host's devices
     and a [`sweep`][] shards its chunks across all of them; every host draws the same
     samples from the seed and gets the whole result.
+
+    When a process dies in a sweep, the others' next collective fails and the sweep
+    raises a `RuntimeError` saying a process was lost; when the coordinator (process 0)
+    dies, JAX ends the other processes itself with an abort (at once when its socket
+    closes, else within `heartbeat_timeout_seconds`, 100 s by default). The CLI turns
+    both into one line.
     """
     global _distributed_ready
     if not _distributed_ready:
@@ -91,17 +101,6 @@ def initialize_distributed(**kwargs) -> None:
                     raise ValueError(f"{env}={os.environ[env]!r} is not an integer") from None
         jax.distributed.initialize(**kwargs)
         _distributed_ready = True
-
-
-def _gather(tree):
-    """This process's part of a chunk's results, joined with every other process's, in
-    process order (identity with one process)."""
-    if jax.process_count() == 1:
-        return tree
-    from jax.experimental import multihost_utils
-
-    return jax.tree.map(lambda x: np.concatenate(list(x)),
-                        multihost_utils.process_allgather(tree, tiled=False))
 
 
 # ---------------------------------------------------------------------------------------
@@ -160,7 +159,7 @@ class _Devices:
     (a load's `zeros_like(t)`, lineax's structure checks in an implicit solver) fail. The
     same program on every device also gives bit-identical results on one device or many.
     In a multi-process run each process runs the parts of its own devices and the parts
-    are gathered from every process (`_gather`).
+    are gathered from every process (`collective.gather`).
     """
 
     def __init__(self, devices):
@@ -185,18 +184,27 @@ class _Devices:
             args = [x if w else jax.tree.map(lambda a, i=i: a[i * part:(i + 1) * part], x)
                     for x, w in zip(batched, whole, strict=True)]
             calls.append(_run_chunk(*jax.device_put((*args, *shared), d), **static))
-        return _gather(jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]),
+        return gather(jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]),
                                     *calls))
 
 
 def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps, sink,
-               ckpt=None, b0=0):
+               ckpt=None, b0=0, store=None, trajectories=False):
     """Run the valid samples `order` of one block in chunks; `sink(idx, res, st, ns,
     solver_index)` receives each chunk's results (host arrays, `idx` into the block). With
     a [`Checkpoint`][] `ckpt`, a chunk saved there is read instead of computed, and each
-    computed chunk is saved."""
+    computed chunk is saved. With a [`TrajectoryStore`][] `store` (process 0 of a run
+    that saves trajectories), each computed chunk's trajectories are written there before
+    the chunk is checkpointed (so a checkpointed chunk has them), and every chunk is
+    listed. `store` is `None` on the other processes of a run that saves them: they
+    compute the trajectories (`trajectories=True`) for process 0 to gather."""
+    reductions = plan.reductions
+    if trajectories:
+        reductions += tuple(k for k in TRAJECTORY_OUTPUTS if k not in reductions)
     for start in range(0, order.size, chunk):
         idx = order[start:start + chunk]
+        if store is not None:
+            store.chunks.append((b0, start))
         saved = ckpt.load(b0, start, idx) if ckpt is not None else None
         if saved is not None:
             sink(idx, *saved)
@@ -209,9 +217,11 @@ def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps,
                               batch_invariant=True)
         res, st, ns = dev.run(chunk // dev.n, (mech, load, torque, phi0, dphi0), consts,
                               **_fixed(plan), solver=name, structure=plan.structure,
-                              reductions=plan.reductions, max_steps=int(max_steps))
+                              reductions=reductions, max_steps=int(max_steps))
         m = idx.size
-        got = ({k: v[:m] for k, v in res.items()}, st[:m], ns[:m], SOLVERS.index(name))
+        if store is not None:
+            store.save(b0, start, idx, {k: res[k][:m] for k in TRAJECTORY_OUTPUTS})
+        got = ({k: res[k][:m] for k in plan.reductions}, st[:m], ns[:m], SOLVERS.index(name))
         if ckpt is not None:
             ckpt.save(b0, start, idx, *got)
         sink(idx, *got)
@@ -239,6 +249,8 @@ def sweep(
     callback: Callable[[int, int], None] | None = None,
     max_memory: int | None = None,
     checkpoint: str | os.PathLike | None = None,
+    save_trajectories: str | os.PathLike | None = None,
+    trajectory_every: int = 1,
 ) -> SweepResult:
     """Simulate a [`Scene`][] for many sampled values at once.
 
@@ -269,7 +281,15 @@ def sweep(
       (default half the host's memory; see the module docstring for the sizes).
     - `checkpoint`: a directory where each finished chunk is saved (created if missing); a
       rerun of the same sweep computes only the chunks missing there, and a different
-      sweep is refused (`ValueError` naming what differs). See `sweep/checkpoint.py`.
+      sweep is refused (`ValueError` naming what differs). In a multi-process run
+      process 0 alone reads and writes it. See `sweep/checkpoint.py`.
+    - `save_trajectories`: a directory where every solved sample's `phi` and `dphi` at
+      the save times `ts[::trajectory_every]` are written, chunk by chunk (`.npy` files
+      and a manifest; read them lazily with [`load_trajectories`][]). They never stay in
+      memory. Refused before any work when they would not fit on the disk (`ValueError`
+      naming the size). With `checkpoint`, a resumed sweep keeps the chunks saved there.
+      In a multi-process run process 0 alone writes them. See `sweep/trajectories.py`.
+    - `trajectory_every`: keep every `trajectory_every`-th save time (>= 1).
 
     **Returns:** a [`SweepResult`][] in the original sample order.
     """
@@ -280,9 +300,15 @@ def sweep(
     chunk = int(math.ceil(min(chunk_size, n) / dev.n) * dev.n)
     ckpt = None
     if checkpoint is not None:
-        if jax.process_count() > 1:
-            raise ValueError("checkpoint= is not supported in a multi-process run yet")
-        ckpt = Checkpoint(checkpoint, plan, chunk, max_steps)
+        ckpt = (Checkpoint if jax.process_count() == 1 else SharedCheckpoint)(
+            checkpoint, plan, chunk, max_steps)
+    store = None
+    if save_trajectories is not None:
+        store = on_process_0(lambda: TrajectoryStore(
+            save_trajectories, plan_manifest(plan, chunk, max_steps), plan.ts,
+            trajectory_every, n), f"save_trajectories {str(save_trajectories)!r}")
+        if ckpt is not None:
+            ckpt.require = store.has if store is not None else None
     block = max(chunk, SORT_BLOCK // chunk * chunk)
     n_t = plan.ts.shape[0]
     out = {k: np.zeros((n, n_t) if k in TRAJECTORY_OUTPUTS else n) for k in plan.reductions}
@@ -318,9 +344,12 @@ def sweep(
             if callback is not None:
                 callback(done, n)
 
-        _run_block(plan, cols, order, chunk, dev, consts, max_steps, sink, ckpt, b0)
+        _run_block(plan, cols, order, chunk, dev, consts, max_steps, sink, ckpt, b0, store,
+                   save_trajectories is not None)
     if bar is not None:
         bar.close()
+    if store is not None:
+        store.finish()
     return SweepResult(values, out, status, steps, solver_used, plan.ts, plan.structure,
                        plan.seed if plan.random else -1)
 
