@@ -97,3 +97,9 @@ def test_every_physics_term_is_in_every_listed_place(term):
         if not re.search(_TERMS[term], (SRC / where).read_text()):
             missing.append(where)
     assert not missing, f"{term} is missing from {missing}"
+
+
+def test_scene_file_guide_lists_exactly_the_table():
+    guide = (DOC.parent.parent / "how-to" / "scene-files.md").read_text()
+    listed = re.search(r"one of crank_jax\.SOLVERS: ([\w, -]+)", guide).group(1)
+    assert tuple(listed.strip().split(", ")) == crank_jax.SOLVERS
