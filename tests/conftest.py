@@ -23,6 +23,16 @@ def tree_allclose(a, b, rtol=1e-10, atol=1e-12) -> bool:
     )
 
 
+def flip_byte(i: int):
+    """A damage for a stored file: its bytes with bit 0 of byte `i` (mod the length)
+    flipped."""
+    def damage(b: bytes) -> bytes:
+        b = bytearray(b)
+        b[i % len(b)] ^= 0x01
+        return bytes(b)
+    return damage
+
+
 def random_mech(rng: np.random.Generator, **overrides) -> "cj.SliderCrank":
     """A random valid mechanism with every body present (geometry spans r/L in 0.05..0.9)."""
     r = rng.uniform(0.02, 0.1)

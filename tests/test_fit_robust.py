@@ -137,9 +137,20 @@ def test_out_of_range_fit_options_are_named_before_the_record_is_read(capsys, tm
 
 def test_library_refuses_out_of_range_options(demo):
     scene, data = demo
-    for kw in ({"sigma": 1e300}, {"max_steps": 2**31}):
+    for kw in ({"sigma": 1e300}, {"max_steps": 2**31}, {"seed": -1}, {"seed": 2**63},
+               {"seed": 1.5}):
         with pytest.raises(ValueError, match=next(iter(kw))):
             cj.fit(scene, data, progress=False, **kw)
+
+
+def test_fit_takes_every_seed_the_cli_takes(demo, tmp_path, capsys):
+    # The CLI's --seed type accepts 0 .. 2**63 - 1 (a sweep stores it as int64); fit
+    # refused seeds from 2**32 on with a second, different bound. One bound now.
+    scene, data = demo
+    cj.save_data(data, tmp_path / "d.csv")
+    code = main(["fit", str(tmp_path / "d.csv"), "lab-rig", "--free", "k",
+                 "--seed", str(2**63 - 1), "--multistart", "2"])
+    assert code == 0, capsys.readouterr().err
 
 
 def test_record_with_no_motion_above_its_noise_is_refused_before_any_solve(lab_rig):

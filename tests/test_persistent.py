@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import flip_byte as _flip
 
 # A fresh interpreter with the store in the directory argv[1], counting in `compiled` the
 # programs it compiles (rather than loads).
@@ -106,14 +107,6 @@ def test_stored_simulate_equals_the_ordinary_one(stored, tmp_path):
     traj = cj.load_scene("lab-rig").simulate(outputs=("energy", "reactions"))
     assert first["sim"][:4] == [float(traj.phi[-1]), float(traj.extras["energy"][-1]),
                                 float(traj.extras["N"][7]), int(traj.num_steps)]
-
-
-def _flip(i):
-    def damage(b):
-        b = bytearray(b)
-        b[i % len(b)] ^= 0x01
-        return bytes(b)
-    return damage
 
 
 def test_damaged_store_is_recompiled(stored, tmp_path):

@@ -22,6 +22,7 @@ import time
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import flip_byte as _flip
 
 from crank_jax import persistent, program_store
 from crank_jax.io import atomic_write
@@ -63,14 +64,6 @@ def _only(store):
 
 def _key(blob: bytes) -> str:
     return blob[len(MAGIC):len(MAGIC) + 64].decode()
-
-
-def _flip(i):
-    def damage(b):
-        b = bytearray(b)
-        b[i % len(b)] ^= 0x01
-        return bytes(b)
-    return damage
 
 
 _OUT = len(MAGIC) + 64  # the output count's first byte

@@ -244,8 +244,6 @@ def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
         raise UserError(f"--multistart must be >= 1, got {a.multistart}")
     if a.segments is not None and a.segments < 1:
         raise UserError(f"--segments must be >= 1, got {a.segments}")
-    if not 0 <= a.seed < 2**32:
-        raise UserError(f"--seed must be an integer from 0 to {2**32 - 1}, got {a.seed}")
     if a.max_steps is not None and not 1 <= a.max_steps <= MAX_ITERATIONS:
         raise UserError(f"--max-steps must be an integer from 1 to {MAX_ITERATIONS}, got "
                         f"{a.max_steps}")

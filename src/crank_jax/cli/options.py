@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import argparse
 
+from ..sweep.distributions import MAX_SEED
 from .errors import UserError
 
 __all__ = ["seed", "MAX_SEED", "free_list"]
-
-#: The largest seed accepted: seeds are stored as int64 (a sweep's result keeps its seed).
-MAX_SEED = 2**63 - 1
 
 
 def seed(text: str) -> int:

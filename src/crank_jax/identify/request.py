@@ -21,6 +21,7 @@ from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
 from ..model.sampled import bind_input
 from ..scene import Scene
 from ..sensors import OFFSET_NAMES
+from ..sweep.distributions import MAX_SEED
 from .userforce import force_names, force_starts
 
 __all__ = ["FitRequest", "normalise", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
@@ -277,6 +278,9 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
         raise ValueError(f"unknown free parameter(s) {unknown}; choose from {list(known)}"
                          if unknown else "free must name at least one parameter")
     _check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
+    if (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
+            or not 0 <= seed <= MAX_SEED):
+        raise ValueError(f"seed must be an integer from 0 to {MAX_SEED}, got {seed!r}")
     per_record = _check_per_record(per_record, free)
     window = _check_window(window)
     records = [window_data(d, window) for d in records]

@@ -27,6 +27,10 @@ __all__ = [
     "parse_distribution", "draw", "DISTRIBUTIONS", "DRAW_BLOCK", "Spec", "parse_spec",
 ]
 
+#: The largest seed accepted anywhere (sweeps, fits, synthetic records): a sweep's result
+#: stores its seed as int64.
+MAX_SEED = 2**63 - 1
+
 #: Samples per seeded stream block (see the module docstring). Part of the seed's meaning:
 #: changing it changes every sample drawn.
 DRAW_BLOCK = 65536
