@@ -12,9 +12,9 @@ Measured side by side in one run (medians):
   `"dopri8-adaptive"` solver (whose JVP steps the variational equation beside the
   solution, see `crank_jax.solve.variational`), the same solver with JAX's tangents carried
   through its steps (the default's forward mode before 2026-11-26, called here on
-  `solve_adaptive` directly), the `"dopri8-uniform"` solver (whose JVP integrates the
-  variational equation with the same steps, see
-  `crank_jax.solve.sensitivity.attach_sensitivities`) and with diffrax's adaptive Dopri8
+  `solve_adaptive` directly), the `"dopri8-uniform"` solver (JAX's forward mode
+  through its loop since issue 26; its own variational rule, measured slower than
+  diffrax's, was removed) and with diffrax's adaptive Dopri8
   (`diffrax.ForwardMode`);
 - reverse mode: `jax.jacrev` through `simulate(adjoint="reverse")` (one backward pass per
   output sample, so 1001 of them, batched by `vmap`), both solvers.

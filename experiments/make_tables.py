@@ -90,8 +90,9 @@ def section() -> str:
             "store the program, and dispatches one `jax.jit` of its array leaves.", "",
             "`\"dopri8-uniform\"` (by name) takes an integer number of equal Dopri8 steps "
             "per save interval with a summed error budget; it lands 10-1000x below its "
-            "tolerance, and its JVP integrates the variational equation on the same steps "
-            "(the Jacobian row below).", "",
+            "tolerance. JAX differentiates its loop: its own derivative rules (the "
+            "Jacobian rows below, where measured before 2026-11-26) were slower than "
+            "diffrax's Dopri8 and were removed (issue 26).", "",
             "**XLA's CPU flags, and CPU devices.** XLA's CPU runtime (jax >= 0.7) runs a "
             "program as a sequence of kernels dispatched one by one, a loop body's once per "
             "iteration; a loop whose iteration touches fewer than 1024 bytes it compiles into "

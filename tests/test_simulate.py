@@ -297,41 +297,6 @@ def test_gradient_with_respect_to_load_amplitudes():
     assert np.all(np.abs(g) > 1e-4)
 
 
-def test_reverse_twin_steps_packed_and_differentiates_plain(lab_rig):
-    """`reverse_twin` (dopri8-uniform's reverse mode): the primal runs on the packed field,
-    the backward pass on the plain one, and value and gradient equal a direct run's."""
-    import diffrax
-
-    from crank_jax.solve.twin import reverse_twin
-
-    seen = []
-
-    def run(field, y, ts, scale):
-        # A stand-in for a solve: the field at a few states along a line, scaled.
-        seen.append(type(field).__name__)
-        ys = jnp.stack([jnp.stack(field(t, (y[0] + t, y[1] - t))) for t in ts]) * scale
-        return ys, diffrax.RESULTS.successful, jnp.array(3)
-
-    ts, y0 = jnp.linspace(0.0, 1.0, 5), jnp.array([0.7, -0.4])
-
-    def loss(k, twin):
-        crank = cj.CrankField(lab_rig.mech.replace(k=k, c=0.01), cj.HarmonicLoad(1.0, 0.5, 2.0),
-                              cj.HarmonicLoad(0.0, 0.2, 3.0))
-        if twin:
-            ys, _, _ = reverse_twin(run, crank, cj.CrankField.packed, y0, ts, 2.0)
-        else:
-            ys, _, _ = run(crank, y0, ts, 2.0)
-        return jnp.sum(ys ** 2)
-
-    k = lab_rig.mech.k
-    np.testing.assert_allclose(loss(k, True), loss(k, False), rtol=1e-13)
-    assert seen == ["PackedCrankField", "CrankField"]
-    seen.clear()
-    g_twin = jax.grad(loss)(k, True)
-    assert seen == ["PackedCrankField", "CrankField"]  # primal packed, backward plain
-    np.testing.assert_allclose(g_twin, jax.grad(loss)(k, False), rtol=1e-12)
-
-
 def test_repeated_concrete_calls_reuse_the_host_plan_and_still_check(lab_rig, monkeypatch):
     # A concrete call keeps its host plan (checks, linearisation, solver) for calls with
     # the same mechanism, loads, save times and tolerances (solve/policy.py `host_plan`).

@@ -7,18 +7,19 @@ APIs only. Nothing here runs on import.
 
 Replaced by public APIs (issue 26): `diffrax.RESULTS` codes were read as `result._value`;
 they are now the result's single pytree leaf ([`result_code`][], [`result_from_code`][]),
-and comparisons use `==` on `diffrax.RESULTS` items.
+and comparisons use `==` on `diffrax.RESULTS` items. The process-wide switch of
+equinox's check mode (`equinox._errors.EQX_ON_ERROR`, set while the fit's programs were
+traced so that diffrax's `SaveAt(ts)` check held no host callback) is gone: the fit's
+solves go through `simulate`'s solve core, whose fused solvers hold no check, and a
+program that does hold one (diffrax's solvers) runs unstored (`persistent.py`).
 """
 
 from __future__ import annotations
 
-import contextlib
-
 import numpy as np
 
 __all__ = ["result_code", "result_from_code", "dopri8_dense_coefficients", "while_loop",
-           "checks_as_nan", "checks_are_nan", "backends_are_initialized",
-           "initialize_lapack"]
+           "backends_are_initialized", "initialize_lapack"]
 
 
 # --- diffrax.RESULTS as arrays (public: the pytree interface) -------------------------
@@ -68,51 +69,6 @@ def while_loop(cond_fun, body_fun, init_val, *, max_steps: int, kind: str):
     import equinox.internal as eqxi
 
     return eqxi.while_loop(cond_fun, body_fun, init_val, max_steps=max_steps, kind=kind)
-
-
-# --- equinox's runtime-check mode ------------------------------------------------------
-
-def _errors_module():
-    import equinox._errors as eqx_errors
-
-    return eqx_errors
-
-
-def checks_are_nan() -> bool:
-    """Whether equinox's runtime checks trace as NaN now (inside [`checks_as_nan`][], or
-    with `EQX_ON_ERROR=nan` in the environment)."""
-    return getattr(_errors_module(), "EQX_ON_ERROR", None) == "nan"
-
-
-@contextlib.contextmanager
-def checks_as_nan():
-    """Trace with equinox's runtime checks (`eqx.error_if`) as NaN instead of host
-    callbacks, restoring the previous mode on exit.
-
-    Why private: diffrax validates `SaveAt(ts)` with `eqx.error_if`, a host callback in
-    equinox's default mode, and JAX's persistent cache does not keep programs holding
-    host callbacks. equinox reads its mode from the module global
-    `equinox._errors.EQX_ON_ERROR` when a check is traced (the public switch is the
-    environment variable `EQX_ON_ERROR`, read once at import, for the whole process). So
-    this sets that global for the duration of a trace: it is process-wide while it lasts
-    (not thread-safe: another thread tracing at the same time sees the same mode). The
-    fit's diffrax solves still need it (issue 26: their move onto crank-jax's own solve is
-    the way out). It also outlives the context: equinox traces each check through a
-    cached `filter_jit` keyed on the check's message and shapes, not on the mode, so a
-    check with the same message and shapes traced later in the process (e.g. a user's own
-    diffrax solve's "saveat.ts must be increasing") reuses the NaN form (found while
-    writing tests/test_compat.py). Written against equinox 0.11-0.13 (0.13.8 tested);
-    with an equinox without that global it changes nothing."""
-    eqx_errors = _errors_module()
-    old = getattr(eqx_errors, "EQX_ON_ERROR", None)
-    if old is None:  # another equinox: leave it alone
-        yield
-        return
-    eqx_errors.EQX_ON_ERROR = "nan"
-    try:
-        yield
-    finally:
-        eqx_errors.EQX_ON_ERROR = old
 
 
 # --- jax internals ---------------------------------------------------------------------

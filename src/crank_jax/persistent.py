@@ -22,7 +22,6 @@ effects unless asked. A program takes pytrees and returns a tuple of arrays.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import os
 import platform
@@ -41,8 +40,7 @@ from . import program_store
 from .foreign_code import foreign_classes, source_digest
 from .xla_flags import instruction_sets
 
-__all__ = ["PersistentProgram", "program_store_dir", "checks_without_callbacks", "enum_code",
-           "enum_name"]
+__all__ = ["PersistentProgram", "program_store_dir", "enum_code", "enum_name"]
 
 # Libraries whose code is traced into the programs: a new version changes the program.
 _TRACED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax")
@@ -60,24 +58,6 @@ def program_store_dir() -> Path | None:
     if not base or os.environ.get("CRANK_JAX_NO_CACHE") or jax.default_backend() != "cpu":
         return None
     return Path(base) / "crank-jax-programs"
-
-
-@contextlib.contextmanager
-def checks_without_callbacks():
-    """Trace with equinox's runtime checks as NaN instead of host callbacks.
-
-    diffrax validates `SaveAt(ts)` with `eqx.error_if`, which in equinox's default mode
-    is a host callback, and JAX's persistent cache does not keep programs with host
-    callbacks, so every process would recompile every fit. equinox reads its mode
-    (`EQX_ON_ERROR`) when a program is traced; "nan" turns a failed check into NaN
-    samples, which the residuals turn into a rejected step. Our save times are strictly
-    increasing by construction, so the check never fires. (Only the tracing of the stored
-    programs is affected; the previous mode is restored on exit.)
-    """
-    from .compat import checks_as_nan  # equinox's private switch: see compat.py
-
-    with checks_as_nan():
-        yield
 
 
 _ENV: str | None = None
@@ -148,16 +128,15 @@ class PersistentProgram:
     """`fn(*args)` compiled once per static structure and kept on disk between processes.
 
     `fn` takes pytrees (equinox modules, arrays, Python scalars: the non-array leaves are
-    static, as in `eqx.filter_jit`) and returns a tuple of arrays. `trace_context` is
-    entered while tracing (e.g. to keep host callbacks out: an executable holding one
-    cannot be stored). Without a store (see [`program_store_dir`][]) it is
+    static, as in `eqx.filter_jit`) and returns a tuple of arrays. A program holding a
+    host callback (an `eqx.error_if`, e.g. diffrax's check of `SaveAt(ts)`) runs but is
+    not stored (see `_compile`). Without a store (see [`program_store_dir`][]) it is
     `eqx.filter_jit(fn)`'s semantics with a lighter dispatch (see `_jit`).
     """
 
-    def __init__(self, fn: Callable, name: str, trace_context=contextlib.nullcontext):
+    def __init__(self, fn: Callable, name: str):
         self.fn = fn
         self.name = name
-        self.trace_context = trace_context
         self.jitted = eqx.filter_jit(fn)
         self._flat: dict = {}  # (treedef, array mask, static leaves) -> jax.jit of arrays
         self._loaded: dict[str, Callable] = {}  # key -> compiled executable
@@ -206,8 +185,7 @@ class PersistentProgram:
 
     def lower(self, *args):
         """The lowered program (for inspection), as `eqx.filter_jit(fn).lower`."""
-        with self.trace_context():
-            return self.jitted.lower(*args)
+        return self.jitted.lower(*args)
 
     def _jit(self, args):
         """`fn(*args)` in memory: the array leaves dynamic, the others static, as
@@ -222,12 +200,10 @@ class PersistentProgram:
         try:
             call = self._flat.get(key)
         except TypeError:  # an unhashable static leaf: equinox's own dispatch
-            with self.trace_context():
-                return self.jitted(*args)
+            return self.jitted(*args)
         if call is None:
             call = self._flat[key] = jax.jit(self._rebuilt(treedef, mask, static))
-        with self.trace_context():
-            return call(*(x for x, a in zip(leaves, mask) if a))
+        return call(*(x for x, a in zip(leaves, mask) if a))
 
     def _rebuilt(self, treedef, mask, static):
         """`fn` of the array leaves alone, the static ones bound."""
@@ -253,8 +229,7 @@ class PersistentProgram:
         avals = [jax.ShapeDtypeStruct(x.shape, x.dtype,
                                       weak_type=bool(getattr(x, "weak_type", False)))
                  for x in leaves]
-        with self.trace_context():
-            lowered = jax.jit(flat).lower(*avals)
+        lowered = jax.jit(flat).lower(*avals)
         compiled = lowered.compile()
         targets = _custom_calls(lowered.as_text())
         if not all(t.startswith("lapack_") for t in targets):

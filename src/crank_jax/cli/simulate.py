@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..solve.names import SOLVERS
 from .errors import UserError
 
 __all__ = ["COMMANDS"]
@@ -50,7 +51,7 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
                         f"longer than {CHUNK_SAMPLES} are streamed in chunks with progress)")
     p.add_argument("--phi0", type=float, help="initial crank angle, rad")
     p.add_argument("--dphi0", type=float, help="initial crank rate, rad/s")
-    p.add_argument("--solver", help="auto, tsit5, dopri5, dopri8 or kvaerno5")
+    p.add_argument("--solver", help=f"one of {', '.join(SOLVERS)} (default: the scene's)")
     p.add_argument("--rtol", type=float, help="relative tolerance (at most 1e-2)")
     p.add_argument("--atol", type=float, help="absolute tolerance")
     p.add_argument("--max-steps", type=int, metavar="N",
@@ -68,7 +69,6 @@ def _check_options(a: argparse.Namespace) -> dict:
     """Check every option that needs no scene, before any work; return simulate's kwargs."""
     from ..io import check_figure_format, check_output
     from ..scene import MAX_RTOL
-    from ..solve.policy import SOLVERS
     from ..solve.simulate import output_columns
 
     if a.t1 is not None and not (np.isfinite(a.t1) and a.t1 > 0):

@@ -11,6 +11,7 @@ import json
 import os
 import sys
 
+from ..solve.names import SOLVERS
 from .errors import UserError
 from .options import seed
 
@@ -36,7 +37,8 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
                         f"(default {','.join(DEFAULT_OUTPUTS)}; phi/dphi store trajectories)")
     p.add_argument("--t1", type=float, help="end time, s (default: the scene's)")
     p.add_argument("--samples", type=int, help="number of save times on [0, t1]")
-    p.add_argument("--solver", help="auto (default: per chunk), tsit5, dopri5, dopri8, kvaerno5")
+    p.add_argument("--solver", help=f"one of {', '.join(SOLVERS)} (default: the scene's; "
+                                    "auto is decided per chunk)")
     p.add_argument("--max-steps", type=int, default=100_000, help="step budget per sample")
     p.add_argument("--chunk-size", type=int, default=1024,
                    help="samples per compiled call (bounds device memory; the samples drawn "
@@ -142,7 +144,6 @@ def _sweep_run(a: argparse.Namespace) -> int:
 
     from ..io import check_output
     from ..scene import load_scene
-    from ..solve.policy import SOLVERS
     from ..sweep.reductions import REDUCTIONS
     from ..sweep.run import sweep
 

@@ -18,7 +18,6 @@ import numpy as np
 from ..lazy import lazy_import
 from .priors import log_prior
 from .problem import Problem
-from .programs import checks_without_callbacks
 
 blackjax = lazy_import("blackjax")  # imported on first use (see lazy.py)
 
@@ -131,14 +130,7 @@ def _chunk(problem, codes, params, z_hat, L, carry, keys, stages):
     return carry, pos, div, steps
 
 
-_chunk_jit = eqx.filter_jit(_chunk)
-
-
-def _chunk_program(*args):
-    # Traced with equinox's checks as NaN, like the fit's programs (no host callback, so
-    # JAX's persistent cache can keep it; a failed check is a rejected trial point).
-    with checks_without_callbacks():
-        return _chunk_jit(*args)
+_chunk_program = eqx.filter_jit(_chunk)
 
 
 def schedule(warmup: int) -> np.ndarray:

@@ -23,9 +23,9 @@ Every trial point is also checked against the mechanism's validation rules (e.g.
 failed solve, which the optimiser rejects, so no iterate the fit reports is invalid.
 
 Shapes are bucketed (each record is padded to one of a few lengths with samples of weight
-0), so records of other lengths reuse the compiled programs; and the ODE solve carries no
-host callback (no `eqx.error_if`), so JAX's persistent cache can keep those programs
-between processes.
+0), so records of other lengths reuse the compiled programs; and the ODE solve is
+`simulate`'s own core without its runtime checks, so with the fused solvers the programs
+hold no host callback and JAX's persistent cache can keep them between processes.
 """
 
 from __future__ import annotations
@@ -40,20 +40,17 @@ import numpy as np
 from jaxtyping import Array
 
 from ..data import Data
-from ..lazy import lazy_import
-from ..model.dynamics import CrankField, Structure
+from ..model.dynamics import Structure
 from ..model.linear import linearize
-from ..model.loads import AbstractLoad, nonsmooth_times, set_param
+from ..model.loads import AbstractLoad, set_param
 from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..sensors import OFFSET_NAMES
 from ..solve.policy import resolve_solver
+from ..solve.simulate import solve_crank
 from .measurement import calibration, channel_errors, fitted_channels
-from .odeterm import FIT_SOLVERS, ode_term
 from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
 from .segments import Experiment, make_segments, padded_load
 from .userforce import PREFIX, with_force_values
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["Problem", "Experiment", "build_problem", "coordinate", "folded",
            "natural_period", "linear_frequency", "pick_solver"]
@@ -228,32 +225,20 @@ class Problem(eqx.Module):
         """Model angles and rates on every segment: (phi, dphi), each (S, m), NaN after a
         failed solve, and the ODE steps each segment's solve took (S,).
 
-        diffrax directly, on the model's `CrankField`, rather than through `simulate`:
-        traced with equinox's checks off (`persistent.checks_without_callbacks`), the fit's
-        programs must share no trace with a user's `simulate` (measured: routing them
-        through `simulate` let a host callback into a later fit program, or NaN-mode
-        checks into a later user program). The solver name comes from the one policy
-        (`pick_solver`) and the step clipping at load kinks is the loads' own
-        (`nonsmooth_times`). A trial point outside the valid set fails its solve, which
-        the residuals turn into a rejection."""
-        step_ts, jump_ts = nonsmooth_times(load, torque)
-        controller = diffrax.PIDController(rtol=self.rtol, atol=self.atol)
-        if step_ts is not None or jump_ts is not None:
-            controller = diffrax.ClipStepSizeController(controller, step_ts=step_ts,
-                                                        jump_ts=jump_ts)
-        adjoint = (diffrax.ForwardMode() if self.adjoint == "forward"
-                   else diffrax.RecursiveCheckpointAdjoint())
-        field = CrankField(mech, load, torque, self.structure, force).packed()
+        Through `simulate`'s solve core ([`solve_crank`][]): the solver the one policy
+        chose (`pick_solver`), its derivative rules (forward mode of `"dopri8-adaptive"`
+        steps the variational equation), the step clipping at load kinks. It holds no
+        runtime check, so the fused solvers' programs hold no host callback. A trial point
+        outside the valid set fails its solve, which the residuals turn into a
+        rejection."""
 
         def one(ts, y0):
-            sol = diffrax.diffeqsolve(
-                ode_term(), getattr(diffrax, FIT_SOLVERS[self.solver])(), t0=ts[0],
-                t1=ts[-1], dt0=None, y0=y0, args=field, saveat=diffrax.SaveAt(ts=ts),
-                stepsize_controller=controller, max_steps=self.max_steps, adjoint=adjoint,
-                throw=False)
-            ok = sol.result == diffrax.RESULTS.successful
-            return (jnp.where(ok, sol.ys[:, 0], jnp.nan), jnp.where(ok, sol.ys[:, 1], jnp.nan),
-                    sol.stats["num_steps"])
+            traj = solve_crank(mech, load, torque, force, y0, ts, self.rtol, self.atol,
+                               solver=self.solver, max_steps=self.max_steps,
+                               adjoint=self.adjoint, structure=self.structure)
+            ok = traj.ok
+            return (jnp.where(ok, traj.phi, jnp.nan), jnp.where(ok, traj.dphi, jnp.nan),
+                    traj.num_steps)
 
         if e.seg.ts.shape[0] == 1:
             # Single shooting: one solve, not a batch of one (a vmap of a solve of size 1
@@ -430,7 +415,7 @@ def build_problem(
 
 
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:
-    """The ODE solver of a fit: the scene's, or the automatic choice at the start values
-    (the record's padded segment times are not a uniform grid, so no save times)."""
-    name = resolve_solver(solver, mech, rtol, load=load)
-    return "dopri8" if name in ("dopri8-uniform", "dopri8-adaptive") else name
+    """The ODE solver of a fit: the policy's ([`resolve_solver`][]) for the scene's name,
+    at the start values, as `simulate` would run it (no save times: a fit's segments have
+    their own)."""
+    return resolve_solver(solver, mech, rtol, load=load)

@@ -1,7 +1,8 @@
 """The fit's compiled programs, and the residual views the optimisers see.
 
-Every program is traced under [`checks_without_callbacks`][], so that none holds a host
-callback and JAX's persistent cache can keep it between processes.
+Each is a [`PersistentProgram`][]: kept between processes where it holds no host callback
+(the residuals' solves are `simulate`'s core without runtime checks; see
+`Problem.simulate_segments`).
 """
 
 from __future__ import annotations
@@ -12,18 +13,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..persistent import PersistentProgram, checks_without_callbacks
+from ..persistent import PersistentProgram
 from .problem import Problem
 
-__all__ = ["checks_without_callbacks", "Program", "residuals_at", "jacobian_at", "Subspace",
+__all__ = ["Program", "residuals_at", "jacobian_at", "Subspace",
            "Pinned", "segment_coloring"]
 
 
 def Program(fn, name: str) -> PersistentProgram:
-    """A compiled function of the fit, traced under [`checks_without_callbacks`][] and
-    kept between processes (see [`PersistentProgram`][]). Call it, or `.lower(...)` it
-    (for inspection)."""
-    return PersistentProgram(fn, name, checks_without_callbacks)
+    """A compiled function of the fit, kept between processes (see
+    [`PersistentProgram`][]). Call it, or `.lower(...)` it (for inspection)."""
+    return PersistentProgram(fn, name)
 
 
 def _residuals(problem, z):

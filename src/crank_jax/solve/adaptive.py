@@ -281,6 +281,19 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     return unpack(ys), result, state.steps[..., 0]
 
 
+class _Chunk(NamedTuple):
+    """The step loop's state within one chunk of save times (see [`_step_loop`][]): `j`,
+    the save times of the chunk written so far; `i0`, the chunk's first save index; the
+    [`_Step`][] `state`; `buf`, the chunk's outputs ((chunk + window,) + the packed
+    state's shape); `tc`, its save times."""
+
+    j: jax.Array
+    i0: jax.Array
+    state: _Step
+    buf: jax.Array
+    tc: jax.Array
+
+
 def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps):
     """The step attempts from `state0` to `ts[-1]`, recording the dense output at `ts`.
 
@@ -299,11 +312,10 @@ def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps
         # Members still to step: neither at the end nor out of budget.
         return (state.t < t_end) & (state.steps < max_steps)
 
-    def chunk_cond(c):
-        j, i0, state, _, _ = c
-        return (j < CH) & (i0 + j < n) & jnp.any(waiting(state))
+    def chunk_cond(c: _Chunk):
+        return (c.j < CH) & (c.i0 + c.j < n) & jnp.any(waiting(c.state))
 
-    def chunk_body(c):
+    def chunk_body(c: _Chunk):
         j, i0, state, buf, tc = c
         tw = jax.lax.dynamic_slice_in_dim(tc, j, W)
         # The block may not step past its window's last save time (nor the end).
@@ -322,7 +334,7 @@ def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps
         past = (twr <= state.t[None]) | ~waiting(state)[None]
         past = jnp.all(past.reshape(W, -1), axis=1)
         reached = jnp.sum(past & (i0 + j + jnp.arange(W) < n))
-        return j + reached, i0, state, buf, tc
+        return _Chunk(j + reached, i0, state, buf, tc)
 
     def cond(c):
         return (c[0] < n) & jnp.any(waiting(c[1]))
@@ -335,7 +347,7 @@ def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps
         tc = jax.lax.dynamic_slice_in_dim(ts_pad, i0, CH + W)
         buf = jax.lax.dynamic_slice_in_dim(out, i0, CH + W)
         j, _, state, buf, _ = jax.lax.while_loop(
-            chunk_cond, chunk_body, (jnp.array(0), i0, state, buf, tc))
+            chunk_cond, chunk_body, _Chunk(jnp.array(0), i0, state, buf, tc))
         out = jax.lax.dynamic_update_slice_in_dim(out, buf, i0, 0)
         return i0 + j, state, out
 

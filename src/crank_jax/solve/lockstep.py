@@ -180,6 +180,28 @@ def _as_float(x, like):
     return jnp.asarray(x).astype(like.dtype)
 
 
+def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size):
+    """`lockstep(dyn_b, y0, rtol, atol) -> (ys, code, steps)`: one group of a batch in one
+    loop ([`solve_adaptive`][] batched), its members' batched field leaves `dyn_b` joined
+    with the shared `dyn_c`; outputs with the batch axis first."""
+
+    def lockstep(dyn_b, y0, rtol, atol):
+        # Per-member tolerances scale that member's state (the last axis).
+        rtol = rtol[:, None] if in_batched[3] else rtol
+        atol = atol[:, None] if in_batched[4] else atol
+        # The geometry's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises
+        # over the members (trig.py).
+        with trig.arithmetic():
+            ys, result, steps = solve_adaptive(
+                _side_by_side(rebuild, _join(dyn_b, dyn_c, in_batched[0]), in_batched[0]),
+                y0, ts, rtol, atol, max_steps=max_steps, batched=True,
+                error_size=error_size)
+        ys = jax.tree_util.tree_map(lambda v: jnp.moveaxis(v, 1, 0), ys)
+        return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
+
+    return lockstep
+
+
 def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_size):
     # The field's arrays as a flat list: `custom_vmap` cannot take the `None` leaves that
     # `eqx.partition` leaves (jax issue 9066).
@@ -209,22 +231,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_siz
             lambda v, b: v if b else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)),
             y0, in_batched[1])
         dyn_b, dyn_c = _split(dyn, in_batched[0])
-
-        def lockstep(dyn_b, y0, rtol, atol):
-            # Per-member tolerances scale that member's state (the last axis).
-            rtol = rtol[:, None] if in_batched[3] else rtol
-            atol = atol[:, None] if in_batched[4] else atol
-            # The geometry's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises
-            # over the members (trig.py).
-            with trig.arithmetic():
-                ys, result, steps = solve_adaptive(
-                    _side_by_side(rebuild, _join(dyn_b, dyn_c, in_batched[0]),
-                                  in_batched[0]),
-                    y0, ts, rtol, atol, max_steps=max_steps, batched=True,
-                    error_size=error_size)
-            ys = jax.tree_util.tree_map(lambda v: jnp.moveaxis(v, 1, 0), ys)
-            return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
-
+        lockstep = _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size)
         out = _in_chunks(lockstep, axis_size, dyn_b, y0, rtol, atol, in_batched[3],
                          in_batched[4], spread=spread)
         return out, _all_batched(out)

@@ -33,14 +33,12 @@ from ..model.loads import AbstractLoad, is_sampled
 from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..model.structure import Structure
 from .inputs import check_tolerances, check_unbatched
+from .names import SOLVERS, is_implicit
 from .uniform import uniform_grid
 
 __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
            "is_concrete", "check_time_scale", "check_travel", "host_plan", "HostPlan"]
 
-#: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`.
-SOLVERS: tuple[str, ...] = ("auto", "tsit5", "dopri5", "dopri8", "kvaerno5", "dopri8-uniform",
-                           "dopri8-adaptive")
 
 # How many times its stability floor the fused uniform solver may need per interval to
 # resolve a fast mode at the default tolerance (a margin, not a tuned constant: below it
@@ -247,7 +245,7 @@ def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int
         rate = np.asarray(rate, dtype=float)
         top = float(np.max(np.where(np.isnan(rate), 0.0, rate))) if rate.size else 0.0
         product = top * float(span)
-        explicit = solver not in ("kvaerno5",)
+        explicit = not is_implicit(solver)
         need = product / _EXPLICIT_H_RATE
     if not (np.isfinite(product) and product <= _MAX_SPAN_RATE
             and not (explicit and need > max_steps)):

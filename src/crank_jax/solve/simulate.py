@@ -27,21 +27,16 @@ from ..model.linear import linearize
 from ..model.loads import AbstractLoad, as_load, nonsmooth_times
 from ..model.newton_euler import reactions
 from ..model.params import SliderCrank
-from ..persistent import (
-    PersistentProgram,
-    checks_without_callbacks,
-    enum_code,
-    enum_name,
-)
+from ..persistent import PersistentProgram, enum_code, enum_name
 from .lockstep import adaptive_solve
+from .names import DIFFRAX
 from .policy import check_travel, host_plan, is_concrete
-from .twin import reverse_twin
 from .uniform import solve_uniform
 from .variational import with_sensitivities
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
-__all__ = ["Trajectory", "simulate", "OUTPUTS", "output_columns"]
+__all__ = ["Trajectory", "simulate", "solve_crank", "OUTPUTS", "output_columns"]
 
 
 #: Derived outputs `simulate(outputs=...)` can add, with the columns each one produces.
@@ -98,35 +93,14 @@ class Trajectory(eqx.Module):
 
 
 def _solver_for(name: str) -> diffrax.AbstractSolver:
-    return {
-        "tsit5": diffrax.Tsit5,
-        "dopri5": diffrax.Dopri5,
-        "dopri8": diffrax.Dopri8,
-        "kvaerno5": diffrax.Kvaerno5,
-    }[name]()
-
-
-def _stacked_field_unchecked(t, y, field):
-    """As `_stacked_field`, for programs traced without runtime checks (`checks=False`)."""
-    return jnp.stack(field(t, (y[0], y[1])))
-
-
-def _stacked_field_host(t, y, field):
-    """As `_stacked_field`, for concrete inputs checked on the host."""
-    return jnp.stack(field(t, (y[0], y[1])))
+    """diffrax's solver of a name in the one table (`names.DIFFRAX`)."""
+    return getattr(diffrax, DIFFRAX[name][0])()
 
 
 def _stacked_field(t, y, field):
     """The ODETerm adapter: diffrax steps the state as one (2,) array, `args` is the
     [`CrankField`][]."""
     return jnp.stack(field(t, (y[0], y[1])))
-
-
-# One function object per kind of program (see `_solve`'s `mode`): diffrax caches the
-# traces of its solve by the vector field's identity, so a program traced in one mode
-# (the fit's, with equinox's checks turned off) is never handed to a caller in another.
-_TERMS = {"checked": _stacked_field, "unchecked": _stacked_field_unchecked,
-          "host": _stacked_field_host}
 
 
 def _rate(field: CrankField) -> Array:
@@ -174,6 +148,45 @@ def _controller(rtol, atol, load, torque) -> diffrax.AbstractStepSizeController:
     return diffrax.ClipStepSizeController(pid, step_ts=step_ts, jump_ts=jump_ts)
 
 
+def _uniform(crank: CrankField, y0, ts, rtol, atol, max_steps, adjoint):
+    """`"dopri8-uniform"` (`uniform.py`): `(ys (n, 2), result, steps)`.
+
+    Constant Dopri8 steps between the save times, on the packed field. JAX differentiates
+    its loop itself, the while-loop kind chosen as the matching diffrax adjoint. Its own
+    derivative rules (a variational equation in forward mode, a plain-field backward pass
+    in reverse mode) were removed (issue 26): sweeps, its reason to exist, never
+    differentiate, and diffrax's Dopri8 was faster than them. Measured on the lab rig
+    (10 s, 1001 saves, rtol 1e-8, 10 parameters; one process, medians, a loaded 2-core
+    machine, XLA's defaults, 2026-11-26): jacfwd 209 ms with its rule, 436 ms without,
+    177 ms through diffrax's Dopri8 (`ForwardMode`); `jax.grad` of a sum of squares
+    237 ms, 498 ms, 113 ms (`RecursiveCheckpointAdjoint`). To differentiate, use
+    `"dopri8-adaptive"` or `"dopri8"`."""
+    kind = {"reverse": "checkpointed", "forward": "lax", "direct": "bounded"}[adjoint]
+    rate = jax.lax.stop_gradient(_rate(crank))  # a first guess only (uniform.py)
+    (phi, dphi), result, steps = solve_uniform(crank.packed(), (y0[0], y0[1]), ts, rtol,
+                                               atol, rate=rate, max_steps=max_steps,
+                                               kind=kind)
+    return jnp.stack([phi, dphi], axis=1), result, steps
+
+
+def _diffrax(crank: CrankField, solver, y0, ts, rtol, atol, max_steps, adj, throw):
+    """One of diffrax's solvers (`names.DIFFRAX`): `(ys (n, 2), result, steps)`, steps
+    accepted and rejected."""
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(_stacked_field),
+        _solver_for(solver),
+        t0=ts[0], t1=ts[-1], dt0=None, y0=y0,
+        args=crank.packed(),
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=_controller(rtol, atol, crank.load, crank.torque),
+        max_steps=max_steps,
+        adjoint=adj,
+        throw=throw,
+    )
+    steps = sol.stats["num_steps"] + sol.stats.get("num_rejected_steps", 0)
+    return sol.ys, sol.result, steps
+
+
 def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, adjoint,
                 structure, outputs, throw, mode="checked"):
     # `mode`: "checked" (traced values, validated with `eqx.error_if`), "unchecked"
@@ -190,11 +203,11 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
     crank = CrankField(mech, load, torque, structure, force)
     # The solvers step the packed form, `crank.packed()`: the parameter parts formed once,
     # outside the step loop, in one buffer (see model/coefficients.py). Each branch forms
-    # it where it steps it (`dopri8-uniform`'s twin forms its own).
+    # it where it steps it.
     if solver == "dopri8-adaptive":
         def fallback(fld, y, ts_, r, a):
             ys = diffrax.diffeqsolve(
-                diffrax.ODETerm(_TERMS[mode]), diffrax.Dopri8(), t0=ts_[0], t1=ts_[-1],
+                diffrax.ODETerm(_stacked_field), diffrax.Dopri8(), t0=ts_[0], t1=ts_[-1],
                 dt0=None, y0=jnp.stack(y), args=fld, saveat=diffrax.SaveAt(ts=ts_),
                 stepsize_controller=diffrax.PIDController(rtol=r, atol=a),
                 max_steps=max_steps, adjoint=adj, throw=False).ys
@@ -214,39 +227,12 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
         if throw:
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
     elif solver == "dopri8-uniform":
-        # Constant Dopri8 steps between the save times (see `uniform.py`): the while-loop
-        # kind gives the same autodiff as the matching diffrax adjoint.
-        kind = {"reverse": "checkpointed", "forward": "lax", "direct": "bounded"}[adjoint]
-        def run(fld, y, ts_, r, a, rate):
-            (phi, dphi), res, n = solve_uniform(fld, (y[0], y[1]), ts_, r, a, rate=rate,
-                                                max_steps=max_steps, kind=kind)
-            return jnp.stack([phi, dphi], axis=1), res, n
-
-        # Its derivatives come from reverse passes of the field (sensitivity.py in forward
-        # mode, the checkpointed loop's backward pass in reverse mode), 2.4x dearer through
-        # the packed slices (lab rig, 10 parameters: Jacobian 60 -> 141 ms, grad 233 -> 570
-        # ms): forward mode steps the plain field; reverse mode differentiates a plain solve.
-        rate = jax.lax.stop_gradient(_rate(crank))  # a first guess only (uniform.py)
-        args = (y0, ts, rtol, atol, rate)
-        ys, result, steps = (reverse_twin(run, crank, CrankField.packed, *args)
-                             if kind == "checkpointed"
-                             else run(crank if kind == "lax" else crank.packed(), *args))
+        ys, result, steps = _uniform(crank, y0, ts, rtol, atol, max_steps, adjoint)
         if throw:
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
     else:
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(_TERMS[mode]),
-            _solver_for(solver),
-            t0=ts[0], t1=ts[-1], dt0=None, y0=y0,
-            args=crank.packed(),
-            saveat=diffrax.SaveAt(ts=ts),
-            stepsize_controller=_controller(rtol, atol, load, torque),
-            max_steps=max_steps,
-            adjoint=adj,
-            throw=throw,
-        )
-        ys, result = sol.ys, sol.result
-        steps = sol.stats["num_steps"] + sol.stats.get("num_rejected_steps", 0)
+        ys, result, steps = _diffrax(crank, solver, y0, ts, rtol, atol, max_steps, adj,
+                                     throw)
     phi, dphi = ys[:, 0], ys[:, 1]
     if not throw:
         # A failed solve leaves inf after the failure time. No NaN or inf leaves simulate:
@@ -262,6 +248,27 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
 
 
 _solve = eqx.filter_jit(_solve_impl)
+
+
+def solve_crank(mech, load, torque, force, y0, ts, rtol, atol, *, solver: str,
+                max_steps: int, adjoint: str, structure: Structure) -> Trajectory:
+    """The solve `simulate` runs, for a caller tracing its own program (the fit's
+    residuals and Jacobians): the same solver branches, field and derivative rules, with
+    no runtime checks (invalid values fail the solve) and never raising (a failure is in
+    `result`, and the samples after it hold the last state reached).
+
+    **Arguments:** as [`simulate`][]'s, with `solver` already resolved by the policy
+    (`policy.resolve_solver`), `y0` (2,) `(phi0, dphi0)`, `structure` given, and `load`,
+    `torque` loads (not numbers).
+
+    **Returns:** a [`Trajectory`][] without extras. Its program holds no host callback
+    for the fused solvers (`"dopri8-adaptive"`, `"dopri8-uniform"`) in forward mode, so
+    JAX's persistent cache and the program store keep it; diffrax's solvers check their
+    save times with `eqx.error_if`, a host callback, and such programs run unstored.
+    """
+    return _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, solver=solver,
+                       max_steps=max_steps, adjoint=adjoint, structure=structure,
+                       outputs=(), throw=False, mode="unchecked")
 
 
 def simulate(
@@ -390,7 +397,7 @@ def _solve_flat(mech, load, torque, force, y0, ts, rtol, atol, solver, max_steps
 
 # Concrete calls (every CLI simulate, a fit's synthetic data) in a fresh process load this
 # compiled program instead of tracing the solver again (see persistent.py).
-_solve_program = PersistentProgram(_solve_flat, "simulate", checks_without_callbacks)
+_solve_program = PersistentProgram(_solve_flat, "simulate")
 
 
 def _program_solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps,

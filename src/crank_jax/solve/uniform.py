@@ -25,6 +25,8 @@ way. The sum of the lower-order estimates over-estimates the error of the soluti
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -33,7 +35,6 @@ import numpy as np
 from .. import compat
 from ..lazy import lazy_import
 from .erk import FusedERK, dopri8, packer, rms_error
-from .sensitivity import attach_sensitivities
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
@@ -69,8 +70,113 @@ def _all_finite(tree):
     return ok
 
 
+class _Pass(NamedTuple):
+    """What one pass of [`_make_pass`][] gives: `ys` (n, N), the packed states (see
+    `erk.packer`); `E = sum E_i`, the summed scaled error (inf if the solution is not
+    finite); `steps`, its steps; `top`, whether some interval wanted more than `max_sub`."""
+
+    ys: jax.Array
+    E: jax.Array
+    steps: jax.Array
+    top: jax.Array
+
+
+class _Interval(NamedTuple):
+    """The state carried from one save interval to the next within a pass: the state `y`,
+    the error so far `E`, the next interval's step count `m`, the steps so far, `top`."""
+
+    y: object
+    E: jax.Array
+    m: jax.Array
+    steps: jax.Array
+    top: jax.Array
+
+
+class _Try(NamedTuple):
+    """An interval's tries (redone with more steps while its error overshoots): try `j`,
+    its `m` steps, the state `y` reached, its error `Ei`, the steps so far."""
+
+    j: jax.Array
+    m: jax.Array
+    y: object
+    Ei: jax.Array
+    steps: jax.Array
+
+
+class _Pilot(NamedTuple):
+    """The pilot's loop: the steps per interval `m_p` it ran, the first interval's `m` it
+    predicts, the steps so far, pass `j`."""
+
+    m_p: jax.Array
+    m_pred: jax.Array
+    steps: jax.Array
+    j: jax.Array
+
+
+class _Select(NamedTuple):
+    """The full passes' loop: the per-interval share `aim`, the floor on `m`, the last
+    pass (a [`_Pass`][]), pass `j`."""
+
+    aim: jax.Array
+    m_floor: jax.Array
+    last: _Pass
+    j: jax.Array
+
+
+def _interval(erk: FusedERK, f, args, rtol, atol, max_sub, kind, t0, t1, aim, m_floor,
+              dtype):
+    """`interval(c: _Interval) -> _Interval`: one pass's save interval (t0, t1] with `c.m`
+    equal steps of `erk`, redone with more while its error overshoots `_REJECT` times its
+    share `aim`, and the next interval's `m` (see [`_make_pass`][])."""
+    expo = 1 / (erk.order - 1)
+
+    def run(m, y):
+        h = (t1 - t0) / m.astype(dtype)
+
+        def body(c):
+            i, yy, Ei = c
+            y1, err = erk.step(f, t0 + i.astype(dtype) * h, yy, args, h)
+            # The estimate only picks the step: stop_gradient keeps its arithmetic
+            # (and its tangents) out of every derivative.
+            e = rms_error(*jax.lax.stop_gradient((err, yy, y1)), rtol, atol)
+            return i + 1, y1, Ei + e
+
+        _, y1, Ei = compat.while_loop(lambda c: c[0] < m, body,
+                                      (jnp.array(0), y, jnp.zeros((), dtype)),
+                                      max_steps=max_sub, kind=kind)
+        return y1, jnp.where(_all_finite(y1), Ei, jnp.inf)
+
+    def grow_to(m, Ei):
+        fac = (Ei / aim) ** expo
+        return jnp.where(jnp.isfinite(fac), jnp.ceil(m * fac), 4.0 * m)
+
+    # An interval whose error overshoots its share by _REJECT is redone with more
+    # steps, as an adaptive solver rejects a step: the relative scale atol + rtol |y|
+    # jumps where a component crosses zero, which the previous interval cannot predict.
+    def try_cond(c: _Try):
+        return (c.j == 0) | ((c.Ei > _REJECT * aim) & (c.m < max_sub) & (c.j < _TRIES))
+
+    def interval(c: _Interval):
+        def try_body(t: _Try):  # every try starts from the interval's start, c.y
+            m = jnp.where(t.j == 0, t.m, jnp.minimum(jnp.maximum(grow_to(t.m, t.Ei),
+                                                                 t.m + 1),
+                                                     max_sub).astype(t.m.dtype))
+            y1, Ei = run(m, c.y)
+            return _Try(t.j + 1, m, y1, Ei, t.steps + m)
+
+        t = compat.while_loop(try_cond, try_body,
+                              _Try(jnp.array(0), c.m, c.y, jnp.zeros((), dtype), c.steps),
+                              max_steps=_TRIES, kind=kind)
+        want = grow_to(t.m, t.Ei)
+        want = jnp.maximum(want, jnp.maximum(m_floor, (t.m + 1) // 2))
+        return _Interval(t.y, c.E + t.Ei, jnp.minimum(want, max_sub).astype(t.m.dtype),
+                         t.steps, c.top | (want > max_sub))
+
+    return interval
+
+
 def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
-    """`one_pass(y0, ts, m1, aim, m_floor) -> (ys, E, steps, top, ms)`.
+    """`one_pass(y0, ts, m1, aim, m_floor) -> _Pass`.
 
     Integrates `dy/dt = f(t, y, args)` over `ts` with `m_i` equal steps of `erk` in save
     interval i. `m1` is the first interval's; then `m_{i+1}` comes from interval i's error,
@@ -79,72 +185,59 @@ def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
     `m_{i+1} = ceil(m_i (E_i / aim)^(1/(p-1)))`, which aims every interval at the same share
     `aim` of the global budget. `m` at most halves per interval (a slow fall lets a growing
     instability show in `E_i` before it matters) and never goes below `m_floor` or above
-    `max_sub`. Returns `ys` ((n, N), the packed states, see `erk.packer`), `E = sum E_i` (inf
-    if the solution is not finite), the number of steps, whether some interval wanted more
-    than `max_sub` steps, and the accepted `m_i` of every interval.
+    `max_sub`. Returns a [`_Pass`][].
     """
-    expo = 1 / (erk.order - 1)
 
-    def one_pass(y0, ts, m1, aim, m_floor):
+    def one_pass(y0, ts, m1, aim, m_floor) -> _Pass:
         dtype = ts.dtype
         pack, _ = packer(y0)
 
-        def interval(carry, tt):
-            y, E, m, steps, top = carry
-            t0, t1 = tt
+        def scanned(c: _Interval, tt):
+            c = _interval(erk, f, args, rtol, atol, max_sub, kind,
+                          tt[0], tt[1], aim, m_floor, dtype)(c)
+            return c, pack(c.y)
 
-            def run(m):
-                h = (t1 - t0) / m.astype(dtype)
-
-                def body(c):
-                    i, yy, Ei = c
-                    y1, err = erk.step(f, t0 + i.astype(dtype) * h, yy, args, h)
-                    # The estimate only picks the step: stop_gradient keeps its arithmetic
-                    # (and its tangents) out of every derivative.
-                    e = rms_error(*jax.lax.stop_gradient((err, yy, y1)), rtol, atol)
-                    return i + 1, y1, Ei + e
-
-                _, y1, Ei = compat.while_loop(lambda c: c[0] < m, body,
-                                            (jnp.array(0), y, jnp.zeros((), dtype)),
-                                            max_steps=max_sub, kind=kind)
-                return y1, jnp.where(_all_finite(y1), Ei, jnp.inf)
-
-            def grow_to(m, Ei):
-                fac = (Ei / aim) ** expo
-                return jnp.where(jnp.isfinite(fac), jnp.ceil(m * fac), 4.0 * m)
-
-            # An interval whose error overshoots its share by _REJECT is redone with more
-            # steps, as an adaptive solver rejects a step: the relative scale atol + rtol |y|
-            # jumps where a component crosses zero, which the previous interval cannot
-            # predict.
-            def try_cond(c):
-                j, m, _, Ei, _ = c
-                return (j == 0) | ((Ei > _REJECT * aim) & (m < max_sub) & (j < _TRIES))
-
-            def try_body(c):
-                j, m, _, Ei, s = c
-                m = jnp.where(j == 0, m, jnp.minimum(jnp.maximum(grow_to(m, Ei), m + 1),
-                                                     max_sub).astype(m.dtype))
-                y1, Ei = run(m)
-                return j + 1, m, y1, Ei, s + m
-
-            _, m, y, Ei, steps = compat.while_loop(
-                try_cond, try_body, (jnp.array(0), m, y, jnp.zeros((), dtype), steps),
-                max_steps=_TRIES, kind=kind)
-            want = grow_to(m, Ei)
-            want = jnp.maximum(want, jnp.maximum(m_floor, (m + 1) // 2))
-            m_next = jnp.minimum(want, max_sub).astype(m.dtype)
-            top = top | (want > max_sub)
-            return (y, E + Ei, m_next, steps, top), (pack(y), m)
-
-        init = (y0, jnp.zeros((), dtype), m1, jnp.zeros((), m1.dtype), jnp.array(False))
-        (_, E, _, steps, top), (ys, ms) = jax.lax.scan(interval, init, (ts[:-1], ts[1:]))
+        init = _Interval(y0, jnp.zeros((), dtype), m1, jnp.zeros((), m1.dtype),
+                         jnp.array(False))
+        last, ys = jax.lax.scan(scanned, init, (ts[:-1], ts[1:]))
         ys = jnp.concatenate([pack(y0)[None].astype(ys.dtype), ys])
         # A non-finite solution (an unstable step) counts as a failed pass.
-        E = jnp.where(_all_finite(jax.lax.stop_gradient(ys)), E, jnp.inf)
-        return ys, E, steps, top, ms
+        E = jnp.where(_all_finite(jax.lax.stop_gradient(ys)), last.E, jnp.inf)
+        return _Pass(ys, E, last.steps, last.top)
 
     return one_pass
+
+
+def _first_m(pilot_pass, y0, ts, rtol, m_model, m_floor0, max_sub, expo):
+    """Step 1 of `solve_uniform`: the pilot on the first `_PILOT_INTERVALS` intervals with
+    a constant `m` (floor `m_p`, aim inf: the per-interval control of `_make_pass` is off).
+
+    **Returns:** `(m1, steps)`: the first interval's predicted `m`, the pilot's steps."""
+    sg = jax.lax.stop_gradient
+    dtype = ts.dtype
+    n_int = ts.shape[0] - 1
+    k = min(n_int, _PILOT_INTERVALS)
+    ts_p, y0_p = sg(ts[: k + 1]), sg(y0)
+    aim0 = jnp.asarray(_E_AIM / n_int, dtype)
+
+    def predict(m_p, E_p):
+        # Per-interval error E_p / k at m_p; aim at aim0. An unstable pilot: 4x m_p.
+        fac = jnp.where(jnp.isfinite(E_p), (jnp.maximum(E_p / k, 1e-300) / aim0) ** expo, 4.0)
+        return jnp.clip(jnp.ceil(m_p * fac), m_floor0, max_sub).astype(jnp.int32)
+
+    def pilot_cond(c: _Pilot):
+        far = (c.m_pred > 2 * c.m_p) | (2 * c.m_pred < c.m_p)
+        return (c.j == 0) | ((c.j < _PILOT_PASSES) & far & (c.m_p < max_sub))
+
+    def pilot_body(c: _Pilot):
+        m_p = jnp.where(c.j == 0, c.m_p, c.m_pred)
+        got = pilot_pass(y0_p, ts_p, m_p, jnp.asarray(jnp.inf, dtype), m_p)
+        return _Pilot(m_p, predict(m_p, got.E), c.steps + got.steps, c.j + 1)
+
+    m_p0 = jnp.clip(jnp.ceil(m_model / 2), m_floor0, max_sub).astype(jnp.int32)
+    out = jax.lax.while_loop(pilot_cond, pilot_body,
+                             _Pilot(m_p0, m_p0, jnp.zeros((), jnp.int32), jnp.array(0)))
+    return out.m_pred, out.steps
 
 
 def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind,
@@ -163,8 +256,9 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
       rate): it sets the first guess and the stability floor on the steps. A guess only:
       the step counts are measured.
     - `max_steps`: the step budget; `kind`, the `compat.while_loop` kind that
-      sets which autodiff works: `"lax"` (forward, through the sensitivities),
-      `"checkpointed"` (reverse), `"bounded"` (both).
+      sets which autodiff works: `"lax"` (forward), `"checkpointed"` (reverse),
+      `"bounded"` (both). JAX differentiates the loop itself (no rule of its own: see
+      the module docstring).
     - `erk`: the method, default [`dopri8`][]`()`.
 
     **Returns:** `(ys, result, num_steps)`: `ys` a pytree like `y0` with a leading axis n;
@@ -197,12 +291,7 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
     erk = dopri8() if erk is None else erk
     expo = 1 / (erk.order - 1)
     sg = jax.lax.stop_gradient
-    # Forward mode ("lax"): the solve runs on values, and its derivative comes from
-    # `attach_sensitivities` (the variational equation, stepped with the same steps).
-    sens = kind == "lax"
-    y0_sel = sg(y0) if sens else y0
-    field_sel, args_sel = _no_grad((field, args)) if sens else (field, args)
-    one_pass = _make_pass(erk, field_sel, args_sel, rtol, atol, max_sub, kind)
+    one_pass = _make_pass(erk, field, args, rtol, atol, max_sub, kind)
     # The pilot never carries tangents, so a plain lax loop is fine in every adjoint mode.
     pilot_pass = _make_pass(erk, *_no_grad((field, args)), sg(rtol), sg(atol), max_sub, "lax")
 
@@ -213,59 +302,31 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
     om_h = (0.5 * sg(rtol) / (_C_MODEL * span * om)) ** expo
     m_model = jnp.ceil(dt * om / om_h)
     m_floor0 = jnp.clip(jnp.ceil(dt * om / _STABLE_H_OMEGA), 1, max_sub).astype(jnp.int32)
-
-    # 1. Pilot on the first k intervals with a constant m (floor m_p, aim inf: the
-    # per-interval control of `_make_pass` is off).
-    k = min(n_int, _PILOT_INTERVALS)
-    ts_p, y0_p = sg(ts[: k + 1]), sg(y0)
-    aim0 = jnp.asarray(_E_AIM / n_int, dtype)
-
-    def predict(m_p, E_p):
-        # Per-interval error E_p / k at m_p; aim at aim0. An unstable pilot: 4x m_p.
-        fac = jnp.where(jnp.isfinite(E_p), (jnp.maximum(E_p / k, 1e-300) / aim0) ** expo, 4.0)
-        return jnp.clip(jnp.ceil(m_p * fac), m_floor0, max_sub).astype(jnp.int32)
-
-    def pilot_cond(c):
-        m_p, m_pred, _, j = c
-        far = (m_pred > 2 * m_p) | (2 * m_pred < m_p)
-        return (j == 0) | ((j < _PILOT_PASSES) & far & (m_p < max_sub))
-
-    def pilot_body(c):
-        m_p, m_pred, steps, j = c
-        m_p = jnp.where(j == 0, m_p, m_pred)
-        _, E_p, s, _, _ = pilot_pass(y0_p, ts_p, m_p, jnp.asarray(jnp.inf, dtype), m_p)
-        return m_p, predict(m_p, E_p), steps + s, j + 1
-
-    m_p0 = jnp.clip(jnp.ceil(m_model / 2), m_floor0, max_sub).astype(jnp.int32)
-    _, m1, pilot_steps, _ = jax.lax.while_loop(
-        pilot_cond, pilot_body, (m_p0, m_p0, jnp.zeros((), jnp.int32), jnp.array(0)))
+    m1, pilot_steps = _first_m(pilot_pass, y0, ts, rtol, m_model, m_floor0, max_sub, expo)
 
     # 2.-3. Adaptive full passes until E <= 1. A single copy of the pass in the program
     # keeps compile time down.
-    def sel_cond(c):
-        _, _, _, _, E, _, top, j = c
-        return (j == 0) | ((E > 1) & ~top & (j < _MAX_PASSES))
+    def sel_cond(c: _Select):
+        return (c.j == 0) | ((c.last.E > 1) & ~c.last.top & (c.j < _MAX_PASSES))
 
-    def sel_body(c):
-        aim, m_floor, _, _, E, steps, _, j = c
+    def sel_body(c: _Select):
+        E = c.last.E
         bad = ~jnp.isfinite(E)
-        aim = jnp.where(j == 0, aim, jnp.where(bad, aim, aim * _E_AIM / jnp.maximum(E, 1)))
-        m_floor = jnp.where((j > 0) & bad, jnp.minimum(2 * m_floor, max_sub), m_floor)
-        ys, E, s, top, ms = one_pass(y0_sel, ts, jnp.maximum(m1, m_floor), aim, m_floor)
-        return aim, m_floor, ys, ms, E, steps + s, top, j + 1
+        aim = jnp.where(c.j == 0, c.aim,
+                        jnp.where(bad, c.aim, c.aim * _E_AIM / jnp.maximum(E, 1)))
+        m_floor = jnp.where((c.j > 0) & bad, jnp.minimum(2 * c.m_floor, max_sub), c.m_floor)
+        got = one_pass(y0, ts, jnp.maximum(m1, m_floor), aim, m_floor)
+        return _Select(aim, m_floor, got._replace(steps=c.last.steps + got.steps), c.j + 1)
 
     pack, unpack = packer(y0)
     ys0 = jnp.zeros((n,) + pack(y0).shape, dtype)
-    init = (aim0, m_floor0, ys0, jnp.zeros(n_int, jnp.int32), jnp.asarray(jnp.inf, dtype),
-            pilot_steps, jnp.array(False), jnp.array(0))
-    _, _, ys, ms, E, steps, _, _ = compat.while_loop(sel_cond, sel_body, init,
-                                                   max_steps=_MAX_PASSES, kind=kind)
-    result = diffrax.RESULTS.where(E <= 1, diffrax.RESULTS.successful,
+    init = _Select(jnp.asarray(_E_AIM / n_int, dtype), m_floor0,
+                   _Pass(ys0, jnp.asarray(jnp.inf, dtype), pilot_steps, jnp.array(False)),
+                   jnp.array(0))
+    last = compat.while_loop(sel_cond, sel_body, init, max_steps=_MAX_PASSES, kind=kind).last
+    result = diffrax.RESULTS.where(last.E <= 1, diffrax.RESULTS.successful,
                                    diffrax.RESULTS.max_steps_reached)
-    ys = unpack(ys)
-    if sens:
-        ys = attach_sensitivities(erk, field, args, y0, ts, ys, ms)
-    return ys, result, steps
+    return unpack(last.ys), result, last.steps
 
 
 def uniform_grid(ts: np.ndarray, rtol: float = 1e-9) -> bool:

@@ -39,15 +39,59 @@ import numpy as np
 
 from ..compat import result_code
 from .adaptive import outcome
-from .sensitivity import columns_to_tree, copied_components, flatten_state
 
-__all__ = ["with_sensitivities"]
+__all__ = ["with_sensitivities", "flatten_state"]
 
 # Columns (parameters and initial-state components differentiated) and prepared parameter
 # elements above which the JVP falls back to `jax.jvp` through the solve: the variational
 # state and the chain rule grow with both (e.g. a neural-network force's weights).
 MAX_COLUMNS = 64
 MAX_ELEMENTS = 256
+
+
+def flatten_state(y):
+    """The leaves of `y` and a function from N scalar components back to `y`'s pytree."""
+    leaves, treedef = jax.tree_util.tree_flatten(y)
+    shapes = [np.shape(x) for x in leaves]
+    sizes = [int(np.prod(s, dtype=int)) for s in shapes]
+
+    def components(tree):
+        out = []
+        for x, s in zip(jax.tree_util.tree_leaves(tree), shapes):
+            out += [x] if s == () else list(jnp.ravel(x))
+        return out
+
+    def rebuild(comps):
+        out, i = [], 0
+        for s, k in zip(shapes, sizes):
+            out.append(comps[i] if s == () else jnp.stack(comps[i:i + k]).reshape(s))
+            i += k
+        return jax.tree_util.tree_unflatten(treedef, out)
+
+    return components, rebuild, sum(sizes)
+
+
+def copied_components(g, x, theta) -> list:
+    """For each output component of `g(x, theta)` (a tuple of scalars), the index of the
+    input component of `x` that it returns unchanged, else None (read off the jaxpr)."""
+    closed = jax.make_jaxpr(g)(tuple(x), theta)
+    ins = closed.jaxpr.invars[: len(x)]
+    out = []
+    for v in closed.jaxpr.outvars:
+        hit = [i for i, u in enumerate(ins) if u is v]
+        out.append(hit[0] if hit else None)
+    return out
+
+
+def columns_to_tree(dys, y0):
+    """(n, N) tangent columns back to `y0`'s pytree: a leaf of shape s becomes (n,) + s."""
+    n = dys.shape[0]
+    out, i = [], 0
+    for v in jax.tree_util.tree_leaves(y0):
+        k = int(np.size(v))
+        out.append(dys[:, i:i + k].reshape((n,) + np.shape(v)))
+        i += k
+    return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(y0), out)
 
 
 class _Variational(eqx.Module):
@@ -214,15 +258,7 @@ def with_sensitivities(solve: Callable, field, prepare: Callable, y0, ts, rtol, 
         theta = jnp.concatenate([jnp.ravel(leaves[i]) for i in live] + [jnp.zeros(0, ts.dtype)])
         dtype = ts.dtype
 
-        def prepared(theta):
-            out, o = list(leaves), 0
-            for i in live:
-                k = int(np.size(leaves[i]))
-                out[i] = theta[o:o + k].reshape(np.shape(leaves[i])).astype(leaves[i].dtype)
-                o += k
-            inner = prepare(eqx.combine(jax.tree_util.tree_unflatten(treedef, out), static))
-            return jax.tree_util.tree_leaves(eqx.filter(inner, eqx.is_inexact_array))
-
+        prepared = _prepared(prepare, leaves, treedef, static, live)
         inner = prepare(eqx.combine(dyn, static))
         inner_leaves = jax.tree_util.tree_leaves(eqx.filter(inner, eqx.is_inexact_array))
         depends = _depends_on_inputs(prepared, theta)
@@ -251,6 +287,22 @@ def with_sensitivities(solve: Callable, field, prepare: Callable, y0, ts, rtol, 
     run.defjvp(run_jvp, symbolic_zeros=True)
     ys, code, steps = run(dyn, y0, ts, rtol, atol)
     return (ys, *outcome(code, steps))
+
+
+def _prepared(prepare, leaves, treedef, static, live):
+    """`theta -> the prepared field's inexact leaves`, with the field's leaves `live` (their
+    indices in `leaves`) taken from the flat `theta`, in order, and the others as given."""
+
+    def prepared(theta):
+        out, o = list(leaves), 0
+        for i in live:
+            k = int(np.size(leaves[i]))
+            out[i] = theta[o:o + k].reshape(np.shape(leaves[i])).astype(leaves[i].dtype)
+            o += k
+        inner = prepare(eqx.combine(jax.tree_util.tree_unflatten(treedef, out), static))
+        return jax.tree_util.tree_leaves(eqx.filter(inner, eqx.is_inexact_array))
+
+    return prepared
 
 
 def _augmented(inner, prepared, theta, depends, y0_cols, y0, t0) -> _Variational:
