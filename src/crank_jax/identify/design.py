@@ -260,19 +260,8 @@ def design(
     fn = float(np.asarray(lin.omega_n)) / (2 * math.pi)
     fn = fn if math.isfinite(fn) and fn > 0 else math.sqrt(f_lo * f_hi)
     grid = jnp.linspace(0.0, t1, int(t1 * f_hi * _GRID_PER_PERIOD) + 1)
-    # Start: equal weights, random phases, frequencies log-spaced around f_n.
-    f0 = np.clip(fn * np.geomspace(0.5, 2.0, tones), f_lo * 1.01, f_hi * 0.99)
-    v0 = np.log((f0 - f_lo) / (f_hi - f0))
-    p0 = np.random.default_rng(seed).uniform(0, 2 * np.pi, tones)
-    parts = [np.ones(tones), p0, v0]
-    if force_amplitude is not None:
-        parts += [np.ones(tones), np.random.default_rng(seed + 1).uniform(0, 2 * np.pi, tones),
-                  v0]
-    if release:
-        parts.append([scene.phi0])
-    if release_speed is not None:
-        parts.append([math.atanh(float(np.clip(scene.dphi0 / release_speed, -0.9, 0.9)))])
-    w = jnp.asarray(np.concatenate(parts))
+    w = _start(scene, tones, seed, fn, f_lo, f_hi, force_amplitude is not None, release,
+               release_speed)
 
     def unpack(w):
         """(torque, slider load, (phi0, dphi0)) of the design variables `w`."""
@@ -325,6 +314,23 @@ def design(
                   {k: {"designed": se_d[k], "baseline": se_b[k]} for k in free},
                   criterion, target if criterion == "c" else None, history, peak, force,
                   y0 if release or release_speed is not None else None)
+
+
+def _start(scene, tones, seed, fn, f_lo, f_hi, force, release, release_speed):
+    """The design variables' start: each multisine with equal weights, random phases and
+    frequencies log-spaced around the natural frequency `fn`; the scene's release."""
+    f0 = np.clip(fn * np.geomspace(0.5, 2.0, tones), f_lo * 1.01, f_hi * 0.99)
+    v0 = np.log((f0 - f_lo) / (f_hi - f0))
+    p0 = np.random.default_rng(seed).uniform(0, 2 * np.pi, tones)
+    parts = [np.ones(tones), p0, v0]
+    if force:
+        parts += [np.ones(tones), np.random.default_rng(seed + 1).uniform(0, 2 * np.pi, tones),
+                  v0]
+    if release:
+        parts.append([scene.phi0])
+    if release_speed is not None:
+        parts.append([math.atanh(float(np.clip(scene.dphi0 / release_speed, -0.9, 0.9)))])
+    return jnp.asarray(np.concatenate(parts))
 
 
 def _within_bound(torque: MultiSineLoad, amplitude: float, t1: float, n: int):
