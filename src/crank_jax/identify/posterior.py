@@ -187,7 +187,9 @@ def posterior(
     First [`fit`][] finds the least-squares estimate and its Laplace covariance; the chains
     start around it, in coordinates whitened by that covariance (priors included). Warm-up
     then adapts the step size and a dense mass matrix on Stan's windows, and every chain
-    draws `draws` samples (chains run together, vmapped).
+    draws `draws` samples. On the CPU the chains are shared over the JAX CPU devices and run
+    one after another on each (`crank_jax.configure_cpu()` asks for a device per core and
+    XLA's faster CPU flags: call it first in a program); on an accelerator, vmapped.
 
     **Arguments:**
 
