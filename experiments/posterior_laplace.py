@@ -73,6 +73,7 @@ def draw(ax_row, post, title):
         ax.axvline(ci[1], color="C3", lw=1, label="Laplace 95%")
         ax.set_xlabel(n)
         ax.set_yticks([])
+        ax.locator_params(axis="x", nbins=4)
         ax.tick_params(labelsize=7)
     ax_row[0].set_title(title, fontsize=9, loc="left")
     ax_row[0].legend(fontsize=6)
@@ -85,12 +86,14 @@ def draw(ax_row, post, title):
     ax.plot(e[:, 0], e[:, 1], color="C3", lw=1)
     ax.set_xlabel("k")
     ax.set_ylabel("c")
+    ax.locator_params(axis="x", nbins=4)
     ax.tick_params(labelsize=7)
 
 
 def main() -> None:
     draws = int(sys.argv[1]) if len(sys.argv) > 1 else 1000
     plt = pyplot()
+    plt.rcParams["axes.formatter.offset_threshold"] = 2  # 0.0019998 as 0.002 + offsets
     fig, axes = plt.subplots(len(CASES), 3, figsize=(10, 3.2 * len(CASES)))
     results = {}
     for row, (name, spec) in zip(axes, CASES.items()):
