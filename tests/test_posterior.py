@@ -59,6 +59,36 @@ def test_posterior_matches_laplace_where_well_conditioned(short_record):
     assert post.divergences == 0
 
 
+def test_chains_one_after_another_match_the_vmapped_chains(short_record):
+    """On the CPU the chains run one after another in the program (`lax.map`, nuts.py's
+    `_batched`); the same keys give the same transitions as vmapped chains, to rounding."""
+    import jax
+    import jax.numpy as jnp
+
+    from crank_jax.identify import nuts
+    from crank_jax.identify.posterior import _laplace_z, _problem_at
+    from crank_jax.identify.priors import prior_arrays
+    from crank_jax.identify.request import normalise
+
+    scene, data = short_record
+    free = ("k", "c")
+    req = normalise(scene, data, free, init="scene", method="lm", shooting="auto",
+                    segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8,
+                    sigma=None, profile=None, window=None, progress=False, warn=False)
+    res = cj.fit(scene, data, free, progress=False, warn=False)
+    problem, z = _problem_at(req, res)
+    codes, params = prior_arrays(problem.names, {}, problem.log)
+    L = np.linalg.cholesky(_laplace_z(problem, z, codes, params))
+    carry = nuts.initial_carry(problem, codes, params, z, L, 2, jax.random.PRNGKey(0))
+    stages = jnp.asarray(nuts.schedule(60)[:nuts.CHUNK])  # warm-up: adapting, too
+    keys = jax.random.split(jax.random.PRNGKey(1), 2 * nuts.CHUNK).reshape(2, nuts.CHUNK, -1)
+    args = (problem, codes, params, jnp.asarray(z), jnp.asarray(L), carry, keys, stages)
+    _, x_map, _, s_map = nuts._chunk_program(*args, False)
+    _, x_vmap, _, s_vmap = nuts._chunk_program(*args, True)
+    np.testing.assert_array_equal(np.asarray(s_map), np.asarray(s_vmap))
+    np.testing.assert_allclose(np.asarray(x_map), np.asarray(x_vmap), rtol=0, atol=1e-6)
+
+
 @pytest.mark.slow  # a second sampling run: ~1 min on a quiet 2-core machine
 def test_prior_pulls_the_posterior(short_record):
     """A tight prior on k away from the data's value moves k's posterior towards it."""

@@ -108,6 +108,13 @@ def _design_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, required=True, help="sample rate, Hz")
     p.add_argument("--torque-amplitude", type=float, required=True,
                    help="bound on the crank torque's magnitude, N*m")
+    p.add_argument("--force-amplitude", type=float,
+                   help="also design a multisine slider force of this peak, N (the scene "
+                        "must have no slider load)")
+    p.add_argument("--release", action="store_true",
+                   help="also design the release angle phi0")
+    p.add_argument("--release-speed", type=float,
+                   help="also design the release speed dphi0, within +-this, rad/s")
     p.add_argument("--tones", type=int, default=6, help="sines in the multisine (6)")
     p.add_argument("--criterion", default="D", choices=("D", "c"),
                    help="D: max log det Fisher (default); c: min the variance of --target")
@@ -131,6 +138,10 @@ def _design_run(a: argparse.Namespace) -> int:
     free = free_list(a.free)
     if not a.torque_amplitude > 0:
         raise UserError(f"--torque-amplitude must be > 0 N*m, got {a.torque_amplitude:g}")
+    for opt, v, unit in (("--force-amplitude", a.force_amplitude, "N"),
+                         ("--release-speed", a.release_speed, "rad/s")):
+        if v is not None and not v > 0:
+            raise UserError(f"{opt} must be > 0 {unit}, got {v:g}")
     if a.criterion == "c" and a.target is None:
         raise UserError("--criterion c needs --target NAME (a free parameter)")
     if a.target is not None and a.target not in free:
@@ -147,12 +158,15 @@ def _design_run(a: argparse.Namespace) -> int:
     try:
         d = design(scene, free, a.t1, a.rate, amplitude=a.torque_amplitude, tones=a.tones,
                    criterion=a.criterion, target=a.target, noise_std=a.noise_std,
-                   iterations=a.iterations, seed=a.seed, progress=not a.quiet)
+                   iterations=a.iterations, seed=a.seed, progress=not a.quiet,
+                   force_amplitude=a.force_amplitude, release=a.release,
+                   release_speed=a.release_speed)
     except ValueError as e:  # name the CLI's option, not the function's argument
         msg = str(e)
         for arg, opt in (("tones", "--tones"), ("t1", "--t1"), ("rate", "--rate"),
                          ("noise_std", "--noise-std"), ("iterations", "--iterations"),
-                         ("free", "--free")):
+                         ("free", "--free"), ("force_amplitude", "--force-amplitude"),
+                         ("release_speed", "--release-speed")):
             if msg.startswith(arg + " ") or msg.startswith(arg + ":"):
                 msg = opt + msg[len(arg):]
                 break

@@ -62,7 +62,9 @@ class Design:
     baseline (the scene's own loads) experiments, in the coordinates `z`;
     `predicted_stderr`: name -> {"designed", "baseline"} in physical units (`inf` where
     `F` is singular); `criterion`, `target`; `history`: the objective per iteration;
-    `peak`: the torque's largest magnitude on a fine grid, N*m.
+    `peak`: the torque's largest magnitude on a fine grid, N*m; `force`: the designed
+    slider force (a [`MultiSineLoad`][], N) or None; `release`: the designed
+    `(phi0, dphi0)` (rad, rad/s) or None.
     """
 
     scene: Scene
@@ -75,6 +77,8 @@ class Design:
     target: str | None
     history: list[float]
     peak: float
+    force: MultiSineLoad | None = None
+    release: tuple[float, float] | None = None
 
     def to_json(self) -> dict:
         def num(x):
@@ -89,7 +93,27 @@ class Design:
                            "freqs_hz": np.asarray(self.torque.freqs_hz).tolist(),
                            "phases": np.asarray(self.torque.phases).tolist(),
                            "peak": self.peak},
+                "force": None if self.force is None else {
+                    "amplitudes": np.asarray(self.force.amplitudes).tolist(),
+                    "freqs_hz": np.asarray(self.force.freqs_hz).tolist(),
+                    "phases": np.asarray(self.force.phases).tolist()},
+                "release": None if self.release is None else {
+                    "phi0": self.release[0], "dphi0": self.release[1]},
                 "history": [num(h) for h in self.history]}
+
+
+def _check_extra(scene, force_amplitude, release_speed) -> None:
+    """The optional design variables: a slider-force multisine's bound (N) and the release
+    speed's bound (rad/s)."""
+    if force_amplitude is not None:
+        if not (math.isfinite(force_amplitude) and force_amplitude > 0):
+            raise ValueError(f"force_amplitude must be > 0 N, got {force_amplitude:g}")
+        if not isinstance(scene.load, NoLoad):
+            raise ValueError("force_amplitude: the scene has its own slider load "
+                             f"({type(scene.load).__name__}); remove its [load] to design "
+                             "the slider force")
+    if release_speed is not None and not (math.isfinite(release_speed) and release_speed > 0):
+        raise ValueError(f"release_speed must be > 0 rad/s, got {release_speed:g}")
 
 
 def _check(scene, free, t1, rate, amplitude, tones, criterion, target, noise_std, iterations):
@@ -126,13 +150,15 @@ def _check(scene, free, t1, rate, amplitude, tones, criterion, target, noise_std
     return free
 
 
-def _sensitivities(scene: Scene, free, ts, torque, z):
-    """phi(ts) as a function of the coordinates z (p,), through diffrax (ForwardMode)."""
+def _sensitivities(scene: Scene, free, ts, torque, load, y0, z):
+    """phi(ts) as a function of the coordinates z (p,), through diffrax (ForwardMode).
+    `y0` (2,): the release angle and speed; a free `phi0`/`dphi0` is `y0` plus its
+    coordinate (0 at the design point), so the release may itself be designed."""
     vals = {n: (jnp.exp(z[i]) if n in FIELDS else z[i]) for i, n in enumerate(free)}
     mech = scene.mech.replace(**{n: v for n, v in vals.items() if n in FIELDS})
-    y0 = jnp.stack([jnp.asarray(vals.get("phi0", scene.phi0), float),
-                    jnp.asarray(vals.get("dphi0", scene.dphi0), float)])
-    field = CrankField(mech, scene.load, torque, Structure.of(scene.mech)).packed()
+    y0 = jnp.stack([jnp.asarray(y0[0] + vals.get("phi0", 0.0), float),
+                    jnp.asarray(y0[1] + vals.get("dphi0", 0.0), float)])
+    field = CrankField(mech, load, torque, Structure.of(scene.mech)).packed()
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(lambda t, y, f: jnp.stack(f(t, (y[0], y[1])))), diffrax.Dopri5(),
         t0=ts[0], t1=ts[-1], dt0=None, y0=y0, args=field, saveat=diffrax.SaveAt(ts=ts),
@@ -143,8 +169,8 @@ def _sensitivities(scene: Scene, free, ts, torque, z):
 
 
 def _objective(scene, free, ts, z, sigma, criterion, j):
-    def fisher(torque):
-        J = jax.jacfwd(lambda x: _sensitivities(scene, free, ts, torque, x))(z)
+    def fisher(torque, load, y0):
+        J = jax.jacfwd(lambda x: _sensitivities(scene, free, ts, torque, load, y0, x))(z)
         return J.T @ J / sigma**2
 
     def crit(F):
@@ -193,6 +219,9 @@ def design(
     learning_rate: float = 0.1,
     seed: int = 0,
     progress: bool = True,
+    force_amplitude: float | None = None,
+    release: bool = False,
+    release_speed: float | None = None,
 ) -> Design:
     """Design a multisine crank torque of peak `amplitude` (N*m) for identifying `free`.
 
@@ -207,17 +236,23 @@ def design(
     - `criterion`: `"D"` (max `log det F`) or `"c"` (min the variance of `target`).
     - `noise_std`: the angle noise, rad (scales F; the design itself does not depend on
       it). `iterations`, `learning_rate`: Adam's. `seed`: the start phases.
+    - `force_amplitude`: also design a multisine slider force of this peak, N (`tones`
+      sines; the scene must have no slider load of its own). Default: no force.
+    - `release`: also design the release angle `phi0` (rad). `release_speed`: also design
+      the release speed `dphi0`, within `[-release_speed, release_speed]` rad/s.
 
     **Returns:** a [`Design`][]. **Raises:** `ValueError` for a bad request, before any
     solve.
     """
     free = _check(scene, free, t1, rate, amplitude, tones, criterion, target, noise_std,
                   iterations)
+    _check_extra(scene, force_amplitude, release_speed)
     n = int(round(t1 * rate)) + 1
     ts = jnp.linspace(0.0, t1, n)
     mech = scene.mech.as_dict()
     values = np.array([mech[k] if k in FIELDS else float(getattr(scene, k)) for k in free])
-    z = jnp.asarray([math.log(v) if k in FIELDS else v for k, v in zip(free, values)])
+    # A free state's coordinate is its offset from the (possibly designed) release.
+    z = jnp.asarray([math.log(v) if k in FIELDS else 0.0 for k, v in zip(free, values)])
     j = free.index(target) if criterion == "c" else 0
     fisher, crit = _objective(scene, free, ts, z, noise_std, criterion, j)
     f_lo, f_hi = 1.0 / t1, rate / 4
@@ -225,14 +260,23 @@ def design(
     fn = float(np.asarray(lin.omega_n)) / (2 * math.pi)
     fn = fn if math.isfinite(fn) and fn > 0 else math.sqrt(f_lo * f_hi)
     grid = jnp.linspace(0.0, t1, int(t1 * f_hi * _GRID_PER_PERIOD) + 1)
-    # Start: equal weights, random phases, frequencies log-spaced around f_n.
-    f0 = np.clip(fn * np.geomspace(0.5, 2.0, tones), f_lo * 1.01, f_hi * 0.99)
-    v0 = np.log((f0 - f_lo) / (f_hi - f0))
-    p0 = np.random.default_rng(seed).uniform(0, 2 * np.pi, tones)
-    w = jnp.asarray(np.concatenate([np.ones(tones), p0, v0]))
+    w = _start(scene, tones, seed, fn, f_lo, f_hi, force_amplitude is not None, release,
+               release_speed)
+
+    def unpack(w):
+        """(torque, slider load, (phi0, dphi0)) of the design variables `w`."""
+        T = 3 * tones
+        torque, k, load = _torque(w[:T], amplitude, f_lo, f_hi, grid, tones), T, scene.load
+        if force_amplitude is not None:
+            load, k = _torque(w[k:k + T], force_amplitude, f_lo, f_hi, grid, tones), k + T
+        phi0 = w[k] if release else jnp.asarray(scene.phi0, float)
+        k += int(release)
+        dphi0 = (release_speed * jnp.tanh(w[k]) if release_speed is not None
+                 else jnp.asarray(scene.dphi0, float))
+        return torque, load, jnp.stack([phi0, dphi0])
 
     def loss(w):
-        return -crit(fisher(_torque(w, amplitude, f_lo, f_hi, grid, tones)))
+        return -crit(fisher(*unpack(w)))
 
     step = jax.jit(lambda w: (loss(w), jax.jacfwd(loss)(w)))
     opt = optax.adam(learning_rate)
@@ -254,16 +298,39 @@ def design(
     final = float(jax.jit(loss)(w)) if iterations else math.inf
     if math.isfinite(final) and final < best[0]:
         best = (final, w)
-    torque = _torque(best[1], amplitude, f_lo, f_hi, grid, tones)
+    torque, load, y0 = unpack(best[1])
     torque, peak = _within_bound(torque, amplitude, t1, 10 * grid.shape[0])
-    F_des = np.asarray(jax.jit(fisher)(torque))
-    F_base = np.asarray(jax.jit(fisher)(scene.torque if not isinstance(scene.torque, NoLoad)
-                                        else NoLoad()))
-    designed = _with_torque(scene, torque, t1, n)
+    force = None
+    if force_amplitude is not None:
+        load, _ = _within_bound(load, force_amplitude, t1, 10 * grid.shape[0])
+        force = load
+    y0 = (float(y0[0]), float(y0[1]))
+    F_des = np.asarray(jax.jit(fisher)(torque, load, jnp.asarray(y0)))
+    F_base = np.asarray(jax.jit(fisher)(scene.torque, scene.load,
+                                        jnp.asarray([scene.phi0, scene.dphi0], float)))
+    designed = _with_torque(scene, torque, t1, n, load, y0)
     se_d, se_b = _stderr(F_des, free, values), _stderr(F_base, free, values)
     return Design(designed, torque, free, _log_det(F_des), _log_det(F_base),
                   {k: {"designed": se_d[k], "baseline": se_b[k]} for k in free},
-                  criterion, target if criterion == "c" else None, history, peak)
+                  criterion, target if criterion == "c" else None, history, peak, force,
+                  y0 if release or release_speed is not None else None)
+
+
+def _start(scene, tones, seed, fn, f_lo, f_hi, force, release, release_speed):
+    """The design variables' start: each multisine with equal weights, random phases and
+    frequencies log-spaced around the natural frequency `fn`; the scene's release."""
+    f0 = np.clip(fn * np.geomspace(0.5, 2.0, tones), f_lo * 1.01, f_hi * 0.99)
+    v0 = np.log((f0 - f_lo) / (f_hi - f0))
+    p0 = np.random.default_rng(seed).uniform(0, 2 * np.pi, tones)
+    parts = [np.ones(tones), p0, v0]
+    if force:
+        parts += [np.ones(tones), np.random.default_rng(seed + 1).uniform(0, 2 * np.pi, tones),
+                  v0]
+    if release:
+        parts.append([scene.phi0])
+    if release_speed is not None:
+        parts.append([math.atanh(float(np.clip(scene.dphi0 / release_speed, -0.9, 0.9)))])
+    return jnp.asarray(np.concatenate(parts))
 
 
 def _within_bound(torque: MultiSineLoad, amplitude: float, t1: float, n: int):
@@ -283,9 +350,10 @@ def _within_bound(torque: MultiSineLoad, amplitude: float, t1: float, n: int):
     return torque, grid_peak
 
 
-def _with_torque(scene: Scene, torque, t1: float, n: int) -> Scene:
-    """`scene` with `torque`, recorded over `t1` s in `n` samples."""
-    return Scene(scene.mech, scene.load, torque, scene.phi0, scene.dphi0, scene.rtol,
+def _with_torque(scene: Scene, torque, t1: float, n: int, load, y0) -> Scene:
+    """`scene` with `torque`, slider `load` and release `y0`, recorded over `t1` s in `n`
+    samples."""
+    return Scene(scene.mech, load, torque, y0[0], y0[1], scene.rtol,
                  scene.atol, t1=float(t1), samples=n, solver=scene.solver,
                  outputs=scene.outputs, name=scene.name,
                  description=(scene.description + " (designed multisine torque)").strip())

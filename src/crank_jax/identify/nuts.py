@@ -91,9 +91,10 @@ def adaptation():
             ad.mass_matrix.mass_matrix_adaptation(is_diagonal_matrix=False))
 
 
-def _chunk(problem, codes, params, z_hat, L, carry, keys, stages):
-    """`keys.shape[1]` NUTS transitions of every chain (vmapped), adapting the step size
-    and the (dense) mass matrix on Stan's schedule while warming up.
+def _chunk(problem, codes, params, z_hat, L, carry, keys, stages, batched):
+    """`keys.shape[1]` NUTS transitions of every chain, adapting the step size and the
+    (dense) mass matrix on Stan's schedule while warming up. The chains run one after
+    another in the program (`lax.map`), or vmapped where `batched` (see `_batched`).
 
     `stages` (K, 2) int: `(stage, window_end)` with stage 0 fast (step size only), 1 slow
     (mass matrix too), 2 sampling (nothing adapted), -1 padding (nothing happens).
@@ -126,11 +127,37 @@ def _chunk(problem, codes, params, z_hat, L, carry, keys, stages):
     def chain(c, ks):
         return jax.lax.scan(one, c, (ks, stages))
 
-    carry, (pos, div, steps) = jax.vmap(chain)(carry, keys)
+    if batched:
+        carry, (pos, div, steps) = jax.vmap(chain)(carry, keys)
+    else:
+        carry, (pos, div, steps) = jax.lax.map(lambda a: chain(*a), (carry, keys))
     return carry, pos, div, steps
 
 
 _chunk_program = eqx.filter_jit(_chunk)
+
+
+def _batched() -> bool:
+    """Whether to vmap the chains (an accelerator) rather than run them one after another
+    in the program (the CPU). On the CPU a vmapped `while` loop selects between the old and
+    new value of its whole carry at every iteration, the ODE's buffer of saved samples
+    included, and it stops XLA compiling the step loop into one function (xla_flags.py):
+    measured on the lab rig (5 s at 200 Hz, 4 parameters, dopri8, 2-core AMD EPYC, with
+    `configure_cpu`), the log density's gradient took 1.6 ms for one chain and 32 ms for
+    four vmapped (four one after another: 6.6 ms). A vmapped NUTS step also costs its
+    slowest chain's tree for every chain."""
+    return jax.default_backend() != "cpu"
+
+
+def _shares(chains: int) -> list[list[int]]:
+    """The chains of each device: on the CPU, as many devices as divide `chains` evenly
+    (one program serves them all), each a thread of its own; several CPU devices exist only
+    where the program asked for them (`crank_jax.configure_cpu()`, which the `crank-jax`
+    program calls). Elsewhere one device."""
+    devices = jax.local_devices() if not _batched() else jax.local_devices()[:1]
+    d = max(k for k in range(1, min(len(devices), chains) + 1) if chains % k == 0)
+    per = chains // d
+    return [list(range(i * per, (i + 1) * per)) for i in range(d)]
 
 
 def schedule(warmup: int) -> np.ndarray:
@@ -159,29 +186,54 @@ def initial_carry(problem, codes, params, z_hat, L, chains, key):
     return (states, da, mm, jnp.full(chains, eps0), jnp.broadcast_to(jnp.eye(p), (chains, p, p)))
 
 
+def _put(tree, device):
+    """`tree`'s arrays committed to `device` (its other leaves, static to the program,
+    stay as they are)."""
+    arrays, rest = eqx.partition(tree, eqx.is_array)
+    return eqx.combine(jax.device_put(arrays, device), rest)
+
+
+def _strong(tree):
+    """`tree`'s arrays without JAX's weak types: the carry a chunk returns, and the one
+    the warm-up's end or `initial_carry` builds, then key the same compiled program (a
+    weak-typed leaf in one of them recompiled it, ~10 s, at every hand-over)."""
+    return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.asarray(x).dtype), tree)
+
+
 def run_chains(problem, codes, params, zL, carry, key, stages, desc, progress):
     """Run the schedule `stages` (n, 2) in chunks; positions (C, n, p), divergences,
-    leapfrog steps."""
+    leapfrog steps. Each device of `_shares` runs its chains' program at once (JAX
+    dispatches without waiting); the chains' draws do not depend on how they are shared."""
     from tqdm.auto import tqdm
 
     n = stages.shape[0]
     chains = carry[3].shape[0]
+    shares = _shares(chains)
+    devices = jax.local_devices()
+    fixed = [_put((problem, codes, params, *zL), devices[i]) for i in range(len(shares))]
+    carries = [_put(_strong(jax.tree.map(lambda x, ix=ix: x[np.asarray(ix)], carry)),
+                    devices[i])
+               for i, ix in enumerate(shares)]
     pos, div, steps = [], [], []
     with tqdm(total=n, desc=desc, unit="step", disable=not progress or n == 0,
               leave=False) as bar:
         for start in range(0, n, CHUNK):
             block = stages[start:start + CHUNK]
             m = block.shape[0]
-            pad = np.full((CHUNK - m, 2), -1, dtype=np.int32)
+            pad = jnp.asarray(np.concatenate([block, np.full((CHUNK - m, 2), -1, np.int32)]))
             key, sub = jax.random.split(key)
             keys = jax.random.split(sub, chains * CHUNK).reshape(chains, CHUNK, -1)
-            carry, x, d, s = _chunk_program(problem, codes, params, *zL, carry, keys,
-                                            jnp.asarray(np.concatenate([block, pad])))
-            pos.append(np.asarray(x)[:, :m])
-            div.append(np.asarray(d)[:, :m])
-            steps.append(np.asarray(s)[:, :m])
+            outs = [_chunk_program(*fixed[i], carries[i], _put(keys[np.asarray(ix)], devices[i]),
+                                   _put(pad, devices[i]), _batched())
+                    for i, ix in enumerate(shares)]
+            carries = [_strong(o[0]) for o in outs]
+            pos.append(np.concatenate([np.asarray(o[1]) for o in outs])[:, :m])
+            div.append(np.concatenate([np.asarray(o[2]) for o in outs])[:, :m])
+            steps.append(np.concatenate([np.asarray(o[3]) for o in outs])[:, :m])
             bar.update(m)
     p = problem.p
+    carry = jax.tree.map(lambda *xs: jnp.concatenate([jax.device_put(x, devices[0])
+                                                      for x in xs]), *carries)
 
     def cat(xs, shape):
         return np.concatenate(xs, axis=1) if xs else np.zeros(shape)

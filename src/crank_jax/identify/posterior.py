@@ -63,8 +63,10 @@ class Posterior:
     (Vehtari et al. 2021); `divergences`: divergent transitions after warm-up (any is a
     warning sign: the sampler missed part of the posterior); `chains`, `n_draws`,
     `warmup`; `step_size` (chains,) after adaptation; `mean_tree_steps`: leapfrog steps
-    per draw; `seconds`: wall time of warm-up and sampling; `fit`: the least-squares fit
-    the chains started from (its Laplace intervals for comparison); `priors`: name -> the
+    per draw; `gradient_evaluations`: leapfrog steps (each one evaluation of the log
+    density and its gradient) of warm-up and sampling, all chains; `seconds`: wall time
+    of warm-up and sampling; `fit`: the least-squares fit the chains started from (its
+    Laplace intervals for comparison); `priors`: name -> the
     prior in text form (flat in the coordinates where absent).
     """
 
@@ -78,6 +80,7 @@ class Posterior:
     warmup: int
     step_size: np.ndarray
     mean_tree_steps: float
+    gradient_evaluations: int
     seconds: float
     fit: FitResult
     priors: dict[str, str]
@@ -103,6 +106,7 @@ class Posterior:
                 "warmup": int(self.warmup), "priors": dict(self.priors),
                 "step_size": [float(s) for s in self.step_size],
                 "mean_tree_steps": float(self.mean_tree_steps),
+                "gradient_evaluations": int(self.gradient_evaluations),
                 "seconds": float(self.seconds),
                 "laplace": {n: {"value": self.fit.values[n], "stderr": self.fit.stderr[n],
                                 "ci95": list(self.fit.ci95[n]) if self.fit.ci95[n] else None}
@@ -183,7 +187,9 @@ def posterior(
     First [`fit`][] finds the least-squares estimate and its Laplace covariance; the chains
     start around it, in coordinates whitened by that covariance (priors included). Warm-up
     then adapts the step size and a dense mass matrix on Stan's windows, and every chain
-    draws `draws` samples (chains run together, vmapped).
+    draws `draws` samples. On the CPU the chains are shared over the JAX CPU devices and run
+    one after another on each (`crank_jax.configure_cpu()` asks for a device per core and
+    XLA's faster CPU flags: call it first in a program); on an accelerator, vmapped.
 
     **Arguments:**
 
@@ -229,8 +235,8 @@ def posterior(
     key, k0 = jax.random.split(key)
     carry = initial_carry(problem, codes, params, z_hat, L, chains, k0)
     t_sample = time.perf_counter()
-    carry, key, _, _, _ = run_chains(problem, codes, params, zL, carry, key, schedule(warmup),
-                                      "warm-up", progress)
+    carry, key, _, _, warm_steps = run_chains(problem, codes, params, zL, carry, key,
+                                              schedule(warmup), "warm-up", progress)
     (_, _, da_final), _ = adaptation()
     eps = jax.vmap(da_final)(carry[1]) if warmup else carry[3]
     carry = (carry[0], carry[1], carry[2], eps, carry[4])
@@ -246,7 +252,8 @@ def posterior(
         rhat={n: _diag(blackjax.diagnostics.rhat, v, chains) for n, v in out.items()},
         ess={n: _diag(blackjax.diagnostics.ess_bulk, v, chains) for n, v in out.items()},
         divergences=int(div.sum()), chains=chains, n_draws=draws, warmup=warmup,
-        step_size=np.asarray(eps), mean_tree_steps=float(np.mean(steps)), seconds=seconds,
+        step_size=np.asarray(eps), mean_tree_steps=float(np.mean(steps)),
+        gradient_evaluations=int(np.sum(warm_steps) + np.sum(steps)), seconds=seconds,
         fit=res, priors={n: str(d) for n, d in prior.items()})
 
 
