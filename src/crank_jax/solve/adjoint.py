@@ -1,0 +1,179 @@
+"""Reverse mode of `"dopri8-adaptive"`: a discrete adjoint of its steps.
+
+The forward pass ([`forward`][]) is the solve itself ([`solve_adaptive`][]) with a log of
+its accepted steps: each step's start `t`, end `t1`, size `h` and packed state `y` at `t`,
+one row each. The backward pass ([`backward`][]) takes the steps in reverse and applies
+the VJP of one step, `(y, theta) -> (y1, dense output at the save times the step
+covers)`, carrying the state's cotangent from step to step and summing the field's
+parameter cotangents. The step sizes and the accept/reject decisions are constants (the
+forward pass chose them on values, `stop_gradient`), so the result is the exact gradient
+of the computed discrete solution: the transpose of what forward mode (`jax.jacfwd`
+through the same solve) computes, equal to it to rounding (tests/test_adjoint.py).
+
+Why not differentiate the solve's loops? A `while_loop` has no reverse mode, and the
+batched solve is a `custom_vmap` (lockstep.py), which has none either; before this module
+the backward pass re-solved the problem with diffrax's Dopri8 and its checkpointed
+reverse mode: 12x one forward solve with the CPU flags, 68x under XLA's defaults (lab
+rig, issue 26).
+
+**Memory.** The log holds [`LOG_ROWS`][] steps (at most the step budget), as a ring: a
+solve of more steps keeps the last `LOG_ROWS`, and the backward pass, after those, runs
+the forward solve again for each earlier segment of `LOG_ROWS` steps, logging only that
+segment (a solve of `n` steps costs `ceil(n / LOG_ROWS) - 1` more forward solves, and
+memory for `LOG_ROWS` rows, whatever `n`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .adaptive import WINDOW, dopri8_dense, solve_adaptive
+from .erk import dopri8, packer
+
+__all__ = ["forward", "backward", "LOG_ROWS"]
+
+#: Steps the log holds (a ring; see the module docstring). The lab rig (10 s, rtol 1e-8)
+#: takes ~900 steps; one row of the crank's state is 5 floats, so 4096 rows are 160 kB.
+LOG_ROWS = 4096
+
+
+class Log(NamedTuple):
+    """The forward pass's record of its accepted steps.
+
+    - `rows` (S, 3 + N): `(t, t1, h, y...)` of accepted step `i` in row `i % S`, `y` the
+      packed state (N,) at `t` (s);
+    - `count`: accepted steps so far (int scalar);
+    - `upto`: steps from this index on are not written (a rerun that logs one segment)."""
+
+    rows: jax.Array
+    count: jax.Array
+    upto: jax.Array
+
+
+def _rows(max_steps: int) -> int:
+    return max(1, min(int(max_steps), LOG_ROWS))
+
+
+def _write(log: Log, rec) -> Log:
+    """Log a step attempt `rec` (adaptive.py's record of one member). A rejected attempt
+    writes the row that the next accepted one overwrites; nothing from `upto` on."""
+    S = log.rows.shape[0]
+    row = jnp.concatenate([rec.t, rec.t1, rec.h, rec.y]).astype(log.rows.dtype)
+    pos = jnp.where(log.count < log.upto, log.count % S, S)  # S: out of range, dropped
+    rows = log.rows.at[pos].set(row, mode="drop")
+    return Log(rows, log.count + rec.ok[0].astype(log.count.dtype), log.upto)
+
+
+def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=None):
+    """The solve of [`solve_adaptive`][] (one member, not batched) with its log.
+
+    **Arguments:** as `solve_adaptive`; `upto`: log accepted steps below this index only
+    (default: all, the last `LOG_ROWS` kept).
+
+    **Returns:** `(ys, result, num_steps, log)`, a [`Log`][] fourth."""
+    n_state = packer(y0)[0](y0).shape[-1]
+    S = _rows(max_steps)
+    upto = jnp.asarray(max_steps + 1 if upto is None else upto, jnp.int32)
+    log0 = Log(jnp.zeros((S, 3 + n_state), ts.dtype), jnp.zeros((), jnp.int32), upto)
+    return solve_adaptive(field, y0, ts, rtol, atol, max_steps=max_steps,
+                          error_size=error_size, record=(log0, _write))
+
+
+def _step_outputs(field, pack, unpack, row, tw, n_state):
+    """One logged step as a function of its start state and of the field: `(y1, values)`,
+    the state at its end and the dense output at the save times `tw` (W,), (W, N)
+    (zero-weighted where the step does not cover them). The same arithmetic as the
+    forward pass (adaptive.py), so that the VJP is that of the computed solution."""
+    erk = dopri8()
+    dtype = row.dtype
+    t, t1, h, y = row[0:1], row[1:2], row[2:3], row[3:3 + n_state]
+
+    def f(tt, yp):
+        return pack(field(tt[..., 0], unpack(yp), None)).astype(dtype)
+
+    ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h)[:erk.num_stages]
+    y1 = erk.solution(y, h, ks)
+    ks = ks + [f(t1, y1)]
+    dense = dopri8_dense()
+    coef = []
+    for j in range(dense.shape[1]):  # h sum_i P_ij k_i, unrolled over nonzero weights
+        terms = [float(dense[i, j]) * k for i, k in enumerate(ks) if float(dense[i, j])]
+        coef.append(h * sum(terms[1:], terms[0]))
+    theta = ((tw - t) / h)[:, None]
+    poly = coef[0][None]
+    for c in coef[1:]:
+        poly = poly * theta + c[None]
+    return y1, y[None] + theta * poly
+
+
+def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int,
+             error_size=None):
+    """The cotangents of the field's array leaves `dyn` and of `y0` from `g_ys`, the
+    cotangent of the solve's `ys` (a pytree like `y0` with a leading axis n), by the
+    steps of `log` in reverse (see the module docstring).
+
+    **Arguments:** `rebuild(dyn) -> field`; `dyn`, the field's array leaves (a list);
+    `y0`, `ts`, `rtol`, `atol`, `max_steps`, `error_size`: the forward solve's (a rerun
+    of an earlier segment needs them).
+
+    **Returns:** `(d_dyn, d_y0)`: a list like `dyn` (None for a leaf that is not a float
+    array) and a pytree like `y0`."""
+    pack, unpack = packer(y0)
+    n_state = log.rows.shape[1] - 3
+    S = log.rows.shape[0]
+    W = WINDOW
+    g = pack(g_ys).astype(ts.dtype)  # (n, N)
+    inf = jnp.full((W,), jnp.inf, ts.dtype)
+    ts_pad, g_pad = jnp.concatenate([ts, inf]), jnp.concatenate([g, jnp.zeros((W, n_state))])
+    live = [eqx.is_inexact_array(d) for d in dyn]
+    diff = [d for d, b in zip(dyn, live) if b]
+
+    def full(dd):
+        it = iter(dd)
+        return rebuild([next(it) if b else d for d, b in zip(dyn, live)])
+
+    def one(row, carry):
+        ybar, dbar, j = carry
+        t, t1 = row[0], row[1]
+        # The save times this step covers lie in the window of W pending ones that the
+        # forward pass stepped within (adaptive.py never steps past its window): from j,
+        # the first save time after t, which moves back by at most W per step.
+        back = jax.lax.dynamic_slice_in_dim(ts_pad, jnp.maximum(j - W, 0), W)
+        j = j - jnp.sum((back > t) & (jnp.arange(W) + jnp.maximum(j - W, 0) < j), dtype=j.dtype)
+        tw = jax.lax.dynamic_slice_in_dim(ts_pad, j, W)
+        mine = (tw > t) & (tw <= t1)
+        gw = jnp.where(mine[:, None], jax.lax.dynamic_slice_in_dim(g_pad, j, W), 0.0)
+        # Save times the step does not cover evaluate at its start (theta 0): an infinite
+        # padding time would make the VJP's 0 * inf a NaN.
+        tw = jnp.where(mine, tw, t)
+        _, pull = jax.vjp(lambda y, dd: _step_outputs(full(dd), pack, unpack,
+                                                      row.at[3:].set(y), tw, n_state),
+                          row[3:], diff)
+        yb, db = pull((ybar, gw))
+        return yb, [a + b for a, b in zip(dbar, db)], j
+
+    def sweep(rows, a, b, carry):
+        # Steps b-1, ..., a of the ring `rows`.
+        return jax.lax.fori_loop(0, b - a, lambda k, c: one(rows[(b - 1 - k) % S], c), carry)
+
+    count = log.count
+    # j past the last step's end: every save time it covers is before it.
+    j_end = jnp.searchsorted(ts, log.rows[(count - 1) % S, 1], side="right")
+    carry = (jnp.zeros((n_state,), ts.dtype), [jnp.zeros_like(d) for d in diff], j_end)
+    m_last = (count - 1) // S  # the segment the forward pass's ring ends with
+    carry = sweep(log.rows, jnp.maximum(m_last * S, 0), count, carry)
+
+    def earlier(c):
+        m, carry = c
+        rows = forward(rebuild(dyn), y0, ts, rtol, atol, max_steps=max_steps,
+                       error_size=error_size, upto=(m + 1) * S)[3].rows
+        return m - 1, sweep(rows, m * S, (m + 1) * S, carry)
+
+    _, (ybar, dbar, _) = jax.lax.while_loop(lambda c: c[0] >= 0, earlier, (m_last - 1, carry))
+    ybar = ybar + g[0]  # ys[0] is y0 itself
+    it = iter(dbar)
+    return [next(it) if b else None for b in live], unpack(ybar)
