@@ -229,7 +229,7 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     - `args`: passed to `field`; its inexact-array leaves are differentiable too.
     - `max_steps`: the budget of step attempts (accepted and rejected), static. The loop
       is a plain `lax` loop: forward mode goes through it; reverse mode does not (see
-      `lockstep.py`, whose backward pass differentiates another solve).
+      `lockstep.py`, whose backward pass is the discrete adjoint of adjoint.py).
     - `erk`: the method, default [`dopri8`][]`()`; its last stage must be `f(t1, y1)`
       (first same as last), and `dopri8_dense()` its dense output.
     - `unroll`, `window`: step attempts per loop iteration; save times one iteration may

@@ -134,7 +134,8 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
         it = iter(dd)
         return rebuild([next(it) if b else d for d, b in zip(dyn, live)])
 
-    block = _block_vjp(full, diff, pack, unpack, ts, g)
+    B = min(_BLOCK, S)
+    block = _block_vjp(full, diff, pack, unpack, ts, g, B)
     count = log.count
 
     def segment(rows, m, carry):
@@ -144,35 +145,39 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
 
         def body(c):
             kb, carry = c
-            return kb - 1, block(rows, kb, kb * _BLOCK < size, size, carry)
+            return kb - 1, block(rows, kb, size, carry)
 
-        return jax.lax.while_loop(lambda c: c[0] >= 0, body,
-                                  (-(-size // _BLOCK) - 1, carry))[1]
+        return jax.lax.while_loop(lambda c: c[0] >= 0, body, (-(-size // B) - 1, carry))[1]
 
     carry = (jnp.zeros_like(g[0]), [jnp.zeros_like(d) for d in diff])
     m_last = (count - 1) // S  # the segment the forward pass's ring ends with
-    carry = segment(log.rows, m_last, carry)
 
-    def earlier(c):
+    def each(c):
+        # Segments from the last: its rows are the forward pass's; an earlier one's come
+        # from a rerun of the forward solve that logs that segment only. (One loop, so
+        # that the backward pass is compiled once; under `jax.vmap` the `cond` runs both
+        # branches, a rerun per gradient.)
         m, carry = c
-        rows = forward(rebuild(dyn), y0, ts, rtol, atol, max_steps=max_steps,
-                       error_size=error_size, upto=(m + 1) * S)[3].rows
+        rows = jax.lax.cond(m == m_last, lambda: log.rows, lambda: forward(
+            rebuild(dyn), y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
+            upto=(m + 1) * S)[3].rows)
         return m - 1, segment(rows, m, carry)
 
-    _, (ybar, dbar) = jax.lax.while_loop(lambda c: c[0] >= 0, earlier, (m_last - 1, carry))
+    _, (ybar, dbar) = jax.lax.while_loop(lambda c: c[0] >= 0, each, (m_last, carry))
     ybar = ybar + g[0]  # ys[0] is y0 itself
     it = iter(dbar)
     return [next(it) if b else None for b in live], unpack(ybar)
 
 
-#: Steps the backward pass takes at once: the Jacobians of a block's steps and the VJP of
-#: their parameters are one vectorised computation (few, wide kernels), and only the
-#: 2 x 2 (N x N) recursion of the state's cotangent runs step by step.
+#: Steps the backward pass takes at once under XLA's defaults (at most `LOG_ROWS`, which
+#: should be a multiple of it): the Jacobians of a block's steps with respect to the
+#: state, the VJP of their parameters and the recursion of the state's cotangent (an
+#: associative scan) are each one vectorised computation of few, wide kernels.
 _BLOCK = 256
 
 
-def _block_vjp(full, dd, pack, unpack, ts, g):
-    """`block(rows, kb, any, size, carry) -> carry`: the steps of block `kb` of a
+def _block_vjp(full, dd, pack, unpack, ts, g, B):
+    """`block(rows, kb, size, carry) -> carry`: the steps of block `kb` (of `B` rows) of a
     segment's `rows` (those at positions below `size`), in reverse."""
     W = WINDOW
     n_state = g.shape[1]
@@ -194,10 +199,10 @@ def _block_vjp(full, dd, pack, unpack, ts, g):
     def outputs(row, tw, dd):
         return _step_outputs(full(dd), pack, unpack, row, tw, n_state)
 
-    def block(rows, kb, _, size, carry):
+    def block(rows, kb, size, carry):
         u_end, dbar = carry
-        rows = jax.lax.dynamic_slice_in_dim(rows, kb * _BLOCK, _BLOCK)
-        valid = kb * _BLOCK + jnp.arange(_BLOCK) < size
+        rows = jax.lax.dynamic_slice_in_dim(rows, kb * B, B)
+        valid = kb * B + jnp.arange(B) < size
         # Rows past the last step hold no step: they take the first row's (finite) values
         # and act as the identity with no cotangent.
         rows = jnp.where(valid[:, None], rows, rows[:1])
@@ -218,23 +223,23 @@ def _block_vjp(full, dd, pack, unpack, ts, g):
         u_in = jnp.where(valid[:, None], jnp.concatenate([ybar[1:], u_end[None]]), 0.0)
         # Per-step copies of the parameters, summed after: a shared parameter's
         # cotangent would be reduced over the block at every use (measured 3x dearer).
-        ddb = [jnp.broadcast_to(d, (_BLOCK,) + d.shape) for d in dd]
+        ddb = [jnp.broadcast_to(d, (B,) + d.shape) for d in dd]
         _, pull = jax.vjp(lambda ddb: jax.vmap(outputs)(rows, tw, ddb), ddb)
         (d_block,) = pull((u_in, gw))
         return ybar[0], [x + y.sum(0) for x, y in zip(dbar, d_block)]
 
-    def sequential(rows, kb, _, size, carry):
+    def sequential(rows, kb, size, carry):
         # The block's steps one after another, each one VJP of the step (few kernels of
         # one step's size: one compiled function where XLA hoists the loop).
         def one(k, carry):
             ybar, dbar = carry
-            row = rows[jnp.minimum(size, (kb + 1) * _BLOCK) - 1 - k]
+            row = rows[jnp.minimum(size, (kb + 1) * B) - 1 - k]
             tw, gw = window(row)
             _, pull = jax.vjp(lambda y, dd: outputs(row.at[3:].set(y), tw, dd), row[3:], dd)
             yb, db = pull((ybar, gw))
             return yb, [a + b for a, b in zip(dbar, db)]
 
-        return jax.lax.fori_loop(0, jnp.minimum(size - kb * _BLOCK, _BLOCK), one, carry)
+        return jax.lax.fori_loop(0, jnp.minimum(size - kb * B, B), one, carry)
 
     return sequential if _hoisted() else block
 

@@ -1,0 +1,80 @@
+"""Reverse mode of the default solver (`"dopri8-adaptive"`, `adjoint="reverse"`) is the
+discrete adjoint of its steps (solve/adjoint.py): the exact gradient of the computed
+solution, so it equals the forward-mode Jacobian through the same steps to rounding.
+
+The reference is `jax.jacfwd` through `simulate(adjoint="direct")`: JAX's tangents
+carried through the same solve's steps (the step sizes and decisions are values there
+too), contracted with the loss's weights."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import crank_jax as cj
+from crank_jax.solve import adjoint
+
+PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
+
+
+def _problem(torque=None, t1=2.0, samples=201):
+    mech = cj.load_scene("lab-rig").mech.replace(c=1e-3)
+    ts = jnp.linspace(0.0, t1, samples)
+    theta0 = jnp.array([float(getattr(mech, n)) for n in PARAMS] + [0.3])
+    weights = jnp.stack([jnp.sin(jnp.arange(samples) * 0.7), jnp.cos(jnp.arange(samples))])
+
+    def traj(theta, adjoint):
+        m = mech.replace(**dict(zip(PARAMS, theta[:-1])))
+        tq = None if torque is None else cj.HarmonicLoad(0.0, theta[-1], torque)
+        sol = cj.simulate(m, 1.0, 0.0, ts, torque=tq, rtol=1e-8, atol=1e-10,
+                          adjoint=adjoint)
+        return jnp.stack([sol.phi, sol.dphi])
+
+    def loss(theta, adjoint="reverse"):
+        return jnp.sum(weights * traj(theta, adjoint))
+
+    return theta0, weights, traj, loss
+
+
+def _forward_gradient(theta0, weights, traj):
+    jac = jax.jit(jax.jacfwd(lambda th: traj(th, "direct")))(theta0)  # (2, n, P)
+    return jnp.einsum("cn,cnp->p", weights, jac)
+
+
+def _close(g, ref):
+    # Exact to rounding: relative to the largest component (the components span five
+    # orders of magnitude).
+    np.testing.assert_allclose(g, ref, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(ref))))
+
+
+@pytest.mark.parametrize("torque", [None, 1.3], ids=["lab-rig", "torque-load"])
+def test_reverse_mode_is_the_transposed_forward_jacobian(torque):
+    theta0, weights, traj, loss = _problem(torque)
+    g = jax.jit(jax.grad(loss))(theta0)
+    _close(g, _forward_gradient(theta0, weights, traj))
+    if torque is not None:
+        assert abs(float(g[-1])) > 0  # the torque's amplitude has its own derivative
+
+
+def test_a_solve_longer_than_the_log_reruns_its_segments(monkeypatch):
+    # A log of 64 steps: the backward pass takes the last segment from the forward pass
+    # and reruns the forward solve for each earlier one, with the same result.
+    monkeypatch.setattr(adjoint, "LOG_ROWS", 64)
+    theta0, weights, traj, loss = _problem(t1=1.0, samples=11)
+    g = jax.jit(jax.grad(loss))(theta0)
+    steps = cj.simulate(cj.load_scene("lab-rig").mech.replace(c=1e-3), 1.0, 0.0,
+                        jnp.linspace(0.0, 1.0, 11), rtol=1e-8, atol=1e-10).num_steps
+    assert int(steps) > 2 * 64  # at least three segments
+    _close(g, _forward_gradient(theta0, weights, traj))
+
+
+def test_a_batch_of_gradients_under_vmap():
+    # Each member's gradient is its own: as computed alone.
+    theta0, _, _, loss = _problem(t1=1.0, samples=51)
+    thetas = jnp.stack([theta0, theta0.at[8].mul(3.0), theta0.at[9].mul(50.0)])
+    grad = jax.grad(loss)
+    batch = jax.jit(jax.vmap(grad))(thetas)
+    for i in range(3):
+        _close(batch[i], jax.jit(grad)(thetas[i]))
