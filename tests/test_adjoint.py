@@ -49,15 +49,26 @@ def _close(g, ref):
     np.testing.assert_allclose(g, ref, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(ref))))
 
 
-@pytest.mark.parametrize("torque", [None, 1.3], ids=["lab-rig", "torque-load"])
+# Each gradient compiles a backward pass (~30 s of CPU under XLA's defaults): the lab
+# rig's (with a batch under `vmap`) runs in the quick suite, the others are slow.
+@pytest.mark.parametrize("torque", [None, pytest.param(1.3, marks=pytest.mark.slow)],
+                         ids=["lab-rig", "torque-load"])
 def test_reverse_mode_is_the_transposed_forward_jacobian(torque):
     theta0, weights, traj, loss = _problem(torque)
-    g = jax.jit(jax.grad(loss))(theta0)
+    grad = jax.jit(jax.grad(loss))
+    g = grad(theta0)
     _close(g, _forward_gradient(theta0, weights, traj))
     if torque is not None:
         assert abs(float(g[-1])) > 0  # the torque's amplitude has its own derivative
+        return
+    # A batch of gradients under `jax.vmap`: each member's its own, as computed alone.
+    thetas = jnp.stack([theta0, theta0.at[8].mul(3.0), theta0.at[9].mul(50.0)])
+    batch = jax.jit(jax.vmap(jax.grad(loss)))(thetas)
+    for i in range(3):
+        _close(batch[i], grad(thetas[i]))
 
 
+@pytest.mark.slow
 def test_a_solve_longer_than_the_log_reruns_its_segments(monkeypatch):
     # A log of 64 steps: the backward pass takes the last segment from the forward pass
     # and reruns the forward solve for each earlier one, with the same result.
@@ -68,13 +79,3 @@ def test_a_solve_longer_than_the_log_reruns_its_segments(monkeypatch):
                         jnp.linspace(0.0, 1.0, 11), rtol=1e-8, atol=1e-10).num_steps
     assert int(steps) > 2 * 64  # at least three segments
     _close(g, _forward_gradient(theta0, weights, traj))
-
-
-def test_a_batch_of_gradients_under_vmap():
-    # Each member's gradient is its own: as computed alone.
-    theta0, _, _, loss = _problem(t1=1.0, samples=51)
-    thetas = jnp.stack([theta0, theta0.at[8].mul(3.0), theta0.at[9].mul(50.0)])
-    grad = jax.grad(loss)
-    batch = jax.jit(jax.vmap(grad))(thetas)
-    for i in range(3):
-        _close(batch[i], jax.jit(grad)(thetas[i]))

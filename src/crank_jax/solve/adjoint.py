@@ -185,16 +185,7 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
     g_pad = jnp.concatenate([g, jnp.zeros((W, n_state), g.dtype)])
 
     def window(row, method="scan"):
-        # The save times this step covers lie in the window of W pending ones that the
-        # forward pass stepped within (adaptive.py never steps past its window).
-        t, t1 = row[0], row[1]
-        j = jnp.searchsorted(ts, t, side="right", method=method)
-        tw = jax.lax.dynamic_slice_in_dim(ts_pad, j, W)
-        mine = (tw > t) & (tw <= t1)
-        gw = jnp.where(mine[:, None], jax.lax.dynamic_slice_in_dim(g_pad, j, W), 0.0)
-        # Save times the step does not cover evaluate at its start (theta 0): an infinite
-        # padding time would make the VJP's 0 * inf a NaN.
-        return jnp.where(mine, tw, t), gw
+        return _window(ts, ts_pad, g_pad, row, method)
 
     def outputs(row, tw, dd):
         return _step_outputs(full(dd), pack, unpack, row, tw, n_state)
@@ -228,9 +219,30 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
         (d_block,) = pull((u_in, gw))
         return ybar[0], [x + y.sum(0) for x, y in zip(dbar, d_block)]
 
-    def sequential(rows, kb, size, carry):
-        # The block's steps one after another, each one VJP of the step (few kernels of
-        # one step's size: one compiled function where XLA hoists the loop).
+    return _sequential(outputs, window, dd, B) if _hoisted() else block
+
+
+def _window(ts, ts_pad, g_pad, row, method):
+    """`(tw, gw)`: the save times (W,) a logged step `row` covers, and their cotangents
+    (W, N) (zero where it does not cover them). They lie in the window of W pending save
+    times that the forward pass stepped within (adaptive.py never steps past it)."""
+    W = WINDOW
+    t, t1 = row[0], row[1]
+    j = jnp.searchsorted(ts, t, side="right", method=method)
+    tw = jax.lax.dynamic_slice_in_dim(ts_pad, j, W)
+    mine = (tw > t) & (tw <= t1)
+    gw = jnp.where(mine[:, None], jax.lax.dynamic_slice_in_dim(g_pad, j, W), 0.0)
+    # Save times the step does not cover evaluate at its start (theta 0): an infinite
+    # padding time would make the VJP's 0 * inf a NaN.
+    return jnp.where(mine, tw, t), gw
+
+
+def _sequential(outputs, window, dd, B):
+    """`block` as `_block_vjp`'s, with the block's steps one after another, each one VJP
+    of the step: kernels of one step's size, one compiled function where XLA hoists the
+    loop (see `_hoisted`)."""
+
+    def block(rows, kb, size, carry):
         def one(k, carry):
             ybar, dbar = carry
             row = rows[jnp.minimum(size, (kb + 1) * B) - 1 - k]
@@ -241,7 +253,7 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
 
         return jax.lax.fori_loop(0, jnp.minimum(size - kb * B, B), one, carry)
 
-    return sequential if _hoisted() else block
+    return block
 
 
 def _hoisted() -> bool:
