@@ -43,10 +43,14 @@ def _forward_gradient(theta0, weights, traj):
     return jnp.einsum("cn,cnp->p", weights, jac)
 
 
-def _close(g, ref):
-    # Exact to rounding: relative to the largest component (the components span five
-    # orders of magnitude).
-    np.testing.assert_allclose(g, ref, rtol=1e-10, atol=1e-10 * float(jnp.max(jnp.abs(ref))))
+def _close(g, ref, tol=1e-8):
+    # Relative to the largest component (the components span five orders of magnitude).
+    # Exact to rounding (measured 3e-12) when both programs take the same steps; but the
+    # grad's forward pass (the solve with its log) and jacfwd's solve are two programs that
+    # XLA rounds differently, and a step whose error estimate sits at the acceptance edge
+    # can go either way in them (measured 4e-9 on this problem, 2026-11-26): the
+    # tolerance allows that, no more (an error of the adjoint itself is O(1)).
+    np.testing.assert_allclose(g, ref, rtol=tol, atol=tol * float(jnp.max(jnp.abs(ref))))
 
 
 # Each gradient compiles a backward pass (~30 s of CPU under XLA's defaults): the lab
@@ -65,7 +69,7 @@ def test_reverse_mode_is_the_transposed_forward_jacobian(torque):
     thetas = jnp.stack([theta0, theta0.at[8].mul(3.0), theta0.at[9].mul(50.0)])
     batch = jax.jit(jax.vmap(jax.grad(loss)))(thetas)
     for i in range(3):
-        _close(batch[i], grad(thetas[i]))
+        _close(batch[i], grad(thetas[i]), tol=1e-8)
 
 
 @pytest.mark.slow
