@@ -140,8 +140,8 @@ def test_mechanism_built_from_traced_values_inside_vmap():
 
 
 # ~55 s of compiling on 2 cores, kept out of the CI budget (run with -m slow). In CI the
-# same derivatives are checked elsewhere: diffrax's Dopri8 in reverse mode is the backward
-# pass of the default solver (test_adaptive.py, against finite differences), and forward
+# same derivatives are checked elsewhere: the default solver's reverse mode against its
+# forward mode (test_adjoint.py) and finite differences (test_adaptive.py), and forward
 # mode through it feeds test_stress_gradients.py.
 @pytest.mark.slow
 def test_grad_and_jacfwd_match_finite_differences():

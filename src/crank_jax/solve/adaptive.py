@@ -153,6 +153,8 @@ class _Step(NamedTuple):
     h: jax.Array
     steps: jax.Array
     rejected: jax.Array
+    # What `record` (see `solve_adaptive`) keeps of the attempts so far; None without it.
+    log: object = None
 
 
 class _Attempt(NamedTuple):
@@ -167,7 +169,7 @@ class _Attempt(NamedTuple):
     ks: list
 
 
-def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None):
+def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None, record=None):
     """`attempt(state, t_lim) -> (state, record)`: one step attempt of `erk` on the packed
     field `f(t, y)` per member, shortened to end at `t_lim`, with diffrax's error norm and
     an integral controller (a [`_Step`][] and an [`_Attempt`][]). A member is inactive
@@ -178,7 +180,7 @@ def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None):
     n_st = erk.num_stages
 
     def attempt(c: _Step, t_lim):
-        t, y, k, h, steps, rejected = c
+        t, y, k, h, steps, rejected = c[:6]
         # The steps are chosen on values: t and h carry no derivative.
         active = (t < t_lim) & (steps < max_steps)
         h_try = sg(jnp.where(active, jnp.minimum(h, t_lim - t), 1.0))
@@ -199,10 +201,12 @@ def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None):
         # A step shortened to end at the window (or the end) and accepted leaves the
         # controller's proposal `h` valid: the next step may take it again.
         h_next = jnp.where(ok & (h_try < h), jnp.maximum(h_try * fac, h), h_try * fac)
+        rec = _Attempt(ok, t, t1, h_try, y, ks + [k1])
         new = _Step(jnp.where(ok, t1, t), jnp.where(ok, y1, y), jnp.where(ok, k1, k),
                     jnp.where(active, sg(h_next), h), steps + active,
-                    jnp.where(active, ~ok, rejected))
-        return new, _Attempt(ok, t, t1, h_try, y, ks + [k1])
+                    jnp.where(active, ~ok, rejected),
+                    c.log if record is None else record[1](c.log, rec))
+        return new, rec
 
     return attempt
 
@@ -210,7 +214,7 @@ def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None):
 def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
                    erk: FusedERK | None = None, unroll: int = UNROLL, window: int = WINDOW,
                    chunk: int = CHUNK, batched: bool = False,
-                   error_size: int | None = None):
+                   error_size: int | None = None, record=None):
     """Integrate `dy/dt = field(t, y, args)` with adaptive steps of `erk`, saving at `ts`
     through the method's dense output.
 
@@ -225,7 +229,7 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     - `args`: passed to `field`; its inexact-array leaves are differentiable too.
     - `max_steps`: the budget of step attempts (accepted and rejected), static. The loop
       is a plain `lax` loop: forward mode goes through it; reverse mode does not (see
-      `lockstep.py`, whose backward pass differentiates another solve).
+      `lockstep.py`, whose backward pass is the discrete adjoint of adjoint.py).
     - `erk`: the method, default [`dopri8`][]`()`; its last stage must be `f(t1, y1)`
       (first same as last), and `dopri8_dense()` its dense output.
     - `unroll`, `window`: step attempts per loop iteration; save times one iteration may
@@ -239,11 +243,14 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
       its own time, step size, accept/reject decisions, step budget and outcome, as if
       solved alone; a member that is done, or out of budget, is frozen while the others
       go on (see `lockstep.py`).
+    - `record`: `(log0, write)`: the loop carries a log, `log0` at the start, and each
+      step attempt `rec` (its `ok`, `t`, `t1`, `h`, `y` on the packed state) updates it,
+      `log = write(log, rec)` (the discrete adjoint's record of the steps, adjoint.py).
 
     **Returns:** `(ys, result, num_steps)`: `ys` a pytree like `y0` with a leading axis n
     (batched: leaves (n, B)); `result` a `diffrax.RESULTS` (`max_steps_reached` if the
     budget ran out before `ts[-1]`; batched: shape (B,)); `num_steps`, the step attempts,
-    accepted and rejected (batched: (B,)).
+    accepted and rejected (batched: (B,)). With `record`, the final log comes fourth.
     """
     erk = dopri8() if erk is None else erk
     n = ts.shape[0]
@@ -264,8 +271,9 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     k0 = f(t0, y0p)
     h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), erk.order,
                        sg(ts[-1]) - sg(ts[0]), error_size)
-    state0 = _Step(t0, y0p, k0, h0, jnp.zeros(lead, int), jnp.zeros(lead, bool))
-    attempt = _attempt(erk, f, rtol, atol, max_steps, error_size)
+    state0 = _Step(t0, y0p, k0, h0, jnp.zeros(lead, int), jnp.zeros(lead, bool),
+                   None if record is None else record[0])
+    attempt = _attempt(erk, f, rtol, atol, max_steps, error_size, record)
     state, out = _step_loop(attempt, state0, y0p, ts, window, unroll, chunk, max_steps)
     t_end = sg(ts[-1])
     done = state.t >= t_end
@@ -278,6 +286,8 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     # Save times a member never reached (a failed solve) hold inf, as diffrax leaves them.
     reached = ts.reshape((n,) + (1,) * y0p.ndim) <= state.t[None]
     ys = jnp.where(reached, out[:n], jnp.inf)
+    if record is not None:
+        return unpack(ys), result, state.steps[..., 0], state.log
     return unpack(ys), result, state.steps[..., 0]
 
 

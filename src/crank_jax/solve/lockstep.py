@@ -25,11 +25,12 @@ each (`_spread`), with the same results.
 Differentiation: forward mode (`jax.jvp`, `jax.jacfwd`; `adjoint="forward"`) goes through
 the solve along the chosen steps (`custom_vmap` has a JVP rule). Reverse mode
 (`adjoint="reverse"`) cannot go through a `custom_vmap` (JAX has no transpose for it), so
-the solve carries a `custom_vjp` whose backward pass differentiates `fallback`, a
-reverse-differentiable solve of the same problem at the same tolerances (diffrax's Dopri8
-with checkpointed reverse mode): the gradient is that of a solution as accurate as the
-forward one, so the two agree to the tolerance (tests/test_adaptive.py checks them
-against finite differences).
+the solve carries a `custom_vjp` whose forward pass is one member's solve with a log of
+its steps and whose backward pass is the discrete adjoint of those steps (adjoint.py):
+the exact gradient of the computed solution, as forward mode's Jacobian is. Under
+`jax.vmap` both are a plain `vmap` of one member's (each member its own steps). Before
+issue 26 the backward pass differentiated a diffrax Dopri8 re-solve (12x one forward
+solve with the CPU flags, 68x under XLA's defaults, lab rig).
 """
 
 from __future__ import annotations
@@ -42,27 +43,27 @@ from jax.custom_batching import custom_vmap
 
 from .. import trig
 from ..compat import result_code
+from . import adjoint as discrete
 from .adaptive import outcome, solve_adaptive
 
 __all__ = ["adaptive_solve"]
 
 
-def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str, fallback,
+def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str,
                    error_size: int | None = None):
     """Solve with [`solve_adaptive`][] so that `jax.vmap` steps a batch in lockstep.
 
     **Arguments:** `field`, the vector field (a pytree; its array leaves may be traced or
     batched); `y0`, one member's state, a pytree of small arrays (the crank: `(phi,
     phi')`); `ts` (n,) save times; `rtol`, `atol` scalars; `max_steps`, the step budget;
-    `adjoint`, `"reverse"`, `"forward"` or `"direct"`; `fallback(field, y0, ts, rtol,
-    atol) -> ys`, a reverse-differentiable solve used by the backward pass of
-    `"reverse"`; `error_size`, the leading state components the step control sees (see
-    `solve_adaptive`).
+    `adjoint`, `"reverse"` (`jax.grad` by the discrete adjoint of adjoint.py),
+    `"forward"` or `"direct"`; `error_size`, the leading state components the step
+    control sees (see `solve_adaptive`).
 
     **Returns:** `(ys, result, num_steps)`, as `solve_adaptive` (`ys` like `y0` with a
     leading axis n; `result` a `diffrax.RESULTS`).
     """
-    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_size)
+    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size)
     ys, code, steps = out
     return (ys, *outcome(code.astype(jnp.int32), steps.astype(jnp.int32)))
 
@@ -202,7 +203,7 @@ def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size):
     return lockstep
 
 
-def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_size):
+def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size):
     # The field's arrays as a flat list: `custom_vmap` cannot take the `None` leaves that
     # `eqx.partition` leaves (jax issue 9066).
     dyn_tree, static = eqx.partition(field, eqx.is_array)
@@ -220,7 +221,8 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_siz
     def batch_rule(axis_size, in_batched, dyn, y0, ts, rtol, atol, spread):
         if not any(jax.tree_util.tree_leaves(in_batched)):
             # Nothing mapped (JAX's JVP of this rule asks so): one solve, not batched.
-            return single(dyn, y0, ts, rtol, atol), (False, False, False)
+            out = single(dyn, y0, ts, rtol, atol)
+            return out, jax.tree_util.tree_map(lambda _: False, out)
         if in_batched[2]:
             # Members with their own save times: a plain vmap.
             axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, bt)
@@ -252,28 +254,29 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, fallback, error_siz
 
     if adjoint != "reverse":
         return batched(spread=True)(dyn, y0, ts, rtol, atol)
-    return _with_fallback_vjp(batched, fallback, rebuild)(dyn, y0, ts, rtol, atol)
+    return _with_adjoint_vjp(batched, rebuild, max_steps, error_size)(dyn, y0, ts, rtol, atol)
 
 
-def _with_fallback_vjp(batched, fallback, rebuild):
-    """The solve `batched(spread)` with reverse mode through `fallback` (see the module's
-    docstring)."""
+def _with_adjoint_vjp(batched, rebuild, max_steps, error_size):
+    """The solve `batched(spread)` with reverse mode by the discrete adjoint of its steps
+    (adjoint.py; see the module's docstring)."""
 
     @jax.custom_vjp
     def reverse(dyn, y0, ts, rtol, atol):
         return batched(spread=True)(dyn, y0, ts, rtol, atol)
 
     def fwd(dyn, y0, ts, rtol, atol):
-        # A batch being differentiated in reverse stays on one device: XLA's SPMD
-        # partitioner aborts the process on a program that holds this backward pass and a
-        # spread batch (a failed check in spmd_partitioner_util.h, jax 0.10.2).
-        out = batched(spread=False)(dyn, y0, ts, rtol, atol)
-        return out, (dyn, y0, ts, rtol, atol)
+        # One member's solve with the log of its steps; under `jax.vmap` a plain `vmap` of
+        # it (each member its own steps, as in the lockstep batch).
+        ys, result, steps, log = discrete.forward(rebuild(dyn), y0, ts, rtol, atol,
+                                                 max_steps=max_steps, error_size=error_size)
+        out = (ys, _as_float(result_code(result), ts), _as_float(steps, ts))
+        return out, (dyn, y0, ts, rtol, atol, log)
 
     def bwd(res, g):
-        dyn, y0, ts, rtol, atol = res
-        _, pull = jax.vjp(lambda d, y: fallback(rebuild(d), y, ts, rtol, atol), dyn, y0)
-        d_dyn, d_y0 = pull(g[0])
+        dyn, y0, ts, rtol, atol, log = res
+        d_dyn, d_y0 = discrete.backward(rebuild, dyn, y0, ts, rtol, atol, log, g[0],
+                                       max_steps=max_steps, error_size=error_size)
         # No derivative with respect to the save times or the tolerances.
         return d_dyn, d_y0, jnp.zeros_like(ts), jnp.zeros_like(rtol), jnp.zeros_like(atol)
 

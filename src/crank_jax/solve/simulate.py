@@ -205,17 +205,9 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
     # outside the step loop, in one buffer (see model/coefficients.py). Each branch forms
     # it where it steps it.
     if solver == "dopri8-adaptive":
-        def fallback(fld, y, ts_, r, a):
-            ys = diffrax.diffeqsolve(
-                diffrax.ODETerm(_stacked_field), diffrax.Dopri8(), t0=ts_[0], t1=ts_[-1],
-                dt0=None, y0=jnp.stack(y), args=fld, saveat=diffrax.SaveAt(ts=ts_),
-                stepsize_controller=diffrax.PIDController(rtol=r, atol=a),
-                max_steps=max_steps, adjoint=adj, throw=False).ys
-            return ys[:, 0], ys[:, 1]
-
         def run(fld, y, ts_, r, a, error_size):
             return adaptive_solve(fld, y, ts_, r, a, max_steps=max_steps, adjoint=adjoint,
-                                  fallback=fallback, error_size=error_size)
+                                  error_size=error_size)
 
         state = (y0[0], y0[1])
         # Forward mode steps the variational equation beside the solution (variational.py):

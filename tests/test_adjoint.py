@@ -1,0 +1,85 @@
+"""Reverse mode of the default solver (`"dopri8-adaptive"`, `adjoint="reverse"`) is the
+discrete adjoint of its steps (solve/adjoint.py): the exact gradient of the computed
+solution, so it equals the forward-mode Jacobian through the same steps to rounding.
+
+The reference is `jax.jacfwd` through `simulate(adjoint="direct")`: JAX's tangents
+carried through the same solve's steps (the step sizes and decisions are values there
+too), contracted with the loss's weights."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import crank_jax as cj
+from crank_jax.solve import adjoint
+
+PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
+
+
+def _problem(torque=None, t1=2.0, samples=201):
+    mech = cj.load_scene("lab-rig").mech.replace(c=1e-3)
+    ts = jnp.linspace(0.0, t1, samples)
+    theta0 = jnp.array([float(getattr(mech, n)) for n in PARAMS] + [0.3])
+    weights = jnp.stack([jnp.sin(jnp.arange(samples) * 0.7), jnp.cos(jnp.arange(samples))])
+
+    def traj(theta, adjoint):
+        m = mech.replace(**dict(zip(PARAMS, theta[:-1])))
+        tq = None if torque is None else cj.HarmonicLoad(0.0, theta[-1], torque)
+        sol = cj.simulate(m, 1.0, 0.0, ts, torque=tq, rtol=1e-8, atol=1e-10,
+                          adjoint=adjoint)
+        return jnp.stack([sol.phi, sol.dphi])
+
+    def loss(theta, adjoint="reverse"):
+        return jnp.sum(weights * traj(theta, adjoint))
+
+    return theta0, weights, traj, loss
+
+
+def _forward_gradient(theta0, weights, traj):
+    jac = jax.jit(jax.jacfwd(lambda th: traj(th, "direct")))(theta0)  # (2, n, P)
+    return jnp.einsum("cn,cnp->p", weights, jac)
+
+
+def _close(g, ref, tol=1e-8):
+    # Relative to the largest component (the components span five orders of magnitude).
+    # Exact to rounding (measured 3e-12) when both programs take the same steps; but the
+    # grad's forward pass (the solve with its log) and jacfwd's solve are two programs that
+    # XLA rounds differently, and a step whose error estimate sits at the acceptance edge
+    # can go either way in them (measured 4e-9 on this problem, 2026-11-26): the
+    # tolerance allows that, no more (an error of the adjoint itself is O(1)).
+    np.testing.assert_allclose(g, ref, rtol=tol, atol=tol * float(jnp.max(jnp.abs(ref))))
+
+
+# Each gradient compiles a backward pass (~30 s of CPU under XLA's defaults): the lab
+# rig's (with a batch under `vmap`) runs in the quick suite, the others are slow.
+@pytest.mark.parametrize("torque", [None, pytest.param(1.3, marks=pytest.mark.slow)],
+                         ids=["lab-rig", "torque-load"])
+def test_reverse_mode_is_the_transposed_forward_jacobian(torque):
+    theta0, weights, traj, loss = _problem(torque)
+    grad = jax.jit(jax.grad(loss))
+    g = grad(theta0)
+    _close(g, _forward_gradient(theta0, weights, traj))
+    if torque is not None:
+        assert abs(float(g[-1])) > 0  # the torque's amplitude has its own derivative
+        return
+    # A batch of gradients under `jax.vmap`: each member's its own, as computed alone.
+    thetas = jnp.stack([theta0, theta0.at[8].mul(3.0), theta0.at[9].mul(50.0)])
+    batch = jax.jit(jax.vmap(jax.grad(loss)))(thetas)
+    for i in range(3):
+        _close(batch[i], grad(thetas[i]), tol=1e-8)
+
+
+@pytest.mark.slow
+def test_a_solve_longer_than_the_log_reruns_its_segments(monkeypatch):
+    # A log of 64 steps: the backward pass takes the last segment from the forward pass
+    # and reruns the forward solve for each earlier one, with the same result.
+    monkeypatch.setattr(adjoint, "LOG_ROWS", 64)
+    theta0, weights, traj, loss = _problem(t1=1.0, samples=11)
+    g = jax.jit(jax.grad(loss))(theta0)
+    steps = cj.simulate(cj.load_scene("lab-rig").mech.replace(c=1e-3), 1.0, 0.0,
+                        jnp.linspace(0.0, 1.0, 11), rtol=1e-8, atol=1e-10).num_steps
+    assert int(steps) > 2 * 64  # at least three segments
+    _close(g, _forward_gradient(theta0, weights, traj))
