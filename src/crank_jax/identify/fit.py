@@ -28,6 +28,7 @@ estimate and its uncertainty are those of the ordinary least-squares problem).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 import warnings
@@ -54,6 +55,7 @@ from .strategy import (
     far_from_noise,
     perturb,
     record_segments,
+    stall_rms,
 )
 from .uncertainty import assess, undefined
 
@@ -76,14 +78,18 @@ def _attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np
     ss = plan.single
     B = basis(plan.Bg, z0.shape[0])
     problem = shoot if req.method == "lm" else dataclasses.replace(shoot, adjoint="reverse")
-    run_fn = least_squares if req.method == "lm" else minimise_optax
+    # LM's stall test counts as convergence only near the record's noise level.
+    run_fn = (functools.partial(least_squares, stall_rms=stall_rms(plan.noise,
+                                                                   ch.known_sigma(req)))
+              if req.method == "lm" else minimise_optax)
     run = _guarded(run_fn, Subspace(problem, jnp.asarray(z0), jnp.asarray(B)),
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
     run = run._replace(z=z0 + B @ run.z)
     if shoot is ss or not np.isfinite(run.cost):
         return run
     zp = run.z[:ss.p]
-    pol = _guarded(least_squares, Subspace(ss, jnp.asarray(zp), jnp.asarray(plan.Bg)),
+    pol = _guarded(run_fn if req.method == "lm" else least_squares,
+                   Subspace(ss, jnp.asarray(zp), jnp.asarray(plan.Bg)),
                    np.zeros(plan.Bg.shape[1]), req.max_steps, req.tol, desc + " (polish)",
                    req.progress)
     return Run(zp + plan.Bg @ pol.z, pol.cost, run.iterations + pol.iterations,
