@@ -47,7 +47,13 @@ from .problem import Problem
 from .profile import profile_likelihood
 from .programs import Subspace
 from .request import FitRequest, free_names, normalise
-from .result import ConvergenceWarning, FitResult, IdentifiabilityWarning, Profile
+from .result import (
+    ConvergenceWarning,
+    FitResult,
+    IdentifiabilityWarning,
+    Profile,
+    with_wrapped_angles,
+)
 from .start import regressor_start
 from .strategy import (
     AUTO_PERIODS,
@@ -356,7 +362,7 @@ def fit(
     else:
         best, iterations, notes = _optimise(req, plan)
         req, best, iterations = ch.reweight(req, plan, best, iterations, notes, _attempt)
-    res = _result(req, plan, best, iterations, notes, t_begin)
+    res = with_wrapped_angles(_result(req, plan, best, iterations, notes, t_begin))
     if req.warn:
         if res.identifiable is False:
             warnings.warn("; ".join(res.unidentifiable_directions), IdentifiabilityWarning,
