@@ -384,3 +384,22 @@ def test_fitted_scene_takes_a_records_own_mechanism_field():
         got = cj.scene.fitted_scene(scene, res, record=i)
         assert float(got.mech.c) == c and float(got.mech.T_c) == 0.03
     assert float(cj.scene.fitted_scene(scene, res, record=1).phi0) == 0.5
+
+
+def test_noise_level_of_a_coarse_fast_record_is_the_noise():
+    # Issue 25: a slider read at 50 Hz while the crank turns 4 times a second (12.5
+    # samples a turn, 3 ms jitter, actual times): local quartics over a fraction of a
+    # turn put the motion into the noise estimate (5x the noise); divided differences
+    # at the recorded times do not.
+    from crank_jax.identify.start import noise_level
+
+    rng = np.random.default_rng(1)
+    ts = np.arange(200) / 50.0 + 3e-3 * rng.standard_normal(200)
+    w = 2 * np.pi * 4.0
+    x = 0.05 * np.cos(w * ts) + 0.00625 * np.cos(2 * w * ts)
+    sigma = 5e-5
+    got = noise_level(ts, x + sigma * rng.standard_normal(200))
+    assert 0.8 * sigma < got < 1.25 * sigma
+    # White noise alone, many samples: an unbiased estimate.
+    ts = np.cumsum(0.02 + 3e-3 * rng.standard_normal(4000))
+    assert noise_level(ts, rng.standard_normal(4000)) == pytest.approx(1.0, rel=0.05)
