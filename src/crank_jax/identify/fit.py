@@ -303,7 +303,7 @@ def fit(
     - `free`: names from [`FREE_NAMES`][]: the mechanism fields, the load amplitudes `P0`,
       `P1`, `tau0`, `tau1` (the scene's constant or harmonic load) and `phi0`, `dphi0`
       (the state at each record's first sample). A field that cannot be negative and
-      starts positive is fitted in log space; the friction terms `c`, `T_c`, `c_s`, `F_s` and
+      starts positive is fitted in log space; the friction terms `T_c`, `c_s`, `F_s` and
       any field that cannot be negative and starts at 0 as `ref |z|` (always valid; a
       true 0 gets the interval `[0, v + 1.96 se]`); the others (a signed offset, the
       loads and states) in linear coordinates.

@@ -91,16 +91,11 @@ def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None =
     return False, _ZERO_START_REF
 
 
-#: Friction terms (the crank's viscous damping and Coulomb torque, slider friction) whose
-#: true value is often 0: always folded, whatever their start. In log coordinates a true
-#: 0 sends ln(value) to -inf, LM crawls there, and the estimate (1e-265, say) is then
-#: reported as "ln T_c not determined" instead of "0, at most v + 1.96 se". They enter
-#: the equation of motion linearly, and linear coordinates keep the valleys between them
-#: and the loads straight: a motor's gain, its back-EMF `c` and `T_c` trade off along
-#: `gain V = c w + T_c`, which log coordinates bend, and LM crawled along the bend (the
-#: rotating rig: 40 iterations of multiple shooting in log `c`, 10 folded;
-#: experiments/fit_speed.py).
-FOLDED = frozenset(FRICTION_SCALED) | {"c"}
+#: Friction terms (Coulomb torque, slider friction) whose true value is often 0: always
+#: folded, whatever their start. In log coordinates a true 0 sends ln(value) to -inf,
+#: LM crawls there, and the estimate (1e-265, say) is then reported as "ln T_c not
+#: determined" instead of "0, at most v + 1.96 se".
+FOLDED = frozenset(FRICTION_SCALED)
 
 
 def folded(name: str, log: bool) -> bool:
