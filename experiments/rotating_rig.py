@@ -114,17 +114,28 @@ def demo() -> None:
 
 
 def coverage(n_seeds: int, out: str) -> None:
+    """Fit `n_seeds` seeds per configuration, seed by seed across the configurations; the
+    results file is rewritten after every fit, so a run cut short keeps what it did."""
     rows = {name: [] for name in CONFIGS}
-    for name, sensors in CONFIGS.items():
-        for seed in range(n_seeds):
+    for seed in range(n_seeds):
+        for name, sensors in CONFIGS.items():
             t = time.perf_counter()
             res = fit_config(sensors, seed=1000 + seed)
             rows[name].append({"seed": seed, "converged": res.converged,
-                               "iterations": res.iterations,
+                               "message": res.message, "iterations": res.iterations,
                                "seconds": time.perf_counter() - t,
                                "values": {n: res.values[n] for n in TRUTH},
                                "covered": covered(res)})
             print(name, seed, res.converged, covered(res), flush=True)
+            summary = _summary(rows)
+            with atomic_write(out) as f:
+                json.dump({"truth": TRUTH, "start": START, "seeds": n_seeds,
+                           "summary": summary, "fits": rows}, f, indent=2)
+                f.write("\n")
+    print(json.dumps(summary, indent=2))
+
+
+def _summary(rows: dict) -> dict:
     summary = {}
     for name, rs in rows.items():
         per = {}
@@ -136,13 +147,11 @@ def coverage(n_seeds: int, out: str) -> None:
                                                                  else None)}
         summary[name] = {"converged": sum(r["converged"] for r in rs), "fits": len(rs),
                          "parameters": per,
-                         "median_iterations": float(np.median([r["iterations"] for r in rs])),
-                         "median_seconds": float(np.median([r["seconds"] for r in rs]))}
-    with atomic_write(out) as f:
-        json.dump({"truth": TRUTH, "start": START, "seeds": n_seeds, "summary": summary,
-                   "fits": rows}, f, indent=2)
-        f.write("\n")
-    print(json.dumps(summary, indent=2))
+                         "median_iterations": (float(np.median([r["iterations"] for r in rs]))
+                                               if rs else None),
+                         "median_seconds": (float(np.median([r["seconds"] for r in rs]))
+                                            if rs else None)}
+    return summary
 
 
 def main() -> None:

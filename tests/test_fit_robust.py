@@ -222,3 +222,42 @@ def test_aliased_record_is_refused_before_any_solve(lab_rig):
     res = cj.fit(lab_rig, cj.Data(ts, 4.0 * np.arange(400), source="enc.csv"),
                  progress=False, warn=False)
     assert not res.converged and res.iterations == 0 and "between samples" in res.message
+
+
+class _Cubic:
+    """A residual view whose LM run stalls: r = (1, 1e-3 w^3). The Gauss-Newton step
+    (-w/3) shrinks slowly while the cost stays at 0.5: LM's stall test fires with the
+    step still large, at an rms residual of 0.71."""
+
+    problem = None
+
+    @staticmethod
+    def lift(w):
+        return w
+
+    @staticmethod
+    def restrict(J):
+        return J
+
+
+def _cubic_jacobian(problem, z):
+    w = float(np.asarray(z)[0])
+    r = np.array([1.0, 1e-3 * w**3])
+    J = np.array([[0.0], [3e-3 * w**2]])
+    return r, 0, None, J
+
+
+def test_a_stall_far_above_the_noise_is_not_convergence(monkeypatch):
+    # Issue 25: a fit stalled at 100x the noise level said "converged", so `fit` ranked it
+    # above better tries and printed "stalled ... the lowest-cost converged try".
+    from crank_jax.identify import optimise
+
+    monkeypatch.setattr(optimise, "jacobian_at", _cubic_jacobian)
+    far = least_squares(_Cubic(), np.array([1.0]), 100, 1e-8, "", False, stall_rms=0.1)
+    assert not far.converged and far.message.startswith("stalled")
+    assert "21.2 times the record's noise level" in far.message  # 0.707 / (0.1 / 3)
+    assert far.iterations < 20 and far.cost == pytest.approx(0.5)
+    # Near the noise level (or with no level given) the same stall is convergence.
+    near = least_squares(_Cubic(), np.array([1.0]), 100, 1e-8, "", False, stall_rms=1.0)
+    assert near.converged and near.iterations == far.iterations
+    assert least_squares(_Cubic(), np.array([1.0]), 100, 1e-8, "", False).converged

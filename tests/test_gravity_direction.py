@@ -408,3 +408,28 @@ def test_fit_recovers_a_free_gravity_angle(lab_rig):
     assert res.start["gravity_angle"] == 0.0 and res.converged, res.warnings
     assert abs(res.values["gravity_angle"] - 0.4) < 4 * res.stderr["gravity_angle"]
     assert res.stderr["gravity_angle"] < 0.01
+
+
+def test_wrap_angle_lands_in_minus_pi_to_pi():
+    from crank_jax.identify.result import wrap_angle
+
+    for x, want in ((0.0, 0.0), (np.pi, np.pi), (-np.pi, np.pi), (3 * np.pi, np.pi),
+                    (0.4 + 2 * np.pi, 0.4), (-0.4 - 4 * np.pi, -0.4), (-3.0, -3.0)):
+        assert wrap_angle(x) == pytest.approx(want, abs=1e-12)
+
+
+def test_a_fitted_gravity_angle_is_reported_within_minus_pi_to_pi(lab_rig, tmp_path):
+    # Issue 25: a fit started a turn away ended a turn away (gamma + 2 pi: the same
+    # gravity), and reported and wrote it so.
+    truth = cj.Scene(lab_rig.mech.replace(gravity_angle=0.4), phi0=0.8)
+    data = cj.synthesize(truth, t1=1.5, rate=100.0, noise_std=1e-3, seed=3)
+    start = cj.Scene(lab_rig.mech.replace(gravity_angle=0.3 + 2 * np.pi), phi0=0.8)
+    res = cj.fit(start, data, free=("gravity_angle", "c"), progress=False, warn=False)
+    assert res.converged, res.warnings
+    g, (lo, hi) = res.values["gravity_angle"], res.ci95["gravity_angle"]
+    assert -np.pi < g <= np.pi and abs(g - 0.4) < 4 * res.stderr["gravity_angle"]
+    assert lo < g < hi and hi - lo < 0.1
+    assert float(res.mech.gravity_angle) == pytest.approx(g, abs=1e-12)
+    out = tmp_path / "fitted.toml"
+    cj.save_scene(cj.scene.fitted_scene(start, res), out)
+    assert float(cj.load_scene(str(out)).mech.gravity_angle) == pytest.approx(g, abs=1e-9)

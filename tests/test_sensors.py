@@ -342,3 +342,64 @@ def test_a_users_force_term_is_fitted():
     with pytest.raises(ValueError, match=r"unknown free parameter\(s\) \['force.q'\]"):
         cj.fit(unbalance_force.rig(), cj.synthesize(unbalance_force.rig(), rate=50),
                free=("force.q",), force=truth, progress=False)
+
+
+def test_per_record_values_go_into_one_fitted_scene_per_record(tmp_path, capsys):
+    # Issue 25: --scene-out wrote the start value of a parameter fitted per record.
+    ts = np.linspace(0, 1.0, 51)
+    volts = 5.0 + 0.5 * np.sin(2 * np.pi * 1.3 * ts)
+    paths = []
+    for i, gain in enumerate((0.01, 0.02)):
+        data = cj.synthesize(_motor_rig(gain, volts, ts), rate=50, noise_std={"x_s": 2e-5},
+                             seed=3 + i)
+        paths.append(tmp_path / f"motor{i}.csv")
+        cj.save_data(data, paths[-1])
+    start = tmp_path / "start.toml"
+    cj.save_scene(_motor_rig(0.015, None, ts), start)
+    out = tmp_path / "fitted.toml"
+    assert main(["fit", str(paths[0]), str(start), "--more-data", str(paths[1]), "--free",
+                 "tau_gain,phi0,dphi0", "--per-record", "tau_gain", "--scene-out", str(out),
+                 "--out", str(tmp_path / "fit.json"), "--quiet"]) == 0
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert doc["converged"]
+    err = capsys.readouterr().err
+    assert "fitted.record1.toml" in err
+    for i, (path, gain) in enumerate(((out, 0.01), (tmp_path / "fitted.record1.toml", 0.02))):
+        scene = cj.load_scene(str(path))
+        est = doc["estimates"]
+        assert float(scene.torque.gain) == pytest.approx(est[f"tau_gain[{i}]"]["value"],
+                                                         rel=1e-12)
+        assert float(scene.torque.gain) == pytest.approx(gain, rel=0.05)
+        assert float(scene.phi0) == pytest.approx(est[f"phi0[{i}]"]["value"], rel=1e-12)
+
+
+def test_fitted_scene_takes_a_records_own_mechanism_field():
+    from types import SimpleNamespace
+
+    scene = rotating_scene((SLIDE,))
+    # The shared fields are the fitted mechanism's (T_c); c was fitted per record.
+    res = SimpleNamespace(mech=scene.mech.replace(T_c=0.03),
+                          values={"c[0]": 0.1, "c[1]": 0.2, "T_c": 0.03, "phi0[1]": 0.5})
+    for i, c in enumerate((0.1, 0.2)):
+        got = cj.scene.fitted_scene(scene, res, record=i)
+        assert float(got.mech.c) == c and float(got.mech.T_c) == 0.03
+    assert float(cj.scene.fitted_scene(scene, res, record=1).phi0) == 0.5
+
+
+def test_noise_level_of_a_coarse_fast_record_is_the_noise():
+    # Issue 25: a slider read at 50 Hz while the crank turns 4 times a second (12.5
+    # samples a turn, 3 ms jitter, actual times): local quartics over a fraction of a
+    # turn put the motion into the noise estimate (5x the noise); divided differences
+    # at the recorded times do not.
+    from crank_jax.identify.start import noise_level
+
+    rng = np.random.default_rng(1)
+    ts = np.arange(200) / 50.0 + 3e-3 * rng.standard_normal(200)
+    w = 2 * np.pi * 4.0
+    x = 0.05 * np.cos(w * ts) + 0.00625 * np.cos(2 * w * ts)
+    sigma = 5e-5
+    got = noise_level(ts, x + sigma * rng.standard_normal(200))
+    assert 0.8 * sigma < got < 1.25 * sigma
+    # White noise alone, many samples: an unbiased estimate.
+    ts = np.cumsum(0.02 + 3e-3 * rng.standard_normal(4000))
+    assert noise_level(ts, rng.standard_normal(4000)) == pytest.approx(1.0, rel=0.05)

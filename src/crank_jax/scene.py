@@ -353,29 +353,38 @@ def scene_to_toml(scene: Scene) -> str:
     return "\n".join(lines)
 
 
-def fitted_scene(scene: Scene, result) -> Scene:
+def fitted_scene(scene: Scene, result, record: int = 0) -> Scene:
     """`scene` with a fit's estimates: the fitted mechanism, the fitted load amplitudes
-    (`P0`, `P1`, `tau0`, `tau1`) and, where they were free, the first record's fitted
-    initial state (the state at that record's first sample). A record's own sampled
+    (`P0`, `P1`, `tau0`, `tau1`, the gains) and, where they were free, record `record`'s
+    fitted initial state (the state at that record's first sample). A record's own sampled
     loads are data, not scene, so the scene's loads are kept for them.
 
     **Arguments:** `scene`, the scene the fit started from; `result`, its
-    [`FitResult`][crank_jax.FitResult]. **Returns:** a [`Scene`][]; fitted channel
-    offsets (`x_s_offset`, ...) become its sensors' offsets.
+    [`FitResult`][crank_jax.FitResult]; `record`, which record's values to take for
+    names fitted per record (`name[i]`, `fit(per_record=...)`, and the states of a
+    multi-record fit). **Returns:** a [`Scene`][]; fitted channel offsets (`x_s_offset`,
+    ...) become its sensors' offsets.
     """
+    values = {n: v for n, v in result.values.items() if "[" not in n}
+    suffix = f"[{record}]"
+    values.update({n[:-len(suffix)]: v for n, v in result.values.items() if n.endswith(suffix)})
     loads = {"load": scene.load, "torque": scene.torque}
-    for name, value in result.values.items():
+    for name, value in values.items():
         if name in LOAD_PARAMS:
             side, role = LOAD_PARAMS[name]
             loads[side] = set_param(loads[side], role, as_float_array(value), side)
-    state = {n: result.values.get(n, result.values.get(f"{n}[0]")) for n in ("phi0", "dphi0")}
+    state = {n: values.get(n) for n in ("phi0", "dphi0")}
     # Fitted channel offsets become the scene's sensor calibration.
-    sensors = tuple(dataclasses.replace(s, offset=float(result.values[f"{s.name}_offset"]))
-                    if f"{s.name}_offset" in result.values else s for s in scene.sensors)
+    sensors = tuple(dataclasses.replace(s, offset=float(values[f"{s.name}_offset"]))
+                    if f"{s.name}_offset" in values else s for s in scene.sensors)
     scene = dataclasses.replace(scene, sensors=sensors) if sensors != scene.sensors else scene
+    # A mechanism field fitted per record: the shared mechanism holds its start value.
+    own = {n: float(values[n]) for n in result.mech.as_dict() if f"{n}{suffix}" in
+           result.values}
+    mech = result.mech.replace(**own) if own else result.mech
     return eqx.tree_at(
         lambda s: (s.mech, s.load, s.torque, s.phi0, s.dphi0), scene,
-        (result.mech, loads["load"], loads["torque"],
+        (mech, loads["load"], loads["torque"],
          as_float_array(scene.phi0 if state["phi0"] is None else state["phi0"]),
          as_float_array(scene.dphi0 if state["dphi0"] is None else state["dphi0"])))
 

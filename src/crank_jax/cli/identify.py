@@ -6,6 +6,7 @@ import argparse
 import json
 import re
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -115,7 +116,9 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--t-end", type=float, dest="fit_t_end",
                    help="fit only samples at or before this time, s")
     p.add_argument("--scene-out", metavar="FITTED.toml",
-                   help="write the fitted mechanism and loads as a complete scene file")
+                   help="write the fitted mechanism and loads as a complete scene file "
+                        "(the first record's; with --per-record, also STEM.recordI.toml "
+                        "for each further record)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -149,6 +152,8 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
     for path, option in outs:
         if path:
             check_output(path, inputs, option)
+    for path in _record_scenes(a)[1:]:
+        check_output(path, inputs, "--scene-out (a record's fitted scene)")
     if a.plot:
         check_figure_format(a.plot)
     named = [path for path, _ in outs if path]
@@ -290,12 +295,32 @@ def _fit_run(a: argparse.Namespace) -> int:
     return _report(res, a, title=f"{', '.join(files)} with {a.scene}")
 
 
+def _record_scenes(a: argparse.Namespace) -> list[str]:
+    """The fitted scene files: `--scene-out` (the first record's), and with `--per-record`
+    and `--more-data` one more per further record, `STEM.recordI.toml` beside it."""
+    out = getattr(a, "scene_out", None)
+    if not out:
+        return []
+    n = 1 + len(getattr(a, "more_data", None) or [])
+    if n == 1 or not getattr(a, "per_record", "").strip():
+        return [out]
+    p = Path(out)
+    return [out] + [str(p.with_name(f"{p.stem}.record{i}{p.suffix or '.toml'}"))
+                    for i in range(1, n)]
+
+
 def _write_scene(res, a: argparse.Namespace) -> None:
     """The fitted mechanism (and fitted load amplitudes) as a complete scene file, with the
-    first record's fitted initial state; written atomically, never over an input."""
+    first record's fitted initial state and per-record values; with `--per-record`, one
+    scene per record (see `_record_scenes`), each a scene `synth`, `fit` and `validate`
+    take. Written atomically, never over an input."""
     from ..scene import fitted_scene, save_scene
 
-    save_scene(fitted_scene(a.fitted_scene, res), a.scene_out)
+    paths = _record_scenes(a)
+    for i, path in enumerate(paths):
+        save_scene(fitted_scene(a.fitted_scene, res, record=i), path)
+        if i:
+            print(f"wrote {path} (record {i}'s fitted scene)", file=sys.stderr)
 
 
 # --- demo -------------------------------------------------------------------------------

@@ -96,10 +96,9 @@ def channel_sigmas(req: FitRequest) -> dict[str, float]:
     if req.sigma is not None and not isinstance(req.sigma, dict):
         given[first_channel(req)] = float(req.sigma)
     out: dict[str, float] = {}
-    for d, a in zip(req.records, req.angles):
-        period = motion_period(d.ts, a)
+    for d in req.records:
         for s, y in d.outputs():
-            level = max(noise_level(d.ts, y, period), _MIN_RELATIVE_NOISE * float(np.std(y)),
+            level = max(noise_level(d.ts, y), _MIN_RELATIVE_NOISE * float(np.std(y)),
                         1e-300)
             out[s.name] = max(out.get(s.name, 0.0), level)
     out.update(given)

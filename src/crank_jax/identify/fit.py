@@ -28,6 +28,7 @@ estimate and its uncertainty are those of the ordinary least-squares problem).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 import warnings
@@ -46,7 +47,13 @@ from .problem import Problem
 from .profile import profile_likelihood
 from .programs import Subspace
 from .request import FitRequest, free_names, normalise
-from .result import ConvergenceWarning, FitResult, IdentifiabilityWarning, Profile
+from .result import (
+    ConvergenceWarning,
+    FitResult,
+    IdentifiabilityWarning,
+    Profile,
+    with_wrapped_angles,
+)
 from .start import regressor_start
 from .strategy import (
     AUTO_PERIODS,
@@ -54,6 +61,7 @@ from .strategy import (
     far_from_noise,
     perturb,
     record_segments,
+    stall_rms,
 )
 from .uncertainty import assess, undefined
 
@@ -76,14 +84,18 @@ def _attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np
     ss = plan.single
     B = basis(plan.Bg, z0.shape[0])
     problem = shoot if req.method == "lm" else dataclasses.replace(shoot, adjoint="reverse")
-    run_fn = least_squares if req.method == "lm" else minimise_optax
+    # LM's stall test counts as convergence only near the record's noise level.
+    run_fn = (functools.partial(least_squares, stall_rms=stall_rms(plan.noise,
+                                                                   ch.known_sigma(req)))
+              if req.method == "lm" else minimise_optax)
     run = _guarded(run_fn, Subspace(problem, jnp.asarray(z0), jnp.asarray(B)),
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
     run = run._replace(z=z0 + B @ run.z)
     if shoot is ss or not np.isfinite(run.cost):
         return run
     zp = run.z[:ss.p]
-    pol = _guarded(least_squares, Subspace(ss, jnp.asarray(zp), jnp.asarray(plan.Bg)),
+    pol = _guarded(run_fn if req.method == "lm" else least_squares,
+                   Subspace(ss, jnp.asarray(zp), jnp.asarray(plan.Bg)),
                    np.zeros(plan.Bg.shape[1]), req.max_steps, req.tol, desc + " (polish)",
                    req.progress)
     return Run(zp + plan.Bg @ pol.z, pol.cost, run.iterations + pol.iterations,
@@ -350,7 +362,7 @@ def fit(
     else:
         best, iterations, notes = _optimise(req, plan)
         req, best, iterations = ch.reweight(req, plan, best, iterations, notes, _attempt)
-    res = _result(req, plan, best, iterations, notes, t_begin)
+    res = with_wrapped_angles(_result(req, plan, best, iterations, notes, t_begin))
     if req.warn:
         if res.identifiable is False:
             warnings.warn("; ".join(res.unidentifiable_directions), IdentifiabilityWarning,

@@ -21,12 +21,13 @@ import numpy as np
 
 from ..lazy import lazy_import
 from .programs import jacobian_at, residuals_at
+from .strategy import FAR_FROM_NOISE
 
 # Imported on first use (see lazy.py): only the optax method needs it.
 optax = lazy_import("optax")
 
 __all__ = ["Run", "least_squares", "minimise_optax", "evaluate", "STALL_STEPS",
-           "progress_bar"]
+           "progress_bar", "stalled_message"]
 
 #: The stall test looks this many iterations back (see `_Evaluations`).
 STALL_STEPS = 8
@@ -106,10 +107,18 @@ class _Evaluations:
     stall test (the best cost has fallen by less than `0.01 sigma^2` over the last
     [`STALL_STEPS`][] iterations, with `sigma^2 ~ 2 cost / n`: LM can crawl for hundreds of
     steps along a weakly determined valley while moving the estimate by a tiny fraction of
-    its confidence region), and the iteration budget."""
+    its confidence region), and the iteration budget.
 
-    def __init__(self, model, max_steps: int, tol: float, bar):
+    A stall is convergence only where the fit explains the record: at an rms residual
+    within `stall_rms` (the fit passes [`FAR_FROM_NOISE`][] times the record's noise
+    level; None: anywhere). Above it, the cost has stopped falling without the
+    Gauss-Newton test being met: a local minimum (a bound held, a slipped turn) or a
+    model that cannot follow the record, reported as a stall, not as convergence."""
+
+    def __init__(self, model, max_steps: int, tol: float, bar,
+                 stall_rms: float | None = None):
         self.model, self.max_steps, self.tol, self.bar = model, max_steps, tol, bar
+        self.stall_rms = stall_rms
         self.w = self.r = self.J = None
         self.failed = 0
         self.best_w, self.best_cost, self.best_failed = None, math.inf, 0
@@ -155,7 +164,7 @@ class _Evaluations:
             if not np.any(self.J) or (math.isfinite(h[0]) and h[0] - h[-1] <= 0.0):
                 raise _Stop(False, _failed_message(self.failed))
         elif math.isfinite(h[0]) and h[0] - h[-1] <= 0.02 * h[-1] / n:
-            raise _Stop(True, "converged")
+            raise _Stop(*self._stall(h[-1], n))
         # Converged when the Gauss-Newton step, the distance to the minimum the
         # linearisation predicts, is below `tol + tol |w|` in every coordinate. MINPACK's
         # own tests look at the damped step or the cost change, which are small also where
@@ -169,9 +178,25 @@ class _Evaluations:
             raise _Stop(False, _budget_spent(self.max_steps))
         return self.J
 
+    def _stall(self, cost: float, n: int) -> tuple[bool, str]:
+        """(converged, message) of a run whose best cost has stopped falling."""
+        rms = math.sqrt(2.0 * cost / max(n, 1))
+        if self.stall_rms is None or rms <= self.stall_rms:
+            return True, "converged"
+        return False, stalled_message(rms, self.stall_rms / FAR_FROM_NOISE)
+
+
+def stalled_message(rms: float, noise: float) -> str:
+    """The message of a run whose cost stopped falling far above the noise level `noise`
+    (both in the residuals' unit)."""
+    return (f"stalled: the cost stopped falling at an rms residual {rms / noise:.3g} times "
+            "the record's noise level, before the Gauss-Newton step became small (a local "
+            "minimum, or a model that cannot follow the record); try start values nearer "
+            "the truth or more starts (multistart)")
+
 
 def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
-                  progress: bool) -> Run:
+                  progress: bool, stall_rms: float | None = None) -> Run:
     """Levenberg-Marquardt on a residual view `model` (a [`Subspace`][] or [`Pinned`][]
     problem) from `z0`, with a progress bar per iteration.
 
@@ -186,12 +211,13 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     The point reported is the best one seen: the lowest cost among points whose solves
     all succeed (a failed solve's samples count as residuals of 10 rad, a stand-in, not a
     misfit). A run whose best point still has failed samples is never `converged`, and
-    its cost is NaN."""
+    its cost is NaN. `stall_rms`: the rms residual above which a stall is not
+    convergence (see `_Evaluations`; None: a stall is convergence anywhere)."""
     from scipy.optimize import least_squares as minpack_lm
 
     z0 = np.asarray(z0, dtype=float)
     with progress_bar(max_steps, desc, progress) as bar:
-        ev = _Evaluations(model, max_steps, tol, bar)
+        ev = _Evaluations(model, max_steps, tol, bar, stall_rms)
         # MINPACK's own tests at machine precision: they stop it only where it can make
         # no further progress; the tests that decide are `_Evaluations.jacobian`'s. (Not
         # below it: MINPACK's "tolerance too small" outcomes have no status in scipy.)

@@ -141,7 +141,7 @@ def make_plan(req: FitRequest) -> Plan:
     periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     # Motion is judged on the angle the channels tell; the fit's residuals and their
     # noise level are in the first channel's unit.
-    noises = [noise_level(d.ts, a, p) for d, a, p in zip(req.records, req.angles, periods)]
+    noises = [noise_level(d.ts, a) for d, a in zip(req.records, req.angles)]
     noise = req.sigmas[ch.first_channel(req)]
     multi = len(req.records) > 1
     quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in

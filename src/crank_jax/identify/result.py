@@ -171,3 +171,25 @@ class FitResult(NamedTuple):
                          f"{d.lag1_autocorrelation:.3f}, {d.effective_samples:.0f} effective "
                          f"of {d.n_samples} samples)")
         return "\n".join(lines)
+
+
+def wrap_angle(x: float) -> float:
+    """`x` (rad) moved by whole turns into (-pi, pi]."""
+    return math.pi - (math.pi - x) % (2 * math.pi)
+
+
+def with_wrapped_angles(res: FitResult) -> FitResult:
+    """`res` with each fitted `gravity_angle` (`gravity_angle[i]` per record) moved by
+    whole turns into (-pi, pi], its interval by the same turns (gravity acts along
+    `(-cos g, -sin g)`: the fit's linear coordinate may end a turn or more away)."""
+    names = [n for n in res.names if n == "gravity_angle" or n.startswith("gravity_angle[")]
+    if not names:
+        return res
+    values, ci = dict(res.values), dict(res.ci95)
+    for n in names:
+        shift = wrap_angle(values[n]) - values[n]
+        values[n] += shift
+        if ci.get(n) is not None:
+            ci[n] = (ci[n][0] + shift, ci[n][1] + shift)
+    mech = res.mech.replace(gravity_angle=wrap_angle(float(res.mech.gravity_angle)))
+    return res._replace(values=values, ci95=ci, mech=mech)
