@@ -16,6 +16,8 @@ from crank_jax.identify.fit import _best
 from crank_jax.identify.optimise import Run, least_squares
 from crank_jax.identify.problem import build_problem, coordinate
 from crank_jax.identify.programs import Subspace, residuals_at
+from crank_jax.identify.start import noise_level
+from crank_jax.identify.strategy import no_motion
 from crank_jax.identify.uncertainty import analyse, fixed_scale_members
 
 
@@ -165,6 +167,23 @@ def test_record_with_no_motion_above_its_noise_is_refused_before_any_solve(lab_r
                      warn=False)
         assert not res.converged and res.iterations == 0
         assert "no motion above its noise" in res.message
+
+
+def test_pure_noise_of_any_length_is_no_motion_and_a_small_motion_is_one():
+    # The noise level from divided differences (issue 25) scatters on short records: pure
+    # noise of 20 samples read as a motion half of the time (MIN_MOTION's fixed ratio),
+    # and the fit then "converged" on it (hypothesis found phi0 = 3.29 on 1e-9 rad of
+    # noise). Seeded, so it cannot flake: 300 pure-noise records per length, all refused.
+    rng = np.random.default_rng(7)
+    for n in (12, 20, 50, 400, 2000):
+        ts = np.arange(n) / 10.0
+        for _ in range(300 if n < 2000 else 50):
+            y = 5.0 + 1e-9 * rng.normal(size=n)
+            assert no_motion(y, noise_level(ts, y)) is not None, n
+    # A motion of three noise levels in 1001 samples is a motion.
+    ts = np.arange(1001) / 200.0
+    y = 3e-3 * np.sin(2 * np.pi * 2.0 * ts) * np.exp(-ts / 5) + 1e-3 * rng.normal(size=ts.size)
+    assert no_motion(y, noise_level(ts, y)) is None
 
 
 def test_good_record_plus_one_of_many_turns_is_refused_by_that_record(lab_rig):

@@ -46,6 +46,8 @@ FREQUENCY_RATIO = 30.0
 #: noise about a constant (see [`no_motion`][]); a real motion in noise of the same size
 #: is still well above it (0.34 noise levels for an amplitude of one noise level).
 MIN_MOTION = 0.2
+#: The probability that a record of pure noise is taken for a motion (see [`no_motion`][]).
+NO_MOTION_FALSE_ALARM = 1e-4
 #: A fit whose rms residual ends above this multiple of the record's noise level (and
 #: of `sigma`, when given) is stalled far from the noise: try another strategy.
 FAR_FROM_NOISE = 3.0
@@ -175,19 +177,35 @@ def absurd_frequency(omega_start: float | None, period_data: float | None) -> st
             "init='regressor', or a stiffness from the observed period)")
 
 
+def _pure_noise_ratio(n: int) -> float:
+    """The variance-to-noise ratio that pure noise of `n` samples exceeds with probability
+    [`NO_MOTION_FALSE_ALARM`][] (see [`no_motion`][])."""
+    from scipy.stats import f
+
+    from .start import NOISE_STENCIL
+
+    dof = max((n - NOISE_STENCIL + 1) / 6.0, 1.0)
+    return max(1.0 + MIN_MOTION**2, float(f.ppf(1.0 - NO_MOTION_FALSE_ALARM, n - 1, dof)))
+
+
 def no_motion(phi: np.ndarray, noise: float) -> str | None:
     """A message when a record's angle shows no motion above its noise, else None.
 
-    The motion's rms is judged as `sqrt(var(phi) - noise^2)`; below [`MIN_MOTION`][]
-    noise levels the record is noise about a constant (a pure-noise column, a crank at
-    rest): no model can explain it, and a fit would spend minutes on the crossings of
-    noise taken for periods. Decided before any solve."""
+    The record's variance is compared with the noise level's square (from
+    `start.noise_level`): a pure-noise record (a pure-noise column, a crank at rest)
+    gives a ratio near 1, and no model can explain it (a fit would spend minutes on the
+    crossings of noise taken for periods, or "converge" on nothing). Both are estimates,
+    so the ratio of pure noise scatters, widely on a short record (over 10 for 20
+    samples one time in a thousand): the record is refused while the ratio stays below
+    what pure noise exceeds only with probability [`NO_MOTION_FALSE_ALARM`][] (an F
+    quantile; the noise level's stencil windows overlap, so it gets a sixth of their
+    count as degrees of freedom, which covers the simulated quantiles from 10 to 2000
+    samples), and at least `1 + MIN_MOTION^2`. Decided before any solve."""
     x = np.asarray(phi, dtype=float)
     spread = float(np.std(x))
-    motion = math.sqrt(max(spread**2 - noise**2, 0.0))
     # A spread of float rounding (or none) is no motion either, whatever the noise says.
     rounding = spread <= 1e-12 * float(np.max(np.abs(x)))
-    if not (rounding or noise > 0 and motion < MIN_MOTION * noise):
+    if not (rounding or noise > 0 and spread**2 < noise**2 * _pure_noise_ratio(x.size)):
         return None
     return (f"the angle shows no motion above its noise (spread {spread:.3g} rad, noise "
             f"level {noise:.3g} rad): there is nothing for a model to explain; check the "
