@@ -63,25 +63,25 @@ def test_modules_are_short():
     assert not long, f"modules longer than {MAX_MODULE_LINES} lines: {long}"
 
 
-def test_functions_are_short():
+def _long_functions(paths, limit: int) -> dict[str, int]:
+    """`module.function -> body lines` for the functions of `paths` longer than `limit`."""
     long = {}
-    for p in MODULES:
+    for p in paths:
         for node in ast.walk(ast.parse(p.read_text())):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 n = _body_lines(node)
-                if n > MAX_FUNCTION_LINES:
+                if n > limit:
                     long[f"{_name(p)}.{node.name}"] = n
+    return long
+
+
+def test_functions_are_short():
+    long = _long_functions(MODULES, MAX_FUNCTION_LINES)
     assert not long, f"functions longer than {MAX_FUNCTION_LINES} lines: {long}"
 
 
 def test_solver_functions_are_shorter():
-    long = {}
-    for p in sorted((SRC / "solve").glob("*.py")):
-        for node in ast.walk(ast.parse(p.read_text())):
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                n = _body_lines(node)
-                if n > MAX_SOLVE_FUNCTION_LINES:
-                    long[f"{_name(p)}.{node.name}"] = n
+    long = _long_functions(sorted((SRC / "solve").glob("*.py")), MAX_SOLVE_FUNCTION_LINES)
     assert not long, f"solve/ functions longer than {MAX_SOLVE_FUNCTION_LINES} lines: {long}"
 
 

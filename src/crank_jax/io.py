@@ -15,7 +15,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import IO
 
-__all__ = ["atomic_write", "check_input", "check_not_input", "check_output",
+__all__ = ["atomic_write", "make_dir", "check_input", "check_not_input", "check_output",
            "check_figure_format", "default_file_mode", "Terminated", "note_signal",
            "raise_if_terminated", "temp_file", "remove_stale_temps", "STALE_TEMP_S"]
 
@@ -123,6 +123,16 @@ def _kind(mode: int) -> str:
         if test(mode):
             return name
     return "not a regular file"
+
+
+def make_dir(path: Path, label: str) -> None:
+    """Create the directory `path` (and its parents) if missing; `ValueError` naming
+    `label` (the option or argument) and the system's reason when it cannot be."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{label} {str(path)!r}: cannot create the directory "
+                         f"({e.strerror})") from None
 
 
 def check_input(path: str | os.PathLike, option: str = "input") -> None:

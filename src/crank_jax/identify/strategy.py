@@ -43,8 +43,9 @@ STEPS_PER_PERIOD = 4000
 #: record's observed frequency is rejected before any solve.
 FREQUENCY_RATIO = 30.0
 #: A record whose motion (rms, noise taken out) is below this many noise levels is
-#: noise about a constant (see [`no_motion`][]); a real motion in noise of the same size
-#: is still well above it (0.34 noise levels for an amplitude of one noise level).
+#: noise about a constant (see [`no_motion`][]); the bound is higher where pure noise
+#: could reach it ([`NO_MOTION_FALSE_ALARM`][]): 0.77 noise levels at 1001 samples, so a
+#: sinusoid of amplitude 1.1 noise levels or less is refused there.
 MIN_MOTION = 0.2
 #: The probability that a record of pure noise is taken for a motion (see [`no_motion`][]).
 NO_MOTION_FALSE_ALARM = 1e-4

@@ -27,7 +27,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ..io import atomic_write
+from ..io import atomic_write, make_dir
 from .collective import broadcast, on_process_0
 
 __all__ = ["Checkpoint", "SharedCheckpoint", "plan_manifest"]
@@ -83,11 +83,7 @@ class Checkpoint:
         if self.dir.exists() and not self.dir.is_dir():
             raise ValueError(f"checkpoint {str(self.dir)!r} is a file, not a directory; "
                              "give a directory (it is created if missing)")
-        try:
-            self.dir.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise ValueError(f"checkpoint {str(self.dir)!r}: cannot create the directory "
-                             f"({e.strerror})") from None
+        make_dir(self.dir, "checkpoint")
         if writer and not os.access(self.dir, os.W_OK | os.X_OK):
             raise ValueError(f"checkpoint {str(self.dir)!r} is not writable; give a "
                              "directory you may write to")

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_write
+from ..io import atomic_write, make_dir
 
 __all__ = ["TrajectoryStore", "Trajectories", "load_trajectories", "FIELDS"]
 
@@ -68,11 +68,7 @@ class TrajectoryStore:
                 f"fields need {_gigabytes(need)}, more than the {_gigabytes(free)} free at "
                 f"{str(probe)!r}; keep fewer times (every > {self.every}), fewer samples "
                 "or another disk")
-        try:
-            self.dir.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise ValueError(f"save_trajectories {str(self.dir)!r}: cannot create the "
-                             f"directory ({e.strerror})") from None
+        make_dir(self.dir, "save_trajectories")
         self.head = {"format": _FORMAT, "plan": plan_manifest, "every": self.every,
                      "ts": self.ts.tolist(), "n": int(n), "fields": list(FIELDS),
                      "units": {"phi": "rad", "dphi": "rad/s", "ts": "s"}}
