@@ -44,7 +44,7 @@ import os
 import platform
 import re
 
-__all__ = ["SMALL_LOOP_BYTES", "with_cpu_flags", "cpu_flags", "configure_cpu",
+__all__ = ["SMALL_LOOP_BYTES", "small_loop_bytes", "with_cpu_flags", "cpu_flags", "configure_cpu",
            "instruction_sets"]
 
 #: Loops touching fewer bytes per iteration than this are compiled into one function. 1 MiB
@@ -80,6 +80,14 @@ def _has_avx512() -> bool:
 def cpu_flags() -> list[str]:
     """The flags [`with_cpu_flags`][] adds, for this CPU."""
     return [f"{_EXTRA}{_LOOP_KEY}={SMALL_LOOP_BYTES}"] + ([_VECTOR_512] if _has_avx512() else [])
+
+
+def small_loop_bytes(flags: str | None = None) -> int | None:
+    """The small-loop threshold (bytes) set in `flags` (default: this process's
+    `XLA_FLAGS`), or None where it is not set (XLA's default, 1024)."""
+    flags = os.environ.get("XLA_FLAGS") if flags is None else flags
+    m = re.search(_LOOP_KEY + r"=(\d+)", flags or "")
+    return None if m is None else int(m.group(1))
 
 
 def with_cpu_flags(flags: str | None) -> str:

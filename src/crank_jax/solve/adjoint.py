@@ -25,14 +25,13 @@ memory for `LOG_ROWS` rows, whatever `n`).
 
 from __future__ import annotations
 
-import os
-import re
 from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..xla_flags import SMALL_LOOP_BYTES, small_loop_bytes
 from .adaptive import WINDOW, dopri8_dense, solve_adaptive
 from .erk import dopri8, packer
 
@@ -263,9 +262,9 @@ def _hoisted() -> bool:
     grad 4.3x one forward solve against ~12x for the blocks (machine loaded). Without it
     every one of the ~600 kernels of a step's VJP is dispatched per step (90x), and the
     vectorised blocks win."""
-    flags = os.environ.get("XLA_FLAGS") or ""
-    m = re.search(r"xla_cpu_small_while_loop_byte_threshold=(\d+)", flags)
-    return jax.default_backend() == "cpu" and m is not None and int(m.group(1)) >= 1 << 20
+    threshold = small_loop_bytes()
+    return (jax.default_backend() == "cpu" and threshold is not None
+            and threshold >= SMALL_LOOP_BYTES)
 
 
 def _reverse_affine(a, c, u_end):
