@@ -21,6 +21,7 @@ from _bench import median_time, save, setup_jax
 jax = setup_jax()
 import crank_jax as cj  # noqa: E402
 from crank_jax.model.dynamics import Structure  # noqa: E402
+from crank_jax.solve.names import solver_named  # noqa: E402
 from crank_jax.solve.simulate import OUTPUTS, _solve  # noqa: E402
 
 
@@ -38,7 +39,7 @@ def main(argv=None):
               tuple(sorted(OUTPUTS)))]
     rows = []
     for label, mech, load, torque, outputs in cases:
-        kw = dict(solver="dopri8-uniform", max_steps=200_000, adjoint="forward",
+        kw = dict(solver=solver_named("dopri8-uniform"), max_steps=200_000, adjoint="forward",
                   structure=Structure.of(mech), outputs=outputs, throw=False, mode="host")
         args = (mech, load, torque, None, jnp.array([1.0, 0.0]), ts, jnp.asarray(1e-8),
                 jnp.asarray(1e-10))

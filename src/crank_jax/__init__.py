@@ -15,6 +15,8 @@ The public API, by topic (everything else is private; the subpackages
   `SampledLoad`, `INTERPOLATIONS`, `LOAD_PARAMS`.
 - Simulation: `simulate`, `Trajectory`, `OUTPUTS`, `output_columns`, `SOLVERS`,
   `resolve_solver`, `choose_solver`, `fastest_mode`.
+- Solvers for any vector field: `solve`, `Solution`, `solver_named`, `AbstractSolver`,
+  `AdaptiveDopri8`, `UniformDopri8`, `Diffrax`.
 - Scenes: `Scene`, `SceneError`, `load_scene`, `save_scene`, `scene_to_toml`, `presets`,
   `PRESETS`.
 - Data: `Data`, `DataError`, `load_data`, `save_data`, `synthesize`.
@@ -124,6 +126,7 @@ from .scene import (
     scene_to_toml,
 )
 from .sensors import Sensor, SensorError
+from .solve.names import solver_named
 from .solve.policy import (
     SOLVERS,
     choose_solver,
@@ -135,6 +138,14 @@ from .solve.simulate import (
     Trajectory,
     output_columns,
     simulate,
+)
+from .solve.solvers import (
+    AbstractSolver,
+    AdaptiveDopri8,
+    Diffrax,
+    Solution,
+    UniformDopri8,
+    solve,
 )
 from .sweep.run import (
     REDUCTIONS,
@@ -231,6 +242,7 @@ __all__ = [
     "SceneError",
     "SIGNED_FIELDS",
     "simulate",
+    "solve",
     "SliderCrank",
     "SOLVERS",
     "STATUS",
@@ -248,4 +260,10 @@ __all__ = [
     "VARIABLES",
     "widen",
     "with_cpu_flags",
+    "AbstractSolver",
+    "AdaptiveDopri8",
+    "Diffrax",
+    "Solution",
+    "UniformDopri8",
+    "solver_named",
 ]

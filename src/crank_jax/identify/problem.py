@@ -47,6 +47,7 @@ from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..sensors import OFFSET_NAMES
 from ..solve.policy import resolve_solver
 from ..solve.simulate import solve_crank
+from ..solve.solvers import AbstractSolver
 from .measurement import calibration, channel_errors, fitted_channels
 from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
 from .segments import Experiment, make_segments, padded_load
@@ -128,7 +129,7 @@ class Problem(eqx.Module):
     log: tuple[bool, ...] = eqx.field(static=True)
     n_global: int = eqx.field(static=True)  # mechanism + load entries of z
     state_free: tuple[bool, bool] = eqx.field(static=True)
-    solver: str = eqx.field(static=True)
+    solver: AbstractSolver = eqx.field(static=True)
     structure: Structure = eqx.field(static=True)
     rtol: Array
     atol: Array
@@ -324,7 +325,7 @@ def build_problem(
     start: dict[str, float],
     n_segments: Sequence[int],
     *,
-    solver: str,
+    solver: AbstractSolver | str,
     rtol: float,
     atol: float,
     max_steps: int,
@@ -346,7 +347,8 @@ def build_problem(
     - `free`: names from `FIELDS`, `LOAD_NAMES` and `STATE_NAMES`.
     - `start`: start value of every free global name.
     - `n_segments`: shooting segments per record (1 = single shooting).
-    - `solver`, `rtol`, `atol`, `max_steps`: the ODE solve; `adjoint`: `"forward"` (for
+    - `solver`, `rtol`, `atol`, `max_steps`: the ODE solve (`solver` a solver object,
+      [`pick_solver`][]'s, or a name the policy resolves at `mech`); `adjoint`: `"forward"` (for
       Jacobians) or `"reverse"` (for gradients).
     - `pad`: pad each record to a [`bucket`][] length (weight-0 samples), so that records
       of other lengths reuse the compiled programs.
@@ -409,12 +411,13 @@ def build_problem(
     # that starts at 0 must keep its term, or its sensitivity would be exactly zero.
     nonzero = mech_start.replace(**{n: _TINY for n in glob if n in FIELDS and start[n] == 0})
     structure = Structure.of(mech_start).union(Structure.of(nonzero))
+    solver = resolve_solver(solver, mech_start, rtol, load=records[0][1])
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
                    n_global, state_free, solver, structure, jnp.asarray(rtol),
                    jnp.asarray(atol), int(max_steps), adjoint, tuple(fold), per_record, force)
 
 
-def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> str:
+def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> AbstractSolver:
     """The ODE solver of a fit: the policy's ([`resolve_solver`][]) for the scene's name,
     at the start values, as `simulate` would run it (no save times: a fit's segments have
     their own)."""

@@ -1,34 +1,52 @@
 """The one table of solver names: `simulate(solver=...)`, scenes, `fit`, `sweep` and the
-CLI's `--solver` help all read it. No imports, so the CLI can build its help cheaply.
+CLI's `--solver` help all read it, and [`solver_named`][] makes each name's solver object
+(`solvers.py`) once.
 
-A diffrax solver is added here and nowhere else: one entry in [`DIFFRAX`][] (the class's
-name in `diffrax`, whether it is implicit) makes it a name of [`SOLVERS`][] that
-`simulate`, scenes, `fit`, `sweep` and the CLI accept, stepped through diffrax with the
-same step control, save times, load-kink clipping and adjoints as the others
-(tests/test_recipes.py does it once). The policy picks it only if a rule there names it.
+A solver is added here and nowhere else: one row of [`TABLE`][] (its name, and how to make
+its object: a diffrax solver wrapped in `Diffrax`, or an `AbstractSolver` of your own)
+makes it a name of [`SOLVERS`][] that `simulate`, scenes, `fit`, `sweep` and the CLI
+accept (tests/test_recipes.py does it once). The policy picks it for `"auto"` only if a
+rule there names it.
 """
 
-__all__ = ["SOLVERS", "DIFFRAX", "FUSED", "is_implicit"]
+from __future__ import annotations
 
-#: diffrax's solvers by name: (the class in `diffrax`, implicit?). An implicit solver is
-#: not held to an explicit solver's stability limit by `policy.check_time_scale`.
-DIFFRAX: dict[str, tuple[str, bool]] = {
-    "tsit5": ("Tsit5", False),
-    "dopri5": ("Dopri5", False),
-    "dopri8": ("Dopri8", False),
-    "kvaerno5": ("Kvaerno5", True),
+import functools
+from collections.abc import Callable
+
+from ..lazy import lazy_import
+from .solvers import AbstractSolver, AdaptiveDopri8, Diffrax, UniformDopri8
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
+
+__all__ = ["SOLVERS", "TABLE", "solver_named", "name_of"]
+
+#: Each solver's name and how to make its object. Made on first use ([`solver_named`][]):
+#: diffrax's make it import diffrax (~0.35 s), which a warm fit on the fused solvers never
+#: needs.
+TABLE: dict[str, Callable[[], AbstractSolver]] = {
+    "tsit5": lambda: Diffrax(diffrax.Tsit5()),
+    "dopri5": lambda: Diffrax(diffrax.Dopri5()),
+    "dopri8": lambda: Diffrax(diffrax.Dopri8()),
+    "kvaerno5": lambda: Diffrax(diffrax.Kvaerno5()),
+    "dopri8-uniform": UniformDopri8,
+    "dopri8-adaptive": AdaptiveDopri8,
 }
 
-#: crank-jax's fused solvers (`solve/adaptive.py`, `solve/uniform.py`), each a branch of
-#: `simulate`'s solve core.
-FUSED: tuple[str, ...] = ("dopri8-uniform", "dopri8-adaptive")
-
 #: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`: `"auto"`
-#: (the policy's choice, `solve/policy.py`), diffrax's, then the fused ones. (A sweep
-#: stores a solver as its index here.)
-SOLVERS: tuple[str, ...] = ("auto", *DIFFRAX, *FUSED)
+#: (the policy's choice, `solve/policy.py`), then the table's. (A sweep stores a solver as
+#: its index here.)
+SOLVERS: tuple[str, ...] = ("auto", *TABLE)
 
 
-def is_implicit(name: str) -> bool:
-    """Whether solver `name` (not `"auto"`) is implicit (stable on any decaying mode)."""
-    return name in DIFFRAX and DIFFRAX[name][1]
+@functools.cache
+def solver_named(name: str) -> AbstractSolver:
+    """The solver object of a name in [`TABLE`][] (not `"auto"`), made once per process."""
+    if name not in TABLE:
+        raise ValueError(f"unknown solver {name!r}; choose from {list(TABLE)}")
+    return TABLE[name]()
+
+
+def name_of(solver: AbstractSolver) -> str | None:
+    """The table's name of a solver object (equal to the one it makes), or None."""
+    return next((n for n in TABLE if solver_named(n) == solver), None)

@@ -3,7 +3,10 @@
 `simulate`, `fit` and `sweep` all call [`resolve_solver`][], so a scene gets the same
 solver whichever of them runs it. The rule, in order:
 
-1. A name other than `"auto"` is taken as given (after checking it is known).
+It returns a solver object (`solvers.py`, made once per name by `names.py`'s table).
+
+1. A solver object, or a name other than `"auto"`, is taken as given (after checking the
+   name is known).
 2. Stiff (see [`choose_solver`][]): `"kvaerno5"`, an L-stable ESDIRK.
 3. Otherwise, with no sampled load, `"dopri8-adaptive"`: adaptive fused Dopri8 steps with
    dense output (`adaptive.py`), a `vmap`-ed batch in lockstep (`lockstep.py`), for
@@ -33,7 +36,8 @@ from ..model.loads import AbstractLoad, is_sampled
 from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..model.structure import Structure
 from .inputs import check_tolerances, check_unbatched
-from .names import SOLVERS, is_implicit
+from .names import SOLVERS, solver_named
+from .solvers import AbstractSolver
 from .uniform import uniform_grid
 
 __all__ = ["SOLVERS", "choose_solver", "fastest_mode", "resolve_solver", "check_solver",
@@ -149,17 +153,18 @@ def choose_solver(
 
 
 def resolve_solver(
-    solver: str, mech: SliderCrank, rtol, atol=None, *, load: AbstractLoad | None = None,
-    torque: AbstractLoad | None = None, ts=None, max_steps: int | None = None,
-    batch_invariant: bool = False, lin=None,
-) -> str:
+    solver: str | AbstractSolver, mech: SliderCrank, rtol, atol=None, *,
+    load: AbstractLoad | None = None, torque: AbstractLoad | None = None, ts=None,
+    max_steps: int | None = None, batch_invariant: bool = False, lin=None,
+) -> AbstractSolver:
     """The solver that runs: `solver` itself, or for `"auto"` the choice described in the
     module docstring.
 
-    **Arguments:** `solver`, a name from [`SOLVERS`][]; `mech` (a batch counts as stiff if
-    any member is); `rtol`, `atol` (arrays or floats; traced ones count as the defaults);
-    `load`, `torque`; `ts`, the save times (n,) if known on the host; `max_steps`, the
-    caller's step budget (the fused solver splits it evenly over the save intervals);
+    **Arguments:** `solver`, a name from [`SOLVERS`][] or a solver object; `mech` (a batch
+    counts as stiff if any member is); `rtol`, `atol` (arrays or floats; traced ones count
+    as the defaults); `load`, `torque`; `ts`, the save times (n,) if known on the host;
+    `max_steps`, the caller's step budget (the fused solver splits it evenly over the save
+    intervals);
     `lin`, the linearisation of concrete `mech`, `load` if the caller has it;
     `batch_invariant`: each member of a `vmap`-ed batch must get exactly the result of its
     own solve, whatever else is in the batch (a sweep's results do not depend on its
@@ -167,9 +172,18 @@ def resolve_solver(
     `"dopri8-uniform"` is chosen where it applies (uniform save times known on the host,
     its step budget, no Coulomb friction; its steps are per member), else diffrax's.
 
-    **Returns:** a name from [`SOLVERS`][] other than `"auto"`.
+    **Returns:** the solver object (`names.solver_named` of the name chosen; its name is
+    `names.name_of(solver)`).
     """
-    check_solver(solver)
+    if isinstance(solver, AbstractSolver):
+        return solver
+    return solver_named(_resolve_name(check_solver(solver), mech, rtol, load, torque, ts,
+                                      max_steps, batch_invariant, lin))
+
+
+def _resolve_name(solver, mech, rtol, load, torque, ts, max_steps, batch_invariant,
+                  lin) -> str:
+    """[`resolve_solver`][] on names: the table's name that runs."""
     if solver != "auto":
         return solver
     # The span on the host (NumPy): under a user's `jit`, even indexing a concrete `ts`
@@ -225,7 +239,7 @@ def _fits_interval_budget(lin, ts: np.ndarray, max_steps: int | None) -> bool:
     return _UNIFORM_MARGIN * dt * top / _EXPLICIT_H_RATE <= per_interval
 
 
-def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int,
+def check_time_scale(mech: SliderCrank, solver: AbstractSolver, span: float, max_steps: int,
                      load: AbstractLoad | None = None, lin=None) -> float | None:
     """`ValueError` if the linearised fastest mode cannot be integrated over `span`; else
     the fastest rate, 1/s (None for traced values), for [`check_travel`][].
@@ -245,7 +259,7 @@ def check_time_scale(mech: SliderCrank, solver: str, span: float, max_steps: int
         rate = np.asarray(rate, dtype=float)
         top = float(np.max(np.where(np.isnan(rate), 0.0, rate))) if rate.size else 0.0
         product = top * float(span)
-        explicit = not is_implicit(solver)
+        explicit = not solver.implicit
         need = product / _EXPLICIT_H_RATE
     if not (np.isfinite(product) and product <= _MAX_SPAN_RATE
             and not (explicit and need > max_steps)):
@@ -285,7 +299,7 @@ def check_travel(lin, top: float, phi0, dphi0, span: float, max_steps: int) -> N
 class HostPlan(NamedTuple):
     """What [`host_plan`][] decides for a concrete `simulate` call."""
 
-    solver: str  #: the solver that runs (never "auto")
+    solver: AbstractSolver  #: the solver that runs
     structure: Structure  #: the static set of terms
     lin: object  #: the `Linearization` of concrete parameters and loads, else None
     top: float | None  #: its fastest rate, 1/s, where the time scale was checked, else None

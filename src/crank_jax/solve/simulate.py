@@ -1,11 +1,10 @@
 """Time integration of the equation of motion: `simulate`, `Trajectory`, derived outputs.
 
-`simulate` builds the vector field, a [`CrankField`][], and hands it to a solver that knows
-nothing of the mechanism: the fused `"dopri8-adaptive"` (`adaptive.py`, `lockstep.py`) and
-`"dopri8-uniform"` (`uniform.py`) solvers, or diffrax
-through a thin `ODETerm` adapter (the state as one (2,) array, the field as `args`). It is
-one of the two modules of `solve/` that import the model: it builds the field, checks the
-inputs, and computes the derived outputs; `policy.py` linearises for the stiffness test.
+`simulate` builds the vector field, a [`CrankField`][], and hands it with the policy's
+solver object to [`solve`][] (`solvers.py`), the one entry point, which knows nothing of
+the mechanism. It is one of the two modules of `solve/` that import the model: it builds
+the field, checks the inputs, and computes the derived outputs; `policy.py` linearises
+for the stiffness test.
 """
 
 from __future__ import annotations
@@ -28,11 +27,8 @@ from ..model.loads import AbstractLoad, as_load, nonsmooth_times
 from ..model.newton_euler import reactions
 from ..model.params import SliderCrank
 from ..persistent import PersistentProgram, enum_code, enum_name
-from .lockstep import adaptive_solve
-from .names import DIFFRAX
 from .policy import check_travel, host_plan, is_concrete
-from .uniform import solve_uniform
-from .variational import with_sensitivities
+from .solvers import AbstractSolver, solve
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
@@ -92,17 +88,6 @@ class Trajectory(eqx.Module):
         return self.result == diffrax.RESULTS.successful
 
 
-def _solver_for(name: str) -> diffrax.AbstractSolver:
-    """diffrax's solver of a name in the one table (`names.DIFFRAX`)."""
-    return getattr(diffrax, DIFFRAX[name][0])()
-
-
-def _stacked_field(t, y, field):
-    """The ODETerm adapter: diffrax steps the state as one (2,) array, `args` is the
-    [`CrankField`][]."""
-    return jnp.stack(field(t, (y[0], y[1])))
-
-
 def _rate(field: CrankField) -> Array:
     """A rate scale of the motion, 1/s, from the linearisation: |omega_n| plus damping."""
     lin = linearize(field.mech, field.load)
@@ -136,57 +121,6 @@ def _derived(mech, load, torque, ts, phi, dphi, outputs, force=None) -> dict[str
     return out
 
 
-def _controller(rtol, atol, load, torque) -> diffrax.AbstractStepSizeController:
-    pid = diffrax.PIDController(rtol=rtol, atol=atol)
-    step_ts, jump_ts = nonsmooth_times(load, torque)
-    if step_ts is None and jump_ts is None:
-        return pid
-    # A step across a kink (or a jump in a higher derivative) of a load loses accuracy
-    # that the error estimate does not see in time, so steps end exactly there; across a
-    # jump in the load itself (a zero-order hold) diffrax steps to just before it and
-    # restarts just after.
-    return diffrax.ClipStepSizeController(pid, step_ts=step_ts, jump_ts=jump_ts)
-
-
-def _uniform(crank: CrankField, y0, ts, rtol, atol, max_steps, adjoint):
-    """`"dopri8-uniform"` (`uniform.py`): `(ys (n, 2), result, steps)`.
-
-    Constant Dopri8 steps between the save times, on the packed field. JAX differentiates
-    its loop itself, the while-loop kind chosen as the matching diffrax adjoint. Its own
-    derivative rules (a variational equation in forward mode, a plain-field backward pass
-    in reverse mode) were removed (issue 26): sweeps, its reason to exist, never
-    differentiate, and diffrax's Dopri8 was faster than them. Measured on the lab rig
-    (10 s, 1001 saves, rtol 1e-8, 10 parameters; one process, medians, a loaded 2-core
-    machine, XLA's defaults, 2026-11-26): jacfwd 209 ms with its rule, 436 ms without,
-    177 ms through diffrax's Dopri8 (`ForwardMode`); `jax.grad` of a sum of squares
-    237 ms, 498 ms, 113 ms (`RecursiveCheckpointAdjoint`). To differentiate, use
-    `"dopri8-adaptive"` or `"dopri8"`."""
-    kind = {"reverse": "checkpointed", "forward": "lax", "direct": "bounded"}[adjoint]
-    rate = jax.lax.stop_gradient(_rate(crank))  # a first guess only (uniform.py)
-    (phi, dphi), result, steps = solve_uniform(crank.packed(), (y0[0], y0[1]), ts, rtol,
-                                               atol, rate=rate, max_steps=max_steps,
-                                               kind=kind)
-    return jnp.stack([phi, dphi], axis=1), result, steps
-
-
-def _diffrax(crank: CrankField, solver, y0, ts, rtol, atol, max_steps, adj, throw):
-    """One of diffrax's solvers (`names.DIFFRAX`): `(ys (n, 2), result, steps)`, steps
-    accepted and rejected."""
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(_stacked_field),
-        _solver_for(solver),
-        t0=ts[0], t1=ts[-1], dt0=None, y0=y0,
-        args=crank.packed(),
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=_controller(rtol, atol, crank.load, crank.torque),
-        max_steps=max_steps,
-        adjoint=adj,
-        throw=throw,
-    )
-    steps = sol.stats["num_steps"] + sol.stats.get("num_rejected_steps", 0)
-    return sol.ys, sol.result, steps
-
-
 def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps, adjoint,
                 structure, outputs, throw, mode="checked"):
     # `mode`: "checked" (traced values, validated with `eqx.error_if`), "unchecked"
@@ -197,35 +131,15 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
         mech = mech.checked()
         y0 = eqx.error_if(y0, ~jnp.all(jnp.isfinite(y0)),
                           "initial state (phi0, dphi0) must be finite")
-    adj = {"reverse": diffrax.RecursiveCheckpointAdjoint(),
-           "forward": diffrax.ForwardMode(),
-           "direct": diffrax.DirectAdjoint()}[adjoint]
     crank = CrankField(mech, load, torque, structure, force)
+    step_ts, jump_ts = nonsmooth_times(load, torque)
     # The solvers step the packed form, `crank.packed()`: the parameter parts formed once,
-    # outside the step loop, in one buffer (see model/coefficients.py). Each branch forms
-    # it where it steps it.
-    if solver == "dopri8-adaptive":
-        def run(fld, y, ts_, r, a, error_size):
-            return adaptive_solve(fld, y, ts_, r, a, max_steps=max_steps, adjoint=adjoint,
-                                  error_size=error_size)
-
-        state = (y0[0], y0[1])
-        # Forward mode steps the variational equation beside the solution (variational.py):
-        # with the CPU flags a 10-parameter Jacobian costs ~3 forward solves, not 7-12.
-        (phi, dphi), result, steps = (
-            with_sensitivities(run, crank, CrankField.packed, state, ts, rtol, atol)
-            if adjoint == "forward" else run(crank.packed(), state, ts, rtol, atol, None))
-        ys = jnp.stack([phi, dphi], axis=1)
-        if throw:
-            ys = result.error_if(ys, result != diffrax.RESULTS.successful)
-    elif solver == "dopri8-uniform":
-        ys, result, steps = _uniform(crank, y0, ts, rtol, atol, max_steps, adjoint)
-        if throw:
-            ys = result.error_if(ys, result != diffrax.RESULTS.successful)
-    else:
-        ys, result, steps = _diffrax(crank, solver, y0, ts, rtol, atol, max_steps, adj,
-                                     throw)
-    phi, dphi = ys[:, 0], ys[:, 1]
+    # outside the step loop, in one buffer (see model/coefficients.py).
+    (phi, dphi), result, steps = solve(
+        crank, solver, ts, (y0[0], y0[1]), rtol=rtol, atol=atol, max_steps=max_steps,
+        adjoint=adjoint, throw=throw, prepare=CrankField.packed,
+        rate=lambda: jax.lax.stop_gradient(_rate(crank)),  # a first guess (uniform.py)
+        step_ts=step_ts, jump_ts=jump_ts)
     if not throw:
         # A failed solve leaves inf after the failure time. No NaN or inf leaves simulate:
         # those samples hold the last state reached, and `result` says the solve failed.
@@ -242,14 +156,14 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
 _solve = eqx.filter_jit(_solve_impl)
 
 
-def solve_crank(mech, load, torque, force, y0, ts, rtol, atol, *, solver: str,
+def solve_crank(mech, load, torque, force, y0, ts, rtol, atol, *, solver: AbstractSolver,
                 max_steps: int, adjoint: str, structure: Structure) -> Trajectory:
     """The solve `simulate` runs, for a caller tracing its own program (the fit's
-    residuals and Jacobians): the same solver branches, field and derivative rules, with
+    residuals and Jacobians): the same entry ([`solve`][]), field and derivative rules, with
     no runtime checks (invalid values fail the solve) and never raising (a failure is in
     `result`, and the samples after it hold the last state reached).
 
-    **Arguments:** as [`simulate`][]'s, with `solver` already resolved by the policy
+    **Arguments:** as [`simulate`][]'s, with `solver` the object the policy resolved
     (`policy.resolve_solver`), `y0` (2,) `(phi0, dphi0)`, `structure` given, and `load`,
     `torque` loads (not numbers).
 
@@ -271,7 +185,7 @@ def simulate(
     *,
     load: AbstractLoad | ArrayLike | None = None,
     torque: AbstractLoad | ArrayLike | None = None,
-    solver: str = "auto",
+    solver: str | AbstractSolver = "auto",
     rtol: ArrayLike = 1e-8,
     atol: ArrayLike = 1e-10,
     max_steps: int = 200_000,
@@ -291,7 +205,8 @@ def simulate(
     - `ts`: (n,) strictly increasing save times, s, n >= 2.
     - `load`: slider force P(t), N along -x: a load, a number (constant) or `None`.
     - `torque`: crank torque tau(t), N*m about +z, likewise.
-    - `solver`: one of [`SOLVERS`][]; `"auto"` is `"kvaerno5"` for a stiff shaft (see
+    - `solver`: one of [`SOLVERS`][], or a solver object (`crank_jax.solver_named`,
+      `crank_jax.Diffrax`); `"auto"` is `"kvaerno5"` for a stiff shaft (see
       [`choose_solver`][]), else `"dopri8-adaptive"` (adaptive fused Dopri8 with dense
       output; a `vmap`-ed batch steps in lockstep) unless a load is sampled (then diffrax's
       Dopri8 or Tsit5, whose steps end at the knots). See `solve/policy.py`.

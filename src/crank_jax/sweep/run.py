@@ -51,6 +51,7 @@ import numpy as np
 from ..lazy import lazy_import
 from ..model.dynamics import Structure
 from ..model.loads import SIDES
+from ..solve.names import name_of
 from ..solve.policy import SOLVERS, resolve_solver
 from ..solve.simulate import simulate
 from .checkpoint import Checkpoint, SharedCheckpoint, plan_manifest
@@ -212,16 +213,17 @@ def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps,
         # Pad the last chunk with its own first sample: one shape, one compilation.
         padded = np.concatenate([idx, np.full(chunk - idx.size, idx[0])])
         mech, load, torque, phi0, dphi0 = plan.batch({k: v[padded] for k, v in cols.items()})
-        name = resolve_solver(plan.solver, mech, plan.rtol, plan.atol, load=load,
-                              torque=torque, ts=plan.ts, max_steps=int(max_steps),
-                              batch_invariant=True)
+        solver = resolve_solver(plan.solver, mech, plan.rtol, plan.atol, load=load,
+                                torque=torque, ts=plan.ts, max_steps=int(max_steps),
+                                batch_invariant=True)
         res, st, ns = dev.run(chunk // dev.n, (mech, load, torque, phi0, dphi0), consts,
-                              **_fixed(plan), solver=name, structure=plan.structure,
+                              **_fixed(plan), solver=solver, structure=plan.structure,
                               reductions=reductions, max_steps=int(max_steps))
         m = idx.size
         if store is not None:
             store.save(b0, start, idx, {k: res[k][:m] for k in TRAJECTORY_OUTPUTS})
-        got = ({k: res[k][:m] for k in plan.reductions}, st[:m], ns[:m], SOLVERS.index(name))
+        got = ({k: res[k][:m] for k in plan.reductions}, st[:m], ns[:m],
+               SOLVERS.index(name_of(solver)))
         if ckpt is not None:
             ckpt.save(b0, start, idx, *got)
         sink(idx, *got)

@@ -1,0 +1,260 @@
+"""Solvers as objects, and [`solve`][], the one entry point that steps any vector field.
+
+A solver is an `eqx.Module`, as diffrax's are: it holds its settings, not the problem, and
+its `run` method steps a vector field `field(t, y, args)` over the save times. The policy
+(`policy.py`) returns one, made once per name by the table (`names.py`); `simulate`, the
+fit's residuals and Jacobians (`solve_crank`) and sweeps (through `simulate`) all reach
+it through [`solve`][], so a solver is added by writing its class and one table row, not
+a branch in a core.
+
+- [`AdaptiveDopri8`][], `"dopri8-adaptive"`: adaptive fused Dopri8 steps with dense output
+  (`adaptive.py`), a `vmap`-ed batch in lockstep (`lockstep.py`); forward mode by the
+  variational equation (`variational.py`), reverse mode by the discrete adjoint
+  (`adjoint.py`).
+- [`UniformDopri8`][], `"dopri8-uniform"`: equal fused steps per save interval
+  (`uniform.py`), each batch member on its own; JAX differentiates its loops.
+- [`Diffrax`][]: any of diffrax's solvers through `diffrax.diffeqsolve`, with diffrax's
+  step control, clipped at the field's kinks, and diffrax's adjoints.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+from typing import Any, ClassVar, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike
+
+from ..lazy import lazy_import
+from .lockstep import adaptive_solve
+from .uniform import solve_uniform
+from .variational import flatten_state, with_sensitivities
+
+diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
+
+__all__ = ["solve", "Solution", "AbstractSolver", "AdaptiveDopri8", "UniformDopri8",
+           "Diffrax", "ADJOINTS"]
+
+#: The derivative modes a solve takes (`adjoint=`): `"reverse"` (`jax.grad`),
+#: `"forward"` (`jax.jvp`, `jax.jacfwd`), `"direct"` (both, slower).
+ADJOINTS: tuple[str, ...] = ("reverse", "forward", "direct")
+
+
+class Solution(NamedTuple):
+    """What a solve returns.
+
+    - `ys`: the state at the save times: a pytree like `y0`, each leaf with a leading
+      axis n (the number of save times).
+    - `result`: a `diffrax.RESULTS`; `successful` when the solve reached `ts[-1]`. With
+      `throw=False` a failed solve's samples after the failure are inf or NaN.
+    - `num_steps`: the steps taken, accepted and rejected (int scalar)."""
+
+    ys: Any
+    result: Any
+    num_steps: Array
+
+
+def _same(field):
+    return field
+
+
+class _Bound(eqx.Module):
+    """`field` with its `args` bound, so that the fused solvers see one pytree whose
+    array leaves (the field's and the args') are all differentiable parameters."""
+
+    field: Callable
+    args: Any
+
+    def __call__(self, t, y, args=None):
+        return self.field(t, y, self.args)
+
+
+def _bind(field, args, prepare):
+    """`(field, prepare)` for a solver that steps `field(t, y)` alone: `args` bound into
+    the field (and `prepare` applied inside the binding), or both unchanged when there
+    are no args."""
+    if args is None:
+        return field, prepare
+    return _Bound(field, args), lambda b: _Bound(prepare(b.field), b.args)
+
+
+class AbstractSolver(eqx.Module):
+    """A solver: [`solve`][] calls its `run`. Subclass it and add one row to `names.py`'s
+    table to give a new solver a name."""
+
+    #: Whether the solver is implicit (stable on any decaying mode): `policy.py` then
+    #: does not hold it to an explicit solver's stability limit.
+    implicit: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def run(self, field, ts, y0, args, *, rtol, atol, max_steps: int, adjoint: str,
+            throw: bool, prepare: Callable, rate, step_ts, jump_ts) -> Solution:
+        """Step `field` from `y0` at `ts[0]` over `ts`: [`solve`][]'s arguments, with
+        `prepare` a function (identity by default)."""
+
+
+class AdaptiveDopri8(AbstractSolver):
+    """`"dopri8-adaptive"`: adaptive fused Dopri8 steps with dense output (`adaptive.py`).
+    Error per step as diffrax's `PIDController` measures it; a `jax.vmap`-ed batch steps
+    in one loop, each member with its own steps (`lockstep.py`). Forward mode steps the
+    variational equation beside the solution (`variational.py`: a Jacobian costs a few
+    solves); reverse mode is the discrete adjoint of the steps (`adjoint.py`). Kinks in
+    the field (`step_ts`, `jump_ts`) are not stepped to: the policy sends sampled loads to
+    [`Diffrax`][]."""
+
+    def run(self, field, ts, y0, args, *, rtol, atol, max_steps, adjoint, throw, prepare,
+            rate=None, step_ts=None, jump_ts=None):
+        field, prepare = _bind(field, args, prepare)
+
+        def steps(fld, y, ts_, r, a, error_size):
+            return adaptive_solve(fld, y, ts_, r, a, max_steps=max_steps, adjoint=adjoint,
+                                  error_size=error_size)
+
+        # Forward mode steps the variational equation beside the solution (variational.py):
+        # with the CPU flags a 10-parameter Jacobian costs ~3 forward solves, not 7-12.
+        ys, result, num = (
+            with_sensitivities(steps, field, prepare, y0, ts, rtol, atol)
+            if adjoint == "forward" else steps(prepare(field), y0, ts, rtol, atol, None))
+        if throw:
+            ys = result.error_if(ys, result != diffrax.RESULTS.successful)
+        return Solution(ys, result, num)
+
+
+class UniformDopri8(AbstractSolver):
+    """`"dopri8-uniform"`: `m_i` equal fused Dopri8 steps in save interval i, chosen from a
+    summed error estimate and checked a posteriori (`uniform.py`). Needs uniform save
+    times; each member of a `vmap`-ed batch takes its own steps, so a batch's results do
+    not depend on its other members (sweeps).
+
+    JAX differentiates its loops itself, the while-loop kind chosen as the matching
+    diffrax adjoint. Its own derivative rules (a variational equation in forward mode, a
+    plain-field backward pass in reverse mode) were removed (issue 26): sweeps, its reason
+    to exist, never differentiate, and diffrax's Dopri8 was faster than them. Measured on
+    the lab rig (10 s, 1001 saves, rtol 1e-8, 10 parameters; one process, medians, a
+    loaded 2-core machine, XLA's defaults, 2026-11-26): jacfwd 209 ms with its rule,
+    436 ms without, 177 ms through diffrax's Dopri8 (`ForwardMode`); `jax.grad` of a sum
+    of squares 237 ms, 498 ms, 113 ms (`RecursiveCheckpointAdjoint`). To differentiate,
+    use `"dopri8-adaptive"` or `"dopri8"`."""
+
+    def run(self, field, ts, y0, args, *, rtol, atol, max_steps, adjoint, throw, prepare,
+            rate=None, step_ts=None, jump_ts=None):
+        kind = {"reverse": "checkpointed", "forward": "lax", "direct": "bounded"}[adjoint]
+        guess = rate() if callable(rate) else (0.0 if rate is None else rate)
+        ys, result, num = solve_uniform(prepare(field), y0, ts, rtol, atol, args,
+                                        rate=guess, max_steps=max_steps, kind=kind)
+        if throw:
+            ys = result.error_if(ys, result != diffrax.RESULTS.successful)
+        return Solution(ys, result, num)
+
+
+def _flat_state(y0):
+    """`(flat y0, to_tree, to_flat)`: diffrax steps one flat array (its per-leaf costs
+    add up for a state of scalars). A state of scalar leaves (the crank's `(phi, dphi)`)
+    is stacked and indexed, other pytrees ravelled."""
+    components, rebuild, size = flatten_state(y0)
+    if all(jnp.ndim(x) == 0 for x in jax.tree_util.tree_leaves(y0)):
+        def to_tree(y):
+            return rebuild([y[..., i] for i in range(size)])
+
+        def to_flat(tree):
+            return jnp.stack(components(tree), axis=-1)
+
+        return to_flat(y0), to_tree, to_flat
+    flat, unravel = jax.flatten_util.ravel_pytree(y0)
+
+    def to_tree(y):  # (N,) or, the saved states, (n, N)
+        return unravel(y) if y.ndim == 1 else jax.vmap(unravel)(y)
+
+    return flat, to_tree, lambda tree: jax.flatten_util.ravel_pytree(tree)[0]
+
+
+class Diffrax(AbstractSolver):
+    """One of diffrax's solvers through `diffrax.diffeqsolve`: `PIDController(rtol, atol)`
+    step control, clipped to end steps at the field's kinks (`step_ts`) and to restart
+    after its jumps (`jump_ts`), `SaveAt(ts=ts)`, and diffrax's adjoints
+    (`RecursiveCheckpointAdjoint`, `ForwardMode`, `DirectAdjoint`).
+
+    **Fields:** `solver`, a diffrax solver instance, e.g. `diffrax.Kvaerno5()`."""
+
+    solver: Any = eqx.field(static=True)
+
+    @property
+    def implicit(self) -> bool:  # type: ignore[override]
+        return isinstance(self.solver, diffrax.AbstractImplicitSolver)
+
+    def run(self, field, ts, y0, args, *, rtol, atol, max_steps, adjoint, throw, prepare,
+            rate=None, step_ts=None, jump_ts=None):
+        adj = {"reverse": diffrax.RecursiveCheckpointAdjoint,
+               "forward": diffrax.ForwardMode, "direct": diffrax.DirectAdjoint}[adjoint]()
+        flat0, to_tree, to_flat = _flat_state(y0)
+
+        def flat_field(t, y, a):
+            fld, inner = a
+            return to_flat(fld(t, to_tree(y), inner))
+
+        controller = diffrax.PIDController(rtol=rtol, atol=atol)
+        if step_ts is not None or jump_ts is not None:
+            # A step across a kink (or a jump in a higher derivative) loses accuracy that
+            # the error estimate does not see in time, so steps end exactly there; across
+            # a jump in the field itself diffrax steps to just before it and restarts.
+            controller = diffrax.ClipStepSizeController(controller, step_ts=step_ts,
+                                                        jump_ts=jump_ts)
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(flat_field), self.solver, t0=ts[0], t1=ts[-1], dt0=None,
+            y0=flat0, args=(prepare(field), args), saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=controller, max_steps=max_steps, adjoint=adj, throw=throw)
+        steps = sol.stats["num_steps"] + sol.stats.get("num_rejected_steps", 0)
+        return Solution(to_tree(sol.ys), sol.result, steps)
+
+
+def solve(field: Callable, solver: AbstractSolver, ts: ArrayLike, y0, args=None, *,
+          rtol: ArrayLike = 1e-8, atol: ArrayLike = 1e-10, max_steps: int = 200_000,
+          adjoint: str = "reverse", throw: bool = True, prepare: Callable | None = None,
+          rate: ArrayLike | Callable | None = None, step_ts: ArrayLike | None = None,
+          jump_ts: ArrayLike | None = None) -> Solution:
+    """Integrate `dy/dt = field(t, y, args)` from `y0` at `ts[0]`, saving at `ts`.
+
+    **Arguments:**
+
+    - `field`: the vector field, `field(t, y, args) -> dy/dt` (a pytree like `y`): a
+      function or a callable pytree (an `eqx.Module`), whose array leaves are then
+      parameters that `jax.vmap`, `jax.jvp` and `jax.grad` see.
+    - `solver`: an [`AbstractSolver`][], e.g. `crank_jax.solver_named("dopri8-adaptive")`
+      or `crank_jax.Diffrax(diffrax.Tsit5())`.
+    - `ts`: (n,) strictly increasing save times (s for the crank), n >= 2; `"dopri8-uniform"`
+      needs them equally spaced.
+    - `y0`: the state at `ts[0]`: a pytree of arrays (small: the fused solvers unroll
+      their stages over its components).
+    - `args`: passed to `field`; its array leaves are differentiable too.
+    - `rtol`, `atol`: tolerances of the local error, scaled as diffrax's `PIDController`
+      (`"dopri8-uniform"`: of its summed error estimate, see `uniform.py`).
+    - `max_steps`: the step budget (static); exceeding it fails the solve.
+    - `adjoint`: one of [`ADJOINTS`][]: `"reverse"` for `jax.grad`, `"forward"` for
+      `jax.jvp`/`jax.jacfwd`, `"direct"` for both.
+    - `throw`: raise on a failed solve (an `eqx.error_if`), else report it in `result`.
+    - `prepare`: `prepare(field)`, the same field in the form to step, formed once
+      outside the step loop (the crank's `CrankField.packed`); forward mode of
+      `"dopri8-adaptive"` differentiates through it. Default: the field itself.
+    - `rate`: a rate scale of the motion, 1/s, or a function of no arguments returning
+      one (called only by solvers that use it): the first guess of `"dopri8-uniform"`.
+    - `step_ts`, `jump_ts`: (k,) times where the field has a kink or a jump, which
+      diffrax's solvers step to exactly (the fused solvers do not).
+
+    **Returns:** a [`Solution`][] `(ys, result, num_steps)`.
+
+    Not jitted itself (as any JAX function, call it inside `jax.jit`); works under
+    `jax.vmap`, `jax.grad` (`adjoint="reverse"`) and `jax.jacfwd` (`adjoint="forward"`).
+    """
+    if adjoint not in ADJOINTS:
+        raise ValueError(f"adjoint must be one of {ADJOINTS}, got {adjoint!r}")
+    if not isinstance(solver, AbstractSolver):
+        raise TypeError(f"solver must be a crank_jax solver object (see "
+                        f"crank_jax.solver_named), got {solver!r}")
+    return solver.run(field, ts, y0, args, rtol=rtol, atol=atol, max_steps=int(max_steps),
+                      adjoint=adjoint, throw=throw,
+                      prepare=_same if prepare is None else prepare, rate=rate,
+                      step_ts=step_ts, jump_ts=jump_ts)
