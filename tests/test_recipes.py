@@ -1,7 +1,8 @@
 """The "Where to add things" recipes of docs/guide/architecture.md, each done once.
 
-A new solver: one entry in `solve/names.py`'s table, in a copy of the package, and
-`simulate`, scenes, `fit`'s policy and the CLI's help all take it. A new physics term: every
+A new solver: one row in `solve/names.py`'s table (its name and how to make its solver
+object), in a copy of the package, and `simulate`, scenes, `fit`'s policy and the CLI's
+help all take it. A new physics term: every
 optional term of the model is in every place the recipe lists, so the list is complete
 (a term added without one of them fails here).
 """
@@ -29,26 +30,68 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 import crank_jax as cj
 from crank_jax.identify.problem import pick_solver
+from crank_jax.solve.names import name_of
 assert "bosh3" in cj.SOLVERS, cj.SOLVERS
 scene = dataclasses.replace(cj.load_scene("lab-rig"), solver="bosh3")  # scenes check names
 ts = np.linspace(0.0, 2.0, 201)
 new = cj.simulate(scene.mech, 1.0, 0.0, ts, solver="bosh3", rtol=1e-9, atol=1e-11)
 ref = cj.simulate(scene.mech, 1.0, 0.0, ts, solver="dopri8", rtol=1e-11, atol=1e-13)
 assert np.max(np.abs(np.asarray(new.phi - ref.phi))) < 1e-6
-assert pick_solver(scene.mech, scene.load, 1e-8, "bosh3") == "bosh3"
+assert name_of(pick_solver(scene.mech, scene.load, 1e-8, "bosh3")) == "bosh3"
+rk4 = cj.simulate(scene.mech, 1.0, 0.0, ts, solver="rk4", outputs=("energy",))
+assert np.max(np.abs(np.asarray(rk4.phi - ref.phi))) < 1e-6 and int(rk4.num_steps) == 8000
 print("ok")
 """
 
 
+# A solver of one's own, as the recipe says: an `AbstractSolver` whose `run` steps any
+# field (here classic RK4, 40 equal steps per save interval, no error control).
+_RK4 = """
+import jax
+import jax.numpy as jnp
+from .solvers import Solution
+
+
+class RK4(AbstractSolver):
+    substeps: int = 40
+
+    def run(self, field, ts, y0, args, *, prepare, **_):
+        f, m = prepare(field), self.substeps
+
+        def interval(y, t01):
+            h = (t01[1] - t01[0]) / m
+
+            def step(i, y):
+                t = t01[0] + i * h
+                add = lambda y, k, c: jax.tree.map(lambda a, b: a + c * b, y, k)
+                k1 = f(t, y, args)
+                k2 = f(t + h / 2, add(y, k1, h / 2), args)
+                k3 = f(t + h / 2, add(y, k2, h / 2), args)
+                k4 = f(t + h, add(y, k3, h), args)
+                return jax.tree.map(lambda y, a, b, c, d: y + h / 6 * (a + 2 * b + 2 * c + d),
+                                    y, k1, k2, k3, k4)
+
+            y = jax.lax.fori_loop(0, m, step, y)
+            return y, y
+
+        _, ys = jax.lax.scan(interval, y0, (ts[:-1], ts[1:]))
+        ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), y0, ys)
+        return Solution(ys, diffrax.RESULTS.successful, jnp.asarray((ts.shape[0] - 1) * m))
+"""
+
+
 def test_a_new_solver_is_one_entry_in_the_table(tmp_path):
-    # The recipe names the one place: solve/names.py's DIFFRAX table.
+    # The recipe names the one place: solve/names.py's TABLE.
     assert "`solve/names.py`" in DOC.read_text()
     pkg = tmp_path / "crank_jax"
     shutil.copytree(SRC, pkg, ignore=shutil.ignore_patterns("__pycache__"))
     names = pkg / "solve" / "names.py"
     text = names.read_text()
-    edited = text.replace('    "kvaerno5": ("Kvaerno5", True),\n',
-                          '    "kvaerno5": ("Kvaerno5", True),\n    "bosh3": ("Bosh3", False),\n')
+    # One of diffrax's: one row. A solver of one's own: its class and one row.
+    row = '    "kvaerno5": lambda: Diffrax(diffrax.Kvaerno5()),\n'
+    edited = text.replace(row, row + '    "bosh3": lambda: Diffrax(diffrax.Bosh3()),\n'
+                          '    "rk4": RK4,\n')
+    edited = edited.replace("#: Each solver's name", _RK4 + "\n\n#: Each solver's name")
     assert edited != text
     names.write_text(edited)
     env = dict(os.environ, PYTHONPATH=str(tmp_path), CRANK_JAX_NO_CACHE="1")
