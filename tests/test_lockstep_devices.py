@@ -21,7 +21,7 @@ SCRIPT = textwrap.dedent("""
     import numpy as np
     from jax.sharding import NamedSharding, PartitionSpec as P
     import crank_jax as cj
-    import crank_jax.solve.lockstep as ls
+    from crank_jax.solve import lockstep as ls
 
     ls.CHUNK = 8
     mech = cj.load_scene("lab-rig").mech.replace(c=1e-3)

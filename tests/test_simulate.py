@@ -302,7 +302,7 @@ def test_repeated_concrete_calls_reuse_the_host_plan_and_still_check(lab_rig, mo
     # the same mechanism, loads, save times and tolerances (solve/policy.py `host_plan`).
     # The plan must follow any change of those, and the checks that depend on the initial
     # state or on invalid parameters must still raise every time.
-    import crank_jax.solve.policy as policy
+    from crank_jax.solve import policy
 
     calls = []
     real = policy.linearize
