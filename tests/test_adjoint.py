@@ -83,3 +83,15 @@ def test_a_solve_longer_than_the_log_reruns_its_segments(monkeypatch):
                         jnp.linspace(0.0, 1.0, 11), rtol=1e-8, atol=1e-10).num_steps
     assert int(steps) > 2 * 64  # at least three segments
     _close(g, _forward_gradient(theta0, weights, traj))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("hoisted", [True, False], ids=["step-by-step", "blocks"])
+def test_both_backward_programs_give_the_forward_jacobian(monkeypatch, hoisted):
+    # The backward pass is one of two programs, chosen by whether XLA hoists its loop
+    # (the CPU flags, adjoint._hoisted); this process has one setting, so each program is
+    # forced here: the step-by-step VJP of the step and the vectorised blocks' hand-written
+    # adjoint of the stages must both give the forward-mode Jacobian.
+    monkeypatch.setattr(adjoint, "_hoisted", lambda: hoisted)
+    theta0, weights, traj, loss = _problem(t1=1.0, samples=11)
+    _close(jax.jit(jax.grad(loss))(theta0), _forward_gradient(theta0, weights, traj))

@@ -2,13 +2,24 @@
 
 The forward pass ([`forward`][]) is the solve itself ([`solve_adaptive`][]) with a log of
 its accepted steps: each step's start `t`, end `t1`, size `h` and packed state `y` at `t`,
-one row each. The backward pass ([`backward`][]) takes the steps in reverse and applies
-the VJP of one step, `(y, theta) -> (y1, dense output at the save times the step
-covers)`, carrying the state's cotangent from step to step and summing the field's
-parameter cotangents. The step sizes and the accept/reject decisions are constants (the
-forward pass chose them on values, `stop_gradient`), so the result is the exact gradient
-of the computed discrete solution: the transpose of what forward mode (`jax.jacfwd`
-through the same solve) computes, equal to it to rounding (tests/test_adjoint.py).
+one row each. The backward pass ([`backward`][]) takes the steps in reverse, carrying the
+state's cotangent from step to step and summing the field's parameter cotangents, by one
+of two programs (see `_hoisted`):
+
+- **with the CPU flags** (XLA hoists the loop into one function): one step after another,
+  each the VJP of the step `(y, theta) -> (y1, dense output at the save times the step
+  covers)`, the step's save window gathered for a block of steps before the loop;
+- **otherwise** (each kernel dispatched on its own): a block of 256 steps side by side,
+  by a hand-written adjoint of the stage recursion that needs of the field only its
+  Jacobian with respect to the state at each stage (forward mode, N tangents) and one VJP
+  with respect to its parameters over all the block's 14 x 256 evaluation points: no
+  JAX transformation of the whole step (whose vectorised Jacobian and VJP compiled to
+  kernels 10x and 6x dearer than the field's own, and 60 s of compile time).
+
+The step sizes and the accept/reject decisions are constants (the forward pass chose them
+on values, `stop_gradient`), so the result is the exact gradient of the computed discrete
+solution: the transpose of what forward mode (`jax.jacfwd` through the same solve)
+computes, equal to it to rounding (tests/test_adjoint.py).
 
 Why not differentiate the solve's loops? A `while_loop` has no reverse mode, and the
 batched solve is a `custom_vmap` (lockstep.py), which has none either; before this module
@@ -30,6 +41,7 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..xla_flags import SMALL_LOOP_BYTES, small_loop_bytes
 from .adaptive import WINDOW, dopri8_dense, solve_adaptive
@@ -45,8 +57,8 @@ LOG_ROWS = 4096
 class Log(NamedTuple):
     """The forward pass's record of its accepted steps.
 
-    - `rows` (S, 3 + N): `(t, t1, h, y...)` of accepted step `i` in row `i % S`, `y` the
-      packed state (N,) at `t` (s);
+    - `rows` (S + 1, 3 + N): `(t, t1, h, y...)` of accepted step `i` in row `i % S`, `y`
+      the packed state (N,) at `t` (s); row S a spare for the writes not kept;
     - `count`: accepted steps so far (int scalar);
     - `upto`: steps from this index on are not written (a rerun that logs one segment)."""
 
@@ -62,10 +74,12 @@ def _rows(max_steps: int) -> int:
 def _write(log: Log, rec) -> Log:
     """Log a step attempt `rec` (adaptive.py's record of one member). A rejected attempt
     writes the row that the next accepted one overwrites; nothing from `upto` on."""
-    S = log.rows.shape[0]
+    S = log.rows.shape[0] - 1
     row = jnp.concatenate([rec.t, rec.t1, rec.h, rec.y]).astype(log.rows.dtype)
-    pos = jnp.where(log.count < log.upto, log.count % S, S)  # S: out of range, dropped
-    rows = log.rows.at[pos].set(row, mode="drop")
+    # Row S is a spare that takes the writes not kept: an in-place `dynamic_update_slice`
+    # at every attempt (a scatter that drops them cost the forward pass ~40%).
+    pos = jnp.where(log.count < log.upto, log.count % S, S)
+    rows = jax.lax.dynamic_update_slice_in_dim(log.rows, row[None], pos, 0)
     return Log(rows, log.count + rec.ok[0].astype(log.count.dtype), log.upto)
 
 
@@ -79,7 +93,7 @@ def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=
     n_state = packer(y0)[0](y0).shape[-1]
     S = _rows(max_steps)
     upto = jnp.asarray(max_steps + 1 if upto is None else upto, jnp.int32)
-    log0 = Log(jnp.zeros((S, 3 + n_state), ts.dtype), jnp.zeros((), jnp.int32), upto)
+    log0 = Log(jnp.zeros((S + 1, 3 + n_state), ts.dtype), jnp.zeros((), jnp.int32), upto)
     return solve_adaptive(field, y0, ts, rtol, atol, max_steps=max_steps,
                           error_size=error_size, record=(log0, _write))
 
@@ -124,7 +138,7 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
     **Returns:** `(d_dyn, d_y0)`: a list like `dyn` (None for a leaf that is not a float
     array) and a pytree like `y0`."""
     pack, unpack = packer(y0)
-    S = log.rows.shape[0]
+    S = log.rows.shape[0] - 1  # the last row is the spare (see `_write`)
     g = pack(g_ys).astype(ts.dtype)  # (n, N)
     live = [eqx.is_inexact_array(d) for d in dyn]
     diff = [d for d, b in zip(dyn, live) if b]
@@ -168,10 +182,10 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
     return [next(it) if b else None for b in live], unpack(ybar)
 
 
-#: Steps the backward pass takes at once under XLA's defaults (at most `LOG_ROWS`, which
-#: should be a multiple of it): the Jacobians of a block's steps with respect to the
-#: state, the VJP of their parameters and the recursion of the state's cotangent (an
-#: associative scan) are each one vectorised computation of few, wide kernels.
+#: Steps the backward pass takes at once (at most `LOG_ROWS`, which should be a multiple
+#: of it): under XLA's defaults a block is one vectorised computation of few, wide kernels
+#: (its cost is linear in the block: 128, 256 or 1024 steps cost the same per step); with
+#: the CPU flags, the steps whose save windows are gathered at once.
 _BLOCK = 256
 
 
@@ -198,27 +212,131 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
         rows = jnp.where(valid[:, None], rows, rows[:1])
         tw, gw = jax.vmap(lambda r: window(r, "compare_all"))(rows)
         gw = jnp.where(valid[:, None, None], gw, 0.0)
-
-        def out_y(row, tw, y):
-            return outputs(row.at[3:].set(y), tw, dd)
-
-        # d(y1, values) / dy per step, (B, N, N) and (B, W, N, N).
-        j1, jv = jax.vmap(jax.jacfwd(out_y, argnums=2))(rows, tw, rows[:, 3:])
-        eye = jnp.eye(n_state, dtype=j1.dtype)
-        a = jnp.where(valid[:, None, None], jnp.swapaxes(j1, 1, 2), eye)
-        c = jnp.einsum("bwij,bwi->bj", jv, gw)
-        # ybar[i], the cotangent of step i's start state, is a[i] u[i] + c[i], u[i] that of
-        # its end state: ybar[i + 1], or `u_end` for the block's last step.
+        st = _stages(full(dd), pack, unpack, rows, n_state)
+        # G[i]: the cotangent of stage i that the dense output sends directly, (B, N).
+        G = _dense_cotangents(rows, tw, gw)
+        # Each step is the affine map ybar = A^T u + c of its end state's cotangent u.
+        c = gw.sum(1) + jnp.einsum("kbij,kbi->bj", st.D, G)
+        a = jnp.where(valid[:, None, None], jnp.swapaxes(st.A, 1, 2), jnp.eye(n_state))
         ybar = _reverse_affine(a, c, u_end)
         u_in = jnp.where(valid[:, None], jnp.concatenate([ybar[1:], u_end[None]]), 0.0)
-        # Per-step copies of the parameters, summed after: a shared parameter's
-        # cotangent would be reduced over the block at every use (measured 3x dearer).
-        ddb = [jnp.broadcast_to(d, (B,) + d.shape) for d in dd]
-        _, pull = jax.vjp(lambda ddb: jax.vmap(outputs)(rows, tw, ddb), ddb)
-        (d_block,) = pull((u_in, gw))
-        return ybar[0], [x + y.sum(0) for x, y in zip(dbar, d_block)]
+        kbar = _stage_cotangents(st, rows[:, 2], G, u_in)
+        return ybar[0], [x + y for x, y in zip(dbar, _field_vjp(full, dd, pack, unpack,
+                                                                st, kbar))]
 
     return _sequential(outputs, window, dd, B) if _hoisted() else block
+
+
+class _Stages(NamedTuple):
+    """A block of B logged steps recomputed side by side (`_stages`), each step's 13
+    stages and its last, `f(t1, y1)` (14 evaluations of the field, first same as last),
+    stage first:
+
+    - `T` (14, B), `Y` (14, B, N): where the field was evaluated (time, s; packed state);
+    - `J` (14, B, N, N): the field's Jacobian with respect to the state there;
+    - `D` (14, B, N, N): the derivative of each stage `k_i` with respect to the step's
+      start state; `A` (B, N, N): that of its end state `y1`."""
+
+    T: jax.Array
+    Y: jax.Array
+    J: jax.Array
+    D: jax.Array
+    A: jax.Array
+
+
+def _tableau(dtype):
+    """Dopri8's `(a, b, c)` over its 14 stages, the 14th `f(t1, y1)`: `a` (14, 14)
+    strictly lower (row 13 the solution's weights `b`), `c` (14,)."""
+    tab = dopri8().tableau
+    a = np.zeros((14, 14))
+    for i, row in enumerate(tab.a_lower):
+        a[i + 1, :len(row)] = np.asarray(row)
+    c = np.concatenate([[0.0], np.asarray(tab.c)])
+    return jnp.asarray(a, dtype), jnp.asarray(a[13], dtype), jnp.asarray(c, dtype)
+
+
+def _point_field(field, pack, unpack, dtype):
+    """`f(t, y) -> dy/dt` on one packed state (N,) at a scalar time `t`."""
+    return lambda t, y: pack(field(t, unpack(y), None)).astype(dtype)
+
+
+def _stages(field, pack, unpack, rows, n_state):
+    """The [`_Stages`][] of the logged steps `rows` (B, 3 + N), with forward-mode
+    derivatives with respect to the start state carried through them: N tangents, for a
+    state of a few components the cheapest way to each step's (N, N) Jacobians (one
+    field Jacobian per stage). One `scan` over the stages, so that the program holds one
+    copy of the field's derivative (compile time), not 14."""
+    B, dtype = rows.shape[0], rows.dtype
+    t, t1, h, y = rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3:3 + n_state]
+    f = _point_field(field, pack, unpack, dtype)
+    a, _, c = _tableau(dtype)
+    eye = jnp.eye(n_state, dtype=dtype)
+
+    def value_and_jac(tt, yy):
+        # vmap over the N unit tangents: the value once, the Jacobian (N, N) by columns.
+        return jax.vmap(lambda v: jax.jvp(lambda z: f(tt, z), (yy,), (v,)),
+                        out_axes=(None, 1))(eye)
+
+    def stage(carry, i):
+        ks, Ds = carry  # (14, B, N), (14, B, N, N): the stages so far (zero after)
+        w = a[i][:, None] * h[None]  # (14, B): h a_ij
+        yi = y + jnp.einsum("jb,jbn->bn", w, ks)
+        di = eye + jnp.einsum("jb,jbmn->bmn", w, Ds)
+        ti = jnp.where(i == 13, t1, t + c[i] * h)  # the 14th at the step's end, t1
+        k, jac = jax.vmap(value_and_jac)(ti, yi)
+        d = jnp.einsum("bij,bjk->bik", jac, di)
+        return (ks.at[i].set(k), Ds.at[i].set(d)), (ti, yi, jac, d)
+
+    zeros = (jnp.zeros((14, B, n_state), dtype), jnp.zeros((14, B, n_state, n_state), dtype))
+    _, (T, Y, J, D) = jax.lax.scan(stage, zeros, jnp.arange(14))
+    # y1 is the 14th stage's point; its derivative D's 14th input, I + h sum_j b_j D_j.
+    A = eye + jnp.einsum("j,b,jbmn->bmn", a[13], h, D)
+    return _Stages(T, Y, J, D, A)
+
+
+def _dense_cotangents(rows, tw, gw):
+    """`G` (14, B, N): the cotangent that the dense output at the save times `tw` (B, W),
+    with cotangents `gw` (B, W, N), sends to each stage `k_i` of its step: the output is
+    `y + h sum_i w_i(theta) k_i`, `w_i(theta) = theta P_i(theta)` (`dopri8_dense`),
+    `theta = (tw - t) / h` (0 where a step does not cover a save time, and `gw` 0)."""
+    dense = jnp.asarray(dopri8_dense(), rows.dtype)  # (14, powers), highest first
+    t, h = rows[:, 0:1], rows[:, 2:3]
+    theta = (tw - t) / h
+    powers = dense.shape[1]
+    basis = jnp.stack([theta ** (powers - j) for j in range(powers)], -1)  # theta P_i
+    w = jnp.einsum("bsp,ip->ibs", basis, dense)
+    return h[None] * jnp.einsum("ibs,bsn->ibn", w, gw)
+
+
+def _stage_cotangents(st: _Stages, h, G, u):
+    """The cotangents of the 14 stages of each step (14, B, N), given `u` (B, N), that of
+    its end state, and `G`, what the dense output sends directly: the reverse of the stage
+    recursion `Y_i = y + h sum_j a_ij k_j`, `k_i = f(t_i, Y_i)`, one transposed field
+    Jacobian per stage (the step size is a constant of the computed solution); a reverse
+    `scan` over the stages."""
+    a, b, _ = _tableau(G.dtype)
+    y1bar = u + jnp.einsum("bij,bi->bj", st.J[13], G[13])
+    kbar = G + (b[:, None] * h[None])[:, :, None] * y1bar[None]
+
+    def stage(kbar, i):
+        ybar_i = jnp.einsum("bij,bi->bj", st.J[i], kbar[i])
+        return kbar + (a[i][:, None] * h[None])[:, :, None] * ybar_i[None], None
+
+    kbar, _ = jax.lax.scan(stage, kbar, jnp.arange(1, 13), reverse=True)
+    return kbar
+
+
+def _field_vjp(full, dd, pack, unpack, st: _Stages, kbar):
+    """The cotangent of the field's parameters `dd` from every stage of a block: one VJP
+    of the field over all 14 B evaluation points, with cotangents `kbar` (14, B, N)."""
+    n_state = kbar.shape[-1]
+    T, Y, K = st.T.reshape(-1), st.Y.reshape(-1, n_state), kbar.reshape(-1, n_state)
+
+    def at_points(dd):
+        return jax.vmap(_point_field(full(dd), pack, unpack, Y.dtype))(T, Y)
+
+    _, pull = jax.vjp(at_points, dd)
+    return pull(K)[0]
 
 
 def _window(ts, ts_pad, g_pad, row, method):
@@ -242,10 +360,16 @@ def _sequential(outputs, window, dd, B):
     loop (see `_hoisted`)."""
 
     def block(rows, kb, size, carry):
+        # The block's rows and their save windows, gathered before the loop over its
+        # steps: the loop then touches only these few bytes (see `_hoisted`).
+        blk = jax.lax.dynamic_slice_in_dim(rows, kb * B, B)
+        tws, gws = jax.vmap(window)(blk)
+        n = jnp.minimum(size - kb * B, B)
+
         def one(k, carry):
             ybar, dbar = carry
-            row = rows[jnp.minimum(size, (kb + 1) * B) - 1 - k]
-            tw, gw = window(row)
+            i = n - 1 - k
+            row, tw, gw = blk[i], tws[i], gws[i]
             _, pull = jax.vjp(lambda y, dd: outputs(row.at[3:].set(y), tw, dd), row[3:], dd)
             yb, db = pull((ybar, gw))
             return yb, [a + b for a, b in zip(dbar, db)]
@@ -259,9 +383,10 @@ def _hoisted() -> bool:
     """Whether XLA:CPU compiles the backward pass's step loop into one function (its
     small-loop threshold raised, `xla_flags.SMALL_LOOP_BYTES`, as the `crank-jax` program
     and `configure_cpu` set it). Then one VJP per step, in a loop, is cheapest: lab rig,
-    grad 4.3x one forward solve against ~12x for the blocks (machine loaded). Without it
-    every one of the ~600 kernels of a step's VJP is dispatched per step (90x), and the
-    vectorised blocks win."""
+    grad 5.7x one forward solve against 16x for the vectorised blocks (2026-11-26, load
+    ~6, so both high). Without it every one of the ~600 kernels of a step's VJP is
+    dispatched per step (90x; also with a loop over 4 or 8 steps at a time, 23x: XLA
+    did not hoist it either), and the vectorised blocks win."""
     threshold = small_loop_bytes()
     return (jax.default_backend() == "cpu" and threshold is not None
             and threshold >= SMALL_LOOP_BYTES)
