@@ -42,7 +42,7 @@ from ..scene import Scene
 from . import channels as ch
 from .measurement import fitted_channels
 from .optimise import Run, least_squares, minimise_optax
-from .plan import Plan, basis, make_plan, shooting
+from .plan import Plan, basis, make_plan, recoordinate, recoordinate_basis, shooting
 from .problem import Problem
 from .profile import profile_likelihood
 from .programs import Subspace
@@ -82,7 +82,11 @@ def _attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np
     """One optimisation of `shoot` from `zk` (flat directions held at `z0`), then a
     single-shooting polish when `shoot` is multiple shooting."""
     ss = plan.single
-    B = basis(plan.Bg, z0.shape[0])
+    # Multiple shooting has its own coordinates (linear, see `build_problem`): the flat
+    # directions held fixed, and the estimate handed to the polish, are mapped across.
+    Bg = plan.Bg if shoot is ss else recoordinate_basis(ss, shoot, plan.Bg,
+                                                        recoordinate(shoot, ss, z0))
+    B = basis(Bg, z0.shape[0])
     problem = shoot if req.method == "lm" else dataclasses.replace(shoot, adjoint="reverse")
     # LM's stall test counts as convergence only near the record's noise level.
     run_fn = (functools.partial(least_squares, stall_rms=stall_rms(plan.noise,
@@ -91,9 +95,11 @@ def _attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np
     run = _guarded(run_fn, Subspace(problem, jnp.asarray(z0), jnp.asarray(B)),
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
     run = run._replace(z=z0 + B @ run.z)
-    if shoot is ss or not np.isfinite(run.cost):
+    if shoot is ss:
         return run
-    zp = run.z[:ss.p]
+    zp = recoordinate(shoot, ss, run.z)
+    if not np.isfinite(run.cost):
+        return run._replace(z=zp)
     pol = _guarded(run_fn if req.method == "lm" else least_squares,
                    Subspace(ss, jnp.asarray(zp), jnp.asarray(plan.Bg)),
                    np.zeros(plan.Bg.shape[1]), req.max_steps, req.tol, desc + " (polish)",
@@ -224,7 +230,9 @@ def _stalled(run: Run, n: int, plan: Plan, req: FitRequest) -> bool:
 
 def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
     ss = plan.single
-    z_hat = best.z[:ss.p] if np.all(np.isfinite(best.z)) else plan.z0[:ss.p]
+    # (`plan.z0` may be multiple shooting's coordinates; the start values are not.)
+    z_hat = (best.z[:ss.p] if np.all(np.isfinite(best.z))
+             else ss.to_z([plan.start[n] for n in ss.names]))
     converged, message = best.converged, best.message
     if plan.abort:  # nothing was solved, and nothing more is
         r_hat, values = ss.no_residuals(), np.asarray(ss.values(z_hat))
