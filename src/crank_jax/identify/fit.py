@@ -72,9 +72,10 @@ __all__ = ["fit", "FitResult", "Profile", "IdentifiabilityWarning", "Convergence
 FREE_NAMES: tuple[str, ...] = free_names()
 #: Extra starts tried when a fit stalls far from the noise level.
 ESCALATION_STARTS = 4
-#: The extra starts stop once they have taken as long as the first attempt, or this
-#: many seconds if that was quicker (see `_optimise`).
-ESCALATION_SECONDS = 3.0
+#: The extra starts stop once they have taken as many LM iterations as the tries before
+#: them, or this many if those took fewer (see `_optimise`). Iterations, not seconds: a
+#: fit's outcome and its iteration count do not depend on the machine's load.
+ESCALATION_ITERATIONS = 100
 
 
 def _attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.ndarray,
@@ -163,14 +164,13 @@ def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
     Escalation is for what it can mend: a phase slip over a record's periods. A record
     with no observed period (a transient, a creep, a step) cannot slip a cycle, so its
     stall is the model's answer, reported at once. The extra starts stop at the first
-    that reaches the noise level, or once they have taken as long as the first attempt
-    (at least [`ESCALATION_SECONDS`][]): a record that cannot be explained costs little
-    more than one ordinary fit.
+    that reaches the noise level, or once they have taken as many LM iterations as the
+    tries before them (at least [`ESCALATION_ITERATIONS`][]): a record that cannot be
+    explained costs little more than one ordinary fit. Iterations, not wall time, so the
+    same fit does the same tries, and reports the same count, on any machine.
 
     **Returns:** the best run, the total iterations, notes."""
-    t0 = time.perf_counter()
     runs = _multistart(req, plan, plan.shoot, plan.z0, req.multistart, req.seed, "")
-    spent = time.perf_counter() - t0
     notes = []
     if req.multistart > 1:
         best = _best(runs)[0]
@@ -191,17 +191,17 @@ def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
         runs += [(r, lab) for r, lab in _multistart(req, plan, ms, z0, 1, req.seed, label)]
         tried.append(label)
     if escalate and req.multistart == 1 and _stalled(_best(runs)[0], n, plan, req):
-        deadline = time.perf_counter() + max(ESCALATION_SECONDS, spent)
+        budget = max(ESCALATION_ITERATIONS, sum(r.iterations for r, _ in runs))
 
         def enough(done):
             return (not _stalled(done[-1][0], n, plan, req)
-                    or time.perf_counter() > deadline)
+                    or sum(r.iterations for r, _ in done) >= budget)
 
         more = _multistart(req, plan, plan.shoot, plan.z0, ESCALATION_STARTS, req.seed + 1,
                            "multistart", until=enough)
         runs += more
         tried.append(f"{len(more)} more start{'s' if len(more) > 1 else ''}"
-                     + (f" (of {ESCALATION_STARTS}: out of time)"
+                     + (f" (of {ESCALATION_STARTS}: {budget} iterations spent)"
                         if len(more) < ESCALATION_STARTS and _stalled(more[-1][0], n, plan,
                                                                       req) else ""))
     best, label = _best(runs)
