@@ -73,9 +73,11 @@ FREE_NAMES: tuple[str, ...] = free_names()
 #: Extra starts tried when a fit stalls far from the noise level.
 ESCALATION_STARTS = 4
 #: The extra starts stop once they have taken as many LM iterations as the tries before
-#: them, or this many if those took fewer (see `_optimise`). Iterations, not seconds: a
-#: fit's outcome and its iteration count do not depend on the machine's load.
-ESCALATION_ITERATIONS = 100
+#: them, or this many if those took fewer (see `_optimise`): room for every extra start
+#: at the default budget of 100. Iterations, not seconds: a fit's outcome and its
+#: iteration count do not depend on the machine's load. (A floor of 100 cut the starts
+#: that found a slide-only rotating record's branch: experiments/rotating_rig.py.)
+ESCALATION_ITERATIONS = 100 * ESCALATION_STARTS
 
 
 def _attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.ndarray,
