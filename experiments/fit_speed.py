@@ -1,6 +1,7 @@
 """LM iterations and wall time of fits under defaults on real-record-like cases (issue 25,
-item 7): the rotating-rig tutorial's two records, the rotating rig's both-channel fit on
-a few noise seeds, and the lab-rig demo (which must still converge, k near 2).
+item 7): the rotating-rig tutorial's two records, the rotating rig's fit with each channel
+configuration (both, slide only, angle only) on a few noise seeds, and the lab-rig demo
+(which must still converge, k near 2).
 
 Iterations do not depend on the machine's load; wall times do (the machine these numbers
 come from is shared: read them with the iterations beside them). Each case is run twice
@@ -50,7 +51,10 @@ def _demo():
 CASES = {"tutorial": _tutorial, "demo": _demo,
          **{f"rig-both-seed{s}": (lambda s=s: rr.fit_config(rr.CONFIGS["both"], seed=s))
             for s in (1000, 1001, 1002)},
-         "rig-slide-seed1001": lambda: rr.fit_config(rr.CONFIGS["slide"], seed=1001)}
+         **{f"rig-slide-seed{s}": (lambda s=s: rr.fit_config(rr.CONFIGS["slide"], seed=s))
+            for s in (1000, 1001, 1002)},
+         **{f"rig-angle-seed{s}": (lambda s=s: rr.fit_config(rr.CONFIGS["angle"], seed=s))
+            for s in (1000, 1001, 1002)}}
 
 
 def main() -> None:

@@ -396,3 +396,40 @@ def test_bucket_lengths_leave_room_above_round_sample_counts():
     # must still share its programs (with powers of two, 1001 -> 1024 had 2% room).
     for n in (100, 200, 500, 1000, 2000, 5000, 10_000, 20_000, 50_000, 100_000):
         assert bucket(int(1.05 * (n + 1))) == bucket(n + 1), n
+
+
+def test_multiple_shooting_coordinates_are_linear_and_map_back(lab_rig):
+    # Issue 25.7: multiple shooting optimises the mechanism's coefficients in linear
+    # coordinates (in log ones the valley of a motor-driven crank's constant speed,
+    # gain u - T_c = c dphi, curves, and LM crawled ~40 iterations along it). Single
+    # shooting keeps log ones (the intervals and identifiability use them); values map
+    # across exactly, and a direction held fixed in one is held in the other.
+    from crank_jax.identify.plan import recoordinate, recoordinate_basis
+
+    recs = [(cj.synthesize(lab_rig, t1=0.8, rate=100.0, noise_std=1e-3, seed=1),
+             lab_rig.load, lab_rig.torque, 1.0, 0.0)]
+    free, start = ("k", "c", "T_c", "phi0", "dphi0"), {"k": 2.0, "c": 0.002, "T_c": 0.0}
+    kw = dict(solver="tsit5", rtol=1e-10, atol=1e-12, max_steps=4096)
+    ss = build_problem(lab_rig.mech, recs, free, start, [1], **kw)
+    ms = build_problem(lab_rig.mech, recs, free, start, [3], linear=True, **kw)
+    assert ss.log[:2] == (True, True) and not any(ms.log)
+    assert ss.folded == ms.folded == (False, False, True, False, False)
+    v = np.array([2.5, 0.004, 0.01, 0.9, -0.2])
+    z_ss = ss.to_z(v)
+    z_ms = recoordinate(ss, ms, z_ss)
+    np.testing.assert_allclose(np.asarray(ms.values(jnp.asarray(z_ms))), v, rtol=1e-14)
+    np.testing.assert_allclose(recoordinate(ms, ss, z_ms), z_ss, rtol=1e-14, atol=1e-15)
+    # A step of c below 0 is not folded back: the point is invalid (c >= 0 is a validation
+    # rule, so a failed solve, which LM rejects), not a reflected c.
+    z_bad = z_ms.copy()
+    z_bad[1] = -0.5
+    assert float(ms.values(jnp.asarray(z_bad))[1]) == pytest.approx(-0.001)
+    # Friction stays folded (a true 0 is common): its step below 0 is reflected.
+    z_bad[2] = -z_ms[2]
+    assert float(ms.values(jnp.asarray(z_bad))[2]) == pytest.approx(0.01)
+    # A common scale of k and c, held fixed in log coordinates (the direction (1, 1)),
+    # is the ray through the values in linear ones: (k, c) / ref.
+    Bg = np.array([[1.0, 1.0, 0.0, 0.0, 0.0]]).T / math.sqrt(2)
+    B = recoordinate_basis(ss, ms, Bg, z_ss)
+    ray = np.array([2.5 / 2.0, 0.004 / 0.002, 0.0, 0.0, 0.0])
+    assert abs(B[:, 0] @ ray) == pytest.approx(np.linalg.norm(ray), rel=1e-12)

@@ -42,7 +42,7 @@ from ..scene import Scene
 from . import channels as ch
 from .measurement import fitted_channels
 from .optimise import Run, least_squares, minimise_optax
-from .plan import Plan, basis, make_plan, shooting
+from .plan import Plan, basis, make_plan, recoordinate, recoordinate_basis, shooting
 from .problem import Problem
 from .profile import profile_likelihood
 from .programs import Subspace
@@ -72,9 +72,12 @@ __all__ = ["fit", "FitResult", "Profile", "IdentifiabilityWarning", "Convergence
 FREE_NAMES: tuple[str, ...] = free_names()
 #: Extra starts tried when a fit stalls far from the noise level.
 ESCALATION_STARTS = 4
-#: The extra starts stop once they have taken as long as the first attempt, or this
-#: many seconds if that was quicker (see `_optimise`).
-ESCALATION_SECONDS = 3.0
+#: The extra starts stop once they have taken as many LM iterations as the tries before
+#: them, or this many if those took fewer (see `_optimise`): room for every extra start
+#: at the default budget of 100. Iterations, not seconds: a fit's outcome and its
+#: iteration count do not depend on the machine's load. (A floor of 100 cut the starts
+#: that found a slide-only rotating record's branch: experiments/rotating_rig.py.)
+ESCALATION_ITERATIONS = 100 * ESCALATION_STARTS
 
 
 def _attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.ndarray,
@@ -82,7 +85,11 @@ def _attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np
     """One optimisation of `shoot` from `zk` (flat directions held at `z0`), then a
     single-shooting polish when `shoot` is multiple shooting."""
     ss = plan.single
-    B = basis(plan.Bg, z0.shape[0])
+    # Multiple shooting has its own coordinates (linear, see `build_problem`): the flat
+    # directions held fixed, and the estimate handed to the polish, are mapped across.
+    Bg = plan.Bg if shoot is ss else recoordinate_basis(ss, shoot, plan.Bg,
+                                                        recoordinate(shoot, ss, z0))
+    B = basis(Bg, z0.shape[0])
     problem = shoot if req.method == "lm" else dataclasses.replace(shoot, adjoint="reverse")
     # LM's stall test counts as convergence only near the record's noise level.
     run_fn = (functools.partial(least_squares, stall_rms=stall_rms(plan.noise,
@@ -91,9 +98,11 @@ def _attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np
     run = _guarded(run_fn, Subspace(problem, jnp.asarray(z0), jnp.asarray(B)),
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
     run = run._replace(z=z0 + B @ run.z)
-    if shoot is ss or not np.isfinite(run.cost):
+    if shoot is ss:
         return run
-    zp = run.z[:ss.p]
+    zp = recoordinate(shoot, ss, run.z)
+    if not np.isfinite(run.cost):
+        return run._replace(z=zp)
     pol = _guarded(run_fn if req.method == "lm" else least_squares,
                    Subspace(ss, jnp.asarray(zp), jnp.asarray(plan.Bg)),
                    np.zeros(plan.Bg.shape[1]), req.max_steps, req.tol, desc + " (polish)",
@@ -157,14 +166,13 @@ def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
     Escalation is for what it can mend: a phase slip over a record's periods. A record
     with no observed period (a transient, a creep, a step) cannot slip a cycle, so its
     stall is the model's answer, reported at once. The extra starts stop at the first
-    that reaches the noise level, or once they have taken as long as the first attempt
-    (at least [`ESCALATION_SECONDS`][]): a record that cannot be explained costs little
-    more than one ordinary fit.
+    that reaches the noise level, or once they have taken as many LM iterations as the
+    tries before them (at least [`ESCALATION_ITERATIONS`][]): a record that cannot be
+    explained costs little more than one ordinary fit. Iterations, not wall time, so the
+    same fit does the same tries, and reports the same count, on any machine.
 
     **Returns:** the best run, the total iterations, notes."""
-    t0 = time.perf_counter()
     runs = _multistart(req, plan, plan.shoot, plan.z0, req.multistart, req.seed, "")
-    spent = time.perf_counter() - t0
     notes = []
     if req.multistart > 1:
         best = _best(runs)[0]
@@ -185,17 +193,17 @@ def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
         runs += [(r, lab) for r, lab in _multistart(req, plan, ms, z0, 1, req.seed, label)]
         tried.append(label)
     if escalate and req.multistart == 1 and _stalled(_best(runs)[0], n, plan, req):
-        deadline = time.perf_counter() + max(ESCALATION_SECONDS, spent)
+        budget = max(ESCALATION_ITERATIONS, sum(r.iterations for r, _ in runs))
 
         def enough(done):
             return (not _stalled(done[-1][0], n, plan, req)
-                    or time.perf_counter() > deadline)
+                    or sum(r.iterations for r, _ in done) >= budget)
 
         more = _multistart(req, plan, plan.shoot, plan.z0, ESCALATION_STARTS, req.seed + 1,
                            "multistart", until=enough)
         runs += more
         tried.append(f"{len(more)} more start{'s' if len(more) > 1 else ''}"
-                     + (f" (of {ESCALATION_STARTS}: out of time)"
+                     + (f" (of {ESCALATION_STARTS}: {budget} iterations spent)"
                         if len(more) < ESCALATION_STARTS and _stalled(more[-1][0], n, plan,
                                                                       req) else ""))
     best, label = _best(runs)
@@ -224,7 +232,9 @@ def _stalled(run: Run, n: int, plan: Plan, req: FitRequest) -> bool:
 
 def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
     ss = plan.single
-    z_hat = best.z[:ss.p] if np.all(np.isfinite(best.z)) else plan.z0[:ss.p]
+    # (`plan.z0` may be multiple shooting's coordinates; the start values are not.)
+    z_hat = (best.z[:ss.p] if np.all(np.isfinite(best.z))
+             else ss.to_z([plan.start[n] for n in ss.names]))
     converged, message = best.converged, best.message
     if plan.abort:  # nothing was solved, and nothing more is
         r_hat, values = ss.no_residuals(), np.asarray(ss.values(z_hat))

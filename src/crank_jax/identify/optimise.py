@@ -166,12 +166,17 @@ class _Evaluations:
         elif math.isfinite(h[0]) and h[0] - h[-1] <= 0.02 * h[-1] / n:
             raise _Stop(*self._stall(h[-1], n))
         # Converged when the Gauss-Newton step, the distance to the minimum the
-        # linearisation predicts, is below `tol + tol |w|` in every coordinate. MINPACK's
+        # linearisation predicts, is below `tol + tol |z|` in every coordinate of the
+        # problem (`z`, not the view's `w`: a subspace's `w` is the offset from its start,
+        # near 0, and a test relative to it asked a polish for steps of 1e-8 absolute,
+        # below the Jacobian's rounding, so it ran to the stall test). MINPACK's
         # own tests look at the damped step or the cost change, which are small also where
         # LM crawls with a large damping; and its relative step test means little for
         # coordinates near 0 (log-ratios to `ref`).
         gn = np.linalg.lstsq(self.J, -self.r, rcond=None)[0]
-        if not self.failed and np.all(np.abs(gn) <= self.tol + self.tol * np.abs(self.w)):
+        z = np.asarray(self.model.lift(self.w))
+        step = np.asarray(self.model.lift(self.w + gn)) - z
+        if not self.failed and np.all(np.abs(step) <= self.tol + self.tol * np.abs(z)):
             raise _Stop(True, "converged")
         if self.iterations > self.max_steps:
             self.iterations = self.max_steps

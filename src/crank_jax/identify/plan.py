@@ -33,7 +33,7 @@ from .strategy import (
 )
 from .uncertainty import RANK_TOL
 
-__all__ = ["Plan", "make_plan", "shooting", "basis"]
+__all__ = ["Plan", "make_plan", "shooting", "basis", "recoordinate", "recoordinate_basis"]
 
 
 @dataclasses.dataclass
@@ -73,7 +73,8 @@ def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
     return start, states, notes
 
 
-def _problem(req: FitRequest, start, states, nseg, budget, solver) -> Problem:
+def _problem(req: FitRequest, start, states, nseg, budget, solver, linear: bool = False
+             ) -> Problem:
     recs = [(d, lo, to, s[0], s[1]) for d, (lo, to), s in zip(req.records, req.loads, states)]
     periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     omega = next((2 * math.pi / p for p in periods if p), None)
@@ -81,7 +82,7 @@ def _problem(req: FitRequest, start, states, nseg, budget, solver) -> Problem:
                          rtol=float(req.scene.rtol), atol=float(req.scene.atol),
                          max_steps=budget, adjoint="forward", omega=omega,
                          angles=req.angles, sigmas=req.sigmas, per_record=req.per_record,
-                         force=req.force)
+                         force=req.force, linear=linear)
 
 
 def _start_solve(req, start, states, solver, periods):
@@ -206,6 +207,31 @@ def _aborted(req, start, states, solver, why: str, notes) -> Plan:
 
 
 def shooting(req: FitRequest, plan: Plan, nseg) -> tuple[Problem, np.ndarray]:
-    """A multiple-shooting problem and its start coordinates."""
-    ms = _problem(req, plan.start_g, plan.states, nseg, plan.single.max_steps, plan.solver)
-    return ms, np.concatenate([plan.z0[:plan.single.p], ch.segment_states(ms, req)])
+    """A multiple-shooting problem, in linear coordinates (see `build_problem`), and its
+    start coordinates (from the single-shooting start `plan.z0`)."""
+    ms = _problem(req, plan.start_g, plan.states, nseg, plan.single.max_steps, plan.solver,
+                  linear=True)
+    z = recoordinate(plan.single, ms, plan.z0[:plan.single.p])
+    return ms, np.concatenate([z, ch.segment_states(ms, req)])
+
+
+def recoordinate(src: Problem, dst: Problem, z: np.ndarray) -> np.ndarray:
+    """The reported parameters at `src`'s coordinates `z` (its first `p` entries) in
+    `dst`'s coordinates (p,). A value at 0 (a linear coordinate's bound) is taken a hair
+    above it where `dst` has it in log space."""
+    v = np.asarray(src.values(jnp.asarray(z[:src.p])))
+    v = np.where(dst.log, np.maximum(v, np.finfo(float).tiny), v)
+    return dst.to_z(v)
+
+
+def recoordinate_basis(src: Problem, dst: Problem, Bg: np.ndarray, z: np.ndarray
+                       ) -> np.ndarray:
+    """An orthonormal basis, in `dst`'s coordinates, of the directions `Bg` (p, q) spans in
+    `src`'s coordinates at `z` (to first order: the map between them is diagonal, each
+    coordinate a function of its own value). Flat directions held fixed in single shooting
+    stay held in multiple shooting."""
+    v = np.asarray(src.values(jnp.asarray(z[:src.p])))
+    dv = np.where(src.log, v, np.asarray(src.ref))  # d value / d z_src
+    dz = np.where(dst.log, 1.0 / np.where(dst.log, v, 1.0), 1.0 / np.asarray(dst.ref))
+    q, _ = np.linalg.qr((dv * dz)[:, None] * Bg)
+    return q

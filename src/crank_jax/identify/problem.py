@@ -102,6 +102,18 @@ def folded(name: str, log: bool) -> bool:
     return name in FIELDS and name not in SIGNED_FIELDS and not log
 
 
+def _coordinates(name: str, start: float, mech: SliderCrank, omega: float | None,
+                 linear: bool) -> tuple[bool, float, bool]:
+    """`(log, ref, folded)` of a free name (see [`coordinate`][], [`folded`][]). `linear`:
+    a name that would be in log coordinates is linear instead, `z = value / start`, and
+    not folded (a step below 0 is outside the valid set, a failed point the optimiser
+    rejects). These are multiple shooting's coordinates (see [`build_problem`][])."""
+    lg, rf = coordinate(name, start, mech, omega)
+    if linear and lg:
+        return False, abs(start), False
+    return lg, rf, folded(name, lg)
+
+
 def _fold(z):
     """`|z|` with derivative +1 at 0 (`jnp.abs` has 0 there, which would make a folded
     parameter that starts at 0 look exactly flat: `fit` holds flat directions fixed)."""
@@ -336,6 +348,7 @@ def build_problem(
     sigmas: dict[str, float] | None = None,
     per_record: Sequence[str] = (),
     force=None,
+    linear: bool = False,
 ) -> Problem:
     """Assemble a [`Problem`][].
 
@@ -360,18 +373,25 @@ def build_problem(
       are weighted by the first channel's level over its own.
     - `per_record`: free names with a separate value per record (`name[i]`).
     - `force`: a user's force term (its free fields are `force.<field>` names).
+    - `linear`: every coordinate linear in its value (none in log space; see
+      `_coordinates`). Multiple shooting optimises in these: the dynamics are linear in
+      the mechanism's coefficients (damping, friction, motor gain, inertias), so in them
+      the valley of a constant mean speed, `gain u - T_c = c dphi`, is straight, where in
+      log coordinates it curves and LM crawls along it (56 iterations instead of 16-28 on
+      the rotating rig, experiments/results/fit_speed.json). Single shooting, whose
+      coordinates the polish, the intervals and the identifiability use, keeps log ones.
     """
     per_record = tuple(per_record)
     glob = [n for n in free if n not in ("phi0", "dphi0") and n not in per_record]
     omega_obs = omega
     state_free = (("phi0" in free), ("dphi0" in free))
-    names, log, ref = [], [], []
+    names, log, ref, fold = [], [], [], []
     for n in glob:
-        lg, rf = coordinate(n, float(start[n]), mech, omega)
+        lg, rf, fd = _coordinates(n, float(start[n]), mech, omega, linear)
         names.append(n)
         log.append(lg)
         ref.append(rf)
-    fold = [folded(n, lg) for n, lg in zip(names, log)]
+        fold.append(fd)
     exps = []
     multi = len(records) > 1
     first = records[0][0].outputs()[0][0].name
@@ -384,11 +404,11 @@ def build_problem(
         omega = 2 * math.pi / (period if period is not None else span)
         ref_phi, ref_dphi = max(amp, abs(phi0)), max(amp * omega, abs(dphi0))
         for n in per_record:
-            lg, rf = coordinate(n, float(start[n]), mech, omega_obs)
+            lg, rf, fd = _coordinates(n, float(start[n]), mech, omega_obs, linear)
             names.append(f"{n}[{i}]")
             log.append(lg)
             ref.append(rf)
-            fold.append(folded(n, lg))
+            fold.append(fd)
         for name, flag, r in (("phi0", state_free[0], ref_phi),
                               ("dphi0", state_free[1], ref_dphi)):
             if flag:
