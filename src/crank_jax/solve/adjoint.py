@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..xla_flags import SMALL_LOOP_BYTES, small_loop_bytes
-from .adaptive import WINDOW, dopri8_dense, solve_adaptive
+from .adaptive import WINDOW, Recorder, dopri8_dense, solve_adaptive
 from .erk import dopri8, packer
 
 __all__ = ["forward", "backward", "LOG_ROWS"]
@@ -58,7 +58,7 @@ class Log(NamedTuple):
     """The forward pass's record of its accepted steps.
 
     - `rows` (S + 1, 3 + N): `(t, t1, h, y...)` of accepted step `i` in row `i % S`, `y`
-      the packed state (N,) at `t` (s); row S a spare for the writes not kept;
+      the packed state (N,) at `t` (s); row S a spare for the writes not kept (`_flush`);
     - `count`: accepted steps so far (int scalar);
     - `upto`: steps from this index on are not written (a rerun that logs one segment)."""
 
@@ -71,16 +71,46 @@ def _rows(max_steps: int) -> int:
     return max(1, min(int(max_steps), LOG_ROWS))
 
 
-def _write(log: Log, rec) -> Log:
-    """Log a step attempt `rec` (adaptive.py's record of one member). A rejected attempt
-    writes the row that the next accepted one overwrites; nothing from `upto` on."""
+#: Step attempts the step loop holds before the loop around it moves them to the log: each
+#: column of the buffer at most 512 bytes (a (32, 2) state), so that under XLA's defaults
+#: the step loop's kernels still run one after the other (adaptive.py's `Recorder`).
+PENDING = 32
+
+
+class Pending(NamedTuple):
+    """The step loop's buffer of accepted steps not yet in the [`Log`][]: `t`, `t1`, `h`
+    (P,) and `y` (P, N) of accepted step `i` in row `i`; `n`, the rows held (int scalar).
+    Columns apart: each is one small buffer (see `PENDING`)."""
+
+    t: jax.Array
+    t1: jax.Array
+    h: jax.Array
+    y: jax.Array
+    n: jax.Array
+
+
+def _write(p: Pending, rec) -> Pending:
+    """Hold a step attempt `rec` (adaptive.py's record of one member) in row `n`; a rejected
+    one is overwritten by the next attempt (`n` moves on when one is accepted)."""
+    put = lambda col, x: jax.lax.dynamic_update_slice_in_dim(  # noqa: E731
+        col, x[None].astype(col.dtype), p.n, 0)
+    return Pending(put(p.t, rec.t[0]), put(p.t1, rec.t1[0]), put(p.h, rec.h[0]),
+                   put(p.y, rec.y), p.n + rec.ok[0].astype(p.n.dtype))
+
+
+def _room(p: Pending, k: int):
+    return p.n + k <= p.t.shape[0]
+
+
+def _flush(log: Log, p: Pending):
+    """The log with the pending steps in ring rows `count % S`, ... (nothing from `upto`
+    on: those go to the spare row S), and an empty buffer."""
     S = log.rows.shape[0] - 1
-    row = jnp.concatenate([rec.t, rec.t1, rec.h, rec.y]).astype(log.rows.dtype)
-    # Row S is a spare that takes the writes not kept: an in-place `dynamic_update_slice`
-    # at every attempt (a scatter that drops them cost the forward pass ~40%).
-    pos = jnp.where(log.count < log.upto, log.count % S, S)
-    rows = jax.lax.dynamic_update_slice_in_dim(log.rows, row[None], pos, 0)
-    return Log(rows, log.count + rec.ok[0].astype(log.count.dtype), log.upto)
+    block = jnp.concatenate([p.t[:, None], p.t1[:, None], p.h[:, None], p.y], axis=1)
+    i = log.count + jnp.arange(p.t.shape[0], dtype=log.count.dtype)
+    pos = jnp.where((i < log.count + p.n) & (i < log.upto), i % S, S)
+    rows = log.rows.at[pos].set(block.astype(log.rows.dtype))
+    return Log(rows, log.count + p.n, log.upto), p._replace(n=jnp.zeros_like(p.n))
 
 
 def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=None):
@@ -94,8 +124,12 @@ def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=
     S = _rows(max_steps)
     upto = jnp.asarray(max_steps + 1 if upto is None else upto, jnp.int32)
     log0 = Log(jnp.zeros((S + 1, 3 + n_state), ts.dtype), jnp.zeros((), jnp.int32), upto)
+    col = jnp.zeros((PENDING,), ts.dtype)
+    p0 = Pending(col, col, col, jnp.zeros((PENDING, n_state), ts.dtype),
+                 jnp.zeros((), jnp.int32))
     return solve_adaptive(field, y0, ts, rtol, atol, max_steps=max_steps,
-                          error_size=error_size, record=(log0, _write))
+                          error_size=error_size,
+                          record=Recorder(log0, p0, _write, _room, _flush))
 
 
 def _step_outputs(field, pack, unpack, row, tw, n_state):
