@@ -164,7 +164,7 @@ class Recorder(NamedTuple):
     pending to the full `log`. Why two parts: under XLA's defaults the runtime runs a loop
     body's kernels one after the other in the calling thread only while every buffer they
     touch is <= 512 bytes; a step loop that carried the full log cost the forward pass
-    1.7x (lab rig: 1.2 -> 2.0 ms).
+    1.7x (lab rig, 10 s, 1001 saves: 1.2 -> 2.0 ms; 1.4 ms with the buffer).
 
     - `log0`, `pending0`: the log at the start, and an empty pending buffer;
     - `write(pending, rec) -> pending`: log one step attempt `rec` (an [`_Attempt`][]);
