@@ -95,3 +95,28 @@ def test_both_backward_programs_give_the_forward_jacobian(monkeypatch, hoisted):
     monkeypatch.setattr(adjoint, "_hoisted", lambda: hoisted)
     theta0, weights, traj, loss = _problem(t1=1.0, samples=11)
     _close(jax.jit(jax.grad(loss))(theta0), _forward_gradient(theta0, weights, traj))
+
+
+def test_the_pending_steps_reach_their_ring_rows():
+    # The step loop's buffer of P steps goes to ring rows count % S, ... by two in-place
+    # writes (the second for the steps that wrap to row 0), none from `upto` on, and the
+    # rows that get no step keep theirs: against the rows written one by one.
+    S, P, N = 5, 3, 2
+    rng = np.random.default_rng(0)
+    flush = jax.jit(adjoint._flush)
+    for count in range(0, 12):
+        for n in range(P + 1):
+            for upto in (count, count + 1, count + P, 100):
+                rows = rng.normal(size=(S + P, 3 + N))
+                cols = rng.normal(size=(P, 3 + N))
+                p = adjoint.Pending((*(jnp.asarray(cols[:, i]) for i in range(3)),
+                                     jnp.asarray(cols[:, 3:])), jnp.asarray(n, jnp.int32))
+                log = adjoint.Log(jnp.asarray(rows), jnp.asarray(count, jnp.int32),
+                                  jnp.asarray(upto, jnp.int32))
+                out, empty = flush(log, p)
+                ref = rows.copy()
+                for j in range(n):
+                    if count + j < upto:
+                        ref[(count + j) % S] = cols[j]
+                np.testing.assert_array_equal(np.asarray(out.rows)[:S], ref[:S])
+                assert int(out.count) == count + n and int(empty.n) == 0

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..xla_flags import SMALL_LOOP_BYTES, small_loop_bytes
-from .adaptive import WINDOW, dopri8_dense, solve_adaptive
+from .adaptive import WINDOW, Recorder, dopri8_dense, solve_adaptive
 from .erk import dopri8, packer
 
 __all__ = ["forward", "backward", "LOG_ROWS"]
@@ -57,8 +57,8 @@ LOG_ROWS = 4096
 class Log(NamedTuple):
     """The forward pass's record of its accepted steps.
 
-    - `rows` (S + 1, 3 + N): `(t, t1, h, y...)` of accepted step `i` in row `i % S`, `y`
-      the packed state (N,) at `t` (s); row S a spare for the writes not kept;
+    - `rows` (S + P, 3 + N): `(t, t1, h, y...)` of accepted step `i` in row `i % S`, `y`
+      the packed state (N,) at `t` (s); P = `PENDING` rows of slack (see `_flush`);
     - `count`: accepted steps so far (int scalar);
     - `upto`: steps from this index on are not written (a rerun that logs one segment)."""
 
@@ -71,16 +71,57 @@ def _rows(max_steps: int) -> int:
     return max(1, min(int(max_steps), LOG_ROWS))
 
 
-def _write(log: Log, rec) -> Log:
-    """Log a step attempt `rec` (adaptive.py's record of one member). A rejected attempt
-    writes the row that the next accepted one overwrites; nothing from `upto` on."""
-    S = log.rows.shape[0] - 1
-    row = jnp.concatenate([rec.t, rec.t1, rec.h, rec.y]).astype(log.rows.dtype)
-    # Row S is a spare that takes the writes not kept: an in-place `dynamic_update_slice`
-    # at every attempt (a scatter that drops them cost the forward pass ~40%).
-    pos = jnp.where(log.count < log.upto, log.count % S, S)
-    rows = jax.lax.dynamic_update_slice_in_dim(log.rows, row[None], pos, 0)
-    return Log(rows, log.count + rec.ok[0].astype(log.count.dtype), log.upto)
+#: Steps the step loop holds before the loop around it moves them to the log (each column
+#: <= 512 bytes: see adaptive.py's `Recorder`).
+PENDING = 32
+
+
+class Pending(NamedTuple):
+    """The step loop's buffer of accepted steps not yet in the [`Log`][]: `cols`, the
+    columns `(t, t1, h)` (P,) and `y` (P, N), apart so that each is one small buffer (see
+    `PENDING`), accepted step `i` in row `i`; `n`, the rows held (int scalar)."""
+
+    cols: tuple
+    n: jax.Array
+
+
+def _write(p: Pending, rec) -> Pending:
+    """Hold a step attempt `rec` (adaptive.py's record of one member) in row `n`; a rejected
+    one is overwritten by the next attempt (`n` moves on when one is accepted)."""
+    new = (rec.t[0], rec.t1[0], rec.h[0], rec.y)
+    cols = tuple(jax.lax.dynamic_update_slice_in_dim(c, x[None].astype(c.dtype), p.n, 0)
+                 for c, x in zip(p.cols, new))
+    return Pending(cols, p.n + rec.ok[0].astype(p.n.dtype))
+
+
+def _room(p: Pending, k: int):
+    return p.n + k <= p.cols[0].shape[0]
+
+
+def _flush(log: Log, p: Pending):
+    """The log with the pending steps in ring rows `count % S`, ... (none from `upto` on),
+    and an empty buffer: two in-place writes, of the steps before the ring's end and of
+    those that wrap to row 0 (S >= P, or fewer than S steps in all: they wrap at most
+    once); with the CPU flags a scatter kept XLA from hoisting the loop around it."""
+    P = p.cols[0].shape[0]
+    S = log.rows.shape[0] - P
+    block = jnp.column_stack(p.cols).astype(log.rows.dtype)
+    k = jnp.arange(P, dtype=log.count.dtype)
+
+    def put(rows, blk, first, at):
+        # `blk[j]` is step count + first + j, for row `at + j`; rows with no step keep theirs.
+        i = k + first
+        keep = (i < p.n) & (log.count + i < log.upto) & (at + k < S)
+        blk = jnp.where(keep[:, None], blk, jax.lax.dynamic_slice_in_dim(rows, at, P))
+        return jax.lax.dynamic_update_slice_in_dim(rows, blk, at, 0)
+
+    pos = log.count % S
+    rows = put(log.rows, block, 0, pos)
+    shift = S - pos  # the step that lands in row 0, if any (>= P: none, and none kept)
+    padded = jnp.concatenate([block, jnp.zeros_like(block)])
+    rows = put(rows, jax.lax.dynamic_slice_in_dim(padded, jnp.minimum(shift, P), P),
+               shift, jnp.zeros_like(pos))
+    return Log(rows, log.count + p.n, log.upto), p._replace(n=jnp.zeros_like(p.n))
 
 
 def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=None):
@@ -93,9 +134,12 @@ def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=
     n_state = packer(y0)[0](y0).shape[-1]
     S = _rows(max_steps)
     upto = jnp.asarray(max_steps + 1 if upto is None else upto, jnp.int32)
-    log0 = Log(jnp.zeros((S + 1, 3 + n_state), ts.dtype), jnp.zeros((), jnp.int32), upto)
-    return solve_adaptive(field, y0, ts, rtol, atol, max_steps=max_steps,
-                          error_size=error_size, record=(log0, _write))
+    log0 = Log(jnp.zeros((S + PENDING, 3 + n_state), ts.dtype), jnp.zeros((), jnp.int32),
+               upto)
+    col = jnp.zeros((PENDING,), ts.dtype)
+    p0 = Pending((col, col, col, jnp.zeros((PENDING, n_state), ts.dtype)), log0.count)
+    return solve_adaptive(field, y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
+                          record=Recorder(log0, p0, _write, _room, _flush))
 
 
 def _step_outputs(field, pack, unpack, row, tw, n_state):
@@ -138,7 +182,7 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
     **Returns:** `(d_dyn, d_y0)`: a list like `dyn` (None for a leaf that is not a float
     array) and a pytree like `y0`."""
     pack, unpack = packer(y0)
-    S = log.rows.shape[0] - 1  # the last row is the spare (see `_write`)
+    S = log.rows.shape[0] - PENDING  # the ring's rows (see `Log`)
     g = pack(g_ys).astype(ts.dtype)  # (n, N)
     live = [eqx.is_inexact_array(d) for d in dyn]
     diff = [d for d, b in zip(dyn, live) if b]
