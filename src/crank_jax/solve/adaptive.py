@@ -167,7 +167,7 @@ class Recorder(NamedTuple):
     1.7x (lab rig, 10 s, 1001 saves: 1.2 -> 2.0 ms; 1.4 ms with the buffer).
 
     - `log0`, `pending0`: the log at the start, and an empty pending buffer;
-    - `write(pending, rec) -> pending`: log one step attempt `rec` (an [`_Attempt`][]);
+    - `write(pending, rec) -> pending`: log one step attempt `rec` (an `_Attempt`);
     - `room(pending, k) -> bool`: whether `k` more attempts fit in the buffer (the step
       loop stops, and the outer loop moves the buffer to the log, when they do not);
     - `flush(log, pending) -> (log, pending)`: the log with the pending attempts moved to
