@@ -9,7 +9,9 @@ channel needs one estimated from what it has:
 - `x_s`: `x_s(phi)` inverted. Each slider position has two crank angles, one on each
   half-turn between the slider's ends. A crank that turns (the record spans most of the
   stroke) takes the half-turn its direction and the slider's motion imply, and the angle
-  is unwrapped; a crank that swings about an end takes the side that flips each time the
+  is unwrapped; near the dead centres, where the slider hardly moves with the crank and
+  its noise makes a large angle error, the angle is bridged in time from either side; a
+  crank that swings about an end takes the side that flips each time the
   slider passes that end (the start angle's side first). Which side is a guess that the
   dynamics and the start values then decide (DESIGN.md section 1);
 - only `v_s` or `a_s`: nothing to invert (returns None; the caller simulates the start
@@ -25,7 +27,7 @@ import numpy as np
 from ..data import Data
 from ..model.geometry import geometry
 from ..model.params import SliderCrank
-from .start import observed_period
+from .start import noise_level, observed_period
 
 __all__ = ["angle_estimate", "slide_angle", "motion_period", "ROTATING_STROKE"]
 
@@ -77,8 +79,10 @@ def _smooth(x: np.ndarray, k: int) -> np.ndarray:
 
 
 def slide_angle(mech: SliderCrank, ts: np.ndarray, x: np.ndarray, direction: float = 1.0,
-                phi_start: float = 0.0) -> np.ndarray:
-    """The crank angle (n,), rad, whose slider position is `x` (n,), m (see the module)."""
+                phi_start: float = 0.0, noise: float | None = None) -> np.ndarray:
+    """The crank angle (n,), rad, whose slider position is `x` (n,), m (see the module);
+    `noise`, the positions' noise level, m (default: estimated from `x`), sets where a
+    turning crank's angle is bridged across a dead centre."""
     (xa, pa), (xb, pb), lo, hi, top = _arcs(mech)
     xc = np.clip(x, lo, hi)
     phi_a, phi_b = np.interp(xc, *(xa, pa)), np.interp(xc, *(xb, pb))
@@ -88,7 +92,8 @@ def slide_angle(mech: SliderCrank, ts: np.ndarray, x: np.ndarray, direction: flo
     if hi_q - lo_q > ROTATING_STROKE * (hi - lo):
         # x falls on half-turn a while phi grows: turning forwards, falling x means a.
         phi = np.where(dx * np.sign(direction or 1.0) < 0, phi_a, phi_b)
-        phi = np.unwrap(phi)
+        noise = noise_level(ts, x) if noise is None else noise
+        phi = _bridge(ts, np.unwrap(phi), _steep(mech, phi, noise))
         return phi + 2 * math.pi * round((phi_start - phi[0]) / (2 * math.pi))
     # A swing about one end of the stroke: the side flips each time x passes that end.
     near_top = abs(float(np.median(x)) - hi) < abs(float(np.median(x)) - lo)
@@ -102,6 +107,49 @@ def slide_angle(mech: SliderCrank, ts: np.ndarray, x: np.ndarray, direction: flo
     if near_top:
         return top + sign * dist
     return top + math.pi - sign * (math.pi - dist)
+
+
+#: A slider position's noise `s` makes an angle error of `s / |dx_s/dphi|`, unbounded at
+#: the dead centres (dx_s/dphi = 0). Where that exceeds this (rad), the angle is bridged
+#: in time instead (see `_bridge`); a noiseless record is inverted everywhere.
+ANGLE_ERROR = 5e-3
+
+
+def _steep(mech: SliderCrank, phi: np.ndarray, noise: float) -> np.ndarray:
+    """Whether each angle (n,) lies where the slider moves fast enough with the crank for
+    a position of noise level `noise` (m) to tell it within [`ANGLE_ERROR`][]."""
+    grid = np.linspace(0.0, 2 * math.pi, _GRID, endpoint=False)
+    slope = np.gradient(np.asarray(geometry(mech, grid).x_s, dtype=float), grid)
+    at = np.interp(np.mod(phi, 2 * math.pi), grid, np.abs(slope), period=2 * math.pi)
+    return at * ANGLE_ERROR > noise
+
+
+#: Each side of a bridged run of samples contributes up to this many samples to its fit.
+_BRIDGE_SIDE = 4
+
+
+def _bridge(ts: np.ndarray, phi: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """`phi` (n,) with each run of samples not `ok` replaced by a quadratic in time fitted
+    (least squares) to the nearest `ok` samples on either side: a turning crank crosses a
+    dead centre in a small part of a turn, smoothly, and a quadratic follows its speeding
+    up or slowing down there while averaging the neighbours' noise. At the record's ends,
+    the straight line through the two nearest `ok` samples (a one-sided quadratic
+    extrapolates their noise). Unchanged when fewer than 4 samples are `ok`."""
+    good = np.flatnonzero(ok)
+    if good.size < 4 or good.size == phi.shape[0]:
+        return phi
+    out = phi.copy()
+    bad = np.flatnonzero(~ok)
+    for run in np.split(bad, np.flatnonzero(np.diff(bad) > 1) + 1):
+        before = good[good < run[0]][-_BRIDGE_SIDE:]
+        after = good[good > run[-1]][:_BRIDGE_SIDE]
+        if before.size == 0 or after.size == 0:  # an end
+            near, degree = (after[:2] if before.size == 0 else before[-2:]), 1
+        else:
+            near, degree = np.concatenate([before, after]), 2
+        t0 = ts[run[0]]
+        out[run] = np.polyval(np.polyfit(ts[near] - t0, phi[near], degree), ts[run] - t0)
+    return out
 
 
 def _passes(dx: np.ndarray, want_max: bool) -> np.ndarray:

@@ -41,6 +41,7 @@ from ..data import Data
 from ..scene import Scene
 from . import channels as ch
 from .measurement import fitted_channels
+from .motion_start import motion_start
 from .optimise import Run, least_squares, minimise_optax
 from .plan import Plan, basis, make_plan, recoordinate, recoordinate_basis, shooting
 from .problem import Problem
@@ -193,6 +194,11 @@ def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
         runs += [(r, lab) for r, lab in _multistart(req, plan, ms, z0, 1, req.seed, label)]
         tried.append(label)
     if escalate and req.multistart == 1 and _stalled(_best(runs)[0], n, plan, req):
+        moved = _from_motion(req, plan)
+        if moved is not None:
+            runs.append(moved)
+            tried.append(moved[1])
+    if escalate and req.multistart == 1 and _stalled(_best(runs)[0], n, plan, req):
         budget = max(ESCALATION_ITERATIONS, sum(r.iterations for r, _ in runs))
 
         def enough(done):
@@ -224,6 +230,20 @@ def _optimise(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
         notes.append(f"none of the {len(runs)} starts converged; the result is the "
                      f"lowest-cost one ({label}, rms {_rms(best, n):.3g} {unit})")
     return best, sum(r.iterations for r, _ in runs), notes
+
+
+def _from_motion(req: FitRequest, plan: Plan) -> tuple[Run, str] | None:
+    """One optimisation from the start values the motion gives (`motion_start`), or None
+    when it gives none. The records' states and segment states stay as planned."""
+    ss, shoot = plan.single, plan.shoot
+    z = plan.z0[:ss.p] if shoot is ss else recoordinate(shoot, ss, plan.z0)
+    zs = motion_start(ss, z, req.records, req.angles, plan.periods)
+    if zs is None:
+        return None
+    zk = zs if shoot is ss else np.concatenate([recoordinate(ss, shoot, zs),
+                                                plan.z0[shoot.p:]])
+    label = "a start from the motion"
+    return _attempt(req, plan, shoot, plan.z0, zk, f"fit ({label})"), label
 
 
 def _stalled(run: Run, n: int, plan: Plan, req: FitRequest) -> bool:

@@ -1,0 +1,122 @@
+"""Start values from the motion: the equation of motion on the smoothed angle, solved for
+the free parameters that enter it linearly.
+
+On the angle the channels tell (`angle.py`), smoothed with its first two derivatives
+(`start.smooth_derivatives`), the equation of motion
+
+    M(phi) phi'' + K(phi) phi'^2 - q(phi, phi', t) - f(t, phi, phi') = 0
+
+is affine in every parameter that multiplies one of its terms: the masses and inertias,
+k, c, the friction coefficients, the loads' means, amplitudes and input gains, a user
+force's linear coefficients. Least squares over the record's samples then gives them all
+at once, from the motion itself, whatever the start values were: for a motor-driven crank,
+the gain, the damping and the Coulomb friction from the mean speeds at two voltages and
+the speed ripple that the known masses set (DESIGN.md section 3).
+
+This is the regressor start (`start.regressor_start`) written over the fit's own problem,
+so it serves every free name that enters linearly, found numerically: a name whose column
+changes between two steps is left at its start value. It is tried when the fit from the
+scene's values stalls (`fit._optimise`), before random restarts: a wrong branch of a
+slide-only record (the crank's half-turn ambiguity) starts far from where the motion
+puts it.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.dynamics import coriolis, generalized_force, mass
+from ..model.params import FIELDS, SliderCrank
+from .problem import Problem
+from .start import MAX_REGRESSOR_ROWS, half_window, smooth_derivatives
+from .userforce import PREFIX
+
+__all__ = ["motion_start", "LINEARITY_TOLERANCE"]
+
+#: A column that changes by more than this (relative) between a step of 1 and of 2 in
+#: the parameter is not linear: that parameter keeps its start value.
+LINEARITY_TOLERANCE = 1e-6
+
+
+@eqx.filter_jit
+def _eom(problem: Problem, z, rows):
+    """The equation-of-motion residual, N*m, at each record's rows `(phi, dphi, ddphi, t)`
+    (each a tuple of (m_i,) arrays) under the parameters of coordinates `z`."""
+    mech, per = problem.unpack(z)
+    out = []
+    for (load, torque, _, own), (p, dp, ddp, t) in zip(per, rows):
+        m = SliderCrank(**{**{f: getattr(mech, f) for f in FIELDS},
+                           **{n: v for n, v in own.items() if n in FIELDS}})
+        e = mass(m, p) * ddp + coriolis(m, p) * dp**2 - generalized_force(m, p, dp, t, load,
+                                                                          torque)
+        force = own.get(PREFIX)
+        if force is not None:
+            e = e - jax.vmap(force)(t, p, dp)
+        out.append(e)
+    return jnp.concatenate(out)
+
+
+def _rows(ts, angle, period):
+    half = half_window(ts, period)
+    n = ts.shape[0]
+    lo, hi = (half, n - half) if n > 2 * half + 2 else (0, n)
+    step = max(1, -(-(hi - lo) // MAX_REGRESSOR_ROWS))
+    at = np.arange(lo, hi, step)
+    p, dp, ddp = smooth_derivatives(ts, angle, half, at)
+    return tuple(jnp.asarray(x) for x in (p, dp, ddp, ts[at]))
+
+
+def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
+                 ) -> np.ndarray | None:
+    """Coordinates (p,) of `problem` with every free global parameter that enters the
+    equation of motion linearly solved from the motion (see the module); the others, and
+    the records' states, as in `z`.
+
+    **Arguments:** `problem`, a single-shooting [`Problem`][]; `z` (p,), its start
+    coordinates; `records`, the [`Data`][] records; `angles`, each record's crank angle as
+    its channels tell it, rad; `periods`, each record's cycle, s (sets the smoothing).
+
+    **Returns:** the new coordinates, or None when no free parameter enters linearly,
+    the least squares is rank-deficient, or a solved value lies outside its parameter's
+    domain (a negative damping, say): then the motion says nothing the scene's values do
+    not.
+    """
+    rows = tuple(_rows(np.asarray(d.ts, float), np.asarray(a, float), per)
+                 for d, a, per in zip(records, angles, periods))
+    z = np.asarray(z[:problem.p], dtype=float)
+    v0 = np.asarray(problem.values(jnp.asarray(z)), dtype=float)
+    base = np.asarray(_eom(problem, jnp.asarray(z), rows))
+    cols, idx = [], []
+    for i in range(problem.n_global):
+        h = max(abs(v0[i]), 1e-3 * max(np.abs(v0[:problem.n_global]).max(), 1e-12))
+
+        def at(step, i=i, h=h):
+            v = v0.copy()
+            v[i] += step * h
+            if problem.log[i] and v[i] <= 0:
+                return None
+            return np.asarray(_eom(problem, jnp.asarray(problem.to_z(v)), rows)) - base
+
+        one, two = at(1.0), at(2.0)
+        if one is None or two is None or not np.any(one):
+            continue
+        if np.linalg.norm(two - 2 * one) > LINEARITY_TOLERANCE * np.linalg.norm(two):
+            continue
+        cols.append(one / h)
+        idx.append(i)
+    if not idx or not np.all(np.isfinite(base)):
+        return None
+    Y = np.stack(cols, axis=1)
+    scale = np.linalg.norm(Y, axis=0)
+    sol, _, rank, _ = np.linalg.lstsq(Y / scale, -base, rcond=1e-10)
+    if rank < len(idx):
+        return None
+    v = v0.copy()
+    v[idx] += sol / scale
+    folded = problem.folded
+    if any(v[i] <= 0 if problem.log[i] else (folded[i] and v[i] < 0) for i in idx):
+        return None
+    return problem.to_z(v)
