@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax.solve import adjoint
+from crank_jax.solve import adjoint, steplog
 
 PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
 
@@ -103,15 +103,15 @@ def test_the_pending_steps_reach_their_ring_rows():
     # rows that get no step keep theirs: against the rows written one by one.
     S, P, N = 5, 3, 2
     rng = np.random.default_rng(0)
-    flush = jax.jit(adjoint._flush)
+    flush = jax.jit(steplog.flush)
     for count in range(0, 12):
         for n in range(P + 1):
             for upto in (count, count + 1, count + P, 100):
                 rows = rng.normal(size=(S + P, 3 + N))
                 cols = rng.normal(size=(P, 3 + N))
-                p = adjoint.Pending((*(jnp.asarray(cols[:, i]) for i in range(3)),
+                p = steplog.Pending((*(jnp.asarray(cols[:, i]) for i in range(3)),
                                      jnp.asarray(cols[:, 3:])), jnp.asarray(n, jnp.int32))
-                log = adjoint.Log(jnp.asarray(rows), jnp.asarray(count, jnp.int32),
+                log = steplog.Log(jnp.asarray(rows), jnp.asarray(count, jnp.int32),
                                   jnp.asarray(upto, jnp.int32))
                 out, empty = flush(log, p)
                 ref = rows.copy()

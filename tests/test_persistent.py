@@ -218,3 +218,43 @@ def test_user_load_class_edited_between_runs(tmp_path):
     assert edited["phi"] != first["phi"]
     again = run("jnp.cos(t)")  # unchanged: the user's class is stored, and loaded
     assert again["compiled"] == [] and again["phi"] == edited["phi"]
+
+
+# Issue 26: a fit on one of diffrax's explicit solvers. Its programs saved through
+# `SaveAt(ts)`, whose check of the save times is a host callback, so they were compiled in
+# every process; they now save inside the steps (solve/saves.py) and are stored. argv[1]:
+# the cache directory, or "-" for none (a plain compile, no store).
+DIFFRAX_FIT = PRELUDE.replace("cj.enable_compilation_cache(sys.argv[1])", """
+if sys.argv[1] != "-":
+    cj.enable_compilation_cache(sys.argv[1])""") + r"""
+import dataclasses
+scene = dataclasses.replace(cj.load_scene("lab-rig"), solver="dopri5")
+data = cj.synthesize(scene, t1=2.0, rate=100.0, noise_std=1e-3, seed=1)
+res = cj.fit(scene, data, free=("k", "c", "phi0", "dphi0"), init={"k": 2.4},
+             progress=False)
+print(json.dumps({"values": {n: float(v) for n, v in res.values.items()},
+                  "stderr": {n: float(v) for n, v in res.stderr.items()},
+                  "converged": bool(res.converged), "compiled": sorted(compiled)}))
+"""
+
+
+def test_fit_on_a_diffrax_solver_is_stored_and_loaded(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "CRANK_JAX_NO_CACHE"}
+
+    def run(cache: str) -> dict:
+        out = subprocess.run([sys.executable, "-c", DIFFRAX_FIT, cache], env=env,
+                             capture_output=True, text=True, timeout=600)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    cache = tmp_path / "cache"
+    first = run(str(cache))
+    assert first["converged"] and "jacobian" in first["compiled"]
+    assert list((cache / "crank-jax-programs").glob("jacobian-*.xla"))
+    second = run(str(cache))
+    assert "jacobian" not in second["compiled"], second["compiled"]
+    plain = run("-")
+    assert plain["compiled"] == []  # no store: nothing goes through `_compile`
+    # Loaded, stored-on-compile and plainly compiled programs: the same numbers.
+    assert second["values"] == first["values"] == plain["values"]
+    assert second["stderr"] == first["stderr"] == plain["stderr"]

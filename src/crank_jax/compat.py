@@ -10,8 +10,10 @@ they are now the result's single pytree leaf ([`result_code`][], [`result_from_c
 and comparisons use `==` on `diffrax.RESULTS` items. The process-wide switch of
 equinox's check mode (`equinox._errors.EQX_ON_ERROR`, set while the fit's programs were
 traced so that diffrax's `SaveAt(ts)` check held no host callback) is gone: the fit's
-solves go through `simulate`'s solve core, whose fused solvers hold no check, and a
-program that does hold one (diffrax's solvers) runs unstored (`persistent.py`).
+solves go through `simulate`'s solve core, whose fused solvers hold no check and whose
+diffrax solvers save inside their steps (`solve/saves.py`, public diffrax API), and a
+program that does hold one (an implicit diffrax solver's forward mode, diffrax's reverse
+mode) runs unstored (`persistent.py`).
 """
 
 from __future__ import annotations

@@ -2,9 +2,9 @@
 residuals-and-sensitivities program, and optax.
 
 LM's loop runs on the host (see [`least_squares`][] for why): the only compiled program
-it calls is `jacobian_at`, which on the fused solvers has no host callback, so JAX's
-persistent cache and the program store keep it between processes, and progress is shown
-after every iteration.
+it calls is `jacobian_at`, which on the fused solvers and diffrax's explicit ones has no
+host callback, so JAX's persistent cache and the program store keep it between processes,
+and progress is shown after every iteration.
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from ..solve.solvers import AbstractSolver
 from . import channels as ch
 from .angle import motion_period
 from .problem import Problem, build_problem, linear_frequency, pick_solver
@@ -52,7 +53,7 @@ class Plan:
     strategy: str
     start_g: dict  # start values of the global names
     states: list  # start state of each record
-    solver: str
+    solver: AbstractSolver  # the ODE solver of every solve (`pick_solver`'s)
     abort: str | None = None
 
 

@@ -24,8 +24,9 @@ failed solve, which the optimiser rejects, so no iterate the fit reports is inva
 
 Shapes are bucketed (each record is padded to one of a few lengths with samples of weight
 0), so records of other lengths reuse the compiled programs; and the ODE solve is
-`simulate`'s own core without its runtime checks, so with the fused solvers the programs
-hold no host callback and JAX's persistent cache can keep them between processes.
+`simulate`'s own core without its runtime checks, so with the fused solvers and diffrax's
+explicit ones the programs hold no host callback and JAX's persistent cache can keep them
+between processes.
 """
 
 from __future__ import annotations
@@ -241,7 +242,8 @@ class Problem(eqx.Module):
         Through `simulate`'s solve core ([`solve_crank`][]): the solver the one policy
         chose (`pick_solver`), its derivative rules (forward mode of `"dopri8-adaptive"`
         steps the variational equation), the step clipping at load kinks. It holds no
-        runtime check, so the fused solvers' programs hold no host callback. A trial point
+        runtime check, so the fused solvers' programs hold no host callback, nor do diffrax's
+        explicit solvers' in forward mode (`solve/saves.py`). A trial point
         outside the valid set fails its solve, which the residuals turn into a
         rejection."""
 

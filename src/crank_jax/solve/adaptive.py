@@ -159,7 +159,7 @@ class _Step(NamedTuple):
 
 class Recorder(NamedTuple):
     """What `solve_adaptive`'s `record` does with the step attempts (the discrete
-    adjoint's log, adjoint.py), in two parts: the step loop writes each attempt to a small
+    adjoint's log, steplog.py), in two parts: the step loop writes each attempt to a small
     `pending` buffer, and the loop around it (once per chunk of save times) moves what is
     pending to the full `log`. Why two parts: under XLA's defaults the runtime runs a loop
     body's kernels one after the other in the calling thread only while every buffer they

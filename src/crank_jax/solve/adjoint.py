@@ -1,10 +1,10 @@
 """Reverse mode of `"dopri8-adaptive"`: a discrete adjoint of its steps.
 
 The forward pass ([`forward`][]) is the solve itself ([`solve_adaptive`][]) with a log of
-its accepted steps: each step's start `t`, end `t1`, size `h` and packed state `y` at `t`,
-one row each. The backward pass ([`backward`][]) takes the steps in reverse, carrying the
-state's cotangent from step to step and summing the field's parameter cotangents, by one
-of two programs (see `_hoisted`):
+its accepted steps (steplog.py): each step's start `t`, end `t1`, size `h` and packed
+state `y` at `t`, one row each. The backward pass ([`backward`][]) takes the steps in
+reverse, carrying the state's cotangent from step to step and summing the field's
+parameter cotangents, by one of two programs (see `_hoisted`):
 
 - **with the CPU flags** (XLA hoists the loop into one function): one step after another,
   each the VJP of the step `(y, theta) -> (y1, dense output at the save times the step
@@ -44,8 +44,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..xla_flags import SMALL_LOOP_BYTES, small_loop_bytes
-from .adaptive import WINDOW, Recorder, dopri8_dense, solve_adaptive
+from .adaptive import WINDOW, dopri8_dense, solve_adaptive
 from .erk import dopri8, packer
+from .steplog import PENDING, Log, recorder
 
 __all__ = ["forward", "backward", "LOG_ROWS"]
 
@@ -54,74 +55,8 @@ __all__ = ["forward", "backward", "LOG_ROWS"]
 LOG_ROWS = 4096
 
 
-class Log(NamedTuple):
-    """The forward pass's record of its accepted steps.
-
-    - `rows` (S + P, 3 + N): `(t, t1, h, y...)` of accepted step `i` in row `i % S`, `y`
-      the packed state (N,) at `t` (s); P = `PENDING` rows of slack (see `_flush`);
-    - `count`: accepted steps so far (int scalar);
-    - `upto`: steps from this index on are not written (a rerun that logs one segment)."""
-
-    rows: jax.Array
-    count: jax.Array
-    upto: jax.Array
-
-
 def _rows(max_steps: int) -> int:
     return max(1, min(int(max_steps), LOG_ROWS))
-
-
-#: Steps the step loop holds before the loop around it moves them to the log (each column
-#: <= 512 bytes: see adaptive.py's `Recorder`).
-PENDING = 32
-
-
-class Pending(NamedTuple):
-    """The step loop's buffer of accepted steps not yet in the [`Log`][]: `cols`, the
-    columns `(t, t1, h)` (P,) and `y` (P, N), apart so that each is one small buffer (see
-    `PENDING`), accepted step `i` in row `i`; `n`, the rows held (int scalar)."""
-
-    cols: tuple
-    n: jax.Array
-
-
-def _write(p: Pending, rec) -> Pending:
-    """Hold a step attempt `rec` (adaptive.py's record of one member) in row `n`; a rejected
-    one is overwritten by the next attempt (`n` moves on when one is accepted)."""
-    new = (rec.t[0], rec.t1[0], rec.h[0], rec.y)
-    cols = tuple(jax.lax.dynamic_update_slice_in_dim(c, x[None].astype(c.dtype), p.n, 0)
-                 for c, x in zip(p.cols, new))
-    return Pending(cols, p.n + rec.ok[0].astype(p.n.dtype))
-
-
-def _room(p: Pending, k: int):
-    return p.n + k <= p.cols[0].shape[0]
-
-
-def _flush(log: Log, p: Pending):
-    """The log with the pending steps in ring rows `count % S`, ... (none from `upto` on),
-    and an empty buffer: two in-place writes, of the steps before the ring's end and of
-    those that wrap to row 0 (S >= P, or fewer than S steps in all: they wrap at most
-    once); with the CPU flags a scatter kept XLA from hoisting the loop around it."""
-    P = p.cols[0].shape[0]
-    S = log.rows.shape[0] - P
-    block = jnp.column_stack(p.cols).astype(log.rows.dtype)
-    k = jnp.arange(P, dtype=log.count.dtype)
-
-    def put(rows, blk, first, at):
-        # `blk[j]` is step count + first + j, for row `at + j`; rows with no step keep theirs.
-        i = k + first
-        keep = (i < p.n) & (log.count + i < log.upto) & (at + k < S)
-        blk = jnp.where(keep[:, None], blk, jax.lax.dynamic_slice_in_dim(rows, at, P))
-        return jax.lax.dynamic_update_slice_in_dim(rows, blk, at, 0)
-
-    pos = log.count % S
-    rows = put(log.rows, block, 0, pos)
-    shift = S - pos  # the step that lands in row 0, if any (>= P: none, and none kept)
-    padded = jnp.concatenate([block, jnp.zeros_like(block)])
-    rows = put(rows, jax.lax.dynamic_slice_in_dim(padded, jnp.minimum(shift, P), P),
-               shift, jnp.zeros_like(pos))
-    return Log(rows, log.count + p.n, log.upto), p._replace(n=jnp.zeros_like(p.n))
 
 
 def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=None):
@@ -132,14 +67,10 @@ def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=
 
     **Returns:** `(ys, result, num_steps, log)`, a [`Log`][] fourth."""
     n_state = packer(y0)[0](y0).shape[-1]
-    S = _rows(max_steps)
     upto = jnp.asarray(max_steps + 1 if upto is None else upto, jnp.int32)
-    log0 = Log(jnp.zeros((S + PENDING, 3 + n_state), ts.dtype), jnp.zeros((), jnp.int32),
-               upto)
-    col = jnp.zeros((PENDING,), ts.dtype)
-    p0 = Pending((col, col, col, jnp.zeros((PENDING, n_state), ts.dtype)), log0.count)
+    record = recorder(_rows(max_steps), n_state, ts.dtype, upto)
     return solve_adaptive(field, y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
-                          record=Recorder(log0, p0, _write, _room, _flush))
+                          record=record)
 
 
 def _step_outputs(field, pack, unpack, row, tw, n_state):

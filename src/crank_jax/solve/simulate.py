@@ -139,7 +139,7 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
         crank, solver, ts, (y0[0], y0[1]), rtol=rtol, atol=atol, max_steps=max_steps,
         adjoint=adjoint, throw=throw, prepare=CrankField.packed,
         rate=lambda: jax.lax.stop_gradient(_rate(crank)),  # a first guess (uniform.py)
-        step_ts=step_ts, jump_ts=jump_ts)
+        step_ts=step_ts, jump_ts=jump_ts, checks=mode == "checked")
     if not throw:
         # A failed solve leaves inf after the failure time. No NaN or inf leaves simulate:
         # those samples hold the last state reached, and `result` says the solve failed.
@@ -169,8 +169,11 @@ def solve_crank(mech, load, torque, force, y0, ts, rtol, atol, *, solver: Abstra
 
     **Returns:** a [`Trajectory`][] without extras. Its program holds no host callback
     for the fused solvers (`"dopri8-adaptive"`, `"dopri8-uniform"`) in forward mode, so
-    JAX's persistent cache and the program store keep it; diffrax's solvers check their
-    save times with `eqx.error_if`, a host callback, and such programs run unstored.
+    JAX's persistent cache and the program store keep it. So do diffrax's explicit
+    solvers' programs in forward mode, which save at `ts` without diffrax's `SaveAt(ts)`
+    check (`saves.py`); in reverse mode they hold that check, and an implicit solver's
+    forward mode holds lineax's check in optimistix's implicit JVP: such programs run
+    unstored (experiments/diffrax_callbacks.py).
     """
     return _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, solver=solver,
                        max_steps=max_steps, adjoint=adjoint, structure=structure,

@@ -20,6 +20,7 @@ a branch in a core.
 from __future__ import annotations
 
 import abc
+import dataclasses
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple
 
@@ -95,6 +96,12 @@ class AbstractSolver(eqx.Module):
             throw: bool, prepare: Callable, rate, step_ts, jump_ts) -> Solution:
         """Step `field` from `y0` at `ts[0]` over `ts`: [`solve`][]'s arguments, with
         `prepare` a function (identity by default)."""
+
+    def unchecked(self) -> AbstractSolver:
+        """This solver with no runtime check of its inputs in its program, for a caller
+        that has checked them ([`solve`][]`(checks=False)`). The solvers that hold none
+        return themselves (the default)."""
+        return self
 
 
 class AdaptiveDopri8(AbstractSolver):
@@ -178,9 +185,20 @@ class Diffrax(AbstractSolver):
     after its jumps (`jump_ts`), `SaveAt(ts=ts)`, and diffrax's adjoints
     (`RecursiveCheckpointAdjoint`, `ForwardMode`, `DirectAdjoint`).
 
-    **Fields:** `solver`, a diffrax solver instance, e.g. `diffrax.Kvaerno5()`."""
+    With `checks=False` (`unchecked`, as [`solve`][]`(checks=False)` makes it), an
+    explicit solver in forward mode saves at `ts` inside its steps instead (`saves.py`):
+    the same numbers, and no `SaveAt(ts)` check of the save times, a host callback that
+    kept the fit's programs out of the program store.
+
+    **Fields:** `solver`, a diffrax solver instance, e.g. `diffrax.Kvaerno5()`; `checks`:
+    whether diffrax checks the save times in the program (static)."""
 
     solver: Any = eqx.field(static=True)
+    checks: bool = eqx.field(static=True, default=True)
+
+    def unchecked(self) -> Diffrax:
+        """This solver with `checks=False`: the caller has checked the save times."""
+        return dataclasses.replace(self, checks=False)
 
     @property
     def implicit(self) -> bool:  # type: ignore[override]
@@ -203,19 +221,31 @@ class Diffrax(AbstractSolver):
             # a jump in the field itself diffrax steps to just before it and restarts.
             controller = diffrax.ClipStepSizeController(controller, step_ts=step_ts,
                                                         jump_ts=jump_ts)
+        own_saves = not self.checks and adjoint == "forward" and not self.implicit
+        if own_saves:  # no `SaveAt(ts)` check in the program (see saves.py)
+            from .saves import saved, saving
+
+            solver, read = saving(self.solver, ts), saved
+            saveat = diffrax.SaveAt(t1=True, solver_state=True)
+        else:
+            solver, saveat, read = self.solver, diffrax.SaveAt(ts=ts), _saved_at_ts
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(flat_field), self.solver, t0=ts[0], t1=ts[-1], dt0=None,
-            y0=flat0, args=(prepare(field), args), saveat=diffrax.SaveAt(ts=ts),
+            diffrax.ODETerm(flat_field), solver, t0=ts[0], t1=ts[-1], dt0=None,
+            y0=flat0, args=(prepare(field), args), saveat=saveat,
             stepsize_controller=controller, max_steps=max_steps, adjoint=adj, throw=throw)
         steps = sol.stats["num_steps"] + sol.stats.get("num_rejected_steps", 0)
-        return Solution(to_tree(sol.ys), sol.result, steps)
+        return Solution(to_tree(read(sol)), sol.result, steps)
+
+
+def _saved_at_ts(sol):
+    return sol.ys
 
 
 def solve(field: Callable, solver: AbstractSolver, ts: ArrayLike, y0, args=None, *,
           rtol: ArrayLike = 1e-8, atol: ArrayLike = 1e-10, max_steps: int = 200_000,
           adjoint: str = "reverse", throw: bool = True, prepare: Callable | None = None,
           rate: ArrayLike | Callable | None = None, step_ts: ArrayLike | None = None,
-          jump_ts: ArrayLike | None = None) -> Solution:
+          jump_ts: ArrayLike | None = None, checks: bool = True) -> Solution:
     """Integrate `dy/dt = field(t, y, args)` from `y0` at `ts[0]`, saving at `ts`.
 
     **Arguments:**
@@ -243,6 +273,9 @@ def solve(field: Callable, solver: AbstractSolver, ts: ArrayLike, y0, args=None,
       one (called only by solvers that use it): the first guess of `"dopri8-uniform"`.
     - `step_ts`, `jump_ts`: (k,) times where the field has a kink or a jump, which
       diffrax's solvers step to exactly (the fused solvers do not).
+    - `checks`: `False` when the caller has checked `ts` (strictly increasing): the
+      program then holds no runtime check of them (a host callback, which JAX's
+      persistent cache and the program store refuse), see `AbstractSolver.unchecked`.
 
     **Returns:** a [`Solution`][] `(ys, result, num_steps)`.
 
@@ -254,6 +287,8 @@ def solve(field: Callable, solver: AbstractSolver, ts: ArrayLike, y0, args=None,
     if not isinstance(solver, AbstractSolver):
         raise TypeError(f"solver must be a crank_jax solver object (see "
                         f"crank_jax.solver_named), got {solver!r}")
+    if not checks:
+        solver = solver.unchecked()
     return solver.run(field, ts, y0, args, rtol=rtol, atol=atol, max_steps=int(max_steps),
                       adjoint=adjoint, throw=throw,
                       prepare=_same if prepare is None else prepare, rate=rate,
