@@ -26,7 +26,9 @@ Run:
   voltage (a few minutes on a laptop's CPU, most of it compiling).
 - `python experiments/rotating_rig.py --coverage N --out results.json` (slow) repeats the
   fit over N noise seeds for each channel configuration (angle only, slide only, both)
-  and writes how often each 95% interval holds the truth.
+  and writes how often each 95% interval holds the truth. `--configs angle` picks
+  configurations, `--first-seed K` starts at seed K, and `--plain` synthesises records
+  without jitter or quantisation (a control: Gaussian noise only).
 """
 
 from __future__ import annotations
@@ -75,17 +77,19 @@ def rig(volts: float | None, sensors, gain: float = TRUTH["tau_gain"], **mech) -
                     sensors=tuple(sensors), name="rotating-rig")
 
 
-def record(volts: float, sensors, seed: int) -> cj.Data:
-    """One synthetic record: the motor started 0.5 s earlier (its start-up not logged)."""
+def record(volts: float, sensors, seed: int, plain: bool = False) -> cj.Data:
+    """One synthetic record: the motor started 0.5 s earlier (its start-up not logged).
+    `plain`: Gaussian noise only (no loop jitter, no encoder quantisation), a control."""
     noise = {s.name: NOISE[s.name] for s in sensors}
-    return cj.synthesize(rig(volts, sensors), t_start=0.5, rate=RATE, jitter_std=JITTER,
-                         quantization=4096, noise_std=noise, seed=seed, sensors=sensors,
-                         timestamps="actual")
+    return cj.synthesize(rig(volts, sensors), t_start=0.5, rate=RATE,
+                         jitter_std=0.0 if plain else JITTER,
+                         quantization=None if plain else 4096, noise_std=noise, seed=seed,
+                         sensors=sensors, timestamps="actual")
 
 
-def fit_config(sensors, seed: int, progress: bool = False):
+def fit_config(sensors, seed: int, progress: bool = False, plain: bool = False):
     """Fit the two records at `VOLTS_FIT` from the generic start. **Returns:** the fit."""
-    recs = [record(v, sensors, seed * 10 + i) for i, v in enumerate(VOLTS_FIT)]
+    recs = [record(v, sensors, seed * 10 + i, plain) for i, v in enumerate(VOLTS_FIT)]
     start = rig(None, sensors, gain=START["tau_gain"], c=START["c"], T_c=START["T_c"])
     return cj.fit(start, recs, free=FREE, progress=progress, warn=False)
 
@@ -113,14 +117,16 @@ def demo() -> None:
     print(val.summary())
 
 
-def coverage(n_seeds: int, out: str) -> None:
-    """Fit `n_seeds` seeds per configuration, seed by seed across the configurations; the
-    results file is rewritten after every fit, so a run cut short keeps what it did."""
-    rows = {name: [] for name in CONFIGS}
-    for seed in range(n_seeds):
-        for name, sensors in CONFIGS.items():
+def coverage(n_seeds: int, out: str, configs=tuple(CONFIGS), first_seed: int = 0,
+             plain: bool = False) -> None:
+    """Fit `n_seeds` seeds (from `first_seed`) per configuration, seed by seed across the
+    configurations; the results file is rewritten after every fit, so a run cut short
+    keeps what it did. `plain`: records without jitter or quantisation (a control)."""
+    rows = {name: [] for name in configs}
+    for seed in range(first_seed, first_seed + n_seeds):
+        for name in configs:
             t = time.perf_counter()
-            res = fit_config(sensors, seed=1000 + seed)
+            res = fit_config(CONFIGS[name], seed=1000 + seed, plain=plain)
             rows[name].append({"seed": seed, "converged": res.converged,
                                "message": res.message, "iterations": res.iterations,
                                "seconds": time.perf_counter() - t,
@@ -130,7 +136,8 @@ def coverage(n_seeds: int, out: str) -> None:
             summary = _summary(rows)
             with atomic_write(out) as f:
                 json.dump({"truth": TRUTH, "start": START, "seeds": n_seeds,
-                           "summary": summary, "fits": rows}, f, indent=2)
+                           "first_seed": first_seed, "plain": plain, "summary": summary,
+                           "fits": rows}, f, indent=1)
                 f.write("\n")
     print(json.dumps(summary, indent=2))
 
@@ -160,11 +167,21 @@ def main() -> None:
                    help="repeat over N seeds per channel configuration (slow)")
     p.add_argument("--out", default="experiments/results/rotating_rig_coverage.json",
                    help="results file of --coverage")
+    p.add_argument("--configs", default=",".join(CONFIGS),
+                   help="channel configurations of --coverage, comma-separated")
+    p.add_argument("--first-seed", type=int, default=0, help="first seed of --coverage")
+    p.add_argument("--plain", action="store_true",
+                   help="--coverage on records without jitter or quantisation (a control)")
     a = p.parse_args()
     if a.coverage:
         if not (a.coverage > 0 and math.isfinite(a.coverage)):
             raise SystemExit("--coverage must be a positive number of seeds")
-        coverage(a.coverage, a.out)
+        configs = tuple(c for c in a.configs.split(",") if c)
+        if not configs or any(c not in CONFIGS for c in configs):
+            raise SystemExit(f"--configs takes names from {', '.join(CONFIGS)}")
+        if a.first_seed < 0:
+            raise SystemExit("--first-seed must be >= 0")
+        coverage(a.coverage, a.out, configs, a.first_seed, a.plain)
     else:
         demo()
 
