@@ -237,7 +237,12 @@ def _from_motion(req: FitRequest, plan: Plan) -> tuple[Run, str] | None:
     when it gives none. The records' states and segment states stay as planned."""
     ss, shoot = plan.single, plan.shoot
     z = plan.z0[:ss.p] if shoot is ss else recoordinate(shoot, ss, plan.z0)
-    zs = motion_start(ss, z, req.records, req.angles, plan.periods)
+    try:
+        zs = motion_start(ss, z, req.records, req.angles, plan.periods)
+    except (ValueError, RuntimeError, FloatingPointError, np.linalg.LinAlgError):
+        # A start the motion cannot give (a user force that fails off its record's path,
+        # say) is no start: the random restarts follow, as before.
+        zs = None
     if zs is None:
         return None
     zk = zs if shoot is ss else np.concatenate([recoordinate(ss, shoot, zs),
