@@ -60,7 +60,8 @@ def angle_estimate(data: Data, mech: SliderCrank, direction: float = 1.0,
 
 def _arcs(mech: SliderCrank):
     """The two half-turns between the slider's ends: (x ascending, phi) for the half-turn
-    on which x falls as phi grows (a), and for the one on which it rises (b)."""
+    on which x falls as phi grows (a), and for the one on which it rises (b); the ends'
+    positions and the top's angle; and x at `_GRID` angles over a turn."""
     grid = np.linspace(0.0, 2 * math.pi, _GRID, endpoint=False)
     xg = np.asarray(geometry(mech, grid).x_s, dtype=float)
     top, bot = grid[np.argmax(xg)], grid[np.argmin(xg)]
@@ -68,7 +69,7 @@ def _arcs(mech: SliderCrank):
     up = np.linspace(0.0, (top - bot) % (2 * math.pi), _GRID) + bot
     xa = np.asarray(geometry(mech, down).x_s, dtype=float)
     xb = np.asarray(geometry(mech, up).x_s, dtype=float)
-    return (xa[::-1], down[::-1]), (xb, up), float(xg.min()), float(xg.max()), top
+    return (xa[::-1], down[::-1]), (xb, up), float(xg.min()), float(xg.max()), top, xg
 
 
 def _smooth(x: np.ndarray, k: int) -> np.ndarray:
@@ -83,7 +84,7 @@ def slide_angle(mech: SliderCrank, ts: np.ndarray, x: np.ndarray, direction: flo
     """The crank angle (n,), rad, whose slider position is `x` (n,), m (see the module);
     `noise`, the positions' noise level, m (default: estimated from `x`), sets where a
     turning crank's angle is bridged across a dead centre."""
-    (xa, pa), (xb, pb), lo, hi, top = _arcs(mech)
+    (xa, pa), (xb, pb), lo, hi, top, xg = _arcs(mech)
     xc = np.clip(x, lo, hi)
     phi_a, phi_b = np.interp(xc, *(xa, pa)), np.interp(xc, *(xb, pb))
     xs = _smooth(x, max(1, x.shape[0] // 200))
@@ -93,7 +94,7 @@ def slide_angle(mech: SliderCrank, ts: np.ndarray, x: np.ndarray, direction: flo
         # x falls on half-turn a while phi grows: turning forwards, falling x means a.
         phi = np.where(dx * np.sign(direction or 1.0) < 0, phi_a, phi_b)
         noise = noise_level(ts, x) if noise is None else noise
-        phi = _bridge(ts, np.unwrap(phi), _steep(mech, phi, noise))
+        phi = _bridge(ts, np.unwrap(phi), _steep(xg, phi, noise))
         return phi + 2 * math.pi * round((phi_start - phi[0]) / (2 * math.pi))
     # A swing about one end of the stroke: the side flips each time x passes that end.
     near_top = abs(float(np.median(x)) - hi) < abs(float(np.median(x)) - lo)
@@ -115,11 +116,12 @@ def slide_angle(mech: SliderCrank, ts: np.ndarray, x: np.ndarray, direction: flo
 ANGLE_ERROR = 5e-3
 
 
-def _steep(mech: SliderCrank, phi: np.ndarray, noise: float) -> np.ndarray:
+def _steep(xg: np.ndarray, phi: np.ndarray, noise: float) -> np.ndarray:
     """Whether each angle (n,) lies where the slider moves fast enough with the crank for
-    a position of noise level `noise` (m) to tell it within [`ANGLE_ERROR`][]."""
+    a position of noise level `noise` (m) to tell it within [`ANGLE_ERROR`][]; `xg`, the
+    slider position at `_GRID` angles over a turn (`_arcs`)."""
     grid = np.linspace(0.0, 2 * math.pi, _GRID, endpoint=False)
-    slope = np.gradient(np.asarray(geometry(mech, grid).x_s, dtype=float), grid)
+    slope = np.gradient(xg, grid)
     at = np.interp(np.mod(phi, 2 * math.pi), grid, np.abs(slope), period=2 * math.pi)
     return at * ANGLE_ERROR > noise
 

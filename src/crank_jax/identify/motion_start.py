@@ -29,9 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.dynamics import coriolis, generalized_force, mass
-from ..model.params import FIELDS, SliderCrank
 from .problem import Problem
-from .start import MAX_REGRESSOR_ROWS, half_window, smooth_derivatives
+from .request import record_mech
+from .start import regressor_samples
 from .userforce import PREFIX
 
 __all__ = ["motion_start", "LINEARITY_TOLERANCE"]
@@ -48,8 +48,7 @@ def _eom(problem: Problem, z, rows):
     mech, per = problem.unpack(z)
     out = []
     for (load, torque, _, own), (p, dp, ddp, t) in zip(per, rows):
-        m = SliderCrank(**{**{f: getattr(mech, f) for f in FIELDS},
-                           **{n: v for n, v in own.items() if n in FIELDS}})
+        m = record_mech(mech, own)
         e = mass(m, p) * ddp + coriolis(m, p) * dp**2 - generalized_force(m, p, dp, t, load,
                                                                           torque)
         force = own.get(PREFIX)
@@ -57,16 +56,6 @@ def _eom(problem: Problem, z, rows):
             e = e - jax.vmap(force)(t, p, dp)
         out.append(e)
     return jnp.concatenate(out)
-
-
-def _rows(ts, angle, period):
-    half = half_window(ts, period)
-    n = ts.shape[0]
-    lo, hi = (half, n - half) if n > 2 * half + 2 else (0, n)
-    step = max(1, -(-(hi - lo) // MAX_REGRESSOR_ROWS))
-    at = np.arange(lo, hi, step)
-    p, dp, ddp = smooth_derivatives(ts, angle, half, at)
-    return tuple(jnp.asarray(x) for x in (p, dp, ddp, ts[at]))
 
 
 def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
@@ -84,7 +73,7 @@ def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
     domain (a negative damping, say): then the motion says nothing the scene's values do
     not.
     """
-    rows = tuple(_rows(np.asarray(d.ts, float), np.asarray(a, float), per)
+    rows = tuple(regressor_samples(d.ts, np.asarray(a, float), per)
                  for d, a, per in zip(records, angles, periods))
     z = np.asarray(z[:problem.p], dtype=float)
     v0 = np.asarray(problem.values(jnp.asarray(z)), dtype=float)

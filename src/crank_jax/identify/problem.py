@@ -50,7 +50,7 @@ from ..solve.policy import resolve_solver
 from ..solve.simulate import solve_crank
 from ..solve.solvers import AbstractSolver
 from .measurement import calibration, channel_errors, fitted_channels
-from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
+from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS, record_mech
 from .segments import Experiment, make_segments, padded_load
 from .userforce import PREFIX, with_force_values
 
@@ -287,8 +287,7 @@ class Problem(eqx.Module):
         # A point outside the mechanism's valid set (a coupler shorter than the crank, a
         # centre of mass beyond the coupler) is a failed solve: rejected, never reported.
         for e, (load, torque, y0s, own) in zip(self.exps, per):
-            mech_e = SliderCrank(**{**{f: getattr(mech, f) for f in FIELDS},
-                                    **{n: v for n, v in own.items() if n in FIELDS}})
+            mech_e = record_mech(mech, own)
             offsets_e = {OFFSET_NAMES[n]: v for n, v in own.items() if n in OFFSET_NAMES}
             invalid = _invalid(mech_e)
             force = own.pop(PREFIX)

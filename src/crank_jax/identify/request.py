@@ -16,7 +16,7 @@ import numpy as np
 
 from ..data import Data
 from ..model.loads import LOAD_PARAMS, AbstractLoad, get_param, load_kind
-from ..model.params import FIELDS
+from ..model.params import FIELDS, SliderCrank
 from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
 from ..model.sampled import bind_input
 from ..scene import Scene
@@ -26,7 +26,7 @@ from .userforce import force_names, force_starts
 
 __all__ = ["FitRequest", "normalise", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
            "SIGNED_FIELDS", "FRICTION_SCALED", "MAX_ITERATIONS", "SIGMA_RANGE", "free_names",
-           "load_param", "reported_names", "window_data"]
+           "load_param", "reported_names", "window_data", "record_mech"]
 
 STATE_NAMES = ("phi0", "dphi0")
 #: Load parameters that can be free, name -> (side, role), from the one load table
@@ -117,6 +117,13 @@ class FitRequest:
     per_record: tuple = ()
     #: A user's force term (`fit(force=...)`), its free fields named `force.<field>`.
     force: object = None
+
+
+def record_mech(mech: SliderCrank, own: dict) -> SliderCrank:
+    """The shared mechanism `mech` with a record's own values (`own`, name -> value, from
+    `Problem.unpack`) of its per-record mechanism fields (`per_record`)."""
+    return SliderCrank(**{**{f: getattr(mech, f) for f in FIELDS},
+                          **{n: v for n, v in own.items() if n in FIELDS}})
 
 
 def window_data(d: Data, window: tuple[float, float] | None) -> Data:

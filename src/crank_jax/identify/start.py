@@ -20,8 +20,8 @@ from ..model.loads import AbstractLoad
 from ..model.params import SliderCrank
 from .request import SCALE_GROUP
 
-__all__ = ["smooth_derivatives", "half_window", "regressor_start", "observed_period",
-           "noise_level", "MAX_WINDOW", "MAX_REGRESSOR_ROWS"]
+__all__ = ["smooth_derivatives", "half_window", "regressor_start", "regressor_samples",
+           "observed_period", "noise_level", "MAX_WINDOW", "MAX_REGRESSOR_ROWS"]
 
 #: At most this many samples enter one local fit: a wider window is thinned evenly
 #: (enough to average the noise out of a start value, and bounded work per sample).
@@ -173,14 +173,23 @@ def _regressor(mech, phi, dphi, ddphi, ts, load, torque):
     return jax.vmap(row)(phi, dphi, ddphi, ts)
 
 
-def _rows(data: Data, load, torque, mech, period):
-    half = half_window(data.ts, period)
-    lo, hi = (half, data.n - half) if data.n > 2 * half + 2 else (0, data.n)
+def regressor_samples(ts: np.ndarray, phi: np.ndarray, period: float | None):
+    """The samples a regressor uses: `(phi, dphi, ddphi, t)`, each (m,) as jax arrays,
+    smoothed (`smooth_derivatives`, window from `period`, s) at the record's samples
+    away from its ends (where the window would be one-sided), thinned evenly to at most
+    [`MAX_REGRESSOR_ROWS`][]."""
+    ts = np.asarray(ts, dtype=float)
+    n = ts.shape[0]
+    half = half_window(ts, period)
+    lo, hi = (half, n - half) if n > 2 * half + 2 else (0, n)
     step = max(1, -(-(hi - lo) // MAX_REGRESSOR_ROWS))
     at = np.arange(lo, hi, step)
-    phi, dphi, ddphi = smooth_derivatives(data.ts, data.phi, half, at)
-    Y, e0 = _regressor(mech, jnp.asarray(phi), jnp.asarray(dphi), jnp.asarray(ddphi),
-                       jnp.asarray(data.ts[at]), load, torque)
+    p, dp, ddp = smooth_derivatives(ts, phi, half, at)
+    return tuple(jnp.asarray(x) for x in (p, dp, ddp, ts[at]))
+
+
+def _rows(data: Data, load, torque, mech, period):
+    Y, e0 = _regressor(mech, *regressor_samples(data.ts, data.phi, period), load, torque)
     return np.asarray(Y), np.asarray(e0)
 
 
