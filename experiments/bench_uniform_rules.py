@@ -22,8 +22,7 @@ from __future__ import annotations
 import sys
 import time
 
-import numpy as np
-from _bench import setup_jax
+from _bench import median_time, setup_jax
 
 jax = setup_jax()
 import jax.numpy as jnp  # noqa: E402
@@ -51,12 +50,8 @@ def main(which):
         t0 = time.perf_counter()
         jax.block_until_ready(f(theta0))
         comp = time.perf_counter() - t0
-        runs = []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            jax.block_until_ready(f(theta0))
-            runs.append(time.perf_counter() - t0)
-        return comp, float(np.median(runs))
+        return comp, median_time(lambda: jax.block_until_ready(f(theta0)), reps, warmup=0,
+                                 budget_s=float("inf"))
 
     _, base = timed(jax.jit(lambda th: phi(th, "dopri8-uniform", "forward")), 15)
     print(f"forward solve (dopri8-uniform) {base * 1e3:.1f} ms", flush=True)

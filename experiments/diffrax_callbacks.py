@@ -60,7 +60,7 @@ import resource
 import time
 
 import numpy as np
-from _bench import save, setup_jax
+from _bench import median_time, save, setup_jax
 
 jax = setup_jax()
 import diffrax  # noqa: E402
@@ -134,14 +134,11 @@ def _measure(prob, z, repeats: int) -> dict:
         t = time.perf_counter()
         values = [np.asarray(x) for x in jax.block_until_ready(f(z))]
         first = time.perf_counter() - t
-        times = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            jax.block_until_ready(f(z))
-            times.append(time.perf_counter() - t)
+        median = median_time(lambda f=f: jax.block_until_ready(f(z)), repeats, warmup=0,
+                             budget_s=float("inf"))
         text = f.lower(z).as_text()
         out[program.name] = {"callbacks": _callbacks(text), "first_s": first,
-                             "median_ms": 1e3 * float(np.median(times)), "values": values}
+                             "median_ms": 1e3 * median, "values": values}
     return out
 
 
