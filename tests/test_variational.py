@@ -188,3 +188,30 @@ def test_new_values_do_not_retrace_the_jacobian(smooth):
 
     jac(smooth, jnp.array([2.0, 2e-3]), jnp.array([1.0, 0.3]))
     jac(smooth.replace(m_p=0.6), jnp.array([2.5, 3e-3]), jnp.array([0.8, 0.0]))
+
+
+def test_rolled_stages_equal_the_unrolled_ones_and_trace_the_field_once():
+    """`FusedERK(rolled=True)` (the variational solve's stages, in a loop): the same stage
+    derivatives as the unrolled stages, to rounding, with the field traced once, not once
+    per stage."""
+    from crank_jax.solve.erk import dopri8
+
+    traced = []
+
+    def f(t, y, args):
+        traced.append(1)
+        return {"a": y["b"] * jnp.cos(t), "b": -jnp.sin(y["a"]) - 0.1 * y["b"] ** 3}
+
+    y = {"a": jnp.array([0.3, -1.2]), "b": jnp.array([2.0, 0.5])}
+    t, h = jnp.array(0.4), jnp.array(0.05)
+    plain = dopri8().stages(f, t, y, None, h)
+    n_plain = len(traced)
+    traced.clear()
+    rolled = dopri8(rolled=True).stages(f, t, y, None, h)
+    assert len(rolled) == len(plain) == dopri8().num_stages
+    assert n_plain == dopri8().num_stages and len(traced) == 2  # the first stage, the loop
+    for kp, kr in zip(plain, rolled):
+        for leaf in ("a", "b"):
+            np.testing.assert_allclose(kr[leaf], kp[leaf], rtol=1e-14, atol=1e-15)
+    y1p, y1r = dopri8().solution(y, h, plain), dopri8().solution(y, h, rolled)
+    np.testing.assert_allclose(y1r["a"], y1p["a"], rtol=1e-15)

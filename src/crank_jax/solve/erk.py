@@ -65,6 +65,11 @@ class FusedERK(eqx.Module):
 
     tableau: diffrax.ButcherTableau = eqx.field(static=True)
     order: int = eqx.field(static=True)
+    rolled: bool = eqx.field(static=True, default=False)
+    """Evaluate the stages in a loop (`lax.fori_loop`) instead of unrolled: the field is
+    traced once, not once per stage. For a costly field to trace (the variational
+    equation's, variational.py: a reverse pass per component per stage), where the
+    unrolled step dominated the fit's compilation (see `stages`)."""
 
     def __check_init__(self):
         if self.tableau.implicit:
@@ -88,10 +93,47 @@ class FusedERK(eqx.Module):
         tab = self.tableau
         c = [0.0] + [float(x) for x in tab.c]
         ks = [f(t, y, args) if k0 is None else k0]
+        if self.rolled:
+            return self._rolled_stages(f, t, y, args, h, ks[0], c)
         for i in range(1, self.num_stages):
             yi = _combine(y, h, tab.a_lower[i - 1], ks)
             ks.append(f(t + c[i] * h, yi, args))
         return ks
+
+    def _rolled_stages(self, f, t, y, args, h, k0, c) -> list:
+        """`stages` in a `fori_loop` over the stages, the stage derivatives stacked
+        (stages,) + each leaf's shape. Each stage sums `a_ij k_j` over every earlier stage
+        in order, zeros included (adding an exact zero changes nothing), so the values are
+        the unrolled stages' up to XLA's choice of fused multiply-adds.
+
+        Why: the multiple-shooting fit's Jacobian steps the variational equation, whose
+        field takes a reverse pass per state component; unrolled over Dopri8's 13 stages
+        and batched over the segments it took 2.8 s to trace and most of the fit's 4.4 s
+        XLA compile (lab record, 5 s at 200 Hz; experiments/fit_solver_tradeoff.py)."""
+        tab, n = self.tableau, self.num_stages
+        dtype = jnp.result_type(*jax.tree_util.tree_leaves(k0))
+        A = np.zeros((n, n))
+        for i in range(1, n):
+            A[i, :i] = np.asarray(tab.a_lower[i - 1], float)[:i]
+        A, cs = jnp.asarray(A, dtype), jnp.asarray(c[:n], dtype)
+
+        def body(i, K):
+            a = A[i]
+
+            def leaf(y_leaf, K_leaf):
+                acc = a[0] * K_leaf[0]
+                for j in range(1, n - 1):
+                    acc = acc + a[j] * K_leaf[j]
+                return y_leaf + h * acc
+
+            ki = f(t + cs[i] * h, jax.tree_util.tree_map(leaf, y, K), args)
+            return jax.tree_util.tree_map(lambda K_leaf, k: K_leaf.at[i].set(k), K, ki)
+
+        K0 = jax.tree_util.tree_map(
+            lambda k: jnp.zeros((n,) + jnp.shape(k), dtype).at[0].set(k), k0)
+        K = jax.lax.fori_loop(1, n, body, K0)
+        return [k0] + [jax.tree_util.tree_map(lambda K_leaf: K_leaf[i], K)
+                       for i in range(1, n)]
 
     def solution(self, y, h, ks):
         """`y1 = y + h sum_i b_i k_i`."""
@@ -166,7 +208,7 @@ def rms_error(err, y0, y1, rtol, atol):
 
 #: diffrax's Dopri8 (order 8, embedded order 7), fused.
 @functools.cache
-def dopri8() -> FusedERK:
-    """Dormand-Prince 8(5,3) (diffrax's tableau) as a [`FusedERK`][]: one object, so that
-    programs keyed on it compile once."""
-    return FusedERK(diffrax.Dopri8.tableau, 8)
+def dopri8(rolled: bool = False) -> FusedERK:
+    """Dormand-Prince 8(5,3) (diffrax's tableau) as a [`FusedERK`][]: one object per
+    `rolled` (see `FusedERK.rolled`), so that programs keyed on it compile once."""
+    return FusedERK(diffrax.Dopri8.tableau, 8, rolled)

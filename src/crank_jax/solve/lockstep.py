@@ -50,20 +50,21 @@ __all__ = ["adaptive_solve"]
 
 
 def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str,
-                   error_size: int | None = None):
+                   error_size: int | None = None, erk=None):
     """Solve with [`solve_adaptive`][] so that `jax.vmap` steps a batch in lockstep.
 
     **Arguments:** `field`, the vector field (a pytree; its array leaves may be traced or
     batched); `y0`, one member's state, a pytree of small arrays (the crank: `(phi,
     phi')`); `ts` (n,) save times; `rtol`, `atol` scalars; `max_steps`, the step budget;
     `adjoint`, `"reverse"` (`jax.grad` by the discrete adjoint of adjoint.py),
-    `"forward"` or `"direct"`; `error_size`, the leading state components the step
+    `"forward"` or `"direct"`; `erk`, the method (a `FusedERK`, default `dopri8()`;
+    forward mode only); `error_size`, the leading state components the step
     control sees (see `solve_adaptive`).
 
     **Returns:** `(ys, result, num_steps)`, as `solve_adaptive` (`ys` like `y0` with a
     leading axis n; `result` a `diffrax.RESULTS`).
     """
-    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size)
+    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk)
     ys, code, steps = out
     return (ys, *outcome(code.astype(jnp.int32), steps.astype(jnp.int32)))
 
@@ -181,7 +182,7 @@ def _as_float(x, like):
     return jnp.asarray(x).astype(like.dtype)
 
 
-def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size):
+def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk):
     """`lockstep(dyn_b, y0, rtol, atol) -> (ys, code, steps)`: one group of a batch in one
     loop ([`solve_adaptive`][] batched), its members' batched field leaves `dyn_b` joined
     with the shared `dyn_c`; outputs with the batch axis first."""
@@ -196,14 +197,14 @@ def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size):
             ys, result, steps = solve_adaptive(
                 _side_by_side(rebuild, _join(dyn_b, dyn_c, in_batched[0]), in_batched[0]),
                 y0, ts, rtol, atol, max_steps=max_steps, batched=True,
-                error_size=error_size)
+                error_size=error_size, erk=erk)
         ys = jax.tree_util.tree_map(lambda v: jnp.moveaxis(v, 1, 0), ys)
         return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
     return lockstep
 
 
-def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size):
+def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
     # The field's arrays as a flat list: `custom_vmap` cannot take the `None` leaves that
     # `eqx.partition` leaves (jax issue 9066).
     dyn_tree, static = eqx.partition(field, eqx.is_array)
@@ -214,7 +215,8 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size):
 
     def single(dyn, y0, ts, rtol, atol):
         ys, result, steps = solve_adaptive(rebuild(dyn), y0, ts, rtol, atol,
-                                           max_steps=max_steps, error_size=error_size)
+                                           max_steps=max_steps, error_size=error_size,
+                                           erk=erk)
         # Every output a float: JAX's JVP of a `custom_vmap` takes float outputs only.
         return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
@@ -233,7 +235,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size):
             lambda v, b: v if b else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)),
             y0, in_batched[1])
         dyn_b, dyn_c = _split(dyn, in_batched[0])
-        lockstep = _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size)
+        lockstep = _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk)
         out = _in_chunks(lockstep, axis_size, dyn_b, y0, rtol, atol, in_batched[3],
                          in_batched[4], spread=spread)
         return out, _all_batched(out)
@@ -254,6 +256,8 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size):
 
     if adjoint != "reverse":
         return batched(spread=True)(dyn, y0, ts, rtol, atol)
+    if erk is not None:  # the discrete adjoint differentiates dopri8()'s own steps
+        raise ValueError("reverse mode steps the default method only")
     return _with_adjoint_vjp(batched, rebuild, max_steps, error_size)(dyn, y0, ts, rtol, atol)
 
 

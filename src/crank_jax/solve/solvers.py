@@ -31,6 +31,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from ..lazy import lazy_import
+from .erk import dopri8
 from .lockstep import adaptive_solve
 from .uniform import solve_uniform
 from .variational import flatten_state, with_sensitivities
@@ -118,8 +119,11 @@ class AdaptiveDopri8(AbstractSolver):
         field, prepare = _bind(field, args, prepare)
 
         def steps(fld, y, ts_, r, a, error_size):
+            # The variational solve (`error_size` set) evaluates its stages in a loop: its
+            # field is costly to trace and compile unrolled (see `FusedERK.rolled`).
+            erk = None if error_size is None else dopri8(rolled=True)
             return adaptive_solve(fld, y, ts_, r, a, max_steps=max_steps, adjoint=adjoint,
-                                  error_size=error_size)
+                                  error_size=error_size, erk=erk)
 
         # Forward mode steps the variational equation beside the solution (variational.py):
         # with the CPU flags a 10-parameter Jacobian costs ~3 forward solves, not 7-12.
