@@ -222,7 +222,8 @@ def test_user_load_class_edited_between_runs(tmp_path):
 
 # Issue 26: a fit on one of diffrax's explicit solvers. Its programs saved through
 # `SaveAt(ts)`, whose check of the save times is a host callback, so they were compiled in
-# every process; they now save inside the steps (solve/saves.py) and are stored. argv[1]:
+# every process; they now save inside the steps (solve/saves.py) and are stored, as is
+# `synthesize`'s simulation (host mode, forward mode's program). argv[1]:
 # the cache directory, or "-" for none (a plain compile, no store).
 DIFFRAX_FIT = PRELUDE.replace("cj.enable_compilation_cache(sys.argv[1])", """
 if sys.argv[1] != "-":
@@ -252,7 +253,9 @@ def test_fit_on_a_diffrax_solver_is_stored_and_loaded(tmp_path):
     assert first["converged"] and "jacobian" in first["compiled"]
     assert list((cache / "crank-jax-programs").glob("jacobian-*.xla"))
     second = run(str(cache))
-    assert "jacobian" not in second["compiled"], second["compiled"]
+    # The fit's programs, and the simulation that made its data (host mode) are loaded.
+    assert "simulate" in first["compiled"]
+    assert not {"jacobian", "simulate"} & set(second["compiled"]), second["compiled"]
     plain = run("-")
     assert plain["compiled"] == []  # no store: nothing goes through `_compile`
     # Loaded, stored-on-compile and plainly compiled programs: the same numbers.

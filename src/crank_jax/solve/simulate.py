@@ -278,6 +278,12 @@ def simulate(
         y0 = jnp.stack([jnp.asarray(phi0, dtype), jnp.asarray(dphi0, dtype)])
         rtol_, atol_ = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
     args = (mech, load, torque, force, y0, ts, rtol_, atol_)
+    # Concrete inputs take no derivative, so the adjoint only picks the program: forward
+    # mode's, the same values (the adjoints differ in their backward passes), is the one
+    # of diffrax's explicit solvers that saves inside its steps (saves.py) and so holds no
+    # host callback, whose program the store keeps (a reverse-mode `SaveAt(ts)` checks
+    # the save times in a callback, compiled again in every process).
+    adjoint = "forward" if host else adjoint
     static = dict(solver=plan.solver, max_steps=int(max_steps), adjoint=adjoint,
                   structure=plan.structure, outputs=tuple(sorted(set(outputs))))
     traj = _program_solve(*args, **static) if host and force is None else None
