@@ -215,3 +215,39 @@ def test_rolled_stages_equal_the_unrolled_ones_and_trace_the_field_once():
             np.testing.assert_allclose(kr[leaf], kp[leaf], rtol=1e-14, atol=1e-15)
     y1p, y1r = dopri8().solution(y, h, plain), dopri8().solution(y, h, rolled)
     np.testing.assert_allclose(y1r["a"], y1p["a"], rtol=1e-15)
+
+
+def test_jacobian_with_its_stages_in_a_loop_equals_the_unrolled_one(smooth):
+    """`AdaptiveDopri8(loop_stages=True)`, the fit's solver (`pick_solver`): the same
+    Jacobian, for the parameters and the initial state, and under `vmap` over members
+    with their own save times (multiple shooting's segments: a plain `vmap`)."""
+    from crank_jax.identify.problem import pick_solver
+    from crank_jax.solve.solvers import AdaptiveDopri8
+
+    mech, names = smooth, SMOOTH
+    assert pick_solver(mech, None, RTOL, "dopri8-adaptive") == AdaptiveDopri8(loop_stages=True)
+    theta, y0 = _theta(mech, names), jnp.array([1.0, 0.3])
+
+    def phi(th, y, ts, solver):
+        m = mech.replace(**dict(zip(names, th)))
+        return cj.simulate(m, y[0], y[1], ts, rtol=RTOL, atol=ATOL, adjoint="forward",
+                           solver=solver).phi
+
+    looped = AdaptiveDopri8(loop_stages=True)
+    for argnum in (0, 1):
+        ref = jax.jit(jax.jacfwd(lambda th, y: phi(th, y, TS, "dopri8-adaptive"), argnum))(
+            theta, y0)
+        ours = jax.jit(jax.jacfwd(lambda th, y: phi(th, y, TS, looped), argnum))(theta, y0)
+        scale = np.max(np.abs(ref), axis=0)
+        np.testing.assert_allclose(ours / scale, ref / scale, rtol=0, atol=1e-12)
+    # Two segments with their own save times.
+    tss = jnp.stack([TS[:51], TS[50:]])
+    y0s = jnp.array([[1.0, 0.3], [0.5, -0.2]])
+
+    def segments(th, solver):
+        return jax.vmap(lambda y, ts: phi(th, y, ts, solver))(y0s, tss)
+
+    ref = jax.jit(jax.jacfwd(lambda th: segments(th, "dopri8-adaptive")))(theta)
+    ours = jax.jit(jax.jacfwd(lambda th: segments(th, looped)))(theta)
+    scale = np.max(np.abs(ref), axis=(0, 1))
+    np.testing.assert_allclose(ours / scale, ref / scale, rtol=0, atol=1e-12)

@@ -48,7 +48,7 @@ from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..sensors import OFFSET_NAMES
 from ..solve.policy import resolve_solver
 from ..solve.simulate import solve_crank
-from ..solve.solvers import AbstractSolver
+from ..solve.solvers import AbstractSolver, AdaptiveDopri8
 from .measurement import calibration, channel_errors, fitted_channels
 from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS, record_mech
 from .segments import Experiment, make_segments, padded_load
@@ -432,7 +432,7 @@ def build_problem(
     # that starts at 0 must keep its term, or its sensitivity would be exactly zero.
     nonzero = mech_start.replace(**{n: _TINY for n in glob if n in FIELDS and start[n] == 0})
     structure = Structure.of(mech_start).union(Structure.of(nonzero))
-    solver = resolve_solver(solver, mech_start, rtol, load=records[0][1])
+    solver = pick_solver(mech_start, records[0][1], rtol, solver)
     return Problem(mech_start, tuple(exps), jnp.asarray(ref), tuple(names), tuple(log),
                    n_global, state_free, solver, structure, jnp.asarray(rtol),
                    jnp.asarray(atol), int(max_steps), adjoint, tuple(fold), per_record, force)
@@ -441,5 +441,7 @@ def build_problem(
 def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> AbstractSolver:
     """The ODE solver of a fit: the policy's ([`resolve_solver`][]) for the scene's name,
     at the start values, as `simulate` would run it (no save times: a fit's segments have
-    their own)."""
-    return resolve_solver(solver, mech, rtol, load=load)
+    their own). `"dopri8-adaptive"` steps its Jacobians' stages in a loop (`loop_stages`):
+    a fit calls them tens of times, and compiles them in every process."""
+    solver = resolve_solver(solver, mech, rtol, load=load)
+    return solver.with_loop_stages() if isinstance(solver, AdaptiveDopri8) else solver
