@@ -10,7 +10,8 @@ Measured side by side in one run (medians):
   was the baseline, which flattered every ratio by that fixed cost);
 - forward mode: `jax.jacfwd` through `simulate(adjoint="forward")`, with the default
   `"dopri8-adaptive"` solver (whose JVP steps the variational equation beside the
-  solution, see `crank_jax.solve.variational`), the same solver with JAX's tangents carried
+  solution, see `crank_jax.solve.variational`), the same with its stages in a loop (the
+  fit's: `AdaptiveDopri8(loop_stages=True)`), the same solver with JAX's tangents carried
   through its steps (the default's forward mode before 2026-11-26, called here on
   `solve_adaptive` directly), the `"dopri8-uniform"` solver (JAX's forward mode
   through its loop since issue 26; its own variational rule, measured slower than
@@ -41,6 +42,7 @@ import crank_jax as cj  # noqa: E402
 from crank_jax.model.dynamics import CrankField, Structure  # noqa: E402
 from crank_jax.model.loads import as_load  # noqa: E402
 from crank_jax.solve.adaptive import solve_adaptive  # noqa: E402
+from crank_jax.solve.solvers import AdaptiveDopri8  # noqa: E402
 
 PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
 
@@ -86,12 +88,14 @@ def main(argv=None):
              "time_s": concrete, "ratio": concrete / base, "compile_s": None}]
     print(rows[0], rows[1], sep="\n", flush=True)
     variants = [("jacfwd, dopri8-adaptive (default)", jax.jacfwd, "dopri8-adaptive", "forward"),
+                ("jacfwd, dopri8-adaptive, stages in a loop (the fit's: loop_stages)",
+                 jax.jacfwd, AdaptiveDopri8(loop_stages=True), "forward"),
                 ("jacfwd, dopri8-adaptive, tangents through the steps (before 2026-11-26)",
                  jax.jacfwd, "tangents", "forward"),
                 ("jacfwd, dopri8-uniform", jax.jacfwd, "dopri8-uniform", "forward"),
                 ("jacfwd, diffrax Dopri8 (ForwardMode)", jax.jacfwd, "dopri8", "forward")]
     if smoke:  # CI: the default and the reference (tests/test_uniform.py has the uniform's)
-        variants = [variants[0], variants[3]]
+        variants = [variants[0], variants[4]]
     if not (smoke or a.forward_only):
         variants += [("jacrev, dopri8-uniform", jax.jacrev, "dopri8-uniform", "reverse"),
                      ("jacrev, diffrax Dopri8 (RecursiveCheckpoint)", jax.jacrev, "dopri8",

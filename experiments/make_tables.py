@@ -279,7 +279,13 @@ def section() -> str:
                 "The ratios are to the forward solve as the Jacobians run it (the same "
                 "function of theta under `jit`). Before 2026-11-24 they were to a concrete "
                 "`simulate` call, whose host-side checks made them look smaller by the "
-                "concrete row's factor.", ""]
+                "concrete row's factor. The row \"stages in a loop\" is the fit's solver "
+                "(`AdaptiveDopri8(loop_stages=True)`, set by `pick_solver`): its variational "
+                "stages in a `fori_loop` instead of unrolled, so the field (a reverse pass "
+                "per state component) is traced once: about half the compile time for a "
+                "Jacobian about 1.1-1.2x dearer. A fit calls its Jacobian tens of times but "
+                "compiles it in every new process; a user's `jax.jacfwd` keeps the unrolled "
+                "stages.", ""]
     out += reverse_table()
     if st:
         out += ["### Start-up", "", f"*{_machine(st['machine'])}*", "",
@@ -539,6 +545,15 @@ def _end_to_end(ee) -> list[str]:
                 "edge) and multiple-shooting segment counts rounded to 2, 3, 4, 6, 8, 12, "
                 "...; a record 1.2x as long lands in the next bucket and compiles its "
                 "programs once (the row above), after which they are stored."]
+    out += ["", "History: the fit's solves moved to `simulate`'s solve core in commit 32c3754 "
+            "(issue 26), whose multiple-shooting Jacobian (the variational equation, unrolled "
+            "stages, batched over the segments) took 3.5 s to trace and 3.6 s to compile: "
+            "a run on 2026-11-27 00:41 UTC measured 15.6 s cold, 2.23 s warm and 14.4 s for "
+            "the first fit in a process (7.56 s, 1.69 s and 7.35 s before). Since then the "
+            "fit's solver steps those stages in a loop (`loop_stages`: trace 1.0 s, compile "
+            "1.7-1.9 s; `experiments/fit_solver_tradeoff.py`) and the no-motion check takes "
+            "its F quantile from `scipy.special` (importing `scipy.stats` had cost 1.0 s of "
+            "every fit)."]
     return out + [""]
 
 
