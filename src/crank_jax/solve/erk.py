@@ -10,7 +10,8 @@ arithmetic (~3 kernels per stage for the crank): a step is ~2.5x cheaper. The ta
 itself is diffrax's, so the method is exactly diffrax's.
 
 `FusedERK` knows nothing of the equation: it steps any `f(t, y, args) -> dy/dt`, with `y`
-a pytree of arrays (small: the stages are unrolled per leaf).
+a pytree of arrays (small: the stages are unrolled per leaf). With `rolled=True` the stages
+run in a loop instead, for a field that is costly to trace (the fit's variational solves).
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ class FusedERK(eqx.Module):
     """Evaluate the stages in a loop (`lax.fori_loop`) instead of unrolled: the field is
     traced once, not once per stage. For a costly field to trace (the variational
     equation's, variational.py: a reverse pass per component per stage), where the
-    unrolled step dominated the fit's compilation (see `stages`)."""
+    unrolled step dominated the fit's compilation (see `_rolled_stages`)."""
 
     def __check_init__(self):
         if self.tableau.implicit:
