@@ -83,6 +83,12 @@ def test_a_solve_longer_than_the_log_reruns_its_segments(monkeypatch):
                         jnp.linspace(0.0, 1.0, 11), rtol=1e-8, atol=1e-10).num_steps
     assert int(steps) > 2 * 64  # at least three segments
     _close(g, _forward_gradient(theta0, weights, traj))
+    # A batch of gradients whose members need different numbers of segments (a stiffer
+    # spring takes more steps): each member's its own, as computed alone.
+    thetas = jnp.stack([theta0, theta0.at[8].mul(4.0)])
+    batch = jax.jit(jax.vmap(jax.grad(loss)))(thetas)
+    for i in range(2):
+        _close(batch[i], jax.jit(jax.grad(loss))(thetas[i]), tol=1e-8)
 
 
 @pytest.mark.slow
