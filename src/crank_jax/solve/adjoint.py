@@ -143,21 +143,19 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
 
     carry = (jnp.zeros_like(g[0]), [jnp.zeros_like(d) for d in diff])
     m_last = (count - 1) // S  # the segment the forward pass's ring ends with
-    # The last segment's rows are the forward pass's ring.
-    carry = segment(log.rows, m_last, carry)
 
     def each(c):
-        # Earlier segments, from the last: each from a rerun of the forward solve that
-        # logs that segment only. Apart from the last segment, not a `cond` between the
-        # two in one loop: under `jax.vmap` a `cond` on a batched predicate runs both
-        # branches, and so reran the forward solve for every member of a batch of
-        # gradients; a loop that no member needs runs no iteration.
+        # Segments from the last: its rows are the forward pass's; an earlier one's come
+        # from a rerun of the forward solve that logs that segment only. (One loop, so
+        # that the backward pass is compiled once; under `jax.vmap` the `cond` runs both
+        # branches, a rerun per gradient.)
         m, carry = c
-        rows = forward(rebuild(dyn), y0, ts, rtol, atol, max_steps=max_steps,
-                       error_size=error_size, upto=(m + 1) * S)[3].rows
+        rows = jax.lax.cond(m == m_last, lambda: log.rows, lambda: forward(
+            rebuild(dyn), y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
+            upto=(m + 1) * S)[3].rows)
         return m - 1, segment(rows, m, carry)
 
-    _, (ybar, dbar) = jax.lax.while_loop(lambda c: c[0] >= 0, each, (m_last - 1, carry))
+    _, (ybar, dbar) = jax.lax.while_loop(lambda c: c[0] >= 0, each, (m_last, carry))
     ybar = ybar + g[0]  # ys[0] is y0 itself
     it = iter(dbar)
     return [next(it) if b else None for b in live], unpack(ybar)
