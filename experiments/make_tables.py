@@ -45,6 +45,15 @@ def reverse_table() -> list[str]:
         out.append(f"| {a['method']} | {_ms(a['time_s'])} | {a['ratio']:.2f} | "
                    f"{_ms(b['time_s'])} | {b['ratio']:.2f} |")
     comp = " / ".join(f"{r['rows'][1]['compile_s']:.0f} s" for r in (base, flags))
+    other = "wall" if base.get("clock", "wall") == "cpu" else "process CPU"
+    if "other_clock_ratio" in base["rows"][1]:
+        out += ["", f"On the {other} clock, in the same runs, the crank-jax grad took "
+                f"{base['rows'][1]['other_clock_ratio']:.2f}x its forward solve under the "
+                f"defaults and {flags['rows'][1]['other_clock_ratio']:.2f}x with the flags "
+                f"(plain diffrax: {base['rows'][2]['other_clock_ratio']:.0f}x and "
+                f"{flags['rows'][2]['other_clock_ratio']:.0f}x). Under the defaults XLA runs "
+                "the backward blocks' large kernels on both cores: the process CPU clock "
+                "counts that time twice, a user's wall clock once."]
     out += ["", f"Goals (issue 26): the crank-jax grad <= {base['goal']['ratio']:g}x under "
             f"the defaults ({_met(base['goal']['met'])}), <= {flags['goal']['ratio']:g}x "
             f"with the flags ({_met(flags['goal']['met'])}). Its first call (compilation) "
@@ -66,7 +75,30 @@ def reverse_table() -> list[str]:
             "loop logs accepted steps to a 32-step buffer that the outer loop copies out, "
             "so the loop's buffers stay small enough for XLA:CPU to run it inline. "
             "Compile times are wall-clock.", ""]
-    return out
+    return out + _reverse_split()
+
+
+def _reverse_split() -> list[str]:
+    """Why the flags' goal is not met (experiments/reverse_split.py), or nothing before
+    its first run."""
+    r = _load("reverse_split")
+    if r is None:
+        return []
+    t = r["times_s"]
+    return [f"Where the time goes with the flags ({r['machine']['date']}, "
+            f"`experiments/reverse_split.py`, {r.get('clock', 'wall')} clock): one forward "
+            f"solve {_ms(t['forward solve'])}; the grad's forward pass, the same solve with "
+            f"its step log, {_ms(t['forward pass with its log'])}; its backward pass "
+            f"{_ms(r['backward_s'])}, of which {_ms(r['backward_state_part_s'])} carries "
+            f"the state's cotangent through the steps and {_ms(r['backward_parameter_part_s'])}"
+            " forms the parameters' cotangents (measured as the difference with a "
+            "diagnostic run whose step VJPs leave the parameters out). Without the "
+            f"parameters' cotangents the grad took {r['state_only_ratio']:.1f}x one forward "
+            f"solve, with them {r['grad_ratio']:.1f}x: the 3x goal needs the parameters' "
+            "part of each step's VJP far cheaper than JAX's transpose of the field makes "
+            "it. Tried and slower (2026-11-27): that part as one VJP of the step's 14 field "
+            "evaluations side by side, inside the loop (grad 5.4-6.7 ms against 2.5-3.0 "
+            "ms); the vectorised blocks (above).", ""]
 
 
 def _machine(m) -> str:
