@@ -240,8 +240,23 @@ def _tmp_files(d):
     return [p.name for p in d.iterdir() if p.name.endswith(".tmp")]
 
 
+@pytest.fixture
+def usual_signals():
+    """Python's usual dispositions of SIGINT, SIGHUP and SIGTERM for the test, restored
+    after it. A process started in the background by a non-interactive shell inherits
+    SIGINT ignored (as `nohup` ignores SIGHUP), and the CLI rightly keeps an ignored signal
+    ignored (`test_an_ignored_signal_stays_ignored`)."""
+    usual = {signal.SIGINT: signal.default_int_handler, signal.SIGHUP: signal.SIG_DFL,
+             signal.SIGTERM: signal.SIG_DFL}
+    old = {s: signal.signal(s, h) for s, h in usual.items()}
+    yield
+    for s, h in old.items():
+        signal.signal(s, h)
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP, signal.SIGTERM])
-def test_rows18_19_signal_mid_run_in_process(tmp_path, capsys, monkeypatch, sig):
+def test_rows18_19_signal_mid_run_in_process(tmp_path, capsys, monkeypatch, sig,
+                                             usual_signals):
     monkeypatch.setattr(cli_simulate, "CHUNK_SAMPLES", 20)
     out = tmp_path / "big.csv"
     out.write_text("old\n")
@@ -262,6 +277,28 @@ def test_rows18_19_signal_mid_run_in_process(tmp_path, capsys, monkeypatch, sig)
     assert out.read_text() == "old\n" and _tmp_files(tmp_path) == []
     assert "Traceback" not in err
     assert handlers == {s: signal.getsignal(s) for s in handlers}  # handlers restored
+
+
+def test_an_ignored_signal_stays_ignored(tmp_path, capsys, monkeypatch, usual_signals):
+    # Under `nohup` (SIGHUP ignored) the run goes on and writes its output; the CLI's
+    # handlers are removed afterwards and the signal is ignored again.
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    monkeypatch.setattr(cli_simulate, "CHUNK_SAMPLES", 20)
+    out = tmp_path / "out.csv"
+    real, calls = cj.Scene.simulate, []
+
+    def spy(self, ts=None, **kw):
+        calls.append(1)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGHUP)
+        return real(self, ts, **kw)
+
+    monkeypatch.setattr(cj.Scene, "simulate", spy)
+    code, _, err = _run(capsys, "simulate", "lab-rig", "--t1", "1", "--samples", "201",
+                        "--out", out)
+    assert code == 0 and len(calls) == 10, err
+    assert len(out.read_text().splitlines()) == 202  # the header and every sample
+    assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
 
 
 def test_rows18_19_sigterm_real_process(tmp_path):
