@@ -78,7 +78,8 @@ def test_a_solve_longer_than_the_log_reruns_its_segments(monkeypatch):
     # and reruns the forward solve for each earlier one, with the same result.
     monkeypatch.setattr(adjoint, "LOG_ROWS", 64)
     theta0, weights, traj, loss = _problem(t1=1.0, samples=11)
-    g = jax.jit(jax.grad(loss))(theta0)
+    grad = jax.jit(jax.grad(loss))  # one program for every single gradient below
+    g = grad(theta0)
     steps = cj.simulate(cj.load_scene("lab-rig").mech.replace(c=1e-3), 1.0, 0.0,
                         jnp.linspace(0.0, 1.0, 11), rtol=1e-8, atol=1e-10).num_steps
     assert int(steps) > 2 * 64  # at least three segments
@@ -88,7 +89,7 @@ def test_a_solve_longer_than_the_log_reruns_its_segments(monkeypatch):
     thetas = jnp.stack([theta0, theta0.at[8].mul(4.0)])
     batch = jax.jit(jax.vmap(jax.grad(loss)))(thetas)
     for i in range(2):
-        _close(batch[i], jax.jit(jax.grad(loss))(thetas[i]), tol=1e-8)
+        _close(batch[i], grad(thetas[i]), tol=1e-8)
 
 
 @pytest.mark.slow

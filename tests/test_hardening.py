@@ -240,6 +240,23 @@ def _tmp_files(d):
     return [p.name for p in d.iterdir() if p.name.endswith(".tmp")]
 
 
+def _signal_on_third_chunk(monkeypatch, sig, before=lambda: None) -> list:
+    """Make `crank-jax simulate` run in chunks of 20 samples and send this process `sig`
+    as the third chunk starts (after `before()`); returns the list of chunk calls."""
+    monkeypatch.setattr(cli_simulate, "CHUNK_SAMPLES", 20)
+    real, calls = cj.Scene.simulate, []
+
+    def spy(self, ts=None, **kw):
+        calls.append(1)
+        if len(calls) == 3:
+            before()
+            os.kill(os.getpid(), sig)
+        return real(self, ts, **kw)
+
+    monkeypatch.setattr(cj.Scene, "simulate", spy)
+    return calls
+
+
 @pytest.fixture
 def usual_signals():
     """Python's usual dispositions of SIGINT, SIGHUP and SIGTERM for the test, restored
@@ -257,19 +274,13 @@ def usual_signals():
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP, signal.SIGTERM])
 def test_rows18_19_signal_mid_run_in_process(tmp_path, capsys, monkeypatch, sig,
                                              usual_signals):
-    monkeypatch.setattr(cli_simulate, "CHUNK_SAMPLES", 20)
     out = tmp_path / "big.csv"
     out.write_text("old\n")
-    real, calls = cj.Scene.simulate, []
 
-    def spy(self, ts=None, **kw):
-        calls.append(1)
-        if len(calls) == 3:
-            assert _tmp_files(tmp_path)  # the output is being written
-            os.kill(os.getpid(), sig)
-        return real(self, ts, **kw)
+    def before():
+        assert _tmp_files(tmp_path)  # the output is being written
 
-    monkeypatch.setattr(cj.Scene, "simulate", spy)
+    calls = _signal_on_third_chunk(monkeypatch, sig, before)
     handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
     code, _, err = _run(capsys, "simulate", "lab-rig", "--t1", "1", "--samples", "201",
                         "--out", out)
@@ -283,17 +294,8 @@ def test_an_ignored_signal_stays_ignored(tmp_path, capsys, monkeypatch, usual_si
     # Under `nohup` (SIGHUP ignored) the run goes on and writes its output; the CLI's
     # handlers are removed afterwards and the signal is ignored again.
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
-    monkeypatch.setattr(cli_simulate, "CHUNK_SAMPLES", 20)
     out = tmp_path / "out.csv"
-    real, calls = cj.Scene.simulate, []
-
-    def spy(self, ts=None, **kw):
-        calls.append(1)
-        if len(calls) == 3:
-            os.kill(os.getpid(), signal.SIGHUP)
-        return real(self, ts, **kw)
-
-    monkeypatch.setattr(cj.Scene, "simulate", spy)
+    calls = _signal_on_third_chunk(monkeypatch, signal.SIGHUP)
     code, _, err = _run(capsys, "simulate", "lab-rig", "--t1", "1", "--samples", "201",
                         "--out", out)
     assert code == 0 and len(calls) == 10, err
