@@ -41,6 +41,8 @@ PRACTICAL_LIMIT = 0.5
 # A parameter whose unit vector has at least this component in an unidentifiable
 # subspace has no meaningful standard error.
 _AFFECTED = 0.05
+# Two unit directions whose inner product exceeds this (in magnitude) are the same one.
+_SAME_DIRECTION = 0.99
 
 
 class Uncertainty(NamedTuple):
@@ -68,6 +70,10 @@ class Uncertainty(NamedTuple):
     """One sentence per unidentifiable direction (empty when identifiable)."""
     affected: np.ndarray
     """(p,) bool: parameters involved in an unidentifiable direction."""
+    candidates: tuple = ()
+    """`(u, se)` of each flagged direction that is weak rather than exactly flat (unit
+    vector u (p,) in z, its standard error): a quadratic guess, for the profile
+    likelihood to confirm (`verdict.check`)."""
 
 
 def _name_list(names: Sequence[str]) -> str:
@@ -99,6 +105,7 @@ def analyse(
     geometry: dict[str, float] | None = None,
     folded: Sequence[bool] | None = None,
     fixed_scale: Sequence[str] = (),
+    closed: Sequence[np.ndarray] = (),
 ) -> Uncertainty:
     """Standard errors, intervals, correlations and identifiability of a fit.
 
@@ -116,6 +123,9 @@ def analyse(
       `problem.folded`): their interval is the linear one cut at 0.
     - `fixed_scale`: fixed parameters and loads that take part in the common scale and are
       not zero (see [`fixed_scale_members`][]): when there is one, no common scale exists.
+    - `closed`: unit vectors of z along which the profile likelihood closes
+      ([`verdict.check`][crank_jax.identify.verdict.check]): a weak direction along one
+      of them is determined after all, and is not flagged.
 
     **Returns:** an [`Uncertainty`][].
     """
@@ -131,19 +141,33 @@ def analyse(
     numeric_null = s <= RANK_TOL * s_max
     with np.errstate(divide="ignore"):
         se_dir = np.where(s > 0, sigma / np.where(s > 0, s, 1.0), np.inf)
-    flagged = numeric_null | (se_dir > PRACTICAL_LIMIT)
     V = Vt.T  # columns: right singular vectors (unit, in z)
+
+    def confirmed(u):  # not along a direction the profile likelihood closes
+        return all(abs(float(u @ c)) < _SAME_DIRECTION for c in closed)
+
+    weak = (se_dir > PRACTICAL_LIMIT) & ~numeric_null
+    weak &= np.array([confirmed(V[:, i]) for i in range(V.shape[1])], dtype=bool)
+    flagged = numeric_null | weak
 
     # Known structural directions, tested explicitly so they can be stated in words.
     known = _known_directions(names, values, log, ref, geometry, fixed_scale)
     directions: list[str] = []
     Vf = V[:, flagged]
-    found = []
+    found, candidates = [], []
     for u, message in known:
         gain = float(np.linalg.norm(J @ u))
-        if gain <= RANK_TOL * s_max or sigma / max(gain, 1e-300) > PRACTICAL_LIMIT:
+        exact = gain <= RANK_TOL * s_max
+        if exact or (sigma / max(gain, 1e-300) > PRACTICAL_LIMIT and confirmed(u)):
             directions.append(message)
             found.append(u)
+            if not exact:
+                candidates.append((u, sigma / gain))
+    in_known = (np.linalg.qr(np.column_stack(found))[0] if found else np.zeros((p, 0)))
+    for i in np.flatnonzero(weak):
+        # A weak singular direction not (mostly) one of the named symmetries.
+        if np.linalg.norm(in_known.T @ V[:, i]) < _SAME_DIRECTION:
+            candidates.append((V[:, i], float(se_dir[i])))
     if found:
         Q, _ = np.linalg.qr(np.column_stack(found))
         rest = Vf - Q @ (Q.T @ Vf)
@@ -172,7 +196,7 @@ def analyse(
     s_min = s[-1] if s.size else 0.0
     cond = float(s_max / s_min) if s_min > 0 else math.inf
     return Uncertainty(stderr, np.column_stack([lo, hi]), corr, cov, s, cond, sigma,
-                       not directions, directions, affected)
+                       not directions, directions, affected, tuple(candidates))
 
 
 def _intervals(values, se_z, log, ref, folded) -> tuple[np.ndarray, np.ndarray]:
@@ -382,10 +406,20 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
         return r_hat, values, rms, undefined(
             ss.p, "the sensitivities are undefined at the estimate (the solve failed), so "
                   "nothing can be said about identifiability"), notes, None
-    unc = analyse(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
-                  geometry={k: float(getattr(ss.base, k)) for k in "rLbs"},
-                  folded=ss.folded, fixed_scale=fixed_scale_members(
-                      ss.base, ss.names, [(e.load, e.torque) for e in ss.exps]))
+    kw = dict(geometry={k: float(getattr(ss.base, k)) for k in "rLbs"}, folded=ss.folded,
+              fixed_scale=fixed_scale_members(ss.base, ss.names,
+                                              [(e.load, e.torque) for e in ss.exps]))
+    unc = analyse(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma, **kw)
+    if unc.candidates:
+        # The sensitivities only suggest a weak direction; the profile likelihood decides.
+        from .verdict import check
+
+        checked = check(ss, z_hat, unc.candidates, values, ss.log, np.asarray(ss.ref),
+                        ss.folded, ss.names, n, float(r_hat @ r_hat))
+        notes += checked.notes
+        if checked.closed:
+            unc = analyse(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
+                          closed=checked.closed, **kw)
     if not unc.identifiable:
         notes += [f"not identifiable: {m}" for m in unc.directions]
         bad = [nm for nm, a in zip(ss.names, unc.affected) if a]

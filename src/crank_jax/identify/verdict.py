@@ -1,0 +1,228 @@
+"""Identifiability verdicts checked against the profile likelihood.
+
+The sensitivity matrix flags a direction `u` of the coordinates z (unit length) as weakly
+determined when its standard error `sigma / |J u|` is large (see `uncertainty.analyse`).
+That is a quadratic guess, in coordinates whose scale can be arbitrary (a parameter that
+starts at 0 is linear with a made-up scale), so it is only a candidate. The verdict is
+the likelihood's: the profile along `u` (every other direction re-fitted, the offset `t`
+along `u` held) is traced outwards on each side until its deviance
+`n ln(RSS(t) / RSS_min)` passes the 95% threshold of chi-squared(1) or the offset reaches
+a wide range:
+
+- **a decade**: the parameter that `u` moves most, in its own scale, changes by a factor
+  10 (log coordinates: `ln 10`; linear ones: `ln 10` times `max(|value|, ref)`);
+- **or a bound**: a parameter that cannot be negative reaches 0. The profile stays flat
+  down to 0 there, so the interval's end is that bound (`[0, hi]`, an upper limit), not
+  an open end.
+
+A direction is **not determined** only when a side stays below the threshold over the
+whole wide range. Otherwise the profile closes: the direction is determined, its
+crossings give the profile interval, and a Hessian half-width `1.96 se` more than 2x
+away from the profile's on either side is said in a note. A profile that cannot be
+traced (a re-fit fails) leaves the candidate flagged and says so.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["DirectionProfile", "profile_direction", "check", "CHI2_95", "DISAGREE"]
+
+#: 95% quantile of chi-squared with 1 degree of freedom.
+CHI2_95 = 3.841458820694124
+#: A profile half-width more than this factor away from the Hessian's is said in a note.
+DISAGREE = 2.0
+_Z95 = 1.959963984540054
+_DECADE = math.log(10.0)
+_MAX_POINTS = 6  # re-fits per side
+
+
+class DirectionProfile(NamedTuple):
+    """The profile likelihood along a unit direction `u` of z.
+
+    `open`: a side stayed below the threshold over the wide range (not determined).
+    `traced`: every re-fit converged (False: nothing can be said). `lo`, `hi`: the offsets
+    along `u` (z units, `lo` <= 0 <= `hi`) where the deviance crosses the threshold, or
+    reaches a bound (`at_bound`); NaN on an open side. `t`, `deviance`: the points traced.
+    """
+
+    open: bool
+    traced: bool
+    lo: float
+    hi: float
+    at_bound: tuple[bool, bool]
+    t: np.ndarray
+    deviance: np.ndarray
+
+
+def wide_offset(u, values, log, ref) -> float:
+    """The offset along `u` (z units) that moves its most-moved parameter by a decade in
+    its own scale (see the module's docstring)."""
+    log = np.asarray(log, dtype=bool)
+    ref = np.asarray(ref, dtype=float)
+    # z units per natural unit (ln 10 of them make a decade): 1 in log coordinates;
+    # max(|value|, ref) / ref in linear ones, z = value / ref.
+    per = np.where(log, 1.0, np.maximum(np.abs(values), ref) / ref)
+    return _DECADE / float(np.max(np.abs(u) / per))
+
+
+def bound_offsets(u, z_hat, folded) -> tuple[float, float]:
+    """How far along `-u` and `+u` (z units, inf: none) a folded coordinate (a parameter
+    `>= 0`, value `ref |z|`) reaches its bound 0."""
+    lo = hi = math.inf
+    for i in np.flatnonzero(np.asarray(folded, dtype=bool)):
+        if u[i] == 0 or z_hat[i] == 0:  # at the bound, a move either way grows |z|
+            continue
+        t = -z_hat[i] / u[i]
+        if t > 0:
+            hi = min(hi, t)
+        else:
+            lo = min(lo, -t)
+    return lo, hi
+
+
+def profile_direction(problem, z_hat, u, se: float, n: int, rss_min: float, wide: float,
+                      bounds: tuple[float, float], max_steps: int = 50, tol: float = 1e-8
+                      ) -> DirectionProfile:
+    """Trace the profile likelihood along `u` (p,) from `z_hat` (p,), each side from
+    1.5 Hessian half-widths (`1.96 se`) outwards, at least doubling, to `wide` or the
+    side's bound,
+    then one interpolated re-fit near the crossing (linear in `sqrt(deviance)`, exact for
+    a quadratic cost). `problem`: the fit's single-shooting problem; `n`: the number of
+    residuals; `rss_min`: `|r|^2` at `z_hat`."""
+    from .optimise import least_squares
+    from .programs import Subspace
+
+    u = np.asarray(u, dtype=float)
+    z_hat = np.asarray(z_hat, dtype=float)
+    # An orthonormal basis of the complement of u: every other direction is re-fitted.
+    q, _ = np.linalg.qr(np.column_stack([u, np.eye(u.size)]))
+    B = q[:, 1:u.size]
+    ts, devs, traced, is_open = [0.0], [0.0], True, False
+    ends, at_bound = [math.nan, math.nan], [False, False]
+    best = rss_min
+
+    def at(t, w0):
+        import jax.numpy as jnp
+
+        run = least_squares(Subspace(problem, jnp.asarray(z_hat + t * u), jnp.asarray(B)),
+                            w0, max_steps, tol, "", False)
+        return run
+
+    runs = {}
+    for side, sign in ((1, 1.0), (0, -1.0)):
+        limit = min(wide, bounds[side])
+        w = np.zeros(B.shape[1])
+        prev_t, prev_d = 0.0, 0.0
+        t = min(1.5 * _Z95 * se, limit) if math.isfinite(se) and se > 0 else limit
+        # At least doubling, and fast enough to reach the limit within the points allowed.
+        grow = max(2.0, (limit / t) ** (1.0 / (_MAX_POINTS - 1)))
+        crossed = False
+        for _ in range(_MAX_POINTS):
+            run = at(sign * t, w)
+            if not (run.converged and math.isfinite(run.cost)):
+                traced = False
+                break
+            w = np.asarray(run.z)
+            rss = 2.0 * run.cost
+            best = min(best, rss)
+            d = n * math.log(rss / rss_min)
+            ts.append(sign * t)
+            devs.append(d)
+            runs[sign * t] = w
+            if d > CHI2_95:
+                crossed = True
+                break
+            prev_t, prev_d = t, d
+            if t >= limit:
+                break
+            t = min(grow * t, limit)
+        if not traced:
+            break
+        if not crossed:
+            if t >= bounds[side] and bounds[side] <= wide:
+                ends[side], at_bound[side] = sign * bounds[side], True
+            else:
+                is_open = True
+            continue
+        # One re-fit where sqrt(deviance) interpolates to the threshold's root.
+        t_c = _root(prev_t, prev_d, t, d)
+        run = at(sign * t_c, runs.get(sign * prev_t, np.zeros(B.shape[1])))
+        if run.converged and math.isfinite(run.cost):
+            d_c = n * math.log(2.0 * run.cost / rss_min)
+            ts.append(sign * t_c)
+            devs.append(d_c)
+            t_c = (_root(prev_t, prev_d, t_c, d_c) if d_c > CHI2_95
+                   else _root(t_c, d_c, t, d))
+        ends[side] = sign * t_c
+    order = np.argsort(ts)
+    if n * math.log(best / rss_min) < -0.1:
+        # A re-fit found a lower cost than the estimate: the fit did not reach its
+        # minimum along u, and nothing here is a profile around the estimate.
+        traced = False
+    return DirectionProfile(is_open, traced, ends[0], ends[1], tuple(at_bound),
+                            np.asarray(ts)[order], np.asarray(devs)[order])
+
+
+def _root(t0, d0, t1, d1) -> float:
+    """Where `sqrt(deviance)`, linear between (t0, d0) and (t1, d1), meets the threshold."""
+    s0, s1, s = math.sqrt(max(d0, 0.0)), math.sqrt(max(d1, 0.0)), math.sqrt(CHI2_95)
+    if s1 == s0:
+        return t1
+    return t0 + (s - s0) / (s1 - s0) * (t1 - t0)
+
+
+class Checked(NamedTuple):
+    """Output of [`check`][]: the candidate directions the profile closes (unit vectors
+    of z, for `analyse(closed=...)`), and the notes to add to the fit's warnings."""
+
+    closed: list
+    notes: list
+
+
+def check(problem, z_hat, candidates: Sequence, values, log, ref, folded, names, n: int,
+          rss_min: float, max_steps: int = 50, tol: float = 1e-8) -> Checked:
+    """Check each candidate direction `(u, se)` (see `Uncertainty.candidates`) against its
+    profile likelihood. **Returns:** a [`Checked`][]."""
+    z_hat = np.asarray(z_hat, dtype=float)
+    values = np.asarray(values, dtype=float)
+    closed, notes = [], []
+    for u, se in candidates:
+        u = np.asarray(u, dtype=float)
+        prof = profile_direction(problem, z_hat, u, se, n, rss_min,
+                                 wide_offset(u, values, log, ref),
+                                 bound_offsets(u, z_hat, folded), max_steps, tol)
+        what = _combination(u, names, log)
+        if not prof.traced:
+            notes.append(f"the profile likelihood along {what} could not be traced (a re-fit "
+                         "did not converge, or found a lower cost than the estimate), so its "
+                         "verdict rests on the sensitivities alone")
+            continue
+        if prof.open:
+            continue
+        closed.append(u)
+        half = _Z95 * se
+        wide = [abs(prof.lo), abs(prof.hi)]
+        off = [not b and (w > DISAGREE * half or w < half / DISAGREE)
+               for w, b in zip(wide, prof.at_bound)]
+        if any(off):
+            notes.append(
+                f"the Hessian interval and the profile likelihood disagree by more than "
+                f"{DISAGREE:g}x along {what}: the profile's 95% range is {prof.lo:+.3g} to "
+                f"{prof.hi:+.3g} (in its coordinates) against the Hessian's +-{half:.3g}; "
+                "the intervals reported are the Hessian's, so read them as rough (fit with "
+                "`profile=` that parameter for its interval)")
+    return Checked(closed, notes)
+
+
+def _combination(u, names, log) -> str:
+    """`u` in words: its parameter when one dominates, else its leading terms."""
+    order = [i for i in np.argsort(-np.abs(u)) if abs(u[i]) > 0.05]
+    if abs(u[order[0]]) > 0.99:
+        return names[order[0]]
+    terms = [f"{u[i]:+.2f} {'ln ' if log[i] else ''}{names[i]}" for i in order[:4]]
+    return "the combination " + " ".join(terms).lstrip("+")
