@@ -158,3 +158,23 @@ def test_a_fitted_user_force_with_k_free_is_determined():
         lo, hi = res.ci95[name]
         assert lo <= want <= hi, (name, res.values[name], res.ci95[name])
     assert not any("not determined" in w for w in res.warnings)
+
+
+def test_a_requested_profile_that_disagrees_with_the_hessian_by_2x_is_said():
+    from crank_jax.identify.profile import hessian_disagreement
+    from crank_jax.identify.result import Profile
+
+    grid = np.linspace(0.55, 1.45, 9)  # a profile grid of +-4.5 se around 1.0 (se 0.1)
+    agree = Profile("c", grid, (grid - 1.0) ** 2 / 0.01, (0.804, 1.196))
+    assert hessian_disagreement(agree, 1.0, (0.804, 1.196)) is None
+    assert hessian_disagreement(agree, 1.0, None) is None
+    # Closes at a third of the Hessian's half-width above, 3x narrower: said.
+    narrow = agree._replace(ci95=(0.804, 1.065))
+    note = hessian_disagreement(narrow, 1.0, (0.804, 1.196))
+    assert "disagree by more than 2x" in note and "upper end 1.065 against 1.196" in note
+    # Open to the grid's end below (4.5 se, 2.3x the Hessian's 1.96 se): wider, said.
+    wide = agree._replace(ci95=(None, 1.196))
+    assert "lower end beyond 0.55" in hessian_disagreement(wide, 1.0, (0.804, 1.196))
+    # Open down to the bound 0 (a parameter >= 0): a one-sided interval, not a width.
+    at0 = Profile("T_c", np.linspace(0.0, 4.5e-4, 9), np.zeros(9), (None, 3e-4))
+    assert hessian_disagreement(at0, 1e-4, (0.0, 3e-4)) is None

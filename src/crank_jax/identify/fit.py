@@ -45,7 +45,7 @@ from .motion_start import motion_start
 from .optimise import Run, least_squares, minimise_optax
 from .plan import Plan, basis, make_plan, recoordinate, recoordinate_basis, shooting
 from .problem import Problem
-from .profile import profile_likelihood
+from .profile import hessian_disagreement, profile_likelihood
 from .programs import Subspace
 from .request import FitRequest, free_names, normalise
 from .result import (
@@ -278,6 +278,9 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         se_z = math.sqrt(max(c, 0.0)) if np.isfinite(c) else float("nan")
         prof = profile_likelihood(ss, z_hat, j, se_z, ss.n_residuals, req.max_steps, req.tol,
                                   req.progress)
+        if converged and np.all(np.isfinite(unc.ci95[j])):
+            note = hessian_disagreement(prof, float(values[j]), tuple(unc.ci95[j]))
+            notes += [note] if note else []
 
     def show(i):
         return converged and bool(np.isfinite(unc.stderr[i]))
