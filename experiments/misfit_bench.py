@@ -168,7 +168,7 @@ def record(rig: str, effect: str, seed: int, t1: float | None = None) -> cj.Data
         m = loads(rig, truth)[0]
         force = GuideFriction(m, 0.3, 0.5) if rig == "osc" else GuideFriction(m, 0.5, 0.8)
     elif effect == "motor_droop":
-        force = (MotorDroop(drive, 4.0, 0.2, 0.05, 7.0, 3.0) if rig == "osc"
+        force = (MotorDroop(drive, 30.0, 0.2, 0.05, 7.0, 3.0) if rig == "osc"
                  else MotorDroop(drive, 20.0, 0.3, 0.05, 7.0))
     elif effect == "speed_wander":
         amps = jnp.asarray(rng.uniform(0.5, 1.0, 3))

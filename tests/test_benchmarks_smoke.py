@@ -21,6 +21,7 @@ EXP = Path(__file__).resolve().parent.parent / "experiments"
     ("bench_structure.py", "structure"),
     ("bench_fusion.py", "fusion"),
     ("bench_sweep_devices.py", "sweep_devices"),
+    ("misfit_bench.py", "misfit_bench"),
 ])
 def test_benchmark_smoke(script, result):
     subprocess.run([sys.executable, str(EXP / script), "--smoke"], check=True, cwd=EXP,
