@@ -30,7 +30,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["DirectionProfile", "profile_direction", "check", "CHI2_95", "DISAGREE"]
+__all__ = ["DirectionProfile", "Checked", "profile_direction", "check", "wide_offset",
+           "bound_offsets", "CHI2_95", "DISAGREE"]
 
 #: 95% quantile of chi-squared with 1 degree of freedom.
 CHI2_95 = 3.841458820694124
