@@ -317,6 +317,15 @@ def _describe(Vf: np.ndarray, names, log, se_dir, out: list[str]) -> None:
                    "experiment richer (a larger amplitude, a known load)")
 
 
+def null_space(J: np.ndarray) -> np.ndarray:
+    """(p, h) orthonormal basis of the numerical null space of `J` (`s <= RANK_TOL s_max`):
+    the exactly flat directions."""
+    _, s, Vt = np.linalg.svd(np.asarray(J, dtype=float), full_matrices=True)
+    s = np.concatenate([s, np.zeros(Vt.shape[0] - s.size)])
+    s_max = s[0] if s.size and s[0] > 0 else 1.0
+    return Vt[s <= RANK_TOL * s_max].T
+
+
 def undefined(p: int, why: str) -> Uncertainty:
     """An [`Uncertainty`][] with nothing defined (NaN), for a fit with no estimate."""
     nan = np.full(p, np.nan)
@@ -415,7 +424,7 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
         from .verdict import check
 
         checked = check(ss, z_hat, unc.candidates, values, ss.log, np.asarray(ss.ref),
-                        ss.folded, ss.names, n, float(r_hat @ r_hat))
+                        ss.folded, ss.names, n, float(r_hat @ r_hat), hold=null_space(J))
         notes += checked.notes
         if checked.closed:
             unc = analyse(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,

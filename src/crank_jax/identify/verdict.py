@@ -16,7 +16,9 @@ a wide range:
   an open end.
 
 A direction is **not determined** only when a side stays below the threshold over the
-whole wide range. Otherwise the profile closes: the direction is determined, its
+whole wide range. (A re-fit that stops before converging still bounds the profile from
+above, so a point below the threshold counts; one above it leaves the profile untraced.)
+Otherwise the profile closes: the direction is determined, its
 crossings give the profile interval, and a Hessian half-width `1.96 se` more than 2x
 away from the profile's on either side is said in a note. A profile that cannot be
 traced (a re-fit fails) leaves the candidate flagged and says so.
@@ -87,22 +89,26 @@ def bound_offsets(u, z_hat, folded) -> tuple[float, float]:
 
 
 def profile_direction(problem, z_hat, u, se: float, n: int, rss_min: float, wide: float,
-                      bounds: tuple[float, float], max_steps: int = 50, tol: float = 1e-8
-                      ) -> DirectionProfile:
+                      bounds: tuple[float, float], max_steps: int = 50, tol: float = 1e-8,
+                      hold=None) -> DirectionProfile:
     """Trace the profile likelihood along `u` (p,) from `z_hat` (p,), each side from
     1.5 Hessian half-widths (`1.96 se`) outwards, at least doubling, to `wide` or the
     side's bound,
     then one interpolated re-fit near the crossing (linear in `sqrt(deviance)`, exact for
     a quadratic cost). `problem`: the fit's single-shooting problem; `n`: the number of
-    residuals; `rss_min`: `|r|^2` at `z_hat`."""
+    residuals; `rss_min`: `|r|^2` at `z_hat`; `hold` (p, h): directions held fixed in the
+    re-fits besides `u` (the exactly flat ones, which the fit holds fixed too: LM crawls
+    along them without converging)."""
     from .optimise import least_squares
     from .programs import Subspace
 
     u = np.asarray(u, dtype=float)
     z_hat = np.asarray(z_hat, dtype=float)
-    # An orthonormal basis of the complement of u: every other direction is re-fitted.
-    q, _ = np.linalg.qr(np.column_stack([u, np.eye(u.size)]))
-    B = q[:, 1:u.size]
+    # An orthonormal basis of the complement of u and `hold`: every other direction is
+    # re-fitted.
+    held = np.column_stack([u] + ([] if hold is None else [np.asarray(hold, float)]))
+    basis, sv, _ = np.linalg.svd(held, full_matrices=True)
+    B = basis[:, int(np.sum(sv > 1e-12 * sv[0])):]
     ts, devs, traced, is_open = [0.0], [0.0], True, False
     ends, at_bound = [math.nan, math.nan], [False, False]
     best = rss_min
@@ -125,13 +131,14 @@ def profile_direction(problem, z_hat, u, se: float, n: int, rss_min: float, wide
         crossed = False
         for _ in range(_MAX_POINTS):
             run = at(sign * t, w)
-            if not (run.converged and math.isfinite(run.cost)):
+            d = n * math.log(2.0 * run.cost / rss_min) if math.isfinite(run.cost) else math.inf
+            # A re-fit that did not converge is an upper bound on the profile there: below
+            # the threshold it still shows the profile below it; above, nothing.
+            if not (run.converged or d <= CHI2_95):
                 traced = False
                 break
             w = np.asarray(run.z)
-            rss = 2.0 * run.cost
-            best = min(best, rss)
-            d = n * math.log(rss / rss_min)
+            best = min(best, 2.0 * run.cost)
             ts.append(sign * t)
             devs.append(d)
             runs[sign * t] = w
@@ -149,12 +156,13 @@ def profile_direction(problem, z_hat, u, se: float, n: int, rss_min: float, wide
                 ends[side], at_bound[side] = sign * bounds[side], True
             else:
                 is_open = True
+                break  # one open side is enough: not determined
             continue
         # One re-fit where sqrt(deviance) interpolates to the threshold's root.
         t_c = _root(prev_t, prev_d, t, d)
         run = at(sign * t_c, runs.get(sign * prev_t, np.zeros(B.shape[1])))
-        if run.converged and math.isfinite(run.cost):
-            d_c = n * math.log(2.0 * run.cost / rss_min)
+        d_c = n * math.log(2.0 * run.cost / rss_min) if math.isfinite(run.cost) else math.inf
+        if run.converged or d_c <= CHI2_95:
             ts.append(sign * t_c)
             devs.append(d_c)
             t_c = (_root(prev_t, prev_d, t_c, d_c) if d_c > CHI2_95
@@ -186,9 +194,10 @@ class Checked(NamedTuple):
 
 
 def check(problem, z_hat, candidates: Sequence, values, log, ref, folded, names, n: int,
-          rss_min: float, max_steps: int = 50, tol: float = 1e-8) -> Checked:
+          rss_min: float, max_steps: int = 50, tol: float = 1e-8, hold=None) -> Checked:
     """Check each candidate direction `(u, se)` (see `Uncertainty.candidates`) against its
-    profile likelihood. **Returns:** a [`Checked`][]."""
+    profile likelihood; `hold` (p, h): exactly flat directions, held fixed in the re-fits.
+    **Returns:** a [`Checked`][]."""
     z_hat = np.asarray(z_hat, dtype=float)
     values = np.asarray(values, dtype=float)
     closed, notes = [], []
@@ -196,7 +205,7 @@ def check(problem, z_hat, candidates: Sequence, values, log, ref, folded, names,
         u = np.asarray(u, dtype=float)
         prof = profile_direction(problem, z_hat, u, se, n, rss_min,
                                  wide_offset(u, values, log, ref),
-                                 bound_offsets(u, z_hat, folded), max_steps, tol)
+                                 bound_offsets(u, z_hat, folded), max_steps, tol, hold)
         what = _combination(u, names, log)
         if not prof.traced:
             notes.append(f"the profile likelihood along {what} could not be traced (a re-fit "
