@@ -12,6 +12,7 @@ import os
 import sys
 
 from ..solve.names import SOLVERS
+from .environment import check_cluster_env, env_int
 from .errors import UserError
 from .options import seed
 
@@ -115,7 +116,8 @@ def _join(a: argparse.Namespace) -> int | None:
 
     # Bounded: JAX waits 300 s for a missing coordinator or peer by default, and 100 s
     # for a silent peer's heartbeat.
-    wait = int(os.environ.get(_ENV_TIMEOUT, "60") or 60)
+    wait = env_int(_ENV_TIMEOUT, 60, 1, "the seconds to wait for the other processes")
+    check_cluster_env()
     address = os.environ.get("JAX_COORDINATOR_ADDRESS", "auto-detected")
     if not os.environ.get(ENV_CHILD):
         return supervise(a._argv[1:], address, wait)

@@ -1,0 +1,134 @@
+"""Issue 37 (15, 16, 18): internal errors and unclear messages. Each bad input gets one
+line naming the field, option or variable and the fix, exit status 2, no traceback, and
+before any work (these commands are refused before anything is compiled)."""
+
+from __future__ import annotations
+
+import importlib.resources
+from pathlib import Path
+
+import pytest
+
+import crank_jax as cj
+from crank_jax.cli import main
+
+
+def _lab_toml() -> str:
+    return importlib.resources.files("crank_jax").joinpath("scenes/lab-rig.toml").read_text()
+
+
+def _error(argv, capsys) -> str:
+    """Run the CLI; assert exit 2 with one line on stderr, and return that line."""
+    capsys.readouterr()
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith("crank-jax: error: "), (code, err)
+    assert "Traceback" not in err[0] and "internal error" not in err[0], err
+    return err[0]
+
+
+@pytest.fixture(scope="module")
+def record(tmp_path_factory) -> Path:
+    """A short lab-rig record (synthesised without any solve: its values do not matter
+    to commands refused before the work)."""
+    path = tmp_path_factory.mktemp("rec") / "rec.csv"
+    path.write_text("t,phi\n" + "".join(f"{i * 0.01!r},{0.1 * (i % 7)!r}\n" for i in range(20)))
+    return path
+
+
+# --- 15: internal errors -------------------------------------------------------------
+
+
+@pytest.mark.parametrize("prior", ['"lognormal(2, 1e-300)"', '"normal(2, 1e-300)"',
+                                   '"uniform(2, 2.000000000000001)"'])
+def test_a_prior_too_narrow_is_named(tmp_path, capsys, record, prior):
+    # lognormal(2, 1e-300) raised ZeroDivisionError (an internal error, exit 1) after the
+    # fit that starts the chains.
+    scene = tmp_path / "s.toml"
+    scene.write_text(_lab_toml() + f"\n[priors]\nk = {prior}\n")
+    err = _error(["posterior", record, scene, "--free", "k,phi0,dphi0", "--out",
+                  tmp_path / "p.json"], capsys)
+    assert "[priors].k" in err and "narrower" in err and "widen the prior" in err, err
+    with pytest.raises(ValueError, match="narrower"):
+        cj.identify.priors.parse_priors({"k": prior.strip('"')}, ("k",))
+
+
+def test_prior_precision_of_a_narrow_prior_is_finite():
+    # The guard 1 / max(sd, 1e-300) ** 2 divided by zero: (1e-300) ** 2 underflows.
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from crank_jax.identify.priors import prior_arrays, prior_precision
+
+    codes, params = prior_arrays(("phi0",), cj.identify.priors.parse_priors(
+        {"phi0": "normal(1e-140, 1e-149)"}, ("phi0",)))
+    # A coordinate scaled by 1e20: the prior's sd in it is 1e-169, whose square is 0.
+    problem = SimpleNamespace(values=lambda z: np.asarray(z), log=[False], ref=[1e20])
+    assert np.isfinite(prior_precision(codes, params, problem, np.array([1e-140]))).all()
+
+
+@pytest.mark.parametrize("env,name", [
+    ({"JAX_COORDINATOR_ADDRESS": "nonsense"}, "JAX_COORDINATOR_ADDRESS"),
+    ({"JAX_COORDINATOR_ADDRESS": "host:99999"}, "JAX_COORDINATOR_ADDRESS"),
+    ({"CRANK_JAX_DISTRIBUTED_TIMEOUT": "abc"}, "CRANK_JAX_DISTRIBUTED_TIMEOUT"),
+    ({"CRANK_JAX_DISTRIBUTED_TIMEOUT": "-5"}, "CRANK_JAX_DISTRIBUTED_TIMEOUT"),
+    ({"JAX_NUM_PROCESSES": "two"}, "JAX_NUM_PROCESSES"),
+    ({"JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": "2"}, "JAX_PROCESS_ID"),
+])
+def test_bad_environment_variables_are_named(tmp_path, capsys, monkeypatch, env, name):
+    # JAX_COORDINATOR_ADDRESS=nonsense raised JAX's IndexError (exit 1); a bad timeout said
+    # "invalid literal for int() with base 10: 'abc'".
+    for k in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID",
+              "CRANK_JAX_DISTRIBUTED_TIMEOUT"):
+        monkeypatch.delenv(k, raising=False)
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    err = _error(["sweep", "lab-rig", "--n", "2", "--out", tmp_path / "s.npz",
+                  "--distributed"], capsys)
+    assert f"environment variable {name}=" in err, err
+    assert not (tmp_path / "s.npz").exists()
+
+
+# --- 16: posterior --draws that would exhaust memory -------------------------------------
+
+
+def test_posterior_refuses_draws_beyond_memory(tmp_path, capsys, record):
+    err = _error(["posterior", record, "lab-rig", "--draws", "1000000000", "--out",
+                  tmp_path / "p.json"], capsys)
+    assert "--draws" in err and "GiB" in err and "use --draws <= " in err, err
+    limit = int(err.split("use --draws <= ")[1].split()[0])
+    from crank_jax.identify.posterior import check_posterior_memory, posterior_bytes
+
+    check_posterior_memory(limit, 4, 500, 4)  # the count it names fits
+    with pytest.raises(ValueError, match=r"draws \(--draws\)"):
+        check_posterior_memory(1000, 4, 500, 4, max_memory=posterior_bytes(999, 4, 500, 4))
+    check_posterior_memory(1000, 4, 500, 4, max_memory=posterior_bytes(1000, 4, 500, 4))
+
+
+# --- 18: unclear messages -------------------------------------------------------------
+
+
+def test_posterior_reads_a_scene_with_a_byte_order_mark(tmp_path, capsys, record):
+    # fit accepted it, posterior said "Invalid statement (at line 1, column 1)": the
+    # [priors] table was read by a second reader without the BOM's handling.
+    scene = tmp_path / "bom.toml"
+    scene.write_bytes(b"\xef\xbb\xbf" + (_lab_toml() + '\n[priors]\nk = "lognormal(2, 0)"\n')
+                      .encode())
+    err = _error(["posterior", record, scene, "--free", "k,phi0", "--out",
+                  tmp_path / "p.json"], capsys)
+    assert "[priors].k" in err and "zero width" in err, err
+    assert cj.identify.priors.load_priors(scene) == {"k": "lognormal(2, 0)"}
+
+
+@pytest.mark.parametrize("argv", [
+    ["design", "lab-rig", "--free", "k,c", "--t1", "1", "--rate", "100",
+     "--torque-amplitude", "0.1", "--seed", "-1", "--out", "{d}/d.json", "--scene-out",
+     "{d}/d.toml"],
+    ["posterior", "{rec}", "lab-rig", "--seed", "-1", "--out", "{d}/p.json"],
+])
+def test_negative_seeds_name_the_option(tmp_path, capsys, record, argv):
+    # design --seed -1 showed numpy's "expected non-negative integer".
+    argv = [a.replace("{d}", str(tmp_path)).replace("{rec}", str(record)) for a in argv]
+    err = _error(argv, capsys)
+    assert "--seed" in err and "from 0 to" in err, err
