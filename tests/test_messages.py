@@ -132,3 +132,56 @@ def test_negative_seeds_name_the_option(tmp_path, capsys, record, argv):
     argv = [a.replace("{d}", str(tmp_path)).replace("{rec}", str(record)) for a in argv]
     err = _error(argv, capsys)
     assert "--seed" in err and "from 0 to" in err, err
+
+
+@pytest.mark.parametrize("free,want", [
+    ("tau_gain", '[torque] input = "COLUMN"'), ("P_gain", '[load] input = "COLUMN"'),
+    ("tau1", '[torque] kind = "harmonic"'), ("P0", '[load] kind = "constant"')])
+def test_free_load_names_say_what_the_scene_needs(tmp_path, capsys, record, free, want):
+    # --free tau_gain said "(or, for tau_gai0, a constant one)": the name cut short.
+    err = _error(["fit", record, "lab-rig", "--free", free, "--out", tmp_path / "f.json"],
+                 capsys)
+    assert f"{free} cannot be free" in err and want in err and "gai0" not in err, err
+
+
+@pytest.fixture(scope="module")
+def input_scene(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("inp") / "motor.toml"
+    path.write_text(_lab_toml().replace("[initial]",
+                                        '[torque]\ninput = "volts"\ngain = 0.02\n\n[initial]'))
+    return path
+
+
+@pytest.mark.parametrize("command", ["synth", "simulate", "sweep", "design"])
+def test_input_driven_scene_is_refused_in_cli_terms_before_the_work(tmp_path, capsys,
+                                                                    input_scene, command):
+    # These said "... or give InputLoad a signal", design after 10 s of work.
+    extra = {"synth": ["--out", tmp_path / "o.csv"],
+             "simulate": ["--out", tmp_path / "o.csv"],
+             "sweep": ["--n", "2", "--out", tmp_path / "s.npz"],
+             "design": ["--free", "k,c", "--t1", "0.5", "--rate", "100",
+                        "--torque-amplitude", "0.1", "--out", tmp_path / "d.json",
+                        "--scene-out", tmp_path / "d.toml"]}[command]
+    err = _error([command, input_scene, *extra], capsys)
+    assert "InputLoad" not in err and "[torque]" in err and "'volts' column" in err, err
+    assert f"crank-jax {command}` reads no record" in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("extra,want", [
+    (["--save-every", "2"], "--save-every thins the saved trajectories"),
+    (["--checkpoint", ""], "--checkpoint is empty"),
+    (["--save-trajectories", " "], "--save-trajectories is empty"),
+    (["--checkpoint", "{d}/s.npz"], "--out and --checkpoint name the same path"),
+    (["--checkpoint", "{d}/c", "--save-trajectories", "{d}/./c"],
+     "--checkpoint and --save-trajectories name the same path"),
+])
+def test_sweep_directory_options_are_checked_before_the_work(tmp_path, capsys, monkeypatch,
+                                                             extra, want):
+    # --save-every without --save-trajectories was ignored; --checkpoint '' wrote into the
+    # current directory; --checkpoint X --out X failed only after the sweep.
+    monkeypatch.chdir(tmp_path)
+    extra = [a.replace("{d}", str(tmp_path)) for a in extra]
+    err = _error(["sweep", "lab-rig", "--n", "2", "--out", tmp_path / "s.npz", *extra], capsys)
+    assert want in err, err
+    assert list(tmp_path.iterdir()) == []

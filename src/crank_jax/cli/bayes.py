@@ -9,6 +9,7 @@ import sys
 
 from .errors import UserError
 from .options import free_list, seed
+from .scene_inputs import refuse_input_loads
 
 # --- posterior --------------------------------------------------------------------------
 
@@ -159,6 +160,7 @@ def _design_run(a: argparse.Namespace) -> int:
     if a.plot:
         check_figure_format(a.plot)
     scene = load_scene(a.scene)
+    refuse_input_loads(scene, a.scene, "design")
     try:
         d = design(scene, free, a.t1, a.rate, amplitude=a.torque_amplitude, tones=a.tones,
                    criterion=a.criterion, target=a.target, noise_std=a.noise_std,
