@@ -4,12 +4,16 @@ before any work (these commands are refused before anything is compiled)."""
 
 from __future__ import annotations
 
+import errno
 import importlib.resources
+import os
 from pathlib import Path
 
 import pytest
 
 import crank_jax as cj
+import crank_jax.io
+import crank_jax.scene
 from crank_jax.cli import main
 
 
@@ -185,3 +189,28 @@ def test_sweep_directory_options_are_checked_before_the_work(tmp_path, capsys, m
     err = _error(["sweep", "lab-rig", "--n", "2", "--out", tmp_path / "s.npz", *extra], capsys)
     assert want in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+def _no_space(*args, **kwargs):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_a_full_disk_names_the_file_and_loses_nothing(tmp_path, capsys, monkeypatch):
+    # It was a bare "[Errno 28] No space left on device".
+    out = tmp_path / "o.csv"
+    out.write_text("the previous output\n")
+    monkeypatch.setattr(crank_jax.io.os, "fsync", _no_space)
+    err = _error(["synth", "lab-rig", "--t1", "0.05", "--rate", "100", "--out", out], capsys)
+    assert f"could not write {str(out)!r}: the disk is full" in err and "[Errno" not in err
+    assert "free some space" in err, err
+    assert out.read_text() == "the previous output\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o.csv"]  # no temporary file
+
+
+def test_a_full_disk_outside_the_atomic_writers_is_one_line(tmp_path, capsys, monkeypatch):
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp_path / "chunk.npy"))
+
+    monkeypatch.setattr(crank_jax.scene, "load_scene", full)
+    err = _error(["synth", "lab-rig", "--out", tmp_path / "o.csv"], capsys)
+    assert "could not write" in err and "chunk.npy" in err and "the disk is full" in err, err
