@@ -214,3 +214,18 @@ def test_a_full_disk_outside_the_atomic_writers_is_one_line(tmp_path, capsys, mo
     monkeypatch.setattr(crank_jax.scene, "load_scene", full)
     err = _error(["synth", "lab-rig", "--out", tmp_path / "o.csv"], capsys)
     assert "could not write" in err and "chunk.npy" in err and "the disk is full" in err, err
+
+
+@pytest.mark.skipif(os.fsencode("\udcff") != b"\xff", reason="file names are not bytes here")
+def test_a_file_name_that_is_not_utf8_reaches_the_report_and_plot(tmp_path, capsys):
+    # --report failed after the fit: "'utf-8' codec can't encode character '\udcff'";
+    # --plot crashed in matplotlib's font layout (an internal error).
+    rec = tmp_path / os.fsdecode(b"lab\xff.csv")
+    cj.save_data(cj.synthesize(cj.load_scene("lab-rig"), t1=0.5, rate=100.0,
+                               noise_std=1e-3, seed=1), rec)
+    html, png = tmp_path / "r.html", tmp_path / "p.png"
+    code = main(["fit", str(rec), "lab-rig", "--free", "k,phi0,dphi0", "--quiet",
+                 "--report", str(html), "--plot", str(png)])
+    assert code == 0, capsys.readouterr().err
+    page = html.read_text(encoding="utf-8")
+    assert "lab\\xff.csv" in page and png.stat().st_size > 0

@@ -19,7 +19,7 @@ from typing import IO
 __all__ = ["atomic_write", "make_dir", "check_input", "check_not_input", "check_output",
            "check_figure_format", "default_file_mode", "Terminated", "note_signal",
            "raise_if_terminated", "temp_file", "remove_stale_temps", "STALE_TEMP_S",
-           "DISK_FULL", "disk_full"]
+           "DISK_FULL", "disk_full", "printable"]
 
 
 class Terminated(BaseException):
@@ -51,6 +51,17 @@ def raise_if_terminated() -> None:
     """Raise [`Terminated`][] if a signal was noted whose exception may have been lost."""
     if _SIGNALS:
         raise Terminated(_SIGNALS[0])
+
+
+def printable(text: str) -> str:
+    """`text` as valid Unicode: a file name that is not UTF-8 reaches Python with its bad
+    bytes as lone surrogates (`'\\udcff'`), which no UTF-8 file and no font takes; each
+    is shown as its byte, `\\xff` (other lone surrogates as `\\udXXX`)."""
+    try:
+        raw = text.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:
+        raw = text.encode("utf-8", "backslashreplace")
+    return raw.decode("utf-8", "backslashreplace")
 
 
 def default_file_mode() -> int:

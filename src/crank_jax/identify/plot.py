@@ -6,6 +6,7 @@ import os
 
 import numpy as np
 
+from ..io import printable
 from ..plot import pyplot, save_figure
 from .diagnostics import plot_acf
 
@@ -30,7 +31,7 @@ def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
     state = "converged" if result.converged else "NOT converged"
     ident = ", NOT identifiable" if result.identifiable is False else ""
     unit = (result.channels or {}).get(names_ch[0], {}) or {}
-    first.set_title((title + "\n" if title else "") + f"{state}{ident}; rms residual "
+    first.set_title((printable(title) + "\n" if title else "") + f"{state}{ident}; rms residual "
                     f"{result.rms_residual:.3g} {unit.get('unit', 'rad')}; condition number "
                     f"{result.condition_number:.3g}", fontsize=9)
     gs_last = rows

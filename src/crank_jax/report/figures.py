@@ -10,7 +10,7 @@ import io
 import numpy as np
 
 from ..identify.diagnostics import plot_acf
-from ..plot import pyplot
+from ..plot import printable_texts, pyplot
 
 __all__ = ["embed", "fit_figures", "validation_figures", "SVG_MAX_POINTS"]
 
@@ -21,6 +21,7 @@ SVG_MAX_POINTS = 20_000
 def embed(fig, points: int = 0) -> str:
     """The figure as HTML markup (an `<svg>` element or a `data:` PNG `<img>`); closes it."""
     buf = io.BytesIO()
+    printable_texts(fig)
     try:
         if points <= SVG_MAX_POINTS:
             # No date: the same result gives the same page.
