@@ -229,3 +229,18 @@ def test_a_file_name_that_is_not_utf8_reaches_the_report_and_plot(tmp_path, caps
     assert code == 0, capsys.readouterr().err
     page = html.read_text(encoding="utf-8")
     assert "lab\\xff.csv" in page and png.stat().st_size > 0
+
+
+def test_a_constant_channel_is_refused_before_any_solve():
+    # A constant slide beside a moving angle passed the no-motion check (judged on the
+    # angle) and the fit ran 636 Levenberg-Marquardt iterations on it.
+    mech = cj.SliderCrank(r=0.05, L=0.2, b=0.1, s=0.01, m_c=0.5, m_p=0.3, m_s=0.4, I_c=1e-3,
+                          I_p=2e-3, k=0.0, c=1e-3, g=9.81)
+    scene = cj.Scene(mech, torque=cj.ConstantLoad(0.05), phi0=0.0, dphi0=10.0, t1=0.3)
+    ts = [i * 0.01 for i in range(31)]
+    data = cj.Data(ts, [10.0 * t for t in ts], channels={"x_s": [0.25] * len(ts)},
+                   source="two.csv")
+    res = cj.fit(scene, data, free=("c", "phi0", "dphi0"), max_steps=3, progress=False,
+                 warn=False)
+    assert not res.converged and res.iterations == 0, (res.iterations, res.message)
+    assert "channel x_s (column 'x_s') is constant (0.25 m in all 31 samples)" in res.message
