@@ -53,7 +53,8 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
                         "(.npy files and a manifest.json; read lazily with "
                         "crank_jax.load_trajectories or np.load(mmap_mode='r'))")
     p.add_argument("--save-every", type=int, metavar="K",
-                   help="with --save-trajectories: keep every K-th save time (default 1)")
+                   help="with --save-trajectories (refused without it): keep every K-th "
+                        "save time (default 1)")
     p.add_argument("--summary", action="store_true",
                    help="print statistics of every output (JSON) on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
