@@ -108,6 +108,9 @@ def test_posterior_refuses_draws_beyond_memory(tmp_path, capsys, record):
     with pytest.raises(ValueError, match=r"draws \(--draws\)"):
         check_posterior_memory(1000, 4, 500, 4, max_memory=posterior_bytes(999, 4, 500, 4))
     check_posterior_memory(1000, 4, 500, 4, max_memory=posterior_bytes(1000, 4, 500, 4))
+    err = _error(["posterior", record, "lab-rig", "--warmup", "10000000000", "--out",
+                  tmp_path / "p.json"], capsys)
+    assert "--warmup" in err and "use --warmup <= " in err, err
 
 
 # --- 18: unclear messages -------------------------------------------------------------

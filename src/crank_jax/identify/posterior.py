@@ -139,9 +139,15 @@ def check_posterior_memory(draws: int, chains: int, warmup: int, p: int,
     need = posterior_bytes(draws, chains, warmup, p)
     if not limit or need <= limit:
         return
-    fit_draws = max((limit - posterior_bytes(0, chains, warmup, p))
-                    // max(posterior_bytes(1, chains, 0, p), 1), 0)
     why = "half this host's memory" if max_memory is None else "max_memory"
+    if posterior_bytes(0, chains, warmup, p) > limit:  # the warm-up alone is too long
+        per = posterior_bytes(0, chains, 1, p)
+        raise ValueError(f"warmup (--warmup) = {warmup} steps x chains (--chains) = {chains} "
+                         f"need about {need / 2**30:.3g} GiB of memory, over the limit of "
+                         f"{limit / 2**30:.3g} GiB ({why}); use --warmup <= "
+                         f"{max(limit - posterior_bytes(draws, chains, 0, p), 0) // per}")
+    fit_draws = ((limit - posterior_bytes(0, chains, warmup, p))
+                 // max(posterior_bytes(1, chains, 0, p), 1))
     raise ValueError(f"draws (--draws) = {draws} x chains (--chains) = {chains} of {p} "
                      f"parameters need about {need / 2**30:.3g} GiB of memory, over the "
                      f"limit of {limit / 2**30:.3g} GiB ({why}); use --draws <= {fit_draws} "
