@@ -259,12 +259,6 @@ def simulate(
         if np.ndim(v) > 0:
             raise ValueError(f"{name} has shape {np.shape(v)}: simulate integrates one system; "
                              f"to run a batch, map over it with jax.vmap")
-    if adjoint == "reverse" and _forward_differentiated(
-            (mech, load, torque, force, phi0, dphi0, ts, rtol, atol)):
-        # Under jax.jacfwd / jax.jvp: the reverse adjoint is a custom_vjp, which JAX cannot
-        # differentiate forward ("can't apply forward-mode autodiff (jvp) to a custom_vjp
-        # function"); forward mode gives the same derivatives of the same solution.
-        adjoint = "forward"
     plan = host_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure)
     if (plan.top is not None and is_concrete((phi0, dphi0))
             and np.isfinite(phi0) and np.isfinite(dphi0)):  # NaN: the finite check's
@@ -292,6 +286,11 @@ def simulate(
     # host callback, whose program the store keeps (a reverse-mode `SaveAt(ts)` checks
     # the save times in a callback, compiled again in every process).
     adjoint = "forward" if host else adjoint
+    if adjoint == "reverse" and _forward_differentiated(args):
+        # Under jax.jacfwd / jax.jvp: the reverse adjoint is a custom_vjp, which JAX cannot
+        # differentiate forward ("can't apply forward-mode autodiff (jvp) to a custom_vjp
+        # function"); forward mode gives the same derivatives of the same solution.
+        adjoint = "forward"
     static = dict(solver=plan.solver, max_steps=int(max_steps), adjoint=adjoint,
                   structure=plan.structure, outputs=tuple(sorted(set(outputs))))
     traj = _program_solve(*args, **static) if host and force is None else None
