@@ -4,6 +4,7 @@ file, and checks of output paths made before any work."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import re
@@ -17,7 +18,8 @@ from typing import IO
 
 __all__ = ["atomic_write", "make_dir", "check_input", "check_not_input", "check_output",
            "check_figure_format", "default_file_mode", "Terminated", "note_signal",
-           "raise_if_terminated", "temp_file", "remove_stale_temps", "STALE_TEMP_S"]
+           "raise_if_terminated", "temp_file", "remove_stale_temps", "STALE_TEMP_S",
+           "DISK_FULL", "disk_full", "printable"]
 
 
 class Terminated(BaseException):
@@ -49,6 +51,17 @@ def raise_if_terminated() -> None:
     """Raise [`Terminated`][] if a signal was noted whose exception may have been lost."""
     if _SIGNALS:
         raise Terminated(_SIGNALS[0])
+
+
+def printable(text: str) -> str:
+    """`text` as valid Unicode: a file name that is not UTF-8 reaches Python with its bad
+    bytes as lone surrogates (`'\\udcff'`), which no UTF-8 file and no font takes; each
+    is shown as its byte, `\\xff` (other lone surrogates as `\\udXXX`)."""
+    try:
+        raw = text.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:
+        raw = text.encode("utf-8", "backslashreplace")
+    return raw.decode("utf-8", "backslashreplace")
 
 
 def default_file_mode() -> int:
@@ -191,10 +204,28 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
             os.fsync(f.fileno())
         raise_if_terminated()
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and e.errno in DISK_FULL:
+            raise disk_full(path, e) from None
         raise
+
+
+#: The errors of a write that found no space: the disk is full, or the user's quota.
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
+
+
+def disk_full(path: str | os.PathLike | None, e: OSError) -> OSError:
+    """The one-line error of a write to `path` that found no space (`e`, ENOSPC or EDQUOT):
+    what could not be written, that the disk is full, and that an existing file of that
+    name was left as it was (the writers write beside it and rename)."""
+    what = f"{str(path)!r}" if path is not None else "an output"
+    where = "the disk quota is used up" if e.errno == errno.EDQUOT else "the disk is full"
+    err = OSError(f"could not write {what}: {where} ({e.strerror}); nothing was replaced "
+                  f"(an existing {what} is unchanged): free some space and run again")
+    err.errno = e.errno
+    return err
 
 
 def check_not_input(out: str | os.PathLike, inputs: Sequence[str | os.PathLike | None],

@@ -6,9 +6,9 @@ import os
 
 import numpy as np
 
-from .io import atomic_write
+from .io import atomic_write, printable
 
-__all__ = ["plot_trajectory", "save_figure"]
+__all__ = ["plot_trajectory", "save_figure", "printable_texts"]
 
 
 def pyplot():
@@ -20,8 +20,21 @@ def pyplot():
     return plt
 
 
+def printable_texts(fig) -> None:
+    """Make every text of `fig` valid Unicode ([`printable`][crank_jax.io.printable]): a
+    title naming a file whose name is not UTF-8 crashed matplotlib's font layout after
+    the work."""
+    from matplotlib.text import Text
+
+    for t in fig.findobj(Text):
+        text = t.get_text()
+        if isinstance(text, str) and printable(text) != text:
+            t.set_text(printable(text))
+
+
 def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> None:
     """Save a matplotlib figure atomically (format from the file suffix) and close it."""
+    printable_texts(fig)
     fmt = os.path.splitext(str(path))[1].lstrip(".") or "png"
     with atomic_write(path, "wb") as f:
         fig.savefig(f, format=fmt, dpi=dpi, bbox_inches="tight")
@@ -41,5 +54,5 @@ def plot_trajectory(traj, path: str | os.PathLike, title: str = "") -> None:
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
     if title:
-        ax1.set_title(title, fontsize=10)
+        ax1.set_title(printable(title), fontsize=10)
     save_figure(fig, path)

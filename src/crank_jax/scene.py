@@ -38,7 +38,7 @@ from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
 
 __all__ = ["Scene", "SceneError", "load_scene", "scene_to_toml", "save_scene", "presets",
-           "PRESETS", "fitted_scene"]
+           "PRESETS", "fitted_scene", "read_scene_doc"]
 
 #: Preset scene names; `load_scene(name)` loads one.
 PRESETS: tuple[str, ...] = ("lab-rig", "torsional", "near-buckling", "pendulum")
@@ -265,6 +265,14 @@ def load_scene(source: str | os.PathLike) -> Scene:
     if src in PRESETS:
         text = importlib.resources.files("crank_jax").joinpath(f"scenes/{src}.toml").read_text()
         return scene_from_dict(tomllib.loads(text), where=f"preset {src}", name=src)
+    return scene_from_dict(read_scene_doc(src), where=src, name=Path(src).stem)
+
+
+def read_scene_doc(source: str | os.PathLike) -> dict:
+    """The TOML document of a scene file, as every reader of scene files gets it (the
+    scene itself, its `[priors]`): a regular file of at most [`MAX_SCENE_BYTES`][], UTF-8
+    with or without a byte-order mark. Raises [`SceneError`][] naming the file."""
+    src = str(source)
     path = Path(src)
     if not path.is_file():  # a FIFO or device too: opening it could wait forever
         kind = "a TOML file" if not path.exists() else "a regular file"
@@ -280,7 +288,7 @@ def load_scene(source: str | os.PathLike) -> Scene:
         raise SceneError(f"{src}: malformed TOML: {e}") from None
     except UnicodeDecodeError:
         raise SceneError(f"{src}: not a UTF-8 text file") from None
-    return scene_from_dict(doc, where=src, name=path.stem)
+    return doc
 
 
 def _load_table(load: AbstractLoad, side: str) -> dict[str, Any] | None:

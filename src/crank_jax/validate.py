@@ -248,6 +248,7 @@ def _scores(y: np.ndarray, yhat: np.ndarray, name: str) -> dict:
 def plot_validation(val: Validation, path: str | os.PathLike, title: str = "") -> None:
     """Draw, for each channel, data and prediction and below them the error; the
     initial-state window is shaded."""
+    from .io import printable
     from .plot import pyplot, save_figure
 
     plt = pyplot()
@@ -271,7 +272,8 @@ def plot_validation(val: Validation, path: str | os.PathLike, title: str = "") -
         ax2.set_ylabel(f"data - prediction [{info['unit']}]")
     axes[-1].set_xlabel("t [s] (shaded: initial-state window)")
     unit = next(iter(chans.values()))["unit"]
-    axes[0].set_title((title + "\n" if title else "") + f"fit {val.fit_percent:.2f}%, rms "
+    head = printable(title) + "\n" if title else ""  # a file name that is not UTF-8
+    axes[0].set_title(head + f"fit {val.fit_percent:.2f}%, rms "
                       f"{val.rms:.3g} {unit}, max |error| {val.max_abs:.3g} {unit} over "
                       f"{val.n_samples} samples", fontsize=9)
     fig.tight_layout()

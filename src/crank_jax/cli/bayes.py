@@ -8,7 +8,8 @@ import json
 import sys
 
 from .errors import UserError
-from .options import free_list
+from .options import free_list, seed
+from .scene_inputs import refuse_input_loads
 
 # --- posterior --------------------------------------------------------------------------
 
@@ -24,7 +25,7 @@ def _posterior_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--draws", type=int, default=1000, help="draws per chain (1000)")
     p.add_argument("--chains", type=int, default=4, help="chains (4)")
     p.add_argument("--warmup", type=int, default=500, help="warm-up steps per chain (500)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the sampler (0)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the sampler (0)")
     p.add_argument("--t-start", type=float, dest="fit_t_start",
                    help="use only samples at or after this time, s")
     p.add_argument("--t-end", type=float, dest="fit_t_end",
@@ -35,6 +36,7 @@ def _posterior_args(p: argparse.ArgumentParser) -> None:
 
 
 def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
+    from ..identify.posterior import check_posterior_memory
     from ..io import check_figure_format, check_output
 
     free = free_list(a.free)
@@ -44,6 +46,9 @@ def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
             raise UserError(f"{option} must be >= {lo}, got {value}")
     if a.chains > 1 and a.draws < 4:
         raise UserError(f"--draws must be >= 4 with several chains, got {a.draws}")
+    # Each further record adds its own phi0 and dphi0 (when free): the most parameters.
+    p = len(free) + 2 * len(a.more_data)
+    check_posterior_memory(a.draws, a.chains, a.warmup, p)
     inputs = [a.data, *a.more_data, a.scene]
     check_output(a.out, inputs, "--out")
     if a.plot:
@@ -122,7 +127,7 @@ def _design_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--noise-std", type=float, default=1e-3,
                    help="angle noise, rad (1e-3; scales the predicted standard errors)")
     p.add_argument("--iterations", type=int, default=60, help="Adam iterations (60)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the start phases (0)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the start phases (0)")
     p.add_argument("--scene-out", required=True,
                    help="the designed scene (TOML, its [torque] the multisine)")
     p.add_argument("--out", required=True, help="the design report (JSON)")
@@ -155,6 +160,7 @@ def _design_run(a: argparse.Namespace) -> int:
     if a.plot:
         check_figure_format(a.plot)
     scene = load_scene(a.scene)
+    refuse_input_loads(scene, a.scene, "design")
     try:
         d = design(scene, free, a.t1, a.rate, amplitude=a.torque_amplitude, tones=a.tones,
                    criterion=a.criterion, target=a.target, noise_std=a.noise_std,

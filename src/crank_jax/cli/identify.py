@@ -13,6 +13,7 @@ import numpy as np
 from .channels import add_channel_options, parse_sigma, record_sensors, scene_inputs
 from .errors import UserError
 from .options import free_list, seed
+from .scene_inputs import refuse_input_loads
 
 #: The demo experiment: the lab rig driven by a known harmonic crank torque (a shaker),
 #: which fixes the common scale of the inertial parameters; 5 s sampled at 200 Hz with
@@ -69,6 +70,7 @@ def _synth_run(a: argparse.Namespace) -> int:
 
     check_output(a.out, [a.scene])
     scene = load_scene(a.scene)
+    refuse_input_loads(scene, a.scene, "synth")
     _check_record_size(a, scene)
     noise = parse_sigma(a.noise_std, "--noise-std", zero=True)
     data = synthesize(scene, t1=a.t1, rate=a.rate, noise_std=0.0 if noise is None else noise,
@@ -213,6 +215,15 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
     return 0
 
 
+#: What a scene needs for a load parameter of each role to be free (`--free`).
+_LOAD_FIX = {
+    "mean": "give the scene a constant or harmonic {side} ([{side}] kind = \"constant\")",
+    "amp": "give the scene a harmonic {side} ([{side}] kind = \"harmonic\")",
+    "gain": ("drive the scene's {side} by a record column ([{side}] input = \"COLUMN\", "
+             "gain = ...) and fit a record that has that column"),
+}
+
+
 def _check_free(free: tuple[str, ...], a: argparse.Namespace, scene, n_records: int) -> None:
     """Check --free and --profile against the names a fit knows and the scene's loads,
     before any record is read (a long record takes seconds to read)."""
@@ -227,8 +238,7 @@ def _check_free(free: tuple[str, ...], a: argparse.Namespace, scene, n_records: 
             side, role = LOAD_NAMES[n]
             if load_param(getattr(scene, "load" if side == "load" else "torque"), role) is None:
                 raise UserError(f"--free: {n} cannot be free: the scene's {side} has no {n}; "
-                                f"give the scene a harmonic {side} (or, for {n[:-1]}0, a "
-                                "constant one)")
+                                f"{_LOAD_FIX[role].format(side=side)}")
     names = reported_names(tuple(dict.fromkeys(free)), n_records)
     if a.profile is not None and a.profile not in names:
         raise UserError(f"--profile {a.profile!r} is not a free parameter; choose from "

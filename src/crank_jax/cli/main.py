@@ -24,7 +24,7 @@ import traceback
 import warnings
 from collections.abc import Iterator
 
-from ..io import Terminated, note_signal, raise_if_terminated
+from ..io import DISK_FULL, Terminated, disk_full, note_signal, raise_if_terminated
 from ..xla_flags import configure_cpu
 from . import bayes, identify, simulate, sweep, validate
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
@@ -208,6 +208,9 @@ def main(argv: list[str] | None = None) -> int:
         # unless JAX or a library under it raised it: that is a failure of ours.
         if isinstance(e, ValueError) and _raised_inside_jax(e):
             return _fail(EXIT_FAILURE, _internal(e), debug)
+        if isinstance(e, OSError) and e.errno in DISK_FULL and "could not write" not in str(e):
+            # A write outside the atomic writers (which name their file themselves).
+            return _fail(EXIT_USAGE, _one_line(disk_full(e.filename, e)), debug)
         if isinstance(e, BrokenPipeError):  # `crank-jax ... | head`: not an error
             with contextlib.suppress(OSError):
                 sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (silence the exit flush)

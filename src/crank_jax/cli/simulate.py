@@ -12,6 +12,7 @@ import numpy as np
 
 from ..solve.names import SOLVERS
 from .errors import UserError
+from .scene_inputs import refuse_input_loads
 
 __all__ = ["COMMANDS"]
 
@@ -184,6 +185,7 @@ def _simulate_run(a: argparse.Namespace) -> int:
 
     kw = _check_options(a)
     scene = _load(a.scene)
+    refuse_input_loads(scene, a.scene, "simulate")
     t1 = scene.t1 if a.t1 is None else a.t1
     samples = scene.samples if a.samples is None else a.samples
     ncols = 3 + len(output_columns(kw.get("outputs", scene.outputs)))

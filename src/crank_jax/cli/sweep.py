@@ -12,8 +12,10 @@ import os
 import sys
 
 from ..solve.names import SOLVERS
+from .environment import check_cluster_env, env_int
 from .errors import UserError
 from .options import seed
+from .scene_inputs import refuse_input_loads
 
 _ENV_DISTRIBUTED = "CRANK_JAX_DISTRIBUTED"
 #: Seconds to wait for the coordinator and every process when joining (default 60).
@@ -50,8 +52,9 @@ def _sweep_args(p: argparse.ArgumentParser) -> None:
                    help="stream every solved sample's phi and dphi to DIR, chunk by chunk "
                         "(.npy files and a manifest.json; read lazily with "
                         "crank_jax.load_trajectories or np.load(mmap_mode='r'))")
-    p.add_argument("--save-every", type=int, default=1, metavar="K",
-                   help="with --save-trajectories: keep every K-th save time (default 1)")
+    p.add_argument("--save-every", type=int, metavar="K",
+                   help="with --save-trajectories (refused without it): keep every K-th "
+                        "save time (default 1)")
     p.add_argument("--summary", action="store_true",
                    help="print statistics of every output (JSON) on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -81,6 +84,24 @@ def _parse_vary(items: list[str]) -> dict[str, object]:
         except ValueError as e:
             raise UserError(f"--vary {item!r}: {e}") from None
     return spec
+
+
+def _check_dirs(a: argparse.Namespace) -> None:
+    """--checkpoint and --save-trajectories: not empty (the current directory), and no two
+    of them and --out the same path (found only after the work)."""
+    from pathlib import Path
+
+    named = [(o, v) for o, v in (("--checkpoint", a.checkpoint),
+                                 ("--save-trajectories", a.save_trajectories)) if v is not None]
+    for option, value in named:
+        if not value.strip():
+            raise UserError(f"{option} is empty; name a directory for it (it would write into "
+                            "the current directory)")
+    paths = [("--out", a.out)] + named
+    for i, (o1, p1) in enumerate(paths):
+        for o2, p2 in paths[i + 1:]:
+            if Path(p1).resolve() == Path(p2).resolve():
+                raise UserError(f"{o1} and {o2} name the same path {p1!r}; give each its own")
 
 
 def _wait_for_coordinator(wait: int) -> None:
@@ -115,7 +136,8 @@ def _join(a: argparse.Namespace) -> int | None:
 
     # Bounded: JAX waits 300 s for a missing coordinator or peer by default, and 100 s
     # for a silent peer's heartbeat.
-    wait = int(os.environ.get(_ENV_TIMEOUT, "60") or 60)
+    wait = env_int(_ENV_TIMEOUT, 60, 1, "the seconds to wait for the other processes")
+    check_cluster_env()
     address = os.environ.get("JAX_COORDINATOR_ADDRESS", "auto-detected")
     if not os.environ.get(ENV_CHILD):
         return supervise(a._argv[1:], address, wait)
@@ -163,17 +185,22 @@ def _sweep_run(a: argparse.Namespace) -> int:
         raise UserError(f"--samples must be >= 2, got {a.samples}")
     if a.max_steps < 1 or a.chunk_size < 1:
         raise UserError("--max-steps and --chunk-size must be >= 1")
-    if a.save_every < 1:
+    if a.save_every is not None and a.save_trajectories is None:
+        raise UserError("--save-every thins the saved trajectories: give --save-trajectories "
+                        "DIR with it, or leave it out")
+    if a.save_every is not None and a.save_every < 1:
         raise UserError(f"--save-every must be >= 1, got {a.save_every}")
+    _check_dirs(a)
     if not a.out.endswith(".npz"):
         # np.savez would silently append ".npz" to another name; say so instead.
         raise UserError(f"--out must end in .npz, got {a.out!r}")
     check_output(a.out, [a.scene])
     scene = load_scene(a.scene)
+    refuse_input_loads(scene, a.scene, "sweep")
     result = sweep(scene, spec, outputs, n=a.n, seed=a.seed, t1=a.t1, num_saves=a.samples,
                    solver=a.solver, max_steps=a.max_steps, chunk_size=a.chunk_size,
                    progress=not a.quiet, checkpoint=a.checkpoint,
-                   save_trajectories=a.save_trajectories, trajectory_every=a.save_every)
+                   save_trajectories=a.save_trajectories, trajectory_every=a.save_every or 1)
     if jax.process_index() == 0:
         result.save(a.out)
         counts = result.counts()

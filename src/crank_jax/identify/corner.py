@@ -6,6 +6,7 @@ import os
 
 import numpy as np
 
+from ..io import printable
 from ..plot import pyplot, save_figure
 
 __all__ = ["plot_corner", "plot_design", "CHI2_2_95"]
@@ -59,7 +60,7 @@ def plot_corner(post, path: str | os.PathLike, title: str = "") -> None:
             if j == 0 and i > 0:
                 ax.set_ylabel(ni)
             ax.tick_params(labelsize=6)
-    fig.suptitle((title + "\n" if title else "") + f"posterior: {post.chains} chains x "
+    fig.suptitle((printable(title) + "\n" if title else "") + f"posterior: {post.chains} chains x "
                  f"{post.n_draws} draws, {post.divergences} divergences; red: Laplace 95%",
                  fontsize=9)
     save_figure(fig, path)

@@ -15,6 +15,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from ..model.outputs import SI_UNITS
 from ..solve.solvers import AbstractSolver
 from . import channels as ch
 from .angle import motion_period
@@ -34,7 +35,8 @@ from .strategy import (
 )
 from .uncertainty import RANK_TOL
 
-__all__ = ["Plan", "make_plan", "shooting", "basis", "recoordinate", "recoordinate_basis"]
+__all__ = ["Plan", "make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
+           "recoordinate", "recoordinate_basis"]
 
 
 @dataclasses.dataclass
@@ -103,6 +105,27 @@ def _start_solve(req, start, states, solver, periods):
             return ss, z, r, int(failed), np.atleast_1d(steps).astype(int), J
 
 
+#: A channel whose spread (rms about its mean) is at most this many float64 epsilons of
+#: its largest magnitude is constant up to rounding (as `validate.MIN_SPREAD_EPS`).
+CONSTANT_EPS = 1024
+
+
+def constant_channel(d) -> str | None:
+    """A message when a channel of record `d` is constant up to float rounding, else None.
+    A constant angle is no motion (`no_motion`), but the motion is judged on the angle the
+    channels tell, so a constant slide beside a moving angle passed, and the fit spent
+    hundreds of iterations on it. Decided before any solve."""
+    for sensor, y in d.outputs():
+        y = np.asarray(y, dtype=float)
+        spread = float(np.std(y))
+        if spread <= CONSTANT_EPS * np.finfo(np.float64).eps * float(np.max(np.abs(y))):
+            return (f"channel {sensor.name} (column {sensor.column!r}) is constant "
+                    f"({float(y.mean()):.6g} {SI_UNITS[sensor.name]} in all {y.size} "
+                    "samples): it shows no motion; check the column and its unit, or leave "
+                    "the channel out (--channel)")
+    return None
+
+
 def _turns(angle: np.ndarray) -> float:
     """Net turns of a record's crank (its angle as the channels tell it), first sample to
     last."""
@@ -147,7 +170,7 @@ def make_plan(req: FitRequest) -> Plan:
     noise = req.sigmas[ch.first_channel(req)]
     multi = len(req.records) > 1
     quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in
-                  ((no_motion(ang, n) or aliased(ang), d)
+                  ((no_motion(ang, n) or constant_channel(d) or aliased(ang), d)
                    for d, ang, n in zip(req.records, req.angles, noises)) if a), None)
     start, states, notes = _starts(req, periods)
     mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()

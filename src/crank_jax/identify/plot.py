@@ -6,10 +6,11 @@ import os
 
 import numpy as np
 
+from ..io import printable
 from ..plot import pyplot, save_figure
 from .diagnostics import plot_acf
 
-__all__ = ["plot_fit"]
+__all__ = ["plot_fit", "plot_channel"]
 
 
 def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
@@ -26,11 +27,11 @@ def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
         ax1 = fig.add_subplot(gs[2 * c, :], sharex=first)
         ax2 = fig.add_subplot(gs[2 * c + 1, :], sharex=ax1)
         first = first or ax1
-        _plot_channel(ax1, ax2, result, name)
+        plot_channel(ax1, ax2, result, name)
     state = "converged" if result.converged else "NOT converged"
     ident = ", NOT identifiable" if result.identifiable is False else ""
     unit = (result.channels or {}).get(names_ch[0], {}) or {}
-    first.set_title((title + "\n" if title else "") + f"{state}{ident}; rms residual "
+    first.set_title((printable(title) + "\n" if title else "") + f"{state}{ident}; rms residual "
                     f"{result.rms_residual:.3g} {unit.get('unit', 'rad')}; condition number "
                     f"{result.condition_number:.3g}", fontsize=9)
     gs_last = rows
@@ -57,7 +58,7 @@ def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
     save_figure(fig, path)
 
 
-def _plot_channel(ax1, ax2, result, name: str) -> None:
+def plot_channel(ax1, ax2, result, name: str) -> None:
     """One channel's data against the fit (ax1) and its residuals (ax2), SI."""
     fitted = result.fitted_channels or [{"phi": f} for f in result.fitted]
     unit = ((result.channels or {}).get(name) or {}).get("unit", "rad")

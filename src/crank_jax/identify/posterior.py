@@ -45,13 +45,13 @@ from .nuts import adaptation, initial_carry, run_chains, schedule
 from .priors import base_name, in_support, parse_priors, prior_arrays, prior_precision
 from .problem import Problem, build_problem, pick_solver
 from .programs import jacobian_at
-from .request import STATE_NAMES, normalise
+from .request import STATE_NAMES, normalise, reported_names
 from .result import FitResult
 from .strategy import MAX_ODE_STEPS, ode_budget
 
 blackjax = lazy_import("blackjax")  # imported on first use (see lazy.py)
 
-__all__ = ["Posterior", "posterior"]
+__all__ = ["Posterior", "posterior", "posterior_bytes", "check_posterior_memory"]
 
 
 @dataclasses.dataclass
@@ -112,6 +112,46 @@ class Posterior:
                                 "ci95": list(self.fit.ci95[n]) if self.fit.ci95[n] else None}
                             for n in self.names},
                 "samples": {n: np.asarray(v).tolist() for n, v in self.draws.items()}}
+
+
+def posterior_bytes(draws: int, chains: int, warmup: int, p: int) -> int:
+    """Host memory a posterior of `chains` x `draws` draws of `p` parameters after `warmup`
+    steps holds at its peak, bytes, about: per step of warm-up and sampling and chain,
+    its positions (8 bytes each), divergence flag and tree size, in the chunks and their
+    concatenation; per draw and chain, the draws whitened back and in physical units
+    (8 bytes each, twice) and as Python floats for the JSON document (32 bytes each);
+    per warm-up step, Stan's window schedule (a Python list)."""
+    steps, draws, chains, warmup = (int(draws) + int(warmup), int(draws), int(chains),
+                                    int(warmup))
+    per_step = chains * 2 * (8 * p + 1 + 8)
+    per_draw = chains * p * (2 * 8 + 32)
+    return steps * per_step + draws * per_draw + warmup * 128 + steps * 8
+
+
+def check_posterior_memory(draws: int, chains: int, warmup: int, p: int,
+                           max_memory: int | None = None) -> None:
+    """Raise `ValueError` naming `draws` (`--draws`) and the largest count that fits when
+    [`posterior_bytes`][] exceeds `max_memory` (default: half this host's memory), before
+    any work: `--draws 1000000000` grew past 8 GB before it failed."""
+    from ..sweep.plan import host_memory
+
+    limit = host_memory() // 2 if max_memory is None else int(max_memory)
+    need = posterior_bytes(draws, chains, warmup, p)
+    if not limit or need <= limit:
+        return
+    why = "half this host's memory" if max_memory is None else "max_memory"
+    if posterior_bytes(0, chains, warmup, p) > limit:  # the warm-up alone is too long
+        per = posterior_bytes(0, chains, 1, p)
+        raise ValueError(f"warmup (--warmup) = {warmup} steps x chains (--chains) = {chains} "
+                         f"need about {need / 2**30:.3g} GiB of memory, over the limit of "
+                         f"{limit / 2**30:.3g} GiB ({why}); use --warmup <= "
+                         f"{max(limit - posterior_bytes(draws, chains, 0, p), 0) // per}")
+    fit_draws = ((limit - posterior_bytes(0, chains, warmup, p))
+                 // max(posterior_bytes(1, chains, 0, p), 1))
+    raise ValueError(f"draws (--draws) = {draws} x chains (--chains) = {chains} of {p} "
+                     f"parameters need about {need / 2**30:.3g} GiB of memory, over the "
+                     f"limit of {limit / 2**30:.3g} GiB ({why}); use --draws <= {fit_draws} "
+                     "(or fewer --chains or --warmup steps)")
 
 
 def _check_counts(draws, chains, warmup) -> None:
@@ -211,6 +251,8 @@ def posterior(
     req = normalise(scene, data, free, init="scene", method="lm", shooting="auto",
                     segments=None, multistart=1, seed=seed, max_steps=None, tol=1e-8,
                     sigma=None, profile=None, window=window, progress=progress, warn=False)
+    check_posterior_memory(draws, chains, warmup,
+                           len(reported_names(req.free, len(req.records))))
     prior = parse_priors(priors, req.free)
     res = fit(scene, data, req.free, window=window, progress=progress, warn=False)
     if not res.converged:

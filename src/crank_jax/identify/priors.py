@@ -7,9 +7,8 @@ A `[priors]` table in a scene file gives them, e.g. `k = "lognormal(0.7, 0.5)"`.
 from __future__ import annotations
 
 import math
-import tomllib
+import os
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -26,13 +25,21 @@ from ..sweep.distributions import (
 )
 from .problem import Problem
 
-__all__ = ["PRIOR_FAMILIES", "parse_priors", "load_priors", "prior_arrays", "log_prior",
-           "prior_precision",
-           "in_support", "base_name"]
+__all__ = ["PRIOR_FAMILIES", "MIN_PRIOR_SPREAD", "MIN_PRIOR_WIDTH", "parse_priors",
+           "load_priors", "prior_arrays", "log_prior", "prior_precision", "in_support",
+           "base_name"]
 
 #: Prior families (the sweep's distribution syntax), without `const` (a constant is a
 #: fixed parameter: leave it out of `free`).
 PRIOR_FAMILIES = ("normal", "uniform", "lognormal", "loguniform")
+#: The narrowest prior: its spread relative to its location (sd / |mu|, sigma of a
+#: lognormal, (hi - lo) / max(|lo|, |hi|), log(hi / lo)). A narrower one fixes the value to
+#: within rounding of the sampler's coordinates, and its density's scale overflows (a
+#: lognormal(2, 1e-300) divided by zero).
+MIN_PRIOR_SPREAD = 1e-9
+#: The smallest absolute spread of a normal or uniform prior (about zero): its square stays
+#: a normal float64.
+MIN_PRIOR_WIDTH = 1e-150
 # Codes of the families inside the compiled program (static).
 _FLAT, _NORMAL, _UNIFORM, _LOGNORMAL, _LOGUNIFORM, _FLAT_NONNEGATIVE = range(6)
 
@@ -75,6 +82,11 @@ def parse_priors(priors: Mapping[str, str | AbstractDistribution] | None, free: 
             d.sigma if isinstance(d, LogNormal) else d.hi - d.lo)
         if not width > 0:
             raise ValueError(f"{where}.{name}: {d} has zero width; a prior needs a spread > 0")
+        if _too_narrow(d):
+            raise ValueError(f"{where}.{name}: {d} is narrower than a relative spread of "
+                             f"{MIN_PRIOR_SPREAD:g}, which fixes {name}: widen the prior, or "
+                             f"leave {name} out of the free parameters (its value in the "
+                             "scene)")
         if _nonnegative(name) and (isinstance(d, Normal)
                                    or (isinstance(d, Uniform) and d.lo < 0)):
             raise ValueError(f"{where}.{name}: {d} puts mass below 0, outside {name}'s valid "
@@ -84,14 +96,27 @@ def parse_priors(priors: Mapping[str, str | AbstractDistribution] | None, free: 
     return out
 
 
-def load_priors(path: str | Path) -> dict[str, str]:
+def _too_narrow(d: AbstractDistribution) -> bool:
+    """Whether a prior is narrower than [`MIN_PRIOR_SPREAD`][] (or, about zero,
+    [`MIN_PRIOR_WIDTH`][])."""
+    if isinstance(d, LogNormal):
+        return not d.sigma >= MIN_PRIOR_SPREAD
+    if isinstance(d, LogUniform):
+        return not math.log(d.hi / d.lo) >= MIN_PRIOR_SPREAD
+    width, scale = ((d.sd, abs(d.mu)) if isinstance(d, Normal)
+                    else (d.hi - d.lo, max(abs(d.lo), abs(d.hi))))
+    return not (width >= MIN_PRIOR_SPREAD * scale and width >= MIN_PRIOR_WIDTH)
+
+
+def load_priors(path: str | os.PathLike) -> dict[str, str]:
     """The `[priors]` table of a scene file (`{}` when it has none or `path` is a preset).
 
     **Raises:** `ValueError` when `[priors]` is not a table of strings."""
-    p = Path(path)
-    if not p.is_file():
+    from ..scene import PRESETS, read_scene_doc
+
+    if str(path) in PRESETS:
         return {}
-    doc = tomllib.loads(p.read_text(encoding="utf-8"))
+    doc = read_scene_doc(path)  # as load_scene reads it (a byte-order mark, the checks)
     table = doc.get("priors", {})
     if not isinstance(table, dict) or not all(isinstance(v, str) for v in table.values()):
         raise ValueError(f"{path}: [priors] must be a table of strings like "
@@ -144,7 +169,7 @@ def prior_precision(codes, params, problem: Problem, z) -> np.ndarray:
             sd_z = (b - a) / math.sqrt(12) * (1.0 if problem.log[i] else abs(x[i]) * dzdx)
         else:
             continue
-        out[i] = 1.0 / max(sd_z, 1e-300) ** 2
+        out[i] = 1.0 / max(sd_z, MIN_PRIOR_WIDTH) ** 2  # (1e-300)**2 underflowed to 0
     return out
 
 

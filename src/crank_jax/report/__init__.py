@@ -29,10 +29,12 @@ def render(context: dict) -> str:
 
 
 def _write(path: str | os.PathLike, html: str) -> None:
-    from ..io import atomic_write
+    from ..io import atomic_write, printable
 
+    # A file name that is not UTF-8 (in the command line, a record's source) is shown by
+    # its bytes: its surrogates failed the UTF-8 write after the work.
     with atomic_write(path, "w") as f:
-        f.write(html)
+        f.write(printable(html))
 
 
 def write_fit_report(result, path: str | os.PathLike, *, scene=None,

@@ -115,6 +115,11 @@ def _verdicts(pairs: list[tuple[str, tuple[str, str]]]) -> list[dict]:
     return [{"topic": topic, "cls": cls, "text": text} for topic, (cls, text) in pairs]
 
 
+def _first_unit(channels: dict | None) -> str:
+    """The SI unit of the first channel (the one overall scores are in); rad without any."""
+    return next(iter((channels or {}).values()), {}).get("unit", "rad")
+
+
 def fit_context(res, *, scene=None, command=None, title: str = "") -> dict:
     """The template's values for a [`FitResult`][crank_jax.FitResult]; every number comes
     from `res.to_json()` (the `fit.json` document) or the result's own fields."""
@@ -129,7 +134,7 @@ def fit_context(res, *, scene=None, command=None, title: str = "") -> dict:
             fitted = None
     summary = [("parameters", str(len(res.names))), ("samples", str(doc["n_samples"])),
                ("records", str(len(res.data))),
-               ("rms residual", f"{fmt(doc['rms_residual'])} rad"),
+               ("rms residual", f"{fmt(doc['rms_residual'])} {_first_unit(res.channels)}"),
                ("condition number", fmt(res.condition_number)),
                ("method", res.method), ("strategy", res.strategy or f"{res.shooting} shooting"),
                ("iterations", str(doc["iterations"])), ("time", f"{doc['seconds']:.1f} s")]
@@ -161,18 +166,27 @@ def validation_context(val, *, scene=None, command=None, title: str = "") -> dic
     `val.to_json()`, the `VAL.json` document)."""
     doc = val.to_json()
     diag = _error_diagnostics(val)
-    scores = [("fit", _cell(doc["fit_percent"]), "%"), ("rms error", _cell(doc["rms"]), "rad"),
-              ("max |error|", _cell(doc["max_abs"]), "rad"),
+    u = _first_unit(val.channels)
+    scores = [("fit", _cell(doc["fit_percent"]), "%"), ("rms error", _cell(doc["rms"]), u),
+              ("max |error|", _cell(doc["max_abs"]), u),
               ("scored samples", {"text": str(doc["n_samples"]), "full": ""}, ""),
               ("phi0 (estimated)", _cell(doc["phi0"]), "rad"),
               ("dphi0 (estimated)", _cell(doc["dphi0"]), "rad/s"),
               ("initial-state window", _cell(doc["init_window"]), "s"),
               ("t start", _cell(doc["t_start"]), "s"), ("t end", _cell(doc["t_end"]), "s")]
+    if len(doc["channels"]) > 1:  # the rows above are the first channel's: each in turn
+        for n, c in doc["channels"].items():
+            cu = val.channels[n]["unit"]
+            scores += [(f"{n}: fit", _cell(c["fit_percent"]), "%"),
+                       (f"{n}: rms error", _cell(c["rms"]), cu),
+                       (f"{n}: max |error|", _cell(c["max_abs"]), cu)]
+    first = next(iter(doc["channels"]), "phi")
     # A score, not a pass/fail: what is good enough is the user's call.
     verdict = ("info",
                f"The open-loop prediction of {val.source} scores {fmt(val.fit_percent)}% "
                f"(100% is perfect, 0% no better than the record's mean), rms error "
-               f"{fmt(val.rms)} rad over {val.n_samples} samples not used for the estimate.")
+               f"{fmt(val.rms)} {u} in {first} over {val.n_samples} samples not used for the "
+               "estimate.")
     return {
         "kind": "validation", "title": title or "crank-jax validation report",
         "verdicts": _verdicts([("Prediction", verdict),

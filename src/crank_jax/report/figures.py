@@ -10,7 +10,7 @@ import io
 import numpy as np
 
 from ..identify.diagnostics import plot_acf
-from ..plot import pyplot
+from ..plot import printable_texts, pyplot
 
 __all__ = ["embed", "fit_figures", "validation_figures", "SVG_MAX_POINTS"]
 
@@ -21,6 +21,7 @@ SVG_MAX_POINTS = 20_000
 def embed(fig, points: int = 0) -> str:
     """The figure as HTML markup (an `<svg>` element or a `data:` PNG `<img>`); closes it."""
     buf = io.BytesIO()
+    printable_texts(fig)
     try:
         if points <= SVG_MAX_POINTS:
             # No date: the same result gives the same page.
@@ -35,22 +36,18 @@ def embed(fig, points: int = 0) -> str:
 
 
 def _data_and_residuals(result):
+    """Per channel, its data against the fit (tall panel) and its residuals, each in the
+    channel's own SI unit (a slide-only record has no angle to draw)."""
+    from ..identify.plot import plot_channel
+
     plt = pyplot()
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True,
-                                   gridspec_kw={"height_ratios": [2, 1]})
-    for i, (d, f) in enumerate(zip(result.data, result.fitted)):
-        label = f" (record {i})" if len(result.data) > 1 else ""
-        ax1.plot(d.ts, d.phi, ".", ms=2, color=f"C{2 * i}", label="data" + label)
-        ax1.plot(d.ts, f, "-", lw=1, color=f"C{2 * i + 1}", label="fit" + label)
-        ax2.plot(d.ts, d.phi - np.asarray(f), ".", ms=2, color=f"C{2 * i}")
-    ax1.set_ylabel("phi [rad]")
-    ax1.legend(loc="upper right", fontsize=8)
-    ax2.set_ylabel("data - fit [rad]")
-    ax2.set_xlabel("t [s]")
-    for ax in (ax1, ax2):
-        ax.grid(alpha=0.3)
+    names = list(result.channels or {"phi": None})
+    fig, axes = plt.subplots(2 * len(names), 1, figsize=(9, 0.5 + 5 * len(names)),
+                             sharex=True, gridspec_kw={"height_ratios": [2, 1] * len(names)})
+    for c, name in enumerate(names):
+        plot_channel(axes[2 * c], axes[2 * c + 1], result, name)
     fig.tight_layout()
-    return fig, 2 * sum(d.n for d in result.data)
+    return fig, 2 * len(names) * sum(d.n for d in result.data)
 
 
 def _acf(diag):
@@ -72,22 +69,30 @@ def fit_figures(result) -> list[dict]:
 
 
 def _prediction(val):
+    """Per channel, its data against the open-loop prediction and the error, each in the
+    channel's own SI unit; the initial-state window shaded."""
     plt = pyplot()
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True,
-                                   gridspec_kw={"height_ratios": [2, 1]})
+    chans = val.channels or {"phi": {"unit": "rad"}}
+    preds = val.predicted_channels or {"phi": val.predicted}
+    data = val.data_channels or {"phi": val.phi}
+    fig, axes = plt.subplots(2 * len(chans), 1, figsize=(9, 0.5 + 5 * len(chans)),
+                             sharex=True, gridspec_kw={"height_ratios": [2, 1] * len(chans)})
     t0 = float(val.ts[0])
-    for ax in (ax1, ax2):
+    for ax in axes:
         ax.axvspan(t0, t0 + val.init_window, color="0.9", zorder=0)
         ax.grid(alpha=0.3)
-    ax1.plot(val.ts, val.phi, ".", ms=2, color="C0", label="data")
-    ax1.plot(val.ts, val.predicted, "-", lw=1, color="C1", label="prediction (open loop)")
-    ax1.set_ylabel("phi [rad]")
-    ax1.legend(loc="upper right", fontsize=8)
-    ax2.plot(val.ts, val.phi - val.predicted, "-", lw=0.8, color="C3")
-    ax2.set_ylabel("data - prediction [rad]")
-    ax2.set_xlabel("t [s] (shaded: initial-state window)")
+    for c, (name, info) in enumerate(chans.items()):
+        ax1, ax2 = axes[2 * c], axes[2 * c + 1]
+        y, yhat = np.asarray(data[name]), np.asarray(preds[name])
+        ax1.plot(val.ts, y, ".", ms=2, color="C0", label="data")
+        ax1.plot(val.ts, yhat, "-", lw=1, color="C1", label="prediction (open loop)")
+        ax1.set_ylabel(f"{name} [{info['unit']}]")
+        ax1.legend(loc="upper right", fontsize=8)
+        ax2.plot(val.ts, y - yhat, "-", lw=0.8, color="C3")
+        ax2.set_ylabel(f"data - prediction [{info['unit']}]")
+    axes[-1].set_xlabel("t [s] (shaded: initial-state window)")
     fig.tight_layout()
-    return fig, 3 * len(val.ts)
+    return fig, 3 * len(chans) * len(val.ts)
 
 
 def validation_figures(val, diag) -> list[dict]:

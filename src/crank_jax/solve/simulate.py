@@ -240,8 +240,10 @@ def simulate(
 
     **Returns:** a [`Trajectory`][].
 
-    Works under `jax.jit`, `jax.vmap`, `jax.grad` and (with `adjoint="forward"`)
-    `jax.jacfwd`.
+    Works under `jax.jit`, `jax.vmap`, `jax.grad` and `jax.jacfwd`: called under
+    `jax.jacfwd` or `jax.jvp`, the default `"reverse"` (a `custom_vjp`, which has no
+    forward mode) runs as `"forward"`. A `jax.jit` between `jax.jacfwd` and this call
+    hides the forward tangents from it: there pass `adjoint="forward"` yourself.
     """
     _warn_if_float32()
     if adjoint not in ("reverse", "forward", "direct"):
@@ -284,6 +286,11 @@ def simulate(
     # host callback, whose program the store keeps (a reverse-mode `SaveAt(ts)` checks
     # the save times in a callback, compiled again in every process).
     adjoint = "forward" if host else adjoint
+    if adjoint == "reverse" and _forward_differentiated(args):
+        # Under jax.jacfwd / jax.jvp: the reverse adjoint is a custom_vjp, which JAX cannot
+        # differentiate forward ("can't apply forward-mode autodiff (jvp) to a custom_vjp
+        # function"); forward mode gives the same derivatives of the same solution.
+        adjoint = "forward"
     static = dict(solver=plan.solver, max_steps=int(max_steps), adjoint=adjoint,
                   structure=plan.structure, outputs=tuple(sorted(set(outputs))))
     traj = _program_solve(*args, **static) if host and force is None else None
@@ -293,6 +300,19 @@ def simulate(
     if host and throw and not _succeeded(traj.result):
         raise eqx.EquinoxRuntimeError(diffrax.RESULTS[traj.result])
     return traj
+
+
+def _forward_differentiated(tree) -> bool:
+    """Whether a leaf of `tree` carries a forward-mode tangent (a `jax.jvp` tracer, as
+    `jax.jacfwd` makes). Reverse mode (`jax.grad`, `jax.vjp`) traces with JAX's direct
+    linearize (`LinearizeTracer`), which is not one; where a user turned it off
+    (`jax_use_direct_linearize=False`), reverse mode traces through `jvp` too, and
+    nothing is changed."""
+    if not getattr(jax.config, "jax_use_direct_linearize", False):
+        return False
+    from jax.interpreters.ad import JVPTracer
+
+    return any(isinstance(x, JVPTracer) for x in jax.tree_util.tree_leaves(tree))
 
 
 # Outcomes of a stored solve, by index (names of `diffrax.RESULTS`): a stored program
