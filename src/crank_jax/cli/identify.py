@@ -233,10 +233,17 @@ def _check_free(free: tuple[str, ...], a: argparse.Namespace, scene, n_records: 
                 raise UserError(f"--free: {n} cannot be free: the scene's {side} has no {n}; "
                                 f"give the scene a harmonic {side} (or, for {n[:-1]}0, a "
                                 "constant one)")
-    names = reported_names(tuple(dict.fromkeys(free)), n_records)
+    per_record = tuple(n for n in _per_record(a) if n in free) if n_records > 1 else ()
+    names = reported_names(tuple(dict.fromkeys(free)), n_records, per_record)
     if a.profile is not None and a.profile not in names:
         raise UserError(f"--profile {a.profile!r} is not a free parameter; choose from "
                         f"{', '.join(names)}")
+
+
+def _per_record(a: argparse.Namespace) -> tuple[str, ...]:
+    """The names of `--per-record` (none for the demo, which has no such option)."""
+    return tuple(dict.fromkeys(x.strip() for x in getattr(a, "per_record", "").split(",")
+                               if x.strip()))
 
 
 def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
@@ -258,7 +265,7 @@ def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
         raise UserError(f"--max-steps must be an integer from 1 to {MAX_ITERATIONS}, got "
                         f"{a.max_steps}")
     sigma = parse_sigma(a.sigma)
-    per_record = tuple(x.strip() for x in getattr(a, "per_record", "").split(",") if x.strip())
+    per_record = _per_record(a)
     bad = [n for n in per_record if n not in free]
     if bad:
         raise UserError(f"--per-record names {', '.join(bad)}, which is not free; add it to "

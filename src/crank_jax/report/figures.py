@@ -80,7 +80,9 @@ def _prediction(val):
         ax.axvspan(t0, t0 + val.init_window, color="0.9", zorder=0)
         ax.grid(alpha=0.3)
     ax1.plot(val.ts, val.phi, ".", ms=2, color="C0", label="data")
-    ax1.plot(val.ts, val.predicted, "-", lw=1, color="C1", label="prediction (open loop)")
+    how = ("open loop" if getattr(val, "horizon", None) is None
+           else f"{val.horizon:g} s ahead")
+    ax1.plot(val.ts, val.predicted, "-", lw=1, color="C1", label=f"prediction ({how})")
     ax1.set_ylabel("phi [rad]")
     ax1.legend(loc="upper right", fontsize=8)
     ax2.plot(val.ts, val.phi - val.predicted, "-", lw=0.8, color="C3")
