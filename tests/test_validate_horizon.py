@@ -115,6 +115,11 @@ def test_cut_tiles_the_record_and_refuses_a_horizon_with_nothing_to_predict():
     assert ws[-1].stop == ts.size and all(w.head == 5 for w in ws[1:])
     with pytest.raises(ValueError, match=r"horizon \(--horizon\) = 0.09 s holds"):
         cut(ts, 1.0, 0.09)
+    # A gap longer than the horizon right after the initial-state window: the first
+    # window with samples is still the one predicted from the initial state (no head).
+    gap = np.concatenate([np.arange(0.0, 1.0, 0.02), np.arange(1.6, 3.0, 0.02)])
+    ws = cut(gap, 1.0, 0.5)
+    assert ws[0].t_start == 1.5 and ws[0].head == 0 and ws[1].head == 5
 
 
 @pytest.mark.parametrize("kw, needle", [

@@ -60,7 +60,7 @@ def cut(ts: np.ndarray, t_init: float, horizon: float) -> list[Window]:
         lo = int(np.searchsorted(ts, a, side="right"))
         # Both ends from the same products, so that consecutive windows share a boundary.
         hi = int(np.searchsorted(ts, t_init + (k + 1) * horizon, side="right"))
-        first = k == 0
+        first = not out  # the first window with samples: the initial-state window is its head
         k += 1
         if hi <= lo:
             continue  # a gap in the record longer than the horizon
