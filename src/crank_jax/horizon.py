@@ -1,18 +1,21 @@
 """k-step-ahead prediction for [`validate`][crank_jax.validate.validate]`(..., horizon=T)`.
 
 After the initial-state window the record is cut into consecutive windows of `T` s (a
-window holds the samples `a < t <= a + T`). The first window's state is the one estimated
-on the initial-state window (that window is its head), so with `T` at least the rest of
-the record this is the open-loop validation. Every later window estimates its own state
-`(phi0, dphi0)` at its first sample from its head, its first `max(MIN_SAMPLES samples,
-T / 10)`, and the model predicts the rest of the window open loop. Only those predicted
-samples are scored.
+window holds the samples `a < t <= a + T`). Every window, the first included, estimates
+its own state `(phi0, dphi0)` at its first sample from its head, its first
+`max(MIN_SAMPLES samples, T / 10)`, and the model predicts the rest of the window open
+loop. Only those predicted samples are scored. So a `T` at least the rest of the record
+is one window: an open-loop prediction from the state its own head gives, not the
+open-loop validation's (whose state is the initial-state window's).
 
-The head's state fit is a small Levenberg-Marquardt (optimistix) on the head's samples,
-every channel weighted by its noise level (`identify.start.noise_level`), started from the
-state the previous window's prediction reaches at this window's first sample. It is one
-compiled program for every window: heads and windows are padded to fixed lengths (padded
-samples carry weight 0 and lie microseconds after the last real one).
+The head's state fit is a small Levenberg-Marquardt (MINPACK's, through scipy) on the
+head's samples, every channel weighted by its noise level
+(`identify.start.noise_level`), started from the
+state the previous window's prediction reaches at this window's first sample (for the
+first window, the prediction from the initial-state window's state). It evaluates
+the window predictions' compiled program, so one program serves every head and every
+window: they are padded to one length (padded samples carry weight 0 and lie
+microseconds after the last real one).
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
+from scipy.optimize import least_squares
 
 from .data import MIN_SAMPLES
 from .model.outputs import output
@@ -38,7 +41,7 @@ HEAD_FRACTION = 0.1
 
 class Window(NamedTuple):
     """One window: samples `start` to `stop - 1` of the record; the first `head` of them
-    estimate its state (0 for the first window: the initial-state window is its head)."""
+    estimate its state."""
 
     start: int
     stop: int
@@ -60,11 +63,10 @@ def cut(ts: np.ndarray, t_init: float, horizon: float) -> list[Window]:
         lo = int(np.searchsorted(ts, a, side="right"))
         # Both ends from the same products, so that consecutive windows share a boundary.
         hi = int(np.searchsorted(ts, t_init + (k + 1) * horizon, side="right"))
-        first = not out  # the first window with samples: the initial-state window is its head
         k += 1
         if hi <= lo:
             continue  # a gap in the record longer than the horizon
-        head = 0 if first else max(MIN_SAMPLES, int(np.searchsorted(
+        head = max(MIN_SAMPLES, int(np.searchsorted(
             ts, a + HEAD_FRACTION * horizon, side="right")) - lo)
         if hi - lo <= head:
             if a + horizon < ts[-1]:
@@ -105,20 +107,31 @@ class Predictor(eqx.Module):
                 jnp.stack([traj.phi, traj.dphi]), traj.ok)
 
 
-@eqx.filter_jit
-def estimate_state(pred: Predictor, y0: jax.Array, ts: jax.Array, mask: jax.Array,
-                   ys: jax.Array):
+def estimate_state(pred: Predictor, y0: np.ndarray, ts: np.ndarray, mask: np.ndarray,
+                   ys: np.ndarray):
     """The state at `ts[0]` that best explains the head's channels `ys` (C, m) at `ts`
-    (m,) (`mask` (m,): 1 for a real sample, 0 for padding), from `y0` (2,). **Returns:**
-    the state (2,) and whether LM converged with every solve successful."""
-    def residuals(y, _):
-        out, _, _ = pred(y, ts)
-        return ((out - ys) * pred.weight[:, None] * mask[None]).ravel()
+    (m,) (`mask` (m,): 1 for a real sample, 0 for padding), from `y0` (2,).
 
-    sol = optx.least_squares(residuals, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12), y0,
-                             max_steps=256, throw=False)
-    _, _, ok = pred(sol.value, ts)
-    return sol.value, (sol.result == optx.RESULTS.successful) & ok
+    MINPACK's Levenberg-Marquardt (scipy, on the host, as the fit's) over the compiled
+    [`predict`][] with a forward-difference Jacobian: the window predictions' own
+    program, so the state fit compiles nothing of its own (a program differentiated
+    through the solve took longer to compile than the rest of a validation). The
+    difference step, 1e-5 relative, stays well above the solver's tolerance, whose step
+    choices would make a smaller one noisy. **Returns:** the state (2,) and whether LM
+    converged with every solve successful."""
+    ts_j = jnp.asarray(ts)
+    weight = np.asarray(pred.weight)[:, None] * np.asarray(mask)[None]
+    ys = np.asarray(ys)
+    failed = np.full(ys.size, 1e50)  # a failed solve: far worse than any state
+
+    def residuals(y):
+        out, _, ok = predict(pred, jnp.asarray(y), ts_j)
+        return ((np.asarray(out) - ys) * weight).ravel() if bool(ok) else failed
+
+    sol = least_squares(residuals, np.asarray(y0, float), method="lm", x_scale="jac",
+                        diff_step=1e-5, ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=200)
+    _, _, ok = predict(pred, jnp.asarray(sol.x), ts_j)
+    return sol.x, bool(sol.status > 0) and bool(ok)
 
 
 @eqx.filter_jit

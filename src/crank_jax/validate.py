@@ -82,10 +82,10 @@ class Validation(NamedTuple):
     horizon: float | None = None
     """The prediction horizon, s (`None`: open loop over the whole window)."""
     windows: list | None = None
-    """With `horizon`, per window: `t_start`, `t_end` (s), `n_head` (samples its state
-    was estimated from; 0 for the first, whose state is the initial-state window's),
-    `n_predicted`, `phi0`, `dphi0` (its state at its first sample), `rms` (first channel,
-    over its predicted samples) and `converged` (its state fit)."""
+    """With `horizon`, per window: `t_start`, `t_end` (s), `n_head` (samples its
+    state was estimated from, in every window), `n_predicted`, `phi0`, `dphi0` (its state
+    at its first sample), `rms` (first channel, over its predicted samples) and
+    `converged` (its state fit)."""
     init_values: dict | None = None
     """The `init_free` parameters' values estimated on the initial-state window."""
 
@@ -219,10 +219,10 @@ def validate(
     - `horizon`: `None` (default) predicts everything after the initial-state window open
       loop; a time `T` > 0 s predicts k steps ahead: after the initial-state window the
       record is cut into windows of `T` s, each window's state is estimated from its first
-      `max(MIN_SAMPLES samples, T / 10)` and the rest of it predicted open loop (the first
-      window's state is the initial-state window's; see [`crank_jax.horizon`][]). Scores
-      are over the predicted samples. A `T` at least the rest of the record is the open
-      loop prediction.
+      `max(MIN_SAMPLES samples, T / 10)` (the first window's too) and the rest of it
+      predicted open loop (see [`crank_jax.horizon`][]). Scores are over the predicted
+      samples. A `T` at least the rest of the record is one window: an open-loop
+      prediction from the state its own head gives.
     - `init_free`: parameters estimated with the state on the initial-state window and
       then held (names a fit can free: mechanism fields, load amplitudes such as `tau0`,
       channel offsets such as `phi_offset`): the operating point of a held-out record.
@@ -287,22 +287,21 @@ def validate(
     mech, load, torque, sensors = _with_values(scene, load, torque,
                                                [s for s, _ in win.outputs()], own)
     model = scene if mech is scene.mech else dataclasses.replace(scene, mech=mech)
-    first_stop = win.n if windows is None else _first_stop(windows, win.n)
-    ts_open = np.asarray(win.ts)[:first_stop]
-    traj = model.simulate(ts_open, phi0=phi0, dphi0=dphi0, load=load, torque=torque,
-                          outputs=(), throw=False)
-    if not bool(traj.ok):
-        raise RuntimeError(f"the prediction's solve failed ({traj.result}); check the scene's "
-                           "solver settings")
-    predicted = {}
-    for sensor in sensors:
-        h = output(sensor.name, mech, ts_open, traj.phi, traj.dphi, load, torque)
-        predicted[sensor.name] = np.full(win.n, np.nan)
-        predicted[sensor.name][:first_stop] = np.asarray(sensor.measure(np.asarray(h)))
+    predicted = {s.name: np.full(win.n, np.nan) for s in sensors}
     info = None
-    if windows is not None:
-        info = _windows(scene, mech, load, torque, sensors, win, windows, traj, predicted,
-                        warnings)
+    if windows is None:
+        ts = np.asarray(win.ts)
+        traj = model.simulate(ts, phi0=phi0, dphi0=dphi0, load=load, torque=torque,
+                              outputs=(), throw=False)
+        if not bool(traj.ok):
+            raise RuntimeError(f"the prediction's solve failed ({traj.result}); check the "
+                               "scene's solver settings")
+        for sensor in sensors:
+            h = output(sensor.name, mech, ts, traj.phi, traj.dphi, load, torque)
+            predicted[sensor.name][:] = np.asarray(sensor.measure(np.asarray(h)))
+    else:
+        info = _windows(scene, mech, load, torque, sensors, win, windows,
+                        (float(phi0), float(dphi0)), predicted, warnings)
     scores = {}
     for sensor, y in win.outputs():
         scores[sensor.name] = _scores(y[scored], predicted[sensor.name][scored], sensor.name)
@@ -361,16 +360,11 @@ def _with_values(scene: Scene, load, torque, sensors, own: dict):
     return mech, load, torque, sensors
 
 
-def _first_stop(windows: list, n: int) -> int:
-    """How far the first prediction runs: through the first window, and one sample into
-    the next (its state there starts the next window's state fit)."""
-    return min(windows[1].start + 1 if len(windows) > 1 else windows[0].stop, n)
-
-
-def _windows(scene, mech, load, torque, sensors, win: Data, windows, traj0, predicted,
+def _windows(scene, mech, load, torque, sensors, win: Data, windows, state0, predicted,
              warnings) -> list[dict]:
-    """Predict every window after the first (see [`crank_jax.horizon`][]) into
-    `predicted`; **returns** each window's row of `Validation.windows`."""
+    """Predict every window (see [`crank_jax.horizon`][]) into `predicted`, and the
+    initial-state window from `state0` (its fitted state at the record's first sample);
+    **returns** each window's row of `Validation.windows`."""
     ts = np.asarray(win.ts)
     ys = np.stack([np.asarray(y) for _, y in win.outputs()])  # (C, n)
     sigma = [max(noise_level(ts, y), 1e-9 * float(np.std(y)), 1e-300) for y in ys]
@@ -380,22 +374,33 @@ def _windows(scene, mech, load, torque, sensors, win: Data, windows, traj0, pred
                         jnp.asarray([s.offset for s in sensors], float),
                         jnp.asarray([1.0 / s for s in sigma]),
                         tuple(s.name for s in sensors), scene.solver)
-    n_head = hz.bucket(max(w.head for w in windows))
+    # One compiled program serves every head's state fit and every window's prediction:
+    # all are padded to one length (a window's prediction runs one sample into the next
+    # window, whose state fit starts from the state it reaches there).
     n_win = hz.bucket(max(w.stop - w.start for w in windows) + 1)
+    # The initial-state window's fit, carried to the first window's first sample (the
+    # first window's state fit starts there), in pieces of that length: no other program.
+    stop0, guess = windows[0].start + 1, np.asarray(state0, float)
+    for i in range(0, stop0 - 1, n_win - 1):
+        j = min(i + n_win, stop0)
+        t_piece, _ = hz.padded(ts[i:j], n_win)
+        out, state, solved = hz.predict(pred, jnp.asarray(guess), jnp.asarray(t_piece))
+        if not bool(solved):
+            raise RuntimeError("the prediction's solve failed on the initial-state window; "
+                               "check the scene's solver settings")
+        out, state = np.asarray(out), np.asarray(state)
+        for c, s in enumerate(sensors):
+            predicted[s.name][i:j] = out[c, :j - i]
+        guess = state[:, j - 1 - i]
     first = sensors[0].name
-    w0 = windows[0]
-    rows = [_row(w0, float(traj0.phi[w0.start]), float(traj0.dphi[w0.start]), True, ys[0],
-                 predicted[first], win.ts)]
-    guess = np.array([float(traj0.phi[-1]), float(traj0.dphi[-1])])
-    bad = []
-    for j, w in enumerate(windows[1:], start=1):
-        t_head, mask = hz.padded(ts[w.start:w.start + w.head], n_head)
-        y_head = hz.pad_rows(ys[:, w.start:w.start + w.head], n_head)
-        y0, ok = hz.estimate_state(pred, jnp.asarray(guess), jnp.asarray(t_head),
-                                   jnp.asarray(mask), jnp.asarray(y_head))
+    rows, bad = [], []
+    for j, w in enumerate(windows):
+        t_head, mask = hz.padded(ts[w.start:w.start + w.head], n_win)
+        y_head = hz.pad_rows(ys[:, w.start:w.start + w.head], n_win)
+        y0, ok = hz.estimate_state(pred, guess, t_head, mask, y_head)
         stop = min(windows[j + 1].start + 1 if j + 1 < len(windows) else w.stop, win.n)
         t_win, _ = hz.padded(ts[w.start:stop], n_win)
-        out, state, solved = hz.predict(pred, y0, jnp.asarray(t_win))
+        out, state, solved = hz.predict(pred, jnp.asarray(y0), jnp.asarray(t_win))
         if not bool(solved):
             raise RuntimeError(f"the prediction's solve failed in the window from t = "
                                f"{w.t_start:g} s; check the scene's solver settings")
