@@ -14,21 +14,36 @@ when it has them, and scores the prediction on the samples after the initial-sta
 A record with several channels (see [`sensors`][crank_jax.sensors]) is predicted and
 scored in each (what its sensor reads under the model, `scale h + offset`, SI); the
 top-level scores are the first channel's.
+
+`horizon=T` scores a k-step-ahead prediction instead (MATLAB's `compare(data, sys, k)`):
+after the initial-state window the record is cut into windows of `T` s, each window's state
+is estimated from its first samples and the rest of the window is predicted (see
+[`crank_jax.horizon`][]). A driven rig whose drive level is a few percent off drifts by
+radians over a long open-loop prediction, yet predicts one revolution ahead to a small
+fraction of a radian: that is what `T` of one revolution measures. `init_free` names
+parameters (e.g. `tau0`, the record's own drive level) estimated with the state on the
+initial-state window: the operating point of a held-out record.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
+from . import horizon as hz
 from .data import MIN_SAMPLES, Data, DataError
 from .identify.fit import fit
+from .identify.request import LOAD_NAMES, STATE_NAMES, free_names
+from .identify.start import noise_level
 from .model.linear import linearize
-from .model.loads import AbstractLoad, InputLoad, NoLoad
+from .model.loads import AbstractLoad, InputLoad, NoLoad, set_param
 from .model.outputs import SI_UNITS, output
+from .model.params import FIELDS
 from .model.sampled import bind_input
 from .scene import Scene
 
@@ -64,6 +79,15 @@ class Validation(NamedTuple):
     """Per channel: the prediction (m,), SI."""
     data_channels: dict | None = None
     """Per channel: the data (m,), SI."""
+    horizon: float | None = None
+    """The prediction horizon, s (`None`: open loop over the whole window)."""
+    windows: list | None = None
+    """With `horizon`, per window: `t_start`, `t_end` (s), `n_head` (samples its
+    state was estimated from, in every window), `n_predicted`, `phi0`, `dphi0` (its state
+    at its first sample), `rms` (first channel, over its predicted samples) and
+    `converged` (its state fit)."""
+    init_values: dict | None = None
+    """The `init_free` parameters' values estimated on the initial-state window."""
 
     def to_json(self) -> dict:
         """The `VAL.json` document."""
@@ -80,6 +104,12 @@ class Validation(NamedTuple):
             "channels": {n: {k: num(v) if k != "n_samples" else int(v)
                              for k, v in c.items() if k != "unit"}
                          for n, c in (self.channels or {}).items()},
+            **({"init_free": {n: num(v) for n, v in self.init_values.items()}}
+               if self.init_values else {}),
+            **({"horizon": float(self.horizon),
+                "windows": [{k: (num(v) if isinstance(v, float) else v)
+                             for k, v in w.items()} for w in self.windows or []]}
+               if self.horizon is not None else {}),
         }
 
     def report(self, path, *, scene=None, command=None, title: str = "") -> None:
@@ -93,10 +123,14 @@ class Validation(NamedTuple):
         """One paragraph for the terminal."""
         chans = self.channels or {"phi": {"unit": "rad"}}
         unit = next(iter(chans.values()))["unit"]
+        how = ("open-loop" if self.horizon is None else
+               f"at most {self.horizon:g} s ahead in {len(self.windows or [])} windows (each "
+               "window's state from its first samples)")
+        own = "".join(f", {n} = {v:.6g}" for n, v in (self.init_values or {}).items())
         text = (f"validation on {self.source} over [{self.ts[0]:g}, {self.ts[-1]:g}] s: "
-                f"initial state phi0 = {self.phi0:.6g} rad, dphi0 = {self.dphi0:.6g} rad/s "
-                f"from the first {self.init_window:g} s; predicted {self.n_samples} samples "
-                f"open-loop: rms {self.rms:.4g} {unit}, max |error| {self.max_abs:.4g} "
+                f"initial state phi0 = {self.phi0:.6g} rad, dphi0 = {self.dphi0:.6g} rad/s"
+                f"{own} from the first {self.init_window:g} s; predicted {self.n_samples} "
+                f"samples {how}: rms {self.rms:.4g} {unit}, max |error| {self.max_abs:.4g} "
                 f"{unit}, fit {self.fit_percent:.2f}%")
         for n, c in chans.items() if len(chans) > 1 else ():
             text += (f"\nchannel {n}: rms {c['rms']:.4g} {c['unit']}, max |error| "
@@ -166,8 +200,10 @@ def validate(
     init_window: float | None = None,
     scene_loads: bool = False,
     progress: bool = False,
+    horizon: float | None = None,
+    init_free: tuple[str, ...] | list[str] = (),
 ) -> Validation:
-    """Predict a record open-loop from an initial state estimated on its start, and score it.
+    """Predict a record from an initial state estimated on its start, and score it.
 
     **Arguments:**
 
@@ -180,16 +216,31 @@ def validate(
     - `scene_loads`: use the scene's loads where the record has no `P`/`tau` column
       (default: a record must carry the loads the scene has).
     - `progress`: show the initial-state fit's progress bar.
+    - `horizon`: `None` (default) predicts everything after the initial-state window open
+      loop; a time `T` > 0 s predicts k steps ahead: after the initial-state window the
+      record is cut into windows of `T` s, each window's state is estimated from its first
+      `max(MIN_SAMPLES samples, T / 10)` (the first window's too) and the rest of it
+      predicted open loop (see [`crank_jax.horizon`][]). Scores are over the predicted
+      samples. A `T` at least the rest of the record is one window: an open-loop
+      prediction from the state its own head gives.
+    - `init_free`: parameters estimated with the state on the initial-state window and
+      then held (names a fit can free: mechanism fields, load amplitudes such as `tau0`,
+      channel offsets such as `phi_offset`): the operating point of a held-out record.
 
     **Returns:** a [`Validation`][]. Raises `ValueError` (naming the argument) for a
     window with fewer than [`MIN_SAMPLES`][] samples, an initial-state window that leaves
-    fewer than that many to score, a missing load column, or scored angles that are
-    constant up to float rounding ([`MIN_SPREAD_EPS`][]; `fit_percent` would be
-    meaningless); `RuntimeError` if the prediction's solve fails.
+    fewer than that many to score, a horizon that leaves none to predict, a name
+    `init_free` cannot take, a missing load column, or scored angles that are constant up
+    to float rounding ([`MIN_SPREAD_EPS`][]; `fit_percent` would be meaningless);
+    `RuntimeError` if a prediction's solve fails.
     """
     if not isinstance(scene, Scene) or not isinstance(data, Data):
         raise TypeError("validate(scene, data): expected a Scene and a Data record")
+    if horizon is not None and not (isinstance(horizon, (int, float))
+                                    and math.isfinite(horizon) and horizon > 0):
+        raise ValueError(f"horizon (--horizon) must be a time > 0 s, got {horizon!r}")
     win = data.window(t_start, t_end)
+    init_free = _check_init_free(init_free, win)
     load, torque = _loads(scene, win, scene_loads)
     win = Data(win.ts, win.phi, load, torque, source=win.source, channels=win.channels,
                sensors=win.sensors, inputs=win.inputs)
@@ -206,25 +257,53 @@ def validate(
                          f"the window's {win.n} samples and leaves {int(scored.sum())} to "
                          f"score; both need at least {MIN_SAMPLES}: change the window or "
                          "--init-window")
+    windows = None
+    if horizon is not None:
+        windows = hz.cut(np.asarray(win.ts), t_init, float(horizon))
+        scored = np.zeros(win.n, bool)
+        for w in windows:
+            scored[w.start + w.head:w.stop] = True
+        if int(scored.sum()) < MIN_SAMPLES:
+            raise ValueError(f"horizon (--horizon) = {horizon:g} s leaves {int(scored.sum())} "
+                             f"samples to predict; at least {MIN_SAMPLES} are needed: "
+                             "lengthen the horizon or the record")
     for sensor, y in win.outputs():
         _check_spread(np.asarray(y)[scored], win, t_init, sensor.name)
     warnings: list[str] = []
-    res = fit(scene, win.window(None, t_init), free=("phi0", "dphi0"), progress=progress,
-              warn=False)
+    head = win.window(None, t_init)
+    fit_scene = scene
+    if any(n in LOAD_NAMES for n in init_free):
+        # A free load amplitude is the scene's: hand the fit the record's loads as the
+        # scene's (the record's own columns are refused by `_check_init_free`).
+        fit_scene = dataclasses.replace(scene, load=load, torque=torque)
+        head = Data(head.ts, head.phi, source=head.source, channels=head.channels,
+                    sensors=head.sensors, inputs=head.inputs)
+    res = fit(fit_scene, head, free=STATE_NAMES + init_free, progress=progress, warn=False)
     if not res.converged:
         warnings.append(f"the initial-state fit did not converge ({res.message}); the "
                         "prediction starts from its last iterate")
     phi0, dphi0 = res.values["phi0"], res.values["dphi0"]
-    traj = scene.simulate(np.asarray(win.ts), phi0=phi0, dphi0=dphi0, load=load,
-                          torque=torque, outputs=(), throw=False)
-    if not bool(traj.ok):
-        raise RuntimeError(f"the prediction's solve failed ({traj.result}); check the scene's "
-                           "solver settings")
-    predicted, scores = {}, {}
+    own = {n: float(res.values[n]) for n in init_free}
+    mech, load, torque, sensors = _with_values(scene, load, torque,
+                                               [s for s, _ in win.outputs()], own)
+    model = scene if mech is scene.mech else dataclasses.replace(scene, mech=mech)
+    predicted = {s.name: np.full(win.n, np.nan) for s in sensors}
+    info = None
+    if windows is None:
+        ts = np.asarray(win.ts)
+        traj = model.simulate(ts, phi0=phi0, dphi0=dphi0, load=load, torque=torque,
+                              outputs=(), throw=False)
+        if not bool(traj.ok):
+            raise RuntimeError(f"the prediction's solve failed ({traj.result}); check the "
+                               "scene's solver settings")
+        for sensor in sensors:
+            h = output(sensor.name, mech, ts, traj.phi, traj.dphi, load, torque)
+            predicted[sensor.name][:] = np.asarray(sensor.measure(np.asarray(h)))
+    else:
+        info = _windows(scene, mech, load, torque, sensors, win, windows,
+                        (float(phi0), float(dphi0)), predicted, warnings)
+    scores = {}
     for sensor, y in win.outputs():
-        h = output(sensor.name, scene.mech, np.asarray(win.ts), traj.phi, traj.dphi, load,
-                   torque)
-        predicted[sensor.name] = np.asarray(sensor.measure(np.asarray(h)))
         scores[sensor.name] = _scores(y[scored], predicted[sensor.name][scored], sensor.name)
     (first, y0), = win.outputs()[:1]
     top = scores[first.name]
@@ -233,7 +312,119 @@ def validate(
         n_samples=int(scored.sum()), phi0=float(phi0), dphi0=float(dphi0),
         ts=np.asarray(win.ts), phi=np.asarray(y0), predicted=predicted[first.name],
         scored=scored, init_window=float(init_window), source=win.source, warnings=warnings,
-        channels=scores, predicted_channels=predicted, data_channels=dict(win.outputs_items()))
+        channels=scores, predicted_channels=predicted, data_channels=dict(win.outputs_items()),
+        horizon=None if horizon is None else float(horizon), windows=info,
+        init_values=own or None)
+
+
+def _check_init_free(names, win: Data) -> tuple[str, ...]:
+    """`init_free` as a tuple, each name one a fit can free besides the state, and for a
+    load amplitude, a load the record does not supply as a column."""
+    if isinstance(names, str):
+        names = (names,)
+    names = tuple(dict.fromkeys(names))
+    allowed = [n for n in free_names() if n not in STATE_NAMES]
+    for n in names:
+        if n in STATE_NAMES:
+            raise ValueError(f"init_free (--init-free) names {n}, which is always estimated "
+                             "on the initial-state window; leave it out")
+        if n not in allowed:
+            raise ValueError(f"init_free (--init-free) names {n!r}, which is not a parameter; "
+                             f"choose from {', '.join(allowed)}")
+        if n in LOAD_NAMES:
+            side = LOAD_NAMES[n][0]
+            if (win.load if side == "load" else win.torque) is not None:
+                col = "P" if side == "load" else "tau"
+                raise ValueError(f"init_free (--init-free) names {n}, but the record "
+                                 f"{win.source} supplies its {side} as its {col!r} column; "
+                                 f"free it only for a record without that column")
+    return names
+
+
+def _with_values(scene: Scene, load, torque, sensors, own: dict):
+    """The mechanism, loads and sensors of the prediction, with the `init_free` values
+    `own` set."""
+    mech = scene.mech
+    fields = {n: v for n, v in own.items() if n in FIELDS}
+    if fields:
+        mech = mech.replace(**fields)
+    for n, v in own.items():
+        if n in LOAD_NAMES:
+            side, role = LOAD_NAMES[n]
+            if side == "load":
+                load = set_param(load, role, jnp.asarray(v), side)
+            else:
+                torque = set_param(torque, role, jnp.asarray(v), side)
+    sensors = [dataclasses.replace(s, offset=own[f"{s.name}_offset"])
+               if f"{s.name}_offset" in own else s for s in sensors]
+    return mech, load, torque, sensors
+
+
+def _windows(scene, mech, load, torque, sensors, win: Data, windows, state0, predicted,
+             warnings) -> list[dict]:
+    """Predict every window (see [`crank_jax.horizon`][]) into `predicted`, and the
+    initial-state window from `state0` (its fitted state at the record's first sample);
+    **returns** each window's row of `Validation.windows`."""
+    ts = np.asarray(win.ts)
+    ys = np.stack([np.asarray(y) for _, y in win.outputs()])  # (C, n)
+    sigma = [max(noise_level(ts, y), 1e-9 * float(np.std(y)), 1e-300) for y in ys]
+    pred = hz.Predictor(mech, load, torque, jnp.asarray(scene.rtol, float),
+                        jnp.asarray(scene.atol, float),
+                        jnp.asarray([s.scale for s in sensors], float),
+                        jnp.asarray([s.offset for s in sensors], float),
+                        jnp.asarray([1.0 / s for s in sigma]),
+                        tuple(s.name for s in sensors), scene.solver)
+    # One compiled program serves every head's state fit and every window's prediction:
+    # all are padded to one length (a window's prediction runs one sample into the next
+    # window, whose state fit starts from the state it reaches there).
+    n_win = hz.bucket(max(w.stop - w.start for w in windows) + 1)
+    # The initial-state window's fit, carried to the first window's first sample (the
+    # first window's state fit starts there), in pieces of that length: no other program.
+    stop0, guess = windows[0].start + 1, np.asarray(state0, float)
+    for i in range(0, stop0 - 1, n_win - 1):
+        j = min(i + n_win, stop0)
+        t_piece, _ = hz.padded(ts[i:j], n_win)
+        out, state, solved = hz.predict(pred, jnp.asarray(guess), jnp.asarray(t_piece))
+        if not bool(solved):
+            raise RuntimeError("the prediction's solve failed on the initial-state window; "
+                               "check the scene's solver settings")
+        out, state = np.asarray(out), np.asarray(state)
+        for c, s in enumerate(sensors):
+            predicted[s.name][i:j] = out[c, :j - i]
+        guess = state[:, j - 1 - i]
+    first = sensors[0].name
+    rows, bad = [], []
+    for j, w in enumerate(windows):
+        t_head, mask = hz.padded(ts[w.start:w.start + w.head], n_win)
+        y_head = hz.pad_rows(ys[:, w.start:w.start + w.head], n_win)
+        y0, ok = hz.estimate_state(pred, guess, t_head, mask, y_head)
+        stop = min(windows[j + 1].start + 1 if j + 1 < len(windows) else w.stop, win.n)
+        t_win, _ = hz.padded(ts[w.start:stop], n_win)
+        out, state, solved = hz.predict(pred, jnp.asarray(y0), jnp.asarray(t_win))
+        if not bool(solved):
+            raise RuntimeError(f"the prediction's solve failed in the window from t = "
+                               f"{w.t_start:g} s; check the scene's solver settings")
+        out, state = np.asarray(out), np.asarray(state)
+        for c, s in enumerate(sensors):
+            predicted[s.name][w.start:w.stop] = out[c, :w.stop - w.start]
+        if not bool(ok):
+            bad.append(f"{w.t_start:g} s")
+        rows.append(_row(w, float(y0[0]), float(y0[1]), bool(ok), ys[0], predicted[first],
+                         win.ts))
+        guess = state[:, stop - 1 - w.start]
+    if bad:
+        warnings.append(f"the state fit did not converge in {len(bad)} of {len(windows)} "
+                        f"windows (from {', '.join(bad[:5])}{', ...' if len(bad) > 5 else ''}"
+                        "); their predictions start from its last iterate")
+    return rows
+
+
+def _row(w, phi0: float, dphi0: float, ok: bool, y: np.ndarray, yhat: np.ndarray, ts
+         ) -> dict:
+    e = (y - yhat)[w.start + w.head:w.stop]
+    return {"t_start": w.t_start, "t_end": float(ts[w.stop - 1]), "n_head": int(w.head),
+            "n_predicted": int(w.stop - w.start - w.head), "phi0": phi0, "dphi0": dphi0,
+            "rms": float(np.sqrt(np.mean(e**2))), "converged": ok}
 
 
 def _scores(y: np.ndarray, yhat: np.ndarray, name: str) -> dict:
@@ -243,6 +434,11 @@ def _scores(y: np.ndarray, yhat: np.ndarray, name: str) -> dict:
     fit_pct = 100.0 * (1.0 - float(np.linalg.norm(e)) / float(np.linalg.norm(y - y.mean())))
     return {"rms": float(np.sqrt(np.mean(e**2))), "max_abs": float(np.max(np.abs(e))),
             "fit_percent": fit_pct, "n_samples": int(y.shape[0]), "unit": SI_UNITS[name]}
+
+
+def _how(val: Validation) -> str:
+    return ("prediction (open loop)" if val.horizon is None
+            else f"prediction ({val.horizon:g} s ahead, windows)")
 
 
 def plot_validation(val: Validation, path: str | os.PathLike, title: str = "") -> None:
@@ -265,7 +461,7 @@ def plot_validation(val: Validation, path: str | os.PathLike, title: str = "") -
         ax1, ax2 = axes[2 * c], axes[2 * c + 1]
         y = data[name]
         ax1.plot(val.ts, y, ".", ms=2, color="C0", label="data")
-        ax1.plot(val.ts, preds[name], "-", lw=1, color="C1", label="prediction (open loop)")
+        ax1.plot(val.ts, preds[name], "-", lw=1, color="C1", label=_how(val))
         ax1.set_ylabel(f"{name} [{info['unit']}]")
         ax1.legend(loc="upper right", fontsize=8)
         ax2.plot(val.ts, y - preds[name], "-", lw=0.8, color="C3")

@@ -1,4 +1,5 @@
-"""`crank-jax validate`: predict a second record open-loop and score the prediction."""
+"""`crank-jax validate`: predict a second record (open loop, or k steps ahead with
+`--horizon`) and score the prediction."""
 
 from __future__ import annotations
 
@@ -27,6 +28,16 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init-window", type=float, metavar="S",
                    help="seconds at the window's start used to estimate the initial state "
                         "(default: about one linearised period)")
+    p.add_argument("--horizon", type=float, metavar="S",
+                   help="predict S seconds ahead: after the initial-state window, cut the "
+                        "record into windows of S s, estimate each window's state from its "
+                        "first samples (max(5, a tenth of it)) and score the rest of it "
+                        "(default: the whole record open loop). One revolution suits a "
+                        "driven rig; a free decay is judged open loop")
+    p.add_argument("--init-free", metavar="NAMES", default="",
+                   help="comma-separated parameters estimated with the state on the "
+                        "initial-state window and then held, e.g. tau0 (the record's own "
+                        "drive level) or phi_offset")
     p.add_argument("--load-interp", metavar="KIND",
                    help=f"interpolation of the record's load columns: {', '.join(LOAD_INTERP)}")
     p.add_argument("--scene-loads", action="store_true",
@@ -51,9 +62,28 @@ def _check_numbers(a: argparse.Namespace) -> None:
         raise UserError(f"--t-start ({a.t_start:g} s) must be below --t-end ({a.t_end:g} s)")
     if a.init_window is not None and not (math.isfinite(a.init_window) and a.init_window > 0):
         raise UserError(f"--init-window must be a time > 0 s, got {a.init_window}")
+    if a.horizon is not None and not (math.isfinite(a.horizon) and a.horizon > 0):
+        raise UserError(f"--horizon must be a time > 0 s, got {a.horizon}")
+    _init_free(a)
     if a.load_interp is not None and a.load_interp not in LOAD_INTERP:
         raise UserError(f"--load-interp {a.load_interp!r} is unknown; choose from "
                         f"{', '.join(LOAD_INTERP)}")
+
+
+def _init_free(a: argparse.Namespace) -> tuple[str, ...]:
+    """The names of --init-free, each checked (before any record is read)."""
+    from ..identify.request import STATE_NAMES, free_names
+
+    names = tuple(x.strip() for x in a.init_free.split(",") if x.strip())
+    allowed = [n for n in free_names() if n not in STATE_NAMES]
+    for n in names:
+        if n in STATE_NAMES:
+            raise UserError(f"--init-free names {n}, which is always estimated on the "
+                            "initial-state window; leave it out")
+        if n not in allowed:
+            raise UserError(f"--init-free names {n!r}, which is not a parameter; choose from "
+                            f"{', '.join(allowed)}")
+    return names
 
 
 def _read(a: argparse.Namespace, scene):
@@ -95,7 +125,8 @@ def _validate_run(a: argparse.Namespace) -> int:
     scene = load_scene(a.scene)
     data = _read(a, scene)
     val = validate(scene, data, t_start=a.t_start, t_end=a.t_end, init_window=a.init_window,
-                   scene_loads=a.scene_loads, progress=not a.quiet)
+                   scene_loads=a.scene_loads, progress=not a.quiet, horizon=a.horizon,
+                   init_free=_init_free(a))
     print(val.summary())
     for w in val.warnings:
         print(f"crank-jax: warning: {w}", file=sys.stderr)
@@ -116,6 +147,7 @@ def _validate_run(a: argparse.Namespace) -> int:
 #: Subcommands added to `crank-jax` (see `cli.main` for the tuple layout).
 COMMANDS: list = [
     ("validate", "predict a record the model was not fitted to (initial state from its "
-                 "start, the rest open-loop) and report rms, max error and fit percent",
+                 "start, the rest open-loop, or --horizon S seconds ahead) and report rms, "
+                 "max error and fit percent",
      _validate_args, _validate_run),
 ]

@@ -81,11 +81,13 @@ def _prediction(val):
     for ax in axes:
         ax.axvspan(t0, t0 + val.init_window, color="0.9", zorder=0)
         ax.grid(alpha=0.3)
+    how = ("open loop" if getattr(val, "horizon", None) is None
+           else f"{val.horizon:g} s ahead")
     for c, (name, info) in enumerate(chans.items()):
         ax1, ax2 = axes[2 * c], axes[2 * c + 1]
         y, yhat = np.asarray(data[name]), np.asarray(preds[name])
         ax1.plot(val.ts, y, ".", ms=2, color="C0", label="data")
-        ax1.plot(val.ts, yhat, "-", lw=1, color="C1", label="prediction (open loop)")
+        ax1.plot(val.ts, yhat, "-", lw=1, color="C1", label=f"prediction ({how})")
         ax1.set_ylabel(f"{name} [{info['unit']}]")
         ax1.legend(loc="upper right", fontsize=8)
         ax2.plot(val.ts, y - yhat, "-", lw=0.8, color="C3")
