@@ -29,7 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import least_squares
 
-from .data import MIN_SAMPLES
+from .data import MIN_SAMPLES, Data
+from .identify.start import noise_level
 from .model.outputs import output
 from .solve.simulate import simulate
 
@@ -158,3 +159,86 @@ def bucket(n: int) -> int:
     """`n` rounded up to a power of two (at least 8): the compiled programs' lengths, so
     windows a sample longer or shorter share them."""
     return max(8, 1 << math.ceil(math.log2(max(n, 1))))
+
+
+def scored_windows(ts: np.ndarray, t_init: float, horizon: float
+                   ) -> tuple[list[Window], np.ndarray]:
+    """The windows of [`cut`][crank_jax.horizon.cut] and the mask (n,) of the samples they
+    predict (each window's after its head); `ValueError` naming `horizon` if fewer than
+    `MIN_SAMPLES` are left to predict."""
+    windows = cut(ts, t_init, horizon)
+    scored = np.zeros(ts.shape[0], bool)
+    for w in windows:
+        scored[w.start + w.head:w.stop] = True
+    if int(scored.sum()) < MIN_SAMPLES:
+        raise ValueError(f"horizon (--horizon) = {horizon:g} s leaves {int(scored.sum())} "
+                         f"samples to predict; at least {MIN_SAMPLES} are needed: "
+                         "lengthen the horizon or the record")
+    return windows, scored
+
+
+def predict_windows(scene, mech, load, torque, sensors, win: Data, windows, state0, predicted,
+             warnings) -> list[dict]:
+    """Predict every window (see [`crank_jax.horizon`][]) into `predicted`, and the
+    initial-state window from `state0` (its fitted state at the record's first sample);
+    **returns** each window's row of `Validation.windows`."""
+    ts = np.asarray(win.ts)
+    ys = np.stack([np.asarray(y) for _, y in win.outputs()])  # (C, n)
+    sigma = [max(noise_level(ts, y), 1e-9 * float(np.std(y)), 1e-300) for y in ys]
+    pred = Predictor(mech, load, torque, jnp.asarray(scene.rtol, float),
+                        jnp.asarray(scene.atol, float),
+                        jnp.asarray([s.scale for s in sensors], float),
+                        jnp.asarray([s.offset for s in sensors], float),
+                        jnp.asarray([1.0 / s for s in sigma]),
+                        tuple(s.name for s in sensors), scene.solver)
+    # One compiled program serves every head's state fit and every window's prediction:
+    # all are padded to one length (a window's prediction runs one sample into the next
+    # window, whose state fit starts from the state it reaches there).
+    n_win = bucket(max(w.stop - w.start for w in windows) + 1)
+    # The initial-state window's fit, carried to the first window's first sample (the
+    # first window's state fit starts there), in pieces of that length: no other program.
+    stop0, guess = windows[0].start + 1, np.asarray(state0, float)
+    for i in range(0, stop0 - 1, n_win - 1):
+        j = min(i + n_win, stop0)
+        t_piece, _ = padded(ts[i:j], n_win)
+        out, state, solved = predict(pred, jnp.asarray(guess), jnp.asarray(t_piece))
+        if not bool(solved):
+            raise RuntimeError("the prediction's solve failed on the initial-state window; "
+                               "check the scene's solver settings")
+        out, state = np.asarray(out), np.asarray(state)
+        for c, s in enumerate(sensors):
+            predicted[s.name][i:j] = out[c, :j - i]
+        guess = state[:, j - 1 - i]
+    first = sensors[0].name
+    rows, bad = [], []
+    for j, w in enumerate(windows):
+        t_head, mask = padded(ts[w.start:w.start + w.head], n_win)
+        y_head = pad_rows(ys[:, w.start:w.start + w.head], n_win)
+        y0, ok = estimate_state(pred, guess, t_head, mask, y_head)
+        stop = min(windows[j + 1].start + 1 if j + 1 < len(windows) else w.stop, win.n)
+        t_win, _ = padded(ts[w.start:stop], n_win)
+        out, state, solved = predict(pred, jnp.asarray(y0), jnp.asarray(t_win))
+        if not bool(solved):
+            raise RuntimeError(f"the prediction's solve failed in the window from t = "
+                               f"{w.t_start:g} s; check the scene's solver settings")
+        out, state = np.asarray(out), np.asarray(state)
+        for c, s in enumerate(sensors):
+            predicted[s.name][w.start:w.stop] = out[c, :w.stop - w.start]
+        if not bool(ok):
+            bad.append(f"{w.t_start:g} s")
+        rows.append(_row(w, float(y0[0]), float(y0[1]), bool(ok), ys[0], predicted[first],
+                         win.ts))
+        guess = state[:, stop - 1 - w.start]
+    if bad:
+        warnings.append(f"the state fit did not converge in {len(bad)} of {len(windows)} "
+                        f"windows (from {', '.join(bad[:5])}{', ...' if len(bad) > 5 else ''}"
+                        "); their predictions start from its last iterate")
+    return rows
+
+
+def _row(w, phi0: float, dphi0: float, ok: bool, y: np.ndarray, yhat: np.ndarray, ts
+         ) -> dict:
+    e = (y - yhat)[w.start + w.head:w.stop]
+    return {"t_start": w.t_start, "t_end": float(ts[w.stop - 1]), "n_head": int(w.head),
+            "n_predicted": int(w.stop - w.start - w.head), "phi0": phi0, "dphi0": dphi0,
+            "rms": float(np.sqrt(np.mean(e**2))), "converged": ok}
