@@ -1,6 +1,7 @@
 """Test configuration: float64 everywhere, a small CPU-only JAX, shared helpers."""
 
 import os
+from pathlib import Path
 
 os.environ.setdefault("CRANK_JAX_NO_CACHE", "1")  # tests must not depend on a warm cache
 
@@ -55,3 +56,34 @@ def rng():
 @pytest.fixture(scope="session")
 def lab_rig():
     return cj.load_scene("lab-rig")
+
+
+# The fast tier. The README's test command (and CI) runs the tests that are neither `slow`
+# nor `full`; `python -m pytest -m "not slow"` runs the full suite. The `full` tests are
+# listed in one file, `tests/full_tier.txt` (a test's file and name, one a line; a
+# parametrised test by its name alone takes every case), chosen by measured cost so that
+# every module keeps tests in the fast tier. An entry that names no collected test fails
+# the collection, so the list cannot rot silently.
+FULL_TIER = Path(__file__).with_name("full_tier.txt")
+
+
+def _full_tier() -> set[str]:
+    lines = (ln.split("#")[0].strip() for ln in FULL_TIER.read_text().splitlines())
+    return {ln for ln in lines if ln}
+
+
+@pytest.hookimpl(tryfirst=True)  # before `-m` deselects: every collected test is seen
+def pytest_collection_modifyitems(config, items):
+    listed = _full_tier()
+    files = {item.nodeid.split("::")[0] for item in items}
+    used = set()
+    for item in items:
+        key = item.nodeid.split("[")[0]
+        if key in listed:
+            item.add_marker(pytest.mark.full)
+            used.add(key)
+    # Only a run of whole folders sees every test a line could name.
+    whole = all(Path(a).is_dir() for a in config.args)
+    stale = sorted(k for k in listed - used if k.split("::")[0] in files)
+    if stale and whole:
+        raise pytest.UsageError(f"{FULL_TIER.name} names tests that do not exist: {stale}")
