@@ -94,7 +94,7 @@ def test_two_processes_write_what_one_process_writes_and_share_a_checkpoint(tmp_
     _assert_same_file(tmp_path / "p0.npz", one)
     saved = sorted(p.name for p in (tmp_path / "tr").iterdir())
     assert saved == sorted(p.name for p in (tmp_path / "tr0").iterdir())
-    assert len(saved) == 1 + 3 * 3  # the manifest, 3 files for each of 3 chunks
+    assert len(saved) == 1 + 4 * 3  # the manifest, 3 files and checksums for 3 chunks
     for name in saved:
         a, b = tmp_path / "tr" / name, tmp_path / "tr0" / name
         if name.endswith(".npy"):
