@@ -84,9 +84,11 @@ def _environment() -> str:
                 f"|{platform.machine()}")
     # XLA_FLAGS change the compiled code (e.g. the CLI's small-loop threshold, see
     # xla_flags.py), so programs compiled under other flags are other programs.
-    # So does the device count (a batch may be spread over several CPU devices).
+    # So does the device count (a batch may be spread over several CPU devices): this
+    # process's own, and the processes of a distributed run.
     return (f"{_ENV}|x64={jax.config.jax_enable_x64}|{jax.default_backend()}"
-            f"|{jax.device_count()}|{os.environ.get('XLA_FLAGS', '')}")
+            f"|{jax.local_device_count()}|{jax.process_count()}"
+            f"|{os.environ.get('XLA_FLAGS', '')}")
 
 
 def _signature(name: str, args) -> tuple[str | None, list, object, object]:
@@ -298,7 +300,7 @@ def _deserialize(entry: program_store.Entry, n_in: int):
     """Load a stored (intact) executable; `ValueError` for a header it cannot have."""
     from jax.experimental.serialize_executable import deserialize_and_load
 
-    if not 0 < entry.n_out <= _MAX_OUTPUTS or not 0 < entry.n_dev <= jax.device_count():
+    if not 0 < entry.n_out <= _MAX_OUTPUTS or not 0 < entry.n_dev <= jax.local_device_count():
         raise ValueError("not a program for this process")
     if entry.lapack:  # it calls LAPACK (registering its targets costs ~0.15 s: only then)
         _ready_custom_calls()
@@ -306,7 +308,9 @@ def _deserialize(entry: program_store.Entry, n_in: int):
     out_tree = jax.tree.structure(tuple(range(entry.n_out)))
     # Without `execution_devices` JAX loads it onto every device of a multi-device client
     # (e.g. one CPU device per core, `configure_cpu`), and a one-device program then fails
-    # on its first call ("Expected args ... to have 2 shards").
+    # on its first call ("Expected args ... to have 2 shards"). This process's own
+    # devices: in a distributed run `jax.devices()` starts with process 0's, and a program
+    # loaded there on another process returned arrays it cannot read (issue 37 item 9).
     return deserialize_and_load(entry.payload, in_tree, out_tree,
-                                execution_devices=jax.devices()[:entry.n_dev])
+                                execution_devices=jax.local_devices()[:entry.n_dev])
 
