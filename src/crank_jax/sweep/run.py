@@ -81,7 +81,9 @@ def initialize_distributed(**kwargs) -> None:
     environment (`JAX_COORDINATOR_ADDRESS`, `JAX_NUM_PROCESSES`, `JAX_PROCESS_ID`, or
     SLURM/MPI/cloud auto-detection). Afterwards `jax.devices()` lists every host's devices
     and a [`sweep`][] shards its chunks across all of them; every host draws the same
-    samples from the seed and gets the whole result.
+    samples from the seed and gets the whole result. Every process must call `sweep`
+    with the same arguments: their plans' digests are compared before any work, and a
+    mismatch is a `ValueError` on every process, naming what differs.
 
     When a process dies in a sweep, the others' next collective fails and the sweep
     raises a `RuntimeError` saying a process was lost; when the coordinator (process 0)
