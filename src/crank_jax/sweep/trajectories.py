@@ -178,7 +178,9 @@ class Trajectories:
 
     **Fields:** `ts` (n_t,) save times, s; `n`: number of samples of the sweep;
     `manifest`: the whole manifest. Nothing is read until asked for; arrays are
-    memory-mapped (`np.load(mmap_mode="r")`).
+    memory-mapped (`np.load(mmap_mode="r")`). A chunk's files are checked against their
+    SHA-256s the first time the chunk is used (one read of the chunk); a mismatch is a
+    `ValueError` naming the file.
     """
 
     def __init__(self, path):
@@ -188,6 +190,9 @@ class Trajectories:
         except (OSError, ValueError) as e:
             raise ValueError(f"{str(self.dir)!r} holds no saved trajectories "
                              f"({_MANIFEST}: {e})") from None
+        if self.manifest.get("format") == "crank-jax sweep trajectories 1":
+            raise ValueError(f"{str(self.dir)!r} was written by an older crank-jax, "
+                             "without checksums; rerun the sweep into a new directory")
         if self.manifest.get("format") != _FORMAT:
             raise ValueError(f"{str(self.dir)!r}: {_MANIFEST} is not a crank-jax "
                              "trajectory manifest")
