@@ -170,21 +170,33 @@ def test_stored_program_calling_lapack_loads_in_a_fresh_process(tmp_path):
     assert abs(runs[0]["x"][0] - 1 / 11) < 1e-15 and abs(runs[0]["x"][1] - 7 / 11) < 1e-15
 
 
-# Issue 26 item 6: a user's load class (a module file of their own) edited between two
-# runs. The program holds the class's code, so the store must not hand the second run the
-# first run's executable.
+# Issue 26 item 6 and issue 37 item 1: a user's load and force classes (a module file of
+# their own) whose code reads a module global set from outside (here an environment
+# variable). The program holds the code as traced, so a store keyed on the source gave the
+# second run the first run's executable: the first run's trajectory. Nothing holding a
+# user's class is stored; its compilation is JAX's persistent cache's.
 USER_LOAD = """
+import os
 import jax.numpy as jnp
+import equinox as eqx
 from crank_jax.model.loads import AbstractLoad
+
+GAIN = float(os.environ["USER_GAIN"])
 
 class Push(AbstractLoad):
     a: float
 
     def __call__(self, t):
-        return self.a * {expr}
+        return GAIN * self.a * jnp.sin(t)
 
     def mean(self):
         return jnp.asarray(0.0)
+
+class Drag(eqx.Module):
+    c: float
+
+    def __call__(self, t, phi, dphi):
+        return -GAIN * self.c * dphi
 """
 
 USER_SCRIPT = PRELUDE + r"""
@@ -192,32 +204,35 @@ sys.path.insert(0, sys.argv[2])
 import numpy as np
 import userload
 mech = cj.load_scene("lab-rig").mech
-traj = cj.simulate(mech, 0.3, 0.0, np.linspace(0.0, 0.5, 11), load=userload.Push(a=40.0))
-print(json.dumps({"phi": float(traj.phi[-1]), "compiled": sorted(compiled)}))
+ts = np.linspace(0.0, 0.5, 11)
+load = cj.simulate(mech, 0.3, 0.0, ts, load=userload.Push(a=40.0))
+force = cj.simulate(mech, 0.3, 0.0, ts, force=userload.Drag(c=0.5))
+print(json.dumps({"phi": [float(load.phi[-1]), float(force.phi[-1])],
+                  "compiled": sorted(compiled)}))
 """
 
 
-def test_user_load_class_edited_between_runs(tmp_path):
+@pytest.mark.slow  # three fresh processes, each tracing and compiling: ~2 min when loaded
+def test_user_classes_are_traced_in_every_process(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "CRANK_JAX_NO_CACHE"}
-    env["PYTHONDONTWRITEBYTECODE"] = "1"  # the edit keeps the file's size: no stale .pyc
     code = tmp_path / "code"
     code.mkdir()
+    (code / "userload.py").write_text(USER_LOAD)
 
-    def run(expr: str) -> dict:
-        (code / "userload.py").write_text(USER_LOAD.format(expr=expr))
-        out = subprocess.run([sys.executable, "-c", USER_SCRIPT, str(tmp_path / "cache"),
-                              str(code)], env=env, capture_output=True, text=True,
-                             timeout=300)
+    def run(gain: str, cache: str = "cache") -> dict:
+        out = subprocess.run([sys.executable, "-c", USER_SCRIPT, str(tmp_path / cache),
+                              str(code)], env=env | {"USER_GAIN": gain},
+                             capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
         return json.loads(out.stdout.strip().splitlines()[-1])
 
-    first = run("jnp.sin(t)")
-    assert "simulate" in first["compiled"]
-    edited = run("jnp.cos(t)")
-    assert "simulate" in edited["compiled"], "the edited class loaded the old program"
-    assert edited["phi"] != first["phi"]
-    again = run("jnp.cos(t)")  # unchanged: the user's class is stored, and loaded
-    assert again["compiled"] == [] and again["phi"] == edited["phi"]
+    first = run("0.1")
+    gain = run("0.5")  # the same source, another global
+    fresh = run("0.5", "fresh-cache")
+    assert gain["phi"] == fresh["phi"], "the store gave the first run's program"
+    assert gain["phi"][0] != first["phi"][0] and gain["phi"][1] != first["phi"][1]
+    # Only crank-jax's own programs (e.g. the solver policy's) are stored.
+    assert not list((tmp_path / "cache" / "crank-jax-programs").glob("simulate-*.xla"))
 
 
 # Issue 26: a fit on one of diffrax's explicit solvers. Its programs saved through

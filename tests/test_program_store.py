@@ -2,7 +2,7 @@
 issue 26 item 6), in this process: a damaged entry, whatever byte is damaged, is detected
 before it is deserialised, discarded and compiled anew, with the clean result; eviction
 survives links and FIFOs; no temporary file outlives its writer; a program holding a
-class from outside crank-jax is keyed on its source, or not stored.
+class from outside crank-jax is never stored (issue 37 item 1).
 
 The store is switched on here by pointing `persistent.program_store_dir` at a temporary
 directory (the test process otherwise runs without one). Fresh-process cases are in
@@ -19,12 +19,16 @@ import subprocess
 import sys
 import time
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import flip_byte as _flip
 
+import crank_jax as cj
 from crank_jax import persistent, program_store
+from crank_jax.foreign_code import foreign_classes
 from crank_jax.io import atomic_write
 from crank_jax.model.loads import AbstractLoad
 from crank_jax.program_store import MAGIC, Entry
@@ -228,81 +232,96 @@ def test_a_failed_write_leaves_no_temporary_file(tmp_path, monkeypatch):
     assert list(store.iterdir()) == []
 
 
-# --- classes from outside crank-jax -----------------------------------------------------
+# --- classes from outside crank-jax (issue 37 item 1) ----------------------------------
 
 LOAD = """
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 from crank_jax.model.loads import AbstractLoad
+
+GAIN = 0.1
 
 class Pulse(AbstractLoad):
     a: float
 
     def __call__(self, t):
-        return {expr}
+        return GAIN * self.a * jnp.sin(t)
 
     def mean(self):
         return jnp.asarray(0.0)
 """
 
 
-def _user_module(tmp_path, monkeypatch, name, expr):
-    """Module `name` in `tmp_path`, with class `Pulse` whose load is `expr`, imported
-    afresh (and removed from `sys.modules` after the test)."""
-    (tmp_path / f"{name}.py").write_text(LOAD.format(expr=expr))
-    old = time.time() - 120  # written before this process started
+def _user_module(tmp_path, monkeypatch, name):
+    """Module `name` in `tmp_path`, with class `Pulse` whose load reads the module global
+    `GAIN`, imported afresh (and removed from `sys.modules` after the test)."""
+    (tmp_path / f"{name}.py").write_text(LOAD)
+    old = time.time() - 3600  # as a module written before this process started
     os.utime(tmp_path / f"{name}.py", (old, old))
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setattr("crank_jax.foreign_code._STARTED", time.time())
-    monkeypatch.setattr(sys, "dont_write_bytecode", True)  # no stale .pyc of the edit
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
     monkeypatch.delitem(sys.modules, name, raising=False)
     importlib.invalidate_caches()
     return importlib.import_module(name)
 
 
 def _load_program():
+    """A fresh program, as in a fresh process (nothing in memory, the same store)."""
     return Counted(lambda load, t: (load(t),), "user_load")
 
 
-def test_a_user_class_is_keyed_on_its_source(store, tmp_path, monkeypatch):
+def test_a_user_class_reading_a_global_is_never_stored(store, tmp_path, monkeypatch):
+    """The issue's case: a load whose `__call__` reads a module global gave the first
+    run's result after the global changed (its source, the old key, did not change)."""
     t = jnp.linspace(0.0, 1.0, 5)
-    one = _user_module(tmp_path, monkeypatch, "user_load_a", "self.a * jnp.sin(t)")
-    prog = _load_program()
-    (first,) = prog(one.Pulse(2.0), t)
-    assert prog.compiled == 1 and len(list(store.glob("*.xla"))) == 1
-    again = _load_program()
-    again(one.Pulse(2.0), t)
-    assert again.compiled == 0  # a user class with a source file is stored and loaded
-    # The same class name and module name, another body: another program.
-    (tmp_path / "user_load_a.py").unlink()
-    two = _user_module(tmp_path, monkeypatch, "user_load_a", "self.a * jnp.cos(t)")
-    prog = _load_program()
-    (second,) = prog(two.Pulse(2.0), t)
-    assert prog.compiled == 1
-    np.testing.assert_allclose(second, 2.0 * np.cos(np.asarray(t)), rtol=1e-15)
-    np.testing.assert_allclose(first, 2.0 * np.sin(np.asarray(t)), rtol=1e-15)
+    module = _user_module(tmp_path, monkeypatch, "user_load_gain")
+    (first,) = _load_program()(module.Pulse(2.0), t)
+    np.testing.assert_allclose(first, 0.2 * np.sin(np.asarray(t)), rtol=1e-15)
+    monkeypatch.setattr(module, "GAIN", 0.5)  # e.g. read from a configuration file
+    (second,) = _load_program()(module.Pulse(2.0), t)
+    np.testing.assert_allclose(second, 1.0 * np.sin(np.asarray(t)), rtol=1e-15)
+    assert not list(store.glob("*.xla"))
+    assert persistent._signature("user_load", (module.Pulse(2.0), t))[0] is None
 
 
-def test_a_class_without_source_or_edited_since_start_is_not_stored(store, tmp_path,
-                                                                   monkeypatch):
-    t = jnp.linspace(0.0, 1.0, 5)
-
-    class Local(AbstractLoad):  # defined here: a source file, but this one is not edited
+def _factory(gain: float):
+    class Scaled(AbstractLoad):  # one source, a closure value of its own
         def __call__(self, t):
-            return t ** 2
+            return gain * t
 
         def mean(self):
             return jnp.asarray(0.0)
 
-    nowhere = type("Nowhere", (Local,), {"__module__": "no_such_module"})
+    return Scaled
+
+
+def test_two_classes_from_one_factory_get_their_own_programs(store):
+    """Same source, same name, another closure value: one process, one program object."""
+    t = jnp.linspace(0.0, 1.0, 5)
     prog = _load_program()
-    (out,) = prog(nowhere(), t)
-    np.testing.assert_allclose(out, np.asarray(t) ** 2)
-    assert not list(store.glob("*.xla"))
-    module = _user_module(tmp_path, monkeypatch, "user_load_b", "self.a * t")
-    os.utime(tmp_path / "user_load_b.py")  # edited after the process started
-    (out,) = _load_program()(module.Pulse(3.0), t)
-    np.testing.assert_allclose(out, 3.0 * np.asarray(t))
-    assert not list(store.glob("*.xla"))
+    (one,) = prog(_factory(1.0)(), t)
+    (three,) = prog(_factory(3.0)(), t)
+    np.testing.assert_allclose(one, np.asarray(t), rtol=1e-15)
+    np.testing.assert_allclose(three, 3.0 * np.asarray(t), rtol=1e-15)
+    assert not list(store.glob("*.xla")) and prog.compiled == 0
+
+
+class _Holder(eqx.Module):
+    """Stands for a module of crank-jax's whose static field holds a user's object."""
+
+    __module__ = "crank_jax.model.loads"
+    inner: object = eqx.field(static=True)
+
+
+def test_a_user_object_anywhere_in_static_data_is_found():
+    """Not only the pytree's own nodes: inside containers and other modules' static
+    fields (an object with no address in its repr would otherwise be keyed by it)."""
+    user = _factory(2.0)()
+    assert foreign_classes((), [{"a": (1, [user])}]) == {type(user)}
+    assert foreign_classes((jax.tree.structure(_Holder(user)),), []) == {type(user)}
+    assert foreign_classes((jax.tree.structure(_Holder({"x": (1.0, "a")})),),
+                           [frozenset({("x", 1)}), cj.NoLoad()]) == set()
 
 
 # --- temporary files of a killed writer ----------------------------------------------------
@@ -354,15 +373,3 @@ def test_a_killed_writers_temporary_program_is_removed_by_the_next_store(tmp_pat
                         program_store.pack(key, Entry(1, False, 1, b"z" * 10)))
     assert not list(store.glob(".*.tmp"))
     assert not (store / "p-a.xla").exists()
-
-
-def test_a_user_module_edited_after_its_first_use_is_no_longer_keyed(store, tmp_path,
-                                                                   monkeypatch):
-    """The running class may now differ from both the stored program and the file (a
-    notebook's autoreload): no key, so nothing is loaded or stored for it."""
-    t = jnp.linspace(0.0, 1.0, 5)
-    module = _user_module(tmp_path, monkeypatch, "user_load_c", "self.a * t")
-    args = (module.Pulse(3.0), t)
-    assert persistent._signature("user_load", args)[0] is not None
-    os.utime(tmp_path / "user_load_c.py")
-    assert persistent._signature("user_load", args)[0] is None

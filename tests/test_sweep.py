@@ -190,6 +190,13 @@ def test_every_load_kind_sweeps_or_is_refused_by_name(lab_rig):
     assert r.ok[0] and r.outputs["final_phi"][0] == pytest.approx(float(tr.phi[-1]), rel=1e-9)
     with pytest.raises(ValueError, match="SampledLoad .* no tau0"):
         cj.sweep(scene, {"tau0": 1.0}, n=2)
+    # A harmonic load has no gain (only an input load has): refused, not promoted to a
+    # tone of zero amplitude (issue 37 item 4).
+    tone = cj.HarmonicLoad(0.01, 0.03, 1.3, 0.0)
+    scene = eqx.tree_at(lambda s: s.torque, scene, tone)
+    with pytest.raises(ValueError, match=r"cannot vary 'tau_gain': .* HarmonicLoad .* "
+                                         r"its parameters are \['tau0', 'tau1'"):
+        cj.sweep(scene, {"tau_gain": 1.0, "tau1": 0.02}, n=2)
 
 
 # --- static structure -------------------------------------------------------------------
@@ -251,6 +258,11 @@ def test_cli_sweep_writes_npz_and_summary(tmp_path, capsys):
 @pytest.mark.parametrize("args, words", [
     (["--vary", "k"], "expected NAME=DIST"),
     (["--vary", "q=normal(1,1)"], "cannot vary 'q'"),
+    # issue 37 item 4: a parameter no load of the scene has nor can be given was dropped,
+    # giving the nominal scene's outputs with exit 0
+    (["--vary", "tau_gain=const(1)"], "cannot vary 'tau_gain': the scene's torque is a "
+                                      "NoLoad"),
+    (["--vary", "P_gain=const(0)"], "cannot vary 'P_gain'"),
     (["--vary", "k=normal(1"], "cannot read"),
     (["--vary", "k=1", "--vary", "k=2"], "given twice"),
     (["--outputs", "peak_q"], "unknown output"),

@@ -73,6 +73,34 @@ def test_another_plan_is_refused_naming_what_differs(lab_rig, tmp_path):
         cj.sweep(lab_rig, {"k": "normal(2.0,0.2)"}, OUTS, checkpoint=ckpt, **{**KW, "n": 2})
 
 
+@pytest.mark.parametrize("first, second", [
+    ("normal(2,0.1)", "normal(2.0000004,0.1)"),
+    ("const(100000)", "const(100000.4)"),
+])
+def test_plans_are_compared_exactly_not_by_their_printed_text(lab_rig, tmp_path, first,
+                                                              second):
+    """Issue 37 item 5: the manifest held `%g` text, so these pairs were one plan and the
+    second run reused the first's chunks with exit 0."""
+    ckpt = tmp_path / "ck"
+    kw = {**KW, "n": 2}
+    cj.sweep(lab_rig, {"k": "normal(2.0,0.1)", "phi0": first}, OUTS, checkpoint=ckpt, **kw)
+    with pytest.raises(ValueError, match=r"its samples differ"):
+        cj.sweep(lab_rig, {"k": "normal(2.0,0.1)", "phi0": second}, OUTS, checkpoint=ckpt,
+                 **kw)
+
+
+def test_a_chunk_of_another_plan_is_computed_again_without_a_manifest(lab_rig, tmp_path):
+    """Issue 37 item 6: with `manifest.json` deleted, another sweep into the directory
+    read the first one's chunks (same sample indices) and returned their outputs."""
+    ckpt = tmp_path / "ck"
+    kw = {**KW, "n": 4, "sort": False}  # the same chunk indices in both plans
+    cj.sweep(lab_rig, {"phi0": np.array([0.5, 0.6, 0.7, 0.8])}, OUTS, checkpoint=ckpt, **kw)
+    (ckpt / "manifest.json").unlink()
+    other = {"phi0": np.array([1.0, 1.1, 1.2, 1.3])}
+    got = cj.sweep(lab_rig, other, OUTS, checkpoint=ckpt, **kw)
+    _equal(got, cj.sweep(lab_rig, other, OUTS, **kw))
+
+
 def test_a_checkpoint_that_is_a_file_or_not_a_directory_is_refused(lab_rig, tmp_path):
     f = tmp_path / "file"
     f.write_text("x")

@@ -37,15 +37,17 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _start(argvs, tmp_path, port, **env):
+def _start(argvs, tmp_path, port, only=None, **env):
     """One process per argv list (`python *argv`), process i with JAX_PROCESS_ID=i and one
-    CPU device, all joined at the coordinator 127.0.0.1:port."""
+    CPU device, all joined at the coordinator 127.0.0.1:port; `only`: {i: environment}
+    of process i alone."""
     return [subprocess.Popen(
         [sys.executable, *argv], cwd=tmp_path, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True,
         env=_env(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}",
                  JAX_NUM_PROCESSES=str(len(argvs)), JAX_PROCESS_ID=str(i),
-                 JAX_NUM_CPU_DEVICES="1", **env)) for i, argv in enumerate(argvs)]
+                 JAX_NUM_CPU_DEVICES="1", **env, **(only or {}).get(i, {})))
+        for i, argv in enumerate(argvs)]
 
 
 def _cli(tmp_path, *extra, args=ARGS, tag="p", n=2):
@@ -94,7 +96,7 @@ def test_two_processes_write_what_one_process_writes_and_share_a_checkpoint(tmp_
     _assert_same_file(tmp_path / "p0.npz", one)
     saved = sorted(p.name for p in (tmp_path / "tr").iterdir())
     assert saved == sorted(p.name for p in (tmp_path / "tr0").iterdir())
-    assert len(saved) == 1 + 3 * 3  # the manifest, 3 files for each of 3 chunks
+    assert len(saved) == 1 + 4 * 3  # the manifest, 3 files and checksums for 3 chunks
     for name in saved:
         a, b = tmp_path / "tr" / name, tmp_path / "tr0" / name
         if name.endswith(".npy"):
@@ -187,6 +189,43 @@ def test_a_run_that_never_forms_ends_with_one_line_in_bounded_time_exit_2(tmp_pa
     assert "did not answer within 5 s" in e1
     assert "not every process joined" in e0 and "within 5 s" in e0
     assert not list(tmp_path.glob("x*.npz"))
+
+
+@pytest.mark.parametrize("extra, field", [(["--seed", "1"], "seed"), (["--n", "8"], "n"),
+                                          (["--vary", "phi0=const(0.3)"], "samples")])
+def test_processes_given_different_sweeps_are_refused_on_every_process(tmp_path, extra,
+                                                                       field):
+    """Issue 37 item 8: process 1 with another --seed, --n or --vary wrote, with process
+    0, a file that mixed both plans, exit 0. Now both refuse before any work: one line,
+    exit 2, naming what differs; nothing written."""
+    argvs = _cli(tmp_path)
+    argvs[1] += extra
+    for code, err in _finish(_start(argvs, tmp_path, _free_port())):
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1, err[-3000:]
+        assert "different sweeps: process(es) 1 differ from process 0 in" in lines[0]
+        assert lines[0].split(" in ")[1].startswith(field + ";"), lines[0]
+    assert not list(tmp_path.glob("p*.npz"))
+
+
+# Issue 37 items 9 and 10: with the program store on, a second two-process run loaded the
+# stored programs onto `jax.devices()[:1]` (process 0's device) also in process 1, which
+# then failed ("Fetching value for `jax.Array` that spans non-addressable devices"); and a
+# peer slower than Gloo's 30 s (compiling on a loaded machine) made the other's collective
+# fail. Here the second run, on the warm store, has process 1 wait 40 s before its first
+# collective.
+@pytest.mark.slow  # a 40 s wait on top of two two-process runs
+def test_a_warm_store_and_a_slow_peer_still_give_the_result(tmp_path):
+    cache = {"CRANK_JAX_NO_CACHE": "", "CRANK_JAX_CACHE_DIR": str(tmp_path / "cache")}
+    for code, err in _finish(_start(_cli(tmp_path, tag="cold"), tmp_path, _free_port(),
+                                    **cache)):
+        assert code == 0, err[-2000:]
+    assert list((tmp_path / "cache" / "crank-jax-programs").glob("*.xla"))
+    slow = {1: {"CRANK_JAX_TEST_COLLECTIVE_DELAY": "40"}}
+    for code, err in _finish(_start(_cli(tmp_path, tag="warm"), tmp_path, _free_port(),
+                                    only=slow, **cache)):
+        assert code == 0, err[-2000:]
+    _assert_same_file(tmp_path / "cold0.npz", tmp_path / "warm0.npz")
 
 
 @pytest.mark.slow

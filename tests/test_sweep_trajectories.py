@@ -75,6 +75,46 @@ def test_a_resumed_sweep_keeps_the_saved_trajectories(lab_rig, whole, tmp_path):
     np.testing.assert_array_equal(got["phi"], whole.outputs["phi"][whole.ok])
 
 
+def _flip(path, at=-8):
+    raw = bytearray(path.read_bytes())
+    raw[at] ^= 0x01
+    path.write_bytes(bytes(raw))
+
+
+def test_damaged_or_swapped_files_are_refused_and_computed_again(lab_rig, whole, tmp_path):
+    """Issue 37 item 7: a byte-flipped or swapped `.npy` was returned as it was (off by
+    1.51 rad), and a resume kept the damaged chunk."""
+    ck, tr = tmp_path / "ck", tmp_path / "tr"
+    cj.sweep(lab_rig, SPEC, ("peak_phi",), checkpoint=ck, save_trajectories=tr, **KW)
+    ok = np.flatnonzero(whole.ok)
+    phis = sorted(tr.glob("chunk-*.phi.npy"))
+    assert len(phis) >= 3
+    _flip(phis[0])
+    with pytest.raises(ValueError, match=f"{phis[0].name}.* damaged or not this chunk's"):
+        cj.load_trajectories(tr)[ok]
+    with pytest.raises(ValueError, match="damaged"):
+        list(cj.load_trajectories(tr).chunks())
+    # A resume computes the damaged chunk again; the others are kept.
+    kept = {p: p.stat().st_mtime_ns for p in phis[1:]}
+    cj.sweep(lab_rig, SPEC, ("peak_phi",), checkpoint=ck, save_trajectories=tr, **KW)
+    assert kept == {p: p.stat().st_mtime_ns for p in phis[1:]}
+    got = cj.load_trajectories(tr)[ok]
+    np.testing.assert_array_equal(got["phi"], whole.outputs["phi"][ok])
+    # Files of the same shape swapped between fields, or between chunks: refused.
+    a, b = tr / phis[1].name, tr / phis[1].name.replace(".phi.", ".dphi.")
+    data_a, data_b = a.read_bytes(), b.read_bytes()
+    a.write_bytes(data_b)
+    b.write_bytes(data_a)
+    with pytest.raises(ValueError, match="not this chunk's"):
+        cj.load_trajectories(tr)[ok]
+    a.write_bytes(data_a)
+    b.write_bytes(data_b)
+    same = [p for p in phis if np.load(p).shape == np.load(phis[1]).shape and p != phis[1]]
+    phis[1].write_bytes(same[0].read_bytes())
+    with pytest.raises(ValueError, match="not this chunk's"):
+        cj.load_trajectories(tr)[ok]
+
+
 def test_a_store_of_another_sweep_or_a_file_is_refused(lab_rig, tmp_path):
     tr = tmp_path / "tr"
     cj.sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tr, **{**KW, "n": 2})

@@ -8,9 +8,12 @@ that: the first call compiles the program and stores the executable
 (`jax.experimental.serialize_executable`) under a key made of everything that decides it:
 the static part of the arguments, their shapes and dtypes, this package's source, the
 versions of JAX and of the libraries that trace into it, x64, the backend and the CPU's
-instruction-set flags (an executable is machine code), and the source of any class from
-outside crank-jax in the arguments (`foreign_code.py`: a user's load, a force of their
-own). Later processes load it (tens of milliseconds to a few tenths of a second, by size).
+instruction-set flags (an executable is machine code). A program whose arguments hold
+a class from outside crank-jax (a user's load, a force of their own) is never stored: its
+code may read anything (a module global, a closure), so no key short of the traced
+program covers it (`foreign_code.py`); it is traced in every process, as `jax.jit` does,
+and JAX's persistent cache spares its compilation. Later processes load a stored program
+(tens of milliseconds to a few tenths of a second, by size).
 Each file carries a SHA-256 of all of it, checked before anything is deserialised
 (`program_store.py`); a damaged file, or one that does not load or run here, is
 discarded and compiled again, never loaded and never fatal.
@@ -37,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import program_store
-from .foreign_code import foreign_classes, source_digest
+from .foreign_code import foreign_classes
 from .xla_flags import instruction_sets
 
 __all__ = ["PersistentProgram", "program_store_dir", "enum_code", "enum_name"]
@@ -81,16 +84,18 @@ def _environment() -> str:
                 f"|{platform.machine()}")
     # XLA_FLAGS change the compiled code (e.g. the CLI's small-loop threshold, see
     # xla_flags.py), so programs compiled under other flags are other programs.
-    # So does the device count (a batch may be spread over several CPU devices).
+    # So does the device count (a batch may be spread over several CPU devices): this
+    # process's own, and the processes of a distributed run.
     return (f"{_ENV}|x64={jax.config.jax_enable_x64}|{jax.default_backend()}"
-            f"|{jax.device_count()}|{os.environ.get('XLA_FLAGS', '')}")
+            f"|{jax.local_device_count()}|{jax.process_count()}"
+            f"|{os.environ.get('XLA_FLAGS', '')}")
 
 
 def _signature(name: str, args) -> tuple[str | None, list, object, object]:
-    """(key, array leaves, their treedef, the static part) of a call; the key is None when
-    the static part names an object by its address (a user's function: no stable key),
-    or holds a class from outside crank-jax whose source cannot be keyed (see
-    `foreign_code.py`)."""
+    """(key, array leaves, their treedef, the static part) of a call; the key is None (not
+    stored) when the static part names an object by its address (a user's function), or
+    holds a class from outside crank-jax anywhere (see `foreign_code.py`): only code
+    whose every input is in the key may skip tracing."""
     dyn, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree.flatten(dyn)
     static_leaves, static_def = jax.tree.flatten(static)
@@ -101,12 +106,8 @@ def _signature(name: str, args) -> tuple[str | None, list, object, object]:
               for x in leaves])])
     if " at 0x" in text:
         return None, leaves, treedef, static
-    foreign = foreign_classes((treedef, static_def), static_leaves)
-    if foreign:  # a user's class: its code is in the program, so its source in the key
-        source = source_digest(frozenset(foreign))
-        if source is None:
-            return None, leaves, treedef, static
-        text += "\n" + source
+    if foreign_classes((treedef, static_def), static_leaves):
+        return None, leaves, treedef, static
     return hashlib.sha256(text.encode()).hexdigest(), leaves, treedef, static
 
 
@@ -299,7 +300,7 @@ def _deserialize(entry: program_store.Entry, n_in: int):
     """Load a stored (intact) executable; `ValueError` for a header it cannot have."""
     from jax.experimental.serialize_executable import deserialize_and_load
 
-    if not 0 < entry.n_out <= _MAX_OUTPUTS or not 0 < entry.n_dev <= jax.device_count():
+    if not 0 < entry.n_out <= _MAX_OUTPUTS or not 0 < entry.n_dev <= jax.local_device_count():
         raise ValueError("not a program for this process")
     if entry.lapack:  # it calls LAPACK (registering its targets costs ~0.15 s: only then)
         _ready_custom_calls()
@@ -307,7 +308,9 @@ def _deserialize(entry: program_store.Entry, n_in: int):
     out_tree = jax.tree.structure(tuple(range(entry.n_out)))
     # Without `execution_devices` JAX loads it onto every device of a multi-device client
     # (e.g. one CPU device per core, `configure_cpu`), and a one-device program then fails
-    # on its first call ("Expected args ... to have 2 shards").
+    # on its first call ("Expected args ... to have 2 shards"). This process's own
+    # devices: in a distributed run `jax.devices()` starts with process 0's, and a program
+    # loaded there on another process returned arrays it cannot read (issue 37 item 9).
     return deserialize_and_load(entry.payload, in_tree, out_tree,
-                                execution_devices=jax.devices()[:entry.n_dev])
+                                execution_devices=jax.local_devices()[:entry.n_dev])
 

@@ -4,7 +4,9 @@ of the same plan computes only the chunks that are missing.
 The directory holds `manifest.json` (the plan: scene, samples, seed, outputs, save times,
 solver, step budget, chunk size, sorting, crank-jax's version) and one `chunk-B-S.npz` per
 finished chunk (block start `B`, start `S` within the block's sorted order), each written
-atomically with a SHA-256 of its arrays inside. A rerun whose plan differs from the
+atomically with a SHA-256 of its arrays and of the plan inside (a chunk of another plan,
+e.g. left in a directory whose manifest was deleted, fails it). The plan is compared
+exactly: numbers at full precision, arrays by digest. A rerun whose plan differs from the
 manifest is refused, naming what differs; a chunk file that cannot be read or whose
 checksum does not match is computed again. A chunk's samples are fixed by the plan (the
 samples depend on the seed only, the sorting on the samples, the chunks on the chunk size),
@@ -19,6 +21,7 @@ device count (and so the rounded chunk size, which the manifest holds) is the sa
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -30,13 +33,16 @@ import numpy as np
 from ..io import atomic_write, make_dir
 from .collective import broadcast, on_process_0
 
-__all__ = ["Checkpoint", "SharedCheckpoint", "plan_manifest"]
+__all__ = ["Checkpoint", "SharedCheckpoint", "plan_manifest", "plan_digest"]
 
 _MANIFEST = "manifest.json"
 
 
-def _digest(arrays: dict[str, np.ndarray]) -> str:
-    h = hashlib.sha256()
+def _digest(arrays: dict[str, np.ndarray], plan: str = "") -> str:
+    """SHA-256 of `arrays` (names, dtypes, shapes, bytes), bound to the digest `plan` of
+    the plan they belong to (so that a chunk of another plan never passes for one of
+    this plan's, even without a manifest)."""
+    h = hashlib.sha256(plan.encode())
     for k in sorted(arrays):
         a = np.ascontiguousarray(arrays[k])
         h.update(f"{k}:{a.dtype.str}:{a.shape}".encode())
@@ -55,9 +61,24 @@ def _version() -> str:
         return "unknown"
 
 
+def _exact(dist) -> str:
+    """A distribution's text at full precision (`repr` of each float): `str` prints `%g`,
+    which made `normal(2, 0.1)` and `normal(2.0000004, 0.1)` the same plan."""
+    fields = ",".join(f"{f.name}={float(getattr(dist, f.name))!r}"
+                      for f in dataclasses.fields(dist))
+    return f"{type(dist).__name__}({fields})"
+
+
+def plan_digest(manifest: dict) -> str:
+    """SHA-256 of a plan's manifest ([`plan_manifest`][]): exact values throughout."""
+    return hashlib.sha256(json.dumps(manifest, sort_keys=True).encode()).hexdigest()
+
+
 def plan_manifest(plan, chunk: int, max_steps: int) -> dict:
+    """What decides a sweep's chunks, exactly (numbers at full precision, arrays by
+    their SHA-256)."""
     spec = plan.spec
-    samples = {k: str(v) for k, v in spec.dists.items()}
+    samples = {k: _exact(v) for k, v in spec.dists.items()}
     samples.update({k: "array sha256 " + _digest({"a": np.asarray(v)})
                     for k, v in spec.arrays.items()})
     leaves, treedef = jax.tree.flatten(plan.scene)
@@ -88,6 +109,7 @@ class Checkpoint:
             raise ValueError(f"checkpoint {str(self.dir)!r} is not writable; give a "
                              "directory you may write to")
         want = plan_manifest(plan, chunk, max_steps)
+        self.plan = plan_digest(want)
         path = self.dir / _MANIFEST
         if path.exists():
             try:
@@ -118,7 +140,7 @@ class Checkpoint:
         try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files if k != "sha256"}
-                ok = str(z["sha256"]) == _digest(arrays)
+                ok = str(z["sha256"]) == _digest(arrays, self.plan)
         except Exception:  # noqa: BLE001 (any damage: BadZipFile, zlib, pickle refusal...)
             return None  # computed again
         if not ok or not np.array_equal(arrays.get("idx"), idx):
@@ -135,7 +157,7 @@ class Checkpoint:
                   "solver": np.asarray(solver_index)}
         arrays.update({f"out.{k}": np.asarray(v) for k, v in res.items()})
         with atomic_write(self._file(b0, start), "wb") as f:
-            np.savez(f, sha256=np.asarray(_digest(arrays)), **arrays)
+            np.savez(f, sha256=np.asarray(_digest(arrays, self.plan)), **arrays)
 
 
 class SharedCheckpoint:

@@ -1,14 +1,58 @@
 """The collectives of a multi-process sweep: gather every process's part of a chunk, and
 send process 0's checkpointed chunk to the others. A collective whose peer died fails
 (at once when the peer's socket closes, else after Gloo's 30 s timeout); it is reported
-as one `RuntimeError` that says what happened and what to do."""
+as one `RuntimeError` that says what happened and what to do.
+
+Gloo's collectives give up after 30 s, but a peer may be busy far longer: compiling the
+chunk (hosts compile at their own pace; a loaded 2-core machine took more than 30 s
+longer on one process than the other, and two of two 4000-sample two-process sweeps
+failed, issue 37 item 10), or solving a stiffer part. So every collective first waits at
+a barrier of JAX's coordination service ([`sync`][]), whose timeout is ours
+([`SYNC_TIMEOUT_S`][]); a dead peer still ends the wait, by the service's heartbeat.
+Every process then enters the collective within milliseconds of the others.
+"""
 
 from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
 
 import jax
 import numpy as np
 
-__all__ = ["gather", "broadcast", "lost", "on_process_0"]
+__all__ = ["gather", "broadcast", "lost", "on_process_0", "sync", "SYNC_TIMEOUT_S",
+           "same_everywhere"]
+
+#: The longest a process waits at a barrier for its peers (s): a day, for a chunk that
+#: takes long on one host. A peer that dies is noticed sooner (the heartbeat timeout).
+SYNC_TIMEOUT_S = 86_400
+#: Test hook: seconds this process sleeps before its first collective (a slow peer).
+DELAY_ENV = "CRANK_JAX_TEST_COLLECTIVE_DELAY"
+
+_barriers = 0  # barriers passed by this process (their ids; the same on every process)
+
+
+def sync() -> None:
+    """Wait until every process reaches this point (no-op with one process). Every
+    process calls the collectives in the same order, so the n-th barrier is the same one
+    everywhere."""
+    global _barriers
+    if jax.process_count() == 1:
+        return
+    from jax._src import distributed  # the client of `jax.distributed.initialize`
+
+    client = distributed.global_state.client
+    if client is None:
+        return
+    _barriers += 1
+    if _barriers == 1 and os.environ.get(DELAY_ENV):
+        time.sleep(float(os.environ[DELAY_ENV]))
+    try:
+        client.wait_at_barrier(f"crank-jax-sweep-{_barriers}", SYNC_TIMEOUT_S * 1000)
+    except Exception as e:  # noqa: BLE001 (a JaxRuntimeError from the service)
+        raise lost(e) from None
 
 
 def lost(e: Exception) -> RuntimeError:
@@ -28,6 +72,7 @@ def gather(tree):
         return tree
     from jax.experimental import multihost_utils
 
+    sync()
     try:
         got = multihost_utils.process_allgather(tree, tiled=False)
     except Exception as e:  # noqa: BLE001 (JaxRuntimeError, a ValueError, from Gloo)
@@ -44,6 +89,7 @@ def broadcast(tree):
     from jax.experimental import multihost_utils
 
     raw = jax.tree.map(lambda a: np.ascontiguousarray(a).reshape(-1).view(np.uint8), tree)
+    sync()
     try:
         got = multihost_utils.broadcast_one_to_all(raw)
     except Exception as e:  # noqa: BLE001 (as in `gather`)
@@ -67,3 +113,36 @@ def on_process_0(make, what: str):
     if not ok:
         raise ValueError(f"{what} was refused by process 0 (its message says why)")
     return obj
+
+
+_SLOTS = 64  # fields compared by name (more are compared as a whole only)
+
+
+def same_everywhere(fields: dict, what: str) -> None:
+    """Check that every process holds the same `fields` (JSON values, e.g. a sweep's plan),
+    before any work: each process sends a digest of the whole and of each field, and
+    every process raises the same `ValueError`, naming the processes and fields that
+    differ from process 0's, if any does (issue 37 item 8: a process given another
+    `--seed` wrote a file mixing two plans, exit 0)."""
+    if jax.process_count() == 1:
+        return
+    keys = sorted(fields)[:_SLOTS]
+
+    def h(value) -> bytes:
+        return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).digest()
+
+    row = np.zeros((1, 32 + 8 * _SLOTS), np.uint8)
+    row[0, :32] = np.frombuffer(h(fields), np.uint8)
+    for i, k in enumerate(keys):
+        row[0, 32 + 8 * i:40 + 8 * i] = np.frombuffer(h(fields[k])[:8], np.uint8)
+    rows = gather(row)
+    bad = [p for p in range(rows.shape[0]) if not np.array_equal(rows[p], rows[0])]
+    if not bad:
+        return
+    differ = [k for i, k in enumerate(keys)
+              if any(not np.array_equal(rows[p, 32 + 8 * i:40 + 8 * i],
+                                        rows[0, 32 + 8 * i:40 + 8 * i]) for p in bad)]
+    raise ValueError(f"the processes of this distributed run were given different "
+                     f"{what}s: process(es) {', '.join(map(str, bad))} differ from process "
+                     f"0 in {', '.join(differ) or 'their fields'}; give every process the "
+                     "same command and files (--vary, --n, --seed, scene, ...)")

@@ -23,6 +23,7 @@ from ..model.dynamics import Structure
 from ..model.linear import linearize
 from ..model.loads import (
     LOAD_PARAMS,
+    ROLES,
     SIDES,
     AbstractLoad,
     get_param,
@@ -172,12 +173,37 @@ def _structure(scene, spec: Spec) -> Structure:
     return Structure.of(scene.mech).union(Structure.of(types.SimpleNamespace(**vals)))
 
 
+def _reachable_roles(nominal: AbstractLoad, side: str) -> set[str]:
+    """The roles `nominal` has, or gains by promotion (none -> constant -> harmonic)."""
+    roles = set(load_kind(nominal).fields)
+    try:
+        roles |= set(load_kind(promote(nominal, _TONE, side)).fields)
+    except ValueError:  # a kind that is not promoted (a multi-sine, a sampled load...)
+        pass
+    return roles
+
+
+_TONE = ("mean", "amp", "freq_hz", "phase")  # a harmonic load's roles
+
+
 def _load_plan(scene, spec: Spec, side: str) -> tuple[AbstractLoad, tuple] | None:
     varied = {LOAD_PARAMS[n][1]: n for n in spec.names
               if n in LOAD_PARAMS and LOAD_PARAMS[n][0] == side}
     if not varied:
         return None
     nominal = getattr(scene, side)
+    # Every varied parameter must be one the load has or can be promoted to: a value
+    # dropped here would give the nominal scene's outputs with exit 0 (issue 37 item 4).
+    reachable = _reachable_roles(nominal, side)
+    for role, name in varied.items():
+        if role not in reachable:
+            kind = load_kind(nominal)
+            has = [param_name(side, r) for r in ROLES if r in kind.fields] or "none"
+            more = [param_name(side, r) for r in ROLES if r in reachable - set(kind.fields)]
+            raise ValueError(f"cannot vary {name!r}: the scene's {side} is a "
+                             f"{type(nominal).__name__} ({kind.name}), which has no {name}; "
+                             f"its parameters are {has}"
+                             + (f" (a sweep can also vary {more})" if more else ""))
     need = {r for r, n in varied.items()
             if _may_be_nonzero(spec.dists.get(n, spec.arrays.get(n)))}
     has = set(load_kind(nominal).fields)

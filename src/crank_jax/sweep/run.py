@@ -55,7 +55,7 @@ from ..solve.names import name_of
 from ..solve.policy import SOLVERS, resolve_solver
 from ..solve.simulate import simulate
 from .checkpoint import Checkpoint, SharedCheckpoint, plan_manifest
-from .collective import gather, on_process_0
+from .collective import gather, on_process_0, same_everywhere
 from .distributions import AbstractDistribution
 from .plan import SORT_BLOCK, VARIABLES, Plan, make_plan
 from .reductions import DEFAULT_OUTPUTS, REDUCTIONS, TRAJECTORY_OUTPUTS, reduce
@@ -81,7 +81,9 @@ def initialize_distributed(**kwargs) -> None:
     environment (`JAX_COORDINATOR_ADDRESS`, `JAX_NUM_PROCESSES`, `JAX_PROCESS_ID`, or
     SLURM/MPI/cloud auto-detection). Afterwards `jax.devices()` lists every host's devices
     and a [`sweep`][] shards its chunks across all of them; every host draws the same
-    samples from the seed and gets the whole result.
+    samples from the seed and gets the whole result. Every process must call `sweep`
+    with the same arguments: their plans' digests are compared before any work, and a
+    mismatch is a `ValueError` on every process, naming what differs.
 
     When a process dies in a sweep, the others' next collective fails and the sweep
     raises a `RuntimeError` saying a process was lost; when the coordinator (process 0)
@@ -300,6 +302,12 @@ def sweep(
     n = plan.n
     dev = _Devices(list(jax.devices() if devices is None else devices))
     chunk = int(math.ceil(min(chunk_size, n) / dev.n) * dev.n)
+    # Every process must run this very plan (each draws its samples from it), and take
+    # part in the same collectives: refused on every process otherwise, before any work.
+    same_everywhere(plan_manifest(plan, chunk, max_steps) | {
+        "devices": dev.n, "checkpoint": checkpoint is not None,
+        "save_trajectories": save_trajectories is not None,
+        "trajectory_every": int(trajectory_every)}, "sweep")
     ckpt = None
     if checkpoint is not None:
         ckpt = (Checkpoint if jax.process_count() == 1 else SharedCheckpoint)(

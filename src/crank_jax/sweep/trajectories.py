@@ -4,7 +4,11 @@ Format (a directory): `manifest.json` and, per finished chunk, three `.npy` file
 written atomically: `chunk-B-S.phi.npy` and `chunk-B-S.dphi.npy`, (m, n_t) float64 (rad,
 rad/s) at the save times `ts[::every]`, and `chunk-B-S.idx.npy`, (m,) int64, the samples'
 indices in the sweep's order (chunks hold samples sorted by stiffness, see `run.py`).
-Written last, the index file marks the chunk as done. The manifest holds the plan (as a
+Written last, `chunk-B-S.sha256.json` marks the chunk as done: the SHA-256 of each of the
+three files, bound to the plan's digest, the chunk and the field (a damaged file, one of
+another chunk or field swapped in, or one of another sweep fails it). The reader checks a
+chunk's files before returning anything from them (`ValueError` naming the file), and a
+resumed sweep computes such a chunk again. The manifest holds the plan (as a
 checkpoint's), `every`, the saved times, `n` and, once the sweep has finished,
 `"complete": true` and the list of chunks. Samples whose status is not `"ok"` hold 0 (as
 in the result), and invalid samples, never solved, have no row.
@@ -18,6 +22,8 @@ reader.
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import os
 import shutil
@@ -27,12 +33,49 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_write, make_dir
+from .checkpoint import plan_digest
 
 __all__ = ["TrajectoryStore", "Trajectories", "load_trajectories", "FIELDS"]
 
 FIELDS = ("phi", "dphi")
 _MANIFEST = "manifest.json"
-_FORMAT = "crank-jax sweep trajectories 1"
+_FORMAT = "crank-jax sweep trajectories 2"  # 2: with per-chunk checksums (issue 37)
+_SUMS = "sha256.json"  # a chunk's checksums: f"{stem}.{_SUMS}"
+
+
+def _file_digest(plan: str, stem: str, key: str, data: bytes) -> str:
+    """SHA-256 of one saved file's bytes, bound to the plan, its chunk and its field."""
+    h = hashlib.sha256(f"{plan}\0{stem}.{key}\0".encode())
+    h.update(data)
+    return h.hexdigest()
+
+
+def _npy_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a)
+    return buf.getvalue()
+
+
+def _check_chunk(directory: Path, plan: str, stem: str, keys=FIELDS + ("idx",)) -> None:
+    """`ValueError` unless chunk `stem`'s files `keys` match its checksums."""
+    try:
+        sums = json.loads((directory / f"{stem}.{_SUMS}").read_text())
+    except (OSError, ValueError):
+        sums = None
+    if not isinstance(sums, dict):
+        raise ValueError(f"saved trajectories {str(directory / stem)!r}: checksums missing "
+                         "or unreadable; rerun the sweep (with its checkpoint only this "
+                         "chunk is computed again)")
+    for k in keys:
+        path = directory / f"{stem}.{k}.npy"
+        try:
+            ok = sums.get(k) == _file_digest(plan, stem, k, path.read_bytes())
+        except OSError:
+            ok = False
+        if not ok:
+            raise ValueError(f"saved trajectories {str(path)!r} are damaged or not this "
+                             "chunk's (checksum mismatch); rerun the sweep (with its "
+                             "checkpoint only this chunk is computed again)")
 
 
 def _gigabytes(b: float) -> str:
@@ -69,6 +112,7 @@ class TrajectoryStore:
                 f"{str(probe)!r}; keep fewer times (every > {self.every}), fewer samples "
                 "or another disk")
         make_dir(self.dir, "save_trajectories")
+        self.plan = plan_digest(plan_manifest)
         self.head = {"format": _FORMAT, "plan": plan_manifest, "every": self.every,
                      "ts": self.ts.tolist(), "n": int(n), "fields": list(FIELDS),
                      "units": {"phi": "rad", "dphi": "rad/s", "ts": "s"}}
@@ -95,24 +139,34 @@ class TrajectoryStore:
         return f"chunk-{b0}-{start}"
 
     def has(self, b0: int, start: int, idx: np.ndarray) -> bool:
-        """Whether chunk (b0, start) is saved whole for the samples `idx` (into the block)."""
-        stem = self.dir / self._stem(b0, start)
+        """Whether chunk (b0, start) is saved whole and intact (its checksums) for the
+        samples `idx` (into the block)."""
+        stem = self._stem(b0, start)
         try:
-            saved = np.load(f"{stem}.idx.npy", mmap_mode="r")
-            shapes = [np.load(f"{stem}.{k}.npy", mmap_mode="r").shape for k in FIELDS]
+            _check_chunk(self.dir, self.plan, stem)
+            base = self.dir / stem
+            saved = np.load(f"{base}.idx.npy", mmap_mode="r")
+            shapes = [np.load(f"{base}.{k}.npy", mmap_mode="r").shape for k in FIELDS]
         except (OSError, ValueError):
             return False
         return (np.array_equal(saved, b0 + np.asarray(idx))
                 and all(s == (idx.size, self.ts.size) for s in shapes))
 
     def save(self, b0: int, start: int, idx: np.ndarray, res: dict) -> None:
-        """Write one chunk: `res["phi"]`, `res["dphi"]` (m, n_t of the sweep)."""
+        """Write one chunk: `res["phi"]`, `res["dphi"]` (m, n_t of the sweep), then its
+        checksums (last: they mark the chunk as done)."""
         stem = self._stem(b0, start)
-        for k in FIELDS:
+        arrays = {k: np.ascontiguousarray(np.asarray(res[k])[:, ::self.every])
+                  for k in FIELDS}
+        arrays["idx"] = (b0 + np.asarray(idx)).astype(np.int64)
+        sums = {}
+        for k, a in arrays.items():
+            data = _npy_bytes(a)
+            sums[k] = _file_digest(self.plan, stem, k, data)
             with atomic_write(self.dir / f"{stem}.{k}.npy", "wb") as f:
-                np.save(f, np.ascontiguousarray(np.asarray(res[k])[:, ::self.every]))
-        with atomic_write(self.dir / f"{stem}.idx.npy", "wb") as f:
-            np.save(f, (b0 + np.asarray(idx)).astype(np.int64))
+                f.write(data)
+        with atomic_write(self.dir / f"{stem}.{_SUMS}", "w") as f:
+            json.dump(sums, f)
 
     def finish(self) -> None:
         """Mark the store complete, listing its chunks in order."""
@@ -124,7 +178,9 @@ class Trajectories:
 
     **Fields:** `ts` (n_t,) save times, s; `n`: number of samples of the sweep;
     `manifest`: the whole manifest. Nothing is read until asked for; arrays are
-    memory-mapped (`np.load(mmap_mode="r")`).
+    memory-mapped (`np.load(mmap_mode="r")`). A chunk's files are checked against their
+    SHA-256s the first time the chunk is used (one read of the chunk); a mismatch is a
+    `ValueError` naming the file.
     """
 
     def __init__(self, path):
@@ -134,6 +190,9 @@ class Trajectories:
         except (OSError, ValueError) as e:
             raise ValueError(f"{str(self.dir)!r} holds no saved trajectories "
                              f"({_MANIFEST}: {e})") from None
+        if self.manifest.get("format") == "crank-jax sweep trajectories 1":
+            raise ValueError(f"{str(self.dir)!r} was written by an older crank-jax, "
+                             "without checksums; rerun the sweep into a new directory")
         if self.manifest.get("format") != _FORMAT:
             raise ValueError(f"{str(self.dir)!r}: {_MANIFEST} is not a crank-jax "
                              "trajectory manifest")
@@ -143,12 +202,21 @@ class Trajectories:
                              "chunks are computed)")
         self.ts = np.asarray(self.manifest["ts"])
         self.n = int(self.manifest["n"])
+        self._plan = plan_digest(self.manifest["plan"])
+        self._checked: set[str] = set()  # chunks whose files passed their checksums
         self._index = None
+
+    def _check(self, stem: str) -> None:
+        """A chunk's files against their checksums, once (`ValueError` naming a bad one)."""
+        if stem not in self._checked:
+            _check_chunk(self.dir, self._plan, stem)
+            self._checked.add(stem)
 
     def chunks(self) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
         """Yield `(idx, {"phi": (m, n_t), "dphi": (m, n_t)})` per chunk, memory-mapped;
         `idx` (m,): the rows' sample indices."""
         for stem in self.manifest["chunks"]:
+            self._check(stem)
             base = self.dir / stem
             yield (np.load(f"{base}.idx.npy"),
                    {k: np.load(f"{base}.{k}.npy", mmap_mode="r") for k in FIELDS})
@@ -162,6 +230,7 @@ class Trajectories:
             # the index files alone (8 bytes per sample each).
             self._index = np.full((self.n, 2), -1, np.int64)
             for c, stem in enumerate(self.manifest["chunks"]):
+                _check_chunk(self.dir, self._plan, stem, keys=("idx",))
                 idx = np.load(self.dir / f"{stem}.idx.npy")
                 self._index[idx] = np.stack([np.full(idx.size, c), np.arange(idx.size)], 1)
         want = np.asarray(samples)
@@ -172,7 +241,9 @@ class Trajectories:
         out = {k: np.empty((where.shape[0], self.ts.size)) for k in FIELDS}
         for c in np.unique(where[:, 0]):
             rows = where[:, 0] == c
-            base = self.dir / self.manifest["chunks"][c]
+            stem = self.manifest["chunks"][c]
+            self._check(stem)
+            base = self.dir / stem
             for k in FIELDS:
                 out[k][rows] = np.load(f"{base}.{k}.npy", mmap_mode="r")[where[rows, 1]]
         return {k: v.reshape(*want.shape, self.ts.size) for k, v in out.items()}
