@@ -19,10 +19,11 @@ from collections.abc import Sequence
 import equinox as eqx
 import numpy as np
 
+from .columns import column_problem, role_conflict
 from .io import atomic_write, check_input
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
 from .record_checks import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP, series_problem
-from .sensors import DEFAULT_SENSOR, Sensor
+from .sensors import CHANNELS, DEFAULT_SENSOR, Sensor
 
 __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
            "MAX_RECORD_SAMPLES", "header_columns", "MAX_TIME_SPAN", "MIN_TIME_STEP",
@@ -45,12 +46,22 @@ def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[st
         raise DataError(problem)
 
 
+def _real(x, field: str) -> np.ndarray:
+    """`x` as a float64 array; a complex one is refused (numpy would drop its imaginary
+    part with only a warning)."""
+    a = np.asarray(x)
+    if np.iscomplexobj(a):
+        raise DataError(f"Data.{field} is complex; a record holds real numbers: give its "
+                        "real part (np.real) if that is what was measured")
+    return np.asarray(a, dtype=np.float64)
+
+
 def _optional_array(x):
-    return None if x is None else np.asarray(x, dtype=np.float64)
+    return None if x is None else _real(x, "phi")
 
 
 def _channel_arrays(x) -> dict:
-    return {str(k): np.asarray(v, dtype=np.float64) for k, v in dict(x or {}).items()}
+    return {str(k): _real(v, f"channels[{str(k)!r}]") for k, v in dict(x or {}).items()}
 
 
 class Data(eqx.Module):
@@ -80,7 +91,7 @@ class Data(eqx.Module):
     Construction validates the arrays and raises [`DataError`][] naming the bad sample.
     """
 
-    ts: np.ndarray = eqx.field(converter=lambda x: np.asarray(x, dtype=np.float64))
+    ts: np.ndarray = eqx.field(converter=lambda x: _real(x, "ts"))
     phi: np.ndarray | None = eqx.field(converter=_optional_array, default=None)
     load: AbstractLoad | None = None
     torque: AbstractLoad | None = None
@@ -93,6 +104,7 @@ class Data(eqx.Module):
         if self.phi is None and not self.channels:
             raise DataError(f"{self.source}: a record needs at least one channel: give phi "
                             "or channels={name: values}")
+        self._check_fields()
         for name, y in self.outputs_items():
             _check_series(self.ts, y, self.source, None, name)
         names = [s.name for s in self.sensors]
@@ -101,6 +113,44 @@ class Data(eqx.Module):
                 raise DataError(f"{self.source}: channel {s.name!r} has two sensors; give one")
             if s.name not in self._names():
                 raise DataError(f"{self.source}: sensor {s.name!r} has no channel data")
+
+    def _check_fields(self) -> None:
+        """Field types and names a later step would trip over (or silently misread)."""
+        where = self.source
+        bad = [n for n in self.channels if n not in CHANNELS]
+        if bad:
+            raise DataError(f"{where}: Data.channels: channel {bad[0]!r} is unknown; choose "
+                            f"from {list(CHANNELS)}")
+        if self.phi is not None and "phi" in self.channels:
+            raise DataError(f"{where}: the angle is given twice, as Data.phi and as "
+                            "Data.channels['phi']; give it once")
+        if not isinstance(self.sensors, tuple) or not all(
+                isinstance(s, Sensor) for s in self.sensors):
+            raise DataError(f"{where}: Data.sensors must be a tuple of Sensor objects, e.g. "
+                            f"(Sensor('phi', unit='deg'),); got {self.sensors!r:.80}")
+        for name, u in self.inputs.items():
+            problem = column_problem(name)
+            if problem:
+                raise DataError(f"{where}: Data.inputs: the input's column name {problem}")
+            if not isinstance(u, AbstractLoad):
+                raise DataError(f"{where}: Data.inputs[{name!r}] must be the input's samples "
+                                f"as a SampledLoad, e.g. SampledLoad(ts, {name}_values); got "
+                                f"{type(u).__name__}")
+        problem = role_conflict(self.column_roles())
+        if problem:
+            raise DataError(f"{where}: {problem}")
+
+    def column_roles(self) -> list[tuple[str, str]]:
+        """(column, role) of every column [`save_data`][] writes for this record: `t`, each
+        channel's (its sensor's column, else its name), `P` and `tau` when the loads are
+        known, and the inputs'."""
+        cal = {s.name: s.column for s in self.sensors}
+        out = [("t", "the time")] + [(cal.get(n, n), f"channel {n}")
+                                     for n, _ in self.outputs_items()]
+        out += [(c, role) for c, role, x in (("P", "the slider force P", self.load),
+                                            ("tau", "the crank torque tau", self.torque))
+                if x is not None and not isinstance(x, NoLoad)]
+        return out + [(c, f"the input {c!r} of a load") for c in self.inputs]
 
     def _names(self) -> list[str]:
         return ([] if self.phi is None or "phi" in self.channels else ["phi"]) + list(
@@ -274,14 +324,23 @@ def _numbered_lines(f, where: str):
 
 
 def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
-                required: Sequence[tuple[str, str]] | None = None):
-    """Read the used columns of a text table: (names, {name: array}, line numbers)."""
+                required: Sequence[tuple[str, str]] | None = None,
+                roles: Sequence[tuple[str, str]] = (),
+                optional: Sequence[tuple[str, str]] = ()):
+    """Read the used columns of a text table: (names, {name: array}, line numbers).
+
+    `roles`: (column, role) of every column read; `optional`: those read only when the
+    header has them (the load columns). A column with two roles is refused once the header
+    is read (see [`role_conflict`][crank_jax.columns.role_conflict])."""
     where = str(path)
     with _open_text(path) as f:
         lines = _numbered_lines(f, where)
         body = ((i, ln) for i, ln in lines
                 if ln.strip() and not ln.lstrip().startswith(("#", "%")))
         lineno, delim, names = _header(where, body, t_col, phi_col, used, required)
+        problem = role_conflict(list(roles) + [(c, r) for c, r in optional if c in names])
+        if problem:
+            raise DataError(f"{where}: {problem}")
         want = [(j, n) for j, n in enumerate(names) if n in used]
         cols = {n: array("d") for _, n in want}
         numbers = array("q")
@@ -371,7 +430,10 @@ def load_data(
     if sensors or inputs:
         sensors = tuple(sensors or (Sensor("phi", phi_col, angle_unit),))
         return _load_channels(path, t_col, P_col, tau_col, interp, sensors, tuple(inputs))
-    names, col, numbers = _read_table(path, t_col, phi_col, (t_col, phi_col, P_col, tau_col))
+    names, col, numbers = _read_table(
+        path, t_col, phi_col, (t_col, phi_col, P_col, tau_col),
+        roles=[(t_col, _TIME_ROLE), (phi_col, "the angle (phi_col, --phi-col)")],
+        optional=_load_roles(P_col, tau_col))
     labels = _Lines(numbers)
     ts = col[t_col]
     phi = col[phi_col] * (math.pi / 180 if angle_unit == "deg" else 1.0)
@@ -381,6 +443,15 @@ def load_data(
     load = SampledLoad(ts, col[P_col], interp) if P_col in col else None
     torque = SampledLoad(ts, col[tau_col], interp) if tau_col in col else None
     return Data(ts, phi, load, torque, source=where)
+
+
+_TIME_ROLE = "the time (t_col, --t-col)"
+
+
+def _load_roles(P_col: str, tau_col: str) -> list[tuple[str, str]]:
+    """The load columns' roles: read whenever the header has them."""
+    return [(P_col, f"the slider force P (the load column {P_col!r})"),
+            (tau_col, f"the crank torque tau (the load column {tau_col!r})")]
 
 
 def _check_columns(where: str, names, col: dict, labels) -> None:
@@ -406,7 +477,12 @@ def _load_channels(path, t_col, P_col, tau_col, interp, sensors: tuple[Sensor, .
                              for c in inputs]
     used = tuple(dict.fromkeys([t_col, P_col, tau_col] + [s.column for s in sensors]
                                + list(inputs)))
-    names, col, numbers = _read_table(path, t_col, "", used, required)
+    roles = [(t_col, _TIME_ROLE)] + [
+        (s.column, f"channel {s.name} (--channel, or the scene's [sensors])")
+        for s in sensors] + [(c, f"the input of a load (the scene's input = {c!r})")
+                             for c in inputs]
+    names, col, numbers = _read_table(path, t_col, "", used, required, roles,
+                                      _load_roles(P_col, tau_col))
     labels = _Lines(numbers)
     _check_columns(where, names, col, labels)
     ts = col[t_col]

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
+from .columns import RESERVED, column_problem, role_conflict
 from .io import atomic_write
 from .model.dynamics import Structure
 from .model.loads import (
@@ -32,7 +33,15 @@ from .model.loads import (
     toml_keys,
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
-from .sensors import Sensor, SensorError, sensors_from_table, sensors_to_table
+from .model.sampled import InputLoad
+from .sensors import (
+    OFFSET_NAMES,
+    Sensor,
+    SensorError,
+    sensor_columns_conflict,
+    sensors_from_table,
+    sensors_to_table,
+)
 from .solve.inputs import MAX_RTOL as SOLVER_MAX_RTOL
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
@@ -81,6 +90,13 @@ class Scene(eqx.Module):
     sensors: tuple[Sensor, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
+        for side in ("load", "torque"):
+            if not isinstance(getattr(self, side), AbstractLoad):
+                raise SceneError(f"Scene.{side} must be a load (NoLoad() for none, or "
+                                 f"HarmonicLoad, ...), got {getattr(self, side)!r:.60}")
+        problem = self._columns_problem()
+        if problem:
+            raise SceneError(problem)
         if self.solver not in SOLVERS:
             raise SceneError(f"solver {self.solver!r} is unknown; choose from {list(SOLVERS)}")
         for o in self.outputs:
@@ -90,6 +106,27 @@ class Scene(eqx.Module):
             raise SceneError(f"samples must be an integer >= 2, got {self.samples!r}")
         if not (math.isfinite(self.t1) and self.t1 > 0):
             raise SceneError(f"t1 must be a finite time > 0 s, got {self.t1!r}")
+
+    def _columns_problem(self) -> str | None:
+        """Why the record columns this scene names (its sensors' and its loads' inputs)
+        cannot each play one role (see `columns.py`), or None."""
+        if not isinstance(self.sensors, tuple) or not all(
+                isinstance(s, Sensor) for s in self.sensors):
+            return (f"Scene.sensors must be a tuple of Sensor objects, e.g. (Sensor('phi', "
+                    f"unit='deg'),); got {self.sensors!r:.80}")
+        problem = sensor_columns_conflict(self.sensors)
+        if problem:
+            return problem
+        inputs = [(side, x.column) for side, x in (("load", self.load),
+                                                   ("torque", self.torque))
+                  if isinstance(x, InputLoad)]
+        for side, c in inputs:
+            problem = column_problem(c) or (f"{c!r} is {RESERVED[c]}, which records keep for "
+                                            "it" if c in RESERVED else None)
+            if problem:
+                return f"[{side}] input: the input's column {problem}; rename the column"
+        return role_conflict([(s.column, f"[sensors] {s.name}'s column") for s in self.sensors]
+                             + [(c, "a load's input (input = COLUMN)") for _, c in inputs])
 
     @property
     def structure(self) -> Structure:
@@ -240,9 +277,12 @@ def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> 
         sensors = sensors_from_table(doc.get("sensors", {}), f"{where}: [sensors]")
     except SensorError as e:
         raise SceneError(str(e)) from None
-    return Scene(mech, load, torque, phi0, dphi0, rtol, atol, t1=t1, samples=samples,
-                 solver=solver, outputs=tuple(extras), name=name, description=description,
-                 sensors=sensors)
+    try:
+        return Scene(mech, load, torque, phi0, dphi0, rtol, atol, t1=t1, samples=samples,
+                     solver=solver, outputs=tuple(extras), name=name,
+                     description=description, sensors=sensors)
+    except SceneError as e:
+        raise SceneError(f"{where}: {e}") from None
 
 
 def presets() -> dict[str, str]:
@@ -353,7 +393,34 @@ def scene_to_toml(scene: Scene) -> str:
     return "\n".join(lines)
 
 
-def fitted_scene(scene: Scene, result, record: int = 0) -> Scene:
+def _fitted_sensors(scene: Scene, result, record: int, values: dict,
+                    sensors: tuple[Sensor, ...] | None) -> tuple[Sensor, ...]:
+    """The scene's sensors joined by those record `record` was read through (they win by
+    channel; default: its `Data.sensors`), each fitted offset put into its channel's
+    sensor. A plain angle (`phi` in rad, no calibration) is added only with a fitted
+    offset, so a plain fit's scene stays without a [sensors] table."""
+    from .sensors import DEFAULT_SENSOR
+
+    data = result.data[record] if result.data else None
+    if sensors is None:
+        sensors = data.sensors if data is not None else ()
+    merged = {s.name: s for s in scene.sensors}
+    merged.update({s.name: s for s in sensors})
+    read = {s.name: s for s, _ in data.outputs()} if data is not None else {}
+    for name, value in values.items():
+        if name in OFFSET_NAMES:
+            channel = OFFSET_NAMES[name]
+            base = merged.get(channel, read.get(channel))
+            if base is None:
+                raise SceneError(f"the fitted {name} has no {channel} sensor to go into; "
+                                 "give fitted_scene the sensors the record was read through")
+            merged[channel] = dataclasses.replace(base, offset=float(value))
+    own = {s.name for s in scene.sensors}
+    return tuple(s for s in merged.values() if s.name in own or s != DEFAULT_SENSOR)
+
+
+def fitted_scene(scene: Scene, result, record: int = 0,
+                 sensors: tuple[Sensor, ...] | None = None) -> Scene:
     """`scene` with a fit's estimates: the fitted mechanism, the fitted load amplitudes
     (`P0`, `P1`, `tau0`, `tau1`, the gains) and, where they were free, record `record`'s
     fitted initial state (the state at that record's first sample). A record's own sampled
@@ -362,8 +429,10 @@ def fitted_scene(scene: Scene, result, record: int = 0) -> Scene:
     **Arguments:** `scene`, the scene the fit started from; `result`, its
     [`FitResult`][crank_jax.FitResult]; `record`, which record's values to take for
     names fitted per record (`name[i]`, `fit(per_record=...)`, and the states of a
-    multi-record fit). **Returns:** a [`Scene`][]; fitted channel offsets (`x_s_offset`,
-    ...) become its sensors' offsets.
+    multi-record fit); `sensors`, the sensors that record was read through (default:
+    its `Data`'s, in `result.data`), which join the scene's so that the written scene
+    reads the record as the fit did. **Returns:** a [`Scene`][]; fitted channel offsets
+    (`x_s_offset`, ...) become its sensors' offsets.
     """
     values = {n: v for n, v in result.values.items() if "[" not in n}
     suffix = f"[{record}]"
@@ -374,9 +443,8 @@ def fitted_scene(scene: Scene, result, record: int = 0) -> Scene:
             side, role = LOAD_PARAMS[name]
             loads[side] = set_param(loads[side], role, as_float_array(value), side)
     state = {n: values.get(n) for n in ("phi0", "dphi0")}
-    # Fitted channel offsets become the scene's sensor calibration.
-    sensors = tuple(dataclasses.replace(s, offset=float(values[f"{s.name}_offset"]))
-                    if f"{s.name}_offset" in values else s for s in scene.sensors)
+    # The record's sensors, with the fitted offsets, become the scene's calibration.
+    sensors = _fitted_sensors(scene, result, record, values, sensors)
     scene = dataclasses.replace(scene, sensors=sensors) if sensors != scene.sensors else scene
     # A mechanism field fitted per record: the shared mechanism holds its start value.
     own = {n: float(values[n]) for n in result.mech.as_dict() if f"{n}{suffix}" in
