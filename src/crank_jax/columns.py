@@ -5,17 +5,17 @@ A record's columns each play one role: the time, a channel (the angle or another
 reading), the slider force P, the crank torque tau, or a load's input. A column read in
 two roles (an angle column named `tau` read as the angle *and* as the torque) would
 silently drive the model with the data it is fitted to, so every reading path
-([`load_data`][crank_jax.load_data], [`Data`][crank_jax.Data],
-[`Scene`][crank_jax.Scene]) asks [`role_conflict`][] before it uses the names.
+([`load_data`][crank_jax.data.load_data], [`Data`][crank_jax.data.Data],
+[`Scene`][crank_jax.scene.Scene]) asks [`role_conflict`][] before it uses the names.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 
-__all__ = ["column_problem", "role_conflict", "RESERVED"]
+__all__ = ["column_problem", "role_conflict", "RESERVED", "TIME_ROLE", "load_roles"]
 
-#: The columns [`save_data`][crank_jax.save_data] and `crank-jax synth` write for the time
+#: The columns [`save_data`][crank_jax.data.save_data] and `crank-jax synth` write for the time
 #: and the known loads; a sensor or a load's input may not take these names.
 RESERVED: dict[str, str] = {"t": "the time column t", "P": "the slider force column P",
                             "tau": "the crank torque column tau"}
@@ -54,3 +54,13 @@ def role_conflict(claims: Iterable[tuple[str, str]]) -> str | None:
                     "every column has one role: rename one of them")
         seen.setdefault(column, role)
     return None
+
+
+#: The role of a file's time column (`t_col`, the CLI's `--t-col`).
+TIME_ROLE = "the time (t_col, --t-col)"
+
+
+def load_roles(P_col: str, tau_col: str) -> list[tuple[str, str]]:
+    """The roles of a file's load columns (read whenever its header has them)."""
+    return [(P_col, f"the slider force P (the load column {P_col!r})"),
+            (tau_col, f"the crank torque tau (the load column {tau_col!r})")]

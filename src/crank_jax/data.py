@@ -19,11 +19,13 @@ from collections.abc import Sequence
 import equinox as eqx
 import numpy as np
 
-from .columns import column_problem, role_conflict
+from .columns import TIME_ROLE, load_roles, role_conflict
+from .fields import LineLabels, cut_names, split_fields, to_float
 from .io import atomic_write, check_input
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
 from .record_checks import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP, series_problem
-from .sensors import CHANNELS, DEFAULT_SENSOR, Sensor
+from .record_columns import data_fields_problem, data_roles
+from .sensors import DEFAULT_SENSOR, Sensor
 
 __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
            "MAX_RECORD_SAMPLES", "header_columns", "MAX_TIME_SPAN", "MIN_TIME_STEP",
@@ -104,7 +106,9 @@ class Data(eqx.Module):
         if self.phi is None and not self.channels:
             raise DataError(f"{self.source}: a record needs at least one channel: give phi "
                             "or channels={name: values}")
-        self._check_fields()
+        problem = data_fields_problem(self)
+        if problem:
+            raise DataError(f"{self.source}: {problem}")
         for name, y in self.outputs_items():
             _check_series(self.ts, y, self.source, None, name)
         names = [s.name for s in self.sensors]
@@ -114,43 +118,9 @@ class Data(eqx.Module):
             if s.name not in self._names():
                 raise DataError(f"{self.source}: sensor {s.name!r} has no channel data")
 
-    def _check_fields(self) -> None:
-        """Field types and names a later step would trip over (or silently misread)."""
-        where = self.source
-        bad = [n for n in self.channels if n not in CHANNELS]
-        if bad:
-            raise DataError(f"{where}: Data.channels: channel {bad[0]!r} is unknown; choose "
-                            f"from {list(CHANNELS)}")
-        if self.phi is not None and "phi" in self.channels:
-            raise DataError(f"{where}: the angle is given twice, as Data.phi and as "
-                            "Data.channels['phi']; give it once")
-        if not isinstance(self.sensors, tuple) or not all(
-                isinstance(s, Sensor) for s in self.sensors):
-            raise DataError(f"{where}: Data.sensors must be a tuple of Sensor objects, e.g. "
-                            f"(Sensor('phi', unit='deg'),); got {self.sensors!r:.80}")
-        for name, u in self.inputs.items():
-            problem = column_problem(name)
-            if problem:
-                raise DataError(f"{where}: Data.inputs: the input's column name {problem}")
-            if not isinstance(u, AbstractLoad):
-                raise DataError(f"{where}: Data.inputs[{name!r}] must be the input's samples "
-                                f"as a SampledLoad, e.g. SampledLoad(ts, {name}_values); got "
-                                f"{type(u).__name__}")
-        problem = role_conflict(self.column_roles())
-        if problem:
-            raise DataError(f"{where}: {problem}")
-
     def column_roles(self) -> list[tuple[str, str]]:
-        """(column, role) of every column [`save_data`][] writes for this record: `t`, each
-        channel's (its sensor's column, else its name), `P` and `tau` when the loads are
-        known, and the inputs'."""
-        cal = {s.name: s.column for s in self.sensors}
-        out = [("t", "the time")] + [(cal.get(n, n), f"channel {n}")
-                                     for n, _ in self.outputs_items()]
-        out += [(c, role) for c, role, x in (("P", "the slider force P", self.load),
-                                            ("tau", "the crank torque tau", self.torque))
-                if x is not None and not isinstance(x, NoLoad)]
-        return out + [(c, f"the input {c!r} of a load") for c in self.inputs]
+        """(column, role) of every column [`save_data`][] writes for this record."""
+        return data_roles(self)
 
     def _names(self) -> list[str]:
         return ([] if self.phi is None or "phi" in self.channels else ["phi"]) + list(
@@ -242,43 +212,6 @@ def _open_text(path: str | os.PathLike):
     return open(path, encoding=enc, errors="replace", newline=None)
 
 
-def _unquote(x: str) -> str:
-    x = x.strip()
-    return x[1:-1].strip() if len(x) >= 2 and x[0] == x[-1] == '"' else x
-
-
-def _split(line: str, delim: str | None) -> list[str]:
-    """Fields of one line: `csv` quoting rules for `,` and `;`, else whitespace."""
-    if delim is None:
-        return [_unquote(x) for x in line.split()]
-    return [_unquote(x) for x in next(csv.reader([line], delimiter=delim))]
-
-
-def _to_float(x: str, delim: str | None) -> float:
-    try:
-        return float(x)
-    except ValueError:
-        # Excel in many locales writes "1,5" in semicolon-separated files.
-        if delim == ";" and x.count(",") == 1:
-            return float(x.replace(",", "."))
-        raise
-
-
-def _cut(names: list[str], limit: int = 8) -> str:
-    text = repr(names[:limit])[:-1] + (", ...]" if len(names) > limit else "]")
-    return text if len(text) <= 200 else text[:197] + "..."
-
-
-class _Lines:
-    """Row labels `line N` for [`_check_series`][], without a string per row in memory."""
-
-    def __init__(self, numbers: array):
-        self.numbers = numbers
-
-    def __getitem__(self, i: int) -> str:
-        return f"line {self.numbers[i]}"
-
-
 def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
             required: Sequence[tuple[str, str]] | None = None):
     """Find the header line; return (its line number, delimiter, column names).
@@ -288,7 +221,7 @@ def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
         required = ((t_col, "--t-col"), (phi_col, "--phi-col"))
     for lineno, text in lines:
         delim = "," if "," in text else (";" if ";" in text else None)
-        names = _split(text, delim)
+        names = split_fields(text, delim)
         dup = sorted({n for n in names if n in used and names.count(n) > 1})
         if dup:
             raise DataError(f"{where}: line {lineno}: column {dup[0]!r} appears more than "
@@ -297,10 +230,10 @@ def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
             if want in names:
                 continue
             try:
-                [_to_float(x, delim) for x in names]
+                [to_float(x, delim) for x in names]
             except ValueError:
                 raise DataError(f"{where}: missing column {want!r}; the header (line "
-                                f"{lineno}) has {_cut(names)}; choose the column with "
+                                f"{lineno}) has {cut_names(names)}; choose the column with "
                                 f"{opt}") from None
             raise DataError(f"{where}: line {lineno} is data, not a header: add a header "
                             f"line naming the columns, e.g. '{t_col},{phi_col}'")
@@ -346,7 +279,7 @@ def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
         numbers = array("q")
         for ln, text in body:
             try:
-                fields = _split(text, delim)
+                fields = split_fields(text, delim)
             except csv.Error as e:
                 raise DataError(f"{where}: line {ln}: {e}") from None
             if len(fields) != len(names):
@@ -357,7 +290,7 @@ def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
                                 "record or decimate it")
             for j, name in want:
                 try:
-                    cols[name].append(_to_float(fields[j], delim))
+                    cols[name].append(to_float(fields[j], delim))
                 except ValueError:
                     raise DataError(f"{where}: line {ln}: column {name!r}: "
                                     f"{fields[j][:40]!r} is not a number") from None
@@ -372,7 +305,7 @@ def header_columns(path: str | os.PathLike) -> list[str]:
     with _open_text(path) as f:
         for _, text in _numbered_lines(f, where):
             if text.strip() and not text.lstrip().startswith(("#", "%")):
-                return _split(text, "," if "," in text else (";" if ";" in text else None))
+                return split_fields(text, "," if "," in text else (";" if ";" in text else None))
     raise DataError(f"{where}: no header line (the file is empty or all comments)")
 
 
@@ -432,9 +365,9 @@ def load_data(
         return _load_channels(path, t_col, P_col, tau_col, interp, sensors, tuple(inputs))
     names, col, numbers = _read_table(
         path, t_col, phi_col, (t_col, phi_col, P_col, tau_col),
-        roles=[(t_col, _TIME_ROLE), (phi_col, "the angle (phi_col, --phi-col)")],
-        optional=_load_roles(P_col, tau_col))
-    labels = _Lines(numbers)
+        roles=[(t_col, TIME_ROLE), (phi_col, "the angle (phi_col, --phi-col)")],
+        optional=load_roles(P_col, tau_col))
+    labels = LineLabels(numbers)
     ts = col[t_col]
     phi = col[phi_col] * (math.pi / 180 if angle_unit == "deg" else 1.0)
     # Check every column used (not just t and phi): a NaN in a load column is as fatal.
@@ -443,15 +376,6 @@ def load_data(
     load = SampledLoad(ts, col[P_col], interp) if P_col in col else None
     torque = SampledLoad(ts, col[tau_col], interp) if tau_col in col else None
     return Data(ts, phi, load, torque, source=where)
-
-
-_TIME_ROLE = "the time (t_col, --t-col)"
-
-
-def _load_roles(P_col: str, tau_col: str) -> list[tuple[str, str]]:
-    """The load columns' roles: read whenever the header has them."""
-    return [(P_col, f"the slider force P (the load column {P_col!r})"),
-            (tau_col, f"the crank torque tau (the load column {tau_col!r})")]
 
 
 def _check_columns(where: str, names, col: dict, labels) -> None:
@@ -477,13 +401,13 @@ def _load_channels(path, t_col, P_col, tau_col, interp, sensors: tuple[Sensor, .
                              for c in inputs]
     used = tuple(dict.fromkeys([t_col, P_col, tau_col] + [s.column for s in sensors]
                                + list(inputs)))
-    roles = [(t_col, _TIME_ROLE)] + [
+    roles = [(t_col, TIME_ROLE)] + [
         (s.column, f"channel {s.name} (--channel, or the scene's [sensors])")
         for s in sensors] + [(c, f"the input of a load (the scene's input = {c!r})")
                              for c in inputs]
     names, col, numbers = _read_table(path, t_col, "", used, required, roles,
-                                      _load_roles(P_col, tau_col))
-    labels = _Lines(numbers)
+                                      load_roles(P_col, tau_col))
+    labels = LineLabels(numbers)
     _check_columns(where, names, col, labels)
     ts = col[t_col]
     channels = {s.name: s.to_si(col[s.column]) for s in sensors}

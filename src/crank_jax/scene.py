@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .columns import RESERVED, column_problem, role_conflict
 from .io import atomic_write
 from .model.dynamics import Structure
 from .model.loads import (
@@ -33,12 +32,11 @@ from .model.loads import (
     toml_keys,
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
-from .model.sampled import InputLoad
+from .record_columns import scene_columns_problem
 from .sensors import (
     OFFSET_NAMES,
     Sensor,
     SensorError,
-    sensor_columns_conflict,
     sensors_from_table,
     sensors_to_table,
 )
@@ -94,7 +92,7 @@ class Scene(eqx.Module):
             if not isinstance(getattr(self, side), AbstractLoad):
                 raise SceneError(f"Scene.{side} must be a load (NoLoad() for none, or "
                                  f"HarmonicLoad, ...), got {getattr(self, side)!r:.60}")
-        problem = self._columns_problem()
+        problem = scene_columns_problem(self.sensors, self.load, self.torque)
         if problem:
             raise SceneError(problem)
         if self.solver not in SOLVERS:
@@ -106,27 +104,6 @@ class Scene(eqx.Module):
             raise SceneError(f"samples must be an integer >= 2, got {self.samples!r}")
         if not (math.isfinite(self.t1) and self.t1 > 0):
             raise SceneError(f"t1 must be a finite time > 0 s, got {self.t1!r}")
-
-    def _columns_problem(self) -> str | None:
-        """Why the record columns this scene names (its sensors' and its loads' inputs)
-        cannot each play one role (see `columns.py`), or None."""
-        if not isinstance(self.sensors, tuple) or not all(
-                isinstance(s, Sensor) for s in self.sensors):
-            return (f"Scene.sensors must be a tuple of Sensor objects, e.g. (Sensor('phi', "
-                    f"unit='deg'),); got {self.sensors!r:.80}")
-        problem = sensor_columns_conflict(self.sensors)
-        if problem:
-            return problem
-        inputs = [(side, x.column) for side, x in (("load", self.load),
-                                                   ("torque", self.torque))
-                  if isinstance(x, InputLoad)]
-        for side, c in inputs:
-            problem = column_problem(c) or (f"{c!r} is {RESERVED[c]}, which records keep for "
-                                            "it" if c in RESERVED else None)
-            if problem:
-                return f"[{side}] input: the input's column {problem}; rename the column"
-        return role_conflict([(s.column, f"[sensors] {s.name}'s column") for s in self.sensors]
-                             + [(c, "a load's input (input = COLUMN)") for _, c in inputs])
 
     @property
     def structure(self) -> Structure:
@@ -401,7 +378,8 @@ def _fitted_sensors(scene: Scene, result, record: int, values: dict,
     offset, so a plain fit's scene stays without a [sensors] table."""
     from .sensors import DEFAULT_SENSOR
 
-    data = result.data[record] if result.data else None
+    records = getattr(result, "data", None)
+    data = records[record] if records else None
     if sensors is None:
         sensors = data.sensors if data is not None else ()
     merged = {s.name: s for s in scene.sensors}

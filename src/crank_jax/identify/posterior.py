@@ -43,7 +43,7 @@ from ..sweep.distributions import AbstractDistribution
 from . import channels as ch
 from .fit import fit
 from .nuts import adaptation, initial_carry, run_chains, schedule
-from .plan import _problem as fit_problem
+from .plan import single_problem
 from .priors import base_name, in_support, parse_priors, prior_arrays, prior_precision
 from .problem import Problem, pick_solver
 from .programs import jacobian_at
@@ -145,7 +145,7 @@ def _problem_at(req, res: FitResult) -> tuple[Problem, np.ndarray]:
     solver = pick_solver(res.mech, req.loads[0][0], float(req.scene.rtol), req.scene.solver)
 
     def build(budget):
-        return fit_problem(req, start, states, [1] * len(states), budget, solver)
+        return single_problem(req, start, states, budget, solver)
 
     problem = build(MAX_ODE_STEPS)
     z = problem.to_z([values[n] for n in problem.names])
