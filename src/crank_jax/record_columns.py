@@ -1,6 +1,7 @@
-"""Which record columns a [`Data`][crank_jax.data.Data] or a [`Scene`][crank_jax.scene.Scene] names,
-and the checks of those fields (messages, not exceptions: `data.py` and `scene.py` raise
-their own errors with them). Every column plays one role ([`columns`][crank_jax.columns])."""
+"""Which record columns a [`Data`][crank_jax.data.Data] or a
+[`Scene`][crank_jax.scene.Scene] names, and the checks of those fields (messages, not
+exceptions: `data.py` and `scene.py` raise their own errors with them). Every column
+plays one role ([`columns`][crank_jax.columns])."""
 
 from __future__ import annotations
 

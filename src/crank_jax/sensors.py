@@ -72,7 +72,7 @@ class Sensor(eqx.Module):
 
     def __post_init__(self):
         # Defaults that depend on the name (a frozen dataclass: set through object).
-        if isinstance(self.column, str) and not self.column:
+        if self.column is None or self.column == "":
             object.__setattr__(self, "column", self.name)
         if not self.unit and self.name in SI_UNITS:
             object.__setattr__(self, "unit", SI_UNITS[self.name])

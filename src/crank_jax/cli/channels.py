@@ -90,9 +90,9 @@ def record_sensors(a: argparse.Namespace, scene, path: str):
     if angle:
         by = (f"--channel {channels[0]}" if channels else
               f"the scene's [sensors] ({', '.join(s.name for s in found)} in {path})")
-        raise UserError(f"{' and '.join(angle)} cannot be used with {by}, which choose the "
-                        "record's channels: give the angle's column and unit as --channel "
-                        "phi=COLUMN:UNIT (it keeps the scene's calibration)")
+        raise UserError(f"{' and '.join(angle)} would be ignored: {by} chooses the record's "
+                        "channels; give the angle's column and unit as --channel "
+                        "phi=COLUMN:UNIT instead (it keeps the scene's calibration)")
     return found
 
 
