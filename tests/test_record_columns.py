@@ -236,6 +236,10 @@ def test_scene_out_keeps_the_scenes_sensors_and_a_plain_angle_column(tmp_path):
     assert fitted_scene(scene, _fake_result(scene, data, k=2.0)).sensors == (wheel,)
     plain = cj.load_scene("lab-rig")
     assert fitted_scene(plain, _fake_result(plain, data, k=2.0)).sensors == ()
+    # --channel phi --channel x_s: the written scene must read the angle too.
+    both = (Sensor("phi"), Sensor("x_s", "slide_mm", "mm"))
+    got = fitted_scene(plain, _fake_result(plain, data, x_s_offset=1e-3), sensors=both)
+    assert got.sensors == (both[0], dataclasses.replace(both[1], offset=1e-3))
     cj.save_scene(fitted, tmp_path / "f.toml")
     _same_scene(cj.load_scene(tmp_path / "f.toml"), fitted)
 

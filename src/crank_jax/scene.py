@@ -373,28 +373,27 @@ def scene_to_toml(scene: Scene) -> str:
 def _fitted_sensors(scene: Scene, result, record: int, values: dict,
                     sensors: tuple[Sensor, ...] | None) -> tuple[Sensor, ...]:
     """The scene's sensors joined by those record `record` was read through (they win by
-    channel; default: its `Data.sensors`), each fitted offset put into its channel's
-    sensor. A plain angle (`phi` in rad, no calibration) is added only with a fitted
-    offset, so a plain fit's scene stays without a [sensors] table."""
+    channel; default: its `Data`'s), each fitted offset put into its channel's sensor, so
+    that the scene reads the record as the fit did. A plain angle read (`phi` in rad, no
+    calibration, nothing else) joins only with a fitted offset: a plain fit's scene stays
+    as it was (its sensors, if any, were not in the record, which reads plain again)."""
     from .sensors import DEFAULT_SENSOR
 
     records = getattr(result, "data", None)
     data = records[record] if records else None
     if sensors is None:
-        sensors = data.sensors if data is not None else ()
+        sensors = tuple(s for s, _ in data.outputs()) if data is not None else ()
     merged = {s.name: s for s in scene.sensors}
-    merged.update({s.name: s for s in sensors})
-    read = {s.name: s for s, _ in data.outputs()} if data is not None else {}
+    if tuple(sensors) != (DEFAULT_SENSOR,) or "phi_offset" in values:
+        merged.update({s.name: s for s in sensors})
     for name, value in values.items():
         if name in OFFSET_NAMES:
             channel = OFFSET_NAMES[name]
-            base = merged.get(channel, read.get(channel))
-            if base is None:
+            if channel not in merged:
                 raise SceneError(f"the fitted {name} has no {channel} sensor to go into; "
                                  "give fitted_scene the sensors the record was read through")
-            merged[channel] = dataclasses.replace(base, offset=float(value))
-    own = {s.name for s in scene.sensors}
-    return tuple(s for s in merged.values() if s.name in own or s != DEFAULT_SENSOR)
+            merged[channel] = dataclasses.replace(merged[channel], offset=float(value))
+    return tuple(merged.values())
 
 
 def fitted_scene(scene: Scene, result, record: int = 0,
