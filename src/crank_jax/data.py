@@ -19,9 +19,12 @@ from collections.abc import Sequence
 import equinox as eqx
 import numpy as np
 
+from .columns import TIME_ROLE, load_roles, role_conflict
+from .fields import LineLabels, cut_names, split_fields, to_float
 from .io import atomic_write, check_input
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
 from .record_checks import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP, series_problem
+from .record_columns import data_fields_problem, data_roles
 from .sensors import DEFAULT_SENSOR, Sensor
 
 __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
@@ -45,12 +48,22 @@ def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[st
         raise DataError(problem)
 
 
+def _real(x, field: str) -> np.ndarray:
+    """`x` as a float64 array; a complex one is refused (numpy would drop its imaginary
+    part with only a warning)."""
+    a = np.asarray(x)
+    if np.iscomplexobj(a):
+        raise DataError(f"Data.{field} is complex; a record holds real numbers: give its "
+                        "real part (np.real) if that is what was measured")
+    return np.asarray(a, dtype=np.float64)
+
+
 def _optional_array(x):
-    return None if x is None else np.asarray(x, dtype=np.float64)
+    return None if x is None else _real(x, "phi")
 
 
 def _channel_arrays(x) -> dict:
-    return {str(k): np.asarray(v, dtype=np.float64) for k, v in dict(x or {}).items()}
+    return {str(k): _real(v, f"channels[{str(k)!r}]") for k, v in dict(x or {}).items()}
 
 
 class Data(eqx.Module):
@@ -80,7 +93,7 @@ class Data(eqx.Module):
     Construction validates the arrays and raises [`DataError`][] naming the bad sample.
     """
 
-    ts: np.ndarray = eqx.field(converter=lambda x: np.asarray(x, dtype=np.float64))
+    ts: np.ndarray = eqx.field(converter=lambda x: _real(x, "ts"))
     phi: np.ndarray | None = eqx.field(converter=_optional_array, default=None)
     load: AbstractLoad | None = None
     torque: AbstractLoad | None = None
@@ -93,6 +106,9 @@ class Data(eqx.Module):
         if self.phi is None and not self.channels:
             raise DataError(f"{self.source}: a record needs at least one channel: give phi "
                             "or channels={name: values}")
+        problem = data_fields_problem(self)
+        if problem:
+            raise DataError(f"{self.source}: {problem}")
         for name, y in self.outputs_items():
             _check_series(self.ts, y, self.source, None, name)
         names = [s.name for s in self.sensors]
@@ -101,6 +117,10 @@ class Data(eqx.Module):
                 raise DataError(f"{self.source}: channel {s.name!r} has two sensors; give one")
             if s.name not in self._names():
                 raise DataError(f"{self.source}: sensor {s.name!r} has no channel data")
+
+    def column_roles(self) -> list[tuple[str, str]]:
+        """(column, role) of every column [`save_data`][] writes for this record."""
+        return data_roles(self)
 
     def _names(self) -> list[str]:
         return ([] if self.phi is None or "phi" in self.channels else ["phi"]) + list(
@@ -192,43 +212,6 @@ def _open_text(path: str | os.PathLike):
     return open(path, encoding=enc, errors="replace", newline=None)
 
 
-def _unquote(x: str) -> str:
-    x = x.strip()
-    return x[1:-1].strip() if len(x) >= 2 and x[0] == x[-1] == '"' else x
-
-
-def _split(line: str, delim: str | None) -> list[str]:
-    """Fields of one line: `csv` quoting rules for `,` and `;`, else whitespace."""
-    if delim is None:
-        return [_unquote(x) for x in line.split()]
-    return [_unquote(x) for x in next(csv.reader([line], delimiter=delim))]
-
-
-def _to_float(x: str, delim: str | None) -> float:
-    try:
-        return float(x)
-    except ValueError:
-        # Excel in many locales writes "1,5" in semicolon-separated files.
-        if delim == ";" and x.count(",") == 1:
-            return float(x.replace(",", "."))
-        raise
-
-
-def _cut(names: list[str], limit: int = 8) -> str:
-    text = repr(names[:limit])[:-1] + (", ...]" if len(names) > limit else "]")
-    return text if len(text) <= 200 else text[:197] + "..."
-
-
-class _Lines:
-    """Row labels `line N` for [`_check_series`][], without a string per row in memory."""
-
-    def __init__(self, numbers: array):
-        self.numbers = numbers
-
-    def __getitem__(self, i: int) -> str:
-        return f"line {self.numbers[i]}"
-
-
 def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
             required: Sequence[tuple[str, str]] | None = None):
     """Find the header line; return (its line number, delimiter, column names).
@@ -238,7 +221,7 @@ def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
         required = ((t_col, "--t-col"), (phi_col, "--phi-col"))
     for lineno, text in lines:
         delim = "," if "," in text else (";" if ";" in text else None)
-        names = _split(text, delim)
+        names = split_fields(text, delim)
         dup = sorted({n for n in names if n in used and names.count(n) > 1})
         if dup:
             raise DataError(f"{where}: line {lineno}: column {dup[0]!r} appears more than "
@@ -247,10 +230,10 @@ def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
             if want in names:
                 continue
             try:
-                [_to_float(x, delim) for x in names]
+                [to_float(x, delim) for x in names]
             except ValueError:
                 raise DataError(f"{where}: missing column {want!r}; the header (line "
-                                f"{lineno}) has {_cut(names)}; choose the column with "
+                                f"{lineno}) has {cut_names(names)}; choose the column with "
                                 f"{opt}") from None
             raise DataError(f"{where}: line {lineno} is data, not a header: add a header "
                             f"line naming the columns, e.g. '{t_col},{phi_col}'")
@@ -274,20 +257,29 @@ def _numbered_lines(f, where: str):
 
 
 def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
-                required: Sequence[tuple[str, str]] | None = None):
-    """Read the used columns of a text table: (names, {name: array}, line numbers)."""
+                required: Sequence[tuple[str, str]] | None = None,
+                roles: Sequence[tuple[str, str]] = (),
+                optional: Sequence[tuple[str, str]] = ()):
+    """Read the used columns of a text table: (names, {name: array}, line numbers).
+
+    `roles`: (column, role) of every column read; `optional`: those read only when the
+    header has them (the load columns). A column with two roles is refused once the header
+    is read (see [`role_conflict`][crank_jax.columns.role_conflict])."""
     where = str(path)
     with _open_text(path) as f:
         lines = _numbered_lines(f, where)
         body = ((i, ln) for i, ln in lines
                 if ln.strip() and not ln.lstrip().startswith(("#", "%")))
         lineno, delim, names = _header(where, body, t_col, phi_col, used, required)
+        problem = role_conflict(list(roles) + [(c, r) for c, r in optional if c in names])
+        if problem:
+            raise DataError(f"{where}: {problem}")
         want = [(j, n) for j, n in enumerate(names) if n in used]
         cols = {n: array("d") for _, n in want}
         numbers = array("q")
         for ln, text in body:
             try:
-                fields = _split(text, delim)
+                fields = split_fields(text, delim)
             except csv.Error as e:
                 raise DataError(f"{where}: line {ln}: {e}") from None
             if len(fields) != len(names):
@@ -298,7 +290,7 @@ def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
                                 "record or decimate it")
             for j, name in want:
                 try:
-                    cols[name].append(_to_float(fields[j], delim))
+                    cols[name].append(to_float(fields[j], delim))
                 except ValueError:
                     raise DataError(f"{where}: line {ln}: column {name!r}: "
                                     f"{fields[j][:40]!r} is not a number") from None
@@ -313,7 +305,7 @@ def header_columns(path: str | os.PathLike) -> list[str]:
     with _open_text(path) as f:
         for _, text in _numbered_lines(f, where):
             if text.strip() and not text.lstrip().startswith(("#", "%")):
-                return _split(text, "," if "," in text else (";" if ";" in text else None))
+                return split_fields(text, "," if "," in text else (";" if ";" in text else None))
     raise DataError(f"{where}: no header line (the file is empty or all comments)")
 
 
@@ -371,8 +363,11 @@ def load_data(
     if sensors or inputs:
         sensors = tuple(sensors or (Sensor("phi", phi_col, angle_unit),))
         return _load_channels(path, t_col, P_col, tau_col, interp, sensors, tuple(inputs))
-    names, col, numbers = _read_table(path, t_col, phi_col, (t_col, phi_col, P_col, tau_col))
-    labels = _Lines(numbers)
+    names, col, numbers = _read_table(
+        path, t_col, phi_col, (t_col, phi_col, P_col, tau_col),
+        roles=[(t_col, TIME_ROLE), (phi_col, "the angle (phi_col, --phi-col)")],
+        optional=load_roles(P_col, tau_col))
+    labels = LineLabels(numbers)
     ts = col[t_col]
     phi = col[phi_col] * (math.pi / 180 if angle_unit == "deg" else 1.0)
     # Check every column used (not just t and phi): a NaN in a load column is as fatal.
@@ -406,8 +401,13 @@ def _load_channels(path, t_col, P_col, tau_col, interp, sensors: tuple[Sensor, .
                              for c in inputs]
     used = tuple(dict.fromkeys([t_col, P_col, tau_col] + [s.column for s in sensors]
                                + list(inputs)))
-    names, col, numbers = _read_table(path, t_col, "", used, required)
-    labels = _Lines(numbers)
+    roles = [(t_col, TIME_ROLE)] + [
+        (s.column, f"channel {s.name} (--channel, or the scene's [sensors])")
+        for s in sensors] + [(c, f"the input of a load (the scene's input = {c!r})")
+                             for c in inputs]
+    names, col, numbers = _read_table(path, t_col, "", used, required, roles,
+                                      load_roles(P_col, tau_col))
+    labels = LineLabels(numbers)
     _check_columns(where, names, col, labels)
     ts = col[t_col]
     channels = {s.name: s.to_si(col[s.column]) for s in sensors}

@@ -32,7 +32,14 @@ from .model.loads import (
     toml_keys,
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
-from .sensors import Sensor, SensorError, sensors_from_table, sensors_to_table
+from .record_columns import scene_columns_problem
+from .sensors import (
+    OFFSET_NAMES,
+    Sensor,
+    SensorError,
+    sensors_from_table,
+    sensors_to_table,
+)
 from .solve.inputs import MAX_RTOL as SOLVER_MAX_RTOL
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
@@ -81,6 +88,13 @@ class Scene(eqx.Module):
     sensors: tuple[Sensor, ...] = eqx.field(static=True, default=())
 
     def __check_init__(self):
+        for side in ("load", "torque"):
+            if not isinstance(getattr(self, side), AbstractLoad):
+                raise SceneError(f"Scene.{side} must be a load (NoLoad() for none, or "
+                                 f"HarmonicLoad, ...), got {getattr(self, side)!r:.60}")
+        problem = scene_columns_problem(self.sensors, self.load, self.torque)
+        if problem:
+            raise SceneError(problem)
         if self.solver not in SOLVERS:
             raise SceneError(f"solver {self.solver!r} is unknown; choose from {list(SOLVERS)}")
         for o in self.outputs:
@@ -240,9 +254,12 @@ def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> 
         sensors = sensors_from_table(doc.get("sensors", {}), f"{where}: [sensors]")
     except SensorError as e:
         raise SceneError(str(e)) from None
-    return Scene(mech, load, torque, phi0, dphi0, rtol, atol, t1=t1, samples=samples,
-                 solver=solver, outputs=tuple(extras), name=name, description=description,
-                 sensors=sensors)
+    try:
+        return Scene(mech, load, torque, phi0, dphi0, rtol, atol, t1=t1, samples=samples,
+                     solver=solver, outputs=tuple(extras), name=name,
+                     description=description, sensors=sensors)
+    except SceneError as e:
+        raise SceneError(f"{where}: {e}") from None
 
 
 def presets() -> dict[str, str]:
@@ -361,7 +378,34 @@ def scene_to_toml(scene: Scene) -> str:
     return "\n".join(lines)
 
 
-def fitted_scene(scene: Scene, result, record: int = 0) -> Scene:
+def _fitted_sensors(scene: Scene, result, record: int, values: dict,
+                    sensors: tuple[Sensor, ...] | None) -> tuple[Sensor, ...]:
+    """The scene's sensors joined by those record `record` was read through (they win by
+    channel; default: its `Data`'s), each fitted offset put into its channel's sensor, so
+    that the scene reads the record as the fit did. A plain angle read (`phi` in rad, no
+    calibration, nothing else) joins only with a fitted offset: a plain fit's scene stays
+    as it was (its sensors, if any, were not in the record, which reads plain again)."""
+    from .sensors import DEFAULT_SENSOR
+
+    records = getattr(result, "data", None)
+    data = records[record] if records else None
+    if sensors is None:
+        sensors = tuple(s for s, _ in data.outputs()) if data is not None else ()
+    merged = {s.name: s for s in scene.sensors}
+    if tuple(sensors) != (DEFAULT_SENSOR,) or "phi_offset" in values:
+        merged.update({s.name: s for s in sensors})
+    for name, value in values.items():
+        if name in OFFSET_NAMES:
+            channel = OFFSET_NAMES[name]
+            if channel not in merged:
+                raise SceneError(f"the fitted {name} has no {channel} sensor to go into; "
+                                 "give fitted_scene the sensors the record was read through")
+            merged[channel] = dataclasses.replace(merged[channel], offset=float(value))
+    return tuple(merged.values())
+
+
+def fitted_scene(scene: Scene, result, record: int = 0,
+                 sensors: tuple[Sensor, ...] | None = None) -> Scene:
     """`scene` with a fit's estimates: the fitted mechanism, the fitted load amplitudes
     (`P0`, `P1`, `tau0`, `tau1`, the gains) and, where they were free, record `record`'s
     fitted initial state (the state at that record's first sample). A record's own sampled
@@ -370,8 +414,10 @@ def fitted_scene(scene: Scene, result, record: int = 0) -> Scene:
     **Arguments:** `scene`, the scene the fit started from; `result`, its
     [`FitResult`][crank_jax.FitResult]; `record`, which record's values to take for
     names fitted per record (`name[i]`, `fit(per_record=...)`, and the states of a
-    multi-record fit). **Returns:** a [`Scene`][]; fitted channel offsets (`x_s_offset`,
-    ...) become its sensors' offsets.
+    multi-record fit); `sensors`, the sensors that record was read through (default:
+    its `Data`'s, in `result.data`), which join the scene's so that the written scene
+    reads the record as the fit did. **Returns:** a [`Scene`][]; fitted channel offsets
+    (`x_s_offset`, ...) become its sensors' offsets.
     """
     values = {n: v for n, v in result.values.items() if "[" not in n}
     suffix = f"[{record}]"
@@ -382,9 +428,8 @@ def fitted_scene(scene: Scene, result, record: int = 0) -> Scene:
             side, role = LOAD_PARAMS[name]
             loads[side] = set_param(loads[side], role, as_float_array(value), side)
     state = {n: values.get(n) for n in ("phi0", "dphi0")}
-    # Fitted channel offsets become the scene's sensor calibration.
-    sensors = tuple(dataclasses.replace(s, offset=float(values[f"{s.name}_offset"]))
-                    if f"{s.name}_offset" in values else s for s in scene.sensors)
+    # The record's sensors, with the fitted offsets, become the scene's calibration.
+    sensors = _fitted_sensors(scene, result, record, values, sensors)
     scene = dataclasses.replace(scene, sensors=sensors) if sensors != scene.sensors else scene
     # A mechanism field fitted per record: the shared mechanism holds its start value.
     own = {n: float(values[n]) for n in result.mech.as_dict() if f"{n}{suffix}" in

@@ -23,10 +23,12 @@ from collections.abc import Mapping, Sequence
 import equinox as eqx
 import numpy as np
 
+from .columns import RESERVED, column_problem, role_conflict
 from .model.outputs import OUTPUT_NAMES, SI_UNITS
 
 __all__ = ["Sensor", "SensorError", "CHANNELS", "UNITS", "OFFSET_NAMES", "sensors_from_table",
-           "sensors_to_table", "parse_channel", "select_sensors", "DEFAULT_SENSOR"]
+           "sensors_to_table", "parse_channel", "select_sensors", "DEFAULT_SENSOR",
+           "sensor_columns_conflict"]
 
 #: The channel names a sensor may measure.
 CHANNELS: tuple[str, ...] = OUTPUT_NAMES
@@ -70,16 +72,19 @@ class Sensor(eqx.Module):
 
     def __post_init__(self):
         # Defaults that depend on the name (a frozen dataclass: set through object).
-        if not self.column:
+        if self.column is None or self.column == "":
             object.__setattr__(self, "column", self.name)
         if not self.unit and self.name in SI_UNITS:
             object.__setattr__(self, "unit", SI_UNITS[self.name])
 
     def __check_init__(self):
         where = f"sensor {self.name!r}"
-        if self.name not in CHANNELS:
+        if not isinstance(self.name, str) or self.name not in CHANNELS:
             raise SensorError(f"channel {self.name!r} is unknown; choose from {list(CHANNELS)}")
-        if self.unit not in UNITS[self.name]:
+        problem = column_problem(self.column)
+        if problem:
+            raise SensorError(f"{where}: column {problem}")
+        if not isinstance(self.unit, str) or self.unit not in UNITS[self.name]:
             raise SensorError(f"{where}: unit {self.unit!r} is unknown for {self.name}; choose "
                               f"from {list(UNITS[self.name])}")
         scale = _finite(where, "scale", self.scale)
@@ -145,7 +150,23 @@ def sensors_from_table(table, where: str = "[sensors]") -> tuple[Sensor, ...]:
                               spec.get("scale", 1.0), spec.get("offset", 0.0)))
         except SensorError as e:
             raise SensorError(f"{where} {name}: {e}") from None
+    problem = sensor_columns_conflict(out, where)
+    if problem:
+        raise SensorError(problem)
     return tuple(out)
+
+
+def sensor_columns_conflict(sensors: Sequence[Sensor], where: str = "[sensors]"
+                            ) -> str | None:
+    """Why `sensors` cannot be a rig's channels, or None: a column that is another
+    channel's, or one of the names records keep for the time and the loads
+    ([`RESERVED`][crank_jax.columns.RESERVED]: `synth` writes them, `fit` reads them)."""
+    for s in sensors:
+        if s.column in RESERVED:
+            return (f"{where} {s.name}: column {s.column!r} is {RESERVED[s.column]}, which "
+                    "records keep for it; name the sensor's column otherwise")
+    problem = role_conflict((s.column, f"channel {s.name}") for s in sensors)
+    return f"{where}: {problem}" if problem else None
 
 
 def sensors_to_table(sensors: Sequence[Sensor]) -> dict[str, dict]:

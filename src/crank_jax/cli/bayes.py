@@ -7,6 +7,7 @@ import argparse
 import json
 import sys
 
+from .channels import add_angle_options, add_channel_options, read_records
 from .errors import UserError
 from .options import free_list, seed
 from .scene_inputs import refuse_input_loads
@@ -20,6 +21,8 @@ def _posterior_args(p: argparse.ArgumentParser) -> None:
                                  'priors, e.g. k = "lognormal(2, 0.5)"; default flat)')
     p.add_argument("--more-data", action="append", default=[], metavar="CSV",
                    help="another record of the same mechanism (repeatable)")
+    add_channel_options(p)  # records are read as fit reads them (the scene's [sensors])
+    add_angle_options(p)
     p.add_argument("--free", default="k,c,phi0,dphi0",
                    help="comma-separated free parameters (default k,c,phi0,dphi0)")
     p.add_argument("--draws", type=int, default=1000, help="draws per chain (1000)")
@@ -60,7 +63,6 @@ def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
 
 
 def _posterior_run(a: argparse.Namespace) -> int:
-    from ..data import load_data
     from ..identify.posterior import posterior
     from ..identify.priors import load_priors, parse_priors
     from ..io import atomic_write
@@ -70,7 +72,7 @@ def _posterior_run(a: argparse.Namespace) -> int:
     scene = load_scene(a.scene)
     priors = parse_priors(load_priors(a.scene), free, where=f"{a.scene}: [priors]")
     files = [a.data, *a.more_data]
-    records = [load_data(f) for f in files]
+    records = read_records(a, scene, files)
     lo, hi = a.fit_t_start, a.fit_t_end
     window = None if lo is None and hi is None else (lo, hi)
     post = posterior(scene, records if len(records) > 1 else records[0], free, priors,

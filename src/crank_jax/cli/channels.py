@@ -8,7 +8,8 @@ import math
 
 from .errors import UserError
 
-__all__ = ["add_channel_options", "parse_sigma", "record_sensors", "scene_inputs"]
+__all__ = ["add_channel_options", "add_angle_options", "parse_sigma", "record_sensors",
+           "scene_inputs", "read_records", "read_sensors"]
 
 
 def add_channel_options(p: argparse.ArgumentParser) -> None:
@@ -18,6 +19,17 @@ def add_channel_options(p: argparse.ArgumentParser) -> None:
                         "(rad, deg, rev; rad/s, deg/s, rpm; m, mm; m/s, mm/s; m/s^2, g), with "
                         "the scene's calibration; default: every scene sensor in the record, "
                         "else the phi column")
+
+
+def add_angle_options(p: argparse.ArgumentParser) -> None:
+    """`--phi-col` and `--angle-unit`: the plain angle column (default `phi`, rad). Their
+    defaults are None so that a use beside `--channel` or the scene's sensors, which
+    choose the channels instead, is seen and refused (`record_sensors`)."""
+    p.add_argument("--phi-col", help="name of the angle column (phi); with --channel or the "
+                                     "scene's [sensors], give it as --channel phi=COLUMN")
+    p.add_argument("--angle-unit", choices=("rad", "deg"),
+                   help="unit of the angle column (rad); with --channel or the scene's "
+                        "[sensors], give it as --channel phi=COLUMN:deg")
 
 
 def parse_sigma(values: list[str] | None, option: str = "--sigma", zero: bool = False
@@ -57,7 +69,8 @@ def parse_sigma(values: list[str] | None, option: str = "--sigma", zero: bool = 
 
 def record_sensors(a: argparse.Namespace, scene, path: str):
     """The sensors to read `path` through (`sensors.select_sensors`'s rules), or None for
-    the plain angle column (`--phi-col`, `--angle-unit`)."""
+    the plain angle column (`--phi-col`, `--angle-unit`). `--phi-col` or `--angle-unit`
+    beside sensors that choose the channels is refused: it would be ignored."""
     from ..data import header_columns
     from ..sensors import SensorError, select_sensors
 
@@ -71,7 +84,43 @@ def record_sensors(a: argparse.Namespace, scene, path: str):
         raise UserError(str(e)) from None
     if not channels and found == select_sensors([], ()):
         return None  # no scene sensor in this record: its angle column, as without any
+    angle = [f"{o} {v}" for o, v in (("--phi-col", getattr(a, "phi_col", None)),
+                                      ("--angle-unit", getattr(a, "angle_unit", None)))
+             if v is not None]
+    if angle:
+        by = (f"--channel {channels[0]}" if channels else
+              f"the scene's [sensors] ({', '.join(s.name for s in found)} in {path})")
+        raise UserError(f"{' and '.join(angle)} would be ignored: {by} chooses the record's "
+                        "channels; give the angle's column and unit as --channel "
+                        "phi=COLUMN:UNIT instead (it keeps the scene's calibration)")
     return found
+
+
+def read_sensors(a: argparse.Namespace, scene, path: str):
+    """The sensors `path` is read through, each record's as `read_records` reads it: those
+    of `record_sensors`, else the plain angle column as a sensor (`--phi-col` in
+    `--angle-unit`)."""
+    from ..sensors import Sensor
+
+    found = record_sensors(a, scene, path)
+    return found if found is not None else (
+        Sensor("phi", getattr(a, "phi_col", None) or "phi",
+               getattr(a, "angle_unit", None) or "rad"),)
+
+
+def read_records(a: argparse.Namespace, scene, files) -> list:
+    """Every record of a command, read alike by `fit`, `validate` and `posterior`: through
+    the sensors of `record_sensors` (or the plain angle column), with the scene's input
+    columns, the time column `--t-col` and the loads' interpolation `--load-interp`.
+    Options a command lacks take their defaults."""
+    from ..data import load_data
+
+    return [load_data(f, t_col=getattr(a, "t_col", None) or "t",
+                      phi_col=getattr(a, "phi_col", None) or "phi",
+                      angle_unit=getattr(a, "angle_unit", None) or "rad",
+                      interp=getattr(a, "load_interp", None) or "cubic",
+                      sensors=record_sensors(a, scene, f), inputs=scene_inputs(scene))
+            for f in files]
 
 
 def scene_inputs(scene) -> tuple[str, ...]:

@@ -4,13 +4,20 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from .channels import add_channel_options, parse_sigma, record_sensors, scene_inputs
+from .channels import (
+    add_angle_options,
+    add_channel_options,
+    parse_sigma,
+    read_records,
+    read_sensors,
+)
 from .errors import UserError
 from .options import free_list, seed
 from .scene_inputs import refuse_input_loads
@@ -137,9 +144,7 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
                    help="another record of the same mechanism (repeatable): a multi-"
                         "experiment fit, each record with its own initial state and loads")
     p.add_argument("--t-col", default="t", help="name of the time column (t)")
-    p.add_argument("--phi-col", default="phi", help="name of the angle column (phi)")
-    p.add_argument("--angle-unit", default="rad", choices=("rad", "deg"),
-                   help="unit of the angle column (rad)")
+    add_angle_options(p)
     p.add_argument("--load-interp", default="cubic", choices=("cubic", "linear", "zoh"),
                    help="interpolation of the record's P/tau columns: cubic (C2 spline, for "
                         "measured signals; default), linear, or zoh (a held digital command)")
@@ -153,18 +158,24 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
 def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
     from ..io import check_figure_format, check_output
 
-    outs = ((a.out, "--out"), (a.plot, "--plot"), (getattr(a, "scene_out", None),
-                                                   "--scene-out"), (a.report, "--report"))
+    outs = [(path, option) for path, option in (
+        (a.out, "--out"), (a.plot, "--plot"), (getattr(a, "scene_out", None), "--scene-out"),
+        (a.report, "--report")) if path]
+    outs += [(path, f"--scene-out's record {i} scene")
+             for i, path in enumerate(_record_scenes(a)[1:], start=1)]
     for path, option in outs:
-        if path:
-            check_output(path, inputs, option)
-    for path in _record_scenes(a)[1:]:
-        check_output(path, inputs, "--scene-out (a record's fitted scene)")
+        check_output(path, inputs, option)
     if a.plot:
         check_figure_format(a.plot)
-    named = [path for path, _ in outs if path]
-    if len(set(named)) < len(named):
-        raise UserError("--out, --plot, --scene-out and --report must name different files")
+    # Every output its own file (as the paths resolve: ./fit.json is fit.json), so none
+    # is written over another, whatever order they are written in.
+    seen: dict[str, tuple[str, str]] = {}
+    for path, option in outs:
+        key = os.path.realpath(path)
+        if key in seen:
+            raise UserError(f"{option} {path!r} is the same file as {seen[key][1]} "
+                            f"{seen[key][0]!r}; give each output its own file")
+        seen[key] = (path, option)
 
 
 #: The library's words for its options -> the command's (each message the command prints
@@ -297,7 +308,6 @@ def _fit_run(a: argparse.Namespace) -> int:
         return _demo(a)
     if a.scene is None:
         raise UserError("give both DATA and SCENE (or neither, for the built-in demo)")
-    from ..data import load_data
     from ..identify.fit import fit
     from ..io import check_input
     from ..scene import load_scene
@@ -308,10 +318,9 @@ def _fit_run(a: argparse.Namespace) -> int:
     for path, option in zip(files, ["DATA"] + ["--more-data"] * len(a.more_data)):
         check_input(path, option)  # unopened: a FIFO with no writer would block the read
     _outputs_ok(a, files + [a.scene])
-    records = [load_data(f, t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
-                         interp=a.load_interp, sensors=record_sensors(a, scene, f),
-                         inputs=scene_inputs(scene))
-               for f in files]
+    records = read_records(a, scene, files)
+    # What each record was read through: its fitted scene (--scene-out) keeps it.
+    a.record_sensors = [read_sensors(a, scene, f) for f in files]
     res = fit(scene, records if len(records) > 1 else records[0], **kwargs)
     a.fitted_scene = scene
     return _report(res, a, title=f"{', '.join(files)} with {a.scene}")
@@ -340,7 +349,9 @@ def _write_scene(res, a: argparse.Namespace) -> None:
 
     paths = _record_scenes(a)
     for i, path in enumerate(paths):
-        save_scene(fitted_scene(a.fitted_scene, res, record=i), path)
+        read = getattr(a, "record_sensors", None)  # what record i was read through
+        save_scene(fitted_scene(a.fitted_scene, res, record=i,
+                                sensors=read[i] if read else None), path)
         if i:
             print(f"wrote {path} (record {i}'s fitted scene)", file=sys.stderr)
 

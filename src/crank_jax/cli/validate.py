@@ -4,12 +4,11 @@
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import math
 import sys
 
-from .channels import add_channel_options, record_sensors, scene_inputs
+from .channels import add_angle_options, add_channel_options, read_records
 from .errors import UserError
 
 __all__ = ["COMMANDS", "LOAD_INTERP"]
@@ -43,9 +42,7 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene-loads", action="store_true",
                    help="use the scene's loads where the record has no P/tau column")
     p.add_argument("--t-col", default="t", help="name of the time column (t)")
-    p.add_argument("--phi-col", default="phi", help="name of the angle column (phi)")
-    p.add_argument("--angle-unit", default="rad", choices=("rad", "deg"),
-                   help="unit of the angle column (rad)")
+    add_angle_options(p)
     add_channel_options(p)
     p.add_argument("--out", required=True, help="write the scores as JSON to this file")
     p.add_argument("--plot", help="draw data, prediction and error to this PNG")
@@ -87,19 +84,7 @@ def _init_free(a: argparse.Namespace) -> tuple[str, ...]:
 
 
 def _read(a: argparse.Namespace, scene):
-    from ..data import load_data
-
-    kw = dict(t_col=a.t_col, phi_col=a.phi_col, angle_unit=a.angle_unit,
-              sensors=record_sensors(a, scene, a.data), inputs=scene_inputs(scene))
-    if a.load_interp is not None:
-        if "interp" in inspect.signature(load_data).parameters:
-            kw["interp"] = a.load_interp
-        elif a.load_interp != "linear":
-            # Until load_data learns other kinds, sampled loads are linear: say so rather
-            # than silently doing something else than asked.
-            raise UserError(f"--load-interp {a.load_interp!r} is not available in this "
-                            "version (sampled loads are interpolated linearly); use linear")
-    return load_data(a.data, **kw)
+    return read_records(a, scene, [a.data])[0]  # as fit reads its records
 
 
 def _validate_run(a: argparse.Namespace) -> int:

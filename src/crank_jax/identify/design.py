@@ -356,4 +356,5 @@ def _with_torque(scene: Scene, torque, t1: float, n: int, load, y0) -> Scene:
     return Scene(scene.mech, load, torque, y0[0], y0[1], scene.rtol,
                  scene.atol, t1=float(t1), samples=n, solver=scene.solver,
                  outputs=scene.outputs, name=scene.name,
-                 description=(scene.description + " (designed multisine torque)").strip())
+                 description=(scene.description + " (designed multisine torque)").strip(),
+                 sensors=scene.sensors)  # the rig's sensors: records of the design use them

@@ -36,7 +36,7 @@ from .strategy import (
 from .uncertainty import RANK_TOL
 
 __all__ = ["Plan", "make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
-           "recoordinate", "recoordinate_basis"]
+           "recoordinate", "recoordinate_basis", "single_problem"]
 
 
 @dataclasses.dataclass
@@ -86,6 +86,13 @@ def _problem(req: FitRequest, start, states, nseg, budget, solver, linear: bool 
                          max_steps=budget, adjoint="forward", omega=omega,
                          angles=req.angles, sigmas=req.sigmas, per_record=req.per_record,
                          force=req.force, linear=linear)
+
+
+def single_problem(req: FitRequest, start, states, budget, solver) -> Problem:
+    """The fit's single-shooting problem of `req` (its records, channels, sensors and
+    weights `req.sigmas`) at the start values `start` and record states `states`: the
+    posterior samples this very model."""
+    return _problem(req, start, states, [1] * len(req.records), budget, solver)
 
 
 def _start_solve(req, start, states, solver, periods):

@@ -40,10 +40,12 @@ from ..data import Data
 from ..lazy import lazy_import
 from ..scene import Scene
 from ..sweep.distributions import AbstractDistribution
+from . import channels as ch
 from .fit import fit
 from .nuts import adaptation, initial_carry, run_chains, schedule
+from .plan import single_problem
 from .priors import base_name, in_support, parse_priors, prior_arrays, prior_precision
-from .problem import Problem, build_problem, pick_solver
+from .problem import Problem, pick_solver
 from .programs import jacobian_at
 from .request import STATE_NAMES, normalise, reported_names
 from .result import FitResult
@@ -164,24 +166,26 @@ def _check_counts(draws, chains, warmup) -> None:
 
 
 def _problem_at(req, res: FitResult) -> tuple[Problem, np.ndarray]:
-    """The single-shooting residual problem at the fit's estimate, and its coordinates."""
+    """The single-shooting residual problem at the fit's estimate, and its coordinates:
+    built by the fit's own builder from the same records, so every channel is read
+    through its sensor and weighted by the noise level the fit ended with."""
     values = res.values
     multi = len(req.records) > 1
+    req = ch.with_channels(req)  # each record's angle and each channel's level, as fit's
+    final = {n: c["sigma"] for n, c in (res.channels or {}).items()}
+    req = dataclasses.replace(req, sigmas={**req.sigmas, **final})
 
     def state(i, k):
         name = STATE_NAMES[k]
         key = f"{name}[{i}]" if multi else name
         return values[key] if key in values else req.states[i][k]
 
-    recs = [(d, lo, to, state(i, 0), state(i, 1))
-            for i, (d, (lo, to)) in enumerate(zip(req.records, req.loads))]
+    states = [(state(i, 0), state(i, 1)) for i in range(len(req.records))]
     start = {n: values[n] for n in req.free if n not in STATE_NAMES}
     solver = pick_solver(res.mech, req.loads[0][0], float(req.scene.rtol), req.scene.solver)
 
     def build(budget):
-        return build_problem(res.mech, recs, req.free, start, [1] * len(recs), solver=solver,
-                             rtol=float(req.scene.rtol), atol=float(req.scene.atol),
-                             max_steps=budget, adjoint="forward")
+        return single_problem(req, start, states, budget, solver)
 
     problem = build(MAX_ODE_STEPS)
     z = problem.to_z([values[n] for n in problem.names])
