@@ -33,13 +33,7 @@ from .model.loads import (
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
 from .record_columns import scene_columns_problem
-from .sensors import (
-    OFFSET_NAMES,
-    Sensor,
-    SensorError,
-    sensors_from_table,
-    sensors_to_table,
-)
+from .sensors import OFFSET_NAMES, Sensor, SensorError, sensors_from_table, sensors_to_table
 from .solve.inputs import MAX_RTOL as SOLVER_MAX_RTOL
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
