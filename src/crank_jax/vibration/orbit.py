@@ -19,8 +19,8 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
-from jax.flatten_util import ravel_pytree
 from jaxtyping import Array
 
 from ..model.dynamics import Structure
@@ -134,34 +134,45 @@ def _values(dyn, static, side, structure, rtol):
 
 
 def _differentiable(dyn, static, side, structure, rtol):
-    # A custom_jvp whose rule is "full forward Jacobian times tangent": linear in the
-    # tangents, so JAX transposes it and `jax.grad` works, while the Jacobian itself comes
-    # from the root find's implicit rule (no unrolled Newton iterations).
+    # A custom_jvp whose rule is "forward Jacobian times tangent": linear in the tangents,
+    # so JAX transposes it and `jax.grad` works, while the Jacobian itself comes from the
+    # root find's implicit rule (no unrolled Newton iterations). Symbolic zeros say which
+    # arrays are differentiated: only their columns are formed (one for d/dk).
+    leaves, treedef = jax.tree_util.tree_flatten(dyn)
+
+    def values(ls):
+        return _values(jax.tree_util.tree_unflatten(treedef, list(ls)), static, side,
+                       structure, rtol)
+
     @jax.custom_jvp
-    def f(d):
-        return _values(d, static, side, structure, rtol)
+    def f(*ls):
+        return values(ls)
 
-    @f.defjvp
     def rule(primals, tangents):
-        (d,), (dd,) = primals, tangents
-        flat, unravel = ravel_pytree(d)
+        active = [i for i, t in enumerate(tangents)
+                  if not isinstance(t, jax.custom_derivatives.SymbolicZero)]
 
-        def g(x):
-            out, ok = _values(unravel(x), static, side, structure, rtol)
-            return out, (out, ok)
+        def g(xs):
+            ls = list(primals)
+            for i, x in zip(active, xs):
+                ls[i] = x
+            out = values(ls)
+            return out[0], out
 
-        jac, (out, ok) = jax.jacfwd(g, has_aux=True)(flat)
-        dflat = ravel_pytree(dd)[0]
-        tan = jax.tree_util.tree_map(lambda j: j @ dflat, jac)
-        return (out, ok), (tan, jnp.zeros((), jax.dtypes.float0) if False else
-                           _zero_like_bool(ok))
+        jac, (out, ok) = jax.jacfwd(g, has_aux=True)(tuple(primals[i] for i in active))
 
-    return f(dyn)
+        def apply(j):  # j: per active input, d(output leaf)/d(input), out.shape + in.shape
+            total = 0.0
+            for ji, i in zip(j, active):
+                total = total + jnp.tensordot(ji, tangents[i], axes=jnp.ndim(tangents[i]))
+            return total
 
+        # `out` is a tuple of arrays (y0, phi_max, phi_min); `jac` one tuple per output.
+        tan = tuple(jnp.zeros_like(o) + apply(j) for o, j in zip(out, jac))
+        return (out, ok), (tan, np.zeros(np.shape(ok), jax.dtypes.float0))
 
-def _zero_like_bool(x):
-    import numpy as np
-    return np.zeros(np.shape(x), jax.dtypes.float0)
+    f.defjvp(rule, symbolic_zeros=True)
+    return f(*leaves)
 
 
 def periodic_orbit(scene, freq_hz, guess: Array | None = None, *, rtol: float = 1e-10,
