@@ -22,14 +22,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, ArrayLike
 
+from ..lazy import lazy_import
 from ..model.dynamics import CrankField, Structure
 from ..model.linear import linearize
 from ..model.loads import NoLoad
 from .drive import VibrationError
 from .flow import flow
+
+optx = lazy_import("optimistix")  # imported on first use (see lazy.py)
 
 __all__ = ["Backbone", "backbone", "conservative"]
 

@@ -20,14 +20,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array
 
+from ..lazy import lazy_import
 from ..model.dynamics import Structure
 from ..model.linear import linearize
 from .drive import drive_side, field_at
 from .floquet import STABLE_MARGIN, monodromy, multipliers
 from .flow import flow, flow_samples
+
+optx = lazy_import("optimistix")  # imported on first use (see lazy.py)
 
 __all__ = ["Orbit", "periodic_orbit", "extremes", "linear_guess", "SAMPLES"]
 

@@ -18,8 +18,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
+from ..lazy import lazy_import
 from ..model.dynamics import Structure
 from ..model.linear import linearize
 from .backbone import backbone
@@ -29,11 +29,16 @@ from .floquet import STABLE_MARGIN, multipliers
 from .flow import flow
 from .orbit import _lever, extremes, linear_guess
 
+optx = lazy_import("optimistix")  # imported on first use (see lazy.py)
+
 __all__ = ["Branch", "ForcedResponse", "forced_response"]
 
 
 class Branch(NamedTuple):
-    """One continued branch; every array has one entry per orbit (n,) (floquet (n, 2))."""
+    """One continued branch; every array has one entry per orbit (n,) (floquet (n, 2)):
+    `freq_hz` (Hz), `amplitude`, `phi_max`, `phi_min` (rad), `stable`, `floquet` (the
+    multipliers' moduli, largest first), and each orbit's start at t = 0, `phi0` (rad),
+    `dphi0` (rad/s): a guess for [`periodic_orbit`][crank_jax.periodic_orbit]."""
 
     freq_hz: np.ndarray
     amplitude: np.ndarray
@@ -41,6 +46,8 @@ class Branch(NamedTuple):
     phi_min: np.ndarray
     stable: np.ndarray
     floquet: np.ndarray
+    phi0: np.ndarray
+    dphi0: np.ndarray
 
     def to_dict(self) -> dict:
         return {k: np.asarray(v).tolist() for k, v in self._asdict().items()}
@@ -153,7 +160,8 @@ def forced_response(scene, freq_hz: tuple[float, float], *, max_points: int = 40
         w = a / (a - b)
         folds.append({"freq_hz": float(freq[i] + w * (freq[i + 1] - freq[i])),
                       "amplitude": float(amp[i] + w * (amp[i + 1] - amp[i]))})
-    branch = Branch(freq, amp, pmax, pmin, stable, mods)
+    branch = Branch(freq, amp, pmax, pmin, stable, mods, curve.u[:, 0] * scale[0],
+                    curve.u[:, 1] * scale[1])
     linear = _linear(scene, side, np.linspace(f0, f1, 200))
     if backbone_points > 0 and np.isfinite(amp).any():
         amps = np.linspace(np.nanmax(amp) / backbone_points, np.nanmax(amp), backbone_points)
