@@ -222,6 +222,10 @@ def test_stability_chart_shape_and_refusals(lab_rig):
             T_c=0.01)), (0, 1), (1, 2), grid=3)
     with pytest.raises(VibrationError, match="harmonic drive"):
         cj.forced_response(lab_rig, (3.0, 5.0))
+    both = eqx.tree_at(lambda s: (s.load, s.torque), lab_rig,
+                       (cj.HarmonicLoad(0.0, 1.0, 3.0), cj.HarmonicLoad(0.0, 0.05, 4.0)))
+    with pytest.raises(VibrationError, match=r"\[load\] must be absent or constant"):
+        cj.forced_response(both, (3.0, 5.0))
 
 
 # ---------------------------------------------------------------------------------------

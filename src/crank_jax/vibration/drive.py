@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.dynamics import CrankField, Structure
-from ..model.loads import HarmonicLoad
+from ..model.loads import ConstantLoad, HarmonicLoad, NoLoad
 
 __all__ = ["VibrationError", "drive_side", "field_at", "check_smooth"]
 
@@ -29,6 +29,15 @@ def drive_side(scene) -> str:
     for side in ("torque", "load"):
         x = getattr(scene, side)
         if isinstance(x, HarmonicLoad) and (_traced(x.X1) or np.any(np.asarray(x.X1) != 0)):
+            other = "load" if side == "torque" else "torque"
+            y = getattr(scene, other)
+            # Any other time-varying load would break the periodicity at the drive's period.
+            if not (isinstance(y, (NoLoad, ConstantLoad)) or (
+                    isinstance(y, HarmonicLoad) and not _traced(y.X1)
+                    and np.all(np.asarray(y.X1) == 0))):
+                raise VibrationError(
+                    f"the scene's [{side}] is the harmonic drive, so its [{other}] must be "
+                    f"absent or constant (got {type(y).__name__}); remove its varying part")
             return side
     raise VibrationError(
         "the scene has no harmonic drive: set [torque] tau1 and freq_hz (a harmonic crank "

@@ -3,10 +3,10 @@
 The span is a variable of the map, not of the solve: the field is rescaled to unit time,
 `dy/ds = T f(T s, y)` on `s` in [0, 1], so T (a period, a half swing) is a parameter of
 the field that forward mode, `jax.grad` and a root find differentiate like any other. The
-integration is the library's own ([`solve`][crank_jax.solve] with `"dopri8-adaptive"`);
-its forward mode steps the variational equation beside the solution (`solve/variational.py`),
-which gives the monodromy matrix of an orbit (`jax.jacfwd` of the map) at the cost of a few
-solves.
+integration is the library's own ([`solve`][crank_jax.solve.solvers.solve] with
+`"dopri8-adaptive"`); its forward mode steps the variational equation beside the solution
+(`solve/variational.py`), which gives the monodromy matrix of an orbit (`jax.jacfwd` of the
+map) at the cost of a few solves.
 """
 
 from __future__ import annotations
