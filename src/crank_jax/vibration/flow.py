@@ -23,13 +23,14 @@ from ..solve.solvers import solve
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
-__all__ = ["Scaled", "flow", "flow_samples", "MAX_STEPS"]
+__all__ = ["Scaled", "flow", "flow_samples", "MAX_STEPS", "adaptive_solver", "packed_scaled"]
 
 #: Step budget of one span (a forcing period or a half swing: ~100 steps at rtol 1e-10).
 MAX_STEPS = 20_000
 
 
-def _SOLVER():
+def adaptive_solver():
+    """The solver of every flow here: `"dopri8-adaptive"` with rolled variational stages."""
     # Rolled stages in the variational solve: monodromy matrices and the implicit rule's
     # Jacobians are forward mode, whose unrolled program compiles ~2x longer.
     return solver_named("dopri8-adaptive").with_loop_stages()
@@ -47,7 +48,8 @@ class Scaled(eqx.Module):
         return jax.tree_util.tree_map(lambda d: self.span * d, dy)
 
 
-def _packed(sc: Scaled) -> Scaled:
+def packed_scaled(sc: Scaled) -> Scaled:
+    """`sc` with its crank field packed: the form a solver steps (`prepare=`)."""
     # The crank's coefficients formed once, outside the step loop (CrankField.packed).
     return Scaled(sc.field.packed(), sc.span, sc.t0)
 
@@ -64,9 +66,9 @@ def flow_samples(field: CrankField, y0: Array, span: Array, s: Array, *, rtol, a
     solve's samples are NaN, so a root find on them fails rather than converging on them.
     """
     sc = Scaled(field, jnp.asarray(span, float), jnp.asarray(t0, float))
-    (phi, dphi), result, _ = solve(sc, _SOLVER(), s, (y0[0], y0[1]),
+    (phi, dphi), result, _ = solve(sc, adaptive_solver(), s, (y0[0], y0[1]),
                                    rtol=rtol, atol=atol, max_steps=MAX_STEPS, adjoint=adjoint,
-                                   throw=False, prepare=_packed, checks=False)
+                                   throw=False, prepare=packed_scaled, checks=False)
     ok = result == diffrax.RESULTS.successful
     ys = jnp.stack([phi, dphi], axis=-1)
     return jnp.where(ok, ys, jnp.nan), ok

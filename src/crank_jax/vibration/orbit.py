@@ -31,7 +31,7 @@ from .flow import flow, flow_samples
 
 optx = lazy_import("optimistix")  # imported on first use (see lazy.py)
 
-__all__ = ["Orbit", "periodic_orbit", "extremes", "linear_guess", "SAMPLES"]
+__all__ = ["Orbit", "periodic_orbit", "extremes", "linear_guess", "lever_at", "SAMPLES"]
 
 #: Samples per period from which the extremes are refined (quadratic in time about the
 #: extreme sample: relative error ~ (pi / SAMPLES)^3 / 6, 8e-10 at 1024).
@@ -86,7 +86,7 @@ def linear_guess(scene, side: str, freq_hz) -> Array:
     lin = linearize(scene.mech, scene.load, scene.torque)
     drive = getattr(scene, side)
     phi_eq = jnp.where(jnp.isnan(lin.phi_eq), 0.0, lin.phi_eq)
-    gain = 1.0 if side == "torque" else _lever(scene.mech, phi_eq)
+    gain = 1.0 if side == "torque" else lever_at(scene.mech, phi_eq)
     w = 2 * jnp.pi * freq_hz
     # mu x'' + chi x' + xi x = F sin(w t + p): x = Re(F e^{i(wt+p)} / (xi - mu w^2 + i chi w))
     # with sin = Re(-i e^{i..}).
@@ -95,7 +95,8 @@ def linear_guess(scene, side: str, freq_hz) -> Array:
     return jnp.stack([phi_eq + jnp.real(z), jnp.real(1j * w * z)])
 
 
-def _lever(mech, phi):
+def lever_at(mech, phi):
+    """The slider's lever dx_s/dphi (m) at angle `phi` (rad): a slider force's gain."""
     from ..model.coefficients import coefficients
     from ..model.geometry import geometry
     return geometry(coefficients(mech), phi).lever

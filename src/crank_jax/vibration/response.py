@@ -27,7 +27,7 @@ from .continuation import Point, continue_curve, null_vector
 from .drive import VibrationError, drive_side, field_at
 from .floquet import STABLE_MARGIN, multipliers
 from .flow import flow
-from .orbit import _lever, extremes, linear_guess
+from .orbit import extremes, lever_at, linear_guess
 
 optx = lazy_import("optimistix")  # imported on first use (see lazy.py)
 
@@ -177,7 +177,7 @@ def _linear(scene, side, freqs) -> dict:
     lin = linearize(scene.mech, scene.load, scene.torque)
     drive = getattr(scene, side)
     phi_eq = float(np.nan_to_num(lin.phi_eq))
-    gain = 1.0 if side == "torque" else float(_lever(scene.mech, jnp.asarray(phi_eq)))
+    gain = 1.0 if side == "torque" else float(lever_at(scene.mech, jnp.asarray(phi_eq)))
     w = 2 * np.pi * freqs
     h = 1.0 / (float(lin.xi) - float(lin.mu) * w * w + 1j * float(lin.chi) * w)
     return {"freq_hz": freqs.tolist(), "amplitude": np.abs(gain * float(drive.X1) * h).tolist()}
