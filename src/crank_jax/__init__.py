@@ -29,6 +29,8 @@ The public API, by topic (everything else is private; the subpackages
 - Monte Carlo: `sweep`, `SweepResult`, `REDUCTIONS`, `STATUS`, `VARIABLES`,
   `sweep_cost`, `initialize_distributed`, `distributions`, `load_trajectories`,
   `Trajectories` (a sweep's saved trajectories, read lazily).
+- Nonlinear vibration: `backbone`, `periodic_orbit`, `forced_response`,
+  `stability_chart`, `VibrationError` (`crank_jax.vibration`).
 - Files, the compilation cache and XLA's CPU flags: `atomic_write`,
   `enable_compilation_cache`, `default_cache_dir`, `with_cpu_flags` (an `XLA_FLAGS`
   value for a program to set before JAX starts: faster solves on the CPU),
@@ -162,6 +164,13 @@ from .validate import (
     Validation,
     validate,
 )
+from .vibration import (
+    VibrationError,
+    backbone,
+    forced_response,
+    periodic_orbit,
+    stability_chart,
+)
 from .xla_flags import configure_cpu, with_cpu_flags
 
 __version__ = "0.1.0"
@@ -266,4 +275,9 @@ __all__ = [
     "Solution",
     "UniformDopri8",
     "solver_named",
+    "backbone",
+    "forced_response",
+    "periodic_orbit",
+    "stability_chart",
+    "VibrationError",
 ]

@@ -26,7 +26,7 @@ from collections.abc import Iterator
 
 from ..io import DISK_FULL, Terminated, disk_full, note_signal, raise_if_terminated
 from ..xla_flags import configure_cpu
-from . import bayes, identify, simulate, sweep, validate
+from . import bayes, identify, simulate, sweep, validate, vibration
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
 
 __all__ = ["main", "entry", "build_parser", "Terminated", "ENV_DEBUG"]
@@ -63,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     for name, help_, add, run in (simulate.COMMANDS + identify.COMMANDS + sweep.COMMANDS
-                               + validate.COMMANDS + bayes.COMMANDS):
+                               + validate.COMMANDS + bayes.COMMANDS + vibration.COMMANDS):
         p = sub.add_parser(name, help=help_, description=help_)
         add(p)
         p.set_defaults(_run=run)

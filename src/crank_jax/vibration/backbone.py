@@ -1,0 +1,125 @@
+"""Backbone curves: the frequency of the undamped, unforced swing about the rest position
+as a function of its amplitude.
+
+A conservative, reversible swing (the equation of motion is even in phi' with c = 0 and no
+friction or load) turns at `phi_max` with phi' = 0 and reaches `phi_min` with phi' = 0
+half a period later. So an orbit of amplitude `A = (phi_max - phi_min) / 2` is the root
+`(phi_max, T/2)` of
+
+    phi'(T/2; phi_max) = 0,   (phi_max - phi(T/2; phi_max)) / 2 = A,
+
+shooting from a release at rest, scaled so that both unknowns and both residuals are ~1
+at any amplitude. Amplitudes are continued in order (`lax.scan`): each root find starts
+from the previous point's solution, the first from the linearisation (`linearize`), which
+is the backbone's small-amplitude limit.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike
+
+from ..lazy import lazy_import
+from ..model.dynamics import CrankField, Structure
+from ..model.linear import linearize
+from ..model.loads import NoLoad
+from .drive import VibrationError
+from .flow import flow
+
+optx = lazy_import("optimistix")  # imported on first use (see lazy.py)
+
+__all__ = ["Backbone", "backbone", "conservative"]
+
+
+class Backbone(NamedTuple):
+    """A backbone curve; arrays have the shape (n,) of the requested amplitudes."""
+
+    amplitude: Array
+    """(phi_max - phi_min) / 2, rad (as requested)."""
+    phi_max: Array
+    """Turning angle on the positive side, rad."""
+    phi_min: Array
+    """Turning angle on the negative side, rad."""
+    frequency_hz: Array
+    """Frequency of the free swing, Hz."""
+    period: Array
+    """Its period, s."""
+    ok: Array
+    """(n,) bool: the orbit was found. After the first failure (e.g. the swing reaches the
+    unstable position, where it becomes a rotation with no turning point) every later
+    point is NaN and False."""
+    linear_frequency_hz: Array
+    """The linearisation's natural frequency `omega_n / 2 pi`, Hz (scalar)."""
+
+
+def conservative(mech):
+    """`mech` without damping and friction (c, T_c, c_s, F_s = 0): the backbone's system."""
+    return mech.replace(c=0.0, T_c=0.0, c_s=0.0, F_s=0.0)
+
+
+def backbone(mech, amplitudes: ArrayLike, *, rtol: float = 1e-10) -> Backbone:
+    """The backbone curve of `mech` at the given swing amplitudes.
+
+    **Arguments:**
+
+    - `mech`: a [`SliderCrank`][crank_jax.SliderCrank]; its damping and friction are set to
+      zero (the backbone is the conservative system's), gravity, offset and geometry kept.
+    - `amplitudes`: (n,) amplitudes `(phi_max - phi_min) / 2`, rad, > 0, in increasing
+      order (each orbit starts from the previous one).
+    - `rtol`: the solver's relative tolerance (its absolute one is `rtol` times the
+      amplitude) and Newton's.
+
+    **Returns:** a [`Backbone`][]. Raises [`VibrationError`][crank_jax.vibration.drive.
+    VibrationError] if the rest position is not statically stable (no small swings).
+    """
+    amps = jnp.atleast_1d(jnp.asarray(amplitudes, float))
+    a = np.asarray(amps)
+    if a.ndim != 1 or not np.all(np.isfinite(a)) or np.any(a <= 0) or np.any(np.diff(a) <= 0):
+        raise VibrationError("amplitudes must be finite, > 0 rad and increasing, e.g. "
+                             "0.01:1.0:20")
+    mech = conservative(mech)
+    lin = linearize(mech)
+    if not bool(np.asarray(lin.stable)):
+        raise VibrationError(f"the rest position is statically unstable (xi = "
+                             f"{float(lin.xi):.4g} N*m/rad <= 0): raise k above k_crit = "
+                             f"{float(lin.k_crit):.4g} N*m/rad for a backbone")
+    return _backbone(mech, amps, Structure.of(mech), rtol)
+
+
+@eqx.filter_jit
+def _backbone(mech, amps, structure, rtol):
+    lin = linearize(mech)
+    phi_eq, omega = lin.phi_eq, lin.omega_n
+    half = jnp.pi / omega  # the linear half period, s
+    field = CrankField(mech, NoLoad(), NoLoad(), structure)
+
+    def residual(x, amp):
+        # x = ((phi_max - phi_eq) / A, (T/2) / half): both 1 in the linear limit.
+        phi_max = phi_eq + amp * x[0]
+        y1 = flow(field, jnp.stack([phi_max, 0.0]), half * x[1], rtol=rtol, atol=rtol * amp)
+        return jnp.stack([y1[1] / (omega * amp), (phi_max - y1[0]) / (2 * amp) - 1.0])
+
+    solver = optx.Newton(rtol=rtol, atol=rtol * 1e-2)
+
+    def step(carry, amp):
+        x_prev, amp_prev, alive = carry
+        # Start from the previous orbit with its turning angle scaled to the new amplitude.
+        sol = optx.root_find(residual, solver, x_prev, amp, max_steps=40, throw=False)
+        ok = alive & (sol.result == optx.RESULTS.successful) & (sol.value[1] > 0)
+        x = jnp.where(ok, sol.value, x_prev)
+        phi_max = phi_eq + amp * x[0]
+        t_half = half * x[1]
+        nan = jnp.where(ok, 0.0, jnp.nan)
+        out = (phi_max + nan, phi_max - 2 * amp + nan, 1 / (2 * t_half) + nan,
+               2 * t_half + nan, ok)
+        return (x, amp, ok), out
+
+    x0 = jnp.array([1.0, 1.0])
+    _, (pmax, pmin, freq, period, ok) = jax.lax.scan(step, (x0, amps[0], jnp.array(True)),
+                                                     amps)
+    return Backbone(amps, pmax, pmin, freq, period, ok, omega / (2 * jnp.pi))
