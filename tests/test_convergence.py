@@ -188,3 +188,21 @@ def test_where_minpack_can_go_no_further_a_tiny_promise_is_convergence(monkeypat
     assert run.converged and term["verdict"] == "converged", term
     assert term["words"].startswith("converged: no further progress at machine precision")
     assert DECREASE_FRACTION < term["predicted_decrease"] <= optimise.STALL_DECREASE
+
+
+def test_a_polished_run_takes_the_polish_verdict(stubbed):
+    # The slide-only rig (issue 38's second row): multiple shooting stalled on its
+    # continuity defects, its single-shooting polish converged at the best cost seen,
+    # and the fit said "NOT converged" because the first stage had not.
+    stages = [Run(np.zeros(2), 1.0, 30, False, "stalled: ..."),
+              Run(np.zeros(2), 0.5, 7, True, "converged",
+                  {"verdict": "converged", "words": "converged: ..."})]
+    stubbed.setattr(fit_module, "_guarded", lambda *args: stages.pop(0))
+    stubbed.setattr(fit_module, "recoordinate", lambda src, dst, z: np.asarray(z)[:2])
+    stubbed.setattr(fit_module, "recoordinate_basis", lambda *args: np.eye(2))
+    stubbed.setattr(fit_module, "Subspace", lambda *args: None)
+    plan, req = _plan_and_request(0.01)
+    plan.Bg, req.tol, req.max_steps, req.progress = np.eye(2), 1e-8, 100, False
+    run = fit_module._attempt(req, plan, plan.shoot, np.zeros(2), np.zeros(2), "fit")
+    assert run.converged and run.message == "converged" and run.iterations == 37
+    assert run.termination["verdict"] == "converged" and run.cost == 0.5
