@@ -16,6 +16,15 @@ rows of the issue's table): `angle` (one record, the encoder); `slide` (one reco
 slide sensor alone); `friction` (the encoder, `F_s` free instead of `P0`); `three`
 (three drive levels, shared mechanics, `tau0` per record).
 
+Measured (results/misfit_rig.json): the hundreds of LM iterations were the strategy's,
+not LM's. Each LM run from a fair start took 4-30 iterations; the escalation re-ran the
+same minimum from up to six starts because a minimum far above the noise looked like a
+stall, and a generic start crawled 200 iterations through a slipped branch that the
+motion's start never enters. The `friction` row is another matter: at its end point the
+forward sensitivity to `F_s` (the guide's Coulomb force, smoothed over `w_s` = 1 mm/s)
+differs from central differences by 62% (the other columns by under 1e-3), and LM
+stalls in a curved valley along `c + tau0 + F_s`: the fit says so (`termination`).
+
 Run: `python experiments/misfit_rig.py --label after --out
 experiments/results/misfit_rig.json` (each case in a fresh process, so the wall time
 includes compilation as a user's first `crank-jax fit` does; `--cases angle,slide`). The
