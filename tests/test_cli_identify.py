@@ -9,7 +9,8 @@ import crank_jax as cj
 from crank_jax.cli import main
 
 KEYS = ["estimates", "identifiable", "unidentifiable_directions", "rms_residual", "n_samples",
-        "converged", "iterations", "seconds", "warnings", "diagnostics", "channels"]
+        "converged", "iterations", "seconds", "warnings", "diagnostics", "channels",
+        "termination"]
 
 
 @pytest.fixture(scope="module")

@@ -27,20 +27,54 @@ from .strategy import FAR_FROM_NOISE
 optax = lazy_import("optax")
 
 __all__ = ["Run", "least_squares", "minimise_optax", "evaluate", "STALL_STEPS",
-           "progress_bar", "stalled_message"]
+           "progress_bar", "stalled_message", "DECREASE_FRACTION", "STEP_FRACTION",
+           "STALL_DECREASE"]
 
 #: The stall test looks this many iterations back (see `_Evaluations`).
 STALL_STEPS = 8
+#: Converged in the data's units when the Gauss-Newton step predicts a cost decrease
+#: below this fraction of one noise-level unit of cost (`sigma^2`, the cost of a change
+#: of 2 in chi-squared) ...
+DECREASE_FRACTION = 1e-4
+#: ... and moves no coordinate by more than this fraction of its standard error
+#: (`sigma sqrt(diag (J^T J)^-1)`, the noise level's, not the misfit's: the stricter).
+STEP_FRACTION = 1e-2
+#: A stall: the best cost has fallen by less than this many `sigma^2` over the last
+#: [`STALL_STEPS`][] iterations while the linearisation still predicts more.
+STALL_DECREASE = 1e-2
 
 
 class Run(NamedTuple):
-    """One optimisation: final coordinates, cost `0.5 |r|^2`, iterations, outcome."""
+    """One optimisation: final coordinates, cost `0.5 |r|^2`, iterations, outcome, and
+    how it ended (`termination`, see [`termination`][])."""
 
     z: np.ndarray
     cost: float
     iterations: int
     converged: bool
     message: str
+    termination: dict | None = None
+
+
+def termination(verdict: str, words: str, *, predicted_decrease: float | None = None,
+                largest_step: float | None = None, falling_per_iteration: float | None = None,
+                direction: str | None = None, noise: float | None = None) -> dict:
+    """How an optimisation ended, as `fit.json`'s `termination` holds it.
+
+    `verdict`: `"converged"` (at a stationary point of the weighted cost, judged in the
+    data's units), `"stalled"` (the cost stopped falling while the linearisation still
+    predicts a decrease: along `direction`, a ridge or a curved valley), `"budget"` (the
+    iteration budget spent, the cost still falling by `falling_per_iteration`), or
+    `"failed"`. The figures are in noise-level units of cost, `sigma^2` (`noise`, the
+    residuals' noise level, in the first channel's unit), when the noise level is known;
+    `largest_step` is the largest step of a coordinate over its standard error."""
+    def num(x):
+        return None if x is None or not math.isfinite(x) else float(x)
+
+    return {"verdict": verdict, "words": words,
+            "predicted_decrease": num(predicted_decrease), "largest_step": num(largest_step),
+            "falling_per_iteration": num(falling_per_iteration), "direction": direction,
+            "noise": num(noise)}
 
 
 class _NoBar:
@@ -78,9 +112,13 @@ def evaluate(problem, z) -> tuple[float, int]:
     return 0.5 * float(r @ r), int(failed)
 
 
-def _budget_spent(max_steps: int) -> str:
-    """The message of a run that used its iteration budget without converging."""
-    return (f"stopped after {max_steps} iterations without converging (max_steps = "
+def _budget_spent(max_steps: int, falling: float | None = None,
+                  unit: str = "sigma^2") -> str:
+    """The message of a run that used its iteration budget without converging, with the
+    cost's fall per iteration over the last [`STALL_STEPS`][] (in `unit`) when known."""
+    still = ("" if falling is None or not math.isfinite(falling)
+             else f", the cost still falling by {falling:.3g} {unit} per iteration")
+    return (f"stopped after {max_steps} iterations without converging{still} (max_steps = "
             f"{max_steps}: raise it to go on)")
 
 
@@ -94,20 +132,74 @@ def _failed_message(failed: int) -> str:
 class _Stop(Exception):
     """Ends MINPACK's loop from inside a callback (scipy passes the exception through)."""
 
-    def __init__(self, converged: bool, message: str):
+    def __init__(self, converged: bool, message: str, term: dict | None = None):
         super().__init__(message)
         self.converged, self.message = converged, message
+        self.term = term or termination("converged" if converged else "failed", message)
+
+
+class _Step(NamedTuple):
+    """The Gauss-Newton step at a point, in the problem's coordinates `z`."""
+
+    dz: np.ndarray  # (p,) the step
+    se: np.ndarray  # (p,) standard errors at the noise level (inf: flat)
+    decrease: float  # the cost decrease the linearisation predicts, 0.5 |J dw|^2
+
+
+def _gauss_newton(model, w: np.ndarray, r: np.ndarray, J: np.ndarray,
+                  noise: float) -> _Step:
+    """The Gauss-Newton step at `w` from its SVD, with each coordinate's standard error at
+    the noise level `noise` (singular values below `eps max(N, q)` of the largest count
+    as 0, as `lstsq`'s default)."""
+    U, S, Vt = np.linalg.svd(J, full_matrices=False)
+    keep = S > S[0] * np.finfo(float).eps * max(J.shape) if S.size and S[0] > 0 else S > 0
+    Ur, Sr, Vr = U[:, keep], S[keep], Vt[keep].T
+    ur = Ur.T @ r
+    dw = -Vr @ (ur / Sr)
+    # The view's coordinates map affinely onto the problem's: its linear part, column by
+    # column (a subspace's basis, or a pinned coordinate's insertion).
+    z = np.asarray(model.lift(w))
+    L = np.stack([np.asarray(model.lift(w + e)) - z for e in np.eye(w.shape[0])], axis=1)
+    dz = L @ dw
+    A = L @ (Vr / Sr)
+    se = noise * np.sqrt(np.sum(A * A, axis=1))
+    return _Step(dz, np.where(se > 0, se, np.inf), 0.5 * float(ur @ ur))
+
+
+def _direction(names, dz: np.ndarray, se: np.ndarray) -> str:
+    """The step `dz` as a combination of the named coordinates, each in units of its
+    standard error (unit length; terms below 0.2 left out), e.g. "0.86 tau0 - 0.51 P0";
+    coordinates beyond `names` (segment states) are summed up as one term."""
+    v = np.where(np.isfinite(se), dz / se, 0.0)
+    norm = float(np.linalg.norm(v))
+    if norm == 0 or not math.isfinite(norm):
+        return "no direction"
+    v = v / norm
+    terms = [(float(x), n) for x, n in zip(v, names)]
+    rest = float(np.linalg.norm(v[len(names):]))
+    terms = sorted([t for t in terms if abs(t[0]) >= 0.2], key=lambda t: -abs(t[0]))
+    out = " ".join(f"{'-' if x < 0 else '+'} {abs(x):.2f} {n}" for x, n in terms)
+    if rest >= 0.2:
+        out += f" + {rest:.2f} (segment states)"
+    return out.lstrip("+ ").replace("- ", "-", 1) if out.startswith("-") else out.lstrip("+ ")
 
 
 class _Evaluations:
     """The residuals and sensitivities MINPACK asks for, each point from one call of the
     compiled [`jacobian_at`][] program (MINPACK asks for the Jacobian at a point whose
     residuals it has just had). It keeps the best point seen (as optimistix's
-    `BestSoFarLeastSquares`) and decides when to stop: a Gauss-Newton convergence test, a
-    stall test (the best cost has fallen by less than `0.01 sigma^2` over the last
-    [`STALL_STEPS`][] iterations, with `sigma^2 ~ 2 cost / n`: LM can crawl for hundreds of
-    steps along a weakly determined valley while moving the estimate by a tiny fraction of
-    its confidence region), and the iteration budget.
+    `BestSoFarLeastSquares`) and decides when to stop, in the data's units when the
+    residuals' noise level `noise` (sigma) is known:
+
+    - converged: the Gauss-Newton step predicts a cost decrease below
+      [`DECREASE_FRACTION`][] `sigma^2` and moves no coordinate by more than
+      [`STEP_FRACTION`][] of its standard error (or, whatever the noise, the step is below
+      `tol + tol |z|` in every coordinate);
+    - stalled: the best cost has fallen by less than [`STALL_DECREASE`][] `sigma^2` over
+      the last [`STALL_STEPS`][] iterations (LM crawling along a curved valley or a ridge,
+      the direction named from the Gauss-Newton step); without a noise level, by less
+      than `0.01` of the rms residual's square;
+    - the iteration budget spent.
 
     A stall is convergence only where the fit explains the record: at an rms residual
     within `stall_rms` (the fit passes [`FAR_FROM_NOISE`][] times the record's noise
@@ -116,14 +208,15 @@ class _Evaluations:
     model that cannot follow the record, reported as a stall, not as convergence."""
 
     def __init__(self, model, max_steps: int, tol: float, bar,
-                 stall_rms: float | None = None):
+                 stall_rms: float | None = None, noise: float | None = None):
         self.model, self.max_steps, self.tol, self.bar = model, max_steps, tol, bar
-        self.stall_rms = stall_rms
+        self.stall_rms, self.noise = stall_rms, noise
         self.w = self.r = self.J = None
         self.failed = 0
         self.best_w, self.best_cost, self.best_failed = None, math.inf, 0
         self.history = [math.inf] * (STALL_STEPS + 1)
         self.iterations = 0
+        self.last = termination("budget", "")  # how it ended, set by each stop
 
     def _at(self, w: np.ndarray) -> None:
         if self.w is not None and np.array_equal(w, self.w):
@@ -148,6 +241,13 @@ class _Evaluations:
         self._at(w)
         return self.r
 
+    def _unit(self, n: int) -> tuple[float, str]:
+        """The unit of cost the tests and messages use: `sigma^2` when the noise level is
+        known, else the rms residual's square at the best point."""
+        if self.noise:
+            return self.noise**2, "sigma^2"
+        return max(2.0 * self.best_cost / max(n, 1), 1e-300), "rms^2"
+
     def jacobian(self, w):
         # MINPACK asks for the Jacobian once per iteration, at the accepted point.
         self._at(w)
@@ -156,6 +256,10 @@ class _Evaluations:
         self.bar.n = self.iterations
         self.bar.set_postfix(cost=f"{self.best_cost:.4g}", refresh=True)
         h, n = self.history, self.r.shape[0]
+        unit, uname = self._unit(n)
+        seen = [c for c in h if math.isfinite(c)]
+        # The fall per iteration over the stall window (or the iterations so far).
+        fell = (seen[0] - seen[-1]) / (len(seen) - 1) if len(seen) > 1 else math.inf
         if self.failed:
             # A failed solve's residuals are a constant, so its Jacobian rows are zero:
             # the tests below would see no slope and call that convergence. With nothing
@@ -163,25 +267,86 @@ class _Evaluations:
             # as a failure.
             if not np.any(self.J) or (math.isfinite(h[0]) and h[0] - h[-1] <= 0.0):
                 raise _Stop(False, _failed_message(self.failed))
-        elif math.isfinite(h[0]) and h[0] - h[-1] <= 0.02 * h[-1] / n:
-            raise _Stop(*self._stall(h[-1], n))
+            if self.iterations > self.max_steps:
+                self.iterations = self.max_steps
+                raise _Stop(False, _failed_message(self.failed))
+            return self.J
         # Converged when the Gauss-Newton step, the distance to the minimum the
-        # linearisation predicts, is below `tol + tol |z|` in every coordinate of the
-        # problem (`z`, not the view's `w`: a subspace's `w` is the offset from its start,
-        # near 0, and a test relative to it asked a polish for steps of 1e-8 absolute,
-        # below the Jacobian's rounding, so it ran to the stall test). MINPACK's
-        # own tests look at the damped step or the cost change, which are small also where
-        # LM crawls with a large damping; and its relative step test means little for
-        # coordinates near 0 (log-ratios to `ref`).
-        gn = np.linalg.lstsq(self.J, -self.r, rcond=None)[0]
+        # linearisation predicts, is small in the data's units: its predicted cost
+        # decrease a small fraction of sigma^2 (a chi-squared change far below 1) and
+        # every coordinate's move a small fraction of its standard error (with both at
+        # the same sigma, the first bounds the second by Cauchy-Schwarz: the second is
+        # the one that binds). MINPACK's own tests look at the damped step or the cost
+        # change, which are small also where LM crawls with a large damping. The step
+        # test `tol + tol |z|` in every coordinate of the problem (`z`, not the view's
+        # `w`: a subspace's `w` is the offset from its start, near 0) stays, for records
+        # with no noise.
+        gn = _gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
         z = np.asarray(self.model.lift(self.w))
-        step = np.asarray(self.model.lift(self.w + gn)) - z
-        if not self.failed and np.all(np.abs(step) <= self.tol + self.tol * np.abs(z)):
-            raise _Stop(True, "converged")
+        largest = float(np.max(np.abs(gn.dz) / gn.se, initial=0.0))
+        in_units = (self.noise is not None and gn.decrease <= DECREASE_FRACTION * unit
+                    and largest <= STEP_FRACTION)
+        if in_units or np.all(np.abs(gn.dz) <= self.tol + self.tol * np.abs(z)):
+            words = (f"converged: the Gauss-Newton step predicts a cost decrease of "
+                     f"{gn.decrease / unit:.2g} {uname} and moves no coordinate by more "
+                     f"than {largest:.2g} of its standard error")
+            raise _Stop(True, "converged", termination(
+                "converged", words, predicted_decrease=gn.decrease / unit,
+                largest_step=largest, falling_per_iteration=fell / unit,
+                noise=self.noise))
+        full = math.isfinite(h[0])
+        stall = full and (h[0] - h[-1] <= STALL_DECREASE * unit if self.noise
+                          else h[0] - h[-1] <= 0.02 * h[-1] / n)
+        if stall:
+            raise self._stalled(gn, largest, h[0] - h[-1], STALL_STEPS)
         if self.iterations > self.max_steps:
             self.iterations = self.max_steps
-            raise _Stop(False, _budget_spent(self.max_steps))
+            per = fell / unit if math.isfinite(fell) else None
+            message = _budget_spent(self.max_steps, per, uname)
+            raise _Stop(False, message, termination(
+                "budget", "budget spent: " + message, predicted_decrease=gn.decrease / unit,
+                largest_step=largest, falling_per_iteration=per, noise=self.noise))
         return self.J
+
+    def _stalled(self, gn: _Step, largest: float, fell: float, steps: int) -> _Stop:
+        """The stop of a run whose cost fell by only `fell` over its last `steps`
+        iterations while the Gauss-Newton step `gn` predicts more: along the direction
+        of that step (a curved valley or a ridge)."""
+        n = self.r.shape[0]
+        unit, uname = self._unit(n)
+        converged, message = self._stall(self.best_cost, n)
+        along = _direction(getattr(self.model.problem, "names", ()), gn.dz, gn.se)
+        words = (f"stalled along {along}: the cost fell by {fell / unit:.2g} {uname} over "
+                 f"the last {steps} iterations while the linearisation predicts "
+                 f"{gn.decrease / unit:.3g} {uname} more (a curved valley or a ridge in "
+                 "that combination)")
+        return _Stop(converged, message, termination(
+            "stalled", words, predicted_decrease=gn.decrease / unit, largest_step=largest,
+            falling_per_iteration=fell / steps / unit, direction=along, noise=self.noise))
+
+    def at_end(self) -> _Stop:
+        """The verdict where MINPACK stopped by itself (no further progress at machine
+        precision), by the same tests at the best point: converged where the Gauss-Newton
+        step is small in the data's units (or relative to `tol`), else a stall."""
+        self._at(self.best_w)
+        unit, uname = self._unit(self.r.shape[0])
+        gn = _gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
+        z = np.asarray(self.model.lift(self.w))
+        largest = float(np.max(np.abs(gn.dz) / gn.se, initial=0.0))
+        # MINPACK found no step that lowers the cost at machine precision (the solve's
+        # own rounding, near a minimum). What the linearisation still promises counts as
+        # nothing when it is below what the stall test would notice.
+        if (gn.decrease <= (STALL_DECREASE if self.noise else DECREASE_FRACTION) * unit
+                or np.all(np.abs(gn.dz) <= self.tol + self.tol * np.abs(z))):
+            return _Stop(True, "converged", termination(
+                "converged", "converged: no further progress at machine precision, the "
+                f"Gauss-Newton step predicting a cost decrease of {gn.decrease / unit:.2g} "
+                f"{uname} and moving no coordinate by more than {largest:.2g} of its "
+                "standard error", predicted_decrease=gn.decrease / unit,
+                largest_step=largest, noise=self.noise))
+        seen = [c for c in self.history if math.isfinite(c)]
+        return self._stalled(gn, largest, seen[0] - seen[-1] if seen else 0.0,
+                             max(len(seen) - 1, 1))
 
     def _stall(self, cost: float, n: int) -> tuple[bool, str]:
         """(converged, message) of a run whose best cost has stopped falling."""
@@ -201,7 +366,8 @@ def stalled_message(rms: float, noise: float) -> str:
 
 
 def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
-                  progress: bool, stall_rms: float | None = None) -> Run:
+                  progress: bool, stall_rms: float | None = None,
+                  noise: float | None = None) -> Run:
     """Levenberg-Marquardt on a residual view `model` (a [`Subspace`][] or [`Pinned`][]
     problem) from `z0`, with a progress bar per iteration.
 
@@ -217,12 +383,15 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     all succeed (a failed solve's samples count as residuals of 10 rad, a stand-in, not a
     misfit). A run whose best point still has failed samples is never `converged`, and
     its cost is NaN. `stall_rms`: the rms residual above which a stall is not
-    convergence (see `_Evaluations`; None: a stall is convergence anywhere)."""
+    convergence (see `_Evaluations`; None: a stall is convergence anywhere); `noise`:
+    the residuals' noise level, in which the termination tests are judged (None: only
+    the relative step test and a stall relative to the rms residual). The run's
+    `termination` says how it ended."""
     from scipy.optimize import least_squares as minpack_lm
 
     z0 = np.asarray(z0, dtype=float)
     with progress_bar(max_steps, desc, progress) as bar:
-        ev = _Evaluations(model, max_steps, tol, bar, stall_rms)
+        ev = _Evaluations(model, max_steps, tol, bar, stall_rms, noise)
         # MINPACK's own tests at machine precision: they stop it only where it can make
         # no further progress; the tests that decide are `_Evaluations.jacobian`'s. (Not
         # below it: MINPACK's "tolerance too small" outcomes have no status in scipy.)
@@ -230,20 +399,28 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
         try:
             sol = minpack_lm(ev.residuals, z0, jac=ev.jacobian, method="lm", x_scale="jac",
                              ftol=eps, xtol=eps, gtol=eps, max_nfev=100 * (max_steps + 1))
+            if sol.status > 0 and ev.best_w is not None and not ev.best_failed:
+                raise ev.at_end()
             converged = sol.status > 0
             message = "converged" if converged else (
                 _budget_spent(max_steps) if sol.status == 0
                 else "Levenberg-Marquardt failed: " + sol.message)
+            term = termination(
+                "converged" if converged else "budget" if sol.status == 0 else "failed",
+                message, noise=noise)
         except _Stop as stop:
-            converged, message = stop.converged, stop.message
+            converged, message, term = stop.converged, stop.message, stop.term
     if ev.best_w is None or not np.all(np.isfinite(ev.best_w)):
-        return Run(z0, float("nan"), ev.iterations, False, "the iterates became non-finite")
+        message = "the iterates became non-finite"
+        return Run(z0, float("nan"), ev.iterations, False, message,
+                   termination("failed", message, noise=noise))
     if ev.best_failed:
         # Never "converged" where the solve fails, and no cost: the stand-ins are no
         # misfit, so such a run never ranks above one whose solves succeed.
-        return Run(ev.best_w, float("nan"), ev.iterations, False,
-                   _failed_message(ev.best_failed))
-    return Run(ev.best_w, ev.best_cost, ev.iterations, converged, message)
+        message = _failed_message(ev.best_failed)
+        return Run(ev.best_w, float("nan"), ev.iterations, False, message,
+                   termination("failed", message, noise=noise))
+    return Run(ev.best_w, ev.best_cost, ev.iterations, converged, message, term)
 
 
 def _outcome(model, z0, cost0, z, it, done, max_steps) -> Run:

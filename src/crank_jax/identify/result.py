@@ -86,6 +86,15 @@ class FitResult(NamedTuple):
     them), `n_samples`, `ljung_box_p` (None unless converged), `unit` (its SI unit)."""
     fitted_channels: list | None = None
     """Per record, channel name -> what its sensor reads under the fitted model (n,), SI."""
+    termination: dict | None = None
+    """How the reported optimisation ended, judged in the data's units: `verdict`
+    (`"converged"`, `"stalled"`, `"budget"`, `"failed"` or `"refused"`), `words` (the
+    same in a sentence), `predicted_decrease` (the cost decrease the Gauss-Newton step
+    predicts, in noise-level units `sigma^2`), `largest_step` (its largest move of a
+    coordinate, in standard errors), `falling_per_iteration` (the cost's fall per
+    iteration over the last 8, `sigma^2`), `direction` (of a stall: the combination, in
+    standard errors) and `noise` (sigma, the first channel's unit); see
+    `optimise.termination`."""
 
     def to_json(self) -> dict:
         """The `fit.json` document (exactly the documented top-level keys)."""
@@ -127,6 +136,7 @@ class FitResult(NamedTuple):
                              "ljung_box_p": (None if c["ljung_box_p"] is None
                                              else num(c["ljung_box_p"]))}
                          for n, c in (self.channels or {}).items()},
+            "termination": (None if self.termination is None else dict(self.termination)),
         }
 
     def report(self, path, *, scene=None, command=None, title: str = "") -> None:
@@ -152,6 +162,9 @@ class FitResult(NamedTuple):
                      "residual "
                      f"{self.rms_residual:.3g} rad over {self.n_samples} samples; condition "
                      f"number {self.condition_number:.3g}")
+        words = (self.termination or {}).get("words")
+        if words:
+            lines.append(f"termination: {words}")
         lines.append("identifiable: " + ("not judged (the fit did not converge)"
                                          if self.identifiable is None
                                          else "yes" if self.identifiable else "NO"))

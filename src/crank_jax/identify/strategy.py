@@ -19,7 +19,7 @@ __all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "MAX_ODE_STEPS", "SMA
            "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
            "absurd_start", "absurd_frequency", "segment_count", "record_segments",
            "MAX_SEGMENTS", "MIN_MOTION", "no_motion", "aliased",
-           "perturb", "far_from_noise", "stall_rms"]
+           "perturb", "far_from_noise", "stall_rms", "noise_unit"]
 
 #: `shooting="auto"` uses multiple shooting above this many observed periods, whatever
 #: the start's drift (a record that long has many chances to slip a cycle).
@@ -247,7 +247,13 @@ def far_from_noise(rms: float, noise: float, sigma: float | None) -> bool:
     return not (math.isfinite(rms) and rms <= stall_rms(noise, sigma))
 
 
+def noise_unit(noise: float, sigma: float | None) -> float:
+    """The noise level (residual unit) that LM's termination is judged in: the record's
+    measured level `noise`, or `sigma` when given and larger."""
+    return max(noise, sigma or 0.0, 1e-12)
+
+
 def stall_rms(noise: float, sigma: float | None) -> float:
     """The rms residual above which a fit is far from the record's noise level `noise`
     (and from `sigma`, when given): [`FAR_FROM_NOISE`][] times the larger."""
-    return FAR_FROM_NOISE * max(noise, sigma or 0.0, 1e-12)
+    return FAR_FROM_NOISE * noise_unit(noise, sigma)
