@@ -11,6 +11,8 @@ import types
 import numpy as np
 import pytest
 
+from crank_jax.identify import attempt as attempt_module
+from crank_jax.identify import escalation as esc_module
 from crank_jax.identify import fit as fit_module
 from crank_jax.identify import optimise
 from crank_jax.identify.optimise import (
@@ -121,9 +123,9 @@ def _plan_and_request(noise):
 def stubbed(monkeypatch):
     monkeypatch.setattr(fit_module.ch, "known_sigma", lambda req: None)
     monkeypatch.setattr(fit_module.ch, "first_unit", lambda req: "rad")
-    monkeypatch.setattr(fit_module, "_motion_point", lambda req, plan: None)
-    monkeypatch.setattr(fit_module, "perturb", lambda z, names, log, rng: z)
-    monkeypatch.setattr(fit_module, "_in_shoot", lambda plan, z: z)
+    monkeypatch.setattr(esc_module, "_motion_point", lambda req, plan: None)
+    monkeypatch.setattr(attempt_module, "perturb", lambda z, names, log, rng: z)
+    monkeypatch.setattr(esc_module, "_in_shoot", lambda plan, z: z)
     return monkeypatch
 
 
@@ -135,10 +137,10 @@ def test_escalation_ends_once_a_second_start_reaches_the_same_minimum(stubbed):
     calls = []
     noise = 0.01
     cost = 0.5 * 100 * (20 * noise) ** 2
-    stubbed.setattr(fit_module, "_attempt", _stub([cost, cost + 0.1 * noise**2, cost,
+    stubbed.setattr(attempt_module, "attempt", _stub([cost, cost + 0.1 * noise**2, cost,
                                                   cost, cost], calls))
     plan, req = _plan_and_request(noise)
-    best, iterations, notes = fit_module._optimise(req, plan)
+    best, iterations, notes = esc_module.optimise_fit(req, plan)
     assert len(calls) == 2 and iterations == 20
     assert best.cost == cost
     assert any("reached from more than one start" in n for n in notes), notes
@@ -148,9 +150,9 @@ def test_escalation_goes_on_while_each_start_finds_a_new_minimum(stubbed):
     calls = []
     noise = 0.01
     costs = [0.5 * 100 * (k * noise) ** 2 for k in (20, 18, 16, 14, 12)]
-    stubbed.setattr(fit_module, "_attempt", _stub(costs, calls))
+    stubbed.setattr(attempt_module, "attempt", _stub(costs, calls))
     plan, req = _plan_and_request(noise)
-    best, _, notes = fit_module._optimise(req, plan)
+    best, _, notes = esc_module.optimise_fit(req, plan)
     assert len(calls) == 5 and best.cost == costs[-1]
     assert not any("more than one start" in n for n in notes)
 
@@ -197,12 +199,12 @@ def test_a_polished_run_takes_the_polish_verdict(stubbed):
     stages = [Run(np.zeros(2), 1.0, 30, False, "stalled: ..."),
               Run(np.zeros(2), 0.5, 7, True, "converged",
                   {"verdict": "converged", "words": "converged: ..."})]
-    stubbed.setattr(fit_module, "_guarded", lambda *args: stages.pop(0))
-    stubbed.setattr(fit_module, "recoordinate", lambda src, dst, z: np.asarray(z)[:2])
-    stubbed.setattr(fit_module, "recoordinate_basis", lambda *args: np.eye(2))
-    stubbed.setattr(fit_module, "Subspace", lambda *args: None)
+    stubbed.setattr(attempt_module, "guarded", lambda *args: stages.pop(0))
+    stubbed.setattr(attempt_module, "recoordinate", lambda src, dst, z: np.asarray(z)[:2])
+    stubbed.setattr(attempt_module, "recoordinate_basis", lambda *args: np.eye(2))
+    stubbed.setattr(attempt_module, "Subspace", lambda *args: None)
     plan, req = _plan_and_request(0.01)
     plan.Bg, req.tol, req.max_steps, req.progress = np.eye(2), 1e-8, 100, False
-    run = fit_module._attempt(req, plan, plan.shoot, np.zeros(2), np.zeros(2), "fit")
+    run = attempt_module.attempt(req, plan, plan.shoot, np.zeros(2), np.zeros(2), "fit")
     assert run.converged and run.message == "converged" and run.iterations == 37
     assert run.termination["verdict"] == "converged" and run.cost == 0.5

@@ -1,5 +1,6 @@
-"""The optimisers: Levenberg-Marquardt (MINPACK, through scipy) over the compiled
-residuals-and-sensitivities program, and optax.
+"""Levenberg-Marquardt (MINPACK, through scipy) over the compiled residuals-and-
+sensitivities program, with its termination judged in the data's units (the optax
+method is [`optax_fit`][crank_jax.identify.optax_fit]).
 
 LM's loop runs on the host (see [`least_squares`][] for why): the only compiled program
 it calls is `jacobian_at`, which on the fused solvers and diffrax's explicit ones has no
@@ -9,24 +10,17 @@ and progress is shown after every iteration.
 
 from __future__ import annotations
 
-import functools
 import math
 import sys
 from typing import NamedTuple
 
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lazy import lazy_import
 from .programs import jacobian_at, residuals_at
 from .strategy import FAR_FROM_NOISE
 
-# Imported on first use (see lazy.py): only the optax method needs it.
-optax = lazy_import("optax")
-
-__all__ = ["Run", "least_squares", "minimise_optax", "evaluate", "STALL_STEPS",
+__all__ = ["Run", "least_squares", "evaluate", "budget_spent", "STALL_STEPS",
            "progress_bar", "stalled_message", "DECREASE_FRACTION", "STEP_FRACTION",
            "STALL_DECREASE"]
 
@@ -112,7 +106,7 @@ def evaluate(problem, z) -> tuple[float, int]:
     return 0.5 * float(r @ r), int(failed)
 
 
-def _budget_spent(max_steps: int, falling: float | None = None,
+def budget_spent(max_steps: int, falling: float | None = None,
                   unit: str = "sigma^2") -> str:
     """The message of a run that used its iteration budget without converging, with the
     cost's fall per iteration over the last [`STALL_STEPS`][] (in `unit`) when known."""
@@ -302,7 +296,7 @@ class _Evaluations:
         if self.iterations > self.max_steps:
             self.iterations = self.max_steps
             per = fell / unit if math.isfinite(fell) else None
-            message = _budget_spent(self.max_steps, per, uname)
+            message = budget_spent(self.max_steps, per, uname)
             raise _Stop(False, message, termination(
                 "budget", "budget spent: " + message, predicted_decrease=gn.decrease / unit,
                 largest_step=largest, falling_per_iteration=per, noise=self.noise))
@@ -403,7 +397,7 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
                 raise ev.at_end()
             converged = sol.status > 0
             message = "converged" if converged else (
-                _budget_spent(max_steps) if sol.status == 0
+                budget_spent(max_steps) if sol.status == 0
                 else "Levenberg-Marquardt failed: " + sol.message)
             term = termination(
                 "converged" if converged else "budget" if sol.status == 0 else "failed",
@@ -421,82 +415,3 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
         return Run(ev.best_w, float("nan"), ev.iterations, False, message,
                    termination("failed", message, noise=noise))
     return Run(ev.best_w, ev.best_cost, ev.iterations, converged, message, term)
-
-
-def _outcome(model, z0, cost0, z, it, done, max_steps) -> Run:
-    cost, failed = evaluate(model, z)
-    zn = np.asarray(z)
-    if not np.all(np.isfinite(zn)):
-        return Run(np.asarray(z0), float(cost0), it, False, "the iterates became non-finite")
-    if failed > 0:
-        return Run(zn, cost, it, False, "the ODE solve fails at the final estimate")
-    if not done:
-        return Run(zn, float(cost), it, False, _budget_spent(max_steps))
-    return Run(zn, float(cost), it, True, "converged")
-
-
-def _loss(z, model):
-    r = model.residuals(z)[0]
-    return 0.5 * jnp.sum(r * r)
-
-
-# One (immutable) optimiser each, made on first use (optax is imported then): optax
-# transformations made per fit would be new static objects, and every fit would recompile.
-@functools.cache
-def _adam():
-    return optax.adam(0.02)
-
-
-@functools.cache
-def _lbfgs():
-    return optax.lbfgs()
-
-
-@eqx.filter_jit
-def _adam_step(z, st, model):
-    v, g = jax.value_and_grad(_loss)(z, model)
-    u, st = _adam().update(g, st, z)
-    return optax.apply_updates(z, u), st, v
-
-
-@eqx.filter_jit
-def _lbfgs_step(z, st, model):
-    def f(x):
-        return _loss(x, model)
-
-    v, g = optax.value_and_grad_from_state(f)(z, state=st)
-    u, st = _lbfgs().update(g, st, z, value=v, grad=g, value_fn=f)
-    return optax.apply_updates(z, u), st, v, jnp.max(jnp.abs(g))
-
-
-def minimise_optax(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
-                   progress: bool) -> Run:
-    """Adam (a robust first phase far from the optimum), then L-BFGS, on 0.5 |r|^2, with
-    reverse-mode gradients (the model must use the reverse adjoint)."""
-    cost0, failed0 = evaluate(model, jnp.asarray(z0))
-    if failed0 > 0 or not np.isfinite(cost0):
-        return Run(np.asarray(z0), float("nan"), 0, False,
-                   "the ODE solve fails at the start values; choose other start values")
-    z = jnp.asarray(z0)
-    it, converged, stall = 0, False, 0
-    with progress_bar(max_steps, desc, progress) as bar:
-        st = _adam().init(z)
-        for _ in range(max_steps // 4):
-            z, st, v = _adam_step(z, st, model)
-            it += 1
-            bar.update(1)
-        st = _lbfgs().init(z)
-        prev = math.inf
-        while it < max_steps:
-            z, st, v, gmax = _lbfgs_step(z, st, model)
-            it += 1
-            v = float(v)
-            bar.update(1)
-            bar.set_postfix(loss=f"{v:.3g}", refresh=False)
-            # Stop when the loss has stopped decreasing for a few steps in a row.
-            stall = stall + 1 if abs(prev - v) <= tol * max(abs(v), 1e-300) else 0
-            prev = v
-            if stall >= 3 or float(gmax) == 0.0:
-                converged = True
-                break
-    return _outcome(model, z0, cost0, z, it, converged, max_steps)

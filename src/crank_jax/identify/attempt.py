@@ -1,0 +1,108 @@
+"""One optimisation of a fit, and a few of them: the try from one start (with the
+single-shooting polish after multiple shooting), tries from perturbed starts, and the
+choice of the run to report. [`escalation`][crank_jax.identify.escalation] decides which
+tries to make.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from . import channels as ch
+from .optax_fit import minimise_optax
+from .optimise import Run, least_squares
+from .plan import Plan, basis, recoordinate, recoordinate_basis
+from .problem import Problem
+from .programs import Subspace
+from .request import FitRequest
+from .strategy import noise_unit, perturb, stall_rms
+
+__all__ = ["attempt", "guarded", "multistart", "best_run", "run_rms"]
+
+
+def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.ndarray,
+             desc: str) -> Run:
+    """One optimisation of `shoot` from `zk` (flat directions held at `z0`), then a
+    single-shooting polish when `shoot` is multiple shooting."""
+    ss = plan.single
+    # Multiple shooting has its own coordinates (linear, see `build_problem`): the flat
+    # directions held fixed, and the estimate handed to the polish, are mapped across.
+    Bg = plan.Bg if shoot is ss else recoordinate_basis(ss, shoot, plan.Bg,
+                                                        recoordinate(shoot, ss, z0))
+    B = basis(Bg, z0.shape[0])
+    problem = shoot if req.method == "lm" else dataclasses.replace(shoot, adjoint="reverse")
+    # LM's tests are judged in the data's units (the residuals' noise level), and its
+    # stall counts as convergence only near that level.
+    sigma = ch.known_sigma(req)
+    run_fn = (functools.partial(least_squares, stall_rms=stall_rms(plan.noise, sigma),
+                                noise=noise_unit(plan.noise, sigma))
+              if req.method == "lm" else minimise_optax)
+    run = guarded(run_fn, Subspace(problem, jnp.asarray(z0), jnp.asarray(B)),
+                   B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
+    run = run._replace(z=z0 + B @ run.z)
+    if shoot is ss:
+        return run
+    zp = recoordinate(shoot, ss, run.z)
+    if not np.isfinite(run.cost):
+        return run._replace(z=zp)
+    pol = guarded(run_fn if req.method == "lm" else least_squares,
+                   Subspace(ss, jnp.asarray(zp), jnp.asarray(plan.Bg)),
+                   np.zeros(plan.Bg.shape[1]), req.max_steps, req.tol, desc + " (polish)",
+                   req.progress)
+    # The estimate is the polish's, on the single-shooting cost: whether it converged is
+    # the polish's verdict (multiple shooting only brought it near; its own stall on the
+    # continuity defects says nothing about the point reported).
+    return Run(zp + plan.Bg @ pol.z, pol.cost, run.iterations + pol.iterations,
+               pol.converged, pol.message, pol.termination)
+
+
+def guarded(run, *args) -> Run:
+    """Run an optimiser; any failure inside the solve becomes `converged=False`."""
+    try:
+        return run(*args)
+    except (RuntimeError, ValueError, FloatingPointError) as e:
+        first = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), type(e).__name__)
+        return Run(np.asarray(args[1]), float("nan"), 0, False,
+                   f"the fit failed: {_solver_words(first)}")
+
+
+def _solver_words(message: str) -> str:
+    """A solver's message in the fit's words: diffrax advises "Try increasing
+    `max_steps`", an ODE step budget that the fit sets itself (`strategy.ode_budget`) and
+    that no option of `fit` sets (its `max_steps` counts LM iterations)."""
+    if "maximum number of solver steps" in message.lower():
+        return ("the ODE solve ran out of its step budget: the parameters make the model far "
+                "stiffer or faster than the record; choose start values nearer the truth")
+    return message
+
+
+def multistart(req, plan, shoot, z0, count, seed, label, until=None
+                ) -> list[tuple[Run, str]]:
+    """`count` optimisations: from `z0` (unless `label` names an escalation), then from
+    perturbed points. Each run comes with its label, e.g. "multistart start 2 of 4".
+    `until(runs)`: when given and true after a run, the rest are not started."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(count):
+        zk = z0 if k == 0 and not label else perturb(z0, shoot.names, shoot.log, rng)
+        name = (label + (f" start {k + 1} of {count}" if count > 1 else "")).strip()
+        out.append((attempt(req, plan, shoot, z0, zk, f"fit {name}".strip()), name))
+        if until is not None and until(out):
+            break
+    return out
+
+
+def best_run(runs):
+    """The run to report, with its label: the lowest-cost converged run; if none
+    converged, the lowest-cost one (a run with no finite cost only if no other is left)."""
+    ok = [(r, lab) for r, lab in runs if np.isfinite(r.cost)]
+    return min(ok, key=lambda x: (not x[0].converged, x[0].cost)) if ok else runs[0]
+
+
+def run_rms(run: Run, n: int) -> float:
+    return math.sqrt(2 * run.cost / max(n, 1)) if np.isfinite(run.cost) else math.inf

@@ -1,0 +1,217 @@
+"""The fit's escalation: which tries a fit makes when the planned one stalls far from the
+noise level (multiple shooting, a start from the motion, more starts around the best
+point), and when it stops. Iterations and costs decide, never wall time.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from . import attempt as at
+from . import channels as ch
+from .motion_start import motion_start
+from .optimise import Run
+from .plan import Plan, recoordinate, shooting
+from .problem import Problem
+from .programs import jacobian_at
+from .request import FitRequest
+from .strategy import far_from_noise, noise_unit, record_segments
+
+__all__ = ["optimise_fit", "ESCALATION_STARTS", "ESCALATION_ITERATIONS", "REPRODUCED"]
+
+#: Extra starts tried when a fit stalls far from the noise level.
+ESCALATION_STARTS = 4
+#: The extra starts stop once they have taken as many LM iterations as the tries before
+#: them, or this many if those took fewer (see `optimise_fit`): room for every extra start
+#: at the default budget of 100. Iterations, not seconds: a fit's outcome and its
+#: iteration count do not depend on the machine's load. (A floor of 100 cut the starts
+#: that found a slide-only rotating record's branch: experiments/rotating_rig.py.)
+ESCALATION_ITERATIONS = 100 * ESCALATION_STARTS
+#: Two converged tries whose costs differ by less than this many noise-level units
+#: (`sigma^2`: a chi-squared difference of 1) reached the same minimum.
+REPRODUCED = 0.5
+
+
+
+def optimise_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
+    """The planned optimisation(s), escalated when they stall far from the noise level:
+    multiple shooting (one segment per two observed periods), then a second start (the
+    motion's, or the scene's when the first was the motion's), then more starts.
+
+    Where the plan shoots multiply (the start's predicted drift is large), the first
+    attempt starts from whichever of the scene's values and the motion's start
+    ([`motion_start`][]) has the lower cost: a generic start far off (a drive level 30%
+    low) crawled for hundreds of iterations through a slipped branch that the motion's
+    start never enters (experiments/misfit_rig.py).
+
+    Escalation is for what it can mend: a phase slip over a record's periods. A record
+    with no observed period (a transient, a creep, a step) cannot slip a cycle, so its
+    stall is the model's answer, reported at once. Escalation ends at the first try that
+    reaches the noise level; or once a converged minimum has been reached from two
+    different starts (within [`REPRODUCED`][] noise-level units of cost: the model's best
+    from here, on a record it cannot fully explain); or once the extra starts have taken
+    as many LM iterations as the tries before them (at least
+    [`ESCALATION_ITERATIONS`][]). Iterations and costs, never wall time, decide, so the
+    same fit does the same tries, and reports the same result, on any machine.
+
+    **Returns:** the best run, the total iterations, notes."""
+    n = plan.single.n_residuals
+    escalate = (req.shooting == "auto" and req.segments is None and req.method == "lm"
+                and any(p is not None for p in plan.periods))
+    # (Solved only where it is used: it compiles the equation of motion's program.)
+    early = escalate and req.multistart == 1 and plan.shoot is not plan.single
+    zm = _motion_point(req, plan) if early else None
+    moved_first = (zm is not None
+                   and _start_cost(plan.shoot, zm) < _start_cost(plan.shoot, plan.z0))
+    notes = []
+    if moved_first:
+        runs = [(at.attempt(req, plan, plan.shoot, plan.z0, zm, "fit (from the motion)"), "")]
+        notes.append("the fit started from the motion (a start from the motion: the "
+                      "parameters that enter the equation of motion linearly, solved from "
+                      "the smoothed record), whose cost was below the scene's values'")
+    else:
+        runs = at.multistart(req, plan, plan.shoot, plan.z0, req.multistart, req.seed, "")
+    if req.multistart > 1:
+        best = at.best_run(runs)[0]
+        distinct = sum(r.cost > best.cost * (1 + 1e-3) + 1e-300 for r, _ in runs
+                       if np.isfinite(r.cost))
+        notes.append(f"multistart: {sum(r.converged for r, _ in runs)} of {req.multistart} "
+                     f"starts converged; {distinct} ended at a higher cost than the best")
+    first = at.best_run(runs)[0]
+    tried = []
+    unit2 = noise_unit(plan.noise, ch.known_sigma(req)) ** 2
+
+    def go_on():
+        best = at.best_run(runs)[0]
+        return _stalled(best, n, plan, req) and not _reproduced(runs, unit2)
+
+    if escalate and plan.shoot is plan.single and go_on():
+        nseg = [record_segments(float(d.ts[-1] - d.ts[0]), p)
+                for d, p in zip(req.records, plan.periods)]
+        ms, z0 = shooting(req, plan, nseg)
+        label = f"multiple shooting ({'+'.join(map(str, nseg))} segments)"
+        runs += [(r, lab) for r, lab in at.multistart(req, plan, ms, z0, 1, req.seed, label)]
+        tried.append(label)
+    if escalate and req.multistart == 1 and not moved_first and go_on():
+        # (After a first start from the motion, the scene's values, whose cost was higher,
+        # are no second opinion worth their iterations: they crawled 200 iterations through
+        # a slipped branch on a slide-only record. The extra starts below are.)
+        if not early:
+            zm = _motion_point(req, plan)
+        if zm is not None:
+            runs.append(_from_point(req, plan, zm, "a start from the motion"))
+            tried.append(runs[-1][1])
+    if escalate and req.multistart == 1 and go_on():
+        budget = max(ESCALATION_ITERATIONS, sum(r.iterations for r, _ in runs))
+
+        def enough(done):
+            every = runs + done
+            return (not _stalled(done[-1][0], n, plan, req) or _reproduced(every, unit2)
+                    or sum(r.iterations for r, _ in done) >= budget)
+
+        # Around the best point so far (basin hopping): a start that comes back to it
+        # confirms it, one that finds a lower minimum replaces it.
+        more = at.multistart(req, plan, plan.shoot, _in_shoot(plan, at.best_run(runs)[0].z),
+                           ESCALATION_STARTS, req.seed + 1, "multistart", until=enough)
+        runs += more
+        tried.append(f"{len(more)} more start{'s' if len(more) > 1 else ''}"
+                     + (f" (of {ESCALATION_STARTS}: {budget} iterations spent)"
+                        if len(more) < ESCALATION_STARTS and _stalled(more[-1][0], n, plan,
+                                                                      req)
+                        and not _reproduced(runs, unit2) else ""))
+    best = _conclude(req, plan, runs, first, tried, moved_first, notes)
+    return best, sum(r.iterations for r, _ in runs), notes
+
+
+def _conclude(req: FitRequest, plan: Plan, runs, first: Run, tried: list[str],
+              moved_first: bool, notes: list[str]) -> Run:
+    """The run to report among `runs`; says in `notes` what the escalation tried and why,
+    and names the winning start in `plan.strategy`."""
+    n = plan.single.n_residuals
+    unit2 = noise_unit(plan.noise, ch.known_sigma(req)) ** 2
+    best, label = at.best_run(runs)
+    unit = ch.first_unit(req)  # the residuals are in the first channel's unit
+    if tried:
+        won = "the first attempt" if best is first else label
+        why = "did not converge" if not first.converged else (
+            f"stalled at rms {at.run_rms(first, n):.3g} {unit}, far above the record's noise "
+            f"level ({plan.noise:.3g} {unit})" if _stalled(first, n, plan, req) else
+            f"converged at rms {at.run_rms(first, n):.3g} {unit}, far above the record's noise "
+            f"level ({plan.noise:.3g} {unit})")
+        notes.append(f"the {plan.strategy} fit {why}; tried {' and '.join(tried)}; the "
+                     f"result is {won} (rms {at.run_rms(best, n):.3g} {unit}"
+                     + (", the lowest-cost converged try)" if best.converged
+                        else ", the lowest-cost try: none converged)"))
+        if _reproduced(runs, unit2):
+            notes.append(f"the minimum at rms {at.run_rms(best, n):.3g} {unit} was reached from "
+                         "more than one start: the model's best from here, not a local "
+                         "minimum of one start; the misfit above the noise level is the "
+                         "model's (see the residuals' whiteness)")
+        if best is not first:
+            plan.strategy = (label if label.startswith("multiple")
+                             else f"{plan.strategy}, {label}")
+    elif len(runs) > 1 and not best.converged:
+        notes.append(f"none of the {len(runs)} starts converged; the result is the "
+                     f"lowest-cost one ({label}, rms {at.run_rms(best, n):.3g} {unit})")
+    if moved_first and best is first:
+        plan.strategy = f"{plan.strategy}, a start from the motion"
+    return best
+
+
+def _reproduced(runs, unit2: float) -> bool:
+    """Whether the lowest-cost converged run's minimum was reached by another converged
+    run too (costs within [`REPRODUCED`][] noise-level units `unit2`)."""
+    ok = [r for r, _ in runs if r.converged and np.isfinite(r.cost)]
+    if len(ok) < 2:
+        return False
+    low = min(r.cost for r in ok)
+    return sum(r.cost - low <= REPRODUCED * unit2 for r in ok) >= 2
+
+
+def _start_cost(problem: Problem, z: np.ndarray) -> float:
+    """The cost `0.5 |r|^2` of `problem` at `z` (inf where a solve fails), from the
+    residuals-and-sensitivities program the LM compiles anyway."""
+    r, failed, _, _ = jacobian_at(problem, jnp.asarray(z))
+    r = np.asarray(r)
+    return 0.5 * float(r @ r) if int(failed) == 0 and np.all(np.isfinite(r)) else math.inf
+
+
+def _motion_point(req: FitRequest, plan: Plan) -> np.ndarray | None:
+    """The start values the motion gives (`motion_start`), in `plan.shoot`'s coordinates
+    (the records' states and segment states as planned), or None when it gives none."""
+    ss, shoot = plan.single, plan.shoot
+    z = plan.z0[:ss.p] if shoot is ss else recoordinate(shoot, ss, plan.z0)
+    try:
+        zs = motion_start(ss, z, req.records, req.angles, plan.periods)
+    except (ValueError, RuntimeError, FloatingPointError, np.linalg.LinAlgError):
+        # A start the motion cannot give (a user force that fails off its record's path,
+        # say) is no start: the random restarts follow, as before.
+        zs = None
+    if zs is None:
+        return None
+    return zs if shoot is ss else np.concatenate([recoordinate(ss, shoot, zs),
+                                                  plan.z0[shoot.p:]])
+
+
+def _in_shoot(plan: Plan, z: np.ndarray) -> np.ndarray:
+    """A run's estimate `z` (single-shooting coordinates first) in `plan.shoot`'s
+    coordinates, its segment states as planned; `plan.z0` where `z` is not finite."""
+    ss, shoot = plan.single, plan.shoot
+    if not np.all(np.isfinite(z)):
+        return plan.z0
+    if shoot is ss:
+        return np.asarray(z[:ss.p], dtype=float)
+    return np.concatenate([recoordinate(ss, shoot, z), plan.z0[shoot.p:]])
+
+
+def _from_point(req: FitRequest, plan: Plan, zk: np.ndarray, label: str
+                ) -> tuple[Run, str]:
+    """One optimisation of `plan.shoot` from `zk`, labelled `label`."""
+    return at.attempt(req, plan, plan.shoot, plan.z0, zk, f"fit ({label})"), label
+
+
+def _stalled(run: Run, n: int, plan: Plan, req: FitRequest) -> bool:
+    return not run.converged or far_from_noise(at.run_rms(run, n), plan.noise, ch.known_sigma(req))
