@@ -196,7 +196,8 @@ def test_report_path_checked_before_work(fitted, tmp_path, capsys):
                                     capsys)
     assert "--report" in _one_error(base + ["--report", rec], capsys)
     same = str(tmp_path / "x")
-    assert "is the same file as --out" in _one_error(base + ["--out", same, "--report", same], capsys)
+    assert "is the same file as --out" in _one_error(base + ["--out", same, "--report", same],
+                                                      capsys)
     vbase = ["validate", str(fitted["toml"]), str(fitted["rec2"]), "--out",
              str(tmp_path / "v.json"), "--quiet"]
     assert "--report" in _one_error(vbase + ["--report", str(fitted["rec2"])], capsys)

@@ -46,7 +46,8 @@ from .model.params import FIELDS
 from .model.sampled import bind_input
 from .scene import Scene
 
-__all__ = ["validate", "Validation", "default_init_window", "plot_validation", "MIN_SPREAD_EPS"]
+__all__ = ["validate", "Validation", "default_init_window", "plot_validation", "MIN_SPREAD_EPS",
+           "init_free_names"]
 
 
 class Validation(NamedTuple):
@@ -309,9 +310,10 @@ def validate(
         init_values=own or None)
 
 
-def _check_init_free(names, win: Data) -> tuple[str, ...]:
-    """`init_free` as a tuple, each name one a fit can free besides the state, and for a
-    load amplitude, a load the record does not supply as a column."""
+def init_free_names(names) -> tuple[str, ...]:
+    """`init_free` (a name or names) as a tuple, each a name a fit can free besides the
+    state; `ValueError` naming `init_free (--init-free)` otherwise (the CLI asks this
+    before it reads a record)."""
     if isinstance(names, str):
         names = (names,)
     names = tuple(dict.fromkeys(names))
@@ -323,6 +325,14 @@ def _check_init_free(names, win: Data) -> tuple[str, ...]:
         if n not in allowed:
             raise ValueError(f"init_free (--init-free) names {n!r}, which is not a parameter; "
                              f"choose from {', '.join(allowed)}")
+    return names
+
+
+def _check_init_free(names, win: Data) -> tuple[str, ...]:
+    """[`init_free_names`][crank_jax.validate.init_free_names], and for a load amplitude, a
+    load the record does not supply as a column."""
+    names = init_free_names(names)
+    for n in names:
         if n in LOAD_NAMES:
             side = LOAD_NAMES[n][0]
             if (win.load if side == "load" else win.torque) is not None:

@@ -69,18 +69,12 @@ def _check_numbers(a: argparse.Namespace) -> None:
 
 def _init_free(a: argparse.Namespace) -> tuple[str, ...]:
     """The names of --init-free, each checked (before any record is read)."""
-    from ..identify.request import STATE_NAMES, free_names
+    from ..validate import init_free_names
 
-    names = tuple(x.strip() for x in a.init_free.split(",") if x.strip())
-    allowed = [n for n in free_names() if n not in STATE_NAMES]
-    for n in names:
-        if n in STATE_NAMES:
-            raise UserError(f"--init-free names {n}, which is always estimated on the "
-                            "initial-state window; leave it out")
-        if n not in allowed:
-            raise UserError(f"--init-free names {n!r}, which is not a parameter; choose from "
-                            f"{', '.join(allowed)}")
-    return names
+    try:
+        return init_free_names(tuple(x.strip() for x in a.init_free.split(",") if x.strip()))
+    except ValueError as e:  # the library's words name the option as the CLI spells it
+        raise UserError(str(e).replace("init_free (--init-free)", "--init-free")) from None
 
 
 def _read(a: argparse.Namespace, scene):
