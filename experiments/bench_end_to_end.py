@@ -26,7 +26,7 @@ from _bench import save, setup_jax, wall
 setup_jax()
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.xla_flags import with_cpu_flags  # noqa: E402
+from crank_jax.runtime.xla_flags import with_cpu_flags  # noqa: E402
 
 CLI = [sys.executable, "-m", "crank_jax"]
 HERE = Path(__file__).resolve().parent

@@ -109,7 +109,7 @@ def main(argv=None):
         measure(a.smoke, "" if a.setting == "defaults" else "_cpu_flags")
         return
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "src"))
-    from crank_jax.xla_flags import with_cpu_flags
+    from crank_jax.runtime.xla_flags import with_cpu_flags
 
     for setting in ("defaults", "cpu_flags"):
         env = dict(os.environ)

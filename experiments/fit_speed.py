@@ -30,7 +30,7 @@ import rotating_rig as rr  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
-from crank_jax.io import atomic_write  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 
 def _tutorial():

@@ -60,7 +60,7 @@ import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.io import atomic_write  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 RIGS = ("osc", "rot")
 EFFECTS = ("guide_friction", "motor_droop", "speed_wander", "geometry", "eccentricity",

@@ -1,5 +1,5 @@
 """Each private or undocumented API of another library that crank-jax still uses
-(`crank_jax.compat`): a test that fails, naming the entry, when the API moves."""
+(`crank_jax.runtime.compat`): a test that fails, naming the entry, when the API moves."""
 
 import diffrax
 import jax
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from crank_jax import compat
+from crank_jax.runtime import compat
 from crank_jax.solve.erk import dopri8
 
 

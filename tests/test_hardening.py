@@ -423,7 +423,7 @@ def test_signal_noted_when_its_exception_is_dropped(tmp_path, monkeypatch):
     """Python drops an exception raised by a signal handler while a gc callback runs (JAX
     has one), so the run went on and replaced the output: the noted signal stops the
     commit, and main exits with the signal's status."""
-    io = cj.io
+    from crank_jax.runtime import io
     out = tmp_path / "o.txt"
     out.write_text("old\n")
     io.note_signal(signal.SIGTERM)
@@ -439,7 +439,9 @@ def test_main_exits_with_a_dropped_signal(capsys, monkeypatch):
     cli_main = sys.modules["crank_jax.cli.main"]  # (crank_jax.cli.main is also the function)
 
     def dropped(args):  # a command during which the handler's exception was dropped
-        cj.io.note_signal(signal.SIGTERM)
+        from crank_jax.runtime import io
+
+        io.note_signal(signal.SIGTERM)
         return 0
 
     build = cli_main.build_parser
@@ -473,7 +475,7 @@ def test_a_lazy_module_is_whole_when_two_threads_touch_it_at_once(tmp_path, monk
     import sys
     import threading
 
-    from crank_jax.lazy import lazy_import
+    from crank_jax.runtime.lazy import lazy_import
 
     (tmp_path / "slow_module_for_lazy_test.py").write_text(
         "import time\ntime.sleep(0.3)\nVALUE = 42\n")

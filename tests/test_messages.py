@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 import crank_jax as cj
-import crank_jax.io
+import crank_jax.runtime.io
 import crank_jax.scene
 from crank_jax.cli import main
 
@@ -202,7 +202,7 @@ def test_a_full_disk_names_the_file_and_loses_nothing(tmp_path, capsys, monkeypa
     # It was a bare "[Errno 28] No space left on device".
     out = tmp_path / "o.csv"
     out.write_text("the previous output\n")
-    monkeypatch.setattr(crank_jax.io.os, "fsync", _no_space)
+    monkeypatch.setattr(crank_jax.runtime.io.os, "fsync", _no_space)
     err = _error(["synth", "lab-rig", "--t1", "0.05", "--rate", "100", "--out", out], capsys)
     assert f"could not write {str(out)!r}: the disk is full" in err and "[Errno" not in err
     assert "free some space" in err, err

@@ -23,7 +23,7 @@ import json, sys
 import jax
 jax.config.update("jax_enable_x64", True)
 import crank_jax as cj
-from crank_jax import persistent
+from crank_jax.runtime import persistent
 cj.enable_compilation_cache(sys.argv[1])
 compiled = []
 orig = persistent.PersistentProgram._compile
@@ -113,7 +113,7 @@ def test_damaged_store_is_recompiled(stored, tmp_path):
     """Issue 24 defect 1: a damaged stored program, whatever byte is damaged, is a miss:
     the next process recompiles it, gets the clean numbers, and replaces the file. A
     dangling `*.xla` link and a temporary file left by a killed writer do no harm."""
-    from crank_jax.program_store import MAGIC, STALE_TEMP_S, unpack
+    from crank_jax.runtime.program_store import MAGIC, STALE_TEMP_S, unpack
 
     cache, first = stored
     copy = tmp_path / "cache"

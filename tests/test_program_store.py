@@ -27,11 +27,11 @@ import pytest
 from conftest import flip_byte as _flip
 
 import crank_jax as cj
-from crank_jax import persistent, program_store
-from crank_jax.foreign_code import foreign_classes
-from crank_jax.io import atomic_write
 from crank_jax.model.loads import AbstractLoad
-from crank_jax.program_store import MAGIC, Entry
+from crank_jax.runtime import persistent, program_store
+from crank_jax.runtime.foreign_code import foreign_classes
+from crank_jax.runtime.io import atomic_write
+from crank_jax.runtime.program_store import MAGIC, Entry
 
 _X = jnp.linspace(0.0, 1.0, 7)
 _W = jnp.asarray(1.5)
@@ -329,7 +329,7 @@ def test_a_user_object_anywhere_in_static_data_is_found():
 KILLED = r"""
 import os, signal, sys
 from pathlib import Path
-from crank_jax import io, program_store
+from crank_jax.runtime import io, program_store
 
 def die(*a):
     os.kill(os.getpid(), signal.SIGKILL)

@@ -360,7 +360,7 @@ def store_damages(draw):
 
 
 def _store_program():
-    from crank_jax.persistent import PersistentProgram
+    from crank_jax.runtime.persistent import PersistentProgram
 
     class Counted(PersistentProgram):
         compiled = 0
@@ -377,7 +377,7 @@ def _store_program():
 def test_any_damaged_stored_program_is_recompiled_to_the_clean_result(damage):
     """A stored program damaged anywhere is a miss before it is deserialised: the call
     compiles again, returns the clean result, and stores an intact file in its place."""
-    from crank_jax import persistent, program_store
+    from crank_jax.runtime import persistent, program_store
 
     name, hurt = damage
     event(name.split()[0])

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax.xla_flags import configure_cpu, cpu_flags, with_cpu_flags
+from crank_jax.runtime.xla_flags import configure_cpu, cpu_flags, with_cpu_flags
 
 KEY = "xla_cpu_small_while_loop_byte_threshold"
 LOOP = f"--xla_backend_extra_options={KEY}=1048576"

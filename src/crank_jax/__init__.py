@@ -34,14 +34,10 @@ The public API, by topic (everything else is private; the subpackages
 - Files, the compilation cache and XLA's CPU flags: `atomic_write`,
   `enable_compilation_cache`, `default_cache_dir`, `with_cpu_flags` (an `XLA_FLAGS`
   value for a program to set before JAX starts: faster solves on the CPU),
-  `configure_cpu` (that, and a JAX CPU device per core; see `crank_jax.xla_flags`).
+  `configure_cpu` (that, and a JAX CPU device per core; see `crank_jax.runtime.xla_flags`).
 """
 
 from . import distributions
-from .cache import (
-    default_cache_dir,
-    enable_compilation_cache,
-)
 from .data import (
     Data,
     DataError,
@@ -67,9 +63,6 @@ from .identify.fit import (
     regressor_start,
 )
 from .identify.posterior import Posterior, posterior
-from .io import (
-    atomic_write,
-)
 from .model.dynamics import (
     CrankField,
     Structure,
@@ -118,6 +111,14 @@ from .model.params import (
     SIGNED_FIELDS,
     SliderCrank,
 )
+from .runtime.cache import (
+    default_cache_dir,
+    enable_compilation_cache,
+)
+from .runtime.io import (
+    atomic_write,
+)
+from .runtime.xla_flags import configure_cpu, with_cpu_flags
 from .scene import (
     PRESETS,
     Scene,
@@ -171,7 +172,6 @@ from .vibration import (
     periodic_orbit,
     stability_chart,
 )
-from .xla_flags import configure_cpu, with_cpu_flags
 
 __version__ = "0.1.0"
 

@@ -21,10 +21,10 @@ import numpy as np
 
 from .columns import TIME_ROLE, load_roles, role_conflict
 from .fields import LineLabels, cut_names, split_fields, to_float
-from .io import atomic_write, check_input
 from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
 from .record_checks import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP, series_problem
 from .record_columns import data_fields_problem, data_roles
+from .runtime.io import atomic_write, check_input
 from .sensors import DEFAULT_SENSOR, Sensor
 
 __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",

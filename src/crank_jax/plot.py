@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from .io import atomic_write, printable
+from .runtime.io import atomic_write, printable
 
 __all__ = ["plot_trajectory", "save_figure", "printable_texts"]
 
@@ -21,7 +21,7 @@ def pyplot():
 
 
 def printable_texts(fig) -> None:
-    """Make every text of `fig` valid Unicode ([`printable`][crank_jax.io.printable]): a
+    """Make every text of `fig` valid Unicode ([`printable`][crank_jax.runtime.io.printable]): a
     title naming a file whose name is not UTF-8 crashed matplotlib's font layout after
     the work."""
     from matplotlib.text import Text

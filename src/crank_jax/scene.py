@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .io import atomic_write
 from .model.dynamics import Structure
 from .model.loads import (
     LOAD_PARAMS,
@@ -33,6 +32,7 @@ from .model.loads import (
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
 from .record_columns import scene_columns_problem
+from .runtime.io import atomic_write
 from .sensors import OFFSET_NAMES, Sensor, SensorError, sensors_from_table, sensors_to_table
 from .solve.inputs import MAX_RTOL as SOLVER_MAX_RTOL
 from .solve.policy import SOLVERS

@@ -379,8 +379,8 @@ def _how(val: Validation) -> str:
 def plot_validation(val: Validation, path: str | os.PathLike, title: str = "") -> None:
     """Draw, for each channel, data and prediction and below them the error; the
     initial-state window is shaded."""
-    from .io import printable
     from .plot import pyplot, save_figure
+    from .runtime.io import printable
 
     plt = pyplot()
     chans = val.channels or {"phi": {"unit": "rad"}}

@@ -40,7 +40,7 @@ def _posterior_args(p: argparse.ArgumentParser) -> None:
 
 def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
     from ..identify.posterior import check_posterior_memory
-    from ..io import check_figure_format, check_output
+    from ..runtime.io import check_figure_format, check_output
 
     free = free_list(a.free)
     for option, value, lo in (("--draws", a.draws, 1), ("--chains", a.chains, 1),
@@ -65,7 +65,7 @@ def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
 def _posterior_run(a: argparse.Namespace) -> int:
     from ..identify.posterior import posterior
     from ..identify.priors import load_priors, parse_priors
-    from ..io import atomic_write
+    from ..runtime.io import atomic_write
     from ..scene import load_scene
 
     free = _posterior_check(a)
@@ -139,7 +139,7 @@ def _design_args(p: argparse.ArgumentParser) -> None:
 
 def _design_run(a: argparse.Namespace) -> int:
     from ..identify.design import design
-    from ..io import atomic_write, check_figure_format, check_output
+    from ..runtime.io import atomic_write, check_figure_format, check_output
     from ..scene import load_scene, save_scene
 
     free = free_list(a.free)

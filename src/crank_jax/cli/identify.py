@@ -74,7 +74,7 @@ def _check_record_size(a: argparse.Namespace, scene) -> None:
 
 def _synth_run(a: argparse.Namespace) -> int:
     from ..data import save_data
-    from ..io import check_output
+    from ..runtime.io import check_output
     from ..scene import load_scene
     from ..synth import synthesize
 
@@ -156,7 +156,7 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
 
 
 def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
-    from ..io import check_figure_format, check_output
+    from ..runtime.io import check_figure_format, check_output
 
     outs = [(path, option) for path, option in (
         (a.out, "--out"), (a.plot, "--plot"), (getattr(a, "scene_out", None), "--scene-out"),
@@ -196,7 +196,7 @@ def cli_words(text: str) -> str:
 
 
 def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = "") -> int:
-    from ..io import atomic_write
+    from ..runtime.io import atomic_write
 
     res = res._replace(message=cli_words(res.message),
                        warnings=[cli_words(w) for w in res.warnings])
@@ -309,7 +309,7 @@ def _fit_run(a: argparse.Namespace) -> int:
     if a.scene is None:
         raise UserError("give both DATA and SCENE (or neither, for the built-in demo)")
     from ..identify.fit import fit
-    from ..io import check_input
+    from ..runtime.io import check_input
     from ..scene import load_scene
 
     files = [a.data] + list(a.more_data)

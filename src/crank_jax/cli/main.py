@@ -24,8 +24,8 @@ import traceback
 import warnings
 from collections.abc import Iterator
 
-from ..io import DISK_FULL, Terminated, disk_full, note_signal, raise_if_terminated
-from ..xla_flags import configure_cpu
+from ..runtime.io import DISK_FULL, Terminated, disk_full, note_signal, raise_if_terminated
+from ..runtime.xla_flags import configure_cpu
 from . import bayes, identify, simulate, sweep, validate, vibration
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
 
@@ -45,7 +45,7 @@ class _Parser(argparse.ArgumentParser):
 def _setup_jax() -> None:
     import jax
 
-    from ..cache import enable_compilation_cache
+    from ..runtime.cache import enable_compilation_cache
 
     jax.config.update("jax_enable_x64", True)
     # Keep JAX's own frames in tracebacks: they tell a failure inside JAX (ours to fix,
@@ -268,7 +268,7 @@ def entry() -> None:
     Before JAX starts, it adds crank-jax's CPU flags to `XLA_FLAGS` (XLA's small-loop
     threshold, and 512-bit vectors on AVX-512 CPUs) and asks for one JAX CPU device per
     core (sweeps and batches spread over them), keeping what the user set: see
-    `crank_jax.xla_flags.configure_cpu`; and it keeps the runtime's log lines off stderr
+    `crank_jax.runtime.xla_flags.configure_cpu`; and it keeps the runtime's log lines off stderr
     (`_quiet_runtime_logs`). Only here: `main` may run inside a host program whose JAX is
     configured.
     """

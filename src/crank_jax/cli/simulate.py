@@ -68,7 +68,7 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
 
 def _check_options(a: argparse.Namespace) -> dict:
     """Check every option that needs no scene, before any work; return simulate's kwargs."""
-    from ..io import check_figure_format, check_output
+    from ..runtime.io import check_figure_format, check_output
     from ..scene import MAX_RTOL
     from ..solve.simulate import output_columns
 
@@ -180,7 +180,7 @@ def _stream(scene, t1: float, samples: int, kw: dict, f, plot_stride: int, quiet
 
 
 def _simulate_run(a: argparse.Namespace) -> int:
-    from ..io import atomic_write
+    from ..runtime.io import atomic_write
     from ..solve.simulate import output_columns
 
     kw = _check_options(a)

@@ -164,7 +164,7 @@ def _sweep_run(a: argparse.Namespace) -> int:
     import jax
     import numpy as np
 
-    from ..io import check_output
+    from ..runtime.io import check_output
     from ..scene import load_scene
     from ..sweep.reductions import REDUCTIONS
     from ..sweep.run import sweep

@@ -82,7 +82,7 @@ def _read(a: argparse.Namespace, scene):
 
 
 def _validate_run(a: argparse.Namespace) -> int:
-    from ..io import atomic_write, check_figure_format, check_input, check_output
+    from ..runtime.io import atomic_write, check_figure_format, check_input, check_output
     from ..scene import load_scene
     from ..validate import plot_validation, validate
 

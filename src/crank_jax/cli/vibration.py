@@ -41,7 +41,7 @@ def _range(text: str, option: str, with_n: bool, lo_ok_zero: bool = False):
 
 
 def _outputs(a, *inputs) -> None:
-    from ..io import check_figure_format, check_output
+    from ..runtime.io import check_figure_format, check_output
 
     try:
         check_output(a.out, inputs, "--out")
@@ -53,7 +53,7 @@ def _outputs(a, *inputs) -> None:
 
 
 def _write(path: str, doc: dict) -> None:
-    from ..io import atomic_write
+    from ..runtime.io import atomic_write
 
     with atomic_write(path) as f:
         json.dump(doc, f, indent=1, allow_nan=False)

@@ -6,8 +6,8 @@ import os
 
 import numpy as np
 
-from ..io import printable
 from ..plot import pyplot, save_figure
+from ..runtime.io import printable
 
 __all__ = ["plot_corner", "plot_design", "CHI2_2_95"]
 

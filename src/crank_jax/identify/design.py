@@ -29,11 +29,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lazy import lazy_import
 from ..model.dynamics import CrankField, Structure
 from ..model.linear import linearize
 from ..model.loads import MultiSineLoad, NoLoad
 from ..model.params import FIELDS, SIGNED_FIELDS
+from ..runtime.lazy import lazy_import
 from ..scene import Scene
 
 diffrax = lazy_import("diffrax")

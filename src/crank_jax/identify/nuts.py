@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lazy import lazy_import
+from ..runtime.lazy import lazy_import
 from .priors import log_prior
 from .problem import Problem
 

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lazy import lazy_import
+from ..runtime.lazy import lazy_import
 from .optimise import Run, budget_spent, evaluate, progress_bar
 
 # Imported on first use (see lazy.py): only the optax method needs it.

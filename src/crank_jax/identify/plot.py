@@ -6,8 +6,8 @@ import os
 
 import numpy as np
 
-from ..io import printable
 from ..plot import pyplot, save_figure
+from ..runtime.io import printable
 from .diagnostics import plot_acf
 
 __all__ = ["plot_fit", "plot_channel"]

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..data import Data
-from ..lazy import lazy_import
+from ..runtime.lazy import lazy_import
 from ..scene import Scene
 from ..sweep.distributions import AbstractDistribution
 from . import channels as ch

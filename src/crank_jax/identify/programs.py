@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..persistent import PersistentProgram
+from ..runtime.persistent import PersistentProgram
 from .problem import Problem
 
 __all__ = ["Program", "residuals_at", "jacobian_at", "Subspace",

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..persistent import PersistentProgram
+from ..runtime.persistent import PersistentProgram
 from .coefficients import coefficients
 from .dynamics import force_terms, mass_terms
 from .geometry import geometry

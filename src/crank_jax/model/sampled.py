@@ -10,7 +10,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import trig
-from ..lazy import lazy_import
+from ..runtime.lazy import lazy_import
 from .load_base import AbstractLoad, Nonsmooth
 from .params import as_float_array
 

@@ -29,7 +29,7 @@ def render(context: dict) -> str:
 
 
 def _write(path: str | os.PathLike, html: str) -> None:
-    from ..io import atomic_write, printable
+    from ..runtime.io import atomic_write, printable
 
     # A file name that is not UTF-8 (in the command line, a record's source) is shown by
     # its bytes: its surrogates failed the UTF-8 write after the work.

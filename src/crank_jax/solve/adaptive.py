@@ -39,8 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import compat
-from ..lazy import lazy_import
+from ..runtime import compat
+from ..runtime.lazy import lazy_import
 from .erk import FusedERK, dopri8, packer
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lazy import lazy_import
+from ..runtime.lazy import lazy_import
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 

@@ -42,7 +42,7 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from .. import trig
-from ..compat import result_code
+from ..runtime.compat import result_code
 from . import adjoint as discrete
 from .adaptive import outcome, solve_adaptive
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 
-from ..lazy import lazy_import
+from ..runtime.lazy import lazy_import
 from .solvers import AbstractSolver, AdaptiveDopri8, Diffrax, UniformDopri8
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)

@@ -19,14 +19,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..lazy import lazy_import
 from ..model.dynamics import CrankField, Structure, acceleration, energy
 from ..model.geometry import kinematics
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, as_load, nonsmooth_times
 from ..model.newton_euler import reactions
 from ..model.params import SliderCrank
-from ..persistent import PersistentProgram, enum_code, enum_name
+from ..runtime.lazy import lazy_import
+from ..runtime.persistent import PersistentProgram, enum_code, enum_name
 from .policy import check_travel, host_plan, is_concrete
 from .solvers import AbstractSolver, solve
 

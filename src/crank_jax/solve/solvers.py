@@ -30,7 +30,7 @@ import jax.flatten_util
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from ..lazy import lazy_import
+from ..runtime.lazy import lazy_import
 from .erk import dopri8
 from .lockstep import adaptive_solve
 from .uniform import solve_uniform

@@ -32,8 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import compat
-from ..lazy import lazy_import
+from ..runtime import compat
+from ..runtime.lazy import lazy_import
 from .erk import FusedERK, dopri8, packer, rms_error
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)

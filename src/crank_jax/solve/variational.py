@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..compat import result_code
+from ..runtime.compat import result_code
 from .adaptive import outcome
 
 __all__ = ["with_sensitivities", "flatten_state"]

@@ -30,7 +30,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from ..io import atomic_write, make_dir
+from ..runtime.io import atomic_write, make_dir
 from .collective import broadcast, on_process_0
 
 __all__ = ["Checkpoint", "SharedCheckpoint", "plan_manifest", "plan_digest"]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
-from ..io import atomic_write
 from ..model.dynamics import Structure
+from ..runtime.io import atomic_write
 from ..solve.policy import SOLVERS
 
 __all__ = ["SweepResult", "STATUS", "OK", "INVALID", "MAX_STEPS", "FAILED", "NONFINITE"]

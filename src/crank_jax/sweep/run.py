@@ -48,9 +48,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lazy import lazy_import
 from ..model.dynamics import Structure
 from ..model.loads import SIDES
+from ..runtime.lazy import lazy_import
 from ..solve.names import name_of
 from ..solve.policy import SOLVERS, resolve_solver
 from ..solve.simulate import simulate

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_write, make_dir
+from ..runtime.io import atomic_write, make_dir
 from .checkpoint import plan_digest
 
 __all__ = ["TrajectoryStore", "Trajectories", "load_trajectories", "FIELDS"]

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ..lazy import lazy_import
+from ..runtime.lazy import lazy_import
 from ..solve.solvers import solve
 from .flow import MAX_STEPS, Scaled, adaptive_solver, flow, packed_scaled
 

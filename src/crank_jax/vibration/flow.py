@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from ..lazy import lazy_import
 from ..model.dynamics import CrankField
+from ..runtime.lazy import lazy_import
 from ..solve.names import solver_named
 from ..solve.solvers import solve
 

@@ -22,9 +22,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..lazy import lazy_import
 from ..model.dynamics import Structure
 from ..model.linear import linearize
+from ..runtime.lazy import lazy_import
 from .drive import drive_side, field_at
 from .floquet import STABLE_MARGIN, monodromy, multipliers
 from .flow import flow, flow_samples

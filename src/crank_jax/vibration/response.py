@@ -19,9 +19,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lazy import lazy_import
 from ..model.dynamics import Structure
 from ..model.linear import linearize
+from ..runtime.lazy import lazy_import
 from .backbone import backbone
 from .continuation import Point, continue_curve, null_vector
 from .drive import VibrationError, drive_side, field_at
