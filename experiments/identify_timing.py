@@ -28,7 +28,7 @@ from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
-from crank_jax.plot import pyplot, save_figure  # noqa: E402
+from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,7 +14,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.plot import pyplot, save_figure  # noqa: E402
+from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
 
 
 def main(argv=None) -> None:

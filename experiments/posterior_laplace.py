@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.identify.corner import _ellipse  # noqa: E402
-from crank_jax.plot import pyplot, save_figure  # noqa: E402
+from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
 
 cj.configure_cpu()
 

@@ -17,7 +17,7 @@ import pytest
 
 import crank_jax as cj
 import crank_jax.cli.simulate as cli_simulate
-import crank_jax.data as cj_data
+import crank_jax.records.data as cj_data
 from crank_jax.cli import main
 
 _Usage = namedtuple("_Usage", "total used free")

@@ -92,7 +92,7 @@ def test_unresolvable_times_are_refused_naming_the_row(tmp_path, capsys, ts, mat
 
 
 def test_times_at_the_bounds_are_accepted():
-    from crank_jax.data import MAX_TIME_SPAN, MIN_TIME_STEP
+    from crank_jax.records.data import MAX_TIME_SPAN, MIN_TIME_STEP
 
     cj.Data([0.0, 1.0, 2.0, 3.0, MAX_TIME_SPAN], [0.0] * 5)
     cj.Data([i * MIN_TIME_STEP * (1 + 1e-9) for i in range(5)], [0.0] * 5)
@@ -141,7 +141,7 @@ def test_synthesize_names_the_argument(kwargs, match):
 def test_synthesize_rate_bound_gives_times_data_accepts():
     # The largest rate the spacing check allows near t1 (for t1 far from 0) gives sample
     # times t_start + i / rate that Data accepts; synthesize builds them the same way.
-    from crank_jax.data import MIN_STEP_ULPS, MIN_TIME_STEP
+    from crank_jax.records.data import MIN_STEP_ULPS, MIN_TIME_STEP
 
     for t_start in (0.0, 1e-3, 1e5, 1e8, 1.7e9):
         t1 = t_start + 1e-2
@@ -218,7 +218,7 @@ def test_validate_refuses_a_constant_record(tmp_path, capsys, value):
 
 
 def test_spread_check_passes_small_real_motion():
-    from crank_jax.validate import _check_spread
+    from crank_jax.identify.validation import _check_spread
 
     d = cj.Data(np.arange(10) * 0.01, np.zeros(10))
     _check_spread(1234.5 + 1e-9 * np.sin(np.arange(50)), d, 0.0)  # 1 nrad at 1234.5 rad

@@ -10,7 +10,7 @@ from crank_jax.cli import main
 from crank_jax.cli.errors import UserError
 from crank_jax.cli.identify import _fit_kwargs
 from crank_jax.cli.main import build_parser
-from crank_jax.sensors import Sensor
+from crank_jax.records.sensors import Sensor
 
 SLIDE = Sensor("x_s", "slide_mm", "mm", scale=-1.0, offset=0.2948)
 WHEEL = Sensor("phi", "wheel_deg", "deg", scale=-1.0, offset=-3.083)

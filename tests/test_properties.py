@@ -42,7 +42,7 @@ from hypothesis import strategies as st
 
 import crank_jax as cj
 from crank_jax.cli import main
-from crank_jax.data import MIN_SAMPLES
+from crank_jax.records.data import MIN_SAMPLES
 
 _EXAMPLES = int(os.environ.get("CRANK_JAX_PROPERTY_EXAMPLES", "0"))
 
@@ -503,7 +503,7 @@ def test_any_time_scale(t0, negative, steps, through_file):
     """Records at any time offset and spacing (1e-300 s apart, +-1.7e308 s wide, Unix
     times): either accepted, with a span and spacings a solver can resolve, or refused in
     one line naming the row, never with a numpy warning (they are errors here)."""
-    from crank_jax.data import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP
+    from crank_jax.records.data import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP
 
     with np.errstate(over="ignore"):
         ts = (-t0 if negative else t0) + np.concatenate([[0.0], np.cumsum(steps)])

@@ -168,8 +168,8 @@ def test_report_methods_write_atomically(fitted, tmp_path):
 def test_long_records_embed_png():
     """Above SVG_MAX_POINTS plotted points a figure is a base64 PNG (an SVG would grow to
     megabytes); below, inline SVG without the XML prolog."""
-    from crank_jax.plot import pyplot
     from crank_jax.report.figures import SVG_MAX_POINTS, embed
+    from crank_jax.report.plotting import pyplot
 
     def figure():
         fig, ax = pyplot().subplots()

@@ -14,14 +14,15 @@ import crank_jax as cj
 from crank_jax.cli import main
 from crank_jax.identify.angle import slide_angle
 from crank_jax.model.outputs import OUTPUT_NAMES, output
-from crank_jax.scene import fitted_scene
-from crank_jax.sensors import (
+from crank_jax.records.sensors import (
+    CHANNELS,
     Sensor,
     SensorError,
     parse_channel,
     select_sensors,
     sensors_from_table,
 )
+from crank_jax.scene import fitted_scene
 
 # --- outputs: the hand-written slider kinematics against autodiff of x_s(phi(t)) ----------
 
@@ -70,7 +71,7 @@ def test_slider_velocity_matches_a_simulated_trajectory():
 def test_unknown_output_is_refused():
     with pytest.raises(ValueError, match="choose from"):
         output("y_s", cj.load_scene("lab-rig").mech, 0.0, 0.0, 0.0)
-    assert OUTPUT_NAMES == cj.sensors.CHANNELS
+    assert OUTPUT_NAMES == CHANNELS
 
 
 # --- sensors: units, calibration, bad input ----------------------------------------------

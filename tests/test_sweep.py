@@ -9,7 +9,7 @@ import pytest
 
 import crank_jax as cj
 from crank_jax import cli
-from crank_jax.distributions import (
+from crank_jax.sweep.distributions import (
     DRAW_BLOCK,
     Const,
     LogNormal,

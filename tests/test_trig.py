@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax.trig import arithmetic, rsqrt, sin, sincos
+from crank_jax.model.trig import arithmetic, rsqrt, sin, sincos
 
 
 def _arith(fn):

@@ -37,13 +37,6 @@ The public API, by topic (everything else is private; the subpackages
   `configure_cpu` (that, and a JAX CPU device per core; see `crank_jax.runtime.xla_flags`).
 """
 
-from . import distributions
-from .data import (
-    Data,
-    DataError,
-    load_data,
-    save_data,
-)
 from .identify.design import Design, design
 from .identify.diagnostics import (
     Diagnostics,
@@ -63,6 +56,10 @@ from .identify.fit import (
     regressor_start,
 )
 from .identify.posterior import Posterior, posterior
+from .identify.validation import (
+    Validation,
+    validate,
+)
 from .model.dynamics import (
     CrankField,
     Structure,
@@ -111,6 +108,14 @@ from .model.params import (
     SIGNED_FIELDS,
     SliderCrank,
 )
+from .records.data import (
+    Data,
+    DataError,
+    load_data,
+    save_data,
+)
+from .records.sensors import Sensor, SensorError
+from .records.synth import synthesize
 from .runtime.cache import (
     default_cache_dir,
     enable_compilation_cache,
@@ -128,7 +133,6 @@ from .scene import (
     save_scene,
     scene_to_toml,
 )
-from .sensors import Sensor, SensorError
 from .solve.names import solver_named
 from .solve.policy import (
     SOLVERS,
@@ -150,6 +154,7 @@ from .solve.solvers import (
     UniformDopri8,
     solve,
 )
+from .sweep import distributions
 from .sweep.run import (
     REDUCTIONS,
     STATUS,
@@ -160,11 +165,6 @@ from .sweep.run import (
     sweep_cost,
 )
 from .sweep.trajectories import Trajectories, load_trajectories
-from .synth import synthesize
-from .validate import (
-    Validation,
-    validate,
-)
 from .vibration import (
     VibrationError,
     backbone,

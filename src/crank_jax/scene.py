@@ -31,9 +31,15 @@ from .model.loads import (
     toml_keys,
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
-from .record_columns import scene_columns_problem
+from .records.column_checks import scene_columns_problem
+from .records.sensors import (
+    OFFSET_NAMES,
+    Sensor,
+    SensorError,
+    sensors_from_table,
+    sensors_to_table,
+)
 from .runtime.io import atomic_write
-from .sensors import OFFSET_NAMES, Sensor, SensorError, sensors_from_table, sensors_to_table
 from .solve.inputs import MAX_RTOL as SOLVER_MAX_RTOL
 from .solve.policy import SOLVERS
 from .solve.simulate import OUTPUTS, Trajectory, simulate
@@ -62,7 +68,7 @@ class Scene(eqx.Module):
     - `t1`: default end time, s. `samples`: default number of uniform samples on [0, t1].
     - `solver`: a name from [`SOLVERS`][] (static). `outputs`: derived outputs (static).
     - `name`, `description`: labels (static).
-    - `sensors`: what a record of this rig measures ([`Sensor`][crank_jax.sensors.Sensor]s,
+    - `sensors`: what a record of this rig measures ([`Sensor`][crank_jax.records.sensors.Sensor]s,
       static; the `[sensors]` table): `synth` writes these channels, `fit` reads them.
     """
 
@@ -379,7 +385,7 @@ def _fitted_sensors(scene: Scene, result, record: int, values: dict,
     that the scene reads the record as the fit did. A plain angle read (`phi` in rad, no
     calibration, nothing else) joins only with a fitted offset: a plain fit's scene stays
     as it was (its sensors, if any, were not in the record, which reads plain again)."""
-    from .sensors import DEFAULT_SENSOR
+    from .records.sensors import DEFAULT_SENSOR
 
     records = getattr(result, "data", None)
     data = records[record] if records else None

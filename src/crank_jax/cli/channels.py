@@ -38,7 +38,7 @@ def parse_sigma(values: list[str] | None, option: str = "--sigma", zero: bool = 
     an angle); NAME=VALUE gives a channel's, in its SI unit. `zero`: 0 is allowed (a
     noise level to synthesise)."""
     from ..identify.request import SIGMA_RANGE
-    from ..sensors import CHANNELS
+    from ..records.sensors import CHANNELS
 
     if not values:
         return None
@@ -71,8 +71,8 @@ def record_sensors(a: argparse.Namespace, scene, path: str):
     """The sensors to read `path` through (`sensors.select_sensors`'s rules), or None for
     the plain angle column (`--phi-col`, `--angle-unit`). `--phi-col` or `--angle-unit`
     beside sensors that choose the channels is refused: it would be ignored."""
-    from ..data import header_columns
-    from ..sensors import SensorError, select_sensors
+    from ..records.data import header_columns
+    from ..records.sensors import SensorError, select_sensors
 
     channels = getattr(a, "channel", None) or []
     if not channels and not scene.sensors:
@@ -100,7 +100,7 @@ def read_sensors(a: argparse.Namespace, scene, path: str):
     """The sensors `path` is read through, each record's as `read_records` reads it: those
     of `record_sensors`, else the plain angle column as a sensor (`--phi-col` in
     `--angle-unit`)."""
-    from ..sensors import Sensor
+    from ..records.sensors import Sensor
 
     found = record_sensors(a, scene, path)
     return found if found is not None else (
@@ -113,7 +113,7 @@ def read_records(a: argparse.Namespace, scene, files) -> list:
     the sensors of `record_sensors` (or the plain angle column), with the scene's input
     columns, the time column `--t-col` and the loads' interpolation `--load-interp`.
     Options a command lacks take their defaults."""
-    from ..data import load_data
+    from ..records.data import load_data
 
     return [load_data(f, t_col=getattr(a, "t_col", None) or "t",
                       phi_col=getattr(a, "phi_col", None) or "phi",

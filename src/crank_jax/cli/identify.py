@@ -62,7 +62,7 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
 
 
 def _check_record_size(a: argparse.Namespace, scene) -> None:
-    from ..data import MAX_RECORD_SAMPLES
+    from ..records.data import MAX_RECORD_SAMPLES
 
     t1 = scene.t1 if a.t1 is None else a.t1
     n = (t1 - a.t_start) * a.rate  # NaN or inf (a bad option) is synthesize's to name
@@ -73,10 +73,10 @@ def _check_record_size(a: argparse.Namespace, scene) -> None:
 
 
 def _synth_run(a: argparse.Namespace) -> int:
-    from ..data import save_data
+    from ..records.data import save_data
+    from ..records.synth import synthesize
     from ..runtime.io import check_output
     from ..scene import load_scene
-    from ..synth import synthesize
 
     check_output(a.out, [a.scene])
     scene = load_scene(a.scene)
@@ -367,8 +367,8 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
 def demo_data(seed: int = 1):
     """The demo's scene (the lab rig with its known shaker torque) and synthetic record."""
     from ..model.loads import HarmonicLoad
+    from ..records.synth import synthesize
     from ..scene import load_scene
-    from ..synth import synthesize
 
     base = load_scene(DEMO["scene"])
     scene = base.__class__(base.mech, torque=HarmonicLoad(0.0, DEMO["tau1"], DEMO["freq_hz"]),

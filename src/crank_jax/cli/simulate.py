@@ -196,7 +196,7 @@ def _simulate_run(a: argparse.Namespace) -> int:
     if a.plot:
         from types import SimpleNamespace
 
-        from ..plot import plot_trajectory
+        from ..report.plotting import plot_trajectory
 
         plot_trajectory(SimpleNamespace(ts=ts, phi=phi, dphi=dphi), a.plot,
                         title=f"{scene.name}: {scene.description}")

@@ -69,7 +69,7 @@ def _check_numbers(a: argparse.Namespace) -> None:
 
 def _init_free(a: argparse.Namespace) -> tuple[str, ...]:
     """The names of --init-free, each checked (before any record is read)."""
-    from ..validate import init_free_names
+    from ..identify.validation import init_free_names
 
     try:
         return init_free_names(tuple(x.strip() for x in a.init_free.split(",") if x.strip()))
@@ -82,9 +82,9 @@ def _read(a: argparse.Namespace, scene):
 
 
 def _validate_run(a: argparse.Namespace) -> int:
+    from ..identify.validation import plot_validation, validate
     from ..runtime.io import atomic_write, check_figure_format, check_input, check_output
     from ..scene import load_scene
-    from ..validate import plot_validation, validate
 
     _check_numbers(a)
     check_input(a.data, "DATA")  # at once: a FIFO with no writer would block the read

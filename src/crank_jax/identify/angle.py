@@ -24,9 +24,9 @@ import math
 
 import numpy as np
 
-from ..data import Data
 from ..model.geometry import geometry
 from ..model.params import SliderCrank
+from ..records.data import Data
 from .start import noise_level, observed_period
 
 __all__ = ["angle_estimate", "slide_angle", "motion_period", "ROTATING_STROKE"]

@@ -18,7 +18,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..data import Data
+from ..records.data import Data
 from .angle import angle_estimate, motion_period
 from .diagnostics import residual_diagnostics
 from .measurement import fitted_channels

@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from ..plot import pyplot, save_figure
+from ..report.plotting import pyplot, save_figure
 from ..runtime.io import printable
 
 __all__ = ["plot_corner", "plot_design", "CHI2_2_95"]

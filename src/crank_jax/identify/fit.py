@@ -35,7 +35,7 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from ..data import Data
+from ..records.data import Data
 from ..scene import Scene
 from . import channels as ch
 from .attempt import attempt

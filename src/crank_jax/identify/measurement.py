@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.outputs import output
-from ..sensors import Sensor
+from ..records.sensors import Sensor
 
 __all__ = ["calibration", "channel_errors", "fitted_channels"]
 

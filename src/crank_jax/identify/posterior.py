@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..data import Data
+from ..records.data import Data
 from ..runtime.lazy import lazy_import
 from ..scene import Scene
 from ..sweep.distributions import AbstractDistribution

@@ -40,12 +40,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..data import Data
 from ..model.dynamics import Structure
 from ..model.linear import linearize
 from ..model.loads import AbstractLoad, set_param
 from ..model.params import FIELDS, SliderCrank, validation_rules
-from ..sensors import OFFSET_NAMES
+from ..records.data import Data
+from ..records.sensors import OFFSET_NAMES
 from ..solve.policy import resolve_solver
 from ..solve.simulate import solve_crank
 from ..solve.solvers import AbstractSolver, AdaptiveDopri8

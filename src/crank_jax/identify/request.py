@@ -14,13 +14,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..data import Data
 from ..model.loads import LOAD_PARAMS, AbstractLoad, get_param, load_kind
 from ..model.params import FIELDS, SliderCrank
 from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
 from ..model.sampled import bind_input
+from ..records.data import Data
+from ..records.sensors import OFFSET_NAMES
 from ..scene import Scene
-from ..sensors import OFFSET_NAMES
 from ..sweep.distributions import MAX_SEED
 from .userforce import force_names, force_starts
 

@@ -8,8 +8,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..data import Data
 from ..model.params import SliderCrank
+from ..records.data import Data
 from .diagnostics import Diagnostics
 
 __all__ = ["FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning"]

@@ -14,10 +14,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..data import Data
 from ..model.dynamics import coriolis, generalized_force, mass
 from ..model.loads import AbstractLoad
 from ..model.params import SliderCrank
+from ..records.data import Data
 from .request import SCALE_GROUP
 
 __all__ = ["smooth_derivatives", "half_window", "regressor_start", "regressor_samples",

@@ -15,10 +15,10 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from ..trig import rsqrt, sincos
 from .coefficients import Coefficients, coefficients
 from .params import SliderCrank
 from .structure import Structure
+from .trig import rsqrt, sincos
 
 __all__ = ["Geometry", "geometry", "CouplerAngle", "coupler_angle", "Kinematics", "kinematics"]
 

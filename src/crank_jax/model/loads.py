@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .. import trig
+from . import trig
 from .load_base import AbstractLoad, Nonsmooth
 from .params import as_float_array
 from .sampled import INTERPOLATIONS, InputLoad, SampledLoad, is_sampled

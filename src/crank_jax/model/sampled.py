@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .. import trig
 from ..runtime.lazy import lazy_import
+from . import trig
 from .load_base import AbstractLoad, Nonsmooth
 from .params import as_float_array
 

@@ -10,7 +10,7 @@ import io
 import numpy as np
 
 from ..identify.diagnostics import plot_acf
-from ..plot import printable_texts, pyplot
+from .plotting import printable_texts, pyplot
 
 __all__ = ["embed", "fit_figures", "validation_figures", "SVG_MAX_POINTS"]
 

@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import trig
+from ..model import trig
 from ..runtime.xla_flags import SMALL_LOOP_BYTES, small_loop_bytes
 from .adaptive import WINDOW, dopri8_dense, solve_adaptive
 from .erk import dopri8, packer

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_batching import custom_vmap
 
-from .. import trig
+from ..model import trig
 from ..runtime.compat import result_code
 from . import adjoint as discrete
 from .adaptive import outcome, solve_adaptive

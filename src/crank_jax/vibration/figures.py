@@ -7,7 +7,7 @@ import os
 
 import numpy as np
 
-from ..plot import pyplot, save_figure
+from ..report.plotting import pyplot, save_figure
 
 __all__ = ["plot_response", "plot_chart"]
 

@@ -26,9 +26,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..model.loads import InputLoad, NoLoad
+from .checks import check_synth_options
 from .data import MIN_SAMPLES, Data
-from .model.loads import InputLoad, NoLoad
-from .record_checks import check_synth_options
 from .sensors import Sensor
 
 __all__ = ["synthesize"]
@@ -71,7 +71,7 @@ def synthesize(
     - `transient`: amplitude of the start-up transient, rad (0: none);
       `transient_time` (s, > 0) its decay time and `transient_hz` (Hz, >= 0) its
       frequency (see the module's noise model).
-    - `sensors`: the channels to record ([`Sensor`][crank_jax.sensors.Sensor]s; default:
+    - `sensors`: the channels to record ([`Sensor`][crank_jax.records.sensors.Sensor]s; default:
       the scene's `sensors`, and with none the angle alone). Each reads
       `scale * h + offset` of its model output `h` (the transient is added to the angle
       before it), then its noise.
@@ -162,7 +162,7 @@ def _channel_noise(noise_std, sensors) -> dict[str, float]:
 
 def _read_sensors(scene, sensors, ts, phi, dphi, quantization, noise, rng, force) -> dict:
     """Each sensor's reading at `ts` (SI) of the exact motion `phi`, `dphi` (n,)."""
-    from .model.outputs import output
+    from ..model.outputs import output
 
     out = {}
     for s in sensors:

@@ -5,7 +5,7 @@ A record's columns each play one role: the time, a channel (the angle or another
 reading), the slider force P, the crank torque tau, or a load's input. A column read in
 two roles (an angle column named `tau` read as the angle *and* as the torque) would
 silently drive the model with the data it is fitted to, so every reading path
-([`load_data`][crank_jax.data.load_data], [`Data`][crank_jax.data.Data],
+([`load_data`][crank_jax.records.data.load_data], [`Data`][crank_jax.records.data.Data],
 [`Scene`][crank_jax.scene.Scene]) asks [`role_conflict`][] before it uses the names.
 """
 
@@ -15,8 +15,8 @@ from collections.abc import Iterable
 
 __all__ = ["column_problem", "role_conflict", "RESERVED", "TIME_ROLE", "load_roles"]
 
-#: The columns [`save_data`][crank_jax.data.save_data] and `crank-jax synth` write for the time
-#: and the known loads; a sensor or a load's input may not take these names.
+#: The columns [`save_data`][crank_jax.records.data.save_data] and `crank-jax synth` write
+#: for the time and the known loads; a sensor or a load's input may not take these names.
 RESERVED: dict[str, str] = {"t": "the time column t", "P": "the slider force column P",
                             "tau": "the crank torque column tau"}
 

@@ -1,5 +1,5 @@
 """Checks of a record's time scale and of synthetic-record options: what float64 and the
-solver can resolve (a leaf module: [`crank_jax.data`][] raises its `DataError` with these
+solver can resolve (a leaf module: [`crank_jax.records.data`][] raises its `DataError` with these
 messages)."""
 
 from __future__ import annotations

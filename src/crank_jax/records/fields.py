@@ -1,6 +1,6 @@
 """The fields of a text table's lines: splitting a line (CSV quoting, or whitespace),
 reading a number (decimal commas too), and labels for messages. A leaf module:
-[`crank_jax.data`][] reads records with it and raises its `DataError`."""
+[`crank_jax.records.data`][] reads records with it and raises its `DataError`."""
 
 from __future__ import annotations
 

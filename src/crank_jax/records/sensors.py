@@ -23,8 +23,8 @@ from collections.abc import Mapping, Sequence
 import equinox as eqx
 import numpy as np
 
+from ..model.outputs import OUTPUT_NAMES, SI_UNITS
 from .columns import RESERVED, column_problem, role_conflict
-from .model.outputs import OUTPUT_NAMES, SI_UNITS
 
 __all__ = ["Sensor", "SensorError", "CHANNELS", "UNITS", "OFFSET_NAMES", "sensors_from_table",
            "sensors_to_table", "parse_channel", "select_sensors", "DEFAULT_SENSOR",
@@ -160,7 +160,7 @@ def sensor_columns_conflict(sensors: Sequence[Sensor], where: str = "[sensors]"
                             ) -> str | None:
     """Why `sensors` cannot be a rig's channels, or None: a column that is another
     channel's, or one of the names records keep for the time and the loads
-    ([`RESERVED`][crank_jax.columns.RESERVED]: `synth` writes them, `fit` reads them)."""
+    ([`RESERVED`][crank_jax.records.columns.RESERVED]: `synth` writes them, `fit` reads them)."""
     for s in sensors:
         if s.column in RESERVED:
             return (f"{where} {s.name}: column {s.column!r} is {RESERVED[s.column]}, which "

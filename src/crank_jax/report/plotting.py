@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from .runtime.io import atomic_write, printable
+from ..runtime.io import atomic_write, printable
 
 __all__ = ["plot_trajectory", "save_figure", "printable_texts"]
 

@@ -1,13 +1,13 @@
-"""Which record columns a [`Data`][crank_jax.data.Data] or a
+"""Which record columns a [`Data`][crank_jax.records.data.Data] or a
 [`Scene`][crank_jax.scene.Scene] names, and the checks of those fields (messages, not
 exceptions: `data.py` and `scene.py` raise their own errors with them). Every column
-plays one role ([`columns`][crank_jax.columns])."""
+plays one role ([`columns`][crank_jax.records.columns])."""
 
 from __future__ import annotations
 
+from ..model.loads import AbstractLoad, NoLoad
+from ..model.sampled import InputLoad
 from .columns import RESERVED, column_problem, role_conflict
-from .model.loads import AbstractLoad, NoLoad
-from .model.sampled import InputLoad
 from .sensors import CHANNELS, Sensor, sensor_columns_conflict
 
 __all__ = ["data_roles", "data_fields_problem", "scene_columns_problem"]
@@ -21,7 +21,8 @@ def _sensors_problem(sensors, owner: str) -> str | None:
 
 
 def data_roles(data) -> list[tuple[str, str]]:
-    """(column, role) of every column [`save_data`][crank_jax.data.save_data] writes for `data`:
+    """(column, role) of every column [`save_data`][crank_jax.records.data.save_data]
+    writes for `data`:
     `t`, each channel's (its sensor's column, else its name), `P` and `tau` when the loads
     are known, and the inputs'."""
     cal = {s.name: s.column for s in data.sensors}
@@ -34,7 +35,7 @@ def data_roles(data) -> list[tuple[str, str]]:
 
 
 def data_fields_problem(data) -> str | None:
-    """Why a [`Data`][crank_jax.data.Data]'s fields would trip a later step (or be silently
+    """Why a [`Data`][crank_jax.records.data.Data]'s fields would trip a later step (or be silently
     misread), naming the field and the fix; None when they are fine."""
     bad = [n for n in data.channels if n not in CHANNELS]
     if bad:

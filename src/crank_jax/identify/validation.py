@@ -11,14 +11,14 @@ when it has them, and scores the prediction on the samples after the initial-sta
   100 is a perfect prediction, 0 is no better than the record's mean, and it can be
   negative.
 
-A record with several channels (see [`sensors`][crank_jax.sensors]) is predicted and
+A record with several channels (see [`sensors`][crank_jax.records.sensors]) is predicted and
 scored in each (what its sensor reads under the model, `scale h + offset`, SI); the
 top-level scores are the first channel's.
 
 `horizon=T` scores a k-step-ahead prediction instead (MATLAB's `compare(data, sys, k)`):
 after the initial-state window the record is cut into windows of `T` s, each window's state
 is estimated from its first samples and the rest of the window is predicted (see
-[`crank_jax.horizon`][]). A driven rig whose drive level is a few percent off drifts by
+[`crank_jax.identify.horizon`][]). A driven rig whose drive level is a few percent off drifts by
 radians over a long open-loop prediction, yet predicts one revolution ahead to a small
 fraction of a radian: that is what `T` of one revolution measures. `init_free` names
 parameters (e.g. `tau0`, the record's own drive level) estimated with the state on the
@@ -35,16 +35,16 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from ..model.linear import linearize
+from ..model.loads import AbstractLoad, InputLoad, NoLoad, set_param
+from ..model.outputs import SI_UNITS, output
+from ..model.params import FIELDS
+from ..model.sampled import bind_input
+from ..records.data import MIN_SAMPLES, Data, DataError
+from ..scene import Scene
 from . import horizon as hz
-from .data import MIN_SAMPLES, Data, DataError
-from .identify.fit import fit
-from .identify.request import LOAD_NAMES, STATE_NAMES, free_names
-from .model.linear import linearize
-from .model.loads import AbstractLoad, InputLoad, NoLoad, set_param
-from .model.outputs import SI_UNITS, output
-from .model.params import FIELDS
-from .model.sampled import bind_input
-from .scene import Scene
+from .fit import fit
+from .request import LOAD_NAMES, STATE_NAMES, free_names
 
 __all__ = ["validate", "Validation", "default_init_window", "plot_validation", "MIN_SPREAD_EPS",
            "init_free_names"]
@@ -115,7 +115,7 @@ class Validation(NamedTuple):
     def report(self, path, *, scene=None, command=None, title: str = "") -> None:
         """Write a self-contained HTML report to `path` (see
         [`write_validation_report`][crank_jax.report.write_validation_report])."""
-        from .report import write_validation_report
+        from ..report import write_validation_report
 
         write_validation_report(self, path, scene=scene, command=command, title=title)
 
@@ -220,7 +220,7 @@ def validate(
       loop; a time `T` > 0 s predicts k steps ahead: after the initial-state window the
       record is cut into windows of `T` s, each window's state is estimated from its first
       `max(MIN_SAMPLES samples, T / 10)` (the first window's too) and the rest of it
-      predicted open loop (see [`crank_jax.horizon`][]). Scores are over the predicted
+      predicted open loop (see [`crank_jax.identify.horizon`][]). Scores are over the predicted
       samples. A `T` at least the rest of the record is one window: an open-loop
       prediction from the state its own head gives.
     - `init_free`: parameters estimated with the state on the initial-state window and
@@ -329,8 +329,8 @@ def init_free_names(names) -> tuple[str, ...]:
 
 
 def _check_init_free(names, win: Data) -> tuple[str, ...]:
-    """[`init_free_names`][crank_jax.validate.init_free_names], and for a load amplitude, a
-    load the record does not supply as a column."""
+    """[`init_free_names`][crank_jax.identify.validation.init_free_names], and for a load
+    amplitude, a load the record does not supply as a column."""
     names = init_free_names(names)
     for n in names:
         if n in LOAD_NAMES:
@@ -379,8 +379,8 @@ def _how(val: Validation) -> str:
 def plot_validation(val: Validation, path: str | os.PathLike, title: str = "") -> None:
     """Draw, for each channel, data and prediction and below them the error; the
     initial-state window is shaded."""
-    from .plot import pyplot, save_figure
-    from .runtime.io import printable
+    from ..report.plotting import pyplot, save_figure
+    from ..runtime.io import printable
 
     plt = pyplot()
     chans = val.channels or {"phi": {"unit": "rad"}}

@@ -1,9 +1,9 @@
 """Measured or synthetic crank-angle records: the [`Data`][] record, CSV in and out, and
-validation ([`synthesize`][crank_jax.synth.synthesize], in `synth.py`, makes synthetic
+validation ([`synthesize`][crank_jax.records.synth.synthesize], in `synth.py`, makes synthetic
 records with a documented noise model).
 
 A record is a [`Data`][]: sample times `ts` (s), crank angles `phi` (rad) or other sensor
-channels (see [`sensors`][crank_jax.sensors]), and optionally the loads that acted during
+channels (see [`sensors`][crank_jax.records.sensors]), and optionally the loads that acted during
 it (slider force P, N; crank torque tau, N*m). Loads that come from a file are
 [`SampledLoad`][]s and replace the scene's loads when fitting.
 """
@@ -19,12 +19,12 @@ from collections.abc import Sequence
 import equinox as eqx
 import numpy as np
 
+from ..model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
+from ..runtime.io import atomic_write, check_input
+from .checks import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP, series_problem
+from .column_checks import data_fields_problem, data_roles
 from .columns import TIME_ROLE, load_roles, role_conflict
 from .fields import LineLabels, cut_names, split_fields, to_float
-from .model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
-from .record_checks import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP, series_problem
-from .record_columns import data_fields_problem, data_roles
-from .runtime.io import atomic_write, check_input
 from .sensors import DEFAULT_SENSOR, Sensor
 
 __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
@@ -81,9 +81,9 @@ class Data(eqx.Module):
     - `load`: the slider force P(t), N, or `None` to use the scene's when fitting.
     - `torque`: the crank torque tau(t), N*m, or `None` to use the scene's.
     - `source`: a label (file name or "synthetic"), used in messages.
-    - `channels`: more channels, name (see [`CHANNELS`][crank_jax.sensors.CHANNELS]) ->
+    - `channels`: more channels, name (see [`CHANNELS`][crank_jax.records.sensors.CHANNELS]) ->
       (n,) data in the channel's SI unit, e.g. `{"x_s": slide_m}`.
-    - `sensors`: the calibration of each channel ([`Sensor`][crank_jax.sensors.Sensor]:
+    - `sensors`: the calibration of each channel ([`Sensor`][crank_jax.records.sensors.Sensor]:
       `data = scale * model + offset`); a channel without one is read as the model output
       itself (scale 1, offset 0).
     - `inputs`: measured inputs that drive loads through gains (an
@@ -132,7 +132,7 @@ class Data(eqx.Module):
                  else self.channels[n]) for n in self._names()]
 
     def outputs(self) -> list[tuple[Sensor, np.ndarray]]:
-        """([`Sensor`][crank_jax.sensors.Sensor], (n,) data in SI) for every channel, in
+        """([`Sensor`][crank_jax.records.sensors.Sensor], (n,) data in SI) for every channel, in
         order (the first is the one a fit reports its overall rms in)."""
         cal = {s.name: s for s in self.sensors}
         return [(cal.get(n, DEFAULT_SENSOR if n == "phi" else Sensor(n)), y)
@@ -264,7 +264,7 @@ def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
 
     `roles`: (column, role) of every column read; `optional`: those read only when the
     header has them (the load columns). A column with two roles is refused once the header
-    is read (see [`role_conflict`][crank_jax.columns.role_conflict])."""
+    is read (see [`role_conflict`][crank_jax.records.columns.role_conflict])."""
     where = str(path)
     with _open_text(path) as f:
         lines = _numbered_lines(f, where)
@@ -336,7 +336,7 @@ def load_data(
     - `angle_unit`: `"rad"` or `"deg"` (the angle column's unit).
     - `P_col`, `tau_col`: names of the optional slider-force (N) and crank-torque (N*m)
       columns. When present they become [`SampledLoad`][]s that replace the scene's loads.
-    - `sensors`: the record's channels ([`Sensor`][crank_jax.sensors.Sensor]s: each
+    - `sensors`: the record's channels ([`Sensor`][crank_jax.records.sensors.Sensor]s: each
       reads its column, in its unit, into SI). Default: the angle column `phi_col`.
     - `inputs`: columns of measured inputs (an `InputLoad`'s, e.g. `"volts"`), read into
       `Data.inputs` and interpolated like the load columns.

@@ -1,4 +1,5 @@
-"""k-step-ahead prediction for [`validate`][crank_jax.validate.validate]`(..., horizon=T)`.
+"""k-step-ahead prediction for
+[`validate`][crank_jax.identify.validation.validate]`(..., horizon=T)`.
 
 After the initial-state window the record is cut into consecutive windows of `T` s (a
 window holds the samples `a < t <= a + T`). Every window, the first included, estimates
@@ -29,10 +30,10 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import least_squares
 
-from .data import MIN_SAMPLES, Data
-from .identify.start import noise_level
-from .model.outputs import output
-from .solve.simulate import simulate
+from ..model.outputs import output
+from ..records.data import MIN_SAMPLES, Data
+from ..solve.simulate import simulate
+from .start import noise_level
 
 __all__ = ["HEAD_FRACTION", "Window", "cut", "Predictor", "estimate_state", "predict"]
 
@@ -163,7 +164,7 @@ def bucket(n: int) -> int:
 
 def scored_windows(ts: np.ndarray, t_init: float, horizon: float
                    ) -> tuple[list[Window], np.ndarray]:
-    """The windows of [`cut`][crank_jax.horizon.cut] and the mask (n,) of the samples they
+    """The windows of [`cut`][crank_jax.identify.horizon.cut] and the mask (n,) of the samples they
     predict (each window's after its head); `ValueError` naming `horizon` if fewer than
     `MIN_SAMPLES` are left to predict."""
     windows = cut(ts, t_init, horizon)
@@ -179,7 +180,7 @@ def scored_windows(ts: np.ndarray, t_init: float, horizon: float
 
 def predict_windows(scene, mech, load, torque, sensors, win: Data, windows, state0, predicted,
              warnings) -> list[dict]:
-    """Predict every window (see [`crank_jax.horizon`][]) into `predicted`, and the
+    """Predict every window (see [`crank_jax.identify.horizon`][]) into `predicted`, and the
     initial-state window from `state0` (its fitted state at the record's first sample);
     **returns** each window's row of `Validation.windows`."""
     ts = np.asarray(win.ts)
