@@ -108,7 +108,8 @@ def test_console_script_entry_point(tmp_path):
 
 
 def _commands():
-    from crank_jax.cli import identify, simulate, sweep
+    from crank_jax.cli import identify, sweep
+    from crank_jax.cli import simulate_command as simulate
 
     return [c[0] for c in simulate.COMMANDS + identify.COMMANDS + sweep.COMMANDS]
 

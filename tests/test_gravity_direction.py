@@ -411,7 +411,7 @@ def test_fit_recovers_a_free_gravity_angle(lab_rig):
 
 
 def test_wrap_angle_lands_in_minus_pi_to_pi():
-    from crank_jax.identify.result import wrap_angle
+    from crank_jax.identify.fit_result import wrap_angle
 
     for x, want in ((0.0, 0.0), (np.pi, np.pi), (-np.pi, np.pi), (3 * np.pi, np.pi),
                     (0.4 + 2 * np.pi, 0.4), (-0.4 - 4 * np.pi, -0.4), (-3.0, -3.0)):

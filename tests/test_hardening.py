@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-import crank_jax.cli.simulate as cli_simulate
+import crank_jax.cli.simulate_command as cli_simulate
 import crank_jax.records.data as cj_data
 from crank_jax.cli import main
 

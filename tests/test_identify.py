@@ -12,7 +12,7 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.cli.identify import DEMO, demo_data
-from crank_jax.identify import plan as plan_module
+from crank_jax.identify import fit_plan as plan_module
 from crank_jax.identify.problem import build_problem, coordinate
 from crank_jax.identify.start import observed_period, smooth_derivatives
 
@@ -409,7 +409,7 @@ def test_multiple_shooting_coordinates_are_linear_and_map_back(lab_rig):
     # gain u - T_c = c dphi, curves, and LM crawled ~40 iterations along it). Single
     # shooting keeps log ones (the intervals and identifiability use them); values map
     # across exactly, and a direction held fixed in one is held in the other.
-    from crank_jax.identify.plan import recoordinate, recoordinate_basis
+    from crank_jax.identify.fit_plan import recoordinate, recoordinate_basis
 
     recs = [(cj.synthesize(lab_rig, t1=0.8, rate=100.0, noise_std=1e-3, seed=1),
              lab_rig.load, lab_rig.torque, 1.0, 0.0)]

@@ -9,10 +9,10 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.identify import angle
-from crank_jax.identify import channels as ch
+from crank_jax.identify import channel_noise as ch
 from crank_jax.identify.angle import slide_angle
+from crank_jax.identify.fit_plan import make_plan, recoordinate
 from crank_jax.identify.motion_start import motion_start
-from crank_jax.identify.plan import make_plan, recoordinate
 from crank_jax.identify.request import normalise
 from crank_jax.model.loads import InputLoad
 

@@ -189,8 +189,8 @@ def test_a_fitted_user_force_with_k_free_is_determined():
 
 
 def test_a_requested_profile_that_disagrees_with_the_hessian_by_2x_is_said():
+    from crank_jax.identify.fit_result import Profile
     from crank_jax.identify.profile import hessian_disagreement
-    from crank_jax.identify.result import Profile
 
     grid = np.linspace(0.55, 1.45, 9)  # a profile grid of +-4.5 se around 1.0 (se 0.1)
     agree = Profile("c", grid, (grid - 1.0) ** 2 / 0.01, (0.804, 1.196))

@@ -28,7 +28,7 @@ resp = cj.forced_response(driven, (3.0, 5.5), backbone_points=20)
 print(f"{len(branch.freq_hz)} orbits, {int((~branch.stable).sum())} unstable")
 for fold in resp.folds:
     print(f"  fold at {fold['freq_hz']:.4f} Hz, amplitude {fold['amplitude']:.3f} rad")
-from crank_jax.vibration.figures import plot_response  # noqa: E402
+from crank_jax.vibration.plots import plot_response  # noqa: E402
 
 plot_response(resp, "response.png")
 print("wrote response.png")

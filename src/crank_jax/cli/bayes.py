@@ -7,7 +7,7 @@ import argparse
 import json
 import sys
 
-from .channels import add_angle_options, add_channel_options, read_records
+from .channel_options import add_angle_options, add_channel_options, read_records
 from .errors import UserError
 from .options import free_list, seed
 from .scene_inputs import refuse_input_loads

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .channels import (
+from .channel_options import (
     add_angle_options,
     add_channel_options,
     parse_sigma,
@@ -215,7 +215,7 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
             f.write("\n")
         print(f"wrote {a.out}", file=sys.stderr)
     if a.plot:
-        from ..identify.plot import plot_fit
+        from ..report.fit_plot import plot_fit
 
         plot_fit(res, a.plot, title)
         print(f"wrote {a.plot}", file=sys.stderr)

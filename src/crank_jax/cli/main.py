@@ -26,7 +26,18 @@ from collections.abc import Iterator
 
 from ..runtime.io import DISK_FULL, Terminated, disk_full, note_signal, raise_if_terminated
 from ..runtime.xla_flags import configure_cpu
-from . import bayes, identify, simulate, sweep, validate, vibration
+from . import (
+    bayes,
+    identify,
+    sweep,
+    vibration,
+)
+from . import (
+    simulate_command as simulate,
+)
+from . import (
+    validate_command as validate,
+)
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
 
 __all__ = ["main", "entry", "build_parser", "Terminated", "ENV_DEBUG"]

@@ -136,7 +136,7 @@ def _response_run(a: argparse.Namespace) -> int:
                            backbone_points=30 if a.plot else 0)
     _write(a.out, _clean(resp.to_dict()))
     if a.plot:
-        from ..vibration.figures import plot_response
+        from ..vibration.plots import plot_response
 
         plot_response(resp, a.plot, title=f"{scene.name}: forced response")
     n = sum(len(b.freq_hz) for b in resp.branches)
@@ -171,7 +171,7 @@ def _stability_run(a: argparse.Namespace) -> int:
     chart = stability_chart(scene, (p0, p1), (f0, f1), grid=a.grid)
     _write(a.out, _clean(chart.to_dict()))
     if a.plot:
-        from ..vibration.figures import plot_chart
+        from ..vibration.plots import plot_chart
 
         plot_chart(chart, a.plot, title=f"{scene.name}: stability of the rest position")
     frac = float(np.mean(~np.asarray(chart.stable)))

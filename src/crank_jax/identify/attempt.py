@@ -13,10 +13,10 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from . import channels as ch
+from . import channel_noise as ch
+from .fit_plan import Plan, basis, recoordinate, recoordinate_basis
 from .optax_fit import minimise_optax
 from .optimise import Run, least_squares
-from .plan import Plan, basis, recoordinate, recoordinate_basis
 from .problem import Problem
 from .programs import Subspace
 from .request import FitRequest

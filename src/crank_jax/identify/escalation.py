@@ -11,10 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import attempt as at
-from . import channels as ch
+from . import channel_noise as ch
+from .fit_plan import Plan, recoordinate, shooting
 from .motion_start import motion_start
 from .optimise import Run
-from .plan import Plan, recoordinate, shooting
 from .problem import Problem
 from .programs import jacobian_at
 from .request import FitRequest

@@ -37,21 +37,21 @@ import numpy as np
 
 from ..records.data import Data
 from ..scene import Scene
-from . import channels as ch
+from . import channel_noise as ch
 from .attempt import attempt
 from .escalation import optimise_fit
-from .measurement import fitted_channels
-from .optimise import Run, termination
-from .plan import make_plan
-from .profile import hessian_disagreement, profile_likelihood
-from .request import free_names, normalise
-from .result import (
+from .fit_plan import make_plan
+from .fit_result import (
     ConvergenceWarning,
     FitResult,
     IdentifiabilityWarning,
     Profile,
     with_wrapped_angles,
 )
+from .measurement import fitted_channels
+from .optimise import Run, termination
+from .profile import hessian_disagreement, profile_likelihood
+from .request import free_names, normalise
 from .start import regressor_start
 from .strategy import (
     AUTO_PERIODS,

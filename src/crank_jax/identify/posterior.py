@@ -40,15 +40,15 @@ from ..records.data import Data
 from ..runtime.lazy import lazy_import
 from ..scene import Scene
 from ..sweep.distributions import AbstractDistribution
-from . import channels as ch
+from . import channel_noise as ch
 from .fit import fit
+from .fit_plan import single_problem
+from .fit_result import FitResult
 from .nuts import adaptation, initial_carry, run_chains, schedule
-from .plan import single_problem
 from .priors import base_name, in_support, parse_priors, prior_arrays, prior_precision
 from .problem import Problem, pick_solver
 from .programs import jacobian_at
 from .request import STATE_NAMES, normalise, reported_names
-from .result import FitResult
 from .strategy import MAX_ODE_STEPS, ode_budget
 
 blackjax = lazy_import("blackjax")  # imported on first use (see lazy.py)

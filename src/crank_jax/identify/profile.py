@@ -7,10 +7,10 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from .fit_result import Profile
 from .optimise import evaluate, least_squares, progress_bar
 from .problem import Problem
 from .programs import Pinned
-from .result import Profile
 
 __all__ = ["profile_likelihood", "hessian_disagreement", "CHI2_95"]
 

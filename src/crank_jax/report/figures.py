@@ -38,7 +38,7 @@ def embed(fig, points: int = 0) -> str:
 def _data_and_residuals(result):
     """Per channel, its data against the fit (tall panel) and its residuals, each in the
     channel's own SI unit (a slide-only record has no angle to draw)."""
-    from ..identify.plot import plot_channel
+    from .fit_plot import plot_channel
 
     plt = pyplot()
     names = list(result.channels or {"phi": None})

@@ -8,7 +8,7 @@ import json
 import math
 import sys
 
-from .channels import add_angle_options, add_channel_options, read_records
+from .channel_options import add_angle_options, add_channel_options, read_records
 from .errors import UserError
 
 __all__ = ["COMMANDS", "LOAD_INTERP"]

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..model.outputs import SI_UNITS
 from ..solve.solvers import AbstractSolver
-from . import channels as ch
+from . import channel_noise as ch
 from .angle import motion_period
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at

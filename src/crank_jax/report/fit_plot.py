@@ -6,9 +6,9 @@ import os
 
 import numpy as np
 
-from ..report.plotting import pyplot, save_figure
+from ..identify.diagnostics import plot_acf
 from ..runtime.io import printable
-from .diagnostics import plot_acf
+from .plotting import pyplot, save_figure
 
 __all__ = ["plot_fit", "plot_channel"]
 
