@@ -1,5 +1,6 @@
 """Each private or undocumented API of another library that crank-jax still uses
-(`crank_jax.runtime.compat`): a test that fails, naming the entry, when the API moves."""
+(`crank_jax.runtime.compat`, `crank_jax.solve.library_api`): a test that fails, naming the
+entry, when the API moves."""
 
 import diffrax
 import jax
@@ -8,28 +9,29 @@ import numpy as np
 import pytest
 
 from crank_jax.runtime import compat
+from crank_jax.solve import library_api
 from crank_jax.solve.erk import dopri8
 
 
 def test_results_round_trip_through_their_code():
     for item in (diffrax.RESULTS.successful, diffrax.RESULTS.max_steps_reached):
-        back = compat.result_from_code(compat.result_code(item))
+        back = library_api.result_from_code(library_api.result_code(item))
         assert bool(back == item)
     # A batch of codes (a vmap-ed solve's) stays one item of shape (B,).
     ok = jnp.array([True, False, True])
     batch = jax.vmap(lambda d: diffrax.RESULTS.where(
         d, diffrax.RESULTS.successful, diffrax.RESULTS.max_steps_reached))(ok)
-    code = compat.result_code(batch)
+    code = library_api.result_code(batch)
     assert code.shape == (3,)
     np.testing.assert_array_equal(
-        compat.result_from_code(code) == diffrax.RESULTS.successful, ok)
+        library_api.result_from_code(code) == diffrax.RESULTS.successful, ok)
 
 
 def test_dopri8_dense_output_is_diffrax_own():
     # "diffrax.Dopri8.interpolation_cls.eval_coeffs moved" if this fails to run. One step
     # of dy/dt = -y + sin t: the dense output from these coefficients and the fused stages
     # equals diffrax's own (`sol.evaluate`) inside the step, and y1 at its end.
-    P = compat.dopri8_dense_coefficients()
+    P = library_api.dopri8_dense_coefficients()
     assert P.shape[0] == 14
     f = lambda t, y, args: -y + jnp.sin(t)  # noqa: E731
     h, y0 = 0.5, jnp.array([1.0])
@@ -51,7 +53,7 @@ def test_equinox_internal_while_loop_kinds():
     # "equinox.internal.while_loop moved" if this fails: each kind runs; the
     # checkpointed one is reverse-differentiable.
     def run(x, kind):
-        return compat.while_loop(lambda c: c[0] < 5, lambda c: (c[0] + 1, c[1] * 1.1),
+        return library_api.while_loop(lambda c: c[0] < 5, lambda c: (c[0] + 1, c[1] * 1.1),
                                  (0, x), max_steps=8, kind=kind)[1]
 
     for kind in ("lax", "bounded", "checkpointed"):

@@ -9,12 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ..runtime.lazy import lazy_import
 from . import trig
 from .load_base import AbstractLoad, Nonsmooth
 from .params import as_float_array
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["SampledLoad", "InputLoad", "is_sampled", "bind_input", "INTERPOLATIONS"]
 
@@ -103,6 +100,8 @@ class SampledLoad(AbstractLoad):
         self.coeffs = _spline_coeffs(ts, values) if interp == "cubic" else None
 
     def __call__(self, t: ArrayLike) -> Array:
+        import diffrax
+
         t = jnp.asarray(t, dtype=self.ts.dtype)
         if self.interp == "linear":
             return jnp.interp(t, self.ts, self.values)

@@ -1,12 +1,16 @@
-"""Every use of another library's private or undocumented API, in one place.
+"""Every use of another library's private or undocumented API by the runtime, in one place.
 
 Each entry says why no public API serves and which versions it was written against
 (`constraints.txt` pins the versions the suite passed with); tests/test_compat.py fails
 loudly, naming the entry, when one of them moves. Everything else in crank-jax uses public
-APIs only. Nothing here runs on import.
+APIs only. Nothing here runs on import. The solver libraries' entries (diffrax's result
+codes and Dopri8's dense output, `equinox.internal.while_loop`) are the core's own:
+[`crank_jax.solve.library_api`][], under the same rule and the same tests.
 
 Replaced by public APIs (issue 26): `diffrax.RESULTS` codes were read as `result._value`;
-they are now the result's single pytree leaf ([`result_code`][], [`result_from_code`][]),
+they are now the result's single pytree leaf
+([`result_code`][crank_jax.solve.library_api.result_code],
+[`result_from_code`][crank_jax.solve.library_api.result_from_code]),
 and comparisons use `==` on `diffrax.RESULTS` items. The process-wide switch of
 equinox's check mode (`equinox._errors.EQX_ON_ERROR`, set while the fit's programs were
 traced so that diffrax's `SaveAt(ts)` check held no host callback) is gone: the fit's
@@ -18,59 +22,7 @@ mode) runs unstored (`persistent.py`).
 
 from __future__ import annotations
 
-import numpy as np
-
-__all__ = ["result_code", "result_from_code", "dopri8_dense_coefficients", "while_loop",
-           "backends_are_initialized", "initialize_lapack"]
-
-
-# --- diffrax.RESULTS as arrays (public: the pytree interface) -------------------------
-
-def result_code(result):
-    """The integer array behind a `diffrax.RESULTS` item (its only pytree leaf), e.g. to
-    return it from a `custom_jvp`/`custom_vjp`/`custom_vmap` rule, which take arrays."""
-    import jax
-
-    (code,) = jax.tree_util.tree_leaves(result)
-    return code
-
-
-def result_from_code(code):
-    """A `diffrax.RESULTS` item from an array that [`result_code`][] gave (any shape)."""
-    import diffrax
-    import jax
-
-    treedef = jax.tree_util.tree_structure(diffrax.RESULTS.successful)
-    return jax.tree_util.tree_unflatten(treedef, [code])
-
-
-# --- diffrax: Dopri8's dense output ----------------------------------------------------
-
-def dopri8_dense_coefficients() -> np.ndarray:
-    """diffrax's Dopri8 dense output coefficients, (14 stages, powers), highest power first.
-
-    Why private: diffrax exposes the interpolation only through a solution
-    (`SaveAt(dense=True)`, `sol.evaluate`), never the coefficients a fused step needs;
-    they sit on `Dopri8.interpolation_cls` (the private `_Dopri8Interpolation`) as
-    `eval_coeffs`. Written against diffrax 0.6 and 0.7 (0.7.2 tested)."""
-    import diffrax
-
-    return np.asarray(diffrax.Dopri8.interpolation_cls.eval_coeffs, dtype=float)
-
-
-# --- equinox.internal.while_loop -------------------------------------------------------
-
-def while_loop(cond_fun, body_fun, init_val, *, max_steps: int, kind: str):
-    """`equinox.internal.while_loop`: a bounded while loop, `kind` "lax", "bounded" or
-    "checkpointed".
-
-    Why internal: reverse mode through a while loop (the `"checkpointed"` kind, treeverse
-    checkpointing, as diffrax's `RecursiveCheckpointAdjoint` uses) has no public API in
-    JAX or equinox; `jax.lax.while_loop` is forward-mode only. Written against equinox
-    0.11-0.13 (0.13.8 tested)."""
-    import equinox.internal as eqxi
-
-    return eqxi.while_loop(cond_fun, body_fun, init_val, max_steps=max_steps, kind=kind)
+__all__ = ["backends_are_initialized", "initialize_lapack"]
 
 
 # --- jax internals ---------------------------------------------------------------------

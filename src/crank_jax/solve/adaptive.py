@@ -39,11 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..runtime import compat
-from ..runtime.lazy import lazy_import
+from . import library_api as compat
 from .erk import FusedERK, dopri8, packer
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["solve_adaptive", "dopri8_dense", "outcome", "Recorder"]
 
@@ -301,6 +298,8 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
                                  record)
     t_end = sg(ts[-1])
     done = state.t >= t_end
+    import diffrax
+
     outcome_of = lambda d: diffrax.RESULTS.where(  # noqa: E731
         d, diffrax.RESULTS.successful, diffrax.RESULTS.max_steps_reached)
     # One outcome per member (`RESULTS.where` takes a scalar predicate).

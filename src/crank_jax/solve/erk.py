@@ -17,15 +17,15 @@ run in a loop instead, for a field that is costly to trace (the fit's variationa
 from __future__ import annotations
 
 import functools
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..runtime.lazy import lazy_import
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
+if TYPE_CHECKING:  # annotations only: diffrax is imported where it is used
+    import diffrax
 
 __all__ = ["FusedERK", "dopri8", "rms_error", "packer"]
 
@@ -212,4 +212,6 @@ def rms_error(err, y0, y1, rtol, atol):
 def dopri8(rolled: bool = False) -> FusedERK:
     """Dormand-Prince 8(5,3) (diffrax's tableau) as a [`FusedERK`][]: one object per
     `rolled` (see `FusedERK.rolled`), so that programs keyed on it compile once."""
+    import diffrax
+
     return FusedERK(diffrax.Dopri8.tableau, 8, rolled)

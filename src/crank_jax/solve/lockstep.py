@@ -42,9 +42,9 @@ import numpy as np
 from jax.custom_batching import custom_vmap
 
 from ..model import trig
-from ..runtime.compat import result_code
 from . import adjoint as discrete
 from .adaptive import outcome, solve_adaptive
+from .library_api import result_code
 
 __all__ = ["adaptive_solve"]
 

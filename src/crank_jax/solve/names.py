@@ -14,10 +14,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 
-from ..runtime.lazy import lazy_import
 from .solvers import AbstractSolver, AdaptiveDopri8, Diffrax, UniformDopri8
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["SOLVERS", "TABLE", "solver_named", "name_of"]
 
@@ -25,13 +22,20 @@ __all__ = ["SOLVERS", "TABLE", "solver_named", "name_of"]
 #: diffrax's make it import diffrax (~0.35 s), which a warm fit on the fused solvers never
 #: needs.
 TABLE: dict[str, Callable[[], AbstractSolver]] = {
-    "tsit5": lambda: Diffrax(diffrax.Tsit5()),
-    "dopri5": lambda: Diffrax(diffrax.Dopri5()),
-    "dopri8": lambda: Diffrax(diffrax.Dopri8()),
-    "kvaerno5": lambda: Diffrax(diffrax.Kvaerno5()),
+    "tsit5": lambda: _diffrax("Tsit5"),
+    "dopri5": lambda: _diffrax("Dopri5"),
+    "dopri8": lambda: _diffrax("Dopri8"),
+    "kvaerno5": lambda: _diffrax("Kvaerno5"),
     "dopri8-uniform": UniformDopri8,
     "dopri8-adaptive": AdaptiveDopri8,
 }
+
+def _diffrax(name: str) -> Diffrax:
+    """diffrax's solver class `name` wrapped in `Diffrax` (imports diffrax, on first use)."""
+    import diffrax
+
+    return Diffrax(getattr(diffrax, name)())
+
 
 #: Solver names accepted by `simulate(solver=...)`, scenes, `fit` and `sweep`: `"auto"`
 #: (the policy's choice, `solve/policy.py`), then the table's. (A sweep stores a solver as

@@ -70,8 +70,6 @@ _MIN_STEPS_PER_TURN = 4.0
 _STIFFNESS_RATIO = 1e2
 
 
-
-
 def is_concrete(tree) -> bool:
     """True if no leaf of `tree` is a tracer (the values can be read on the host)."""
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import warnings
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -25,12 +26,12 @@ from ..model.linear import linearize
 from ..model.loads import AbstractLoad, as_load, nonsmooth_times
 from ..model.newton_euler import reactions
 from ..model.params import SliderCrank
-from ..runtime.lazy import lazy_import
 from ..runtime.persistent import PersistentProgram, enum_code, enum_name
 from .policy import check_travel, host_plan, is_concrete
 from .solvers import AbstractSolver, solve
 
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
+if TYPE_CHECKING:  # annotations only: diffrax is imported where it is used
+    import diffrax
 
 __all__ = ["Trajectory", "simulate", "solve_crank", "OUTPUTS", "output_columns"]
 
@@ -85,6 +86,8 @@ class Trajectory(eqx.Module):
     @property
     def ok(self) -> Array:
         """True where the solve succeeded."""
+        import diffrax
+
         return self.result == diffrax.RESULTS.successful
 
 
@@ -127,6 +130,8 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
     # (traced values, no callbacks: `simulate(checks=False)`) or "host" (concrete values,
     # validated on the host before the call). A static argument, so each has its own
     # compiled programs.
+    import diffrax
+
     if mode == "checked":
         mech = mech.checked()
         y0 = eqx.error_if(y0, ~jnp.all(jnp.isfinite(y0)),
@@ -245,6 +250,8 @@ def simulate(
     forward mode) runs as `"forward"`. A `jax.jit` between `jax.jacfwd` and this call
     hides the forward tangents from it: there pass `adjoint="forward"` yourself.
     """
+    import diffrax
+
     _warn_if_float32()
     if adjoint not in ("reverse", "forward", "direct"):
         raise ValueError(f"adjoint must be 'reverse', 'forward' or 'direct', got {adjoint!r}")
@@ -323,6 +330,8 @@ _RESULTS = ("successful", "max_steps_reached", "nonfinite", "singular", "breakdo
 
 def _solve_flat(mech, load, torque, force, y0, ts, rtol, atol, solver, max_steps, adjoint,
                 structure, outputs):
+    import diffrax
+
     traj = _solve(mech, load, torque, force, y0, ts, rtol, atol, solver=solver,
                   max_steps=max_steps, adjoint=adjoint, structure=structure,
                   outputs=outputs, throw=False, mode="host")
@@ -341,6 +350,8 @@ def _program_solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max
     """`_solve` in host mode through its [`PersistentProgram`][] (stored on disk, or in
     memory without a store), or None for an unexpected outcome (the caller then runs
     `_solve` itself)."""
+    import diffrax
+
     phi, dphi, code, steps, *extras = _solve_program(
         mech, load, torque, force, y0, ts, rtol, atol, solver, max_steps, adjoint,
         structure, outputs)
@@ -355,6 +366,8 @@ def _program_solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max
 def _succeeded(result) -> bool:
     """Whether a concrete `diffrax.RESULTS` item is `successful`, read on the host (an
     equinox comparison is an eager device op)."""
+    import diffrax
+
     return bool(np.asarray(result == diffrax.RESULTS.successful))
 
 

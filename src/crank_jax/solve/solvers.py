@@ -30,13 +30,10 @@ import jax.flatten_util
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from ..runtime.lazy import lazy_import
 from .erk import dopri8
 from .lockstep import adaptive_solve
 from .uniform import solve_uniform
 from .variational import flatten_state, with_sensitivities
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["solve", "Solution", "AbstractSolver", "AdaptiveDopri8", "UniformDopri8",
            "Diffrax", "ADJOINTS"]
@@ -131,6 +128,8 @@ class AdaptiveDopri8(AbstractSolver):
 
     def run(self, field, ts, y0, args, *, rtol, atol, max_steps, adjoint, throw, prepare,
             rate=None, step_ts=None, jump_ts=None):
+        import diffrax
+
         field, prepare = _bind(field, args, prepare)
 
         def steps(fld, y, ts_, r, a, error_size):
@@ -167,6 +166,8 @@ class UniformDopri8(AbstractSolver):
 
     def run(self, field, ts, y0, args, *, rtol, atol, max_steps, adjoint, throw, prepare,
             rate=None, step_ts=None, jump_ts=None):
+        import diffrax
+
         kind = {"reverse": "checkpointed", "forward": "lax", "direct": "bounded"}[adjoint]
         guess = rate() if callable(rate) else (0.0 if rate is None else rate)
         ys, result, num = solve_uniform(prepare(field), y0, ts, rtol, atol, args,
@@ -220,10 +221,14 @@ class Diffrax(AbstractSolver):
 
     @property
     def implicit(self) -> bool:  # type: ignore[override]
+        import diffrax
+
         return isinstance(self.solver, diffrax.AbstractImplicitSolver)
 
     def run(self, field, ts, y0, args, *, rtol, atol, max_steps, adjoint, throw, prepare,
             rate=None, step_ts=None, jump_ts=None):
+        import diffrax
+
         adj = {"reverse": diffrax.RecursiveCheckpointAdjoint,
                "forward": diffrax.ForwardMode, "direct": diffrax.DirectAdjoint}[adjoint]()
         flat0, to_tree, to_flat = _flat_state(y0)

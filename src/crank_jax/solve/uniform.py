@@ -32,11 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..runtime import compat
-from ..runtime.lazy import lazy_import
+from . import library_api as compat
 from .erk import FusedERK, dopri8, packer, rms_error
-
-diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
 
 __all__ = ["solve_uniform", "uniform_grid"]
 
@@ -283,6 +280,8 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
     steps beyond the method's stability limit. The step choice runs on values
     (`stop_gradient`): `m` is an integer and carries no derivative.
     """
+    import diffrax
+
     n = ts.shape[0]
     n_int = n - 1
     # Static bound on steps per interval, from the caller's overall step budget.

@@ -37,8 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..runtime.compat import result_code
 from .adaptive import outcome
+from .library_api import result_code
 
 __all__ = ["with_sensitivities", "flatten_state"]
 
