@@ -299,15 +299,17 @@ def test_gradient_with_respect_to_load_amplitudes():
 
 def test_repeated_concrete_calls_reuse_the_host_plan_and_still_check(lab_rig, monkeypatch):
     # A concrete call keeps its host plan (checks, linearisation, solver) for calls with
-    # the same mechanism, loads, save times and tolerances (solve/policy.py `host_plan`).
+    # the same mechanism, loads, save times and tolerances (the front door's memo of the
+    # core's `host_plan`, crank_jax/simulate.py).
     # The plan must follow any change of those, and the checks that depend on the initial
     # state or on invalid parameters must still raise every time.
-    from crank_jax.solve import policy
+    import sys
 
+    front = sys.modules["crank_jax.simulate"]  # (crank_jax.simulate is also the function)
     calls = []
-    real = policy.linearize
-    monkeypatch.setattr(policy, "linearize", lambda *a, **k: calls.append(1) or real(*a, **k))
-    monkeypatch.setattr(policy, "_PLANS", type(policy._PLANS)())
+    real = front.linearize
+    monkeypatch.setattr(front, "linearize", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(front, "_PLANS", type(front._PLANS)(front._PLANS.kept))
     ts = jnp.linspace(0.0, 1.0, 51)
     mech = lab_rig.mech
     a = cj.simulate(mech, 0.5, 0.0, ts)
@@ -331,4 +333,4 @@ def test_repeated_concrete_calls_reuse_the_host_plan_and_still_check(lab_rig, mo
     for _ in range(2):
         with pytest.raises(eqx.EquinoxRuntimeError, match="SliderCrank.m_s is invalid"):
             cj.simulate(bad, 0.5, 0.0, ts)
-    assert len(policy._PLANS) <= policy._PLANS_KEPT
+    assert len(front._PLANS) <= front._PLANS.kept

@@ -104,7 +104,7 @@ def test_simulate_is_the_entry_on_the_crank_field(name, lab_rig):
 
 
 def _rate(crank):
-    from crank_jax.solve.simulate import _rate
+    from crank_jax.solve.trajectory import _rate
 
     return jax.lax.stop_gradient(_rate(crank))
 

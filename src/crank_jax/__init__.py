@@ -84,7 +84,6 @@ from .model.linear import (
     Linearization,
     coulomb_note,
     equilibrium,
-    linearize,
 )
 from .model.loads import (
     INTERPOLATIONS,
@@ -133,18 +132,13 @@ from .scene import (
     save_scene,
     scene_to_toml,
 )
+from .simulate import linearize, simulate
 from .solve.names import solver_named
 from .solve.policy import (
     SOLVERS,
     choose_solver,
     fastest_mode,
     resolve_solver,
-)
-from .solve.simulate import (
-    OUTPUTS,
-    Trajectory,
-    output_columns,
-    simulate,
 )
 from .solve.solvers import (
     AbstractSolver,
@@ -153,6 +147,11 @@ from .solve.solvers import (
     Solution,
     UniformDopri8,
     solve,
+)
+from .solve.trajectory import (
+    OUTPUTS,
+    Trajectory,
+    output_columns,
 )
 from .sweep import distributions
 from .sweep.run import (

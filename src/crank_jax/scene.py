@@ -40,9 +40,10 @@ from .records.sensors import (
     sensors_to_table,
 )
 from .runtime.io import atomic_write
-from .solve.inputs import MAX_RTOL as SOLVER_MAX_RTOL
+from .simulate import simulate
+from .solve.inputs import MAX_RTOL  # the loosest rtol a scene or `simulate --rtol` takes
 from .solve.policy import SOLVERS
-from .solve.simulate import OUTPUTS, Trajectory, simulate
+from .solve.trajectory import OUTPUTS, Trajectory
 
 __all__ = ["Scene", "SceneError", "load_scene", "scene_to_toml", "save_scene", "presets",
            "PRESETS", "fitted_scene", "read_scene_doc"]
@@ -166,12 +167,6 @@ def _number(where: str, key: str, v: Any) -> float:
                          "units)")
     return x
 
-
-#: The loosest relative tolerance a scene or `crank-jax simulate --rtol` may ask for (the
-#: solver's own bound, `solve.inputs.MAX_RTOL`). Near rtol = 1 the step-size control no
-#: longer bounds the error: a solve may run out of steps (where a tighter tolerance
-#: passes) or finish with a wrong trajectory.
-MAX_RTOL = SOLVER_MAX_RTOL
 
 #: Magnitudes a scene number may have, besides 0.
 _NUMBER_RANGE = (1e-30, 1e30)

@@ -70,7 +70,7 @@ def _check_options(a: argparse.Namespace) -> dict:
     """Check every option that needs no scene, before any work; return simulate's kwargs."""
     from ..runtime.io import check_figure_format, check_output
     from ..scene import MAX_RTOL
-    from ..solve.simulate import output_columns
+    from ..solve.trajectory import output_columns
 
     if a.t1 is not None and not (np.isfinite(a.t1) and a.t1 > 0):
         raise UserError(f"--t1 must be a finite time > 0 s, got {a.t1}")
@@ -181,7 +181,7 @@ def _stream(scene, t1: float, samples: int, kw: dict, f, plot_stride: int, quiet
 
 def _simulate_run(a: argparse.Namespace) -> int:
     from ..runtime.io import atomic_write
-    from ..solve.simulate import output_columns
+    from ..solve.trajectory import output_columns
 
     kw = _check_options(a)
     scene = _load(a.scene)
@@ -213,7 +213,8 @@ def _linearize_args(p: argparse.ArgumentParser) -> None:
 
 
 def _linearize_run(a: argparse.Namespace) -> int:
-    from ..model.linear import coulomb_note, linearize
+    from ..model.linear import coulomb_note
+    from ..simulate import linearize
 
     scene = _load(a.scene)
     lin = linearize(scene.mech, scene.load, scene.torque)

@@ -30,11 +30,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.dynamics import CrankField, Structure
-from ..model.linear import linearize
 from ..model.loads import MultiSineLoad, NoLoad
 from ..model.params import FIELDS, SIGNED_FIELDS
 from ..runtime.lazy import lazy_import
 from ..scene import Scene
+from ..simulate import linearize
 
 diffrax = lazy_import("diffrax")
 optax = lazy_import("optax")

@@ -29,7 +29,7 @@ import numpy as np
 
 __all__ = ["Diagnostics", "RobustUncertainty", "residual_diagnostics", "hac_covariance",
            "widen", "robust_uncertainty", "chi2_sf", "autocorrelation", "auto_bandwidth",
-           "not_white_message", "plot_acf", "WHITE_P"]
+           "not_white_message", "WHITE_P"]
 
 #: Residuals with a Ljung-Box p-value below this are declared not white.
 WHITE_P = 0.01
@@ -199,6 +199,11 @@ class Diagnostics(NamedTuple):
     white: bool
     acf: np.ndarray
     bandwidth: int
+
+    def not_white_message(self) -> str:
+        """[`not_white_message`][crank_jax.identify.diagnostics.not_white_message] of
+        these diagnostics (a method, so that the report reads it without importing the fit)."""
+        return not_white_message(self)
 
     def to_json(self) -> dict:
         """The `diagnostics` object of `fit.json` (plain floats, ints and bools)."""
@@ -386,20 +391,3 @@ def robust_uncertainty(J: np.ndarray, r: np.ndarray, lengths: Sequence[int] | No
     infl = np.where(np.isfinite(infl), infl, 1.0)
     return RobustUncertainty(diag, cov_white, cov_hac, cov, infl,
                              None if diag.white else not_white_message(diag))
-
-
-def plot_acf(ax, diag: Diagnostics) -> None:
-    """Draw the residual autocorrelation on a matplotlib axis, with the +-1.96/sqrt(n) band
-    that white residuals stay inside 95% of the time, and the test result in the title."""
-    lags = np.arange(diag.acf.shape[0])
-    ax.vlines(lags, 0.0, diag.acf, color="C0", lw=1.5)
-    ax.plot(lags, diag.acf, "o", ms=3, color="C0")
-    band = 1.959963984540054 / math.sqrt(diag.n_samples)
-    ax.axhspan(-band, band, color="0.85", zorder=0)
-    ax.axhline(0.0, color="k", lw=0.5)
-    ax.set_xlabel("lag [samples]")
-    ax.set_ylabel("residual autocorrelation")
-    verdict = "white" if diag.white else "NOT white"
-    ax.set_title(f"residuals {verdict}: Ljung-Box p = {diag.ljung_box_p:.2g}, "
-                 f"rho_1 = {diag.lag1_autocorrelation:.2f}, n_eff = "
-                 f"{diag.effective_samples:.0f} of {diag.n_samples}", fontsize=9)

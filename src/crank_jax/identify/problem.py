@@ -41,14 +41,14 @@ import numpy as np
 from jaxtyping import Array
 
 from ..model.dynamics import Structure
-from ..model.linear import linearize
 from ..model.loads import AbstractLoad, set_param
 from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..records.data import Data
 from ..records.sensors import OFFSET_NAMES
-from ..solve.policy import resolve_solver
-from ..solve.simulate import solve_crank
+from ..simulate import linearize
+from ..solve.policy import is_concrete, resolve_solver
 from ..solve.solvers import AbstractSolver, AdaptiveDopri8
+from ..solve.trajectory import solve_crank
 from .measurement import calibration, channel_errors, fitted_channels
 from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS, record_mech
 from .segments import Experiment, make_segments, padded_load
@@ -443,5 +443,8 @@ def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> AbstractSo
     at the start values, as `simulate` would run it (no save times: a fit's segments have
     their own). `"dopri8-adaptive"` steps its Jacobians' stages in a loop (`loop_stages`):
     a fit calls them tens of times, and compiles them in every process."""
-    solver = resolve_solver(solver, mech, rtol, load=load)
+    # The front door's stored linearisation (the policy's own traces it in every process).
+    lin = (linearize(mech, load) if solver == "auto" and is_concrete((mech, load))
+           else None)
+    solver = resolve_solver(solver, mech, rtol, load=load, lin=lin)
     return solver.with_loop_stages() if isinstance(solver, AdaptiveDopri8) else solver

@@ -35,14 +35,15 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.linear import linearize
 from ..model.loads import AbstractLoad, InputLoad, NoLoad, set_param
 from ..model.outputs import SI_UNITS, output
 from ..model.params import FIELDS
 from ..model.sampled import bind_input
 from ..records.data import MIN_SAMPLES, Data, DataError
 from ..scene import Scene
+from ..simulate import linearize
 from . import horizon as hz
+from .diagnostics import residual_diagnostics
 from .fit import fit
 from .request import LOAD_NAMES, STATE_NAMES, free_names
 
@@ -111,6 +112,16 @@ class Validation(NamedTuple):
                              for k, v in w.items()} for w in self.windows or []]}
                if self.horizon is not None else {}),
         }
+
+    def error_diagnostics(self):
+        """The whiteness of the scored prediction errors (a
+        [`Diagnostics`][crank_jax.identify.diagnostics.Diagnostics]), or None where there
+        are too few finite ones to test."""
+        e = (np.asarray(self.phi) - np.asarray(self.predicted))[np.asarray(self.scored)]
+        try:
+            return residual_diagnostics(e)
+        except ValueError:  # too few or non-finite errors: nothing to test
+            return None
 
     def report(self, path, *, scene=None, command=None, title: str = "") -> None:
         """Write a self-contained HTML report to `path` (see

@@ -38,14 +38,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..runtime.persistent import PersistentProgram
 from .coefficients import coefficients
 from .dynamics import force_terms, mass_terms
 from .geometry import geometry
 from .loads import AbstractLoad, ConstantLoad, NoLoad, as_load
 from .params import SliderCrank
 
-__all__ = ["Linearization", "linearize", "equilibrium", "coulomb_note"]
+__all__ = ["Linearization", "linearize", "equilibrium", "coulomb_note", "mean_loads",
+           "linearize_tuple"]
 
 # Damped Newton from phi = 0: steps are clipped so that the search creeps towards the
 # nearest root instead of jumping over it; 40 steps of at most 0.25 rad reach 10 rad.
@@ -103,7 +103,7 @@ def equilibrium(mech: SliderCrank, load: AbstractLoad | None = None,
 
     **Returns:** an array of the parameters' broadcast shape; NaN where no root was found.
     """
-    return _equilibrium(mech, _mean_loads(load, torque))
+    return _equilibrium(mech, mean_loads(load, torque))
 
 
 def _q_xi(mech: SliderCrank, loads, phi: Array) -> tuple[Array, Array]:
@@ -168,15 +168,16 @@ def linearize(mech: SliderCrank, load: AbstractLoad | None = None,
     Concrete inputs give concrete outputs even inside a caller's `jit` (the solver policy
     reads them on the host to choose a solver).
     """
-    loads = _mean_loads(load, torque)
+    loads = mean_loads(load, torque)
     leaves = jax.tree_util.tree_leaves((mech, loads))
-    if not any(isinstance(x, jax.core.Tracer) for x in leaves):
-        with jax.ensure_compile_time_eval():
-            return Linearization(*_linearize_program(mech, loads))
-    return _linearize(mech, loads)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return _linearize(mech, loads)
+    # Concrete values inside a caller's `jit`: computed now, for the host to read.
+    with jax.ensure_compile_time_eval():
+        return _linearize(mech, loads)
 
 
-def _mean_loads(load, torque) -> tuple[AbstractLoad, AbstractLoad]:
+def mean_loads(load, torque) -> tuple[AbstractLoad, AbstractLoad]:
     """The loads at their means; an absent load stays `NoLoad` (its terms are left out)."""
     load, torque = as_load(load), as_load(torque)
     return (NoLoad() if isinstance(load, NoLoad) else ConstantLoad(load.mean()),
@@ -205,13 +206,11 @@ def _linearize(mech: SliderCrank, loads) -> Linearization:
     return Linearization(mu, chi, xi, omega_n, zeta, stable, k_crit, phi_eq)
 
 
-def _linearize_tuple(mech: SliderCrank, loads) -> tuple:
+def linearize_tuple(mech: SliderCrank, loads) -> tuple:
+    """[`linearize`][] of `mech` and `loads` (from [`mean_loads`][]) as a tuple of arrays:
+    the form a stored program returns (the front door's `crank_jax.linearize` keeps it in
+    the program store)."""
     return tuple(_linearize(mech, loads))
-
-
-# Concrete calls (the solver policy's, before every solve) in a fresh CLI process: the
-# stored program skips tracing the Newton loop (0.1-0.3 s per process).
-_linearize_program = PersistentProgram(_linearize_tuple, "linearize")
 
 
 def coulomb_note(mech: SliderCrank) -> str | None:

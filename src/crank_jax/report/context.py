@@ -6,9 +6,6 @@ from __future__ import annotations
 import math
 import re
 
-import numpy as np
-
-from ..identify.diagnostics import not_white_message, residual_diagnostics
 from ..model.loads import LOAD_PARAMS
 from ..model.params import UNITS
 from .figures import fit_figures, validation_figures
@@ -108,7 +105,7 @@ def _whiteness(diag, what: str = "residuals") -> tuple[str, str]:
                       f"{diag.lag1_autocorrelation:.2f}; about {diag.effective_samples:.0f} "
                       f"independent samples of {diag.n_samples}): the model explains the "
                       "data to within the noise.")
-    return "bad", not_white_message(diag).replace("the residuals", f"The {what}", 1)
+    return "bad", diag.not_white_message().replace("the residuals", f"The {what}", 1)
 
 
 def _verdicts(pairs: list[tuple[str, tuple[str, str]]]) -> list[dict]:
@@ -153,19 +150,11 @@ def fit_context(res, *, scene=None, command=None, title: str = "") -> dict:
     }
 
 
-def _error_diagnostics(val):
-    e = (np.asarray(val.phi) - np.asarray(val.predicted))[np.asarray(val.scored)]
-    try:
-        return residual_diagnostics(e)
-    except ValueError:  # too few or non-finite errors: nothing to test
-        return None
-
-
 def validation_context(val, *, scene=None, command=None, title: str = "") -> dict:
     """The template's values for a [`Validation`][crank_jax.Validation] (its numbers from
     `val.to_json()`, the `VAL.json` document)."""
     doc = val.to_json()
-    diag = _error_diagnostics(val)
+    diag = val.error_diagnostics()
     u = _first_unit(val.channels)
     scores = [("fit", _cell(doc["fit_percent"]), "%"), ("rms error", _cell(doc["rms"]), u),
               ("max |error|", _cell(doc["max_abs"]), u),

@@ -9,7 +9,7 @@ import io
 
 import numpy as np
 
-from ..identify.diagnostics import plot_acf
+from .fit_plot import plot_acf
 from .plotting import printable_texts, pyplot
 
 __all__ = ["embed", "fit_figures", "validation_figures", "SVG_MAX_POINTS"]

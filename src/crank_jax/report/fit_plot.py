@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
+import math
 import os
 
 import numpy as np
 
-from ..identify.diagnostics import plot_acf
 from ..runtime.io import printable
 from .plotting import pyplot, save_figure
 
-__all__ = ["plot_fit", "plot_channel"]
+__all__ = ["plot_fit", "plot_channel", "plot_acf"]
 
 
 def plot_fit(result, path: str | os.PathLike, title: str = "") -> None:
@@ -76,3 +76,21 @@ def plot_channel(ax1, ax2, result, name: str) -> None:
     ax2.set_xlabel("t [s]")
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
+
+
+def plot_acf(ax, diag) -> None:
+    """Draw the residual autocorrelation on a matplotlib axis, with the +-1.96/sqrt(n) band
+    that white residuals stay inside 95% of the time, and the test result in the title.
+    `diag`: a fit's [`Diagnostics`][crank_jax.identify.diagnostics.Diagnostics]."""
+    lags = np.arange(diag.acf.shape[0])
+    ax.vlines(lags, 0.0, diag.acf, color="C0", lw=1.5)
+    ax.plot(lags, diag.acf, "o", ms=3, color="C0")
+    band = 1.959963984540054 / math.sqrt(diag.n_samples)
+    ax.axhspan(-band, band, color="0.85", zorder=0)
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.set_xlabel("lag [samples]")
+    ax.set_ylabel("residual autocorrelation")
+    verdict = "white" if diag.white else "NOT white"
+    ax.set_title(f"residuals {verdict}: Ljung-Box p = {diag.ljung_box_p:.2g}, "
+                 f"rho_1 = {diag.lag1_autocorrelation:.2f}, n_eff = "
+                 f"{diag.effective_samples:.0f} of {diag.n_samples}", fontsize=9)

@@ -18,14 +18,12 @@ It returns a solver object (`solvers.py`, made once per name by `names.py`'s tab
    `"dopri8-uniform"` on uniform save times.
 
 A concrete `simulate` call also takes its host-side plan from here ([`host_plan`][]: its
-input checks, the linearisation, the structure and the solver), memoised for repeated
-calls with the same inputs.
+input checks, the linearisation, the structure and the solver); the front door
+(`crank_jax/simulate.py`) keeps plans for repeated calls with the same inputs.
 """
 
 from __future__ import annotations
 
-import collections
-import threading
 from typing import NamedTuple
 
 import jax
@@ -305,25 +303,14 @@ class HostPlan(NamedTuple):
     invalid: str | None  #: the first failed parameter check's message, or None
 
 
-def host_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw,
-              structure) -> HostPlan:
+def host_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure, *,
+              linearize=linearize) -> HostPlan:
     """The host-side part of a `simulate` call that depends on neither the initial state
     nor the user's force: input checks, the linearisation, the structure, the solver.
-    Memoised for calls whose inputs are immutable (see `_plan_key`). `simulate` raises
-    `invalid` when every input is concrete, and checks the initial state with
-    [`check_travel`][] where `top` is set."""
-    key = _plan_key(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure)
-    plan = _PLANS.get(key) if key is not None else None
-    if plan is None:
-        plan = _compute_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw,
-                             structure)
-        if key is not None:
-            _remember(key, plan)
-    return plan
-
-
-def _compute_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure):
-    """[`host_plan`][] without the memo."""
+    `simulate` raises `invalid` when every input is concrete, checks the initial state with
+    [`check_travel`][] where `top` is set, and keeps plans for repeated calls (its memo is
+    the front door's, not the core's). `linearize`: the linearisation to use (default the
+    model's; the front door passes its stored program)."""
     if is_concrete(ts):
         d = np.diff(np.asarray(ts))
         if not np.all(d > 0):
@@ -349,67 +336,6 @@ def _compute_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, 
         top = check_time_scale(host_mech, solver, span, int(max_steps), load, lin=lin)
     invalid = _invalid_parameter(host_mech) if concrete else None
     return HostPlan(solver, structure, lin, top, span, invalid)
-
-
-# Host plans of the last few concrete calls (see `_plan_key`), oldest first: a concrete
-# call with the inputs of one of them (the same mechanism, loads, save times and
-# tolerances; any initial state) skips those checks and the linearisation, ~0.5 ms of a
-# ~2 ms lab-rig solve (measured on a 2-core VM; 0.15 ms of it the linearisation, the rest
-# NumPy on 0-d arrays and equinox attribute reads). A check that raised keeps no plan; a
-# failed parameter check is kept as its message, raised again by every such call.
-_PLANS: collections.OrderedDict = collections.OrderedDict()
-_PLANS_LOCK = threading.Lock()
-_PLANS_KEPT = 8
-# A plan holds references to its save times (so that their `id` stays theirs): only
-# for these many samples or fewer (8 plans of 0.8 MB at most).
-_PLAN_MAX_SAMPLES = 100_000
-
-
-def _plan_key(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, structure):
-    """A key that identifies a call's host plan, or None (no memo) unless every leaf is
-    immutable: a JAX array (by identity; the key holds it, so the identity cannot be
-    reused) or a Python or NumPy scalar (by value). Under a transformation the leaves
-    are tracers, which are not memoised."""
-    if ts.shape[0] > _PLAN_MAX_SAMPLES:
-        return None
-    leaves, treedef = jax.tree_util.tree_flatten((mech, load, torque, ts, rtol, atol))
-    parts = []
-    for x in leaves:
-        if isinstance(x, jax.core.Tracer):
-            return None
-        if isinstance(x, jax.Array):
-            parts.append(x)
-        elif isinstance(x, (float, int, bool, np.generic)):
-            parts.append((type(x), x))
-        else:  # a mutable array (NumPy's) or anything else: no memo
-            return None
-    return (_Identity(tuple(parts)), treedef, solver, int(max_steps), bool(throw), structure)
-
-
-class _Identity:
-    """Hashes and compares a tuple of JAX arrays by identity (and scalars by value),
-    keeping the arrays alive while it is a key."""
-
-    __slots__ = ("parts", "_hash")
-
-    def __init__(self, parts: tuple):
-        self.parts = parts
-        self._hash = hash(tuple(p if isinstance(p, tuple) else id(p) for p in parts))
-
-    def __hash__(self):
-        return self._hash
-
-    def __eq__(self, other):
-        return (isinstance(other, _Identity) and len(self.parts) == len(other.parts)
-                and all(a is b if not isinstance(a, tuple) else a == b
-                        for a, b in zip(self.parts, other.parts)))
-
-
-def _remember(key, plan) -> None:
-    with _PLANS_LOCK:
-        _PLANS[key] = plan
-        while len(_PLANS) > _PLANS_KEPT:
-            _PLANS.popitem(last=False)
 
 
 def _invalid_parameter(mech: SliderCrank) -> str | None:

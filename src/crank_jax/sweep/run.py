@@ -51,9 +51,9 @@ import numpy as np
 from ..model.dynamics import Structure
 from ..model.loads import SIDES
 from ..runtime.lazy import lazy_import
+from ..simulate import linearize, simulate
 from ..solve.names import name_of
-from ..solve.policy import SOLVERS, resolve_solver
-from ..solve.simulate import simulate
+from ..solve.policy import SOLVERS, is_concrete, resolve_solver
 from .checkpoint import Checkpoint, SharedCheckpoint, plan_manifest
 from .collective import gather, on_process_0, same_everywhere
 from .distributions import AbstractDistribution
@@ -145,6 +145,12 @@ def _solve_chunk(mech, load, torque, phi0, dphi0, ts, rtol, atol, *, load_fixed,
     return jax.vmap(one, in_axes=axes)(mech, load, torque, phi0, dphi0)
 
 
+def _stored_lin(solver, mech, load):
+    """The linearisation `"auto"` needs, through the front door's stored program (the
+    policy's own would trace it again in every process), else None."""
+    return linearize(mech, load) if solver == "auto" and is_concrete((mech, load)) else None
+
+
 def _fixed(plan: Plan) -> dict[str, bool]:
     return {f"{side}_fixed": plan.loads[side] is None for side in SIDES}
 
@@ -217,7 +223,7 @@ def _run_block(plan: Plan, cols, order, chunk, dev: _Devices, consts, max_steps,
         mech, load, torque, phi0, dphi0 = plan.batch({k: v[padded] for k, v in cols.items()})
         solver = resolve_solver(plan.solver, mech, plan.rtol, plan.atol, load=load,
                                 torque=torque, ts=plan.ts, max_steps=int(max_steps),
-                                batch_invariant=True)
+                                batch_invariant=True, lin=_stored_lin(plan.solver, mech, load))
         res, st, ns = dev.run(chunk // dev.n, (mech, load, torque, phi0, dphi0), consts,
                               **_fixed(plan), solver=solver, structure=plan.structure,
                               reductions=reductions, max_steps=int(max_steps))

@@ -25,9 +25,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ..model.dynamics import CrankField, Structure
-from ..model.linear import linearize
 from ..model.loads import NoLoad
 from ..runtime.lazy import lazy_import
+from ..simulate import linearize
 from .drive import VibrationError
 from .flow import flow
 

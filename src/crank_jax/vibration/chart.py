@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.dynamics import CrankField, Structure
-from ..model.linear import linearize
 from ..model.loads import ConstantLoad, HarmonicLoad, NoLoad
+from ..simulate import linearize
 from .drive import VibrationError, check_smooth
 from .floquet import monodromy_at_rest, multipliers
 

@@ -23,8 +23,8 @@ import numpy as np
 from jaxtyping import Array
 
 from ..model.dynamics import Structure
-from ..model.linear import linearize
 from ..runtime.lazy import lazy_import
+from ..simulate import linearize
 from .drive import drive_side, field_at
 from .floquet import STABLE_MARGIN, monodromy, multipliers
 from .flow import flow, flow_samples

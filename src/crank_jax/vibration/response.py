@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.dynamics import Structure
-from ..model.linear import linearize
 from ..runtime.lazy import lazy_import
+from ..simulate import linearize
 from .backbone import backbone
 from .continuation import Point, continue_curve, null_vector
 from .drive import VibrationError, drive_side, field_at
