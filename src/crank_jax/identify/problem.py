@@ -364,8 +364,8 @@ def build_problem(
     - `solver`, `rtol`, `atol`, `max_steps`: the ODE solve (`solver` a solver object,
       [`pick_solver`][]'s, or a name the policy resolves at `mech`); `adjoint`: `"forward"` (for
       Jacobians) or `"reverse"` (for gradients).
-    - `pad`: pad each record to a [`bucket`][] length (weight-0 samples), so that records
-      of other lengths reuse the compiled programs.
+    - `pad`: pad each record to a [`bucket`][crank_jax.identify.segments.bucket] length
+      (weight-0 samples), so that records of other lengths reuse the compiled programs.
     - `omega`: the records' observed angular frequency, rad/s (scales a free field that
       starts at 0; see [`coordinate`][]).
     - `angles`: each record's crank angle as far as the data tell (n,), rad (default: its
