@@ -19,7 +19,7 @@ not a coverage experiment.)
 For each seed the fit is `crank_jax.fit` as it is; the sensitivities are recomputed with
 `jax.jacfwd` through `crank_jax.simulate(adjoint="forward")` in the fit's coordinates
 (log k, log c, phi0, dphi0), which reproduces the fit's white-noise standard errors, and
-`crank_jax.robust_uncertainty` gives the corrected ones. Intervals are log-normal for k
+`crank_jax.identify.robust_uncertainty` gives the corrected ones. Intervals are log-normal for k
 and c, like the fit's. A side study recomputes the HAC errors at fixed bandwidths.
 
     python experiments/misfit_coverage.py [--seeds 30] [--scenarios white,ar1:0.002,...]
@@ -120,7 +120,7 @@ def run_seed(scene, kind, level, seed, z_true):
     data = disturbed_record(scene, kind, level, seed)
     res = cj.fit(scene, data, free=NAMES, init=DEMO["start"], progress=False, warn=False)
     r, J, z = sensitivities(scene, data, res.values)
-    ru = cj.robust_uncertainty(J, r)
+    ru = cj.identify.robust_uncertainty(J, r)
     se_w = np.sqrt(np.diag(ru.cov_white))
     se_c = np.sqrt(np.diag(ru.cov))
     fit_se = np.array([res.stderr[n] if res.stderr[n] is not None else np.nan for n in NAMES])

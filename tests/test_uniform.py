@@ -29,7 +29,7 @@ def test_crank_field_equals_acceleration(rng, loads):
         mech = random_mech(rng, **over)
         st = Structure.of(mech)
         a = acceleration(mech, phi, dphi, t, load, torque, st)
-        v, b = cj.CrankField(mech, load, torque, st)(t, (phi, dphi))
+        v, b = cj.model.CrankField(mech, load, torque, st)(t, (phi, dphi))
         np.testing.assert_array_equal(v, dphi)
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(a))))
 
@@ -100,7 +100,7 @@ def _reference(scene, ts):
                                      max_steps=10**6).phi)
 
 
-@pytest.mark.parametrize("name", cj.PRESETS)
+@pytest.mark.parametrize("name", list(cj.presets()))
 @pytest.mark.parametrize("rtol", [1e-6, 1e-9])
 def test_error_meets_tolerance_on_presets(name, rtol):
     scene = cj.load_scene(name)

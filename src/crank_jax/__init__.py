@@ -30,6 +30,7 @@ start values), `crank_jax.sweep` (distributions, the names a sweep takes),
 module is internal. Old names warn for one release (`_DEPRECATED` below).
 """
 
+import sys as _sys
 from types import ModuleType as _ModuleType
 
 from ._deprecated import moved as _moved
@@ -100,6 +101,28 @@ from .vibration import (
 from .vibration.backbone import backbone
 from .xla_flags import configure_cpu
 
+#: The documented namespaces beside the front door: reachable as attributes (imported on
+#: first use) and shown by `dir(crank_jax)`. Every other module of the package is internal:
+#: importable by its full name (`import crank_jax.io as io`), never an attribute.
+_NAMESPACES = ("model", "solve", "identify", "sweep", "vibration", "report")
+
+
+class _FrontDoor(_ModuleType):
+    """The package's module: the import system binds every submodule it loads as an
+    attribute of its parent; here only the namespaces are bound, so that importing an
+    internal module (now, or lazily later) never puts it on the front door."""
+
+    def __setattr__(self, name: str, value) -> None:
+        if not _internal(name, value):
+            super().__setattr__(name, value)
+
+
+def _internal(name: str, value) -> bool:
+    """Whether `name = value` binds an internal submodule of this package."""
+    return (isinstance(value, _ModuleType) and name not in _NAMESPACES
+            and value.__name__ == f"{__name__}.{name}")
+
+
 __version__ = "0.1.0"
 
 # The front door: 50 names, by task (docs/reference/index.md gives the reasons).
@@ -125,11 +148,6 @@ __all__ = [
     # the runtime
     "configure_cpu", "enable_compilation_cache",
 ]
-
-#: The documented namespaces beside the front door: reachable as attributes (imported on
-#: first use) and shown by `dir(crank_jax)`. Every other module of the package is internal:
-#: importable by its full name, never an attribute of `crank_jax` (see the end of this file).
-_NAMESPACES = ("model", "solve", "identify", "sweep", "vibration", "report")
 
 #: Names that left the front door, kept one release: old name -> "namespace:new name", or
 #: "module:name|what to use" for a name that goes from the public API. Reading one warns
@@ -161,7 +179,7 @@ _DEPRECATED = {
     "distributions": "crank_jax:sweep|crank_jax.sweep (Normal, Uniform, ... are there)",
     # Going from the public API (internal modules: these paths follow the files).
     "PRESETS": "crank_jax.scene:PRESETS|crank_jax.presets() (its keys)",
-    "with_cpu_flags": "crank_jax.xla_flags:with_cpu_flags|crank_jax.configure_cpu()",
+    "with_cpu_flags": "crank_jax.xla_flags:with_cpu_flags|crank_jax.configure_cpu(devices=1)",
     "default_cache_dir": "crank_jax.cache:default_cache_dir|the directory that "
                          "crank_jax.enable_compilation_cache() returns",
     "atomic_write": "crank_jax.io:atomic_write|a file utility of your own",
@@ -182,17 +200,13 @@ def __dir__() -> list[str]:
     return sorted([*__all__, *_NAMESPACES, "__version__"])
 
 
-def _hide_internal_modules() -> None:
-    """Unbind the package's internal modules from `crank_jax` (the import system binds each
-    submodule it loads on its parent): `crank_jax.io` is not an attribute, though
-    `import crank_jax.io as io` still works. Every internal module is imported by this
-    file's imports; one imported only later (lazily) gets bound then, but `dir` leaves it
-    out."""
+def _unbind_internal_modules() -> None:
     g = globals()
-    for name, value in list(g.items()):
-        if (isinstance(value, _ModuleType) and name not in _NAMESPACES
-                and getattr(value, "__name__", "").startswith(f"{__name__}.")):
-            del g[name]
+    for name in [n for n, v in g.items() if _internal(n, v)]:
+        del g[name]
 
 
-_hide_internal_modules()
+# From here on, importing an internal module does not bind it; those imported above are
+# unbound now.
+_sys.modules[__name__].__class__ = _FrontDoor
+_unbind_internal_modules()

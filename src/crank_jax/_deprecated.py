@@ -6,9 +6,9 @@ Two kinds:
 
 - a name moved off a namespace (`crank_jax.energy` -> `crank_jax.model.energy`, or renamed:
   `crank_jax.widen` -> `crank_jax.identify.widen_covariance`): a namespace's module-level
-  `__getattr__` calls [`moved`][] with a table `old name -> "namespace:new name"`;
+  `__getattr__` calls `moved` with a table `old name -> "namespace:new name"`;
 - a function that shadowed its own subpackage (`cj.sweep(...)`, `cj.solve(...)`): the
-  subpackage is the attribute now, and [`make_callable`][] lets a call to it still run the
+  subpackage is the attribute now, and `make_callable` lets a call to it still run the
   function, with the warning, so old code keeps working for a release instead of failing
   with "'module' object is not callable".
 """

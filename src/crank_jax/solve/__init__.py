@@ -3,7 +3,7 @@
 `crank_jax.solve` is a documented namespace (issue 39). Its public names:
 
 - `solve(field, solver, ts, y0, ...)` and its `Solution`: any vector field (a
-  [`CrankField`][crank_jax.model.CrankField] or your own) with the library's solvers;
+  `crank_jax.model.CrankField` or your own) with the library's solvers;
 - the solver classes (also at the front door) and the policy behind `solver="auto"`:
   `SOLVERS` (the names `simulate(solver=...)` takes), `solver_named` (a name's solver
   object), `resolve_solver` and `choose_solver` (which solver `"auto"` gives a scene, and

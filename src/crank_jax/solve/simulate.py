@@ -208,7 +208,7 @@ def simulate(
     - `ts`: (n,) strictly increasing save times, s, n >= 2.
     - `load`: slider force P(t), N along -x: a load, a number (constant) or `None`.
     - `torque`: crank torque tau(t), N*m about +z, likewise.
-    - `solver`: one of [`SOLVERS`][], or a solver object (`crank_jax.solver_named`,
+    - `solver`: one of [`SOLVERS`][], or a solver object (`crank_jax.solve.solver_named`,
       `crank_jax.Diffrax`); `"auto"` is `"kvaerno5"` for a stiff shaft (see
       [`choose_solver`][]), else `"dopri8-adaptive"` (adaptive fused Dopri8 with dense
       output; a `vmap`-ed batch steps in lockstep) unless a load is sampled (then diffrax's
