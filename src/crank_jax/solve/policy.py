@@ -266,7 +266,7 @@ def check_time_scale(mech: SliderCrank, solver: AbstractSolver, span: float, max
         mu, chi, xi = (float(np.max(np.abs(np.asarray(x, dtype=float)))) for x in
                        (lin.mu, lin.chi, lin.xi))
         raise ValueError(
-            f"the fastest mode of the linearised crank is {top:.3g} rad/s (mu = {mu:.3g} "
+            f"the fastest mode of the linearized crank is {top:.3g} rad/s (mu = {mu:.3g} "
             f"kg*m^2, chi = {chi:.3g} N*m*s/rad, xi = {xi:.3g} N*m/rad): over {span:g} s "
             f"that needs ~{need:.3g} solver steps (max_steps = {max_steps}); check the units "
             f"and values of k, c and the masses and inertias")

@@ -68,7 +68,7 @@ def check_chart_scene(scene) -> None:
     if not isinstance(scene.torque, NoLoad):
         raise VibrationError("a stability chart is of the rest position under P(t) alone: "
                              "remove the scene's [torque] table")
-    check_smooth(m, "a stability chart (the linearisation at rest)")
+    check_smooth(m, "a stability chart (the linearization at rest)")
     _mean_P(scene)
 
 
