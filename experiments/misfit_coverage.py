@@ -47,7 +47,6 @@ from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
-from crank_jax.identify.diagnostics import hac_covariance, widen  # noqa: E402
 from crank_jax.io import atomic_write  # noqa: E402
 from crank_jax.plot import pyplot, save_figure  # noqa: E402
 
@@ -127,7 +126,8 @@ def run_seed(scene, kind, level, seed, z_true):
     fit_se_z = np.where(LOG, fit_se / np.array([res.values[n] for n in NAMES]), fit_se)
     study = {}
     for bw in BANDWIDTHS:
-        cov = widen(ru.cov_white, hac_covariance(J, r, bandwidth=bw))
+        cov = cj.identify.widen_covariance(ru.cov_white,
+                                          cj.identify.hac_covariance(J, r, bandwidth=bw))
         study[bw] = covered(z, np.sqrt(np.diag(cov)), z_true).tolist()
     d = ru.diagnostics
     return {
