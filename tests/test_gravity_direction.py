@@ -431,5 +431,5 @@ def test_a_fitted_gravity_angle_is_reported_within_minus_pi_to_pi(lab_rig, tmp_p
     assert lo < g < hi and hi - lo < 0.1
     assert float(res.mech.gravity_angle) == pytest.approx(g, abs=1e-12)
     out = tmp_path / "fitted.toml"
-    cj.save_scene(cj.scene.fitted_scene(start, res), out)
+    cj.save_scene(cj.identify.fitted_scene(start, res), out)
     assert float(cj.load_scene(str(out)).mech.gravity_angle) == pytest.approx(g, abs=1e-9)

@@ -16,6 +16,7 @@ from crank_jax.identify.angle import slide_angle
 from crank_jax.model.outputs import OUTPUT_NAMES, output
 from crank_jax.scene import fitted_scene
 from crank_jax.sensors import (
+    CHANNELS,
     Sensor,
     SensorError,
     parse_channel,
@@ -70,7 +71,7 @@ def test_slider_velocity_matches_a_simulated_trajectory():
 def test_unknown_output_is_refused():
     with pytest.raises(ValueError, match="choose from"):
         output("y_s", cj.load_scene("lab-rig").mech, 0.0, 0.0, 0.0)
-    assert OUTPUT_NAMES == cj.sensors.CHANNELS
+    assert OUTPUT_NAMES == CHANNELS
 
 
 # --- sensors: units, calibration, bad input ----------------------------------------------
@@ -381,9 +382,9 @@ def test_fitted_scene_takes_a_records_own_mechanism_field():
     res = SimpleNamespace(mech=scene.mech.replace(T_c=0.03),
                           values={"c[0]": 0.1, "c[1]": 0.2, "T_c": 0.03, "phi0[1]": 0.5})
     for i, c in enumerate((0.1, 0.2)):
-        got = cj.scene.fitted_scene(scene, res, record=i)
+        got = fitted_scene(scene, res, record=i)
         assert float(got.mech.c) == c and float(got.mech.T_c) == 0.03
-    assert float(cj.scene.fitted_scene(scene, res, record=1).phi0) == 0.5
+    assert float(fitted_scene(scene, res, record=1).phi0) == 0.5
 
 
 def test_noise_level_of_a_coarse_fast_record_is_the_noise():

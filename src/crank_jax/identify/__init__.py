@@ -4,6 +4,8 @@
 experiment design and the validation are at the front door (`crank_jax.fit`, ...); here
 are the tools around them:
 
+- `fitted_scene`: the scene a fit started from, with its estimates (what
+  `crank-jax fit` writes as the fitted scene file);
 - `FREE_NAMES`: every name `fit(free=...)` accepts; `regressor_start`: start values of the
   masses, inertias, k and c from the linear regressor form; `Profile`: a profile likelihood
   (`FitResult.profile`);
@@ -12,6 +14,7 @@ are the tools around them:
   variances as a floor under it); `robust_uncertainty` and its `RobustUncertainty`.
 """
 
+from ..scene import fitted_scene
 from .diagnostics import (
     Diagnostics,
     RobustUncertainty,
@@ -23,5 +26,6 @@ from .diagnostics import widen as widen_covariance
 from .fit import FREE_NAMES, regressor_start
 from .result import Profile
 
-__all__ = ["FREE_NAMES", "regressor_start", "Profile", "residual_diagnostics", "Diagnostics",
+__all__ = ["fitted_scene", "FREE_NAMES", "regressor_start", "Profile", "residual_diagnostics",
+           "Diagnostics",
            "hac_covariance", "widen_covariance", "robust_uncertainty", "RobustUncertainty"]
