@@ -11,7 +11,7 @@ ratio to the forward solve of that same process:
   the discrete adjoint of its steps, crank_jax/solve/adjoint.py);
 - plain diffrax grad: `diffrax.diffeqsolve` with `Dopri8`, a `PIDController` at the same
   tolerances, `SaveAt(ts=...)` and diffrax's default adjoint (checkpointed reverse
-  mode), on the model's own vector field (`cj.CrankField`), as a user would write it.
+  mode), on the model's own vector field (`cj.model.CrankField`), as a user would write it.
 
 Goals (issue 26): the crank-jax grad <= 3x one forward solve with the CPU flags, <= 6x
 with XLA's defaults. Writes experiments/results/gradients_reverse{,_cpu_flags}.json.
@@ -54,7 +54,8 @@ def measure(smoke: bool, tag: str) -> None:
         return cj.simulate(m, 1.0, 0.0, ts, rtol=1e-8, atol=1e-10).phi
 
     def plain(theta):
-        field = cj.CrankField(mech.replace(**dict(zip(PARAMS, theta))), cj.NoLoad(), cj.NoLoad())
+        field = cj.model.CrankField(mech.replace(**dict(zip(PARAMS, theta))), cj.NoLoad(),
+                                    cj.NoLoad())
         term = diffrax.ODETerm(lambda t, y, args: jnp.stack(field(t, (y[0], y[1]))))
         sol = diffrax.diffeqsolve(term, diffrax.Dopri8(), t0=ts[0], t1=ts[-1], dt0=None,
                                   y0=jnp.array([1.0, 0.0]), saveat=diffrax.SaveAt(ts=ts),

@@ -30,7 +30,7 @@ spec = {"k": "normal(2.0,0.1)", "c": "uniform(0.005,0.02)"}
 times, res = [], None
 for _ in range(__REPEATS__ + 1):
     t = time.perf_counter()
-    res = cj.sweep(scene, spec, n=__N__, seed=1)
+    res = cj.run_sweep(scene, spec, n=__N__, seed=1)
     times.append(time.perf_counter() - t)
 print(json.dumps({"devices": jax.device_count(), "first_s": times[0],
                   "warm_s": float(np.median(times[1:])), "ok": int(res.ok.sum()),

@@ -21,6 +21,7 @@ import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.identify.corner import plot_design  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 FREE = ("m_s", "I_p", "k", "c")
 NOISE = 1e-3
@@ -76,7 +77,7 @@ def main() -> None:
            "torque": d.to_json()["torque"], "designed_fits": designed,
            "baseline_fits": baseline}
     os.makedirs("experiments/results", exist_ok=True)
-    with cj.atomic_write("experiments/results/design_end_to_end.json") as f:
+    with atomic_write("experiments/results/design_end_to_end.json") as f:
         json.dump(out, f, indent=1)
     plot_design(d, "experiments/results/design.png")
     print(json.dumps({k: out[k] for k in ("design_seconds", "log_det_fisher",

@@ -179,8 +179,8 @@ def section() -> str:
             "xla_flags`; a value the user set wins). The library cannot and does not: the "
             "settings are process-wide, read when JAX starts, and `jax.jit`'s "
             "`compiler_options` cannot reach the threshold; a Python program sets them the "
-            "same way, `os.environ[\"XLA_FLAGS\"] = cj.with_cpu_flags(os.environ.get("
-            "\"XLA_FLAGS\"))`, before its first JAX computation. Likewise a program that asks "
+            "same way, `cj.configure_cpu(devices=1)`, before its first JAX computation. "
+            "Likewise a program that asks "
             "JAX for several CPU devices (`jax_num_cpu_devices`; JAX's default is one) gets a "
             "`vmap`-ed lockstep batch's groups spread over them, one core each "
             "(`solve/lockstep.py`), and a sweep's chunks (`sweep/run.py`). "
@@ -435,7 +435,7 @@ def wp2_of(wp):
 
 def _cpu_flags(wp2, tp, gr) -> list[str]:
     """Issue 9's targets 2-4 measured again in processes with crank-jax's CPU flags
-    (`XLA_FLAGS` from `crank_jax.with_cpu_flags`; runs tagged `_cpu_flags`), and the batch
+    (`XLA_FLAGS` from `crank_jax.configure_cpu`; runs tagged `_cpu_flags`), and the batch
     also with two CPU devices (`_cpu_flags_two_devices`), beside the runs with XLA's
     defaults. Each ratio is to a peer measured in the same run."""
     fwp, ftp, fgr, ftp2 = (_load(n) for n in (
@@ -446,7 +446,7 @@ def _cpu_flags(wp2, tp, gr) -> list[str]:
     flags = next(x["machine"].get("xla_flags") for x in (fwp, ftp, fgr, ftp2) if x)
     out = ["### With the CPU flags", "",
            f"`XLA_FLAGS=\"{flags}\"` (what `crank-jax` sets on this machine; "
-           "`cj.with_cpu_flags`), and for the batch also two CPU devices, one per core "
+           "`cj.configure_cpu`), and for the batch also two CPU devices, one per core "
            "(`JAX_NUM_CPU_DEVICES=2`, i.e. `jax.config.update(\"jax_num_cpu_devices\", 2)` "
            "before JAX starts), over which a lockstep batch spreads its groups of members. "
            "Each ratio is to a peer measured in the same run (the compiled numba DOP853 at "

@@ -122,7 +122,7 @@ class GuideFriction(eqx.Module):
     eps: float = 1e-3
 
     def __call__(self, t, phi, dphi):
-        dx = cj.kinematics(self.mech, phi, 1.0, 0.0).v_s  # dx_s/dphi, m/rad
+        dx = cj.model.kinematics(self.mech, phi, 1.0, 0.0).v_s  # dx_s/dphi, m/rad
         v = dx * dphi
         f = (self.F_c + (self.F_st - self.F_c) * jnp.exp(-(v / self.v_st) ** 2))
         return -f * jnp.tanh(v / self.eps) * dx

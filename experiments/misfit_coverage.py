@@ -19,7 +19,7 @@ not a coverage experiment.)
 For each seed the fit is `crank_jax.fit` as it is; the sensitivities are recomputed with
 `jax.jacfwd` through `crank_jax.simulate(adjoint="forward")` in the fit's coordinates
 (log k, log c, phi0, dphi0), which reproduces the fit's white-noise standard errors, and
-`crank_jax.robust_uncertainty` gives the corrected ones. Intervals are log-normal for k
+`crank_jax.identify.robust_uncertainty` gives the corrected ones. Intervals are log-normal for k
 and c, like the fit's. A side study recomputes the HAC errors at fixed bandwidths.
 
     python experiments/misfit_coverage.py [--seeds 30] [--scenarios white,ar1:0.002,...]
@@ -47,7 +47,6 @@ from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
-from crank_jax.identify.diagnostics import hac_covariance, widen  # noqa: E402
 from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
@@ -120,14 +119,15 @@ def run_seed(scene, kind, level, seed, z_true):
     data = disturbed_record(scene, kind, level, seed)
     res = cj.fit(scene, data, free=NAMES, init=DEMO["start"], progress=False, warn=False)
     r, J, z = sensitivities(scene, data, res.values)
-    ru = cj.robust_uncertainty(J, r)
+    ru = cj.identify.robust_uncertainty(J, r)
     se_w = np.sqrt(np.diag(ru.cov_white))
     se_c = np.sqrt(np.diag(ru.cov))
     fit_se = np.array([res.stderr[n] if res.stderr[n] is not None else np.nan for n in NAMES])
     fit_se_z = np.where(LOG, fit_se / np.array([res.values[n] for n in NAMES]), fit_se)
     study = {}
     for bw in BANDWIDTHS:
-        cov = widen(ru.cov_white, hac_covariance(J, r, bandwidth=bw))
+        cov = cj.identify.widen_covariance(ru.cov_white,
+                                          cj.identify.hac_covariance(J, r, bandwidth=bw))
         study[bw] = covered(z, np.sqrt(np.diag(cov)), z_true).tolist()
     d = ru.diagnostics
     return {

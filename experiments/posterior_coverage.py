@@ -20,6 +20,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 cj.configure_cpu()
 
@@ -63,7 +64,7 @@ def _write(rows, hits, laplace, draws, seconds):
            "laplace_coverage": {n: laplace[n] / m for n in FREE},
            "binomial_se": (0.95 * 0.05 / m) ** 0.5, "rows": rows}
     os.makedirs("experiments/results", exist_ok=True)
-    with cj.atomic_write("experiments/results/posterior_coverage.json") as f:
+    with atomic_write("experiments/results/posterior_coverage.json") as f:
         json.dump(out, f, indent=1)
     return out
 

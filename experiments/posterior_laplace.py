@@ -29,6 +29,7 @@ import numpy as np  # noqa: E402
 import crank_jax as cj  # noqa: E402
 from crank_jax.identify.corner import _ellipse  # noqa: E402
 from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 cj.configure_cpu()
 
@@ -105,7 +106,7 @@ def main() -> None:
     os.makedirs("docs/figures", exist_ok=True)
     save_figure(fig, "docs/figures/posterior_laplace.png")
     os.makedirs("experiments/results", exist_ok=True)
-    with cj.atomic_write("experiments/results/posterior_laplace.json") as f:
+    with atomic_write("experiments/results/posterior_laplace.json") as f:
         json.dump(results, f, indent=1)
     print(json.dumps(results, indent=1))
 

@@ -22,6 +22,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 FLAGS = "--no-cpu-flags" not in sys.argv
 if FLAGS:
@@ -56,7 +57,7 @@ def main() -> None:
                        for n in post.names}}
     os.makedirs("experiments/results", exist_ok=True)
     name = "posterior_timing" + ("" if FLAGS else "_defaults")
-    with cj.atomic_write(f"experiments/results/{name}.json") as f:
+    with atomic_write(f"experiments/results/{name}.json") as f:
         json.dump(out, f, indent=1)
     print(json.dumps(out, indent=1))
 

@@ -111,7 +111,7 @@ def demo() -> None:
     print(f"wall time {time.perf_counter() - t:.1f} s, {res.iterations} LM iterations")
     for n, want in TRUTH.items():
         print(f"{n}: estimate {res.values[n]:.5g}, truth {want:g}, 95% CI {res.ci95[n]}")
-    fitted = cj.scene.fitted_scene(rig(None, CONFIGS["both"]), res)
+    fitted = cj.identify.fitted_scene(rig(None, CONFIGS["both"]), res)
     val = cj.validate(fitted, record(VOLTS_VALIDATE, CONFIGS["both"], seed=99),
                       init_window=0.5)
     print(val.summary())

@@ -85,7 +85,7 @@ class BackwardHermite(cj.AbstractLoad):
 
 
 def interpolations(ts, values) -> dict[str, cj.AbstractLoad]:
-    out = {i: cj.SampledLoad(ts, values, i) for i in cj.INTERPOLATIONS}
+    out = {i: cj.SampledLoad(ts, values, i) for i in cj.model.INTERPOLATIONS}
     out["cubic-unclipped"] = UnclippedCubic(out["cubic"])
     out["backward-hermite"] = BackwardHermite(ts, values)
     return out
@@ -129,12 +129,12 @@ def fit_bias(scene, true_torque, logged, seed: int) -> dict[str, dict]:
     data = cj.synthesize(scene, t1=T1, rate=RATE, noise_std=NOISE, seed=seed)
     assert data.n == logged.shape[0]
     loads = {"true": true_torque}
-    loads.update({i: cj.SampledLoad(data.ts, logged, i) for i in cj.INTERPOLATIONS})
+    loads.update({i: cj.SampledLoad(data.ts, logged, i) for i in cj.model.INTERPOLATIONS})
     out = {}
     for name, ld in loads.items():
         rec = cj.Data(data.ts, data.phi, None, ld, source=f"synthetic, {name} torque")
         res = cj.fit(scene, rec, free=FREE, init=START, progress=False, warn=False)
-        truth = {n: float(getattr(scene.mech, n)) for n in FREE if n in cj.FIELDS}
+        truth = {n: float(getattr(scene.mech, n)) for n in FREE if n in cj.model.FIELDS}
         z = {n: (res.values[n] - v) / res.stderr[n] if res.stderr[n] else None
              for n, v in truth.items()}
         out[name] = {"converged": res.converged, "identifiable": res.identifiable,

@@ -45,6 +45,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "experiments" / "results"
@@ -333,7 +334,7 @@ def main(argv=None):
     res["wall_s"] = time.perf_counter() - t0
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"stress_gradients{'_smoke' if a.smoke else ''}.json"
-    with cj.atomic_write(path) as f:
+    with atomic_write(path) as f:
         json.dump(res, f, indent=1)
     if not a.smoke:
         figure(res)

@@ -32,6 +32,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "experiments" / "results"
@@ -50,7 +51,7 @@ def _timed(fn, repeats=3):
 
 
 def _drift(mech, tr):
-    e = np.asarray(cj.energy(mech, tr.phi, tr.dphi))
+    e = np.asarray(cj.model.energy(mech, tr.phi, tr.dphi))
     return float(np.max(np.abs(e - e[0])) / abs(e[0]))
 
 
@@ -68,7 +69,7 @@ def stiffness(smoke):
                 m, 0.01, 0.0, ts, solver=s, max_steps=200_000, throw=False), 1 if smoke else 3)
             rows.append(dict(k=float(k), solver=solver, ok=bool(tr.ok),
                              steps=int(tr.num_steps), time_s=t,
-                             picked=cj.choose_solver(m, 1e-8, span=2.0)))
+                             picked=cj.solve.choose_solver(m, 1e-8, span=2.0)))
         print(f"stiffness k={k:9.3g}: " + ", ".join(
             f"{r['solver']}={r['steps']}" for r in rows[-4:]), flush=True)
     return rows
@@ -153,7 +154,7 @@ def float32(smoke):
         for rtol in (1e-4, 1e-6, 1e-8):
             tr = cj.simulate(m, 1.0, 0.0, ts, rtol=rtol, atol=rtol * 1e-2, solver="tsit5",
                              max_steps=100_000, throw=False)
-            e = np.asarray(cj.energy(m, tr.phi, tr.dphi), dtype=float)
+            e = np.asarray(cj.model.energy(m, tr.phi, tr.dphi), dtype=float)
             rows.append(dict(rtol=rtol, dtype=str(tr.phi.dtype), ok=bool(tr.ok),
                              steps=int(tr.num_steps),
                              drift=float(np.max(np.abs(e - e[0])) / abs(e[0])),
@@ -216,7 +217,7 @@ def main(argv=None):
         print(f"== {name}: {time.perf_counter() - t0:.1f} s", flush=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"stress_numerics{'_smoke' if a.smoke else ''}.json"
-    with cj.atomic_write(path) as f:
+    with atomic_write(path) as f:
         json.dump(res, f, indent=1)
     if not a.smoke and not a.only:
         figures(res)

@@ -32,16 +32,17 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parents[1] / "experiments" / "results"
 
 
 def _time_sweep(scene, spec, outputs, repeats, **kw):
-    cj.sweep(scene, spec, outputs, **kw)  # compile
+    cj.run_sweep(scene, spec, outputs, **kw)  # compile
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        r = cj.sweep(scene, spec, outputs, **kw)
+        r = cj.run_sweep(scene, spec, outputs, **kw)
         times.append(time.perf_counter() - t0)
     return r, float(np.median(times))
 
@@ -64,7 +65,7 @@ def structure_cost(smoke):
         ("pendulum (crank only), own structure", pend, {"c": "uniform(0,1e-3)"},
          ("peak_phi",), None),
         ("pendulum, every term compiled in", pend, {"c": "uniform(0,1e-3)"},
-         ("peak_phi",), cj.Structure()),
+         ("peak_phi",), cj.model.ModelTerms()),
     ]
     rows = []
     for name, scene, spec, outs, structure in cases:
@@ -102,11 +103,11 @@ def solvers(smoke):
     spec = {"k": "uniform(1.5,2.5)", "c": "uniform(0.001,0.003)"}
     kw = dict(n=n, t1=2.0, num_saves=201, chunk_size=n)
     tight = rig.__class__(rig.mech, rtol=1e-12, atol=1e-14, t1=rig.t1, samples=rig.samples)
-    ref = cj.sweep(tight, spec, ("phi",), solver="dopri8", **kw).outputs["phi"]
+    ref = cj.run_sweep(tight, spec, ("phi",), solver="dopri8", **kw).outputs["phi"]
     rows = []
     for solver in ("auto", "tsit5", "dopri8"):
         r, t = _time_sweep(rig, spec, ("phi",), 1 if smoke else 3, solver=solver, **kw)
-        rows.append(dict(solver=solver, ran=sorted({cj.SOLVERS[i] for i in r.solver}), n=n,
+        rows.append(dict(solver=solver, ran=sorted({cj.solve.SOLVERS[i] for i in r.solver}), n=n,
                          rtol=float(rig.rtol), time_per_sample_us=t / n * 1e6,
                          mean_steps=float(r.num_steps.mean()),
                          max_error_rad=float(np.max(np.abs(r.outputs["phi"] - ref)))))
@@ -125,7 +126,7 @@ def main(argv=None):
                solvers=solvers(a.smoke), shared_machine="2 cores shared with other jobs")
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"sweep_cost{'_smoke' if a.smoke else ''}.json"
-    with cj.atomic_write(path) as f:
+    with atomic_write(path) as f:
         json.dump(res, f, indent=1)
     print(f"wrote {path}")
 

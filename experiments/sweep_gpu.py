@@ -37,7 +37,7 @@ OUTS = ("peak_phi", "final_phi", "final_dphi")
 
 def _timed(scene, n, chunk, devices, spec=SPEC, **kw):
     t = time.perf_counter()
-    res = cj.sweep(scene, spec, OUTS, n=n, seed=1, chunk_size=chunk, devices=devices, **kw)
+    res = cj.run_sweep(scene, spec, OUTS, n=n, seed=1, chunk_size=chunk, devices=devices, **kw)
     return res, time.perf_counter() - t
 
 

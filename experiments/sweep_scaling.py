@@ -1,7 +1,7 @@
 """Per-trajectory cost of a sweep over CPU devices x processes, in one run.
 
 For each layout (1, 2, 4 CPU devices in all, over 1 or 2 processes on this machine, the
-processes joined by `cj.initialize_distributed` on the loopback address) fresh processes
+processes joined by `cj.sweep.initialize_distributed` on the loopback address) fresh processes
 run the same sweep: the lab rig, k ~ normal(2, 0.1), c ~ uniform(0.005, 0.02), `n`
 samples over `t1` s, the default outputs, chunks of `chunk`. The first sweep compiles;
 the time of the second (warm) one, on process 0, divided by `n`, is the per-trajectory
@@ -31,15 +31,15 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np
 import crank_jax as cj
 if int(sys.argv[1]) > 1:
-    cj.initialize_distributed()
+    cj.sweep.initialize_distributed()
 scene = cj.load_scene("lab-rig")
 spec = {"k": "normal(2.0,0.1)", "c": "uniform(0.005,0.02)"}
 kw = dict(n=int(sys.argv[2]), seed=1, t1=float(sys.argv[3]), chunk_size=int(sys.argv[4]))
 t = time.perf_counter()
-cj.sweep(scene, spec, **kw)
+cj.run_sweep(scene, spec, **kw)
 first = time.perf_counter() - t
 t = time.perf_counter()
-res = cj.sweep(scene, spec, **kw)
+res = cj.run_sweep(scene, spec, **kw)
 warm = time.perf_counter() - t
 if jax.process_index() == 0:
     print(json.dumps({"devices": jax.device_count(), "processes": jax.process_count(),

@@ -48,15 +48,15 @@ def test_presets_as_accurate_as_diffrax_dopri8(name):
 def test_policy_picks_adaptive_except_stiff_or_sampled(lab_rig):
     ts = lab_rig.ts()
     mech = lab_rig.mech
-    assert name_of(cj.resolve_solver("auto", mech, 1e-8, ts=ts)) == "dopri8-adaptive"
+    assert name_of(cj.solve.resolve_solver("auto", mech, 1e-8, ts=ts)) == "dopri8-adaptive"
     uneven = jnp.concatenate([ts[:10], ts[10::2]])
-    assert name_of(cj.resolve_solver("auto", mech, 1e-8, ts=uneven)) == "dopri8-adaptive"
+    assert name_of(cj.solve.resolve_solver("auto", mech, 1e-8, ts=uneven)) == "dopri8-adaptive"
     # Traced parameters and Coulomb friction too.
     friction = mech.replace(T_c=0.004)
-    assert name_of(cj.resolve_solver("auto", friction, 1e-8, ts=ts)) == "dopri8-adaptive"
+    assert name_of(cj.solve.resolve_solver("auto", friction, 1e-8, ts=ts)) == "dopri8-adaptive"
     sampled = cj.SampledLoad(jnp.linspace(0, 10, 11), jnp.zeros(11))
-    assert name_of(cj.resolve_solver("auto", mech, 1e-8, load=sampled, ts=ts)) == "dopri8"
-    assert name_of(cj.resolve_solver("auto", mech.replace(k=1e8, c=50.0), 1e-8,
+    assert name_of(cj.solve.resolve_solver("auto", mech, 1e-8, load=sampled, ts=ts)) == "dopri8"
+    assert name_of(cj.solve.resolve_solver("auto", mech.replace(k=1e8, c=50.0), 1e-8,
                                      ts=ts)) == "kvaerno5"
     # The default run is that solver, on an uneven grid too.
     a, b = lab_rig.simulate(uneven), lab_rig.simulate(uneven, solver="dopri8-adaptive")

@@ -34,14 +34,14 @@ def _cases(rng):
 
 def test_offset_closure_puts_the_wrist_pin_on_y_equals_e(rng):
     for mech, phi, _, _ in _cases(rng):
-        g = cj.geometry(mech, phi)
+        g = cj.model.geometry_at(mech, phi)
         np.testing.assert_allclose(mech.r * jnp.sin(phi) - mech.L * g.sin, mech.e, atol=1e-15)
         np.testing.assert_allclose(g.sin**2 + g.cos**2, 1.0, rtol=1e-15)
-        delta = lambda p: cj.geometry(mech, p).delta  # noqa: E731
+        delta = lambda p: cj.model.geometry_at(mech, p).delta  # noqa: E731
         np.testing.assert_allclose(g.d1, jax.grad(delta)(phi), rtol=1e-11, atol=1e-14)
-        np.testing.assert_allclose(g.d2, jax.grad(lambda p: cj.geometry(mech, p).d1)(phi),
+        np.testing.assert_allclose(g.d2, jax.grad(lambda p: cj.model.geometry_at(mech, p).d1)(phi),
                                    rtol=1e-10, atol=1e-13)
-        x_s = lambda p: cj.geometry(mech, p).x_s  # noqa: E731
+        x_s = lambda p: cj.model.geometry_at(mech, p).x_s  # noqa: E731
         np.testing.assert_allclose(g.lever, -jax.grad(x_s)(phi), rtol=1e-11, atol=1e-14)
         np.testing.assert_allclose(g.dlever, -jax.grad(jax.grad(x_s))(phi),
                                    rtol=1e-10, atol=1e-13)
@@ -49,18 +49,18 @@ def test_offset_closure_puts_the_wrist_pin_on_y_equals_e(rng):
 
 def test_K_is_half_dM_dphi_with_offset(rng):
     for mech, phi, _, _ in _cases(rng):
-        dM = jax.grad(lambda p: cj.mass(mech, p))(phi)
-        np.testing.assert_allclose(cj.coriolis(mech, phi), 0.5 * dM, rtol=1e-11, atol=1e-14)
+        dM = jax.grad(lambda p: cj.model.mass(mech, p))(phi)
+        np.testing.assert_allclose(cj.model.coriolis(mech, phi), 0.5 * dM, rtol=1e-11, atol=1e-14)
 
 
 def test_global_newton_euler_projection_with_offset_and_friction(rng):
     for mech, phi, dphi, t in _cases(rng):
-        gf = cj.global_form(mech, phi, dphi, t, LOAD, TORQUE)
-        np.testing.assert_allclose(gf.J @ gf.Mbar @ gf.J, cj.mass(mech, phi), rtol=1e-12)
-        np.testing.assert_allclose(gf.J @ gf.qbar_c, cj.coriolis(mech, phi) * dphi**2,
+        gf = cj.model.newton_euler_form(mech, phi, dphi, t, LOAD, TORQUE)
+        np.testing.assert_allclose(gf.J @ gf.Mbar @ gf.J, cj.model.mass(mech, phi), rtol=1e-12)
+        np.testing.assert_allclose(gf.J @ gf.qbar_c, cj.model.coriolis(mech, phi) * dphi**2,
                                    rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(
-            gf.J @ gf.qbar_e, cj.generalized_force(mech, phi, dphi, t, LOAD, TORQUE),
+            gf.J @ gf.qbar_e, cj.model.generalized_force(mech, phi, dphi, t, LOAD, TORQUE),
             rtol=1e-10, atol=1e-11)
 
 
@@ -69,27 +69,27 @@ def test_acceleration_equals_global_newton_euler_solution(rng):
     # which shares none of its M, K, q code; with and without offset and friction.
     for mech, phi, dphi, t in _cases(rng):
         for m in (mech, mech.replace(e=0.0, T_c=0.0, c_s=0.0, F_s=0.0)):
-            gf = cj.global_form(m, phi, dphi, t, LOAD, TORQUE)
+            gf = cj.model.newton_euler_form(m, phi, dphi, t, LOAD, TORQUE)
             ne = (gf.J @ gf.qbar_e - gf.J @ gf.qbar_c) / (gf.J @ gf.Mbar @ gf.J)
-            acc = cj.acceleration(m, phi, dphi, t, LOAD, TORQUE, cj.Structure.of(m))
+            acc = cj.model.acceleration(m, phi, dphi, t, LOAD, TORQUE, cj.model.ModelTerms.of(m))
             np.testing.assert_allclose(acc, ne, rtol=1e-10, atol=1e-10)
 
 
 def test_conservative_q_is_minus_grad_potential_with_offset(rng):
     # At rest every friction term vanishes (tanh(0) = 0), so q(phi, 0) is conservative.
     for mech, phi, _, _ in _cases(rng):
-        q_cons = cj.generalized_force(mech, phi, 0.0)
-        dV = jax.grad(lambda p: cj.potential_energy(mech, p))(phi)
+        q_cons = cj.model.generalized_force(mech, phi, 0.0)
+        dV = jax.grad(lambda p: cj.model.potential_energy(mech, p))(phi)
         np.testing.assert_allclose(q_cons, -dV, rtol=1e-11, atol=1e-12)
 
 
 def test_energy_rate_equals_power_in_with_all_friction(rng):
     for mech, phi, dphi, t in _cases(rng):
-        ddphi = cj.acceleration(mech, phi, dphi, t, LOAD, TORQUE)
-        dE_dphi, dE_ddphi = jax.grad(lambda p, d: cj.energy(mech, p, d), argnums=(0, 1))(
+        ddphi = cj.model.acceleration(mech, phi, dphi, t, LOAD, TORQUE)
+        dE_dphi, dE_ddphi = jax.grad(lambda p, d: cj.model.energy(mech, p, d), argnums=(0, 1))(
             phi, dphi)
         rate = dE_dphi * dphi + dE_ddphi * ddphi
-        power = cj.power_in(mech, phi, dphi, t, LOAD, TORQUE)
+        power = cj.model.nonconservative_power(mech, phi, dphi, t, LOAD, TORQUE)
         scale = abs(float(power)) + abs(float(dE_dphi * dphi)) + 1e-12
         np.testing.assert_allclose(rate, power, rtol=0, atol=1e-10 * scale)
 
@@ -97,8 +97,9 @@ def test_energy_rate_equals_power_in_with_all_friction(rng):
 def test_friction_only_takes_energy_out(rng):
     for mech, phi, dphi, _ in _cases(rng):
         free = mech.replace(c=0.0)  # no loads, no viscous shaft: only friction does work
-        assert float(cj.power_in(free, phi, dphi)) < 0.0
-        assert float(cj.power_in(free.replace(T_c=0.0, c_s=0.0, F_s=0.0), phi, dphi)) == 0.0
+        assert float(cj.model.nonconservative_power(free, phi, dphi)) < 0.0
+        lossless = free.replace(T_c=0.0, c_s=0.0, F_s=0.0)
+        assert float(cj.model.nonconservative_power(lossless, phi, dphi)) == 0.0
 
 
 def _cross(u, f):
@@ -107,9 +108,9 @@ def _cross(u, f):
 
 def test_reactions_satisfy_each_body_newton_euler_with_friction(rng):
     for mech, phi, dphi, t in _cases(rng):
-        ddphi = cj.acceleration(mech, phi, dphi, t, LOAD, TORQUE)
-        kin = cj.kinematics(mech, phi, dphi, ddphi)
-        rx = cj.reactions(mech, phi, dphi, ddphi, t, LOAD, TORQUE)
+        ddphi = cj.model.acceleration(mech, phi, dphi, t, LOAD, TORQUE)
+        kin = cj.model.kinematics(mech, phi, dphi, ddphi)
+        rx = cj.model.reactions(mech, phi, dphi, ddphi, t, LOAD, TORQUE)
         grav = lambda m: jnp.array([-m * mech.g, 0.0])  # noqa: E731
         pA = jnp.array([mech.r * jnp.cos(phi), mech.r * jnp.sin(phi)])
         pB = jnp.array([kin.x_s, mech.e])
@@ -136,20 +137,22 @@ def test_reactions_satisfy_each_body_newton_euler_with_friction(rng):
 
 def test_zero_terms_are_compiled_out():
     mech = cj.load_scene("lab-rig").mech
-    st = cj.Structure.of(mech)
+    st = cj.model.ModelTerms.of(mech)
     assert not (st.offset or st.crank_coulomb or st.slider_damper or st.slider_coulomb)
-    jaxpr = str(jax.make_jaxpr(lambda p, d: cj.acceleration(mech, p, d, structure=st))(0.3, 1.0))
+    jaxpr = str(jax.make_jaxpr(
+        lambda p, d: cj.model.acceleration(mech, p, d, structure=st))(0.3, 1.0))
     assert "tanh" not in jaxpr
     rich = mech.replace(e=0.01, T_c=0.05, c_s=1.0, F_s=0.5)
-    st2 = cj.Structure.of(rich)
+    st2 = cj.model.ModelTerms.of(rich)
     assert st2.offset and st2.crank_coulomb and st2.slider_damper and st2.slider_coulomb
-    jaxpr2 = str(jax.make_jaxpr(lambda p, d: cj.acceleration(rich, p, d, structure=st2))(0.3, 1.0))
+    jaxpr2 = str(jax.make_jaxpr(
+        lambda p, d: cj.model.acceleration(rich, p, d, structure=st2))(0.3, 1.0))
     assert jaxpr2.count("tanh") == 2
     phis = jnp.linspace(-4, 4, 17)
-    np.testing.assert_allclose(cj.acceleration(mech, phis, 0.3, structure=st),
-                               cj.acceleration(mech, phis, 0.3), rtol=1e-14)
-    np.testing.assert_allclose(cj.acceleration(rich, phis, 0.3, structure=st2),
-                               cj.acceleration(rich, phis, 0.3), rtol=1e-14)
+    np.testing.assert_allclose(cj.model.acceleration(mech, phis, 0.3, structure=st),
+                               cj.model.acceleration(mech, phis, 0.3), rtol=1e-14)
+    np.testing.assert_allclose(cj.model.acceleration(rich, phis, 0.3, structure=st2),
+                               cj.model.acceleration(rich, phis, 0.3), rtol=1e-14)
 
 
 def test_traced_fields_keep_their_terms_and_zero_constants_beside_them_compile_out():
@@ -161,7 +164,7 @@ def test_traced_fields_keep_their_terms_and_zero_constants_beside_them_compile_o
 
     def run(k, T_c):
         m = mech.replace(k=k, T_c=T_c)
-        seen.append(cj.Structure.of(m))
+        seen.append(cj.model.ModelTerms.of(m))
         return cj.simulate(m, 1.0, 0.0, ts).phi
 
     batch = jax.jit(jax.vmap(run, in_axes=(0, None)))(jnp.array([1.5, 2.0]), 0.0)
@@ -180,7 +183,7 @@ def test_new_values_never_retrace():
     @eqx.filter_jit
     @eqx.debug.assert_max_traces(max_traces=1)
     def acc(m):
-        return cj.acceleration(m, 0.3, 1.0)
+        return cj.model.acceleration(m, 0.3, 1.0)
 
     for e, T_c, F_s in [(0.0, 0.0, 0.0), (0.01, 0.1, 0.5), (-0.02, 0.3, 2.0)]:
         acc(mech.replace(e=e, T_c=T_c, c_s=2 * T_c, F_s=F_s, w_c=0.02, w_s=0.002))
@@ -188,10 +191,10 @@ def test_new_values_never_retrace():
 
 def test_crank_field_is_the_acceleration(rng):
     mech = _rich(rng)
-    field = cj.CrankField(mech, LOAD, TORQUE, cj.Structure.of(mech))
+    field = cj.model.CrankField(mech, LOAD, TORQUE, cj.model.ModelTerms.of(mech))
     dphi, ddphi = field(0.7, (jnp.asarray(0.4), jnp.asarray(-3.0)))
     assert float(dphi) == -3.0
-    np.testing.assert_allclose(ddphi, cj.acceleration(mech, 0.4, -3.0, 0.7, LOAD, TORQUE),
+    np.testing.assert_allclose(ddphi, cj.model.acceleration(mech, 0.4, -3.0, 0.7, LOAD, TORQUE),
                                rtol=1e-14)
 
 

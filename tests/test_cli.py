@@ -56,7 +56,7 @@ def test_linearize_json_keys(capsys):
 def test_scenes_lists_presets(capsys):
     code, out, _ = _run(capsys, "scenes")
     assert code == 0
-    assert [ln.split()[0] for ln in out.splitlines()] == list(cj.PRESETS)
+    assert [ln.split()[0] for ln in out.splitlines()] == list(cj.presets())
 
 
 def test_never_overwrites_the_input(tmp_path, capsys):

@@ -169,8 +169,8 @@ def test_bad_input_names_the_field():
 
 
 def test_public_names():
-    assert cj.residual_diagnostics is dg.residual_diagnostics
-    assert cj.hac_covariance is dg.hac_covariance
+    assert cj.identify.residual_diagnostics is dg.residual_diagnostics
+    assert cj.identify.hac_covariance is dg.hac_covariance
 
 
 def test_auto_bandwidth_several_components_reduce_to_one():

@@ -28,7 +28,7 @@ def _problem(name: str, segments: int, torque):
     data = cj.synthesize(scene, t1=2.0, rate=100.0, noise_std=1e-3, seed=1)
     prob = build_problem(scene.mech, [(data, scene.load, torque, 1.0, 0.0)],
                          ("k", "c", "phi0", "dphi0"), {"k": 2.0, "c": 0.002}, [segments],
-                         solver=cj.solver_named(name), rtol=1e-8, atol=1e-10,
+                         solver=cj.solve.solver_named(name), rtol=1e-8, atol=1e-10,
                          max_steps=32768)
     z = jnp.concatenate([jnp.asarray(prob.to_z([2.1, 0.0025, 1.0, 0.0])),
                          0.5 * jnp.ones(prob.n_extra)])
@@ -87,7 +87,7 @@ def test_solve_unchecked_equals_saveat_ts_with_its_tangents(max_steps):
     solver = Diffrax(diffrax.Dopri5())
 
     def run(w, checks):
-        sol = cj.solve(_oscillator, solver, TS, Y0, w, rtol=1e-8, atol=1e-10,
+        sol = cj.solve.solve(_oscillator, solver, TS, Y0, w, rtol=1e-8, atol=1e-10,
                        max_steps=max_steps, adjoint="forward", throw=False, checks=checks)
         return jnp.stack(sol.ys), (sol.result == diffrax.RESULTS.successful, sol.num_steps)
 
@@ -110,7 +110,7 @@ def test_reverse_mode_and_implicit_solvers_keep_saveat_ts():
     # `checks=False` changes only what it can: reverse mode (the save loop has no reverse
     # mode) and implicit solvers go through `SaveAt(ts)` and still differentiate.
     def loss(w, solver, adjoint):
-        sol = cj.solve(_oscillator, solver, TS, Y0, w, rtol=1e-8, atol=1e-10,
+        sol = cj.solve.solve(_oscillator, solver, TS, Y0, w, rtol=1e-8, atol=1e-10,
                        adjoint=adjoint, checks=False)
         return jnp.sum(sol.ys[0] ** 2)
 
@@ -123,8 +123,8 @@ def test_reverse_mode_and_implicit_solvers_keep_saveat_ts():
 
 
 def test_unchecked_is_the_same_solver_but_for_the_check():
-    solver = cj.solver_named("dopri5")
+    solver = cj.solve.solver_named("dopri5")
     assert solver.unchecked() == Diffrax(diffrax.Dopri5(), checks=False) != solver
     assert solver.unchecked().solver is solver.solver
-    fused = cj.solver_named("dopri8-adaptive")
+    fused = cj.solve.solver_named("dopri8-adaptive")
     assert fused.unchecked() is fused

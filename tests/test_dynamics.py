@@ -23,8 +23,8 @@ def _cases(rng):
 
 def test_K_is_half_dM_dphi(rng):
     for mech, phi, _, _ in _cases(rng):
-        K = cj.coriolis(mech, phi)
-        dM = jax.grad(lambda p: cj.mass(mech, p))(phi)
+        K = cj.model.coriolis(mech, phi)
+        dM = jax.grad(lambda p: cj.model.mass(mech, p))(phi)
         np.testing.assert_allclose(K, 0.5 * dM, rtol=1e-11, atol=1e-14)
 
 
@@ -32,19 +32,19 @@ def test_M_K_q_equal_projection_of_global_newton_euler_form(rng):
     load = cj.HarmonicLoad(3.0, 2.0, 1.5, 0.3)
     torque = cj.HarmonicLoad(-0.2, 0.5, 2.5, 1.0)
     for mech, phi, dphi, t in _cases(rng):
-        gf = cj.global_form(mech, phi, dphi, t, load, torque)
-        np.testing.assert_allclose(gf.J @ gf.Mbar @ gf.J, cj.mass(mech, phi), rtol=1e-12)
-        np.testing.assert_allclose(gf.J @ gf.qbar_c, cj.coriolis(mech, phi) * dphi**2,
+        gf = cj.model.newton_euler_form(mech, phi, dphi, t, load, torque)
+        np.testing.assert_allclose(gf.J @ gf.Mbar @ gf.J, cj.model.mass(mech, phi), rtol=1e-12)
+        np.testing.assert_allclose(gf.J @ gf.qbar_c, cj.model.coriolis(mech, phi) * dphi**2,
                                    rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(
-            gf.J @ gf.qbar_e, cj.generalized_force(mech, phi, dphi, t, load, torque),
+            gf.J @ gf.qbar_e, cj.model.generalized_force(mech, phi, dphi, t, load, torque),
             rtol=1e-11, atol=1e-12)
 
 
 def test_conservative_q_is_minus_grad_potential(rng):
     for mech, phi, _, _ in _cases(rng):
-        q_cons = cj.generalized_force(mech.replace(c=0.0), phi, 0.0)
-        dV = jax.grad(lambda p: cj.potential_energy(mech, p))(phi)
+        q_cons = cj.model.generalized_force(mech.replace(c=0.0), phi, 0.0)
+        dV = jax.grad(lambda p: cj.model.potential_energy(mech, p))(phi)
         np.testing.assert_allclose(q_cons, -dV, rtol=1e-11, atol=1e-12)
 
 
@@ -53,18 +53,18 @@ def test_slider_force_does_work_minus_P_dx_s(rng):
     P = 7.5
     for mech, phi, _, _ in _cases(rng):
         m0 = mech.replace(g=0.0, k=0.0, c=0.0)
-        q = cj.generalized_force(m0, phi, 0.0, load=P)
-        dxs = jax.grad(lambda p: cj.kinematics(mech, p, 0.0, 0.0).x_s)(phi)
+        q = cj.model.generalized_force(m0, phi, 0.0, load=P)
+        dxs = jax.grad(lambda p: cj.model.kinematics(mech, p, 0.0, 0.0).x_s)(phi)
         np.testing.assert_allclose(q, -P * dxs, rtol=1e-11, atol=1e-12)
 
 
 def test_kinetic_energy_from_body_velocities(rng):
     # T = sum m v^2/2 + I w^2/2 over the three bodies, computed from the kinematics.
     for mech, phi, dphi, _ in _cases(rng):
-        kin = cj.kinematics(mech, phi, dphi, 0.0)
+        kin = cj.model.kinematics(mech, phi, dphi, 0.0)
         T = 0.5 * (mech.m_c * jnp.sum(kin.v_c**2) + mech.m_p * jnp.sum(kin.v_p**2)
                    + mech.m_s * kin.v_s**2 + mech.I_c * dphi**2 + mech.I_p * kin.ddelta**2)
-        np.testing.assert_allclose(cj.kinetic_energy(mech, phi, dphi), T, rtol=1e-12)
+        np.testing.assert_allclose(cj.model.kinetic_energy(mech, phi, dphi), T, rtol=1e-12)
 
 
 def test_kinematics_are_time_derivatives(rng):
@@ -73,9 +73,9 @@ def test_kinematics_are_time_derivatives(rng):
     for mech, phi, dphi, _ in _cases(rng):
         ddphi = rng.uniform(-50, 50)
         path = lambda t: phi + dphi * t + 0.5 * ddphi * t**2  # noqa: E731
-        pos = lambda t: cj.kinematics(mech, path(t), 0.0, 0.0)  # noqa: E731
-        vel = lambda t: cj.kinematics(mech, path(t), dphi + ddphi * t, 0.0)  # noqa: E731
-        kin = cj.kinematics(mech, phi, dphi, ddphi)
+        pos = lambda t: cj.model.kinematics(mech, path(t), 0.0, 0.0)  # noqa: E731
+        vel = lambda t: cj.model.kinematics(mech, path(t), dphi + ddphi * t, 0.0)  # noqa: E731
+        kin = cj.model.kinematics(mech, phi, dphi, ddphi)
         _, dpos = jax.jvp(pos, (0.0,), (1.0,))
         _, dvel = jax.jvp(vel, (0.0,), (1.0,))
         for name in ("c", "p"):
@@ -91,39 +91,43 @@ def test_kinematics_are_time_derivatives(rng):
 
 def test_closure_wrist_pin_on_slider_line(rng):
     for mech, phi, _, _ in _cases(rng):
-        ca = cj.coupler_angle(mech, phi)
+        ca = cj.model.coupler_angle(mech, phi)
         y_B = mech.r * jnp.sin(phi) - mech.L * ca.sin
         np.testing.assert_allclose(y_B, 0.0, atol=1e-15)
         np.testing.assert_allclose(jnp.sin(ca.delta), ca.sin, rtol=1e-14, atol=1e-15)
-        np.testing.assert_allclose(ca.d1, jax.grad(lambda p: cj.coupler_angle(mech, p).delta)(phi),
+        np.testing.assert_allclose(ca.d1,
+                                   jax.grad(lambda p: cj.model.coupler_angle(mech, p).delta)(phi),
                                    rtol=1e-11, atol=1e-14)
-        np.testing.assert_allclose(ca.d2, jax.grad(lambda p: cj.coupler_angle(mech, p).d1)(phi),
+        np.testing.assert_allclose(ca.d2,
+                                   jax.grad(lambda p: cj.model.coupler_angle(mech, p).d1)(phi),
                                    rtol=1e-10, atol=1e-13)
 
 
 def test_reduced_structure_matches_full_terms_for_crank_only():
     mech = cj.load_scene("pendulum").mech
-    st = cj.Structure.of(mech)
-    assert st == cj.Structure(coupler=False, slider=False, spring=False, offset=False,
+    st = cj.model.ModelTerms.of(mech)
+    assert st == cj.model.ModelTerms(coupler=False, slider=False, spring=False, offset=False,
                                crank_coulomb=False, slider_damper=False,
                                slider_coulomb=False, tilt=False)
     phis = jnp.linspace(-4, 4, 17)
-    np.testing.assert_allclose(cj.mass(mech, phis, st), cj.mass(mech, phis), rtol=1e-15)
-    np.testing.assert_allclose(cj.coriolis(mech, phis, st), cj.coriolis(mech, phis), atol=0)
-    np.testing.assert_allclose(cj.acceleration(mech, phis, 0.3, 0.0, structure=st),
-                               cj.acceleration(mech, phis, 0.3, 0.0), rtol=1e-14)
+    np.testing.assert_allclose(cj.model.mass(mech, phis, st), cj.model.mass(mech, phis),
+                               rtol=1e-15)
+    np.testing.assert_allclose(cj.model.coriolis(mech, phis, st), cj.model.coriolis(mech, phis),
+                               atol=0)
+    np.testing.assert_allclose(cj.model.acceleration(mech, phis, 0.3, 0.0, structure=st),
+                               cj.model.acceleration(mech, phis, 0.3, 0.0), rtol=1e-14)
 
 
 @pytest.mark.parametrize("phi", [0.0, 0.7, np.pi / 2, 3.0])
 def test_mass_is_positive_and_matches_hand_value_at_zero(phi):
     mech = cj.load_scene("lab-rig").mech
-    assert float(cj.mass(mech, phi)) > 0
+    assert float(cj.model.mass(mech, phi)) > 0
     if phi == 0.0:
         v = mech.as_dict()
         lam = v["r"] / v["L"]
         hand = (v["m_c"] * v["s"] ** 2 + v["I_c"] + v["m_p"] * (v["r"] - v["b"] * lam) ** 2
                 + v["I_p"] * lam**2)
-        np.testing.assert_allclose(cj.mass(mech, 0.0), hand, rtol=1e-14)
+        np.testing.assert_allclose(cj.model.mass(mech, 0.0), hand, rtol=1e-14)
 
 
 def test_packed_field_is_the_field_and_differentiates_alike(rng):
@@ -135,16 +139,16 @@ def test_packed_field_is_the_field_and_differentiates_alike(rng):
         mech = mech.replace(e=0.3 * (mech.L - mech.r) * rng.uniform(-1, 1),
                             T_c=rng.uniform(0, 0.1), c_s=rng.uniform(0, 1),
                             F_s=rng.uniform(0, 1))
-        for st in (cj.Structure(), cj.Structure.of(mech.replace(e=0.0, T_c=0.0)),
-                   cj.Structure.of(cj.load_scene("pendulum").mech)):
+        for st in (cj.model.ModelTerms(), cj.model.ModelTerms.of(mech.replace(e=0.0, T_c=0.0)),
+                   cj.model.ModelTerms.of(cj.load_scene("pendulum").mech)):
             m = mech if st.offset else mech.replace(e=0.0)
-            field = cj.CrankField(m, load, torque, st)
+            field = cj.model.CrankField(m, load, torque, st)
             ref = field(t, (phi, dphi))
             got = field.packed()(t, (phi, dphi))
             np.testing.assert_allclose(got, ref, rtol=1e-13, atol=1e-13)
 
             def accel(k, packed, st=st, m=m):
-                f = cj.CrankField(m.replace(k=k), load, torque, st)
+                f = cj.model.CrankField(m.replace(k=k), load, torque, st)
                 return (f.packed() if packed else f)(t, (phi, dphi))[1]
 
             np.testing.assert_allclose(jax.grad(accel)(m.k, True), jax.grad(accel)(m.k, False),

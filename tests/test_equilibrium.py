@@ -38,8 +38,8 @@ def test_paper_case_comes_back_exactly(rng):
 
 def _rhs(mech, P, tau):
     def f(phi, dphi):
-        return (cj.generalized_force(mech, phi, dphi, 0.0, load=P, torque=tau)
-                - cj.coriolis(mech, phi) * dphi**2)
+        return (cj.model.generalized_force(mech, phi, dphi, 0.0, load=P, torque=tau)
+                - cj.model.coriolis(mech, phi) * dphi**2)
     return f
 
 
@@ -53,7 +53,7 @@ def test_offset_and_constant_loads_equal_jacobian_at_phi_eq(rng):
         assert abs(phi_eq) < 1.0
         np.testing.assert_allclose(f(phi_eq, 0.0), 0.0, atol=1e-12)
         dq_dphi, dq_ddphi = jax.jacfwd(f, argnums=(0, 1))(phi_eq, 0.0)
-        np.testing.assert_allclose(lin.mu, cj.mass(mech, phi_eq), rtol=1e-13)
+        np.testing.assert_allclose(lin.mu, cj.model.mass(mech, phi_eq), rtol=1e-13)
         np.testing.assert_allclose(lin.xi, -dq_dphi, rtol=1e-10, atol=1e-11)
         np.testing.assert_allclose(lin.chi, -dq_ddphi, rtol=1e-12)
         np.testing.assert_allclose(lin.k_crit, mech.k - lin.xi, rtol=1e-12)
@@ -91,10 +91,10 @@ def test_jit_vmap_and_implicit_gradient(rng):
         np.testing.assert_allclose(lin_b.phi_eq[i], one.phi_eq, rtol=1e-12, atol=1e-15)
         np.testing.assert_allclose(direct.xi[i], one.xi, rtol=1e-12)
     m = mechs[0]
-    grad = jax.grad(lambda e: cj.equilibrium(m.replace(e=e), 1.0))(m.e)
+    grad = jax.grad(lambda e: cj.model.equilibrium(m.replace(e=e), 1.0))(m.e)
     h = 1e-6
-    fd = (cj.equilibrium(m.replace(e=m.e + h), 1.0)
-          - cj.equilibrium(m.replace(e=m.e - h), 1.0)) / (2 * h)
+    fd = (cj.model.equilibrium(m.replace(e=m.e + h), 1.0)
+          - cj.model.equilibrium(m.replace(e=m.e - h), 1.0)) / (2 * h)
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
 
 
@@ -108,9 +108,9 @@ def test_no_equilibrium_is_nan_and_unstable():
 
 def test_coulomb_note():
     mech = cj.load_scene("lab-rig").mech
-    assert cj.coulomb_note(mech) is None
-    assert "T_c" in cj.coulomb_note(mech.replace(T_c=0.1))
-    assert "F_s" in cj.coulomb_note(mech.replace(F_s=0.1))
+    assert cj.model.coulomb_friction_note(mech) is None
+    assert "T_c" in cj.model.coulomb_friction_note(mech.replace(T_c=0.1))
+    assert "F_s" in cj.model.coulomb_friction_note(mech.replace(F_s=0.1))
 
 
 def test_cli_linearize_reports_phi_eq_and_coulomb_note(tmp_path, capsys):

@@ -94,11 +94,11 @@ def _lagrange_acceleration(m, phi, dphi, t):
 
 def test_potential_and_conservative_q_match_the_reference(rng):
     for mech, phi, _, _ in _cases(rng):
-        np.testing.assert_allclose(cj.potential_energy(mech, phi), _potential(mech, phi),
+        np.testing.assert_allclose(cj.model.potential_energy(mech, phi), _potential(mech, phi),
                                    rtol=1e-12, atol=1e-13)
         # At rest every friction term vanishes (tanh(0) = 0): q(phi, 0) is conservative.
-        q = cj.generalized_force(mech.replace(c=0.0), phi, 0.0,
-                                 structure=cj.Structure.of(mech))
+        q = cj.model.generalized_force(mech.replace(c=0.0), phi, 0.0,
+                                 structure=cj.model.ModelTerms.of(mech))
         dV = jax.grad(lambda p, m=mech: _potential(m, p))(phi)
         np.testing.assert_allclose(q, -dV, rtol=1e-11, atol=1e-12)
 
@@ -106,8 +106,8 @@ def test_potential_and_conservative_q_match_the_reference(rng):
 @eqx.filter_jit
 def _model_accelerations(mech, phi, dphi, t, structure):
     """The acceleration from the fused formula and from the packed field."""
-    acc = cj.acceleration(mech, phi, dphi, t, LOAD, TORQUE, structure)
-    packed = cj.CrankField(mech, LOAD, TORQUE, structure).packed()
+    acc = cj.model.acceleration(mech, phi, dphi, t, LOAD, TORQUE, structure)
+    packed = cj.model.CrankField(mech, LOAD, TORQUE, structure).packed()
     return acc, packed(t, (phi, dphi))[1]
 
 
@@ -115,7 +115,7 @@ def test_acceleration_equals_an_independent_lagrangian(rng):
     for mech, *state in _cases(rng):
         phi, dphi, t = (jnp.asarray(x) for x in state)  # traced: one compilation
         ref = _lagrange_acceleration(mech, phi, dphi, t)
-        for st in (cj.Structure(), cj.Structure.of(mech)):
+        for st in (cj.model.ModelTerms(), cj.model.ModelTerms.of(mech)):
             for acc in _model_accelerations(mech, phi, dphi, t, st):
                 np.testing.assert_allclose(acc, ref, rtol=1e-9, atol=1e-9)
 
@@ -128,17 +128,17 @@ def test_direction_is_the_documented_one():
     for gamma in SPECIAL + (1.1,):
         m = mech.replace(gravity_angle=gamma, c=0.0)
         for phi in (0.0, 0.4, -2.0):
-            np.testing.assert_allclose(cj.generalized_force(m, phi, 0.0),
+            np.testing.assert_allclose(cj.model.generalized_force(m, phi, 0.0),
                                        msg * np.sin(phi - gamma), rtol=1e-13, atol=1e-15)
 
 
 def test_energy_rate_equals_power_in(rng):
     for mech, phi, dphi, t in _cases(rng):
-        ddphi = cj.acceleration(mech, phi, dphi, t, LOAD, TORQUE)
-        dE_dphi, dE_ddphi = jax.grad(lambda p, d, m=mech: cj.energy(m, p, d),
+        ddphi = cj.model.acceleration(mech, phi, dphi, t, LOAD, TORQUE)
+        dE_dphi, dE_ddphi = jax.grad(lambda p, d, m=mech: cj.model.energy(m, p, d),
                                      argnums=(0, 1))(phi, dphi)
         rate = dE_dphi * dphi + dE_ddphi * ddphi
-        power = cj.power_in(mech, phi, dphi, t, LOAD, TORQUE)
+        power = cj.model.nonconservative_power(mech, phi, dphi, t, LOAD, TORQUE)
         scale = abs(float(power)) + abs(float(dE_dphi * dphi)) + 1e-12
         np.testing.assert_allclose(rate, power, rtol=0, atol=1e-10 * scale)
 
@@ -150,7 +150,7 @@ def test_energy_is_constant_along_a_simulation_without_dissipation(gamma):
     tr = cj.simulate(mech, 1.0, 0.0, ts, solver="dopri8", rtol=1e-12, atol=1e-14,
                      outputs=("energy",))
     e = np.asarray(tr.extras["energy"])
-    kinetic = np.asarray(cj.kinetic_energy(mech, tr.phi, tr.dphi))
+    kinetic = np.asarray(cj.model.kinetic_energy(mech, tr.phi, tr.dphi))
     np.testing.assert_allclose(e, e[0], rtol=0, atol=1e-10 * kinetic.max())
     assert kinetic.max() > 1e-3  # it moves
 
@@ -168,36 +168,36 @@ def test_horizontal_table_has_no_gravity(rng):
     for mech, phi, dphi, t in list(_cases(rng))[:6]:
         flat = mech.replace(g=0.0)
         ref = flat.replace(gravity_angle=0.0)
-        np.testing.assert_array_equal(cj.acceleration(flat, phi, dphi, t, LOAD, TORQUE),
-                                      cj.acceleration(ref, phi, dphi, t, LOAD, TORQUE))
+        np.testing.assert_array_equal(cj.model.acceleration(flat, phi, dphi, t, LOAD, TORQUE),
+                                      cj.model.acceleration(ref, phi, dphi, t, LOAD, TORQUE))
 
 
 # --- gamma = 0 is the paper's, with its arithmetic ---------------------------------------
 
 def test_gamma_zero_compiles_the_direction_out_and_changes_no_bit(rng):
     mech = cj.load_scene("lab-rig").mech.replace(e=0.01, T_c=0.05, c_s=1.0, F_s=0.5)
-    st = cj.Structure.of(mech)
-    assert not st.tilt and cj.Structure.of(mech.replace(gravity_angle=0.3)).tilt
+    st = cj.model.ModelTerms.of(mech)
+    assert not st.tilt and cj.model.ModelTerms.of(mech.replace(gravity_angle=0.3)).tilt
 
     def acc(gamma, structure):
-        return cj.acceleration(mech.replace(gravity_angle=gamma), 0.3, 1.0, 0.2, LOAD,
+        return cj.model.acceleration(mech.replace(gravity_angle=gamma), 0.3, 1.0, 0.2, LOAD,
                                TORQUE, structure)
 
     jaxpr = jax.make_jaxpr(lambda gamma: acc(gamma, st))(0.0).jaxpr
     gamma = jaxpr.invars[0]
     reads = [v for eqn in jaxpr.eqns for v in eqn.invars] + list(jaxpr.outvars)
     assert not any(v is gamma for v in reads)  # without tilt, gamma is not read at all
-    tilted = jax.make_jaxpr(lambda gamma: acc(gamma, cj.Structure()))(0.0).jaxpr
+    tilted = jax.make_jaxpr(lambda gamma: acc(gamma, cj.model.ModelTerms()))(0.0).jaxpr
     assert len(tilted.eqns) > len(jaxpr.eqns)
     phis = jnp.linspace(-4, 4, 33)
-    for f in (lambda s: cj.acceleration(mech, phis, 0.3, 0.2, LOAD, TORQUE, s),
-              lambda s: cj.generalized_force(mech, phis, 0.0, structure=s)):
-        np.testing.assert_array_equal(f(st), f(cj.Structure()))
+    for f in (lambda s: cj.model.acceleration(mech, phis, 0.3, 0.2, LOAD, TORQUE, s),
+              lambda s: cj.model.generalized_force(mech, phis, 0.0, structure=s)):
+        np.testing.assert_array_equal(f(st), f(cj.model.ModelTerms()))
     # The potential is the paper's g (m_c x_c + m_p x_p + m_s x_s) + k phi^2 / 2, bit for bit.
-    g = cj.geometry(mech, phis)
+    g = cj.model.geometry_at(mech, phis)
     paper = mech.g * (mech.m_c * g.x_c + mech.m_p * g.x_p + mech.m_s * g.x_s) \
         + 0.5 * mech.k * phis**2
-    np.testing.assert_array_equal(cj.potential_energy(mech, phis), paper)
+    np.testing.assert_array_equal(cj.model.potential_energy(mech, phis), paper)
 
 
 def test_new_values_never_retrace():
@@ -206,7 +206,7 @@ def test_new_values_never_retrace():
     @eqx.filter_jit
     @eqx.debug.assert_max_traces(max_traces=1)
     def acc(m):
-        return cj.acceleration(m, 0.3, 1.0), cj.linearize(m).xi
+        return cj.model.acceleration(m, 0.3, 1.0), cj.linearize(m).xi
 
     for gamma, g in [(0.0, 9.81), (0.4, 9.81), (-2.0, 3.0), (np.pi / 2, 0.0)]:
         acc(mech.replace(gravity_angle=gamma, g=g))
@@ -229,17 +229,17 @@ def _cross(u, f):
 
 def test_global_newton_euler_projection(rng):
     for mech, phi, dphi, t in _cases(rng):
-        gf = cj.global_form(mech, phi, dphi, t, LOAD, TORQUE)
+        gf = cj.model.newton_euler_form(mech, phi, dphi, t, LOAD, TORQUE)
         np.testing.assert_allclose(
-            gf.J @ gf.qbar_e, cj.generalized_force(mech, phi, dphi, t, LOAD, TORQUE),
+            gf.J @ gf.qbar_e, cj.model.generalized_force(mech, phi, dphi, t, LOAD, TORQUE),
             rtol=1e-10, atol=1e-11)
 
 
 def test_reactions_satisfy_each_body_newton_euler(rng):
     for mech, phi, dphi, t in _cases(rng):
-        ddphi = cj.acceleration(mech, phi, dphi, t, LOAD, TORQUE)
-        kin = cj.kinematics(mech, phi, dphi, ddphi)
-        rx = cj.reactions(mech, phi, dphi, ddphi, t, LOAD, TORQUE)
+        ddphi = cj.model.acceleration(mech, phi, dphi, t, LOAD, TORQUE)
+        kin = cj.model.kinematics(mech, phi, dphi, ddphi)
+        rx = cj.model.reactions(mech, phi, dphi, ddphi, t, LOAD, TORQUE)
         gvec = _gravity(mech)
         pA = jnp.array([mech.r * jnp.cos(phi), mech.r * jnp.sin(phi)])
         pB = jnp.array([kin.x_s, mech.e])
@@ -275,22 +275,22 @@ def test_linearisation_equals_autodiff_of_q_at_phi_eq(rng):
         assert np.isfinite(phi_eq)
 
         def f(phi, dphi, m=mech, P=P, tau=tau):
-            return (cj.generalized_force(m, phi, dphi, 0.0, load=P, torque=tau)
-                    - cj.coriolis(m, phi) * dphi**2)
+            return (cj.model.generalized_force(m, phi, dphi, 0.0, load=P, torque=tau)
+                    - cj.model.coriolis(m, phi) * dphi**2)
 
         np.testing.assert_allclose(f(phi_eq, 0.0), 0.0, atol=1e-12)
         dq_dphi, dq_ddphi = jax.jacfwd(f, argnums=(0, 1))(phi_eq, 0.0)
-        np.testing.assert_allclose(lin.mu, cj.mass(mech, phi_eq), rtol=1e-13)
+        np.testing.assert_allclose(lin.mu, cj.model.mass(mech, phi_eq), rtol=1e-13)
         np.testing.assert_allclose(lin.xi, -dq_dphi, rtol=1e-10, atol=1e-11)
         np.testing.assert_allclose(lin.chi, -dq_ddphi, rtol=1e-12)
 
 
 def test_equilibrium_gradient_in_gamma_is_the_implicit_one(rng):
     mech = random_mech(rng, k=30.0).replace(gravity_angle=0.8)
-    grad = jax.grad(lambda a: cj.equilibrium(mech.replace(gravity_angle=a), 1.0))(0.8)
+    grad = jax.grad(lambda a: cj.model.equilibrium(mech.replace(gravity_angle=a), 1.0))(0.8)
     h = 1e-6
-    fd = (cj.equilibrium(mech.replace(gravity_angle=0.8 + h), 1.0)
-          - cj.equilibrium(mech.replace(gravity_angle=0.8 - h), 1.0)) / (2 * h)
+    fd = (cj.model.equilibrium(mech.replace(gravity_angle=0.8 + h), 1.0)
+          - cj.model.equilibrium(mech.replace(gravity_angle=0.8 - h), 1.0)) / (2 * h)
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
 
 
@@ -396,7 +396,7 @@ def test_cli_sweep_varies_gravity_angle_like_single_simulations(tmp_path, capsys
         mech = lab_rig.mech.replace(gravity_angle=gammas[i])
         tr = cj.simulate(mech, lab_rig.phi0, lab_rig.dphi0, ts, solver=solvers[i])
         assert phi[i] == pytest.approx(float(tr.phi[-1]), rel=1e-10)
-        assert energy[i] == pytest.approx(float(cj.energy(mech, tr.phi[-1], tr.dphi[-1])),
+        assert energy[i] == pytest.approx(float(cj.model.energy(mech, tr.phi[-1], tr.dphi[-1])),
                                           rel=1e-10)
 
 
@@ -431,5 +431,5 @@ def test_a_fitted_gravity_angle_is_reported_within_minus_pi_to_pi(lab_rig, tmp_p
     assert lo < g < hi and hi - lo < 0.1
     assert float(res.mech.gravity_angle) == pytest.approx(g, abs=1e-12)
     out = tmp_path / "fitted.toml"
-    cj.save_scene(cj.scene.fitted_scene(start, res), out)
+    cj.save_scene(cj.identify.fitted_scene(start, res), out)
     assert float(cj.load_scene(str(out)).mech.gravity_angle) == pytest.approx(g, abs=1e-9)

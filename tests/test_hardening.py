@@ -18,6 +18,8 @@ import pytest
 import crank_jax as cj
 import crank_jax.cli.simulate_command as cli_simulate
 import crank_jax.records.data as cj_data
+import crank_jax.runtime.io as cj_io
+import crank_jax.scene as cj_scene
 from crank_jax.cli import main
 
 _Usage = namedtuple("_Usage", "total used free")
@@ -423,7 +425,7 @@ def test_signal_noted_when_its_exception_is_dropped(tmp_path, monkeypatch):
     """Python drops an exception raised by a signal handler while a gc callback runs (JAX
     has one), so the run went on and replaced the output: the noted signal stops the
     commit, and main exits with the signal's status."""
-    from crank_jax.runtime import io
+    io = cj_io
     out = tmp_path / "o.txt"
     out.write_text("old\n")
     io.note_signal(signal.SIGTERM)
@@ -439,9 +441,7 @@ def test_main_exits_with_a_dropped_signal(capsys, monkeypatch):
     cli_main = sys.modules["crank_jax.cli.main"]  # (crank_jax.cli.main is also the function)
 
     def dropped(args):  # a command during which the handler's exception was dropped
-        from crank_jax.runtime import io
-
-        io.note_signal(signal.SIGTERM)
+        cj_io.note_signal(signal.SIGTERM)
         return 0
 
     build = cli_main.build_parser
@@ -461,7 +461,7 @@ def test_main_exits_with_a_dropped_signal(capsys, monkeypatch):
 
 def test_huge_scene_file_refused_before_reading(tmp_path, monkeypatch):
     big = tmp_path / "big.toml"
-    big.write_bytes(b"# " + b"x" * (cj.scene.MAX_SCENE_BYTES + 10) + b"\n")
+    big.write_bytes(b"# " + b"x" * (cj_scene.MAX_SCENE_BYTES + 10) + b"\n")
     monkeypatch.setattr(Path, "read_text", lambda *a, **k: pytest.fail("read"))
     with pytest.raises(cj.SceneError, match="not a scene file"):
         cj.load_scene(big)

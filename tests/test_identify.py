@@ -260,7 +260,7 @@ mode = eqx_errors.EQX_ON_ERROR
 lab_rig = cj.load_scene("lab-rig")
 data = cj.synthesize(lab_rig, t1=0.5, rate=100.0)
 solver = pick_solver(lab_rig.mech, lab_rig.load, 1e-8, "auto")
-assert solver == cj.solver_named("dopri8-adaptive").with_loop_stages(), solver
+assert solver == cj.solve.solver_named("dopri8-adaptive").with_loop_stages(), solver
 prob = build_problem(lab_rig.mech, [(data, lab_rig.load, lab_rig.torque, 1.0, 0.0)],
                      ("k", "c", "phi0", "dphi0"), {"k": 2.0, "c": 0.002}, [1],
                      solver=solver, rtol=1e-8, atol=1e-10, max_steps=4096)

@@ -73,7 +73,7 @@ def test_profile_likelihood_interval_matches_laplace(pendulum):
 
 def test_multistart_and_regressor_start(pendulum):
     scene, data = pendulum
-    start, notes = cj.regressor_start(scene.mech, [(data, scene.load, scene.torque)],
+    start, notes = cj.identify.regressor_start(scene.mech, [(data, scene.load, scene.torque)],
                                       ("I_c", "c"))
     assert notes == [] and start["I_c"] == pytest.approx(float(scene.mech.I_c), rel=0.1)
     res = cj.fit(scene, data, free=FREE, init="regressor", multistart=2, seed=1,

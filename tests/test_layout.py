@@ -142,7 +142,7 @@ def test_no_import_cycles():
 #: The core: physics and integration, functions of their arguments.
 CORE = ("model", "solve")
 #: The top level: the package's front door, nothing else.
-FRONT_DOOR = {"__init__.py", "__main__.py", "scene.py", "simulate.py"}
+FRONT_DOOR = {"__init__.py", "__main__.py", "scene.py", "simulation.py"}
 
 
 def _group(module: str) -> str:

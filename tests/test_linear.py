@@ -12,8 +12,8 @@ import crank_jax as cj
 def _nonlinear_rhs(mech, P):
     # M phi'' = q - K phi'^2; the linearisation is its Jacobian at (0, 0).
     def f(phi, dphi):
-        return (cj.generalized_force(mech, phi, dphi, 0.0, load=P)
-                - cj.coriolis(mech, phi) * dphi**2)
+        return (cj.model.generalized_force(mech, phi, dphi, 0.0, load=P)
+                - cj.model.coriolis(mech, phi) * dphi**2)
     return f
 
 
@@ -24,7 +24,7 @@ def test_linearization_equals_jacobian_of_nonlinear_equation(rng):
         lin = cj.linearize(mech, cj.ConstantLoad(P))
         f = _nonlinear_rhs(mech, P)
         dq_dphi, dq_ddphi = jax.jacfwd(f, argnums=(0, 1))(0.0, 0.0)
-        np.testing.assert_allclose(lin.mu, cj.mass(mech, 0.0), rtol=1e-13)
+        np.testing.assert_allclose(lin.mu, cj.model.mass(mech, 0.0), rtol=1e-13)
         np.testing.assert_allclose(lin.xi, -dq_dphi, rtol=1e-11, atol=1e-12)
         np.testing.assert_allclose(lin.chi, -dq_ddphi, rtol=1e-13)
         np.testing.assert_allclose(lin.k_crit, mech.k - lin.xi, rtol=1e-12)

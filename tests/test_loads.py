@@ -122,7 +122,7 @@ def test_sampled_multisine_bias_per_interpolation(lab_rig):
     kw = dict(solver="dopri8", rtol=1e-10, atol=1e-12)
     ref = np.asarray(cj.simulate(mech, 1.5, 0.0, out, torque=true, **kw).phi)
     rms = {}
-    for interp in cj.INTERPOLATIONS:
+    for interp in cj.model.INTERPOLATIONS:
         ld = cj.SampledLoad(t_s, np.asarray(true(t_s)), interp)
         phi = np.asarray(cj.simulate(mech, 1.5, 0.0, out, torque=ld, **kw).phi)
         rms[interp] = float(np.sqrt(np.mean((phi - ref) ** 2)))
@@ -135,7 +135,7 @@ def test_load_data_takes_the_interpolation(tmp_path):
     path = tmp_path / "d.csv"
     path.write_text("t,phi,tau\n" + "".join(f"{i * 0.1},{0.01 * i},{i % 3}\n"
                                             for i in range(8)))
-    for interp in cj.INTERPOLATIONS:
+    for interp in cj.model.INTERPOLATIONS:
         d = cj.load_data(path, interp=interp)
         assert d.torque.interp == interp and d.load is None
     assert float(cj.load_data(path, interp="zoh").torque(0.19)) == 1.0

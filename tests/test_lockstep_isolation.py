@@ -46,9 +46,9 @@ def test_a_sweep_keeps_its_healthy_samples(lab_rig):
     kw = dict(t1=2.0, num_saves=201, solver="dopri8-adaptive", chunk_size=4,
               max_steps=2000, sort=False)
     outs = ("final_phi", "peak_phi")
-    mixed = cj.sweep(lab_rig, {"k": np.array([2.0, 1e7, 3.0])}, outs, **kw)
-    healthy = cj.sweep(lab_rig, {"k": np.array([2.0, 3.0])}, outs, **kw)
-    ok, failed = cj.STATUS.index("ok"), cj.STATUS.index("max_steps")
+    mixed = cj.run_sweep(lab_rig, {"k": np.array([2.0, 1e7, 3.0])}, outs, **kw)
+    healthy = cj.run_sweep(lab_rig, {"k": np.array([2.0, 3.0])}, outs, **kw)
+    ok, failed = cj.sweep.STATUS.index("ok"), cj.sweep.STATUS.index("max_steps")
     assert mixed.status.tolist() == [ok, failed, ok]
     for name in outs:
         np.testing.assert_allclose(mixed.outputs[name][[0, 2]], healthy.outputs[name],

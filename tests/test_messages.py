@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 import crank_jax as cj
-import crank_jax.runtime.io
-import crank_jax.scene
+import crank_jax.runtime.io as io_module
+import crank_jax.scene as scene_module
 from crank_jax.cli import main
 
 
@@ -202,7 +202,7 @@ def test_a_full_disk_names_the_file_and_loses_nothing(tmp_path, capsys, monkeypa
     # It was a bare "[Errno 28] No space left on device".
     out = tmp_path / "o.csv"
     out.write_text("the previous output\n")
-    monkeypatch.setattr(crank_jax.runtime.io.os, "fsync", _no_space)
+    monkeypatch.setattr(io_module.os, "fsync", _no_space)
     err = _error(["synth", "lab-rig", "--t1", "0.05", "--rate", "100", "--out", out], capsys)
     assert f"could not write {str(out)!r}: the disk is full" in err and "[Errno" not in err
     assert "free some space" in err, err
@@ -214,7 +214,7 @@ def test_a_full_disk_outside_the_atomic_writers_is_one_line(tmp_path, capsys, mo
     def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp_path / "chunk.npy"))
 
-    monkeypatch.setattr(crank_jax.scene, "load_scene", full)
+    monkeypatch.setattr(scene_module, "load_scene", full)
     err = _error(["synth", "lab-rig", "--out", tmp_path / "o.csv"], capsys)
     assert "could not write" in err and "chunk.npy" in err and "the disk is full" in err, err
 

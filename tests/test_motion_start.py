@@ -41,7 +41,7 @@ def test_slide_angle_bridges_the_dead_centres(monkeypatch):
     ts = np.linspace(0.5, 2.0, 301)  # 200 Hz, about 3.5 turns
     traj = scene.simulate(np.concatenate([[0.0], ts]))
     phi = np.asarray(traj.phi)[1:]
-    x = np.asarray(cj.geometry(scene.mech, phi).x_s)
+    x = np.asarray(cj.model.geometry_at(scene.mech, phi).x_s)
     noisy = x + np.random.default_rng(0).normal(0.0, 5e-5, x.shape)
 
     def worst(error):

@@ -26,6 +26,7 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.cli import main
+from crank_jax.scene import scene_from_dict
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 
@@ -124,7 +125,7 @@ def test_fit_report_provenance(fitted):
         assert f"<th>{dist}</th>" in html
     # The scene as given and the fitted one, as TOML the loader reads back.
     given = re.search(r'<pre id="scene-toml">(.*?)</pre>', html, re.S).group(1)
-    scene = cj.scene.scene_from_dict(tomllib.loads(html_lib.unescape(given)))
+    scene = scene_from_dict(tomllib.loads(html_lib.unescape(given)))
     assert scene.mech == cj.load_scene("pendulum").mech
     assert re.search(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\+00:00", html)
 

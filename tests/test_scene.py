@@ -54,9 +54,9 @@ def test_presets_load_and_have_the_promised_character():
     nb = cj.linearize(cj.load_scene("near-buckling").mech)
     assert 0 < float(nb.xi) < 0.02 * float(cj.load_scene("near-buckling").mech.k)
     pend = cj.load_scene("pendulum")
-    assert pend.structure == cj.Structure(coupler=False, slider=False, spring=False, offset=False,
-                               crank_coulomb=False, slider_damper=False,
-                               slider_coulomb=False, tilt=False)
+    assert pend.structure == cj.model.ModelTerms(
+        coupler=False, slider=False, spring=False, offset=False, crank_coulomb=False,
+        slider_damper=False, slider_coulomb=False, tilt=False)
 
 
 def test_full_scene_file(tmp_path):

@@ -33,13 +33,13 @@ def test_slider_outputs_match_autodiff_along_the_motion(seed):
     mech = random_mech(rng, e=0.3 * float(rng.uniform(-1, 1)) * 0.05)
     torque = cj.HarmonicLoad(0.1, 0.3, 2.0)
     phi, dphi, t = rng.uniform(-3, 3), rng.uniform(-5, 5), rng.uniform(0, 1)
-    ddphi = cj.acceleration(mech, phi, dphi, t, torque=torque)
+    ddphi = cj.model.acceleration(mech, phi, dphi, t, torque=torque)
 
     # The motion through (phi, dphi) at t with the equation of motion's phi'' there: its
     # second-order Taylor path has the trajectory's first two time derivatives at s = 0.
     def x_of_time(s):
         path = phi + dphi * s + 0.5 * ddphi * s**2
-        return cj.geometry(mech, path).x_s
+        return cj.model.geometry_at(mech, path).x_s
 
     v_ad = jax.jacfwd(x_of_time)(0.0)
     a_ad = jax.jacfwd(jax.jacfwd(x_of_time))(0.0)
@@ -182,7 +182,7 @@ def test_slide_position_gives_back_the_turning_angle():
     scene = rotating_scene()
     ts = np.linspace(0, 1.0, 201)
     traj = scene.simulate(ts)
-    x = np.asarray(cj.geometry(scene.mech, traj.phi).x_s)
+    x = np.asarray(cj.model.geometry_at(scene.mech, traj.phi).x_s)
     est = slide_angle(scene.mech, ts, x, direction=1.0, phi_start=0.0)
     np.testing.assert_allclose(est, np.asarray(traj.phi), atol=2e-2)
 
@@ -382,9 +382,9 @@ def test_fitted_scene_takes_a_records_own_mechanism_field():
     res = SimpleNamespace(mech=scene.mech.replace(T_c=0.03),
                           values={"c[0]": 0.1, "c[1]": 0.2, "T_c": 0.03, "phi0[1]": 0.5})
     for i, c in enumerate((0.1, 0.2)):
-        got = cj.scene.fitted_scene(scene, res, record=i)
+        got = fitted_scene(scene, res, record=i)
         assert float(got.mech.c) == c and float(got.mech.T_c) == 0.03
-    assert float(cj.scene.fitted_scene(scene, res, record=1).phi0) == 0.5
+    assert float(fitted_scene(scene, res, record=1).phi0) == 0.5
 
 
 def test_noise_level_of_a_coarse_fast_record_is_the_noise():

@@ -86,7 +86,7 @@ def test_energy_balance_with_damping_and_loads():
     ts = np.linspace(0, 2, 4001)
     tr = cj.simulate(sc.mech, 0.8, 0.0, ts, load=load, torque=torque, solver="dopri8",
                      rtol=1e-12, atol=1e-14, outputs=("energy",))
-    p = np.asarray(cj.power_in(sc.mech, tr.phi, tr.dphi, tr.ts, load, torque))
+    p = np.asarray(cj.model.nonconservative_power(sc.mech, tr.phi, tr.dphi, tr.ts, load, torque))
     # Simpson's rule (error ~ h^4): the trapezoid rule's h^2 error would swamp the check.
     work = cumulative_simpson(p, x=ts, initial=0.0)
     E = np.asarray(tr.extras["energy"])
@@ -101,9 +101,11 @@ def test_derived_outputs_only_when_asked_and_consistent():
     assert plain.extras == {}
     full = cj.simulate(sc.mech, 1.0, 0.0, ts, outputs=("reactions", "energy", "slider", "delta",
                                                        "ddphi", "loads"))
-    assert list(full.columns()) == ["t", "phi", "dphi", *cj.output_columns(list(cj.OUTPUTS))]
-    np.testing.assert_allclose(full.extras["energy"], cj.energy(sc.mech, full.phi, full.dphi))
-    kin = cj.kinematics(sc.mech, full.phi, full.dphi, full.extras["ddphi"])
+    columns = cj.solve.output_columns(list(cj.solve.OUTPUTS))
+    assert list(full.columns()) == ["t", "phi", "dphi", *columns]
+    np.testing.assert_allclose(full.extras["energy"],
+                               cj.model.energy(sc.mech, full.phi, full.dphi))
+    kin = cj.model.kinematics(sc.mech, full.phi, full.dphi, full.extras["ddphi"])
     np.testing.assert_allclose(full.extras["x_s"], kin.x_s)
     np.testing.assert_allclose(full.phi, plain.phi, rtol=0, atol=0)
     with pytest.raises(ValueError, match="unknown output"):
@@ -300,12 +302,12 @@ def test_gradient_with_respect_to_load_amplitudes():
 def test_repeated_concrete_calls_reuse_the_host_plan_and_still_check(lab_rig, monkeypatch):
     # A concrete call keeps its host plan (checks, linearisation, solver) for calls with
     # the same mechanism, loads, save times and tolerances (the front door's memo of the
-    # core's `host_plan`, crank_jax/simulate.py).
+    # core's `host_plan`, crank_jax/simulation.py).
     # The plan must follow any change of those, and the checks that depend on the initial
     # state or on invalid parameters must still raise every time.
     import sys
 
-    front = sys.modules["crank_jax.simulate"]  # (crank_jax.simulate is also the function)
+    front = sys.modules["crank_jax.simulation"]
     calls = []
     real = front.linearize
     monkeypatch.setattr(front, "linearize", lambda *a, **k: calls.append(1) or real(*a, **k))

@@ -27,7 +27,7 @@ def oscillator(t, y, w):
 @pytest.mark.parametrize("name", ["dopri8-adaptive", "dopri8-uniform", "dopri8", "tsit5"])
 def test_a_users_field_matches_the_analytic_solution_and_diffrax(name):
     w = jnp.asarray(2.0)
-    sol = jax.jit(lambda w: cj.solve(oscillator, cj.solver_named(name), TS,
+    sol = jax.jit(lambda w: cj.solve.solve(oscillator, cj.solve.solver_named(name), TS,
                                      (jnp.asarray(1.0), jnp.asarray(0.0)), w,
                                      rtol=1e-10, atol=1e-12))(w)
     assert bool(sol.result == diffrax.RESULTS.successful) and int(sol.num_steps) > 0
@@ -48,7 +48,7 @@ def test_the_diffrax_wrapper_is_diffrax_itself():
     # Same solver, controller and save times: the same numbers as diffeqsolve on a (2,)
     # state (the wrapper stacks a state of scalars into one array).
     w = jnp.asarray(2.0)
-    sol = cj.solve(oscillator, cj.Diffrax(diffrax.Tsit5()), TS,
+    sol = cj.solve.solve(oscillator, cj.Diffrax(diffrax.Tsit5()), TS,
                    (jnp.asarray(1.0), jnp.asarray(0.0)), w, rtol=1e-8, atol=1e-10)
     ref = diffrax.diffeqsolve(
         diffrax.ODETerm(lambda t, y, w: jnp.stack(oscillator(t, (y[0], y[1]), w))),
@@ -62,11 +62,11 @@ def test_the_diffrax_wrapper_is_diffrax_itself():
 def test_derivatives_through_args_in_both_modes():
     # dx/dw = -t sin(w t): forward mode (the variational equation, with `args` bound into
     # the field) and reverse mode (the discrete adjoint).
-    solver = cj.solver_named("dopri8-adaptive")
+    solver = cj.solve.solver_named("dopri8-adaptive")
     y0 = (jnp.asarray(1.0), jnp.asarray(0.0))
 
     def x(w, adjoint):
-        return cj.solve(oscillator, solver, TS, y0, w, rtol=1e-11, atol=1e-13,
+        return cj.solve.solve(oscillator, solver, TS, y0, w, rtol=1e-11, atol=1e-13,
                         adjoint=adjoint).ys[0]
 
     w = jnp.asarray(2.0)
@@ -83,7 +83,7 @@ def test_a_pytree_state_through_diffrax_and_the_fused_solver():
 
     y0 = {"x": jnp.array([1.0, 2.0]), "v": jnp.zeros(2)}
     for name in ("dopri8", "dopri8-adaptive"):
-        sol = cj.solve(field, cj.solver_named(name), TS, y0, rtol=1e-10, atol=1e-12)
+        sol = cj.solve.solve(field, cj.solve.solver_named(name), TS, y0, rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(sol.ys["x"], np.cos(TS)[:, None] * np.array([1.0, 2.0]),
                                    atol=1e-8)
 
@@ -93,9 +93,9 @@ def test_simulate_is_the_entry_on_the_crank_field(name, lab_rig):
     # `simulate` runs `solve` on the crank's field: the same numbers, bit for bit.
     m, ts = lab_rig.mech, jnp.linspace(0.0, 1.0, 101)
     tr = cj.simulate(m, 1.0, 0.0, ts, solver=name)
-    crank = CrankField(m, cj.NoLoad(), cj.NoLoad(), cj.Structure.of(m))
-    sol = eqx.filter_jit(lambda c: cj.solve(
-        c, cj.solver_named(name), ts, (jnp.asarray(1.0), jnp.asarray(0.0)),
+    crank = CrankField(m, cj.NoLoad(), cj.NoLoad(), cj.model.ModelTerms.of(m))
+    sol = eqx.filter_jit(lambda c: cj.solve.solve(
+        c, cj.solve.solver_named(name), ts, (jnp.asarray(1.0), jnp.asarray(0.0)),
         rtol=jnp.asarray(1e-8), atol=jnp.asarray(1e-10), max_steps=200_000,
         prepare=CrankField.packed, rate=_rate(c), throw=False))(crank)
     np.testing.assert_array_equal(tr.phi, sol.ys[0])
@@ -111,14 +111,15 @@ def _rate(crank):
 
 def test_the_policy_returns_the_tables_objects(lab_rig):
     m = lab_rig.mech
-    assert set(cj.SOLVERS) == {"auto", *TABLE}
+    assert set(cj.solve.SOLVERS) == {"auto", *TABLE}
     for name in TABLE:
-        obj = cj.resolve_solver(name, m, 1e-8)
-        assert obj is cj.solver_named(name) and name_of(obj) == name
-    assert isinstance(cj.resolve_solver("auto", m, 1e-8), cj.AdaptiveDopri8)
+        obj = cj.solve.resolve_solver(name, m, 1e-8)
+        assert obj is cj.solve.solver_named(name) and name_of(obj) == name
+    assert isinstance(cj.solve.resolve_solver("auto", m, 1e-8), cj.AdaptiveDopri8)
     own = cj.Diffrax(diffrax.Bosh3())
-    assert cj.resolve_solver(own, m, 1e-8) is own  # an object is taken as given
-    assert cj.solver_named("kvaerno5").implicit and not cj.solver_named("dopri8").implicit
+    assert cj.solve.resolve_solver(own, m, 1e-8) is own  # an object is taken as given
+    assert cj.solve.solver_named("kvaerno5").implicit
+    assert not cj.solve.solver_named("dopri8").implicit
     tr = cj.simulate(m, 1.0, 0.0, jnp.linspace(0.0, 1.0, 11), solver=own)
     assert bool(tr.ok)
 
@@ -126,8 +127,9 @@ def test_the_policy_returns_the_tables_objects(lab_rig):
 def test_bad_solver_and_adjoint_are_one_line_errors():
     y0 = (jnp.asarray(1.0), jnp.asarray(0.0))
     with pytest.raises(TypeError, match="solver must be a crank_jax solver object"):
-        cj.solve(oscillator, "dopri8", TS, y0, 2.0)
+        cj.solve.solve(oscillator, "dopri8", TS, y0, 2.0)
     with pytest.raises(ValueError, match="adjoint must be one of"):
-        cj.solve(oscillator, cj.solver_named("dopri8"), TS, y0, 2.0, adjoint="backward")
+        cj.solve.solve(oscillator, cj.solve.solver_named("dopri8"), TS, y0, 2.0,
+                       adjoint="backward")
     with pytest.raises(ValueError, match="unknown solver 'rk4'"):
-        cj.solver_named("rk4")
+        cj.solve.solver_named("rk4")

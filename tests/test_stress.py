@@ -27,22 +27,22 @@ def test_switch_point_follows_the_documented_rule(lab_rig):
     m = lab_rig.mech
     # Damped stiff shaft over 2 s: the rule ln(1/rtol)/decay < span/140 puts the switch
     # near k = 1e6 N*m/rad.
-    assert cj.choose_solver(_shaft(m, 3e5), 1e-8, span=2.0) == "dopri8"
-    assert cj.choose_solver(_shaft(m, 3e6), 1e-8, span=2.0) == "kvaerno5"
+    assert cj.solve.choose_solver(_shaft(m, 3e5), 1e-8, span=2.0) == "dopri8"
+    assert cj.solve.choose_solver(_shaft(m, 3e6), 1e-8, span=2.0) == "kvaerno5"
     # A longer span lets the transient matter less: the switch moves to softer shafts.
-    assert cj.choose_solver(_shaft(m, 3e5), 1e-8, span=20.0) == "kvaerno5"
+    assert cj.solve.choose_solver(_shaft(m, 3e5), 1e-8, span=20.0) == "kvaerno5"
     # The switch is exactly where the rule says.
     for k in (1e4, 1e5, 1e6, 1e7):
-        rate, decay = cj.fastest_mode(cj.linearize(_shaft(m, k)))
+        rate, decay = cj.solve.fastest_mode_rates(cj.linearize(_shaft(m, k)))
         stiff = decay * 2.0 > 140 * np.log(1e8)
-        assert (cj.choose_solver(_shaft(m, k), 1e-8, span=2.0) == "kvaerno5") == stiff
+        assert (cj.solve.choose_solver(_shaft(m, k), 1e-8, span=2.0) == "kvaerno5") == stiff
     # An undamped fast mode must be resolved: never implicit, however stiff.
-    assert cj.choose_solver(m.replace(k=1e7, c=0.0), 1e-8, span=2.0) == "dopri8"
+    assert cj.solve.choose_solver(m.replace(k=1e7, c=0.0), 1e-8, span=2.0) == "dopri8"
     # Over-damped (real, well separated modes) is stiff; a falling crank is not.
-    assert cj.choose_solver(m.replace(c=10.0), 1e-8, span=10.0) == "kvaerno5"
-    assert cj.choose_solver(m.replace(k=0.01, c=5.0), 1e-8, span=10.0) == "kvaerno5"
-    assert cj.choose_solver(m.replace(k=0.01, c=0.01), 1e-8, span=10.0) == "dopri8"
-    assert cj.choose_solver(m, 1e-6, span=10.0) == "tsit5"
+    assert cj.solve.choose_solver(m.replace(c=10.0), 1e-8, span=10.0) == "kvaerno5"
+    assert cj.solve.choose_solver(m.replace(k=0.01, c=5.0), 1e-8, span=10.0) == "kvaerno5"
+    assert cj.solve.choose_solver(m.replace(k=0.01, c=0.01), 1e-8, span=10.0) == "dopri8"
+    assert cj.solve.choose_solver(m, 1e-6, span=10.0) == "tsit5"
 
 
 def test_auto_solves_a_stiff_shaft_that_explicit_solvers_cannot_afford(lab_rig):
@@ -60,10 +60,11 @@ def test_a_sweep_over_ten_decades_of_stiffness_has_no_failures(lab_rig):
     ks = np.logspace(-2, 7, 10)
     mu = float(cj.linearize(lab_rig.mech).mu)
     c = 0.01 + 0.1 * np.sqrt(ks * mu)
-    r = cj.sweep(lab_rig, {"k": ks, "c": c, "phi0": 0.01}, ("peak_phi", "final_phi"),
+    r = cj.run_sweep(lab_rig, {"k": ks, "c": c, "phi0": 0.01}, ("peak_phi", "final_phi"),
                  t1=2.0, num_saves=21, chunk_size=3, max_steps=50_000)
     assert np.all(r.ok), r.counts()
-    assert cj.SOLVERS[r.solver[-1]] == "kvaerno5" and cj.SOLVERS[r.solver[0]] != "kvaerno5"
+    assert cj.solve.SOLVERS[r.solver[-1]] == "kvaerno5"
+    assert cj.solve.SOLVERS[r.solver[0]] != "kvaerno5"
     # Explicit up to the switch (k ~ 1e6: ~2e4 Dopri8 steps), then flat: the stiffest
     # shaft costs less than the one just below the switch.
     assert r.num_steps.max() < 30_000 and r.num_steps[-1] < r.num_steps[-2] / 3
@@ -76,7 +77,7 @@ def test_extreme_crank_to_coupler_ratios_conserve_energy(lab_rig, ratio):
     m = lab_rig.mech.replace(L=lab_rig.mech.r / ratio, b=0.3 * lab_rig.mech.r / ratio, c=0.0)
     ts = np.linspace(0.0, 1.0, 101)
     tr = cj.simulate(m, 1.0, 0.0, ts, rtol=1e-10, atol=1e-12)
-    e = np.asarray(cj.energy(m, tr.phi, tr.dphi))
+    e = np.asarray(cj.model.energy(m, tr.phi, tr.dphi))
     assert np.all(np.isfinite(tr.phi))
     assert np.max(np.abs(e - e[0])) < 1e-7 * (abs(e[0]) + 1)
 
@@ -86,7 +87,7 @@ def test_full_revolutions_leave_phi_unbounded(lab_rig):
     ts = np.linspace(0.0, 2.0, 201)
     tr = cj.simulate(m, 0.0, 30.0, ts, rtol=1e-10, atol=1e-12)
     assert float(tr.phi[-1]) > 4 * np.pi  # several turns, not wrapped to (-pi, pi]
-    e = np.asarray(cj.energy(m, tr.phi, tr.dphi))
+    e = np.asarray(cj.model.energy(m, tr.phi, tr.dphi))
     assert np.max(np.abs(e - e[0])) < 1e-8 * abs(e[0])
 
 
@@ -105,7 +106,7 @@ def test_energy_drift_shrinks_with_the_tolerance(lab_rig):
     drift = {}
     for rtol in (1e-6, 1e-10):
         tr = cj.simulate(m, 1.0, 0.0, ts, rtol=rtol, atol=rtol * 1e-2, solver="dopri8")
-        e = np.asarray(cj.energy(m, tr.phi, tr.dphi))
+        e = np.asarray(cj.model.energy(m, tr.phi, tr.dphi))
         drift[rtol] = np.max(np.abs(e - e[0])) / abs(e[0])
     assert drift[1e-10] < 1e-8
     assert drift[1e-10] < drift[1e-6] / 100

@@ -93,18 +93,18 @@ def test_sweep_matches_individual_simulations(lab_rig):
     ks = np.array([2.5, 1.5, 40.0, 2.0, 0.3])
     c = np.array([0.01, 0.02, 0.005, 0.0, 0.01])
     outs = ("peak_phi", "peak_dphi", "final_phi", "final_energy", "peak_O", "phi")
-    r = cj.sweep(lab_rig, {"k": ks, "c": c, "phi0": 0.5}, outs, chunk_size=2, **SHORT)
+    r = cj.run_sweep(lab_rig, {"k": ks, "c": c, "phi0": 0.5}, outs, chunk_size=2, **SHORT)
     assert r.n == 5 and np.all(r.ok) and r.seed == -1
     # "auto" goes through the solver policy: the fused solver on a sweep's uniform saves.
-    assert {cj.SOLVERS[i] for i in r.solver} == {"dopri8-uniform"}
+    assert {cj.solve.SOLVERS[i] for i in r.solver} == {"dopri8-uniform"}
     for i in range(5):
         mech = lab_rig.mech.replace(k=ks[i], c=c[i])
-        tr = cj.simulate(mech, 0.5, 0.0, r.ts, solver=cj.SOLVERS[r.solver[i]],
+        tr = cj.simulate(mech, 0.5, 0.0, r.ts, solver=cj.solve.SOLVERS[r.solver[i]],
                          outputs=("reactions",))
         np.testing.assert_allclose(r.outputs["phi"][i], tr.phi, rtol=1e-10, atol=1e-12)
         assert r.outputs["peak_phi"][i] == pytest.approx(np.abs(tr.phi).max(), rel=1e-12)
         assert r.outputs["final_phi"][i] == pytest.approx(float(tr.phi[-1]), rel=1e-10)
-        e = cj.energy(mech, tr.phi[-1], tr.dphi[-1])
+        e = cj.model.energy(mech, tr.phi[-1], tr.dphi[-1])
         assert r.outputs["final_energy"][i] == pytest.approx(float(e), rel=1e-10)
         peak_O = np.hypot(tr.extras["O_x"], tr.extras["O_y"]).max()
         assert r.outputs["peak_O"][i] == pytest.approx(float(peak_O), rel=1e-9)
@@ -113,9 +113,9 @@ def test_sweep_matches_individual_simulations(lab_rig):
 
 def test_order_chunking_and_sorting_do_not_change_results(lab_rig):
     spec = {"k": "loguniform(0.5,500)", "c": "uniform(0.0,0.05)", "dphi0": "normal(0,1)"}
-    a = cj.sweep(lab_rig, spec, ("peak_phi", "settling_time"), n=7, seed=3, chunk_size=3,
+    a = cj.run_sweep(lab_rig, spec, ("peak_phi", "settling_time"), n=7, seed=3, chunk_size=3,
                  **SHORT)
-    b = cj.sweep(lab_rig, spec, ("peak_phi", "settling_time"), n=7, seed=3, chunk_size=8,
+    b = cj.run_sweep(lab_rig, spec, ("peak_phi", "settling_time"), n=7, seed=3, chunk_size=8,
                  sort=False, **SHORT)
     np.testing.assert_array_equal(a.samples["k"], b.samples["k"])
     np.testing.assert_allclose(a.outputs["peak_phi"], b.outputs["peak_phi"], rtol=1e-9)
@@ -125,7 +125,7 @@ def test_order_chunking_and_sorting_do_not_change_results(lab_rig):
 def test_dominant_frequency_matches_linearisation(lab_rig):
     # Small amplitude, light damping: the spectrum peaks at the linear natural frequency.
     ks = np.array([5.0, 20.0])
-    r = cj.sweep(lab_rig, {"k": ks, "phi0": 1e-3}, ("dominant_freq",), t1=4.0, num_saves=801)
+    r = cj.run_sweep(lab_rig, {"k": ks, "phi0": 1e-3}, ("dominant_freq",), t1=4.0, num_saves=801)
     fn = [float(cj.linearize(lab_rig.mech.replace(k=k)).omega_n) / (2 * np.pi) for k in ks]
     np.testing.assert_allclose(r.outputs["dominant_freq"], fn, rtol=0.02)
 
@@ -135,15 +135,15 @@ def test_dominant_frequency_matches_linearisation(lab_rig):
 def test_invalid_and_failed_samples_are_marked_and_the_rest_kept(lab_rig):
     L = np.array([0.2, 0.04, 0.2, np.nan, 0.2])      # 0.04 < r = 0.05: invalid
     k = np.array([2.0, 2.0, 2e6, 2.0, 3.0])          # 2e6: needs far more than 3000 steps
-    r = cj.sweep(lab_rig, {"L": L, "k": k}, ("peak_phi", "phi"), solver="tsit5",
+    r = cj.run_sweep(lab_rig, {"L": L, "k": k}, ("peak_phi", "phi"), solver="tsit5",
                  max_steps=3000, **SHORT)
-    names = [cj.STATUS[s] for s in r.status]
+    names = [cj.sweep.STATUS[s] for s in r.status]
     assert names == ["ok", "invalid", "max_steps", "invalid", "ok"]
     for v in r.outputs.values():
         assert np.all(np.isfinite(v))
     assert np.all(r.outputs["peak_phi"][~r.ok] == 0)
     assert r.counts() == {"ok": 2, "invalid": 2, "max_steps": 1, "failed": 0, "nonfinite": 0}
-    ok = cj.sweep(lab_rig, {"k": k[[0, 4]]}, ("peak_phi",), solver="tsit5", **SHORT)
+    ok = cj.run_sweep(lab_rig, {"k": k[[0, 4]]}, ("peak_phi",), solver="tsit5", **SHORT)
     np.testing.assert_allclose(r.outputs["peak_phi"][[0, 4]], ok.outputs["peak_phi"])
     s = r.summary()
     assert s["peak_phi"]["max"] == pytest.approx(r.outputs["peak_phi"][r.ok].max())
@@ -151,18 +151,18 @@ def test_invalid_and_failed_samples_are_marked_and_the_rest_kept(lab_rig):
 
 def test_bad_arguments(lab_rig):
     with pytest.raises(ValueError, match="cannot vary 'q'"):
-        cj.sweep(lab_rig, {"q": 1.0}, n=2)
+        cj.run_sweep(lab_rig, {"q": 1.0}, n=2)
     with pytest.raises(ValueError, match="unknown sweep output"):
-        cj.sweep(lab_rig, {"k": 1.0}, ("peak_q",), n=2)
+        cj.run_sweep(lab_rig, {"k": 1.0}, ("peak_q",), n=2)
     with pytest.raises(ValueError, match="unknown solver"):
-        cj.sweep(lab_rig, {"k": 1.0}, n=2, solver="euler")
+        cj.run_sweep(lab_rig, {"k": 1.0}, n=2, solver="euler")
 
 
 def test_a_result_too_large_is_refused_before_any_work(lab_rig, tmp_path, capsys):
     with pytest.raises(ValueError, match=r"n = 100000000000 samples need .* GiB .* use n <="):
-        cj.sweep(lab_rig, {"k": "normal(2,0.1)"}, n=10**11, chunk_size=8)
+        cj.run_sweep(lab_rig, {"k": "normal(2,0.1)"}, n=10**11, chunk_size=8)
     with pytest.raises(ValueError, match="limit is 0.0 GiB"):
-        cj.sweep(lab_rig, {"k": "normal(2,0.1)"}, ("phi",), n=1000, max_memory=10_000)
+        cj.run_sweep(lab_rig, {"k": "normal(2,0.1)"}, ("phi",), n=1000, max_memory=10_000)
     argv = ["sweep", "lab-rig", "--vary", "k=normal(2,0.1)", "--n", "100000000000",
             "--chunk-size", "8", "--out", str(tmp_path / "x.npz"), "--quiet"]
     assert cli.main(argv) == 2
@@ -175,28 +175,28 @@ def test_a_result_too_large_is_refused_before_any_work(lab_rig, tmp_path, capsys
 def test_every_load_kind_sweeps_or_is_refused_by_name(lab_rig):
     ms = cj.MultiSineLoad([0.04, 0.03], [1.3, 2.9], [0.0, 1.0], X0=0.01)
     scene = cj.Scene(lab_rig.mech, torque=ms, phi0=0.5, t1=0.5, samples=51, solver="tsit5")
-    r = cj.sweep(scene, {"k": np.array([2.0, 3.0]), "tau0": np.array([0.0, 0.02])},
+    r = cj.run_sweep(scene, {"k": np.array([2.0, 3.0]), "tau0": np.array([0.0, 0.02])},
                  ("final_phi",))
     assert np.all(r.ok)
     tr = cj.simulate(scene.mech.replace(k=3.0), 0.5, 0.0, r.ts, solver="tsit5",
                      torque=cj.MultiSineLoad(ms.amplitudes, ms.freqs_hz, ms.phases, 0.02))
     assert r.outputs["final_phi"][1] == pytest.approx(float(tr.phi[-1]), rel=1e-9)
     with pytest.raises(ValueError, match=r"MultiSineLoad .* no tau1; its parameters are"):
-        cj.sweep(scene, {"tau1": "normal(0.1,0.01)"}, n=2)
+        cj.run_sweep(scene, {"tau1": "normal(0.1,0.01)"}, n=2)
     sampled = cj.SampledLoad(np.linspace(0, 0.5, 26), 0.03 * np.sin(np.arange(26.0)))
     scene = eqx.tree_at(lambda s: s.torque, scene, sampled)
-    r = cj.sweep(scene, {"k": np.array([2.0])}, ("final_phi",))
+    r = cj.run_sweep(scene, {"k": np.array([2.0])}, ("final_phi",))
     tr = cj.simulate(scene.mech, 0.5, 0.0, r.ts, torque=sampled, solver="tsit5")
     assert r.ok[0] and r.outputs["final_phi"][0] == pytest.approx(float(tr.phi[-1]), rel=1e-9)
     with pytest.raises(ValueError, match="SampledLoad .* no tau0"):
-        cj.sweep(scene, {"tau0": 1.0}, n=2)
+        cj.run_sweep(scene, {"tau0": 1.0}, n=2)
     # A harmonic load has no gain (only an input load has): refused, not promoted to a
     # tone of zero amplitude (issue 37 item 4).
     tone = cj.HarmonicLoad(0.01, 0.03, 1.3, 0.0)
     scene = eqx.tree_at(lambda s: s.torque, scene, tone)
     with pytest.raises(ValueError, match=r"cannot vary 'tau_gain': .* HarmonicLoad .* "
                                          r"its parameters are \['tau0', 'tau1'"):
-        cj.sweep(scene, {"tau_gain": 1.0, "tau1": 0.02}, n=2)
+        cj.run_sweep(scene, {"tau_gain": 1.0, "tau1": 0.02}, n=2)
 
 
 # --- static structure -------------------------------------------------------------------
@@ -204,9 +204,9 @@ def test_every_load_kind_sweeps_or_is_refused_by_name(lab_rig):
 def test_structure_is_the_union_of_scene_and_samples(lab_rig):
     scene = cj.Scene(lab_rig.mech.replace(c=0.0, m_s=0.0), phi0=0.3, t1=0.5, samples=11)
     assert not scene.structure.damper and not scene.structure.slider
-    r0 = cj.sweep(scene, {"k": "normal(2,0.1)", "c": "const(0)"}, n=2)
+    r0 = cj.run_sweep(scene, {"k": "normal(2,0.1)", "c": "const(0)"}, n=2)
     assert not r0.structure.damper and not r0.structure.slider
-    r1 = cj.sweep(scene, {"c": "uniform(0,0.01)", "m_s": np.array([0.0, 0.2])}, n=2)
+    r1 = cj.run_sweep(scene, {"c": "uniform(0,0.01)", "m_s": np.array([0.0, 0.2])}, n=2)
     assert r1.structure.damper and r1.structure.slider
 
 
@@ -224,14 +224,14 @@ def test_unused_outputs_bodies_and_loads_cost_nothing(lab_rig):
     pend = cj.load_scene("pendulum")
     lean = cj.sweep_cost(pend, {"c": "uniform(0,1e-3)"}, ("peak_phi",), num_saves=11)
     full = cj.sweep_cost(pend, {"c": "uniform(0,1e-3)"}, ("peak_phi",), num_saves=11,
-                         structure=cj.Structure())
+                         structure=cj.model.ModelTerms())
     assert lean["transcendentals"] < full["transcendentals"]
     assert lean["hlo_lines"] < full["hlo_lines"]
 
 
 def test_varied_load_amplitude_switches_the_load_on(lab_rig):
     scene = cj.Scene(lab_rig.mech, phi0=0.0, t1=0.5, samples=51)
-    r = cj.sweep(scene, {"tau1": np.array([0.0, 0.05]), "tau_freq_hz": 4.0}, ("peak_phi",))
+    r = cj.run_sweep(scene, {"tau1": np.array([0.0, 0.05]), "tau_freq_hz": 4.0}, ("peak_phi",))
     assert r.outputs["peak_phi"][0] == 0.0 and r.outputs["peak_phi"][1] > 1e-3
     tr = cj.simulate(scene.mech, 0.0, 0.0, r.ts, torque=cj.HarmonicLoad(0.0, 0.05, 4.0))
     assert r.outputs["peak_phi"][1] == pytest.approx(float(np.abs(tr.phi).max()), rel=1e-8)
@@ -310,10 +310,10 @@ def test_the_working_memory_bound_is_the_chunk_not_n(lab_rig):
     assert chunk_bytes(1, ("peak_O",), 1) > per_save
     with pytest.raises(ValueError,
                        match=r"limit is .* \(max_memory\); use num_saves \(--samples\) <= 1000,"):
-        cj.sweep(lab_rig, {"k": "normal(2,0.1)"}, ("peak_phi",), n=100, chunk_size=10,
+        cj.run_sweep(lab_rig, {"k": "normal(2,0.1)"}, ("peak_phi",), n=100, chunk_size=10,
                  num_saves=1001, max_memory=per_save * 10 * 1000 + per_save)
     # a smaller chunk fits the same save times
-    cj.sweep(lab_rig, {"k": "normal(2,0.1)"}, ("peak_phi",), n=2, chunk_size=2, t1=0.2,
+    cj.run_sweep(lab_rig, {"k": "normal(2,0.1)"}, ("peak_phi",), n=2, chunk_size=2, t1=0.2,
              num_saves=1001, max_memory=per_save * 10 * 1000 + per_save)
 
 

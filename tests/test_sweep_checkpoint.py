@@ -32,7 +32,7 @@ def _equal(a, b):
 
 def test_a_resumed_sweep_computes_only_the_missing_chunks_and_equals_a_whole_one(
         lab_rig, tmp_path):
-    whole = cj.sweep(lab_rig, SPEC, OUTS, **KW)
+    whole = cj.run_sweep(lab_rig, SPEC, OUTS, **KW)
     ckpt = tmp_path / "ck"
 
     def stop_after_two(done, total):
@@ -40,7 +40,7 @@ def test_a_resumed_sweep_computes_only_the_missing_chunks_and_equals_a_whole_one
             raise _Stop
 
     with pytest.raises(_Stop):
-        cj.sweep(lab_rig, SPEC, OUTS, checkpoint=ckpt, callback=stop_after_two, **KW)
+        cj.run_sweep(lab_rig, SPEC, OUTS, checkpoint=ckpt, callback=stop_after_two, **KW)
     saved = sorted(ckpt.glob("chunk-*.npz"))
     assert 0 < len(saved) < 6
     # Damage one saved chunk: it is detected and computed again.
@@ -48,7 +48,7 @@ def test_a_resumed_sweep_computes_only_the_missing_chunks_and_equals_a_whole_one
     raw[-40] ^= 0xFF
     saved[0].write_bytes(bytes(raw))
     kept = {p: p.stat().st_mtime_ns for p in saved[1:]}
-    resumed = cj.sweep(lab_rig, SPEC, OUTS, checkpoint=ckpt, **KW)
+    resumed = cj.run_sweep(lab_rig, SPEC, OUTS, checkpoint=ckpt, **KW)
     _equal(resumed, whole)
     # The good chunks were read, not computed and written again; the damaged one was.
     assert kept == {p: p.stat().st_mtime_ns for p in saved[1:]}
@@ -56,21 +56,21 @@ def test_a_resumed_sweep_computes_only_the_missing_chunks_and_equals_a_whole_one
     assert len(list(ckpt.glob("chunk-*.npz"))) == 6
     # A third run reads everything and computes nothing new (every chunk file unchanged).
     stamps = {p: p.stat().st_mtime_ns for p in ckpt.glob("chunk-*.npz")}
-    again = cj.sweep(lab_rig, SPEC, OUTS, checkpoint=ckpt, **KW)
+    again = cj.run_sweep(lab_rig, SPEC, OUTS, checkpoint=ckpt, **KW)
     _equal(again, whole)
     assert stamps == {p: p.stat().st_mtime_ns for p in ckpt.glob("chunk-*.npz")}
 
 
 def test_another_plan_is_refused_naming_what_differs(lab_rig, tmp_path):
     ckpt = tmp_path / "ck"
-    cj.sweep(lab_rig, SPEC, OUTS, checkpoint=ckpt, **{**KW, "n": 2})
+    cj.run_sweep(lab_rig, SPEC, OUTS, checkpoint=ckpt, **{**KW, "n": 2})
     with pytest.raises(ValueError, match=r"holds another sweep: its seed differ"):
-        cj.sweep(lab_rig, SPEC, OUTS, checkpoint=ckpt, **{**KW, "n": 2, "seed": 4})
+        cj.run_sweep(lab_rig, SPEC, OUTS, checkpoint=ckpt, **{**KW, "n": 2, "seed": 4})
     with pytest.raises(ValueError, match=r"its scene differ"):
-        cj.sweep(eqx.tree_at(lambda s: s.phi0, lab_rig, 0.2), SPEC, OUTS, checkpoint=ckpt,
+        cj.run_sweep(eqx.tree_at(lambda s: s.phi0, lab_rig, 0.2), SPEC, OUTS, checkpoint=ckpt,
                  **{**KW, "n": 2})
     with pytest.raises(ValueError, match=r"its samples differ"):
-        cj.sweep(lab_rig, {"k": "normal(2.0,0.2)"}, OUTS, checkpoint=ckpt, **{**KW, "n": 2})
+        cj.run_sweep(lab_rig, {"k": "normal(2.0,0.2)"}, OUTS, checkpoint=ckpt, **{**KW, "n": 2})
 
 
 @pytest.mark.parametrize("first, second", [
@@ -83,9 +83,9 @@ def test_plans_are_compared_exactly_not_by_their_printed_text(lab_rig, tmp_path,
     second run reused the first's chunks with exit 0."""
     ckpt = tmp_path / "ck"
     kw = {**KW, "n": 2}
-    cj.sweep(lab_rig, {"k": "normal(2.0,0.1)", "phi0": first}, OUTS, checkpoint=ckpt, **kw)
+    cj.run_sweep(lab_rig, {"k": "normal(2.0,0.1)", "phi0": first}, OUTS, checkpoint=ckpt, **kw)
     with pytest.raises(ValueError, match=r"its samples differ"):
-        cj.sweep(lab_rig, {"k": "normal(2.0,0.1)", "phi0": second}, OUTS, checkpoint=ckpt,
+        cj.run_sweep(lab_rig, {"k": "normal(2.0,0.1)", "phi0": second}, OUTS, checkpoint=ckpt,
                  **kw)
 
 
@@ -94,20 +94,20 @@ def test_a_chunk_of_another_plan_is_computed_again_without_a_manifest(lab_rig, t
     read the first one's chunks (same sample indices) and returned their outputs."""
     ckpt = tmp_path / "ck"
     kw = {**KW, "n": 4, "sort": False}  # the same chunk indices in both plans
-    cj.sweep(lab_rig, {"phi0": np.array([0.5, 0.6, 0.7, 0.8])}, OUTS, checkpoint=ckpt, **kw)
+    cj.run_sweep(lab_rig, {"phi0": np.array([0.5, 0.6, 0.7, 0.8])}, OUTS, checkpoint=ckpt, **kw)
     (ckpt / "manifest.json").unlink()
     other = {"phi0": np.array([1.0, 1.1, 1.2, 1.3])}
-    got = cj.sweep(lab_rig, other, OUTS, checkpoint=ckpt, **kw)
-    _equal(got, cj.sweep(lab_rig, other, OUTS, **kw))
+    got = cj.run_sweep(lab_rig, other, OUTS, checkpoint=ckpt, **kw)
+    _equal(got, cj.run_sweep(lab_rig, other, OUTS, **kw))
 
 
 def test_a_checkpoint_that_is_a_file_or_not_a_directory_is_refused(lab_rig, tmp_path):
     f = tmp_path / "file"
     f.write_text("x")
     with pytest.raises(ValueError, match="is a file, not a directory"):
-        cj.sweep(lab_rig, SPEC, OUTS, checkpoint=f, **KW)
+        cj.run_sweep(lab_rig, SPEC, OUTS, checkpoint=f, **KW)
     with pytest.raises(ValueError, match="cannot create the directory"):
-        cj.sweep(lab_rig, SPEC, OUTS, checkpoint=f / "sub", **KW)
+        cj.run_sweep(lab_rig, SPEC, OUTS, checkpoint=f / "sub", **KW)
 
 
 @pytest.mark.slow

@@ -26,7 +26,7 @@ SCRIPT = textwrap.dedent("""
     short = dict(t1=0.4, num_saves=17)
     ms = cj.MultiSineLoad([0.04, 0.03], [1.3, 2.9], [0.0, 1.0], X0=0.01)
     sampled = cj.SampledLoad(np.linspace(0, 0.5, 26), 0.03 * np.sin(np.arange(26.0)))
-    every = tuple(cj.REDUCTIONS)
+    every = tuple(cj.sweep.REDUCTIONS)
     cases = {
         # every output (peak_O solves for the reactions), invalid samples mixed in
         "all_outputs": (lab, {"k": "normal(2.0,0.3)", "L": "normal(0.1,0.05)",
@@ -46,13 +46,13 @@ SCRIPT = textwrap.dedent("""
     report = {"devices": jax.device_count()}
     for name, (scene, spec, outs, extra) in cases.items():
         kw = dict(n=10, seed=5, chunk_size=4, **short, **extra)
-        many = cj.sweep(scene, spec, outs, **kw)
+        many = cj.run_sweep(scene, spec, outs, **kw)
         if name in ("sampled", "implicit"):
             # diffrax's vmap-ed steps (sampled load) and lineax's batched LU (implicit
             # solver) depend on the batch in their rounding: each device's part of a chunk
             # of 4 is one sample, so the one-device run it must equal has chunks of one.
             kw["chunk_size"] = 1
-        one = cj.sweep(scene, spec, outs, devices=jax.devices()[:1], **kw)
+        one = cj.run_sweep(scene, spec, outs, devices=jax.devices()[:1], **kw)
         report[name] = {
             "status_equal": bool(np.array_equal(many.status, one.status)),
             "steps_equal": bool(np.array_equal(many.num_steps, one.num_steps)),

@@ -1,6 +1,6 @@
 """Sweeps over two processes on this machine (coordinator on the loopback address, JAX's
 CPU collectives), through the CLI (`crank-jax sweep --distributed`) and the library
-(`cj.initialize_distributed` then `cj.sweep`): the result equals one process's bit for bit,
+(`cj.sweep.initialize_distributed` then `cj.sweep`): the result equals one process's bit for bit,
 only process 0 writes, a checkpoint is shared and resumed, and a process that dies or a
 coordinator that never answers ends the others with one line in bounded time."""
 
@@ -107,7 +107,7 @@ def test_two_processes_write_what_one_process_writes_and_share_a_checkpoint(tmp_
     chunks = sorted(ck.glob("chunk-*.npz"))
     assert len(chunks) == 3
     # Resume as after a kill of every process that left one chunk, through the library
-    # (`cj.initialize_distributed` then `cj.sweep(..., checkpoint=)`, the same plan): the
+    # (`cj.sweep.initialize_distributed` then `cj.run_sweep(..., checkpoint=)`, the same plan): the
     # two processes compute the two missing chunks, and each gets the whole result, the
     # one-process result bit for bit.
     kept = chunks[0].stat().st_mtime_ns
@@ -129,9 +129,9 @@ LIBRARY = textwrap.dedent("""
     import jax
     jax.config.update("jax_enable_x64", True)
     import crank_jax as cj
-    cj.initialize_distributed()  # JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, _PROCESS_ID
+    cj.sweep.initialize_distributed()  # JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, _PROCESS_ID
     assert jax.process_count() == 2 and jax.device_count() == 2
-    res = cj.sweep(cj.load_scene("lab-rig"),
+    res = cj.run_sweep(cj.load_scene("lab-rig"),
                    {{"k": "normal(2,0.1)", "c": "uniform(0.005,0.02)"}},
                    ("peak_phi", "final_energy"), n=6, t1=0.5, num_saves=11, chunk_size=2,
                    checkpoint={ck!r})

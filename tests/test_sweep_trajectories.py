@@ -21,11 +21,11 @@ class _Stop(Exception):
 @pytest.fixture(scope="module")
 def whole(lab_rig):
     """The reference: the whole trajectories, in memory."""
-    return cj.sweep(lab_rig, SPEC, ("peak_phi", "phi", "dphi"), **KW)
+    return cj.run_sweep(lab_rig, SPEC, ("peak_phi", "phi", "dphi"), **KW)
 
 
 def test_saved_trajectories_equal_the_in_memory_ones_subsampled(lab_rig, whole, tmp_path):
-    res = cj.sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tmp_path / "tr",
+    res = cj.run_sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tmp_path / "tr",
                    trajectory_every=3, **KW)
     np.testing.assert_array_equal(res.outputs["peak_phi"], whole.outputs["peak_phi"])
     assert "phi" not in res.outputs  # they were streamed to disk, not kept
@@ -33,7 +33,7 @@ def test_saved_trajectories_equal_the_in_memory_ones_subsampled(lab_rig, whole, 
     np.testing.assert_array_equal(tr.ts, whole.ts[::3])
     assert tr.n == 12 and tr.manifest["complete"]
     ok = np.flatnonzero(whole.ok)
-    invalid = np.flatnonzero(whole.status == cj.STATUS.index("invalid"))
+    invalid = np.flatnonzero(whole.status == cj.sweep.STATUS.index("invalid"))
     assert ok.size >= 6 and invalid.size >= 1
     got = tr[ok]
     for k in ("phi", "dphi"):
@@ -58,7 +58,7 @@ def test_a_resumed_sweep_keeps_the_saved_trajectories(lab_rig, whole, tmp_path):
             raise _Stop
 
     with pytest.raises(_Stop):
-        cj.sweep(lab_rig, SPEC, ("peak_phi",), checkpoint=ck, save_trajectories=tr,
+        cj.run_sweep(lab_rig, SPEC, ("peak_phi",), checkpoint=ck, save_trajectories=tr,
                  callback=stop, **KW)
     with pytest.raises(ValueError, match="has not finished"):
         cj.load_trajectories(tr)
@@ -68,7 +68,7 @@ def test_a_resumed_sweep_keeps_the_saved_trajectories(lab_rig, whole, tmp_path):
     # others are read from the checkpoint and their files left alone.
     saved[0].unlink()
     kept = {p: p.stat().st_mtime_ns for p in saved[1:]}
-    res = cj.sweep(lab_rig, SPEC, ("peak_phi",), checkpoint=ck, save_trajectories=tr, **KW)
+    res = cj.run_sweep(lab_rig, SPEC, ("peak_phi",), checkpoint=ck, save_trajectories=tr, **KW)
     assert kept == {p: p.stat().st_mtime_ns for p in saved[1:]} and saved[0].exists()
     np.testing.assert_array_equal(res.outputs["peak_phi"], whole.outputs["peak_phi"])
     got = cj.load_trajectories(tr)[np.flatnonzero(whole.ok)]
@@ -85,7 +85,7 @@ def test_damaged_or_swapped_files_are_refused_and_computed_again(lab_rig, whole,
     """Issue 37 item 7: a byte-flipped or swapped `.npy` was returned as it was (off by
     1.51 rad), and a resume kept the damaged chunk."""
     ck, tr = tmp_path / "ck", tmp_path / "tr"
-    cj.sweep(lab_rig, SPEC, ("peak_phi",), checkpoint=ck, save_trajectories=tr, **KW)
+    cj.run_sweep(lab_rig, SPEC, ("peak_phi",), checkpoint=ck, save_trajectories=tr, **KW)
     ok = np.flatnonzero(whole.ok)
     phis = sorted(tr.glob("chunk-*.phi.npy"))
     assert len(phis) >= 3
@@ -96,7 +96,7 @@ def test_damaged_or_swapped_files_are_refused_and_computed_again(lab_rig, whole,
         list(cj.load_trajectories(tr).chunks())
     # A resume computes the damaged chunk again; the others are kept.
     kept = {p: p.stat().st_mtime_ns for p in phis[1:]}
-    cj.sweep(lab_rig, SPEC, ("peak_phi",), checkpoint=ck, save_trajectories=tr, **KW)
+    cj.run_sweep(lab_rig, SPEC, ("peak_phi",), checkpoint=ck, save_trajectories=tr, **KW)
     assert kept == {p: p.stat().st_mtime_ns for p in phis[1:]}
     got = cj.load_trajectories(tr)[ok]
     np.testing.assert_array_equal(got["phi"], whole.outputs["phi"][ok])
@@ -117,16 +117,16 @@ def test_damaged_or_swapped_files_are_refused_and_computed_again(lab_rig, whole,
 
 def test_a_store_of_another_sweep_or_a_file_is_refused(lab_rig, tmp_path):
     tr = tmp_path / "tr"
-    cj.sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tr, **{**KW, "n": 2})
+    cj.run_sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tr, **{**KW, "n": 2})
     with pytest.raises(ValueError, match="holds another sweep's trajectories: its plan"):
-        cj.sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tr,
+        cj.run_sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tr,
                  **{**KW, "n": 2, "seed": 9})
     with pytest.raises(ValueError, match="its every, ts differ"):
-        cj.sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tr, trajectory_every=2,
+        cj.run_sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tr, trajectory_every=2,
                  **{**KW, "n": 2})
     (tmp_path / "f").write_text("x")
     with pytest.raises(ValueError, match="is a file, not a directory"):
-        cj.sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tmp_path / "f", **KW)
+        cj.run_sweep(lab_rig, SPEC, ("peak_phi",), save_trajectories=tmp_path / "f", **KW)
     with pytest.raises(ValueError, match="not a crank-jax trajectory manifest"):
         (tmp_path / "g").mkdir()
         (tmp_path / "g" / "manifest.json").write_text(json.dumps({"format": "x"}))

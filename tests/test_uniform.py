@@ -29,7 +29,7 @@ def test_crank_field_equals_acceleration(rng, loads):
         mech = random_mech(rng, **over)
         st = Structure.of(mech)
         a = acceleration(mech, phi, dphi, t, load, torque, st)
-        v, b = cj.CrankField(mech, load, torque, st)(t, (phi, dphi))
+        v, b = cj.model.CrankField(mech, load, torque, st)(t, (phi, dphi))
         np.testing.assert_array_equal(v, dphi)
         np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(a))))
 
@@ -79,14 +79,14 @@ def test_generic_solver_on_another_field():
 
 
 def test_no_solver_module_imports_the_mechanism():
-    # Solvers know vector fields: only simulate.py (which builds the CrankField and the
+    # Solvers know vector fields: only trajectory.py (which builds the CrankField and the
     # derived outputs) and policy.py (the stiffness test) import crank_jax.model.
     import ast
     from pathlib import Path
 
     solve_dir = Path(cj.__file__).parent / "solve"
     for path in solve_dir.glob("*.py"):
-        if path.name in ("simulate.py", "policy.py"):
+        if path.name in ("trajectory.py", "policy.py"):
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ImportFrom):
@@ -100,7 +100,7 @@ def _reference(scene, ts):
                                      max_steps=10**6).phi)
 
 
-@pytest.mark.parametrize("name", cj.PRESETS)
+@pytest.mark.parametrize("name", list(cj.presets()))
 @pytest.mark.parametrize("rtol", [1e-6, 1e-9])
 def test_error_meets_tolerance_on_presets(name, rtol):
     scene = cj.load_scene(name)

@@ -6,10 +6,10 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.sweep.distributions import Normal  # noqa: E402
+from crank_jax.sweep import Normal  # noqa: E402
 
 scene = cj.load_scene("lab-rig")
-res = cj.sweep(scene, {"k": Normal(2.0, 0.1), "c": "uniform(0.005,0.02)", "phi0": 0.5},
+res = cj.run_sweep(scene, {"k": Normal(2.0, 0.1), "c": "uniform(0.005,0.02)", "phi0": 0.5},
                outputs=("dominant_freq", "settling_time", "peak_O"),
                n=2000, seed=0, t1=2.0, num_saves=201)
 print("status counts:", res.counts())

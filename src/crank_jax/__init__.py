@@ -2,92 +2,51 @@
 differentiable JAX model (El-Adawi & El-Kafrawy's minimal form, corrected, plus offset
 and friction).
 
-The public API, by topic (everything else is private; the subpackages
-`model`, `solve`, `identify`, `sweep` and `cli` are the implementation):
+The front door (`__all__`, 50 names; the reasons in docs/reference/index.md):
 
-- Parameters: `SliderCrank`, `FIELDS`, `SIGNED_FIELDS`.
-- Physics: `geometry`, `Geometry`, `coupler_angle`, `CouplerAngle`, `kinematics`,
-  `Kinematics`, `Structure`, `CrankField`, `mass`, `coriolis`, `generalized_force`,
-  `acceleration`, `energy`, `kinetic_energy`, `potential_energy`, `power_in`,
-  `global_form`, `GlobalForm`, `distribution_matrix`, `reactions`, `Reactions`,
-  `linearize`, `Linearization`, `equilibrium`, `coulomb_note`.
+- Scenes and parameters: `SliderCrank`, `Scene`, `SceneError`, `load_scene`, `save_scene`,
+  `scene_to_toml`, `presets`, `Sensor`, `SensorError`.
 - Loads: `AbstractLoad`, `NoLoad`, `ConstantLoad`, `HarmonicLoad`, `MultiSineLoad`,
-  `SampledLoad`, `INTERPOLATIONS`, `LOAD_PARAMS`.
-- Simulation: `simulate`, `Trajectory`, `OUTPUTS`, `output_columns`, `SOLVERS`,
-  `resolve_solver`, `choose_solver`, `fastest_mode`.
-- Solvers for any vector field: `solve`, `Solution`, `solver_named`, `AbstractSolver`,
-  `AdaptiveDopri8`, `UniformDopri8`, `Diffrax`.
-- Scenes: `Scene`, `SceneError`, `load_scene`, `save_scene`, `scene_to_toml`, `presets`,
-  `PRESETS`.
-- Data: `Data`, `DataError`, `load_data`, `save_data`, `synthesize`.
-- Identification: `fit`, `FitResult`, `Profile`, `regressor_start`, `FREE_NAMES`,
-  `IdentifiabilityWarning`, `ConvergenceWarning`; `posterior`, `Posterior` (NUTS);
-  `design`, `Design` (a multisine torque for the Fisher information).
-- Residual diagnostics and validation: `residual_diagnostics`, `Diagnostics`,
-  `hac_covariance`, `widen`, `robust_uncertainty`, `RobustUncertainty`, `validate`,
-  `Validation`.
-- Monte Carlo: `sweep`, `SweepResult`, `REDUCTIONS`, `STATUS`, `VARIABLES`,
-  `sweep_cost`, `initialize_distributed`, `distributions`, `load_trajectories`,
-  `Trajectories` (a sweep's saved trajectories, read lazily).
-- Nonlinear vibration: `backbone`, `periodic_orbit`, `forced_response`,
-  `stability_chart`, `VibrationError` (`crank_jax.vibration`).
-- Files, the compilation cache and XLA's CPU flags: `atomic_write`,
-  `enable_compilation_cache`, `default_cache_dir`, `with_cpu_flags` (an `XLA_FLAGS`
-  value for a program to set before JAX starts: faster solves on the CPU),
-  `configure_cpu` (that, and a JAX CPU device per core; see `crank_jax.runtime.xla_flags`).
+  `SampledLoad`.
+- Simulation: `simulate`, `Trajectory`, `linearize`, `Linearization`; the solvers
+  `simulate(solver=...)` also takes by name: `AbstractSolver`, `AdaptiveDopri8`,
+  `UniformDopri8`, `Diffrax`.
+- Records: `Data`, `DataError`, `load_data`, `save_data`, `synthesize`.
+- Identification: `fit`, `FitResult`, `IdentifiabilityWarning`, `ConvergenceWarning`;
+  `validate`, `Validation`; `posterior`, `Posterior` (NUTS); `design`, `Design` (a
+  multisine torque for the Fisher information).
+- Monte Carlo: `run_sweep`, `SweepResult`, `sweep_cost`, `load_trajectories`,
+  `Trajectories`.
+- Nonlinear vibration: `backbone`, `periodic_orbit`, `forced_response`, `stability_chart`,
+  `VibrationError`.
+- The runtime: `configure_cpu` (XLA's CPU flags and a JAX CPU device per core, for a
+  program before JAX starts), `enable_compilation_cache`.
+
+Documented namespaces, each with its own `__all__`: `crank_jax.model` (physics helpers:
+energy, kinematics, reactions, the mass matrix, ...), `crank_jax.solve` (`solve` for any
+vector field, the solver policy), `crank_jax.identify` (residual diagnostics, profiles,
+start values), `crank_jax.sweep` (distributions, the names a sweep takes),
+`crank_jax.vibration` (result classes), `crank_jax.report` (HTML reports). Every other
+module is internal. Old names warn for one release (`_DEPRECATED` below).
 """
 
+import sys as _sys
+from types import ModuleType as _ModuleType
+
 from .identify.design import Design, design
-from .identify.diagnostics import (
-    Diagnostics,
-    RobustUncertainty,
-    hac_covariance,
-    residual_diagnostics,
-    robust_uncertainty,
-    widen,
-)
 from .identify.fit import (
-    FREE_NAMES,
     ConvergenceWarning,
     FitResult,
     IdentifiabilityWarning,
-    Profile,
     fit,
-    regressor_start,
 )
 from .identify.posterior import Posterior, posterior
 from .identify.validation import (
     Validation,
     validate,
 )
-from .model.dynamics import (
-    CrankField,
-    Structure,
-    acceleration,
-    coriolis,
-    energy,
-    generalized_force,
-    kinetic_energy,
-    mass,
-    potential_energy,
-    power_in,
-)
-from .model.geometry import (
-    CouplerAngle,
-    Geometry,
-    Kinematics,
-    coupler_angle,
-    geometry,
-    kinematics,
-)
-from .model.linear import (
-    Linearization,
-    coulomb_note,
-    equilibrium,
-)
+from .model.linear import Linearization
 from .model.loads import (
-    INTERPOLATIONS,
-    LOAD_PARAMS,
     AbstractLoad,
     ConstantLoad,
     HarmonicLoad,
@@ -95,18 +54,7 @@ from .model.loads import (
     NoLoad,
     SampledLoad,
 )
-from .model.newton_euler import (
-    GlobalForm,
-    Reactions,
-    distribution_matrix,
-    global_form,
-    reactions,
-)
-from .model.params import (
-    FIELDS,
-    SIGNED_FIELDS,
-    SliderCrank,
-)
+from .model.params import SliderCrank
 from .records.data import (
     Data,
     DataError,
@@ -115,16 +63,11 @@ from .records.data import (
 )
 from .records.sensors import Sensor, SensorError
 from .records.synth import synthesize
-from .runtime.cache import (
-    default_cache_dir,
-    enable_compilation_cache,
-)
-from .runtime.io import (
-    atomic_write,
-)
-from .runtime.xla_flags import configure_cpu, with_cpu_flags
+from .runtime.cache import enable_compilation_cache
+from .runtime.deprecation import make_callable as _make_callable
+from .runtime.deprecation import moved as _moved
+from .runtime.xla_flags import configure_cpu
 from .scene import (
-    PRESETS,
     Scene,
     SceneError,
     load_scene,
@@ -132,151 +75,139 @@ from .scene import (
     save_scene,
     scene_to_toml,
 )
-from .simulate import linearize, simulate
-from .solve.names import solver_named
-from .solve.policy import (
-    SOLVERS,
-    choose_solver,
-    fastest_mode,
-    resolve_solver,
-)
+from .simulation import linearize, simulate
 from .solve.solvers import (
     AbstractSolver,
     AdaptiveDopri8,
     Diffrax,
-    Solution,
     UniformDopri8,
-    solve,
 )
-from .solve.trajectory import (
-    OUTPUTS,
-    Trajectory,
-    output_columns,
-)
-from .sweep import distributions
+from .solve.solvers import solve as _solve
+from .solve.trajectory import Trajectory
 from .sweep.run import (
-    REDUCTIONS,
-    STATUS,
-    VARIABLES,
     SweepResult,
-    initialize_distributed,
-    sweep,
     sweep_cost,
 )
+from .sweep.run import sweep as run_sweep
 from .sweep.trajectories import Trajectories, load_trajectories
 from .vibration import (
     VibrationError,
-    backbone,
     forced_response,
     periodic_orbit,
     stability_chart,
 )
+from .vibration.backbone import backbone
+
+#: The documented namespaces beside the front door: reachable as attributes (imported on
+#: first use) and shown by `dir(crank_jax)`. Every other module of the package is internal:
+#: importable by its full name (`import crank_jax.runtime.io as io`), never an attribute.
+_NAMESPACES = ("model", "solve", "identify", "sweep", "vibration", "report")
+
+
+class _FrontDoor(_ModuleType):
+    """The package's module: the import system binds every submodule it loads as an
+    attribute of its parent; here only the namespaces are bound, so that importing an
+    internal module (now, or lazily later) never puts it on the front door."""
+
+    def __setattr__(self, name: str, value) -> None:
+        if not _internal(name, value):
+            super().__setattr__(name, value)
+
+
+def _internal(name: str, value) -> bool:
+    """Whether `name = value` binds an internal submodule of this package."""
+    return (isinstance(value, _ModuleType) and name not in _NAMESPACES
+            and value.__name__ == f"{__name__}.{name}")
+
 
 __version__ = "0.1.0"
 
+# The front door: 50 names, by task (docs/reference/index.md gives the reasons).
 __all__ = [
-    "AbstractLoad",
-    "acceleration",
-    "atomic_write",
-    "choose_solver",
-    "configure_cpu",
-    "ConstantLoad",
-    "ConvergenceWarning",
-    "coriolis",
-    "coulomb_note",
-    "coupler_angle",
-    "CouplerAngle",
-    "CrankField",
-    "Data",
-    "DataError",
-    "default_cache_dir",
-    "Design",
-    "design",
-    "Diagnostics",
-    "distribution_matrix",
-    "distributions",
-    "enable_compilation_cache",
-    "energy",
-    "equilibrium",
-    "fastest_mode",
-    "FIELDS",
-    "fit",
-    "FitResult",
-    "FREE_NAMES",
-    "generalized_force",
-    "Geometry",
-    "geometry",
-    "global_form",
-    "GlobalForm",
-    "hac_covariance",
-    "HarmonicLoad",
-    "IdentifiabilityWarning",
-    "initialize_distributed",
-    "INTERPOLATIONS",
-    "Kinematics",
-    "kinematics",
-    "kinetic_energy",
-    "Linearization",
-    "linearize",
-    "load_data",
-    "load_trajectories",
-    "LOAD_PARAMS",
-    "load_scene",
-    "mass",
-    "MultiSineLoad",
-    "NoLoad",
-    "output_columns",
-    "OUTPUTS",
-    "potential_energy",
-    "power_in",
-    "presets",
-    "PRESETS",
-    "Posterior",
-    "posterior",
-    "Profile",
-    "reactions",
-    "Reactions",
-    "REDUCTIONS",
-    "regressor_start",
-    "residual_diagnostics",
-    "resolve_solver",
-    "robust_uncertainty",
-    "RobustUncertainty",
+    # scenes and parameters
+    "SliderCrank", "Scene", "SceneError", "load_scene", "save_scene", "scene_to_toml",
+    "presets", "Sensor", "SensorError",
+    # loads (the slider force P and the crank torque tau)
+    "AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineLoad",
     "SampledLoad",
-    "save_data",
-    "save_scene",
-    "Scene",
-    "scene_to_toml",
-    "SceneError",
-    "SIGNED_FIELDS",
-    "simulate",
-    "solve",
-    "SliderCrank",
-    "SOLVERS",
-    "STATUS",
-    "Structure",
-    "sweep",
-    "sweep_cost",
-    "SweepResult",
-    "synthesize",
-    "Sensor",
-    "SensorError",
-    "Trajectories",
-    "Trajectory",
-    "validate",
-    "Validation",
-    "VARIABLES",
-    "widen",
-    "with_cpu_flags",
-    "AbstractSolver",
-    "AdaptiveDopri8",
-    "Diffrax",
-    "Solution",
-    "UniformDopri8",
-    "solver_named",
-    "backbone",
-    "forced_response",
-    "periodic_orbit",
-    "stability_chart",
-    "VibrationError",
+    # simulation and solvers
+    "simulate", "Trajectory", "linearize", "Linearization", "AbstractSolver",
+    "AdaptiveDopri8", "UniformDopri8", "Diffrax",
+    # records
+    "Data", "DataError", "load_data", "save_data", "synthesize",
+    # identification
+    "fit", "FitResult", "IdentifiabilityWarning", "ConvergenceWarning", "validate",
+    "Validation", "posterior", "Posterior", "design", "Design",
+    # Monte Carlo sweeps
+    "run_sweep", "SweepResult", "sweep_cost", "load_trajectories", "Trajectories",
+    # nonlinear vibration
+    "backbone", "periodic_orbit", "forced_response", "stability_chart", "VibrationError",
+    # the runtime
+    "configure_cpu", "enable_compilation_cache",
 ]
+
+#: Names that left the front door, kept one release: old name -> "namespace:new name", or
+#: "module:name|what to use" for a name that goes from the public API. Reading one warns
+#: (`DeprecationWarning`) and gives the very object the old name gave. `cj.solve(...)` and
+#: `cj.sweep(...)` are not here: those attributes are the subpackages now, whose calls
+#: still run the functions, warning (`runtime.deprecation.make_callable`).
+_DEPRECATED = {
+    **{n: f"crank_jax.model:{n}" for n in (
+        "FIELDS", "SIGNED_FIELDS", "INTERPOLATIONS", "LOAD_PARAMS", "Geometry",
+        "coupler_angle", "CouplerAngle", "kinematics", "Kinematics", "CrankField", "mass",
+        "coriolis", "generalized_force", "acceleration", "energy", "kinetic_energy",
+        "potential_energy", "distribution_matrix", "reactions", "Reactions", "equilibrium")},
+    "geometry": "crank_jax.model:geometry_at",
+    "Structure": "crank_jax.model:ModelTerms",
+    "power_in": "crank_jax.model:nonconservative_power",
+    "global_form": "crank_jax.model:newton_euler_form",
+    "GlobalForm": "crank_jax.model:NewtonEulerForm",
+    "coulomb_note": "crank_jax.model:coulomb_friction_note",
+    **{n: f"crank_jax.solve:{n}" for n in (
+        "Solution", "SOLVERS", "solver_named", "resolve_solver", "choose_solver", "OUTPUTS",
+        "output_columns")},
+    "fastest_mode": "crank_jax.solve:fastest_mode_rates",
+    **{n: f"crank_jax.identify:{n}" for n in (
+        "FREE_NAMES", "regressor_start", "Profile", "residual_diagnostics", "Diagnostics",
+        "hac_covariance", "robust_uncertainty", "RobustUncertainty")},
+    "widen": "crank_jax.identify:widen_covariance",
+    **{n: f"crank_jax.sweep:{n}" for n in (
+        "REDUCTIONS", "STATUS", "VARIABLES", "initialize_distributed")},
+    "distributions": "crank_jax:sweep|crank_jax.sweep (Normal, Uniform, ... are there)",
+    # Going from the public API (internal modules: these paths follow the files).
+    "PRESETS": "crank_jax.scene:PRESETS|crank_jax.presets() (its keys)",
+    "with_cpu_flags": "crank_jax.runtime.xla_flags:with_cpu_flags|"
+                      "crank_jax.configure_cpu(devices=1)",
+    "default_cache_dir": "crank_jax.runtime.cache:default_cache_dir|the directory that "
+                         "crank_jax.enable_compilation_cache() returns",
+    "atomic_write": "crank_jax.runtime.io:atomic_write|a file utility of your own",
+}
+
+
+def __getattr__(name: str):
+    # Called only for names not found in the module: a namespace not yet imported, or an
+    # old spelling.
+    if name in _NAMESPACES:
+        import importlib
+
+        return importlib.import_module(f"{__name__}.{name}")
+    return _moved(__name__, name, _DEPRECATED)
+
+
+def __dir__() -> list[str]:
+    return sorted([*__all__, *_NAMESPACES, "__version__"])
+
+
+def _unbind_internal_modules() -> None:
+    g = globals()
+    for name in [n for n, v in g.items() if _internal(n, v)]:
+        del g[name]
+
+
+# From here on, importing an internal module does not bind it; those imported above are
+# unbound now.
+# The core package `crank_jax.solve` imports nothing of the runtime, so its deprecated call
+# (the old `cj.solve(...)`) is set up here, at the front door.
+_make_callable(f"{__name__}.solve", _solve, "crank_jax.solve.solve")
+_sys.modules[__name__].__class__ = _FrontDoor
+_unbind_internal_modules()

@@ -40,7 +40,7 @@ from .records.sensors import (
     sensors_to_table,
 )
 from .runtime.io import atomic_write
-from .simulate import simulate
+from .simulation import simulate
 from .solve.inputs import MAX_RTOL  # the loosest rtol a scene or `simulate --rtol` takes
 from .solve.policy import SOLVERS
 from .solve.trajectory import OUTPUTS, Trajectory

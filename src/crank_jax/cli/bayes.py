@@ -125,7 +125,7 @@ def _design_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tones", type=int, default=6, help="sines in the multisine (6)")
     p.add_argument("--criterion", default="D", choices=("D", "c"),
                    help="D: max log det Fisher (default); c: min the variance of --target")
-    p.add_argument("--target", help="the parameter whose variance criterion c minimises")
+    p.add_argument("--target", help="the parameter whose variance criterion c minimizes")
     p.add_argument("--noise-std", type=float, default=1e-3,
                    help="angle noise, rad (1e-3; scales the predicted standard errors)")
     p.add_argument("--iterations", type=int, default=60, help="Adam iterations (60)")

@@ -113,7 +113,7 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
                    help="lm: Levenberg-Marquardt (default); optax: Adam then L-BFGS")
     p.add_argument("--shooting", choices=("auto", "single", "multiple"),
                    help="auto (default; the demo: single): multiple shooting above 25 "
-                        "linearised periods")
+                        "linearized periods")
     p.add_argument("--segments", type=int, help="number of multiple-shooting segments")
     p.add_argument("--multistart", type=int, default=1, help="number of starts (1)")
     p.add_argument("--seed", type=seed, default=0, help="seed of the multistart (0)")
@@ -410,6 +410,6 @@ COMMANDS: list = [
     ("synth", "simulate a scene and write noisy synthetic data (CSV)", _synth_args, _synth_run),
     ("fit", "fit parameters to a record, with uncertainty and identifiability (no arguments: "
             "the built-in demo)", _fit_args, _fit_run),
-    ("demo", "synthesise lab-rig data under a known torque, fit k, c, phi0, dphi0 and print "
+    ("demo", "synthesize lab-rig data under a known torque, fit k, c, phi0, dphi0 and print "
              "the estimates with 95%% intervals", _demo_args, _demo),
 ]

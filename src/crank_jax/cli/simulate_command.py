@@ -257,7 +257,7 @@ def _scenes_run(a: argparse.Namespace) -> int:
 #: (name, help, add_arguments, run) for every subcommand.
 COMMANDS = [
     ("simulate", "simulate a scene and write a CSV", _simulate_args, _simulate_run),
-    ("linearize", "linearise a scene about its static equilibrium phi_eq", _linearize_args,
+    ("linearize", "linearize a scene about its static equilibrium phi_eq", _linearize_args,
      _linearize_run),
     ("scenes", "list the preset scenes", _scenes_args, _scenes_run),
 ]

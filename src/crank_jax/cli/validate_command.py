@@ -26,7 +26,7 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--t-end", type=float, help="end of the window, s (default: the last sample)")
     p.add_argument("--init-window", type=float, metavar="S",
                    help="seconds at the window's start used to estimate the initial state "
-                        "(default: about one linearised period)")
+                        "(default: about one linearized period)")
     p.add_argument("--horizon", type=float, metavar="S",
                    help="predict S seconds ahead: after the initial-state window, cut the "
                         "record into windows of S s, estimate each window's state from its "

@@ -92,7 +92,7 @@ def _backbone_run(a: argparse.Namespace) -> int:
     a0, a1, n = _range(a.amplitudes, "--amplitudes", with_n=True)
     _outputs(a, a.scene)
     scene = _load(a.scene)
-    from ..vibration import backbone
+    from ..vibration.backbone import backbone
 
     bb = backbone(scene.mech, np.linspace(a0, a1, n or 20))
     ok = np.asarray(bb.ok)

@@ -1,1 +1,31 @@
-"""Parameter identification: the fit as parts."""
+"""Parameter identification: the fit as parts.
+
+`crank_jax.identify` is a documented namespace (issue 39). The fit, the posterior, the
+experiment design and the validation are at the front door (`crank_jax.fit`, ...); here
+are the tools around them:
+
+- `fitted_scene`: the scene a fit started from, with its estimates (what
+  `crank-jax fit` writes as the fitted scene file);
+- `FREE_NAMES`: every name `fit(free=...)` accepts; `regressor_start`: start values of the
+  masses, inertias, k and c from the linear regressor form; `Profile`: a profile likelihood
+  (`FitResult.profile`);
+- residual diagnostics: `residual_diagnostics` and its `Diagnostics`; `hac_covariance`
+  (a Newey-West covariance of correlated residuals); `widen_covariance` (white-noise
+  variances as a floor under it); `robust_uncertainty` and its `RobustUncertainty`.
+"""
+
+from ..scene import fitted_scene
+from .diagnostics import (
+    Diagnostics,
+    RobustUncertainty,
+    hac_covariance,
+    residual_diagnostics,
+    robust_uncertainty,
+)
+from .diagnostics import widen as widen_covariance
+from .fit import FREE_NAMES, regressor_start
+from .fit_result import Profile
+
+__all__ = ["fitted_scene", "FREE_NAMES", "regressor_start", "Profile", "residual_diagnostics",
+           "Diagnostics",
+           "hac_covariance", "widen_covariance", "robust_uncertainty", "RobustUncertainty"]

@@ -34,7 +34,7 @@ from ..model.loads import MultiSineLoad, NoLoad
 from ..model.params import FIELDS, SIGNED_FIELDS
 from ..runtime.lazy import lazy_import
 from ..scene import Scene
-from ..simulate import linearize
+from ..simulation import linearize
 
 diffrax = lazy_import("diffrax")
 optax = lazy_import("optax")

@@ -32,7 +32,7 @@ from scipy.optimize import least_squares
 
 from ..model.outputs import output
 from ..records.data import MIN_SAMPLES, Data
-from ..simulate import simulate
+from ..simulation import simulate
 from .start import noise_level
 
 __all__ = ["HEAD_FRACTION", "Window", "cut", "Predictor", "estimate_state", "predict"]

@@ -311,7 +311,7 @@ class _Evaluations:
         converged, message = self._stall(self.best_cost, n)
         along = _direction(getattr(self.model.problem, "names", ()), gn.dz, gn.se)
         words = (f"stalled along {along}: the cost fell by {fell / unit:.2g} {uname} over "
-                 f"the last {steps} iterations while the linearisation predicts "
+                 f"the last {steps} iterations while the linearization predicts "
                  f"{gn.decrease / unit:.3g} {uname} more (a curved valley or a ridge in "
                  "that combination)")
         return _Stop(converged, message, termination(

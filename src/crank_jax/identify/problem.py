@@ -45,7 +45,7 @@ from ..model.loads import AbstractLoad, set_param
 from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..records.data import Data
 from ..records.sensors import OFFSET_NAMES
-from ..simulate import linearize
+from ..simulation import linearize
 from ..solve.policy import is_concrete, resolve_solver
 from ..solve.solvers import AbstractSolver, AdaptiveDopri8
 from ..solve.trajectory import solve_crank

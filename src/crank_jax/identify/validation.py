@@ -41,7 +41,7 @@ from ..model.params import FIELDS
 from ..model.sampled import bind_input
 from ..records.data import MIN_SAMPLES, Data, DataError
 from ..scene import Scene
-from ..simulate import linearize
+from ..simulation import linearize
 from . import horizon as hz
 from .diagnostics import residual_diagnostics
 from .fit import fit

@@ -219,5 +219,5 @@ def coulomb_note(mech: SliderCrank) -> str | None:
     names = [n for n in ("T_c", "F_s") if np.any(np.asarray(getattr(mech, n)) != 0)]
     if not names:
         return None
-    return (f"note: Coulomb friction ({', '.join(names)}) is left out of the linearisation "
+    return (f"note: Coulomb friction ({', '.join(names)}) is left out of the linearization "
             "(it has none at rest); the real decay is partly linear, not exponential")

@@ -74,10 +74,10 @@ def validation_rules(v: dict[str, np.ndarray]) -> list[tuple[str, np.ndarray, st
     rules = [(name, ~xp.isfinite(v[name]), f"{name} must be finite (got NaN or inf)")
              for name in FIELDS]
     rules += [
-        ("r", v["r"] <= 0, "r must be > 0 (crank radius O->A, metres)"),
+        ("r", v["r"] <= 0, "r must be > 0 (crank radius O->A, meters)"),
         ("L", v["L"] <= v["r"] + xp.abs(v["e"]),
          "L must be > r + |e| (coupler longer than crank plus offset), else the crank locks"),
-        ("s", v["s"] < 0, "s must be >= 0 (distance O->crank centre of mass, metres)"),
+        ("s", v["s"] < 0, "s must be >= 0 (distance O->crank center of mass, meters)"),
         ("b", (v["b"] < 0) | (v["b"] > v["L"]), "b must satisfy 0 <= b <= L (A->coupler CoM)"),
     ]
     for name in ("m_c", "m_p", "m_s", "I_c", "I_p"):

@@ -1,6 +1,6 @@
 """A small memo of the last few results, keyed by the identity of the JAX arrays they were
 computed from (and the values of scalars): the front door's `simulate` keeps its host
-plans here (`crank_jax/simulate.py`), so that a repeated concrete call skips its checks
+plans here (`crank_jax/simulation.py`), so that a repeated concrete call skips its checks
 and the linearisation.
 
 Why identity and not value: hashing the arrays' values would cost what the memo saves

@@ -25,11 +25,11 @@ and a library must not reconfigure its host, so crank-jax never sets them: the `
 program does, before JAX starts, keeping any value the user put in `XLA_FLAGS`. A Python
 program sets them the same way, before its first JAX computation:
 
-    import os
     import crank_jax as cj
-    os.environ["XLA_FLAGS"] = cj.with_cpu_flags(os.environ.get("XLA_FLAGS"))
+    cj.configure_cpu(devices=1)  # the flags; one device is JAX's default
 
-or calls [`configure_cpu`][], which also asks JAX for one CPU device per core: JAX makes
+or calls [`configure_cpu`][] without `devices`, which also asks JAX for one CPU device per
+core: JAX makes
 one CPU device by default, and one device's program runs its loops on one core. With a
 device per core, a `vmap`-ed lockstep batch spreads its groups over them
 (`solve/lockstep.py`) and a sweep its chunks (`sweep/run.py`): measured on the 2-core

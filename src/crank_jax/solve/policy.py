@@ -19,7 +19,7 @@ It returns a solver object (`solvers.py`, made once per name by `names.py`'s tab
 
 A concrete `simulate` call also takes its host-side plan from here ([`host_plan`][]: its
 input checks, the linearisation, the structure and the solver); the front door
-(`crank_jax/simulate.py`) keeps plans for repeated calls with the same inputs.
+(`crank_jax/simulation.py`) keeps plans for repeated calls with the same inputs.
 """
 
 from __future__ import annotations
@@ -262,7 +262,7 @@ def check_time_scale(mech: SliderCrank, solver: AbstractSolver, span: float, max
         mu, chi, xi = (float(np.max(np.abs(np.asarray(x, dtype=float)))) for x in
                        (lin.mu, lin.chi, lin.xi))
         raise ValueError(
-            f"the fastest mode of the linearised crank is {top:.3g} rad/s (mu = {mu:.3g} "
+            f"the fastest mode of the linearized crank is {top:.3g} rad/s (mu = {mu:.3g} "
             f"kg*m^2, chi = {chi:.3g} N*m*s/rad, xi = {xi:.3g} N*m/rad): over {span:g} s "
             f"that needs ~{need:.3g} solver steps (max_steps = {max_steps}); check the units "
             f"and values of k, c and the masses and inertias")

@@ -276,7 +276,7 @@ def solve(field: Callable, solver: AbstractSolver, ts: ArrayLike, y0, args=None,
     - `field`: the vector field, `field(t, y, args) -> dy/dt` (a pytree like `y`): a
       function or a callable pytree (an `eqx.Module`), whose array leaves are then
       parameters that `jax.vmap`, `jax.jvp` and `jax.grad` see.
-    - `solver`: an [`AbstractSolver`][], e.g. `crank_jax.solver_named("dopri8-adaptive")`
+    - `solver`: an [`AbstractSolver`][], e.g. `crank_jax.solve.solver_named("dopri8-adaptive")`
       or `crank_jax.Diffrax(diffrax.Tsit5())`.
     - `ts`: (n,) strictly increasing save times (s for the crank), n >= 2; `"dopri8-uniform"`
       needs them equally spaced.
@@ -309,7 +309,7 @@ def solve(field: Callable, solver: AbstractSolver, ts: ArrayLike, y0, args=None,
         raise ValueError(f"adjoint must be one of {ADJOINTS}, got {adjoint!r}")
     if not isinstance(solver, AbstractSolver):
         raise TypeError(f"solver must be a crank_jax solver object (see "
-                        f"crank_jax.solver_named), got {solver!r}")
+                        f"crank_jax.solve.solver_named), got {solver!r}")
     if not checks:
         solver = solver.unchecked()
     return solver.run(field, ts, y0, args, rtol=rtol, atol=atol, max_steps=int(max_steps),

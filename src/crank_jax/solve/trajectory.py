@@ -3,7 +3,7 @@
 outputs and the [`Trajectory`][] they fill.
 
 [`solve_trajectory`][] is the jitted solve that the public `simulate` (the package's front
-door, `crank_jax/simulate.py`: input checks, the host plan and its memo, the program
+door, `crank_jax/simulation.py`: input checks, the host plan and its memo, the program
 store) runs; [`solve_crank`][] is the same solve for a caller tracing its own program (the
 fit's residuals and Jacobians). This module imports nothing of the runtime (program store,
 memos, flags): tests/test_layout.py.

@@ -32,7 +32,7 @@ from ..model.loads import (
     set_param,
 )
 from ..model.params import FIELDS, SliderCrank, validation_rules
-from ..simulate import linearize
+from ..simulation import linearize
 from ..solve.policy import check_solver, fastest_mode
 from .distributions import AbstractDistribution, Spec, draw, parse_spec
 from .reductions import REDUCTIONS, TRAJECTORY_OUTPUTS

@@ -51,7 +51,7 @@ import numpy as np
 from ..model.dynamics import Structure
 from ..model.loads import SIDES
 from ..runtime.lazy import lazy_import
-from ..simulate import linearize, simulate
+from ..simulation import linearize, simulate
 from ..solve.names import name_of
 from ..solve.policy import SOLVERS, is_concrete, resolve_solver
 from .checkpoint import Checkpoint, SharedCheckpoint, plan_manifest

@@ -27,7 +27,7 @@ from jaxtyping import Array, ArrayLike
 from ..model.dynamics import CrankField, Structure
 from ..model.loads import NoLoad
 from ..runtime.lazy import lazy_import
-from ..simulate import linearize
+from ..simulation import linearize
 from .drive import VibrationError
 from .flow import flow
 

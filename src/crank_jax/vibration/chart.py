@@ -21,7 +21,7 @@ import numpy as np
 
 from ..model.dynamics import CrankField, Structure
 from ..model.loads import ConstantLoad, HarmonicLoad, NoLoad
-from ..simulate import linearize
+from ..simulation import linearize
 from .drive import VibrationError, check_smooth
 from .floquet import monodromy_at_rest, multipliers
 
@@ -68,7 +68,7 @@ def check_chart_scene(scene) -> None:
     if not isinstance(scene.torque, NoLoad):
         raise VibrationError("a stability chart is of the rest position under P(t) alone: "
                              "remove the scene's [torque] table")
-    check_smooth(m, "a stability chart (the linearisation at rest)")
+    check_smooth(m, "a stability chart (the linearization at rest)")
     _mean_P(scene)
 
 

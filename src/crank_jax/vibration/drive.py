@@ -67,5 +67,5 @@ def check_smooth(mech, what: str) -> None:
     if names:
         raise VibrationError(
             f"{what} is not defined with Coulomb friction ({', '.join(names)} > 0): its "
-            "smoothed slope at rest is an artefact of the width w_c / w_s; set "
+            "smoothed slope at rest is an artifact of the width w_c / w_s; set "
             f"{' and '.join(names)} = 0 (model it as viscous damping c, c_s instead)")

@@ -24,7 +24,7 @@ from jaxtyping import Array
 
 from ..model.dynamics import Structure
 from ..runtime.lazy import lazy_import
-from ..simulate import linearize
+from ..simulation import linearize
 from .drive import drive_side, field_at
 from .floquet import STABLE_MARGIN, monodromy, multipliers
 from .flow import flow, flow_samples

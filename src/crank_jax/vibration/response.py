@@ -21,7 +21,7 @@ import numpy as np
 
 from ..model.dynamics import Structure
 from ..runtime.lazy import lazy_import
-from ..simulate import linearize
+from ..simulation import linearize
 from .backbone import backbone
 from .continuation import Point, continue_curve, null_vector
 from .drive import VibrationError, drive_side, field_at
@@ -143,7 +143,7 @@ def forced_response(scene, freq_hz: tuple[float, float], *, max_points: int = 40
     start = correct(u0, np.array([0.0, 0.0, 1.0]))
     if not start.ok:
         raise VibrationError(f"no periodic orbit found at the start frequency {f0:g} Hz "
-                             "from the linearised response; start the range farther from "
+                             "from the linearized response; start the range farther from "
                              "resonance (--freq F0:F1 with a lower F0)")
     curve = continue_curve(correct, start, direction=1.0, lo=f0 / float(f_ref),
                            hi=f1 / float(f_ref), ds=ds_max / 2, ds_max=ds_max,
