@@ -8,11 +8,13 @@ clock. Rows:
 
 - one forward solve (`simulate` under `jax.jit`);
 - the forward pass of the grad: the same solve with its step log (`adjoint.forward`);
-- `jax.grad` (the discrete adjoint, one VJP of each step in a loop);
-- **a diagnostic, not a gradient:** the same backward loop with each step's VJP taken
-  with respect to its start state only (the field's parameters held constant), so the
-  parameters' cotangents are never formed. Its backward pass is what a reverse mode
-  costs that carries the state's cotangent through the steps and nothing else.
+- `jax.grad` (the discrete adjoint, one VJP of each step in a loop, the parameters'
+  cotangents after it: `adjoint._deferred`);
+- **a diagnostic, not a gradient:** a backward loop with each step's VJP taken with
+  respect to its start state only (the field's parameters held constant), so the
+  parameters' cotangents are never formed (experiments/_reverse_programs.py). Its
+  backward pass is what a reverse mode costs that carries the state's cotangent through
+  the steps and nothing else.
 
 The backward pass is the grad less the forward pass with its log; its parameter part is
 the grad less the diagnostic. Writes experiments/results/reverse_split.json.
@@ -37,24 +39,6 @@ os.environ["XLA_FLAGS"] = with_cpu_flags(os.environ.get("XLA_FLAGS"))
 from _bench import median_time, save, setup_jax, use_clock  # noqa: E402
 
 PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
-
-
-def state_only(original):
-    """`adjoint._sequential` with each step's VJP taken with respect to the state only: the
-    parameters' cotangents are not formed (the returned ones are zero, tied to the state's
-    cotangent so that XLA keeps the loop)."""
-
-    def make(outputs, window, dd, B):
-        inner = original(lambda row, tw, _: outputs(row, tw, dd), window, [], B)
-
-        def block(rows, kb, size, carry):
-            ybar, dbar = carry
-            yb, _ = inner(rows, kb, size, (ybar, []))
-            return yb, [d + 0.0 * yb[0] for d in dbar]
-
-        return block
-
-    return make
 
 
 def measure(mode: str, smoke: bool) -> dict:
@@ -90,7 +74,8 @@ def measure(mode: str, smoke: bool) -> dict:
 
     grad = jax.jit(jax.grad(lambda theta: jnp.sum(w * phi(theta))))
     if mode == "state":
-        adjoint._sequential = state_only(adjoint._sequential)
+        from _reverse_programs import per_step
+        adjoint._deferred = per_step(params=False)
         # No parameter cotangent is formed: the diagnostic's "gradient" is zero.
         assert float(jnp.max(jnp.abs(grad(theta0)))) == 0.0
         fns = {"grad, state cotangents only (diagnostic)": grad}

@@ -104,6 +104,21 @@ def test_both_backward_programs_give_the_forward_jacobian(monkeypatch, hoisted):
     _close(jax.jit(jax.grad(loss))(theta0), _forward_gradient(theta0, weights, traj))
 
 
+@pytest.mark.slow
+def test_the_deferred_parameter_pass_over_a_short_log_with_a_load(monkeypatch):
+    # With the CPU flags' program (adjoint._deferred) the parameters' cotangents come
+    # from the stage points after each block's loop, in chunks of points: a log of 50
+    # rows (blocks of 50 steps, 700 stage points, not a multiple of the 64-point chunk),
+    # several segments rerun, and a torque whose amplitude is a parameter of the field's
+    # time-dependent part: the forward-mode gradient still.
+    monkeypatch.setattr(adjoint, "_hoisted", lambda: True)
+    monkeypatch.setattr(adjoint, "LOG_ROWS", 50)
+    theta0, weights, traj, loss = _problem(torque=1.3, t1=1.0, samples=11)
+    g = jax.jit(jax.grad(loss))(theta0)
+    _close(g, _forward_gradient(theta0, weights, traj))
+    assert abs(float(g[-1])) > 0
+
+
 def test_the_pending_steps_reach_their_ring_rows():
     # The step loop's buffer of P steps goes to ring rows count % S, ... by two in-place
     # writes (the second for the steps that wrap to row 0), none from `upto` on, and the

@@ -7,17 +7,17 @@ reverse, carrying the state's cotangent from step to step and summing the field'
 parameter cotangents, by one of two programs (see `_hoisted`):
 
 - **with the CPU flags** (XLA hoists the loop into one function): one step after another,
-  each the VJP of the step `(y, theta) -> (y1, dense output at the save times the step
-  covers)`, the step's save window gathered for a block of steps before the loop;
+  each the VJP of the step `(y, stage values) -> (y1, dense output at the save times the
+  step covers)` (the step's save window gathered for a block of steps before the loop);
+  the parameters' cotangents after the loop, from the stage points and the stages'
+  cotangents, by VJPs of the field over 64 points at a time (`_deferred`);
 - **otherwise** (each kernel dispatched on its own): a block of 256 steps side by side,
   by a hand-written adjoint of the stage recursion that needs of the field only its
   Jacobian with respect to the state at each stage (forward mode, N tangents) and one VJP
-  with respect to its parameters over all the block's 14 x 256 evaluation points: no
-  JAX transformation of the whole step (whose vectorised Jacobian and VJP compiled to
-  kernels 10x and 6x dearer than the field's own, and 60 s of compile time). The field
-  runs over those points with sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises
-  (`trig.arithmetic`): the grad took 5.8 ms instead of 9.8 ms (lab rig, 10 parameters,
-  2026-11-27; one forward solve 1.06 ms).
+  with respect to its parameters over all the block's 14 x 256 evaluation points, with
+  sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises (`trig.arithmetic`): no JAX
+  transformation of the whole step (whose vectorised Jacobian and VJP compiled to kernels
+  10x and 6x dearer than the field's own, and 60 s of compile time).
 
 The step sizes and the accept/reject decisions are constants (the forward pass chose them
 on values, `stop_gradient`), so the result is the exact gradient of the computed discrete
@@ -39,6 +39,7 @@ memory for `LOG_ROWS` rows, whatever `n`).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import equinox as eqx
@@ -77,17 +78,24 @@ def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=
                           record=record)
 
 
-def _step_outputs(field, pack, unpack, row, tw, n_state):
+def _step_outputs(field, pack, unpack, row, tw, n_state, e=None):
     """One logged step as a function of its start state and of the field: `(y1, values)`,
     the state at its end and the dense output at the save times `tw` (W,), (W, N)
     (zero-weighted where the step does not cover them). The same arithmetic as the
-    forward pass (adaptive.py), so that the VJP is that of the computed solution."""
+    forward pass (adaptive.py), so that the VJP is that of the computed solution.
+
+    With `e` (14, N), zeros, each stage is `f(t_i, Y_i) + e_i`, and the result is
+    `((y1, values), (T, Y))`: the cotangent of `e` is then that of the 14 stages, and
+    `T` (14,), `Y` (14, N) are where the field was evaluated (see `_deferred`)."""
     erk = dopri8()
     dtype = row.dtype
     t, t1, h, y = row[0:1], row[1:2], row[2:3], row[3:3 + n_state]
+    points = []
 
     def f(tt, yp):
-        return pack(field(tt[..., 0], unpack(yp), None)).astype(dtype)
+        points.append((tt[0], yp))
+        k = pack(field(tt[..., 0], unpack(yp), None)).astype(dtype)
+        return k if e is None else k + e[len(points) - 1]
 
     ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h)[:erk.num_stages]
     y1 = erk.solution(y, h, ks)
@@ -101,7 +109,10 @@ def _step_outputs(field, pack, unpack, row, tw, n_state):
     poly = coef[0][None]
     for c in coef[1:]:
         poly = poly * theta + c[None]
-    return y1, y[None] + theta * poly
+    out = y1, y[None] + theta * poly
+    if e is None:
+        return out
+    return out, (jnp.stack([p[0] for p in points]), jnp.stack([p[1] for p in points]))
 
 
 def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int,
@@ -179,9 +190,6 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
     def window(row, method="scan"):
         return _window(ts, ts_pad, g_pad, row, method)
 
-    def outputs(row, tw, dd):
-        return _step_outputs(full(dd), pack, unpack, row, tw, n_state)
-
     def block(rows, kb, size, carry):
         u_end, dbar = carry
         rows = jax.lax.dynamic_slice_in_dim(rows, kb * B, B)
@@ -200,18 +208,21 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
         ybar = _reverse_affine(a, c, u_end)
         u_in = jnp.where(valid[:, None], jnp.concatenate([ybar[1:], u_end[None]]), 0.0)
         kbar = _stage_cotangents(st, rows[:, 2], G, u_in)
-        return ybar[0], [x + y for x, y in zip(dbar, _field_vjp(full, dd, pack, unpack,
-                                                                st, kbar))]
+        d = _field_vjp(full, dd, pack, unpack, st.T, st.Y, kbar)
+        return ybar[0], [x + y for x, y in zip(dbar, d)]
 
     def vectorised(rows, kb, size, carry):
         # The block's field evaluations run over its B x 14 points side by side: sin,
         # cos and 1/sqrt as arithmetic that XLA:CPU vectorises (trig.py), as the lockstep
         # batch's (see the module docstring). With the CPU flags these blocks took 3.3 ms
-        # against 2.5 ms for `_sequential`'s loop, which the flags keep.
+        # against 2.5 ms for a loop of one VJP per step (2026-11-27), so the flags keep
+        # the loop (`_deferred`).
         with trig.arithmetic():
             return block(rows, kb, size, carry)
 
-    return _sequential(outputs, window, dd, B) if _hoisted() else vectorised
+    if not _hoisted():
+        return vectorised
+    return _deferred(full, dd, pack, unpack, window, B, n_state)
 
 
 class _Stages(NamedTuple):
@@ -313,11 +324,12 @@ def _stage_cotangents(st: _Stages, h, G, u):
     return kbar
 
 
-def _field_vjp(full, dd, pack, unpack, st: _Stages, kbar):
-    """The cotangent of the field's parameters `dd` from every stage of a block: one VJP
-    of the field over all 14 B evaluation points, with cotangents `kbar` (14, B, N)."""
+def _field_vjp(full, dd, pack, unpack, T, Y, kbar):
+    """The cotangent of the field's parameters `dd` from the stages of a block of steps:
+    one VJP of the field over all its evaluation points, times `T` (...,) and packed
+    states `Y` (..., N), with cotangents `kbar` (..., N)."""
     n_state = kbar.shape[-1]
-    T, Y, K = st.T.reshape(-1), st.Y.reshape(-1, n_state), kbar.reshape(-1, n_state)
+    T, Y, K = T.reshape(-1), Y.reshape(-1, n_state), kbar.reshape(-1, n_state)
 
     def at_points(dd):
         return jax.vmap(_point_field(full(dd), pack, unpack, Y.dtype))(T, Y)
@@ -341,27 +353,58 @@ def _window(ts, ts_pad, g_pad, row, method):
     return jnp.where(mine, tw, t), gw
 
 
-def _sequential(outputs, window, dd, B):
+#: Stage points per VJP of the field in `_deferred`'s loop over a block's points (a divisor
+#: of 14 `_BLOCK`). Measured with the CPU flags (lab rig, grad / forward solve, one run,
+#: load ~12-19): 8: 3.39x, 16: 3.44x, 32: 3.33x, 64: 3.12x; all 14 B points at once:
+#: 4.04x, as slow as the VJP in each step (4.0x): XLA:CPU runs that VJP's ~440 kernels
+#: over 3584 points one after another, each streaming its arrays through memory.
+_CHUNK = 64
+
+
+def _deferred(full, dd, pack, unpack, window, B, n_state):
     """`block` as `_block_vjp`'s, with the block's steps one after another, each one VJP
-    of the step: kernels of one step's size, one compiled function where XLA hoists the
-    loop (see `_hoisted`)."""
+    of the step with respect to its start state and its 14 stages' values (`e` of
+    `_step_outputs`), not the field's parameters. The parameters' cotangents are the sum
+    over every stage of every step of `K_i^T df/dtheta(T_i, Y_i)`, `K_i` the stage's
+    cotangent, `(T_i, Y_i)` its point: after the loop, VJPs of the field over `_CHUNK`
+    of the block's points at a time form it (one loop), instead of one small VJP per stage in the
+    loop (issue 40: 1.51 of the backward pass's 2.35 ms, 2026-11-27). The same sum in
+    another order: equal to rounding."""
+
+    def step(row, tw, e):
+        return _step_outputs(full(dd), pack, unpack, row, tw, n_state, e)
 
     def block(rows, kb, size, carry):
-        # The block's rows and their save windows, gathered before the loop over its
-        # steps: the loop then touches only these few bytes (see `_hoisted`).
+        ybar, dbar = carry
         blk = jax.lax.dynamic_slice_in_dim(rows, kb * B, B)
         tws, gws = jax.vmap(window)(blk)
         n = jnp.minimum(size - kb * B, B)
+        e0 = jnp.zeros((14, n_state), blk.dtype)
 
-        def one(k, carry):
-            ybar, dbar = carry
+        def one(k, c):
+            ybar, K, T, Y = c
             i = n - 1 - k
             row, tw, gw = blk[i], tws[i], gws[i]
-            _, pull = jax.vjp(lambda y, dd: outputs(row.at[3:].set(y), tw, dd), row[3:], dd)
-            yb, db = pull((ybar, gw))
-            return yb, [a + b for a, b in zip(dbar, db)]
+            _, pull, (t_i, y_i) = jax.vjp(lambda y, e: step(row.at[3:].set(y), tw, e),
+                                          row[3:], e0, has_aux=True)
+            yb, kbar = pull((ybar, gw))
+            return yb, K.at[i].set(kbar), T.at[i].set(t_i), Y.at[i].set(y_i)
 
-        return jax.lax.fori_loop(0, jnp.minimum(size - kb * B, B), one, carry)
+        # Rows past the last step keep a valid point (the block's first step's start)
+        # and a zero cotangent: they add nothing (an invalid point could add 0 * NaN).
+        K = jnp.zeros((B, 14, n_state), blk.dtype)
+        T = jnp.full((B, 14), blk[0, 0])
+        Y = jnp.broadcast_to(blk[0, 3:3 + n_state], (B, 14, n_state))
+        ybar, K, T, Y = jax.lax.fori_loop(0, n, one, (ybar, K, T, Y))
+        W = math.gcd(_CHUNK, 14 * B)  # B may be a short log's rows
+        T, Y, K = T.reshape(-1, W), Y.reshape(-1, W, n_state), K.reshape(-1, W, n_state)
+
+        def chunk(j, dbar):
+            d = _field_vjp(full, dd, pack, unpack, T[j], Y[j], K[j])
+            return [a + b for a, b in zip(dbar, d)]
+
+        with trig.arithmetic():  # vectorised over the chunk (see `vectorised`)
+            return ybar, jax.lax.fori_loop(0, (14 * n + W - 1) // W, chunk, dbar)
 
     return block
 
