@@ -14,16 +14,42 @@ import numpy as np
 from jaxtyping import Array
 
 from ..runtime.persistent import PersistentProgram
+from ..runtime.xla_flags import small_loop_bytes
 from .problem import Problem
 
 __all__ = ["Program", "residuals_at", "jacobian_at", "Subspace",
-           "Pinned", "segment_coloring"]
+           "Pinned", "segment_coloring", "compile_options", "FAST_COMPILE"]
+
+#: XLA's CPU compile options for the fit's programs where they leave every result bit for
+#: bit the same (`compile_options`): XLA's older elemental emitters for the fusions
+#: instead of its MLIR fusion emitters. LLVM's part of the compile is ~80% of a fit
+#: program's, and with these it took 0.6-0.7x as long (the multiple-shooting Jacobian
+#: 21.6 -> 15.0 s, the single-shooting one 16.2 -> 10.4 s on a 2-core VM at load 12;
+#: experiments/results/fit_programs_options*.json), their calls as fast.
+FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+
+
+def compile_options(problem, *_) -> dict:
+    """The XLA compile options of a fit program's call on `problem` (a [`Problem`][], or a
+    view of one with a `.problem`): [`FAST_COMPILE`][] on the CPU wherever it was found to
+    give the same bits as XLA's defaults: a multiple-shooting problem (its solves batched
+    over the segments), and any problem under crank-jax's CPU flags (`xla_flags.py`, which
+    the `crank-jax` program sets). Not a single-shooting problem under XLA's defaults:
+    there the two emitters round its scalar solve differently (the Jacobian moved by 1e-9,
+    the step count by 7 of 1959), and a fit's result must not depend on a compile choice."""
+    if jax.default_backend() != "cpu":
+        return {}
+    inner = getattr(problem, "problem", problem)
+    if getattr(inner, "n_extra", 0) > 0 or small_loop_bytes() is not None:
+        return dict(FAST_COMPILE)
+    return {}
 
 
 def Program(fn, name: str) -> PersistentProgram:
     """A compiled function of the fit, kept between processes (see
-    [`PersistentProgram`][]). Call it, or `.lower(...)` it (for inspection)."""
-    return PersistentProgram(fn, name)
+    [`PersistentProgram`][]), compiled with [`compile_options`][]. Call it, or
+    `.lower(...)` it (for inspection)."""
+    return PersistentProgram(fn, name, compile_options)
 
 
 def _residuals(problem, z):

@@ -91,7 +91,8 @@ def _environment() -> str:
             f"|{os.environ.get('XLA_FLAGS', '')}")
 
 
-def _signature(name: str, args) -> tuple[str | None, list, object, object]:
+def _signature(name: str, args, options: tuple = ()) -> tuple[str | None, list, object,
+                                                                 object]:
     """(key, array leaves, their treedef, the static part) of a call; the key is None (not
     stored) when the static part names an object by its address (a user's function), or
     holds a class from outside crank-jax anywhere (see `foreign_code.py`): only code
@@ -100,7 +101,7 @@ def _signature(name: str, args) -> tuple[str | None, list, object, object]:
     leaves, treedef = jax.tree.flatten(dyn)
     static_leaves, static_def = jax.tree.flatten(static)
     text = "\n".join([
-        name, _environment(), str(treedef), str(static_def),
+        name, _environment(), repr(options), str(treedef), str(static_def),
         repr([(type(x).__name__, x) for x in static_leaves]),
         repr([(x.shape, str(x.dtype), bool(getattr(x, "weak_type", False)))
               for x in leaves])])
@@ -133,20 +134,36 @@ class PersistentProgram:
     host callback (an `eqx.error_if`, e.g. diffrax's check of `SaveAt(ts)`) runs but is
     not stored (see `_compile`). Without a store (see [`program_store_dir`][]) it is
     `eqx.filter_jit(fn)`'s semantics with a lighter dispatch (see `_jit`).
+
+    `compiler_options(*args) -> dict`, if given: XLA options for this program's compile
+    (`jax.jit(..., compiler_options=...)`), a choice of the program's own that leaves the
+    process's configuration alone; part of the stored program's key. Options this XLA
+    does not know are dropped (the program compiles as without them), never an error.
     """
 
-    def __init__(self, fn: Callable, name: str):
+    def __init__(self, fn: Callable, name: str,
+                 compiler_options: Callable[..., dict] | None = None):
         self.fn = fn
         self.name = name
         self.jitted = eqx.filter_jit(fn)
-        self._flat: dict = {}  # (treedef, array mask, static leaves) -> jax.jit of arrays
+        self.compiler_options = compiler_options
+        self._flat: dict = {}  # (treedef, array mask, static leaves, options) -> jax.jit
         self._loaded: dict[str, Callable] = {}  # key -> compiled executable
+
+    def options(self, *args) -> tuple:
+        """The XLA compile options of a call with `args`, as sorted `(name, value)` pairs
+        (empty: XLA's defaults)."""
+        if self.compiler_options is None:
+            return ()
+        return tuple(sorted(o for o in self.compiler_options(*args).items()
+                            if o[0] not in _UNKNOWN_OPTIONS))
 
     def __call__(self, *args):
         store = program_store_dir()
         if store is None:
             return self._jit(args)
-        key, leaves, treedef, static = _signature(self.name, args)
+        options = self.options(*args)
+        key, leaves, treedef, static = _signature(self.name, args, options)
         if key is None:
             return self._jit(args)
         call = self._loaded.get(key)
@@ -164,7 +181,7 @@ class PersistentProgram:
         # then never supplies the executable (one it supplies cannot be serialised again:
         # loaded in another process it fails with "Function ... not found").
         for tag in (key[:16], f"{key[:16]}_{os.urandom(4).hex()}"):
-            call, blob = self._compile(leaves, treedef, static, key, tag)
+            call, blob = self._compile(leaves, treedef, static, key, tag, options)
             out = self._try(call, leaves)
             if out is not None:
                 if blob is not None:  # stored only once it has run
@@ -197,14 +214,24 @@ class PersistentProgram:
         leaves, treedef = jax.tree_util.tree_flatten(args)
         mask = tuple(isinstance(x, _ARRAYS) for x in leaves)
         static = tuple(x for x, a in zip(leaves, mask) if not a)
-        key = (treedef, mask, static)
+        options = self.options(*args)
+        key = (treedef, mask, static, options)
         try:
             call = self._flat.get(key)
         except TypeError:  # an unhashable static leaf: equinox's own dispatch
             return self.jitted(*args)
         if call is None:
-            call = self._flat[key] = jax.jit(self._rebuilt(treedef, mask, static))
-        return call(*(x for x, a in zip(leaves, mask) if a))
+            call = self._flat[key] = jax.jit(self._rebuilt(treedef, mask, static),
+                                             compiler_options=dict(options) or None)
+        arrays = (x for x, a in zip(leaves, mask) if a)
+        if not options:
+            return call(*arrays)
+        try:
+            return call(*arrays)
+        except Exception as e:
+            if not _unknown_option(e, options):
+                raise
+            return self._jit(args)  # now without the refused option
 
     def _rebuilt(self, treedef, mask, static):
         """`fn` of the array leaves alone, the static ones bound."""
@@ -217,7 +244,7 @@ class PersistentProgram:
 
         return flat
 
-    def _compile(self, leaves, treedef, static, key: str, tag: str):
+    def _compile(self, leaves, treedef, static, key: str, tag: str, options: tuple = ()):
         """(the executable to run, its serialised bytes or None): the bytes are loaded
         back at once, so what runs now is what later processes will load."""
         fn = self.fn
@@ -231,7 +258,12 @@ class PersistentProgram:
                                       weak_type=bool(getattr(x, "weak_type", False)))
                  for x in leaves]
         lowered = jax.jit(flat).lower(*avals)
-        compiled = lowered.compile()
+        try:
+            compiled = lowered.compile(dict(options) if options else None)
+        except Exception as e:
+            if not (options and _unknown_option(e, options)):
+                raise
+            compiled = lowered.compile()  # (stored under the options' key: a miss later)
         targets = _custom_calls(lowered.as_text())
         if not all(t.startswith("lapack_") for t in targets):
             return compiled, None
@@ -246,6 +278,21 @@ class PersistentProgram:
 
 
 _UNSTORED = object()  # marks a program that runs unstored in this process
+
+#: Compile options this process's XLA refused ("No such compile option", a value it cannot
+#: parse): left out of every later compile (another jaxlib may have dropped or renamed one).
+_UNKNOWN_OPTIONS: set[str] = set()
+
+
+def _unknown_option(error: Exception, options: tuple) -> bool:
+    """Whether `error` is XLA refusing one of `options` (then remembered, see
+    [`_UNKNOWN_OPTIONS`][]), not a failure of the program itself."""
+    text = str(error)
+    bad = {name for name, _ in options if f"'{name}'" in text or f" {name}," in text}
+    if bad and ("compile option" in text or "While setting option" in text):
+        _UNKNOWN_OPTIONS.update(bad)
+        return True
+    return False
 
 
 def _load(path: Path, key: str, n_in: int):
