@@ -1,6 +1,13 @@
 """Test configuration: float64 everywhere, a small CPU-only JAX, shared helpers."""
 
+import ast
+import contextlib
+import inspect
 import os
+import shutil
+import sys
+import tempfile
+import threading
 from pathlib import Path
 
 os.environ.setdefault("CRANK_JAX_NO_CACHE", "1")  # tests must not depend on a warm cache
@@ -9,10 +16,47 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+# JAX's persistent compilation cache, for this test session only: a directory made by the
+# first process (pytest, or the xdist controller) and handed to the workers through the
+# environment, removed at the end (`pytest_unconfigure`). Many tests compile the same
+# program (a fresh `eqx.filter_jit` of the same scene, the same program in both workers);
+# the second compile is then a cache hit. Nothing outlives the session, so no test
+# depends on a warm cache. Only JAX's cache: `CRANK_JAX_NO_CACHE` keeps the package's
+# program store off (its tests point it at a directory of their own), and subprocesses
+# get neither (their environment does not name JAX's cache).
+_SESSION_CACHE_OWNER = "CRANK_JAX_TEST_SESSION_CACHE" not in os.environ
+if _SESSION_CACHE_OWNER:
+    os.environ["CRANK_JAX_TEST_SESSION_CACHE"] = tempfile.mkdtemp(prefix="crank-jax-tests-")
+jax.config.update("jax_compilation_cache_dir", os.environ["CRANK_JAX_TEST_SESSION_CACHE"])
+# Every program, however quick to compile. Measured 2026-11-28 (test_scene.py and
+# test_cli.py run twice on one cache, serially, CPU seconds): the first run 12 s, the
+# second 6 s with JAX's default threshold (1 s; 3 entries) and 4 s with 0 (19 entries);
+# the writes cost nothing measurable (the first run took 12 s both ways).
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
+
+
+@contextlib.contextmanager
+def without_compilation_cache():
+    """JAX's persistent compilation cache off inside the block (the session's, above).
+
+    For the program store's tests: they count compilations, and an executable that
+    JAX's cache supplies is one the store cannot keep (persistent.py compiles it again
+    under another name), so with the session's cache a second test compiling the same
+    program would count two."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    jax.config.update("jax_enable_compilation_cache", False)
+    compilation_cache.reset_cache()  # whether the cache is used is decided once, then kept
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_compilation_cache", True)
+        compilation_cache.reset_cache()
 
 
 def tree_allclose(a, b, rtol=1e-10, atol=1e-12) -> bool:
@@ -87,3 +131,79 @@ def pytest_collection_modifyitems(config, items):
     stale = sorted(k for k in listed - used if k.split("::")[0] in files)
     if stale and whole:
         raise pytest.UsageError(f"{FULL_TIER.name} names tests that do not exist: {stale}")
+
+
+def pytest_unconfigure(config):
+    if _SESSION_CACHE_OWNER:
+        shutil.rmtree(os.environ["CRANK_JAX_TEST_SESSION_CACHE"], ignore_errors=True)
+
+
+# `--exercised`: which src modules the run exercised. A module counts once one of its
+# functions ran (a profile hook records the files of called functions; importing it is not
+# enough, since `import crank_jax` imports most modules); a module without functions
+# counts once imported. With xdist each worker sends its set to the controller. A module
+# none of the run's tests exercised fails the run, so `python -m pytest -q --exercised`
+# checks that the fast tier touches every module. Opt-in: the hook slows tracing (about
+# a fifth more time), so the plain command runs without it.
+SRC = Path(cj.__file__).resolve().parent
+_CALLED: set[str] = set()
+
+
+def pytest_addoption(parser):
+    parser.addoption("--exercised", action="store_true",
+                     help="fail unless every src/crank_jax module was exercised")
+
+
+def _record_call(frame, event, arg, _function=inspect.CO_OPTIMIZED, _called=_CALLED):
+    # CO_OPTIMIZED: a function's frame, not a module's or a class body's (those run at import)
+    if event == "call" and frame.f_code.co_flags & _function:
+        _called.add(frame.f_code.co_filename)
+
+
+def _is_controller(config) -> bool:
+    return config.pluginmanager.hasplugin("dsession")  # the xdist controller runs no test
+
+
+def pytest_configure(config):
+    if config.getoption("exercised") and not _is_controller(config):
+        sys.setprofile(_record_call)
+        threading.setprofile(_record_call)
+
+
+def _exercised() -> set[str]:
+    return {f for f in _CALLED if f.startswith(str(SRC))} | {
+        m.__file__ for name, m in list(sys.modules.items())
+        if name.startswith("crank_jax") and getattr(m, "__file__", None)
+        and not any(isinstance(n, ast.FunctionDef | ast.AsyncFunctionDef)
+                    for n in ast.walk(ast.parse(Path(m.__file__).read_text())))}
+
+
+def pytest_sessionfinish(session, exitstatus):
+    config = session.config
+    if not config.getoption("exercised"):
+        return
+    sys.setprofile(None)
+    threading.setprofile(None)
+    if hasattr(config, "workerinput"):  # an xdist worker: hand the set to the controller
+        config.workeroutput["crank_jax_exercised"] = sorted(_exercised())
+        return
+    done = set(getattr(config, "_exercised_by_workers", ())) | _exercised()
+    missing = sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if str(p) not in done)
+    config._exercised_missing = missing
+    if missing and session.exitstatus == 0:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+@pytest.hookimpl(optionalhook=True)  # an xdist hook: absent under -p no:xdist
+def pytest_testnodedown(node, error):
+    out = getattr(node, "workeroutput", {}).get("crank_jax_exercised", ())
+    node.config._exercised_by_workers = set(getattr(node.config, "_exercised_by_workers",
+                                                    ())) | set(out)
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    missing = getattr(config, "_exercised_missing", None)
+    if missing is not None:
+        terminalreporter.write_line(
+            f"--exercised: {len(missing)} src module(s) no test exercised: {missing}"
+            if missing else "--exercised: every src/crank_jax module was exercised")
