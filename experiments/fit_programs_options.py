@@ -40,7 +40,7 @@ def main(argv=None):
     ap.add_argument("--tag", default="")
     a = ap.parse_args(argv)
     if a.cpu_flags:
-        from crank_jax.xla_flags import with_cpu_flags
+        from crank_jax.runtime.xla_flags import with_cpu_flags
 
         os.environ["XLA_FLAGS"] = with_cpu_flags(os.environ.get("XLA_FLAGS"))
     os.environ["CRANK_JAX_NO_CACHE"] = "1"

@@ -16,7 +16,7 @@ from crank_jax.identify import channels as ch
 from crank_jax.identify.plan import recoordinate
 from crank_jax.identify.programs import FAST_COMPILE, compile_options, jacobian_at
 from crank_jax.identify.request import normalise
-from crank_jax.xla_flags import small_loop_bytes
+from crank_jax.runtime.xla_flags import small_loop_bytes
 
 _X = jnp.linspace(0.0, 1.0, 5)
 
