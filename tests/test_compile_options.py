@@ -13,7 +13,7 @@ import pytest
 import crank_jax as cj
 from crank_jax import persistent
 from crank_jax.identify import channels as ch
-from crank_jax.identify.plan import recoordinate
+from crank_jax.identify.fit_plan import recoordinate
 from crank_jax.identify.programs import FAST_COMPILE, compile_options, jacobian_at
 from crank_jax.identify.request import normalise
 from crank_jax.runtime.xla_flags import small_loop_bytes
@@ -29,7 +29,7 @@ def _fn(x):
 def problems(lab_rig):
     """(single, its z, multiple (3 segments), its z) of a short lab-rig record, built
     without a solve."""
-    from crank_jax.identify.plan import _problem, _starts, pick_solver
+    from crank_jax.identify.fit_plan import _problem, _starts, pick_solver
     from crank_jax.identify.strategy import MAX_ODE_STEPS
 
     start = cj.Scene(lab_rig.mech.replace(k=2.4, c=0.004), phi0=1.0, name="start")
