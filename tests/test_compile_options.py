@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax import persistent
+from crank_jax.runtime import persistent
 from crank_jax.identify import channels as ch
 from crank_jax.identify.fit_plan import recoordinate
 from crank_jax.identify.programs import FAST_COMPILE, compile_options, jacobian_at
