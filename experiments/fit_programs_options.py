@@ -51,7 +51,7 @@ def main(argv=None):
 
     setup_jax()
     import crank_jax as cj
-    from crank_jax.identify import channels as ch
+    from crank_jax.identify import channel_noise as ch
     from crank_jax.identify.fit_plan import make_plan
     from crank_jax.identify.programs import jacobian_at
     from crank_jax.identify.request import normalise

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax.runtime import persistent
-from crank_jax.identify import channels as ch
+from crank_jax.identify import channel_noise as ch
 from crank_jax.identify.fit_plan import recoordinate
 from crank_jax.identify.programs import FAST_COMPILE, compile_options, jacobian_at
 from crank_jax.identify.request import normalise
+from crank_jax.runtime import persistent
 from crank_jax.runtime.xla_flags import small_loop_bytes
 
 _X = jnp.linspace(0.0, 1.0, 5)
