@@ -242,6 +242,7 @@ class PersistentProgram:
             leaves = [next(it_a) if a else next(it_s) for a in mask]
             return fn(*jax.tree_util.tree_unflatten(treedef, leaves))
 
+        flat.__name__ = self.name  # the program's name in JAX's compile logs and events
         return flat
 
     def _compile(self, leaves, treedef, static, key: str, tag: str, options: tuple = ()):
