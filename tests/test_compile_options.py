@@ -107,3 +107,41 @@ def test_options_are_part_of_the_key():
     assert (persistent._signature("p", args, ())[0]
             != persistent._signature("p", args, tuple(FAST_COMPILE.items()))[0])
     assert jax.default_backend() == "cpu"
+
+
+_UNDER_FLAGS = """
+import os, sys
+import numpy as np
+sys.path.insert(0, {tests!r})
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import crank_jax as cj
+import test_compile_options as t
+from crank_jax.identify.programs import FAST_COMPILE, jacobian_at
+ss, z, ms, z_ms = t.problems.__wrapped__(cj.load_scene("lab-rig"))
+assert jacobian_at.options(ss, z) == tuple(FAST_COMPILE.items())
+low = jacobian_at.lower(ss, jnp.asarray(z))
+fast = low.compile(dict(FAST_COMPILE))(ss, jnp.asarray(z))
+plain = low.compile({{"xla_cpu_use_fusion_emitters": True}})(ss, jnp.asarray(z))
+for a, b in zip(fast, plain, strict=True):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+print("same bits")
+"""
+
+
+@pytest.mark.slow  # a fresh process and two compiles: ~15 s on 2 idle cores
+def test_single_shooting_same_bits_under_the_cpu_flags():
+    """Under crank-jax's CPU flags (the `crank-jax` program's) the single-shooting
+    Jacobian also takes the options: the same bits as without them."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = dict(os.environ, XLA_FLAGS=cj.with_cpu_flags(os.environ.get("XLA_FLAGS")),
+               CRANK_JAX_NO_CACHE="1")
+    code = _UNDER_FLAGS.format(tests=str(Path(__file__).parent))
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=900)
+    assert out.returncode == 0 and "same bits" in out.stdout, out.stderr[-2000:]
