@@ -23,7 +23,12 @@ stall, and a generic start crawled 200 iterations through a slipped branch that 
 motion's start never enters. The `friction` row is another matter: at its end point the
 forward sensitivity to `F_s` (the guide's Coulomb force, smoothed over `w_s` = 1 mm/s)
 differs from central differences by 62% (the other columns by under 1e-3), and LM
-stalls in a curved valley along `c + tau0 + F_s`: the fit says so (`termination`).
+stalls in a curved valley along `c + tau0 + F_s`: the fit says so (`termination`). The
+cause was the variational solve's step control, blind to the sensitivities: the steps did
+not resolve the spike of f_y where the slider's velocity crosses zero. Since it sees them
+(solve/variational.py, 2026-11-28) the row converges to the best minimum the strategy
+found before (rms 0.0915 rad), but after 397 LM iterations: the escalation's extra starts
+(a record far above its noise level), not a crawl (results/misfit_rig.json, "after-errconS").
 
 Run: `python experiments/misfit_rig.py --label after --out
 experiments/results/misfit_rig.json` (each case in a fresh process, so the wall time
@@ -135,6 +140,8 @@ def row(res, wall: float) -> dict:
             "converged": res.converged, "message": res.message,
             "termination": getattr(res, "termination", None),
             "strategy": res.strategy, "rms": res.rms_residual,
+            # The tries the strategy made and their iterations are in the notes.
+            "notes": list(getattr(res, "warnings", ())),
             "values": {n: res.values[n] for n in res.names}}
 
 

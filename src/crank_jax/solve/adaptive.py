@@ -77,11 +77,25 @@ def _rms(x):
     return jnp.sqrt(jnp.mean(x * x, axis=-1, keepdims=True))
 
 
+def _error_norm(x, error_size):
+    """The step control's norm of a scaled local error `x` (..., N): the RMS over its
+    first `error_size` components (all for None), or, for `error_size = (n, q)` (a state
+    of n components followed by its (n, q) sensitivities, row-major: variational.py), the
+    largest of the state's RMS and each sensitivity column's, as CVODES measures a state
+    with its sensitivities (`errconS`). Shape (..., 1)."""
+    if not isinstance(error_size, tuple):
+        return _rms(x[..., :error_size])
+    n, q = error_size
+    cols = x[..., n:n + n * q].reshape(x.shape[:-1] + (n, q))
+    worst = jnp.max(jnp.sqrt(jnp.mean(cols * cols, axis=-2)), axis=-1, keepdims=True)
+    return jnp.maximum(_rms(x[..., :n]), worst)
+
+
 def _initial_step(f, t0, y0, k0, rtol, atol, order, span, error_size=None):
     """Hairer, Norsett & Wanner's starting step (as diffrax's and scipy's), on packed
-    (..., N) states, measured on their first `error_size` components: shape (..., 1), one
-    per member of a batch."""
-    E = error_size
+    (..., N) states, measured on their first `error_size` components (for `(n, q)`, the
+    first n): shape (..., 1), one per member of a batch."""
+    E = error_size[0] if isinstance(error_size, tuple) else error_size
     scale = atol + rtol * jnp.abs(y0[..., :E])
     d0, d1 = _rms(y0[..., :E] / scale), _rms(k0[..., :E] / scale)
     h0 = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / d1)
@@ -206,9 +220,10 @@ def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None, record=No
         h_try = sg(jnp.where(active, jnp.minimum(h, t_lim - t), 1.0))
         ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h_try, k0=k)[:n_st]
         y1 = erk.solution(y, h_try, ks)
-        E = error_size
+        E = None if isinstance(error_size, tuple) else error_size
         scale = atol + rtol * jnp.maximum(jnp.abs(sg(y[..., :E])), jnp.abs(sg(y1[..., :E])))
-        err = _rms(sg(erk.error(h_try, [k[..., :E] for k in ks])) / scale)
+        err = _error_norm(sg(erk.error(h_try, [k[..., :E] for k in ks])) / scale,
+                          error_size)
         # A non-finite estimate (a step too long for stability) is a rejection.
         finite = jnp.isfinite(err)
         ok = active & (err <= 1.0)
@@ -256,8 +271,9 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
       write (a step is shortened so that the iteration writes no more).
     - `chunk`: save times the step loop records before the outer loop copies them out.
     - `error_size`: the step control sees the first `error_size` components of the packed
-      state only (default all): a state that carries its sensitivities
-      (`variational.py`) steps as the solution alone would.
+      state only (default all); or `(n, q)`: the state's n components are followed by
+      their (n, q) sensitivities, and a step must meet the tolerance on the state and on
+      each sensitivity column (`_error_norm`; `variational.py`).
     - `batched`: the leaves of `y0` (and of `field`, `args` where they vary) carry a
       leading batch axis (B,): the batch runs in one loop (lockstep), but each member has
       its own time, step size, accept/reject decisions, step budget and outcome, as if
