@@ -119,18 +119,6 @@ def test_the_deferred_parameter_pass(monkeypatch, rows, torque):
     _close(g, _forward_gradient(theta0, weights, traj))
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known bug (2026-11-28, issue 40's session): a "
-                   "solve longer than the log with a time-dependent load: the rerun segments "
-                   "give a gradient 3.9e-5 off (relative) under the vectorised blocks, 3e-4 "
-                   "under the flags' program; without the load, or within the log, exact")
-def test_a_solve_longer_than_the_log_with_a_load(monkeypatch):
-    monkeypatch.setattr(adjoint, "_hoisted", lambda: False)
-    monkeypatch.setattr(adjoint, "LOG_ROWS", 50)
-    theta0, weights, traj, loss = _problem(torque=1.3, t1=1.0, samples=11)
-    _close(jax.jit(jax.grad(loss))(theta0), _forward_gradient(theta0, weights, traj))
-
-
 def test_the_pending_steps_reach_their_ring_rows():
     # The step loop's buffer of P steps goes to ring rows count % S, ... by two in-place
     # writes (the second for the steps that wrap to row 0), none from `upto` on, and the
