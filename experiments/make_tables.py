@@ -65,7 +65,12 @@ def reverse_table() -> list[str]:
                 f"{old['ratio']:.2f}x for the program before it (one VJP per step with the "
                 "parameters too), compiled and measured in the same process (load average "
                 f"{flags['load_avg'][0]:.1f}); the two gradients agree to "
-                f"{flags['grad_vs_per_step_rel']:.1e}. One VJP over all the block's 3584 "
+                f"{flags['grad_vs_per_step_rel']:.1e}. These rows are timed one after the other "
+                "(the load moves between them); timed in interleaved rounds in one process "
+                "(`experiments/reverse_chunks.py`, 2026-11-28 01:35-01:43 UTC, load ~15, "
+                "cpu clock) the new program took 3.67x its forward solve against 4.78x "
+                "(64 points a chunk; 128: 3.92x; in an earlier run at load ~12-19, 8: 3.39x, "
+                "16: 3.44x, 32: 3.33x, 64: 3.12x, old 3.77x). One VJP over all the block's 3584 "
                 "points at once was as slow as the old program (4.04x against 4.0x, one run "
                 "at load ~12): XLA:CPU runs its ~440 kernels one after another over the "
                 "whole block."]
