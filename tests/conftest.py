@@ -1,12 +1,9 @@
 """Test configuration: float64 everywhere, a small CPU-only JAX, shared helpers."""
 
 import ast
-import contextlib
 import inspect
 import os
-import shutil
 import sys
-import tempfile
 import threading
 from pathlib import Path
 
@@ -16,47 +13,10 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-# JAX's persistent compilation cache, for this test session only: a directory made by the
-# first process (pytest, or the xdist controller) and handed to the workers through the
-# environment, removed at the end (`pytest_unconfigure`). Many tests compile the same
-# program (a fresh `eqx.filter_jit` of the same scene, the same program in both workers);
-# the second compile is then a cache hit. Nothing outlives the session, so no test
-# depends on a warm cache. Only JAX's cache: `CRANK_JAX_NO_CACHE` keeps the package's
-# program store off (its tests point it at a directory of their own), and subprocesses
-# get neither (their environment does not name JAX's cache).
-_SESSION_CACHE_OWNER = "CRANK_JAX_TEST_SESSION_CACHE" not in os.environ
-if _SESSION_CACHE_OWNER:
-    os.environ["CRANK_JAX_TEST_SESSION_CACHE"] = tempfile.mkdtemp(prefix="crank-jax-tests-")
-jax.config.update("jax_compilation_cache_dir", os.environ["CRANK_JAX_TEST_SESSION_CACHE"])
-# Every program, however quick to compile. Measured 2026-11-28 (test_scene.py and
-# test_cli.py run twice on one cache, serially, CPU seconds): the first run 12 s, the
-# second 6 s with JAX's default threshold (1 s; 3 entries) and 4 s with 0 (19 entries);
-# the writes cost nothing measurable (the first run took 12 s both ways).
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-
-
-@contextlib.contextmanager
-def without_compilation_cache():
-    """JAX's persistent compilation cache off inside the block (the session's, above).
-
-    For the program store's tests: they count compilations, and an executable that
-    JAX's cache supplies is one the store cannot keep (persistent.py compiles it again
-    under another name), so with the session's cache a second test compiling the same
-    program would count two."""
-    from jax.experimental.compilation_cache import compilation_cache
-
-    jax.config.update("jax_enable_compilation_cache", False)
-    compilation_cache.reset_cache()  # whether the cache is used is decided once, then kept
-    try:
-        yield
-    finally:
-        jax.config.update("jax_enable_compilation_cache", True)
-        compilation_cache.reset_cache()
 
 
 def tree_allclose(a, b, rtol=1e-10, atol=1e-12) -> bool:
@@ -133,18 +93,13 @@ def pytest_collection_modifyitems(config, items):
         raise pytest.UsageError(f"{FULL_TIER.name} names tests that do not exist: {stale}")
 
 
-def pytest_unconfigure(config):
-    if _SESSION_CACHE_OWNER:
-        shutil.rmtree(os.environ["CRANK_JAX_TEST_SESSION_CACHE"], ignore_errors=True)
-
-
 # `--exercised`: which src modules the run exercised. A module counts once one of its
 # functions ran (a profile hook records the files of called functions; importing it is not
 # enough, since `import crank_jax` imports most modules); a module without functions
 # counts once imported. With xdist each worker sends its set to the controller. A module
 # none of the run's tests exercised fails the run, so `python -m pytest -q --exercised`
-# checks that the fast tier touches every module. Opt-in: the hook slows tracing (about
-# a fifth more time), so the plain command runs without it.
+# checks that the fast tier touches every module. Opt-in: a Python-level hook on every
+# call slows tracing, so the plain command runs without it.
 SRC = Path(cj.__file__).resolve().parent
 _CALLED: set[str] = set()
 

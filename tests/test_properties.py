@@ -37,7 +37,6 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import without_compilation_cache
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
@@ -383,8 +382,7 @@ def test_any_damaged_stored_program_is_recompiled_to_the_clean_result(damage):
     name, hurt = damage
     event(name.split()[0])
     x, w = jnp.linspace(0.0, 1.0, 5), jnp.asarray(2.0)
-    with (tempfile.TemporaryDirectory() as d, pytest.MonkeyPatch.context() as mp,
-          without_compilation_cache()):  # conftest's session cache: two compiles each
+    with tempfile.TemporaryDirectory() as d, pytest.MonkeyPatch.context() as mp:
         store = Path(d)
         mp.setattr(persistent, "program_store_dir", lambda: store)
         clean = _store_program()(x, w)
