@@ -91,6 +91,10 @@ def test_no_solver_module_imports_the_mechanism():
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ImportFrom):
                 mod = "." * node.level + (node.module or "")
+                # model/trig.py is numerics, not the mechanism: how sin and cos are traced
+                # (the field's and the solvers' batched steps choose it).
+                if mod == "..model" and [a.name for a in node.names] == ["trig"]:
+                    continue
                 assert "model" not in mod, (path.name, mod)
 
 

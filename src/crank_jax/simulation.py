@@ -77,14 +77,15 @@ def simulate(
     - `ts`: (n,) strictly increasing save times, s, n >= 2.
     - `load`: slider force P(t), N along -x: a load, a number (constant) or `None`.
     - `torque`: crank torque tau(t), N*m about +z, likewise.
-    - `solver`: one of [`SOLVERS`][], or a solver object (`crank_jax.solver_named`,
-      `crank_jax.Diffrax`); `"auto"` is `"kvaerno5"` for a stiff shaft (see
-      [`choose_solver`][]), else `"dopri8-adaptive"` (adaptive fused Dopri8 with dense
-      output; a `vmap`-ed batch steps in lockstep) unless a load is sampled (then diffrax's
+    - `solver`: one of [`SOLVERS`][crank_jax.solve.policy.SOLVERS], or a solver object
+      (`crank_jax.solve.solver_named`, `crank_jax.Diffrax`); `"auto"` is `"kvaerno5"` for
+      a stiff shaft (see [`choose_solver`][crank_jax.solve.policy.choose_solver]), else
+      `"dopri8-adaptive"` (adaptive fused Dopri8 with dense output; a `vmap`-ed batch steps in lockstep) unless a load is sampled (then diffrax's
       Dopri8 or Tsit5, whose steps end at the knots). See `solve/policy.py`.
     - `rtol`, `atol`: tolerances of the adaptive step-size controller.
     - `max_steps`: step budget; exceeding it raises (or sets `result` if `throw=False`).
-    - `outputs`: derived outputs to add to `Trajectory.extras` (see [`OUTPUTS`][]); only
+    - `outputs`: derived outputs to add to `Trajectory.extras` (see
+      [`OUTPUTS`][crank_jax.solve.trajectory.OUTPUTS]); only
       these are computed.
     - `adjoint`: `"reverse"` (default; `jax.grad`), `"forward"` (`diffrax.ForwardMode`, for
       `jax.jacfwd` and Levenberg-Marquardt) or `"direct"` (both, slower). With

@@ -214,7 +214,7 @@ def _linearize_args(p: argparse.ArgumentParser) -> None:
 
 def _linearize_run(a: argparse.Namespace) -> int:
     from ..model.linear import coulomb_note
-    from ..simulate import linearize
+    from ..simulation import linearize
 
     scene = _load(a.scene)
     lin = linearize(scene.mech, scene.load, scene.torque)
