@@ -80,8 +80,9 @@ def simulate(
     - `solver`: one of [`SOLVERS`][crank_jax.solve.policy.SOLVERS], or a solver object
       (`crank_jax.solve.solver_named`, `crank_jax.Diffrax`); `"auto"` is `"kvaerno5"` for
       a stiff shaft (see [`choose_solver`][crank_jax.solve.policy.choose_solver]), else
-      `"dopri8-adaptive"` (adaptive fused Dopri8 with dense output; a `vmap`-ed batch steps in lockstep) unless a load is sampled (then diffrax's
-      Dopri8 or Tsit5, whose steps end at the knots). See `solve/policy.py`.
+      `"dopri8-adaptive"` (adaptive fused Dopri8 with dense output; a `vmap`-ed batch
+      steps in lockstep) unless a load is sampled (then diffrax's Dopri8 or Tsit5, whose
+      steps end at the knots). See `solve/policy.py`.
     - `rtol`, `atol`: tolerances of the adaptive step-size controller.
     - `max_steps`: step budget; exceeding it raises (or sets `result` if `throw=False`).
     - `outputs`: derived outputs to add to `Trajectory.extras` (see
