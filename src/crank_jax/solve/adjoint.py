@@ -171,8 +171,10 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
             rebuild(dyn), y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
             upto=(m + 1) * S)[3])
         # A rerun that does not take the forward pass's steps bit for bit (its step
-        # (m + 1) S, `mark`, the next segment's first) would give a wrong gradient.
-        rows = eqx.error_if(r.rows, jnp.any(r.mark != head) | (r.count != count),
+        # (m + 1) S, `mark`, the next segment's first) would give a wrong gradient. (m < 0:
+        # a member done while others of a `vmap` go on, its result not taken.)
+        off = jnp.any(r.mark != head) | (r.count != count)
+        rows = eqx.error_if(r.rows, off & (m >= 0),
                             "the discrete adjoint's rerun of an earlier segment of the "
                             "solve did not take the forward pass's steps (adjoint.py)")
         return m - 1, segment(rows, m, carry), rows[0]
