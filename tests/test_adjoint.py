@@ -124,7 +124,7 @@ def test_the_deferred_parameter_pass(monkeypatch, rows, torque):
 @pytest.mark.parametrize("hoisted", [True, False], ids=["step-by-step", "blocks"])
 def test_a_solve_longer_than_the_log_with_a_load(monkeypatch, hoisted):
     # A harmonic torque whose amplitude is a parameter, over a log of 50 steps (three
-    # segments, two rerun): the forward-mode gradient (measured 4.6e-11 both; 3.9e-5 and
+    # segments, two rerun): the forward-mode gradient (measured 7e-16, 1.7e-15; 3.9e-5 and
     # 3e-4 before the forward pass's barrier, its reruns then taking other steps).
     # Cleared caches: no program traced by an earlier test (this one passed so).
     jax.clear_caches()
