@@ -71,6 +71,12 @@ def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=
     (default: all, the last `LOG_ROWS` kept).
 
     **Returns:** `(ys, result, num_steps, log)`, a [`Log`][] fourth."""
+    # A rerun (`backward`) must take the same steps bit for bit; but XLA folds the inputs
+    # that a forward pass sees as constants (all not differentiated: a load's frequency)
+    # into its arithmetic, while the rerun gets them at run time: other rounding, other
+    # steps (a harmonic torque: the gradient 4e-5 off). Run-time values in both, so.
+    arrays, rest = eqx.partition((field, y0, ts, rtol, atol), eqx.is_array)
+    field, y0, ts, rtol, atol = eqx.combine(jax.lax.optimization_barrier(arrays), rest)
     n_state = packer(y0)[0](y0).shape[-1]
     upto = jnp.asarray(max_steps + 1 if upto is None else upto, jnp.int32)
     record = recorder(_rows(max_steps), n_state, ts.dtype, upto)
@@ -159,14 +165,22 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
         # Segments from the last: its rows are the forward pass's; an earlier one's come
         # from a rerun of the forward solve that logs that segment only. (One loop, so
         # that the backward pass is compiled once; under `jax.vmap` the `cond` runs both
-        # branches, a rerun per gradient.)
-        m, carry = c
-        rows = jax.lax.cond(m == m_last, lambda: log.rows, lambda: forward(
+        # branches, a rerun per gradient.) `head`: the first row of the segment after m.
+        m, carry, head = c
+        r = jax.lax.cond(m == m_last, lambda: log._replace(mark=head), lambda: forward(
             rebuild(dyn), y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
-            upto=(m + 1) * S)[3].rows)
-        return m - 1, segment(rows, m, carry)
+            upto=(m + 1) * S)[3])
+        # A rerun that does not take the forward pass's steps bit for bit (its step
+        # (m + 1) S, `mark`, the next segment's first) would give a wrong gradient. (m < 0:
+        # a member done while others of a `vmap` go on, its result not taken.)
+        off = jnp.any(r.mark != head) | (r.count != count)
+        rows = eqx.error_if(r.rows, off & (m >= 0),
+                            "the discrete adjoint's rerun of an earlier segment of the "
+                            "solve did not take the forward pass's steps (adjoint.py)")
+        return m - 1, segment(rows, m, carry), rows[0]
 
-    _, (ybar, dbar) = jax.lax.while_loop(lambda c: c[0] >= 0, each, (m_last, carry))
+    c0 = (m_last, carry, jnp.zeros_like(log.rows[0]))
+    _, (ybar, dbar), _ = jax.lax.while_loop(lambda c: c[0] >= 0, each, c0)
     ybar = ybar + g[0]  # ys[0] is y0 itself
     it = iter(dbar)
     return [next(it) if b else None for b in live], unpack(ybar)

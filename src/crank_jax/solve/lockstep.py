@@ -214,6 +214,9 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
         return eqx.combine(jax.tree_util.tree_unflatten(treedef, dyn), static)
 
     def single(dyn, y0, ts, rtol, atol):
+        # Inputs at run time, as reverse mode's forward pass has them (adjoint.forward):
+        # the same rounding, the same steps as the gradient's.
+        dyn, y0, ts, rtol, atol = jax.lax.optimization_barrier((dyn, y0, ts, rtol, atol))
         ys, result, steps = solve_adaptive(rebuild(dyn), y0, ts, rtol, atol,
                                            max_steps=max_steps, error_size=error_size,
                                            erk=erk)

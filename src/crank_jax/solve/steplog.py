@@ -35,11 +35,15 @@ class Log(NamedTuple):
     - `rows` (S + P, 3 + N): `(t, t1, h, y...)` of accepted step `i` in row `i % S`, `y`
       the packed state (N,) at `t` (s); P = `PENDING` rows of slack (see [`flush`][]);
     - `count`: accepted steps so far (int scalar);
-    - `upto`: steps from this index on are not written (a rerun that logs one segment)."""
+    - `upto`: steps from this index on are not written (a rerun that logs one segment);
+    - `mark` (3 + N,): the row of step `upto` itself, the first one not written (zeros
+      until it is taken): the backward pass checks with it that a rerun segment joins the
+      next one bit for bit (adjoint.py)."""
 
     rows: jax.Array
     count: jax.Array
     upto: jax.Array
+    mark: jax.Array
 
 
 #: Steps the step loop holds before the loop around it moves them to the log (each column
@@ -70,10 +74,11 @@ def room(p: Pending, k: int):
 
 
 def flush(log: Log, p: Pending):
-    """The log with the pending steps in ring rows `count % S`, ... (none from `upto` on),
-    and an empty buffer: two in-place writes, of the steps before the ring's end and of
-    those that wrap to row 0 (S >= P, or fewer than S steps in all: they wrap at most
-    once); with the CPU flags a scatter kept XLA from hoisting the loop around it."""
+    """The log with the pending steps in ring rows `count % S`, ... (none from `upto` on;
+    step `upto` to `mark`), and an empty buffer: two in-place writes, of the steps before
+    the ring's end and of those that wrap to row 0 (S >= P, or fewer than S steps in all:
+    they wrap at most once); with the CPU flags a scatter kept XLA from hoisting the loop
+    around it."""
     P = p.cols[0].shape[0]
     S = log.rows.shape[0] - P
     block = jnp.column_stack(p.cols).astype(log.rows.dtype)
@@ -92,7 +97,9 @@ def flush(log: Log, p: Pending):
     padded = jnp.concatenate([block, jnp.zeros_like(block)])
     rows = put(rows, jax.lax.dynamic_slice_in_dim(padded, jnp.minimum(shift, P), P),
                shift, jnp.zeros_like(pos))
-    return Log(rows, log.count + p.n, log.upto), p._replace(n=jnp.zeros_like(p.n))
+    j = log.upto - log.count  # step `upto`'s row in the buffer, if it is there
+    mark = jnp.where((j >= 0) & (j < p.n), block[jnp.clip(j, 0, P - 1)], log.mark)
+    return Log(rows, log.count + p.n, log.upto, mark), p._replace(n=jnp.zeros_like(p.n))
 
 
 def recorder(rows: int, n_state: int, dtype, upto) -> Recorder:
@@ -100,7 +107,7 @@ def recorder(rows: int, n_state: int, dtype, upto) -> Recorder:
     (steps from index `upto` on are not written) through an empty [`Pending`][] buffer;
     `n_state`: N, the packed state's size; `dtype`: the rows' (the save times')."""
     log0 = Log(jnp.zeros((rows + PENDING, 3 + n_state), dtype), jnp.zeros((), jnp.int32),
-               upto)
+               upto, jnp.zeros((3 + n_state,), dtype))
     col = jnp.zeros((PENDING,), dtype)
     p0 = Pending((col, col, col, jnp.zeros((PENDING, n_state), dtype)), log0.count)
     return Recorder(log0, p0, write, room, flush)
