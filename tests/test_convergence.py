@@ -124,7 +124,7 @@ def stubbed(monkeypatch):
     monkeypatch.setattr(fit_module.ch, "known_sigma", lambda req: None)
     monkeypatch.setattr(fit_module.ch, "first_unit", lambda req: "rad")
     monkeypatch.setattr(esc_module, "_motion_point", lambda req, plan: None)
-    monkeypatch.setattr(attempt_module, "perturb", lambda z, names, log, rng: z)
+    monkeypatch.setattr(attempt_module, "perturb", lambda z, names, log, rng, folded=None: z)
     monkeypatch.setattr(esc_module, "_in_shoot", lambda plan, z: z)
     return monkeypatch
 

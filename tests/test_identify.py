@@ -438,3 +438,20 @@ def test_multiple_shooting_coordinates_are_linear_and_map_back(lab_rig):
     B = recoordinate_basis(ss, ms, Bg, z_ss)
     ray = np.array([2.5 / 2.0, 0.004 / 0.002, 0.0, 0.0, 0.0])
     assert abs(B[:, 0] @ ray) == pytest.approx(np.linalg.norm(ray), rel=1e-12)
+
+
+def test_multistart_moves_a_coordinate_that_sits_at_zero():
+    # A factor cannot move a coordinate at 0: a guide friction that a fit drove to its
+    # bound sent every extra start back from that 0 (experiments/misfit_rig.py).
+    from crank_jax.identify.strategy import perturb
+
+    names = ("k", "F_s", "P0", "tau0", "phi0", "dphi0")
+    log = (True, False, False, False, False, False)
+    folded = (False, True, False, False, False, False)
+    z0 = np.array([0.3, 0.0, 0.0, 1.0, 0.2, -1.0])
+    rng = np.random.default_rng(3)
+    zs = np.stack([perturb(z0, names, log, rng, folded) for _ in range(50)])
+    assert np.all(zs[:, 1] > 0) and np.std(zs[:, 1]) > 0.1  # folded: moved, and >= 0
+    assert np.any(zs[:, 2] < 0) and np.any(zs[:, 2] > 0)  # signed: moved both ways
+    assert np.all(zs[:, 4:] == z0[4:])  # the states stay
+    assert np.std(zs[:, 3]) > 0.1 and np.std(zs[:, 0]) > 0.2

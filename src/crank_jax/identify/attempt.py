@@ -89,7 +89,8 @@ def multistart(req, plan, shoot, z0, count, seed, label, until=None
     rng = np.random.default_rng(seed)
     out = []
     for k in range(count):
-        zk = z0 if k == 0 and not label else perturb(z0, shoot.names, shoot.log, rng)
+        zk = z0 if k == 0 and not label else perturb(z0, shoot.names, shoot.log, rng,
+                                                              shoot.folded)
         name = (label + (f" start {k + 1} of {count}" if count > 1 else "")).strip()
         out.append((attempt(req, plan, shoot, z0, zk, f"fit {name}".strip()), name))
         if until is not None and until(out):

@@ -19,7 +19,7 @@ __all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "MAX_ODE_STEPS", "SMA
            "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
            "absurd_start", "absurd_frequency", "segment_count", "record_segments",
            "MAX_SEGMENTS", "MIN_MOTION", "no_motion", "aliased",
-           "perturb", "far_from_noise", "stall_rms", "noise_unit"]
+           "perturb", "AT_ZERO", "far_from_noise", "stall_rms", "noise_unit"]
 
 #: `shooting="auto"` uses multiple shooting above this many observed periods, whatever
 #: the start's drift (a record that long has many chances to slip a cycle).
@@ -49,6 +49,9 @@ FREQUENCY_RATIO = 30.0
 MIN_MOTION = 0.2
 #: The probability that a record of pure noise is taken for a motion (see [`no_motion`][]).
 NO_MOTION_FALSE_ALARM = 1e-4
+#: A global coordinate whose magnitude is below this (in its unit, `ref`) sits at 0 for
+#: [`perturb`][]: it is moved by an added step, not a factor.
+AT_ZERO = 1e-3
 #: A fit whose rms residual ends above this multiple of the record's noise level (and
 #: of `sigma`, when given) is stalled far from the noise: try another strategy.
 FAR_FROM_NOISE = 3.0
@@ -229,16 +232,27 @@ def aliased(phi: np.ndarray) -> str | None:
             "unit")
 
 
-def perturb(z0: np.ndarray, names, log, rng: np.random.Generator) -> np.ndarray:
+def perturb(z0: np.ndarray, names, log, rng: np.random.Generator, folded=None) -> np.ndarray:
     """A multistart point: the log-coordinates of `names` (the first entries of `z0`) plus
     N(0, 0.5^2) (a factor `exp(N(0, 0.5^2))`), their other global coordinates times
-    `1 + N(0, 0.3^2)`; initial and segment states stay."""
+    `1 + N(0, 0.3^2)`; initial and segment states stay.
+
+    A global coordinate at 0 (below [`AT_ZERO`][]) gets N(0, 0.5^2) added instead, in
+    its unit (its `ref`, a typical magnitude), taken as `|.|` where `folded` says it is a
+    folded one (a value that cannot be negative): a factor cannot move it, and a fit
+    that has reached a bound at 0 (a guide friction `F_s`, say, in a curved valley) would
+    otherwise send every extra start back from that same 0 (experiments/misfit_rig.py,
+    case `friction`: all four extra starts did)."""
     z = np.array(z0, dtype=float)
     for i, n in enumerate(names):
         if log[i]:
             z[i] += rng.normal(0.0, 0.5)
         elif not (n.startswith("phi0") or n.startswith("dphi0")):
-            z[i] *= 1 + rng.normal(0.0, 0.3)
+            if abs(z[i]) < AT_ZERO:
+                step = rng.normal(0.0, 0.5)
+                z[i] = abs(step) if folded is not None and folded[i] else step
+            else:
+                z[i] *= 1 + rng.normal(0.0, 0.3)
     return z
 
 
