@@ -146,3 +146,13 @@ def test_cli_checkpoint_errors_are_one_line(tmp_path, capsys):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     assert "is a file, not a directory" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("field", ["checkpoint", "save_trajectories"])
+def test_an_empty_directory_path_is_refused_before_any_file_is_written(
+        lab_rig, tmp_path, monkeypatch, field):
+    # `Path("")` is the working directory: the sweep wrote its manifest and chunks there.
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ValueError, match=f"{field}: the path is empty"):
+        cj.run_sweep(lab_rig, SPEC, OUTS, **{field: ""}, **KW)
+    assert list(tmp_path.iterdir()) == []

@@ -303,6 +303,12 @@ def sweep(
 
     **Returns:** a [`SweepResult`][] in the original sample order.
     """
+    for name, where in (("checkpoint", checkpoint), ("save_trajectories", save_trajectories)):
+        # `Path("")` is the working directory: an empty path would scatter a sweep's
+        # files there (the CLI's `--checkpoint ""` included).
+        if where is not None and not os.fspath(where).strip():
+            raise ValueError(f"{name}: the path is empty; give a directory (it is created "
+                             "if missing), or leave it out")
     plan = make_plan(scene, samples, outputs, n=n, seed=seed, t1=t1, num_saves=num_saves,
                      solver=solver, chunk_size=chunk_size, sort=sort, max_memory=max_memory)
     n = plan.n
