@@ -139,3 +139,18 @@ def test_fit_window_errors_exit_2(pendulum_csv, capsys):
     assert "--t-start (1.5) must be before --t-end (1)" in capsys.readouterr().err
     assert main(["fit", str(pendulum_csv), "pendulum", "--t-start", "50"]) == 2
     assert "widen --t-start/--t-end" in capsys.readouterr().err
+
+
+def test_every_command_that_reads_records_takes_the_same_record_options():
+    # `posterior` lacked `--t-col` and `--load-interp`: a record with a "time" column
+    # could be fitted and validated but not sampled.
+    from crank_jax.cli.main import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command").choices
+
+    def options(name):
+        return {o for a in sub[name]._actions for o in a.option_strings}
+
+    record = {"--t-col", "--load-interp", "--phi-col", "--angle-unit"}
+    for name in ("fit", "validate", "posterior"):
+        assert record <= options(name), (name, sorted(record - options(name)))

@@ -23,6 +23,11 @@ def _posterior_args(p: argparse.ArgumentParser) -> None:
                    help="another record of the same mechanism (repeatable)")
     add_channel_options(p)  # records are read as fit reads them (the scene's [sensors])
     add_angle_options(p)
+    # The record options `fit` and `validate` take (read alike by `read_records`).
+    p.add_argument("--t-col", default="t", help="name of the time column (t)")
+    p.add_argument("--load-interp", default="cubic", choices=("cubic", "linear", "zoh"),
+                   help="interpolation of the record's P/tau columns: cubic (default), "
+                        "linear, or zoh (a held digital command)")
     p.add_argument("--free", default="k,c,phi0,dphi0",
                    help="comma-separated free parameters (default k,c,phi0,dphi0)")
     p.add_argument("--draws", type=int, default=1000, help="draws per chain (1000)")
