@@ -208,3 +208,50 @@ def test_a_polished_run_takes_the_polish_verdict(stubbed):
     run = attempt_module.attempt(req, plan, plan.shoot, np.zeros(2), np.zeros(2), "fit")
     assert run.converged and run.message == "converged" and run.iterations == 37
     assert run.termination["verdict"] == "converged" and run.cost == 0.5
+
+
+def _at_the_bound(stubbed, grad_sign):
+    """`attempt.off_the_bound` on a stalled run with coordinate 0 (a folded friction) at
+    0, its held and released runs stubbed; the gradient into the feasible side has the
+    sign `grad_sign`. **Returns:** (the run reported, the descriptions of the runs)."""
+    calls = []
+    runs = {"held": Run(np.zeros(2), 4.0, 20, True, "converged"),
+            "released": Run(np.zeros(2), 3.0, 30, True, "converged")}
+
+    def guarded(fn, view, w0, *args):
+        desc = args[-2]
+        calls.append(desc)
+        return runs["held" if "held" in desc else "released"]._replace(z=np.zeros(len(w0)))
+
+    def jacobian_at(problem, z):
+        J = np.array([[1.0, 0.5], [0.0, 1.0]])
+        r = np.array([grad_sign * 2.0, 0.0])  # J[:, 0] @ r = 2 grad_sign
+        return r, 0, None, J
+
+    stubbed.setattr(attempt_module, "guarded", guarded)
+    stubbed.setattr(attempt_module, "jacobian_at", jacobian_at)
+    stubbed.setattr(attempt_module, "Subspace", lambda *args: None)
+    plan, req = _plan_and_request(0.01)
+    plan.single = types.SimpleNamespace(p=2, n_global=2, folded=(True, False))
+    plan.Bg, req.tol, req.max_steps, req.progress = np.eye(2), 1e-8, 100, False
+    stalled = Run(np.array([1e-7, 0.3]), 5.0, 60, False, "stalled: ...")
+    return attempt_module.off_the_bound(req, plan, stalled, "fit"), calls
+
+
+def test_a_run_stalled_with_a_friction_at_its_bound_is_finished_off_it(stubbed):
+    # Issue 38, the friction stand-in (experiments/misfit_rig.py): LM stalled with the
+    # guide friction F_s at its bound 0 (the kink of `ref |z|`), at rms 0.0916 rad, where
+    # the best fit, F_s = 0.62, has 0.09146. Held at 0 while the others finish, then
+    # released where the cost falls into F_s > 0, the fit ends at the best minimum.
+    run, calls = _at_the_bound(stubbed, -1.0)
+    assert calls == ["fit (friction held at 0)", "fit (friction released)"]
+    assert run.converged and run.cost == 3.0 and run.iterations == 60 + 20 + 30
+    assert run.z[0] == pytest.approx(2.0 / 1.0)  # released from its 1-D Gauss-Newton step
+
+
+def test_a_friction_whose_cost_rises_off_its_bound_stays_there(stubbed):
+    # The gradient points out of the feasible side: the point on the bound, with the
+    # others finished, is a constrained minimum; nothing is released.
+    run, calls = _at_the_bound(stubbed, 1.0)
+    assert calls == ["fit (friction held at 0)"]
+    assert run.converged and run.cost == 4.0 and run.iterations == 80 and run.z[0] == 0.0

@@ -18,9 +18,9 @@ from .fit_plan import Plan, basis, recoordinate, recoordinate_basis
 from .optax_fit import minimise_optax
 from .optimise import Run, least_squares
 from .problem import Problem
-from .programs import Subspace
+from .programs import Subspace, jacobian_at
 from .request import FitRequest
-from .strategy import noise_unit, perturb, stall_rms
+from .strategy import AT_ZERO, noise_unit, perturb, stall_rms
 
 __all__ = ["attempt", "guarded", "multistart", "best_run", "run_rms"]
 
@@ -36,17 +36,12 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
                                                         recoordinate(shoot, ss, z0))
     B = basis(Bg, z0.shape[0])
     problem = shoot if req.method == "lm" else dataclasses.replace(shoot, adjoint="reverse")
-    # LM's tests are judged in the data's units (the residuals' noise level), and its
-    # stall counts as convergence only near that level.
-    sigma = ch.known_sigma(req)
-    run_fn = (functools.partial(least_squares, stall_rms=stall_rms(plan.noise, sigma),
-                                noise=noise_unit(plan.noise, sigma))
-              if req.method == "lm" else minimise_optax)
+    run_fn = _optimiser(req, plan)
     run = guarded(run_fn, Subspace(problem, jnp.asarray(z0), jnp.asarray(B)),
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
     run = run._replace(z=z0 + B @ run.z)
     if shoot is ss:
-        return run
+        return off_the_bound(req, plan, run, desc)
     zp = recoordinate(shoot, ss, run.z)
     if not np.isfinite(run.cost):
         return run._replace(z=zp)
@@ -57,8 +52,71 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
     # The estimate is the polish's, on the single-shooting cost: whether it converged is
     # the polish's verdict (multiple shooting only brought it near; its own stall on the
     # continuity defects says nothing about the point reported).
-    return Run(zp + plan.Bg @ pol.z, pol.cost, run.iterations + pol.iterations,
-               pol.converged, pol.message, pol.termination)
+    return off_the_bound(req, plan, Run(zp + plan.Bg @ pol.z, pol.cost,
+                                        run.iterations + pol.iterations, pol.converged,
+                                        pol.message, pol.termination), desc)
+
+
+def _optimiser(req: FitRequest, plan: Plan):
+    """The optimiser of `req`: LM with its tests judged in the data's units (the
+    residuals' noise level; a stall counts as convergence only near that level), or
+    optax's."""
+    if req.method != "lm":
+        return minimise_optax
+    sigma = ch.known_sigma(req)
+    return functools.partial(least_squares, stall_rms=stall_rms(plan.noise, sigma),
+                             noise=noise_unit(plan.noise, sigma))
+
+
+def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
+    """`run` (single-shooting coordinates), or a better end where it stalled with a
+    folded parameter (a friction term, `value = ref |z|`) at its bound 0.
+
+    At the bound the cost has a kink in `z`: LM's steps across it are reflected and
+    rejected, its damping grows, and it stalls there, the other parameters short of
+    their valley's floor too (experiments/misfit_rig.py, case `friction`: `F_s` at 0,
+    rms 0.0916, where the fit with `F_s` held at 0 reaches 0.091495 and the free optimum
+    0.091464). As an active-set method does, the parameters at the bound are held there
+    while LM finishes the others; then, where the cost falls into the feasible side
+    (the gradient `J_i . r < 0`, `J` taken at `z_i = 0+`: `_fold`'s derivative there is
+    +1), they are released from their one-dimensional Gauss-Newton step and LM runs over
+    all of them. Otherwise the point on the bound is a constrained minimum (its verdict
+    the held run's). The run reported is the best of these (converged first, then
+    cost); its iterations are all of them."""
+    if run.converged or req.method != "lm" or not np.isfinite(run.cost):
+        return run
+    ss = plan.single
+    z = np.asarray(run.z[:ss.p], dtype=float)
+    at0 = [i for i in range(ss.n_global) if ss.folded[i] and abs(z[i]) < AT_ZERO]
+    if not at0:
+        return run
+    run_fn = _optimiser(req, plan)
+    zc = z.copy()
+    zc[at0] = 0.0
+    Bh = np.asarray(plan.Bg, dtype=float).copy()
+    Bh[at0, :] = 0.0
+    U, S, _ = np.linalg.svd(Bh, full_matrices=False)
+    Bh = U[:, S > 1e-9]  # orthonormal again, the held coordinates' directions removed
+    held = guarded(run_fn, Subspace(ss, jnp.asarray(zc), jnp.asarray(Bh)),
+                   np.zeros(Bh.shape[1]), req.max_steps, req.tol,
+                   desc + " (friction held at 0)", req.progress)
+    zc = zc + Bh @ held.z
+    tries = [run, held._replace(z=zc)]
+    r, failed, _, J = jacobian_at(ss, jnp.asarray(zc))
+    r, J = np.asarray(r), np.asarray(J)
+    grad = J[:, at0].T @ r
+    if int(failed) == 0 and np.all(np.isfinite(grad)) and np.any(grad < 0):
+        zr = zc.copy()
+        for i, g in zip(at0, grad):
+            if g < 0:
+                zr[i] = -g / max(float(J[:, i] @ J[:, i]), 1e-300)
+        free = guarded(run_fn, Subspace(ss, jnp.asarray(zr), jnp.asarray(plan.Bg)),
+                       np.zeros(plan.Bg.shape[1]), req.max_steps, req.tol,
+                       desc + " (friction released)", req.progress)
+        tries.append(free._replace(z=zr + plan.Bg @ free.z))
+    finite = [t for t in tries if np.isfinite(t.cost)]
+    best = min(finite, key=lambda t: (not t.converged, t.cost))
+    return best._replace(iterations=sum(t.iterations for t in tries))
 
 
 def guarded(run, *args) -> Run:
