@@ -38,6 +38,18 @@ def flip_byte(i: int):
     return damage
 
 
+def experiment(name: str):
+    """The module `experiments/<name>.py` (imported once; the path is not left on
+    `sys.path`)."""
+    import importlib
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
+    try:
+        return importlib.import_module(name)
+    finally:
+        sys.path.pop(0)
+
+
 def random_mech(rng: np.random.Generator, **overrides) -> "cj.SliderCrank":
     """A random valid mechanism with every body present (geometry spans r/L in 0.05..0.9)."""
     r = rng.uniform(0.02, 0.1)

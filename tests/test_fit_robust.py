@@ -287,14 +287,8 @@ def test_the_friction_stand_in_ends_at_its_best_minimum_not_at_the_friction_boun
     # Issue 38 (experiments/misfit_rig.py, case `friction`): every try stalled with the
     # guide friction F_s at its bound 0, at rms 0.0916 rad, above the model's best
     # (0.091464 rad, F_s = 0.62, found by a fit from F_s's neighbourhood).
-    import sys
-    from pathlib import Path
+    from conftest import experiment
 
-    sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
-    try:
-        import misfit_rig
-    finally:
-        sys.path.pop(0)
-    res = misfit_rig.case("friction")
+    res = experiment("misfit_rig").case("friction")
     assert res.converged, res.message
     assert res.rms_residual <= 0.091465 and res.values["F_s"] > 0.3, res.values

@@ -327,14 +327,9 @@ def test_cli_per_record_must_name_a_free_parameter(tmp_path, capsys):
 
 
 def test_a_users_force_term_is_fitted():
-    import sys
-    from pathlib import Path
+    from conftest import experiment
 
-    sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
-    try:
-        import unbalance_force
-    finally:
-        sys.path.pop(0)
+    unbalance_force = experiment("unbalance_force")
     truth, res = unbalance_force.run(seed=1)
     assert res.converged
     for name, want in (("force.a", float(truth.a)), ("force.b", float(truth.b))):

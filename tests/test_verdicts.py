@@ -163,16 +163,11 @@ def test_a_fitted_user_force_with_k_free_is_determined():
     # Issue 38: `fit(force=Unbalance(a, b))` with k free (the lab rig's spring) converged,
     # estimated force.a well, then said "the combination 1.00 force.a is not determined":
     # force.a starts at 0, so its coordinate's scale was a made-up 1e-3 N*m.
-    import sys
-    from pathlib import Path
+    from conftest import experiment
 
     import crank_jax as cj
 
-    sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
-    try:
-        from unbalance_force import Unbalance
-    finally:
-        sys.path.pop(0)
+    Unbalance = experiment("unbalance_force").Unbalance
     base = cj.load_scene("lab-rig")
     truth = Unbalance(jnp.asarray(0.02), jnp.asarray(-0.01))
     data = cj.synthesize(cj.Scene(base.mech, phi0=1.0, dphi0=0.0, t1=2.0), rate=100.0,
