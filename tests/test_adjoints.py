@@ -24,11 +24,41 @@ def _phi(mech, k, adjoint, solver):
     return cj.simulate(mech.replace(k=k), 1.0, 0.0, TS, solver=solver, adjoint=adjoint).phi
 
 
-@pytest.mark.parametrize("name,obj,solver,how", [
-    ("forward", ForwardSensitivities(), "dopri8-adaptive", "jacfwd"),
-    ("reverse", DiscreteAdjoint(backward_program()), "tsit5", "grad"),
-    ("direct", DirectAdjoint(), "dopri8-uniform", "value"),
-], ids=["forward", "reverse", "direct"])
+CASES = [("forward", ForwardSensitivities(), "dopri8-adaptive", "jacfwd"),
+         ("reverse", DiscreteAdjoint(backward_program()), "tsit5", "grad"),
+         ("direct", DirectAdjoint(), "dopri8-uniform", "value")]
+# `solve`'s own: "reverse" is `DiscreteAdjoint()` there (the caller of `solve` picks the
+# backward program); its program holds the discrete adjoint's rule.
+SOLVE_CASES = [CASES[0], ("reverse", DiscreteAdjoint(), "dopri8-adaptive", "value"),
+               CASES[2]]
+
+
+def _oscillator(t, y, w):
+    return y[1], -(w**2) * y[0]
+
+
+@pytest.mark.parametrize("name,obj,solver,how", SOLVE_CASES, ids=[c[0] for c in CASES])
+def test_solve_takes_a_name_as_its_object(name, obj, solver, how):
+    # `solve`'s shorthand: the same program (traced, not compiled: the same program gives
+    # the same numbers bit for bit; the crank's numbers are compared below, slow).
+    ts, y0 = jnp.linspace(0.0, 1.0, 11), (jnp.asarray(1.0), jnp.asarray(0.0))
+
+    def x(w, adjoint):
+        return cj.solve.solve(_oscillator, cj.solve.solver_named(solver), ts, y0, w,
+                              adjoint=adjoint).ys[0]
+
+    f = {"jacfwd": jax.jacfwd(x), "grad": jax.grad(lambda w, a: jnp.sum(x(w, a))),
+         "value": x}[how]
+    by_name = jax.make_jaxpr(f, static_argnums=1)(2.0, name)
+    assert str(by_name) == str(jax.make_jaxpr(f, static_argnums=1)(2.0, obj))
+    other = DirectAdjoint() if name == "forward" else ForwardSensitivities()
+    assert str(by_name) != str(jax.make_jaxpr(f, static_argnums=1)(2.0, other))
+
+
+# The crank through `simulate`'s front door: two compiled programs of the crank each (30-110
+# s on the loaded 2-core machine), so in the full suite.
+@pytest.mark.slow
+@pytest.mark.parametrize("name,obj,solver,how", CASES, ids=[c[0] for c in CASES])
 def test_a_shorthand_name_gives_its_objects_numbers_bit_for_bit(lab_rig, name, obj, solver,
                                                                  how):
     mech = lab_rig.mech

@@ -30,7 +30,7 @@ from .model.params import SliderCrank
 from .runtime.identity_memo import IdentityMemo
 from .runtime.persistent import PersistentProgram, enum_code, enum_name
 from .runtime.xla_flags import backward_program
-from .solve.adjoints import AbstractAdjoint, DiscreteAdjoint, ForwardSensitivities, as_adjoint
+from .solve.adjoints import AbstractAdjoint, DiscreteAdjoint, as_adjoint
 from .solve.policy import check_travel, host_plan, is_concrete
 from .solve.solvers import AbstractSolver
 from .solve.trajectory import (
@@ -125,8 +125,8 @@ def simulate(
     """
 
     warn_if_float32()
-    # The shorthand resolved once, here at the edge: the backward program reads the flags.
-    adjoint = as_adjoint(adjoint, backward=backward_program())
+    shorthand = isinstance(adjoint, str)
+    adjoint = as_adjoint(adjoint)  # checked here; the shorthand's backward program below
     output_columns(outputs)  # validates names
     load, torque = as_load(load), as_load(torque)
     dtype = jax.dtypes.canonicalize_dtype(jnp.float64)  # float32 without x64
@@ -164,12 +164,17 @@ def simulate(
     # of diffrax's explicit solvers that saves inside its steps (saves.py) and so holds no
     # host callback, whose program the store keeps (a reverse-mode `SaveAt(ts)` checks
     # the save times in a callback, compiled again in every process).
-    adjoint = ForwardSensitivities() if host else adjoint
+    if host:
+        adjoint = as_adjoint("forward")
+    elif shorthand and isinstance(adjoint, DiscreteAdjoint):
+        # `"reverse"`: the backward program that suits this process's XLA flags, read here
+        # at the edge (the core reads none), on traced calls only (~10 us).
+        adjoint = as_adjoint("reverse", backward=backward_program())
     if isinstance(adjoint, DiscreteAdjoint) and forward_differentiated(args):
         # Under jax.jacfwd / jax.jvp: the reverse adjoint is a custom_vjp, which JAX cannot
         # differentiate forward ("can't apply forward-mode autodiff (jvp) to a custom_vjp
         # function"); forward mode gives the same derivatives of the same solution.
-        adjoint = ForwardSensitivities()
+        adjoint = as_adjoint("forward")
     static = dict(solver=plan.solver, max_steps=int(max_steps), adjoint=adjoint,
                   structure=plan.structure, outputs=tuple(sorted(set(outputs))))
     traj = _program_solve(*args, **static) if host and force is None else None
