@@ -68,6 +68,7 @@ def measure(smoke: bool, tag: str) -> None:
                                   max_steps=200_000)
         return sol.ys[:, 0]
 
+    from crank_jax.runtime.xla_flags import backward_program
     from crank_jax.solve import adjoint
 
     def compiled(fn, before=None):
@@ -85,7 +86,7 @@ def measure(smoke: bool, tag: str) -> None:
     cases = [("one forward solve (jit, default solver)", crank),
              ("crank-jax grad (default solver, adjoint=\"reverse\")",
               jax.grad(lambda th: jnp.sum(w * crank(th))))]
-    if adjoint._hoisted():  # the program of the CPU flags before 2026-11-28, beside it
+    if backward_program() == "loop":  # the program of the CPU flags before 2026-11-28, beside it
         from _reverse_programs import per_step
         cases.append((OLD, jax.grad(lambda th: jnp.sum(w * crank(th))), per_step()))
     cases.append(("plain diffrax Dopri8 grad (RecursiveCheckpointAdjoint)",

@@ -36,9 +36,10 @@ def main(argv=None):
     import jax.numpy as jnp
 
     import crank_jax as cj
+    from crank_jax.runtime.xla_flags import backward_program
     from crank_jax.solve import adjoint
 
-    if not adjoint._hoisted():
+    if backward_program() != "loop":
         raise SystemExit("the CPU flags did not take")
     mech = cj.load_scene("lab-rig").mech.replace(c=1e-3)
     ts = jnp.linspace(0.0, 10.0, 1001)

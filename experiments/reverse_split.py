@@ -32,7 +32,7 @@ import subprocess
 import sys
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "src"))
-from crank_jax.runtime.xla_flags import with_cpu_flags  # noqa: E402
+from crank_jax.runtime.xla_flags import backward_program, with_cpu_flags  # noqa: E402
 
 os.environ["XLA_FLAGS"] = with_cpu_flags(os.environ.get("XLA_FLAGS"))
 
@@ -52,7 +52,7 @@ def measure(mode: str, smoke: bool) -> dict:
     from crank_jax.model.dynamics import CrankField
 
     adjoint = importlib.import_module("crank_jax.solve.adjoint")
-    if not adjoint._hoisted():
+    if backward_program() != "loop":
         raise SystemExit("the CPU flags did not take: XLA_FLAGS was read before this script")
     t1, samples = (1.0, 101) if smoke else (10.0, 1001)
     mech = cj.load_scene("lab-rig").mech.replace(c=1e-3)

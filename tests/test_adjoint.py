@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax.solve import adjoint, steplog
+from crank_jax.solve import DiscreteAdjoint, adjoint, steplog
 
 PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
 
@@ -94,15 +94,15 @@ def test_a_solve_longer_than_the_log_reruns_its_segments(monkeypatch):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("hoisted", [True, False], ids=["step-by-step", "blocks"])
-def test_both_backward_programs_give_the_forward_jacobian(monkeypatch, hoisted):
-    # The backward pass is one of two programs, chosen by whether XLA hoists its loop
-    # (the CPU flags, adjoint._hoisted); this process has one setting, so each program is
-    # forced here: the step-by-step VJP of the step and the vectorised blocks' hand-written
-    # adjoint of the stages must both give the forward-mode Jacobian.
-    monkeypatch.setattr(adjoint, "_hoisted", lambda: hoisted)
+@pytest.mark.parametrize("backward", ["loop", "blocks"], ids=["step-by-step", "blocks"])
+def test_both_backward_programs_give_the_forward_jacobian(backward):
+    # The backward pass is one of two programs (`DiscreteAdjoint.backward`, which the
+    # edges choose from the CPU flags): the step-by-step VJP of the step and the
+    # vectorised blocks' hand-written adjoint of the stages must both give the
+    # forward-mode Jacobian.
     theta0, weights, traj, loss = _problem(t1=1.0, samples=11)
-    _close(jax.jit(jax.grad(loss))(theta0), _forward_gradient(theta0, weights, traj))
+    g = jax.jit(jax.grad(lambda th: loss(th, DiscreteAdjoint(backward))))(theta0)
+    _close(g, _forward_gradient(theta0, weights, traj))
 
 
 @pytest.mark.slow
@@ -113,25 +113,24 @@ def test_the_deferred_parameter_pass(monkeypatch, rows, torque):
     # rows (blocks of 50 steps, 700 stage points, not a multiple of the 64-point chunk;
     # several segments rerun), and a torque whose amplitude is a parameter of the field's
     # time-dependent part: the forward-mode gradient still (measured 9e-16 and 3e-16).
-    monkeypatch.setattr(adjoint, "_hoisted", lambda: True)
     monkeypatch.setattr(adjoint, "LOG_ROWS", rows)
     theta0, weights, traj, loss = _problem(torque=torque, t1=1.0, samples=11)
-    g = jax.jit(jax.grad(loss))(theta0)
+    g = jax.jit(jax.grad(lambda th: loss(th, DiscreteAdjoint("loop"))))(theta0)
     _close(g, _forward_gradient(theta0, weights, traj))
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("hoisted", [True, False], ids=["step-by-step", "blocks"])
-def test_a_solve_longer_than_the_log_with_a_load(monkeypatch, hoisted):
+@pytest.mark.parametrize("backward", ["loop", "blocks"], ids=["step-by-step", "blocks"])
+def test_a_solve_longer_than_the_log_with_a_load(monkeypatch, backward):
     # A harmonic torque whose amplitude is a parameter, over a log of 50 steps (three
     # segments, two rerun): the forward-mode gradient (measured 7e-16, 1.7e-15; 3.9e-5 and
     # 3e-4 before the forward pass's barrier, its reruns then taking other steps).
     # Cleared caches: no program traced by an earlier test (this one passed so).
     jax.clear_caches()
-    monkeypatch.setattr(adjoint, "_hoisted", lambda: hoisted)
     monkeypatch.setattr(adjoint, "LOG_ROWS", 50)
     theta0, weights, traj, loss = _problem(torque=1.3, t1=1.0, samples=11)
-    _close(jax.jit(jax.grad(loss))(theta0), _forward_gradient(theta0, weights, traj))
+    g = jax.jit(jax.grad(lambda th: loss(th, DiscreteAdjoint(backward))))(theta0)
+    _close(g, _forward_gradient(theta0, weights, traj))
 
 
 @pytest.mark.slow

@@ -75,8 +75,8 @@ def _tiny_problem(adjoint, scene, data):
 def test_forward_reverse_and_finite_difference_sensitivities_agree(lab_rig):
     scene = cj.Scene(lab_rig.mech, torque=cj.HarmonicLoad(0.0, 0.2, 3.0))
     data = cj.synthesize(scene, t1=0.6, rate=50.0)
-    fwd = _tiny_problem("forward", scene, data)
-    rev = _tiny_problem("reverse", scene, data)
+    fwd = _tiny_problem(cj.solve.ForwardSensitivities(), scene, data)
+    rev = _tiny_problem(cj.solve.DiscreteAdjoint(), scene, data)
     z = jnp.asarray(fwd.to_z([2.1, 0.003, 0.35, 0.5, 0.1]))
     Jf = np.asarray(jax.jit(jax.jacfwd(lambda x: fwd.residuals(x)[0]))(z))
     Jr = np.asarray(jax.jit(jax.jacrev(lambda x: rev.residuals(x)[0]))(z))

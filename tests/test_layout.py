@@ -164,12 +164,9 @@ def _targets(path: Path) -> set[str]:
 
 #: Breaches of the core's rule still in the code, each with why (issue 39): the test fails
 #: on any other breach, and on this one once it is gone (then delete it here).
-CORE_BREACHES_LEFT = {
-    # The backward pass picks its program (one VJP per step in a loop, or vectorised
-    # blocks) from XLA's small-loop flag: to become a static field of the solver, set at
-    # the edge (the reverse-mode work of issue 40 is changing that code this round).
-    "crank_jax.solve.adjoint imports crank_jax.runtime.xla_flags",
-}
+# None left: the backward pass's program is a static field of the reverse-mode adjoint
+# (`DiscreteAdjoint.backward`), chosen at the edge from the XLA flags (issue 39).
+CORE_BREACHES_LEFT: set[str] = set()
 
 
 def test_core_imports_nothing_outside_itself():

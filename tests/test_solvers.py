@@ -128,7 +128,7 @@ def test_bad_solver_and_adjoint_are_one_line_errors():
     y0 = (jnp.asarray(1.0), jnp.asarray(0.0))
     with pytest.raises(TypeError, match="solver must be a crank_jax solver object"):
         cj.solve.solve(oscillator, "dopri8", TS, y0, 2.0)
-    with pytest.raises(ValueError, match="adjoint must be one of"):
+    with pytest.raises(ValueError, match=r"adjoint must be an adjoint object \(Discrete"):
         cj.solve.solve(oscillator, cj.solve.solver_named("dopri8"), TS, y0, 2.0,
                        adjoint="backward")
     with pytest.raises(ValueError, match="unknown solver 'rk4'"):

@@ -29,6 +29,8 @@ from .model.loads import AbstractLoad, as_load
 from .model.params import SliderCrank
 from .runtime.identity_memo import IdentityMemo
 from .runtime.persistent import PersistentProgram, enum_code, enum_name
+from .runtime.xla_flags import backward_program
+from .solve.adjoints import AbstractAdjoint, DiscreteAdjoint, as_adjoint
 from .solve.policy import check_travel, host_plan, is_concrete
 from .solve.solvers import AbstractSolver
 from .solve.trajectory import (
@@ -62,7 +64,7 @@ def simulate(
     atol: ArrayLike = 1e-10,
     max_steps: int = 200_000,
     outputs: Sequence[str] = (),
-    adjoint: str = "reverse",
+    adjoint: str | AbstractAdjoint = "reverse",
     structure: Structure | None = None,
     throw: bool = True,
     force: Callable | None = None,
@@ -88,8 +90,12 @@ def simulate(
     - `outputs`: derived outputs to add to `Trajectory.extras` (see
       [`OUTPUTS`][crank_jax.solve.trajectory.OUTPUTS]); only
       these are computed.
-    - `adjoint`: `"reverse"` (default; `jax.grad`), `"forward"` (`diffrax.ForwardMode`, for
-      `jax.jacfwd` and Levenberg-Marquardt) or `"direct"` (both, slower). With
+    - `adjoint`: how the solve is differentiated: an adjoint object
+      (`crank_jax.solve.DiscreteAdjoint()`, `ForwardSensitivities()`, `DirectAdjoint()`)
+      or its shorthand, resolved here once: `"reverse"` (default; `jax.grad`: a
+      `DiscreteAdjoint` whose backward program suits this process's XLA flags),
+      `"forward"` (`ForwardSensitivities`, for `jax.jacfwd` and Levenberg-Marquardt) or
+      `"direct"` (`DirectAdjoint`: both, slower). With
       `"dopri8-adaptive"`, `"forward"` steps the variational equation beside the solution
       (solve/variational.py): a column per parameter and initial-state component that has a
       tangent, so a Jacobian costs a few solves, and so does a single JVP through many
@@ -113,13 +119,14 @@ def simulate(
 
     Works under `jax.jit`, `jax.vmap`, `jax.grad` and `jax.jacfwd`: called under
     `jax.jacfwd` or `jax.jvp`, the default `"reverse"` (a `custom_vjp`, which has no
-    forward mode) runs as `"forward"`. A `jax.jit` between `jax.jacfwd` and this call
-    hides the forward tangents from it: there pass `adjoint="forward"` yourself.
+    forward mode) runs as `"forward"`, and so does a `DiscreteAdjoint`. A `jax.jit`
+    between `jax.jacfwd` and this call hides the forward tangents from it: there pass
+    `adjoint="forward"` yourself.
     """
 
     warn_if_float32()
-    if adjoint not in ("reverse", "forward", "direct"):
-        raise ValueError(f"adjoint must be 'reverse', 'forward' or 'direct', got {adjoint!r}")
+    shorthand = isinstance(adjoint, str)
+    adjoint = as_adjoint(adjoint)  # checked here; the shorthand's backward program below
     output_columns(outputs)  # validates names
     load, torque = as_load(load), as_load(torque)
     dtype = jax.dtypes.canonicalize_dtype(jnp.float64)  # float32 without x64
@@ -157,12 +164,17 @@ def simulate(
     # of diffrax's explicit solvers that saves inside its steps (saves.py) and so holds no
     # host callback, whose program the store keeps (a reverse-mode `SaveAt(ts)` checks
     # the save times in a callback, compiled again in every process).
-    adjoint = "forward" if host else adjoint
-    if adjoint == "reverse" and forward_differentiated(args):
+    if host:
+        adjoint = as_adjoint("forward")
+    elif shorthand and isinstance(adjoint, DiscreteAdjoint):
+        # `"reverse"`: the backward program that suits this process's XLA flags, read here
+        # at the edge (the core reads none), on traced calls only (~10 us).
+        adjoint = as_adjoint("reverse", backward=backward_program())
+    if isinstance(adjoint, DiscreteAdjoint) and forward_differentiated(args):
         # Under jax.jacfwd / jax.jvp: the reverse adjoint is a custom_vjp, which JAX cannot
         # differentiate forward ("can't apply forward-mode autodiff (jvp) to a custom_vjp
         # function"); forward mode gives the same derivatives of the same solution.
-        adjoint = "forward"
+        adjoint = as_adjoint("forward")
     static = dict(solver=plan.solver, max_steps=int(max_steps), adjoint=adjoint,
                   structure=plan.structure, outputs=tuple(sorted(set(outputs))))
     traj = _program_solve(*args, **static) if host and force is None else None

@@ -13,6 +13,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from ..runtime.xla_flags import backward_program
+from ..solve.adjoints import DiscreteAdjoint
 from . import channel_noise as ch
 from .fit_plan import Plan, basis, recoordinate, recoordinate_basis
 from .optax_fit import minimise_optax
@@ -35,7 +37,9 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
     Bg = plan.Bg if shoot is ss else recoordinate_basis(ss, shoot, plan.Bg,
                                                         recoordinate(shoot, ss, z0))
     B = basis(Bg, z0.shape[0])
-    problem = shoot if req.method == "lm" else dataclasses.replace(shoot, adjoint="reverse")
+    # Gradient methods: reverse mode, its backward program chosen here, at the edge.
+    problem = shoot if req.method == "lm" else dataclasses.replace(
+        shoot, adjoint=DiscreteAdjoint(backward=backward_program()))
     run_fn = _optimiser(req, plan)
     run = guarded(run_fn, Subspace(problem, jnp.asarray(z0), jnp.asarray(B)),
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)

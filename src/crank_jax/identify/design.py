@@ -35,6 +35,8 @@ from ..model.params import FIELDS, SIGNED_FIELDS
 from ..runtime.lazy import lazy_import
 from ..scene import Scene
 from ..simulation import linearize
+from ..solve.adjoints import ForwardSensitivities
+from ..solve.solvers import Diffrax, solve
 
 diffrax = lazy_import("diffrax")
 optax = lazy_import("optax")
@@ -151,21 +153,22 @@ def _check(scene, free, t1, rate, amplitude, tones, criterion, target, noise_std
 
 
 def _sensitivities(scene: Scene, free, ts, torque, load, y0, z):
-    """phi(ts) as a function of the coordinates z (p,), through diffrax (ForwardMode).
+    """phi(ts) as a function of the coordinates z (p,), through [`solve`][] with
+    diffrax's Dopri5 in forward mode ([`ForwardSensitivities`][]: diffrax's `ForwardMode`).
     `y0` (2,): the release angle and speed; a free `phi0`/`dphi0` is `y0` plus its
     coordinate (0 at the design point), so the release may itself be designed."""
     vals = {n: (jnp.exp(z[i]) if n in FIELDS else z[i]) for i, n in enumerate(free)}
     mech = scene.mech.replace(**{n: v for n, v in vals.items() if n in FIELDS})
     y0 = jnp.stack([jnp.asarray(y0[0] + vals.get("phi0", 0.0), float),
                     jnp.asarray(y0[1] + vals.get("dphi0", 0.0), float)])
-    field = CrankField(mech, load, torque, Structure.of(scene.mech)).packed()
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(lambda t, y, f: jnp.stack(f(t, (y[0], y[1])))), diffrax.Dopri5(),
-        t0=ts[0], t1=ts[-1], dt0=None, y0=y0, args=field, saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=1e-7, atol=1e-9),
-        adjoint=diffrax.ForwardMode(), max_steps=100_000, throw=False)
-    ok = sol.result == diffrax.RESULTS.successful
-    return jnp.where(ok, sol.ys[:, 0], jnp.nan)
+    field = CrankField(mech, load, torque, Structure.of(scene.mech))
+    # No kinks clipped (`step_ts`): a multisine torque is smooth.
+    (phi, _), result, _ = solve(field, Diffrax(diffrax.Dopri5()), ts, (y0[0], y0[1]),
+                                rtol=1e-7, atol=1e-9, max_steps=100_000,
+                                adjoint=ForwardSensitivities(), throw=False,
+                                prepare=CrankField.packed)
+    ok = result == diffrax.RESULTS.successful
+    return jnp.where(ok, phi, jnp.nan)
 
 
 def _objective(scene, free, ts, z, sigma, criterion, j):

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.outputs import SI_UNITS
+from ..solve.adjoints import ForwardSensitivities
 from ..solve.solvers import AbstractSolver
 from . import channel_noise as ch
 from .angle import motion_period
@@ -83,7 +84,7 @@ def _problem(req: FitRequest, start, states, nseg, budget, solver, linear: bool 
     omega = next((2 * math.pi / p for p in periods if p), None)
     return build_problem(req.scene.mech, recs, req.free, start, nseg, solver=solver,
                          rtol=float(req.scene.rtol), atol=float(req.scene.atol),
-                         max_steps=budget, adjoint="forward", omega=omega,
+                         max_steps=budget, adjoint=ForwardSensitivities(), omega=omega,
                          angles=req.angles, sigmas=req.sigmas, per_record=req.per_record,
                          force=req.force, linear=linear)
 

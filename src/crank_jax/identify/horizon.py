@@ -33,6 +33,7 @@ from scipy.optimize import least_squares
 from ..model.outputs import output
 from ..records.data import MIN_SAMPLES, Data
 from ..simulation import simulate
+from ..solve.adjoints import ForwardSensitivities
 from .start import noise_level
 
 __all__ = ["HEAD_FRACTION", "Window", "cut", "Predictor", "estimate_state", "predict"]
@@ -101,7 +102,8 @@ class Predictor(eqx.Module):
         """Channels (C, n) at `ts` (n,) from the state `y0 = (phi, dphi)` at `ts[0]`, the
         state (2, n), and whether the solve succeeded."""
         traj = simulate(self.mech, y0[0], y0[1], ts, load=self.load, torque=self.torque,
-                        solver=self.solver, rtol=self.rtol, atol=self.atol, adjoint="forward",
+                        solver=self.solver, rtol=self.rtol, atol=self.atol,
+                        adjoint=ForwardSensitivities(),
                         throw=False, checks=False)
         h = jnp.stack([output(n, self.mech, ts, traj.phi, traj.dphi, self.load, self.torque)
                        for n in self.names])

@@ -46,8 +46,8 @@ from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..records.data import Data
 from ..records.sensors import OFFSET_NAMES
 from ..simulation import linearize
+from ..solve import AbstractAdjoint, AbstractSolver, AdaptiveDopri8, ForwardSensitivities
 from ..solve.policy import is_concrete, resolve_solver
-from ..solve.solvers import AbstractSolver, AdaptiveDopri8
 from ..solve.trajectory import solve_crank
 from .measurement import calibration, channel_errors, fitted_channels
 from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS, record_mech
@@ -147,7 +147,7 @@ class Problem(eqx.Module):
     rtol: Array
     atol: Array
     max_steps: int = eqx.field(static=True)
-    adjoint: str = eqx.field(static=True, default="forward")
+    adjoint: AbstractAdjoint = eqx.field(static=True, default=ForwardSensitivities())
     # Per reported name: fitted as `ref |z|` (see `folded`); empty: none is.
     fold: tuple[bool, ...] = eqx.field(static=True, default=())
     # Free names with one value per record (`name[i]`, before each record's states).
@@ -342,7 +342,7 @@ def build_problem(
     rtol: float,
     atol: float,
     max_steps: int,
-    adjoint: str = "forward",
+    adjoint: AbstractAdjoint = ForwardSensitivities(),
     pad: bool = True,
     omega: float | None = None,
     angles: Sequence[np.ndarray] | None = None,
@@ -362,8 +362,8 @@ def build_problem(
     - `start`: start value of every free global name.
     - `n_segments`: shooting segments per record (1 = single shooting).
     - `solver`, `rtol`, `atol`, `max_steps`: the ODE solve (`solver` a solver object,
-      [`pick_solver`][]'s, or a name the policy resolves at `mech`); `adjoint`: `"forward"` (for
-      Jacobians) or `"reverse"` (for gradients).
+      [`pick_solver`][]'s, or a name the policy resolves at `mech`); `adjoint`: an adjoint
+      object, `ForwardSensitivities()` (Jacobians) or a `DiscreteAdjoint` (gradients).
     - `pad`: pad each record to a [`bucket`][crank_jax.identify.segments.bucket] length
       (weight-0 samples), so that records of other lengths reuse the compiled programs.
     - `omega`: the records' observed angular frequency, rad/s (scales a free field that

@@ -45,7 +45,7 @@ import platform
 import re
 
 __all__ = ["SMALL_LOOP_BYTES", "small_loop_bytes", "with_cpu_flags", "cpu_flags", "configure_cpu",
-           "instruction_sets"]
+           "instruction_sets", "backward_program"]
 
 #: Loops touching fewer bytes per iteration than this are compiled into one function. 1 MiB
 #: takes in the solvers' step loops and the loops that write their saved samples (XLA counts
@@ -88,6 +88,25 @@ def small_loop_bytes(flags: str | None = None) -> int | None:
     flags = os.environ.get("XLA_FLAGS") if flags is None else flags
     m = re.search(_LOOP_KEY + r"=(\d+)", flags or "")
     return None if m is None else int(m.group(1))
+
+
+def backward_program() -> str:
+    """The backward program of the discrete adjoint (`solve.adjoints.DiscreteAdjoint`'s
+    `backward`) for this process: `"loop"` where XLA:CPU compiles the backward pass's
+    step loop into one function (its small-loop threshold raised to
+    [`SMALL_LOOP_BYTES`][], as the `crank-jax` program and `configure_cpu` set it), else
+    `"blocks"`. Read at the edges (`simulate`'s front door, the fit, sweeps), so that the
+    core reads no flags. With the flags one VJP per step, in a loop, is cheapest: lab
+    rig, grad 5.7x one forward solve against 16x for the vectorised blocks (2026-11-26,
+    load ~6, so both high). Without them every one of the ~600 kernels of a step's VJP is
+    dispatched per step (90x; also with a loop over 4 or 8 steps at a time, 23x: XLA did
+    not hoist it either), and the vectorised blocks win."""
+    import jax
+
+    threshold = small_loop_bytes()
+    hoisted = (jax.default_backend() == "cpu" and threshold is not None
+               and threshold >= SMALL_LOOP_BYTES)
+    return "loop" if hoisted else "blocks"
 
 
 def with_cpu_flags(flags: str | None) -> str:

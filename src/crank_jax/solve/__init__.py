@@ -8,6 +8,9 @@
   `SOLVERS` (the names `simulate(solver=...)` takes), `solver_named` (a name's solver
   object), `resolve_solver` and `choose_solver` (which solver `"auto"` gives a scene, and
   why), `fastest_mode_rates` (the rates that choice reads);
+- the adjoints `solve(adjoint=...)` takes (`adjoints.py`): `DiscreteAdjoint` (reverse
+  mode), `ForwardSensitivities` (forward mode), `DirectAdjoint` (both), and their base
+  `AbstractAdjoint`;
 - `OUTPUTS` and `output_columns`: the outputs `simulate(outputs=...)` takes and their columns.
 
 To choose a solver, pass `solver=` a name from `SOLVERS` or a solver object to
@@ -18,6 +21,7 @@ still runs `solve` for one release, with a `DeprecationWarning` (set up by the f
 door, `crank_jax/__init__.py`, so that this core package imports nothing of the runtime).
 """
 
+from .adjoints import AbstractAdjoint, DirectAdjoint, DiscreteAdjoint, ForwardSensitivities
 from .names import solver_named
 from .policy import SOLVERS, choose_solver, resolve_solver
 from .policy import fastest_mode as fastest_mode_rates
@@ -26,4 +30,5 @@ from .trajectory import OUTPUTS, output_columns
 
 __all__ = ["solve", "Solution", "AbstractSolver", "AdaptiveDopri8", "UniformDopri8",
            "Diffrax", "SOLVERS", "solver_named", "resolve_solver", "choose_solver",
-           "fastest_mode_rates", "OUTPUTS", "output_columns"]
+           "fastest_mode_rates", "OUTPUTS", "output_columns", "AbstractAdjoint",
+           "DiscreteAdjoint", "ForwardSensitivities", "DirectAdjoint"]

@@ -4,14 +4,15 @@ The forward pass ([`forward`][]) is the solve itself ([`solve_adaptive`][]) with
 its accepted steps (steplog.py): each step's start `t`, end `t1`, size `h` and packed
 state `y` at `t`, one row each. The backward pass ([`backward`][]) takes the steps in
 reverse, carrying the state's cotangent from step to step and summing the field's
-parameter cotangents, by one of two programs (see `_hoisted`):
+parameter cotangents, by one of two programs (`program`, the static field
+`DiscreteAdjoint.backward` of adjoints.py, chosen at the edge from the XLA flags):
 
-- **with the CPU flags** (XLA hoists the loop into one function): one step after another,
+- **`"loop"`, for the CPU flags** (XLA hoists the loop into one function): one step after another,
   each the VJP of the step `(y, stage values) -> (y1, dense output at the save times the
   step covers)` (the step's save window gathered for a block of steps before the loop);
   the parameters' cotangents after the loop, from the stage points and the stages'
   cotangents, by VJPs of the field over 64 points at a time (`_deferred`);
-- **otherwise** (each kernel dispatched on its own): a block of 256 steps side by side,
+- **`"blocks"`, otherwise** (each kernel dispatched on its own): a block of 256 steps side by side,
   by a hand-written adjoint of the stage recursion that needs of the field only its
   Jacobian with respect to the state at each stage (forward mode, N tangents) and one VJP
   with respect to its parameters over all the block's 14 x 256 evaluation points, with
@@ -48,7 +49,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model import trig
-from ..runtime.xla_flags import SMALL_LOOP_BYTES, small_loop_bytes
 from .adaptive import WINDOW, dopri8_dense, solve_adaptive
 from .erk import dopri8, packer
 from .steplog import PENDING, Log, recorder
@@ -122,14 +122,15 @@ def _step_outputs(field, pack, unpack, row, tw, n_state, e=None):
 
 
 def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int,
-             error_size=None):
+             error_size=None, program: str = "blocks"):
     """The cotangents of the field's array leaves `dyn` and of `y0` from `g_ys`, the
     cotangent of the solve's `ys` (a pytree like `y0` with a leading axis n), by the
     steps of `log` in reverse (see the module docstring).
 
     **Arguments:** `rebuild(dyn) -> field`; `dyn`, the field's array leaves (a list);
     `y0`, `ts`, `rtol`, `atol`, `max_steps`, `error_size`: the forward solve's (a rerun
-    of an earlier segment needs them).
+    of an earlier segment needs them); `program`, the backward program, `"blocks"` or
+    `"loop"` (see the module docstring).
 
     **Returns:** `(d_dyn, d_y0)`: a list like `dyn` (None for a leaf that is not a float
     array) and a pytree like `y0`."""
@@ -144,7 +145,7 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
         return rebuild([next(it) if b else d for d, b in zip(dyn, live)])
 
     B = min(_BLOCK, S)
-    block = _block_vjp(full, diff, pack, unpack, ts, g, B)
+    block = _block_vjp(full, diff, pack, unpack, ts, g, B, program)
     count = log.count
 
     def segment(rows, m, carry):
@@ -193,9 +194,10 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
 _BLOCK = 256
 
 
-def _block_vjp(full, dd, pack, unpack, ts, g, B):
+def _block_vjp(full, dd, pack, unpack, ts, g, B, program):
     """`block(rows, kb, size, carry) -> carry`: the steps of block `kb` (of `B` rows) of a
-    segment's `rows` (those at positions below `size`), in reverse."""
+    segment's `rows` (those at positions below `size`), in reverse, by the backward
+    program `program` (`"blocks"` or `"loop"`)."""
     W = WINDOW
     n_state = g.shape[1]
     ts_pad = jnp.concatenate([ts, jnp.full((W,), jnp.inf, ts.dtype)])
@@ -234,7 +236,7 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
         with trig.arithmetic():
             return block(rows, kb, size, carry)
 
-    if not _hoisted():
+    if program == "blocks":
         return vectorised
     return _deferred(full, dd, pack, unpack, window, B, n_state)
 
@@ -421,19 +423,6 @@ def _deferred(full, dd, pack, unpack, window, B, n_state):
             return ybar, jax.lax.fori_loop(0, (14 * n + W - 1) // W, chunk, dbar)
 
     return block
-
-
-def _hoisted() -> bool:
-    """Whether XLA:CPU compiles the backward pass's step loop into one function (its
-    small-loop threshold raised, `xla_flags.SMALL_LOOP_BYTES`, as the `crank-jax` program
-    and `configure_cpu` set it). Then one VJP per step, in a loop, is cheapest: lab rig,
-    grad 5.7x one forward solve against 16x for the vectorised blocks (2026-11-26, load
-    ~6, so both high). Without it every one of the ~600 kernels of a step's VJP is
-    dispatched per step (90x; also with a loop over 4 or 8 steps at a time, 23x: XLA
-    did not hoist it either), and the vectorised blocks win."""
-    threshold = small_loop_bytes()
-    return (jax.default_backend() == "cpu" and threshold is not None
-            and threshold >= SMALL_LOOP_BYTES)
 
 
 def _reverse_affine(a, c, u_end):

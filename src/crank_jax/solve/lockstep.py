@@ -35,6 +35,8 @@ solve with the CPU flags, 68x under XLA's defaults, lab rig).
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -49,15 +51,15 @@ from .library_api import result_code
 __all__ = ["adaptive_solve"]
 
 
-def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str,
+def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint,
                    error_size: int | None = None, erk=None):
     """Solve with [`solve_adaptive`][] so that `jax.vmap` steps a batch in lockstep.
 
     **Arguments:** `field`, the vector field (a pytree; its array leaves may be traced or
     batched); `y0`, one member's state, a pytree of small arrays (the crank: `(phi,
     phi')`); `ts` (n,) save times; `rtol`, `atol` scalars; `max_steps`, the step budget;
-    `adjoint`, `"reverse"` (`jax.grad` by the discrete adjoint of adjoint.py),
-    `"forward"` or `"direct"`; `erk`, the method (a `FusedERK`, default `dopri8()`;
+    `adjoint`, an adjoint object (`adjoints.py`: `DiscreteAdjoint` for `jax.grad` by the
+    discrete adjoint of adjoint.py); `erk`, the method (a `FusedERK`, default `dopri8()`;
     forward mode only); `error_size`, the leading state components the step
     control sees (see `solve_adaptive`).
 
@@ -257,16 +259,19 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
 
         return solve
 
-    if adjoint != "reverse":
-        return batched(spread=True)(dyn, y0, ts, rtol, atol)
+    # The adjoint's rule (adjoints.py): JAX's tangents through the batched solve, or the
+    # discrete adjoint's `custom_vjp` around it.
+    with_vjp = functools.partial(_with_adjoint_vjp, batched, rebuild, max_steps, error_size,
+                                 erk)
+    return adjoint.fused(batched(spread=True), with_vjp)(dyn, y0, ts, rtol, atol)
+
+
+def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, erk, backward):
+    """The solve `batched(spread)` with reverse mode by the discrete adjoint of its steps
+    (adjoint.py; see the module's docstring), by the backward program `backward`
+    (`DiscreteAdjoint.backward`)."""
     if erk is not None:  # the discrete adjoint differentiates dopri8()'s own steps
         raise ValueError("reverse mode steps the default method only")
-    return _with_adjoint_vjp(batched, rebuild, max_steps, error_size)(dyn, y0, ts, rtol, atol)
-
-
-def _with_adjoint_vjp(batched, rebuild, max_steps, error_size):
-    """The solve `batched(spread)` with reverse mode by the discrete adjoint of its steps
-    (adjoint.py; see the module's docstring)."""
 
     @jax.custom_vjp
     def reverse(dyn, y0, ts, rtol, atol):
@@ -283,7 +288,8 @@ def _with_adjoint_vjp(batched, rebuild, max_steps, error_size):
     def bwd(res, g):
         dyn, y0, ts, rtol, atol, log = res
         d_dyn, d_y0 = discrete.backward(rebuild, dyn, y0, ts, rtol, atol, log, g[0],
-                                       max_steps=max_steps, error_size=error_size)
+                                       max_steps=max_steps, error_size=error_size,
+                                       program=backward)
         # No derivative with respect to the save times or the tolerances.
         return d_dyn, d_y0, jnp.zeros_like(ts), jnp.zeros_like(rtol), jnp.zeros_like(atol)
 

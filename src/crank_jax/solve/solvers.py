@@ -30,17 +30,14 @@ import jax.flatten_util
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
+from .adjoints import ADJOINTS, AbstractAdjoint, DiscreteAdjoint, as_adjoint
 from .erk import dopri8
 from .lockstep import adaptive_solve
 from .uniform import solve_uniform
-from .variational import flatten_state, with_sensitivities
+from .variational import flatten_state
 
 __all__ = ["solve", "Solution", "AbstractSolver", "AdaptiveDopri8", "UniformDopri8",
            "Diffrax", "ADJOINTS"]
-
-#: The derivative modes a solve takes (`adjoint=`): `"reverse"` (`jax.grad`),
-#: `"forward"` (`jax.jvp`, `jax.jacfwd`), `"direct"` (both, slower).
-ADJOINTS: tuple[str, ...] = ("reverse", "forward", "direct")
 
 
 class Solution(NamedTuple):
@@ -90,7 +87,7 @@ class AbstractSolver(eqx.Module):
     implicit: ClassVar[bool] = False
 
     @abc.abstractmethod
-    def run(self, field, ts, y0, args, *, rtol, atol, max_steps: int, adjoint: str,
+    def run(self, field, ts, y0, args, *, rtol, atol, max_steps: int, adjoint: AbstractAdjoint,
             throw: bool, prepare: Callable, rate, step_ts, jump_ts) -> Solution:
         """Step `field` from `y0` at `ts[0]` over `ts`: [`solve`][]'s arguments, with
         `prepare` a function (identity by default)."""
@@ -138,11 +135,8 @@ class AdaptiveDopri8(AbstractSolver):
             return adaptive_solve(fld, y, ts_, r, a, max_steps=max_steps, adjoint=adjoint,
                                   error_size=error_size, erk=erk)
 
-        # Forward mode steps the variational equation beside the solution (variational.py):
-        # with the CPU flags a 10-parameter Jacobian costs ~3 forward solves, not 7-12.
-        ys, result, num = (
-            with_sensitivities(steps, field, prepare, y0, ts, rtol, atol)
-            if adjoint == "forward" else steps(prepare(field), y0, ts, rtol, atol, None))
+        # The adjoint's rule: forward mode steps the variational equation (adjoints.py).
+        ys, result, num = adjoint.adaptive(steps, field, prepare, y0, ts, rtol, atol)
         if throw:
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
         return Solution(ys, result, num)
@@ -168,7 +162,7 @@ class UniformDopri8(AbstractSolver):
             rate=None, step_ts=None, jump_ts=None):
         import diffrax
 
-        kind = {"reverse": "checkpointed", "forward": "lax", "direct": "bounded"}[adjoint]
+        kind = adjoint.loop_kind
         guess = rate() if callable(rate) else (0.0 if rate is None else rate)
         ys, result, num = solve_uniform(prepare(field), y0, ts, rtol, atol, args,
                                         rate=guess, max_steps=max_steps, kind=kind)
@@ -229,8 +223,7 @@ class Diffrax(AbstractSolver):
             rate=None, step_ts=None, jump_ts=None):
         import diffrax
 
-        adj = {"reverse": diffrax.RecursiveCheckpointAdjoint,
-               "forward": diffrax.ForwardMode, "direct": diffrax.DirectAdjoint}[adjoint]()
+        adj = adjoint.diffrax_adjoint()
         flat0, to_tree, to_flat = _flat_state(y0)
 
         def flat_field(t, y, a):
@@ -244,7 +237,7 @@ class Diffrax(AbstractSolver):
             # a jump in the field itself diffrax steps to just before it and restarts.
             controller = diffrax.ClipStepSizeController(controller, step_ts=step_ts,
                                                         jump_ts=jump_ts)
-        own_saves = not self.checks and adjoint == "forward" and not self.implicit
+        own_saves = not self.checks and adjoint.forward_only and not self.implicit
         if own_saves:  # no `SaveAt(ts)` check in the program (see saves.py)
             from .saves import saved, saving
 
@@ -266,7 +259,8 @@ def _saved_at_ts(sol):
 
 def solve(field: Callable, solver: AbstractSolver, ts: ArrayLike, y0, args=None, *,
           rtol: ArrayLike = 1e-8, atol: ArrayLike = 1e-10, max_steps: int = 200_000,
-          adjoint: str = "reverse", throw: bool = True, prepare: Callable | None = None,
+          adjoint: AbstractAdjoint | str = DiscreteAdjoint(), throw: bool = True,
+          prepare: Callable | None = None,
           rate: ArrayLike | Callable | None = None, step_ts: ArrayLike | None = None,
           jump_ts: ArrayLike | None = None, checks: bool = True) -> Solution:
     """Integrate `dy/dt = field(t, y, args)` from `y0` at `ts[0]`, saving at `ts`.
@@ -286,8 +280,12 @@ def solve(field: Callable, solver: AbstractSolver, ts: ArrayLike, y0, args=None,
     - `rtol`, `atol`: tolerances of the local error, scaled as diffrax's `PIDController`
       (`"dopri8-uniform"`: of its summed error estimate, see `uniform.py`).
     - `max_steps`: the step budget (static); exceeding it fails the solve.
-    - `adjoint`: one of [`ADJOINTS`][]: `"reverse"` for `jax.grad`, `"forward"` for
-      `jax.jvp`/`jax.jacfwd`, `"direct"` for both.
+    - `adjoint`: how the solve is differentiated, an adjoint object (`adjoints.py`):
+      [`DiscreteAdjoint`][] for `jax.grad` (default; its `backward` program is the
+      caller's choice: `"loop"` where XLA:CPU runs with the CPU flags),
+      [`ForwardSensitivities`][] for `jax.jvp`/`jax.jacfwd`, [`DirectAdjoint`][] for
+      both. A name of [`ADJOINTS`][] is a shorthand for them (`"reverse"`:
+      `DiscreteAdjoint()`).
     - `throw`: raise on a failed solve (an `eqx.error_if`), else report it in `result`.
     - `prepare`: `prepare(field)`, the same field in the form to step, formed once
       outside the step loop (the crank's `CrankField.packed`); forward mode of
@@ -303,10 +301,9 @@ def solve(field: Callable, solver: AbstractSolver, ts: ArrayLike, y0, args=None,
     **Returns:** a [`Solution`][] `(ys, result, num_steps)`.
 
     Not jitted itself (as any JAX function, call it inside `jax.jit`); works under
-    `jax.vmap`, `jax.grad` (`adjoint="reverse"`) and `jax.jacfwd` (`adjoint="forward"`).
+    `jax.vmap`, `jax.grad` (`DiscreteAdjoint`) and `jax.jacfwd` (`ForwardSensitivities`).
     """
-    if adjoint not in ADJOINTS:
-        raise ValueError(f"adjoint must be one of {ADJOINTS}, got {adjoint!r}")
+    adjoint = as_adjoint(adjoint)
     if not isinstance(solver, AbstractSolver):
         raise TypeError(f"solver must be a crank_jax solver object (see "
                         f"crank_jax.solve.solver_named), got {solver!r}")

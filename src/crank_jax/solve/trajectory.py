@@ -27,6 +27,7 @@ from ..model.geometry import kinematics
 from ..model.linear import linearize
 from ..model.loads import nonsmooth_times
 from ..model.newton_euler import reactions
+from .adjoints import AbstractAdjoint
 from .solvers import AbstractSolver, solve
 
 if TYPE_CHECKING:  # annotations only: diffrax is imported where it is used
@@ -164,7 +165,7 @@ solve_trajectory = eqx.filter_jit(_solve_impl)
 
 
 def solve_crank(mech, load, torque, force, y0, ts, rtol, atol, *, solver: AbstractSolver,
-                max_steps: int, adjoint: str, structure: Structure) -> Trajectory:
+                max_steps: int, adjoint: AbstractAdjoint, structure: Structure) -> Trajectory:
     """The solve `simulate` runs, for a caller tracing its own program (the fit's
     residuals and Jacobians): the same entry ([`solve`][]), field and derivative rules, with
     no runtime checks (invalid values fail the solve) and never raising (a failure is in

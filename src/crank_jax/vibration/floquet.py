@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from ..runtime.lazy import lazy_import
+from ..solve.adjoints import ForwardSensitivities
 from ..solve.solvers import solve
 from .flow import MAX_STEPS, Scaled, adaptive_solver, flow, packed_scaled
 
@@ -61,7 +62,7 @@ def monodromy_at_rest(field, y_eq: Array, period: Array, *, rtol, atol) -> Array
     tg = _Tangent(Scaled(field, jnp.asarray(period, float), jnp.asarray(0.0)), y_eq)
     one, zero = jnp.ones_like(y_eq[0]), jnp.zeros_like(y_eq[0])
     x, result, _ = solve(tg, adaptive_solver(), jnp.array([0.0, 1.0]), (one, zero, zero, one),
-                         rtol=rtol, atol=atol, max_steps=MAX_STEPS, adjoint="forward",
+                         rtol=rtol, atol=atol, max_steps=MAX_STEPS, adjoint=ForwardSensitivities(),
                          throw=False, prepare=lambda t: _Tangent(packed_scaled(t.inner), t.y_eq),
                          checks=False)
     mat = jnp.stack([jnp.stack([x[0][-1], x[2][-1]]), jnp.stack([x[1][-1], x[3][-1]])])

@@ -18,6 +18,7 @@ from jaxtyping import Array
 
 from ..model.dynamics import CrankField
 from ..runtime.lazy import lazy_import
+from ..solve.adjoints import AbstractAdjoint, ForwardSensitivities
 from ..solve.names import solver_named
 from ..solve.solvers import solve
 
@@ -55,12 +56,14 @@ def packed_scaled(sc: Scaled) -> Scaled:
 
 
 def flow_samples(field: CrankField, y0: Array, span: Array, s: Array, *, rtol, atol,
-                 adjoint: str = "forward", t0: Array = 0.0) -> tuple[Array, Array]:
+                 adjoint: AbstractAdjoint = ForwardSensitivities(),
+                 t0: Array = 0.0) -> tuple[Array, Array]:
     """States at times `t0 + span * s` from `y0` at `t0`.
 
     **Arguments:** `field`, the crank's vector field; `y0` (2,), `(phi, dphi)` (rad,
     rad/s); `span`, T (s); `s` (n,), increasing fractions of T from 0; `rtol`, `atol`,
-    the solver's tolerances; `adjoint`, `"forward"` (jacfwd, root finds) or `"reverse"`.
+    the solver's tolerances; `adjoint`, an adjoint object: `ForwardSensitivities()`
+    (jacfwd, root finds) or a `DiscreteAdjoint` (`jax.grad`).
 
     **Returns:** `(ys, ok)`: ys (n, 2), ok a bool scalar (the solve succeeded). A failed
     solve's samples are NaN, so a root find on them fails rather than converging on them.
