@@ -217,3 +217,30 @@ def test_a_rerun_takes_the_forward_pass_steps(monkeypatch):
         assert int(log.count) == count
         np.testing.assert_array_equal(log.rows[:S], full.rows[m * S:(m + 1) * S])
         np.testing.assert_array_equal(log.mark, full.rows[(m + 1) * S])
+
+
+def test_a_python_number_is_differentiated_as_an_array_is():
+    # `jax.grad(f)(2.0)` hands custom rules a literal, not an array: the discrete
+    # adjoint's backward pass took it for a constant and returned a gradient of 0.0
+    # (exit 0), and forward mode's variational solve raised an AttributeError.
+    from crank_jax.solve import solve, solver_named
+
+    ts = jnp.linspace(0.0, 2.0, 21)
+    y0 = (jnp.asarray(1.0), jnp.asarray(0.0))
+    solver = solver_named("dopri8-adaptive")
+
+    def osc(t, y, w):
+        return (y[1], -w**2 * y[0])
+
+    def loss(w, mode):
+        return jnp.sum(solve(osc, solver, ts, y0, w, adjoint=mode).ys[0] * jnp.sin(ts))
+
+    for mode, derivative in (("reverse", jax.grad), ("forward", jax.jacfwd)):
+        want = derivative(loss)(jnp.asarray(2.0), mode)
+        assert abs(float(want)) > 1.0
+        assert derivative(loss)(2.0, mode) == want, mode
+
+    def from_state(v):  # a number in the initial state
+        return jnp.sum(solve(osc, solver, ts, (jnp.asarray(1.0), v), 2.0).ys[0])
+
+    assert jax.grad(from_state)(0.5) == jax.grad(from_state)(jnp.asarray(0.5)) != 0.0

@@ -279,7 +279,11 @@ def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, erk, backward):
 
     def fwd(dyn, y0, ts, rtol, atol):
         # One member's solve with the log of its steps; under `jax.vmap` a plain `vmap` of
-        # it (each member its own steps, as in the lockstep batch).
+        # it (each member its own steps, as in the lockstep batch). A Python number a user
+        # differentiates (`jax.grad(f)(2.0)`) arrives here as a literal, not an array:
+        # as arrays, so that the backward pass sees it as a float leaf with a cotangent
+        # (it returned a gradient of 0.0 otherwise).
+        dyn, y0 = jax.tree_util.tree_map(jnp.asarray, (dyn, y0))
         ys, result, steps, log = discrete.forward(rebuild(dyn), y0, ts, rtol, atol,
                                                  max_steps=max_steps, error_size=error_size)
         out = (ys, _as_float(result_code(result), ts), _as_float(steps, ts))

@@ -260,6 +260,9 @@ def with_sensitivities(solve: Callable, field, prepare: Callable, y0, ts, rtol, 
     def run_jvp(primals, tangents):
         zero = jax.custom_derivatives.SymbolicZero
         is_zero = lambda x: isinstance(x, zero)  # noqa: E731
+        # A Python number a user differentiates (`jax.jacfwd(f)(2.0)`) arrives as a
+        # literal, not an array: as arrays, so that the sums below have its dtype.
+        primals = jax.tree_util.tree_map(jnp.asarray, primals)
         dyn, y0, ts, rtol, atol = primals
         leaves, treedef = jax.tree_util.tree_flatten(dyn)
         dleaves = jax.tree_util.tree_leaves(tangents[0], is_leaf=is_zero)
