@@ -15,7 +15,7 @@ parameter cotangents, by one of two programs (see `_hoisted`):
   by a hand-written adjoint of the stage recursion that needs of the field only its
   Jacobian with respect to the state at each stage (forward mode, N tangents) and one VJP
   with respect to its parameters over all the block's 14 x 256 evaluation points, with
-  sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises (`trig.arithmetic`): no JAX
+  sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises (`trig.traced_as`): no JAX
   transformation of the whole step (whose vectorised Jacobian and VJP compiled to kernels
   10x and 6x dearer than the field's own, and 60 s of compile time).
 
@@ -198,6 +198,13 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
     segment's `rows` (those at positions below `size`), in reverse."""
     W = WINDOW
     n_state = g.shape[1]
+
+    def arithmetic(dd):
+        # The field with sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises over a
+        # block's points (trig.py), as the lockstep batch's (see the module docstring),
+        # where the field offers that choice.
+        return trig.traced_as(full(dd), trig.ARITHMETIC)
+
     ts_pad = jnp.concatenate([ts, jnp.full((W,), jnp.inf, ts.dtype)])
     g_pad = jnp.concatenate([g, jnp.zeros((W, n_state), g.dtype)])
 
@@ -213,7 +220,7 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
         rows = jnp.where(valid[:, None], rows, rows[:1])
         tw, gw = jax.vmap(lambda r: window(r, "compare_all"))(rows)
         gw = jnp.where(valid[:, None, None], gw, 0.0)
-        st = _stages(full(dd), pack, unpack, rows, n_state)
+        st = _stages(arithmetic(dd), pack, unpack, rows, n_state)
         # G[i]: the cotangent of stage i that the dense output sends directly, (B, N).
         G = _dense_cotangents(rows, tw, gw)
         # Each step is the affine map ybar = A^T u + c of its end state's cotangent u.
@@ -222,21 +229,15 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
         ybar = _reverse_affine(a, c, u_end)
         u_in = jnp.where(valid[:, None], jnp.concatenate([ybar[1:], u_end[None]]), 0.0)
         kbar = _stage_cotangents(st, rows[:, 2], G, u_in)
-        d = _field_vjp(full, dd, pack, unpack, st.T, st.Y, kbar)
+        d = _field_vjp(arithmetic, dd, pack, unpack, st.T, st.Y, kbar)
         return ybar[0], [x + y for x, y in zip(dbar, d)]
 
-    def vectorised(rows, kb, size, carry):
-        # The block's field evaluations run over its B x 14 points side by side: sin,
-        # cos and 1/sqrt as arithmetic that XLA:CPU vectorises (trig.py), as the lockstep
-        # batch's (see the module docstring). With the CPU flags these blocks took 3.3 ms
-        # against 2.5 ms for a loop of one VJP per step (2026-11-27), so the flags keep
-        # the loop (`_deferred`).
-        with trig.arithmetic():
-            return block(rows, kb, size, carry)
-
+    # The block's field evaluations run over its B x 14 points side by side. With the CPU
+    # flags these blocks took 3.3 ms against 2.5 ms for a loop of one VJP per step
+    # (2026-11-27), so the flags keep the loop (`_deferred`).
     if not _hoisted():
-        return vectorised
-    return _deferred(full, dd, pack, unpack, window, B, n_state)
+        return block
+    return _deferred(full, arithmetic, dd, pack, unpack, window, B, n_state)
 
 
 class _Stages(NamedTuple):
@@ -375,7 +376,7 @@ def _window(ts, ts_pad, g_pad, row, method):
 _CHUNK = 64
 
 
-def _deferred(full, dd, pack, unpack, window, B, n_state):
+def _deferred(full, arithmetic, dd, pack, unpack, window, B, n_state):
     """`block` as `_block_vjp`'s, with the block's steps one after another, each one VJP
     of the step with respect to its start state and its 14 stages' values (`e` of
     `_step_outputs`), not the field's parameters. The parameters' cotangents are the sum
@@ -414,11 +415,11 @@ def _deferred(full, dd, pack, unpack, window, B, n_state):
         T, Y, K = T.reshape(-1, W), Y.reshape(-1, W, n_state), K.reshape(-1, W, n_state)
 
         def chunk(j, dbar):
-            d = _field_vjp(full, dd, pack, unpack, T[j], Y[j], K[j])
+            # The field's arithmetic form: vectorised over the chunk (`_block_vjp`).
+            d = _field_vjp(arithmetic, dd, pack, unpack, T[j], Y[j], K[j])
             return [a + b for a, b in zip(dbar, d)]
 
-        with trig.arithmetic():  # vectorised over the chunk (see `vectorised`)
-            return ybar, jax.lax.fori_loop(0, (14 * n + W - 1) // W, chunk, dbar)
+        return ybar, jax.lax.fori_loop(0, (14 * n + W - 1) // W, chunk, dbar)
 
     return block
 

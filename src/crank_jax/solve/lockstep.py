@@ -187,17 +187,19 @@ def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk):
     loop ([`solve_adaptive`][] batched), its members' batched field leaves `dyn_b` joined
     with the shared `dyn_c`; outputs with the batch axis first."""
 
+    def arithmetic(dyn):
+        # The field's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises over the
+        # members, where the field offers that choice (trig.py).
+        return trig.traced_as(rebuild(dyn), trig.ARITHMETIC)
+
     def lockstep(dyn_b, y0, rtol, atol):
         # Per-member tolerances scale that member's state (the last axis).
         rtol = rtol[:, None] if in_batched[3] else rtol
         atol = atol[:, None] if in_batched[4] else atol
-        # The geometry's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises
-        # over the members (trig.py).
-        with trig.arithmetic():
-            ys, result, steps = solve_adaptive(
-                _side_by_side(rebuild, _join(dyn_b, dyn_c, in_batched[0]), in_batched[0]),
-                y0, ts, rtol, atol, max_steps=max_steps, batched=True,
-                error_size=error_size, erk=erk)
+        ys, result, steps = solve_adaptive(
+            _side_by_side(arithmetic, _join(dyn_b, dyn_c, in_batched[0]), in_batched[0]),
+            y0, ts, rtol, atol, max_steps=max_steps, batched=True,
+            error_size=error_size, erk=erk)
         ys = jax.tree_util.tree_map(lambda v: jnp.moveaxis(v, 1, 0), ys)
         return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
