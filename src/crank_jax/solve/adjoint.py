@@ -64,11 +64,12 @@ def _rows(max_steps: int) -> int:
     return max(1, min(int(max_steps), LOG_ROWS))
 
 
-def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=None):
+def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=None,
+            controller=None):
     """The solve of [`solve_adaptive`][] (one member, not batched) with its log.
 
     **Arguments:** as `solve_adaptive`; `upto`: log accepted steps below this index only
-    (default: all, the last `LOG_ROWS` kept).
+    (default: all, the last `LOG_ROWS` kept); `controller`, the step-size law.
 
     **Returns:** `(ys, result, num_steps, log)`, a [`Log`][] fourth."""
     # A rerun (`backward`) must take the same steps bit for bit; but XLA folds the inputs
@@ -81,7 +82,7 @@ def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=
     upto = jnp.asarray(max_steps + 1 if upto is None else upto, jnp.int32)
     record = recorder(_rows(max_steps), n_state, ts.dtype, upto)
     return solve_adaptive(field, y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
-                          record=record)
+                          record=record, controller=controller)
 
 
 def _step_outputs(field, pack, unpack, row, tw, n_state, e=None):
@@ -122,14 +123,14 @@ def _step_outputs(field, pack, unpack, row, tw, n_state, e=None):
 
 
 def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int,
-             error_size=None):
+             error_size=None, controller=None):
     """The cotangents of the field's array leaves `dyn` and of `y0` from `g_ys`, the
     cotangent of the solve's `ys` (a pytree like `y0` with a leading axis n), by the
     steps of `log` in reverse (see the module docstring).
 
     **Arguments:** `rebuild(dyn) -> field`; `dyn`, the field's array leaves (a list);
-    `y0`, `ts`, `rtol`, `atol`, `max_steps`, `error_size`: the forward solve's (a rerun
-    of an earlier segment needs them).
+    `y0`, `ts`, `rtol`, `atol`, `max_steps`, `error_size`, `controller`: the forward
+    solve's (a rerun of an earlier segment needs them).
 
     **Returns:** `(d_dyn, d_y0)`: a list like `dyn` (None for a leaf that is not a float
     array) and a pytree like `y0`."""
@@ -169,7 +170,7 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
         m, carry, head = c
         r = jax.lax.cond(m == m_last, lambda: log._replace(mark=head), lambda: forward(
             rebuild(dyn), y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
-            upto=(m + 1) * S)[3])
+            upto=(m + 1) * S, controller=controller)[3])
         # A rerun that does not take the forward pass's steps bit for bit (its step
         # (m + 1) S, `mark`, the next segment's first) would give a wrong gradient. (m < 0:
         # a member done while others of a `vmap` go on, its result not taken.)
@@ -200,9 +201,8 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B):
     n_state = g.shape[1]
 
     def arithmetic(dd):
-        # The field with sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises over a
-        # block's points (trig.py), as the lockstep batch's (see the module docstring),
-        # where the field offers that choice.
+        # The field's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises over a
+        # block's points, where it offers the choice (trig.py; the module docstring).
         return trig.traced_as(full(dd), trig.ARITHMETIC)
 
     ts_pad = jnp.concatenate([ts, jnp.full((W,), jnp.inf, ts.dtype)])
@@ -415,7 +415,6 @@ def _deferred(full, arithmetic, dd, pack, unpack, window, B, n_state):
         T, Y, K = T.reshape(-1, W), Y.reshape(-1, W, n_state), K.reshape(-1, W, n_state)
 
         def chunk(j, dbar):
-            # The field's arithmetic form: vectorised over the chunk (`_block_vjp`).
             d = _field_vjp(arithmetic, dd, pack, unpack, T[j], Y[j], K[j])
             return [a + b for a, b in zip(dbar, d)]
 

@@ -44,13 +44,14 @@ from jax.custom_batching import custom_vmap
 from ..model import trig
 from . import adjoint as discrete
 from .adaptive import outcome, solve_adaptive
+from .erk import dopri8
 from .library_api import result_code
 
 __all__ = ["adaptive_solve"]
 
 
 def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str,
-                   error_size: int | None = None, erk=None):
+                   error_size: int | None = None, erk=None, controller=None):
     """Solve with [`solve_adaptive`][] so that `jax.vmap` steps a batch in lockstep.
 
     **Arguments:** `field`, the vector field (a pytree; its array leaves may be traced or
@@ -58,13 +59,15 @@ def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint: str,
     phi')`); `ts` (n,) save times; `rtol`, `atol` scalars; `max_steps`, the step budget;
     `adjoint`, `"reverse"` (`jax.grad` by the discrete adjoint of adjoint.py),
     `"forward"` or `"direct"`; `erk`, the method (a `FusedERK`, default `dopri8()`;
-    forward mode only); `error_size`, the leading state components the step
-    control sees (see `solve_adaptive`).
+    reverse mode takes that one only); `controller`, the step-size law (a
+    `PIDController`, default `PIDController()`); `error_size`, the leading state
+    components the step control sees (see `solve_adaptive`).
 
     **Returns:** `(ys, result, num_steps)`, as `solve_adaptive` (`ys` like `y0` with a
     leading axis n; `result` a `diffrax.RESULTS`).
     """
-    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk)
+    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk,
+                    controller)
     ys, code, steps = out
     return (ys, *outcome(code.astype(jnp.int32), steps.astype(jnp.int32)))
 
@@ -182,7 +185,7 @@ def _as_float(x, like):
     return jnp.asarray(x).astype(like.dtype)
 
 
-def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk):
+def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk, controller):
     """`lockstep(dyn_b, y0, rtol, atol) -> (ys, code, steps)`: one group of a batch in one
     loop ([`solve_adaptive`][] batched), its members' batched field leaves `dyn_b` joined
     with the shared `dyn_c`; outputs with the batch axis first."""
@@ -199,14 +202,14 @@ def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk):
         ys, result, steps = solve_adaptive(
             _side_by_side(arithmetic, _join(dyn_b, dyn_c, in_batched[0]), in_batched[0]),
             y0, ts, rtol, atol, max_steps=max_steps, batched=True,
-            error_size=error_size, erk=erk)
+            error_size=error_size, erk=erk, controller=controller)
         ys = jax.tree_util.tree_map(lambda v: jnp.moveaxis(v, 1, 0), ys)
         return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
     return lockstep
 
 
-def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
+def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk, controller):
     # The field's arrays as a flat list: `custom_vmap` cannot take the `None` leaves that
     # `eqx.partition` leaves (jax issue 9066).
     dyn_tree, static = eqx.partition(field, eqx.is_array)
@@ -221,7 +224,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
         dyn, y0, ts, rtol, atol = jax.lax.optimization_barrier((dyn, y0, ts, rtol, atol))
         ys, result, steps = solve_adaptive(rebuild(dyn), y0, ts, rtol, atol,
                                            max_steps=max_steps, error_size=error_size,
-                                           erk=erk)
+                                           erk=erk, controller=controller)
         # Every output a float: JAX's JVP of a `custom_vmap` takes float outputs only.
         return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
@@ -240,7 +243,8 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
             lambda v, b: v if b else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)),
             y0, in_batched[1])
         dyn_b, dyn_c = _split(dyn, in_batched[0])
-        lockstep = _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk)
+        lockstep = _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk,
+                             controller)
         out = _in_chunks(lockstep, axis_size, dyn_b, y0, rtol, atol, in_batched[3],
                          in_batched[4], spread=spread)
         return out, _all_batched(out)
@@ -261,12 +265,13 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
 
     if adjoint != "reverse":
         return batched(spread=True)(dyn, y0, ts, rtol, atol)
-    if erk is not None:  # the discrete adjoint differentiates dopri8()'s own steps
+    if erk is not None and erk != dopri8():  # the adjoint differentiates dopri8()'s steps
         raise ValueError("reverse mode steps the default method only")
-    return _with_adjoint_vjp(batched, rebuild, max_steps, error_size)(dyn, y0, ts, rtol, atol)
+    return _with_adjoint_vjp(batched, rebuild, max_steps, error_size, controller)(
+        dyn, y0, ts, rtol, atol)
 
 
-def _with_adjoint_vjp(batched, rebuild, max_steps, error_size):
+def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, controller):
     """The solve `batched(spread)` with reverse mode by the discrete adjoint of its steps
     (adjoint.py; see the module's docstring)."""
 
@@ -278,14 +283,16 @@ def _with_adjoint_vjp(batched, rebuild, max_steps, error_size):
         # One member's solve with the log of its steps; under `jax.vmap` a plain `vmap` of
         # it (each member its own steps, as in the lockstep batch).
         ys, result, steps, log = discrete.forward(rebuild(dyn), y0, ts, rtol, atol,
-                                                 max_steps=max_steps, error_size=error_size)
+                                                 max_steps=max_steps, error_size=error_size,
+                                                 controller=controller)
         out = (ys, _as_float(result_code(result), ts), _as_float(steps, ts))
         return out, (dyn, y0, ts, rtol, atol, log)
 
     def bwd(res, g):
         dyn, y0, ts, rtol, atol, log = res
         d_dyn, d_y0 = discrete.backward(rebuild, dyn, y0, ts, rtol, atol, log, g[0],
-                                       max_steps=max_steps, error_size=error_size)
+                                       max_steps=max_steps, error_size=error_size,
+                                       controller=controller)
         # No derivative with respect to the save times or the tolerances.
         return d_dyn, d_y0, jnp.zeros_like(ts), jnp.zeros_like(rtol), jnp.zeros_like(atol)
 
