@@ -52,18 +52,19 @@ def _elementwise(smoke: bool) -> list[dict]:
     x0 = jnp.linspace(-3.0, 3.0, 10_000)
     cheap = lambda x: x * x * x * 0.1 + x * x * 0.3 + x * 0.2 + 1 / (x * x + 2)  # noqa: E731
     cases = {"sin + cos": (lambda x: jnp.sin(x) + jnp.cos(x),
-                           lambda x: sum(trig.sincos(x))),
-             "1/sqrt": (lambda x: jax.lax.rsqrt(x * x + 1), lambda x: trig.rsqrt(x * x + 1)),
+                           lambda x: sum(trig.sincos(x, trig.ARITHMETIC))),
+             "1/sqrt": (lambda x: jax.lax.rsqrt(x * x + 1),
+                        lambda x: trig.rsqrt(x * x + 1, trig.ARITHMETIC)),
              "1/sqrt + 10 cheap ops": (lambda x: jax.lax.rsqrt(x * x + 1) + cheap(x),
-                                       lambda x: trig.rsqrt(x * x + 1) + cheap(x))}
+                                       lambda x: trig.rsqrt(x * x + 1, trig.ARITHMETIC)
+                                       + cheap(x))}
     rows = []
     for name, (lib, ours) in cases.items():
         row = {"function": name}
         for label, fn in (("jax_ns", lib), ("trig_ns", ours)):
             loop = jax.jit(lambda x, fn=fn: jax.lax.fori_loop(
                 0, 100, lambda i, c: c + 1e-9 * fn(c), x))
-            with trig.arithmetic(label == "trig_ns"):  # traced (and compiled) here
-                loop(x0)
+            loop(x0)  # traced and compiled here
             t = median_time(lambda loop=loop: jax.block_until_ready(loop(x0)),
                             1 if smoke else 21, warmup=1)
             row[label] = t / 100 / x0.size * 1e9

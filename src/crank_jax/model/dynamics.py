@@ -29,6 +29,7 @@ from .geometry import Geometry, geometry
 from .loads import AbstractLoad, NoLoad, as_load
 from .params import SliderCrank
 from .structure import Structure
+from .trig import check_form, form_field
 
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
@@ -187,9 +188,11 @@ def acceleration(
                          t, load, torque, structure, force)
 
 
-def _acceleration(p: Coefficients, phi, dphi, t, load, torque, structure, force) -> Array:
-    """[`acceleration`][] from [`Coefficients`][] (loads already loads)."""
-    g = geometry(p, phi, structure)
+def _acceleration(p: Coefficients, phi, dphi, t, load, torque, structure, force,
+                  trig: str = "library") -> Array:
+    """[`acceleration`][] from [`Coefficients`][] (loads already loads), the geometry's
+    sin, cos and 1/sqrt traced in the form `trig` (`trig.FORMS`)."""
+    g = geometry(p, phi, structure, trig)
     q = force_terms(p, g, phi, dphi, t, load, torque, structure)
     if force is not None:
         q = q + force(t, phi, dphi)
@@ -250,7 +253,10 @@ class CrankField(eqx.Module):
     `torque`, the crank torque tau(t) (N*m); `structure`, the static set of terms;
     `force`, an optional user term `force(t, phi, dphi) -> N*m` added to q: any pytree
     callable, so an `equinox` MLP's weights are leaves of the field and train through the
-    solver (a universal differential equation; experiments/ude_friction.py).
+    solver (a universal differential equation; experiments/ude_friction.py); `trig`
+    (static, one of `trig.FORMS`, default `"library"`): how the geometry traces sin, cos
+    and 1/sqrt. A solver that wants the arithmetic form (the lockstep batch) steps
+    `trig.traced_as(field, "arithmetic")`, which sets it here and in the loads.
     """
 
     mech: SliderCrank
@@ -258,11 +264,16 @@ class CrankField(eqx.Module):
     torque: AbstractLoad
     structure: Structure = eqx.field(static=True, default=_FULL)
     force: Callable | None = None
+    trig: str = form_field()
+
+    def __check_init__(self):
+        check_form(self.trig)
 
     def acceleration(self, t, phi, dphi):
         """phi'' = (q - K phi'^2) / M, rad/s^2, at time `t` (s)."""
-        return acceleration(self.mech, phi, dphi, t, self.load, self.torque, self.structure,
-                            self.force)
+        return _acceleration(coefficients(self.mech, self.structure), jnp.asarray(phi),
+                             jnp.asarray(dphi), t, as_load(self.load), as_load(self.torque),
+                             self.structure, self.force, self.trig)
 
     def __call__(self, t, y, args=None):
         phi, dphi = y
@@ -273,21 +284,26 @@ class CrankField(eqx.Module):
         what a solver should step (see `coefficients.py` for why). Call it outside the
         step loop."""
         return PackedCrankField(pack(coefficients(self.mech, self.structure)), self.load,
-                                self.torque, self.structure, self.force)
+                                self.torque, self.structure, self.force, self.trig)
 
 
 class PackedCrankField(eqx.Module):
     """[`CrankField`][] with the parameters as packed [`Coefficients`][]
     (`CrankField.packed()`): the same `field(t, y, args=None) -> (dphi, ddphi)`, the same
-    values; the leaf `coefficients` (shape (n,) + batch) is differentiable."""
+    values; the leaf `coefficients` (shape (n,) + batch) is differentiable; `trig` as
+    [`CrankField`][]'s."""
 
     coefficients: Array
     load: AbstractLoad
     torque: AbstractLoad
     structure: Structure = eqx.field(static=True, default=_FULL)
     force: Callable | None = None
+    trig: str = form_field()
+
+    def __check_init__(self):
+        check_form(self.trig)
 
     def __call__(self, t, y, args=None):
         phi, dphi = y
         return dphi, _acceleration(unpack(self.coefficients), phi, dphi, t, self.load,
-                                   self.torque, self.structure, self.force)
+                                   self.torque, self.structure, self.force, self.trig)

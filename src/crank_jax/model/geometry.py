@@ -18,7 +18,7 @@ from jaxtyping import Array, ArrayLike
 from .coefficients import Coefficients, coefficients
 from .params import SliderCrank
 from .structure import Structure
-from .trig import rsqrt, sincos
+from .trig import LIBRARY, rsqrt, sincos
 
 __all__ = ["Geometry", "geometry", "CouplerAngle", "coupler_angle", "Kinematics", "kinematics"]
 
@@ -65,14 +65,14 @@ class Geometry(NamedTuple):
 
 
 def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
-             structure: Structure = _FULL) -> Geometry:
+             structure: Structure = _FULL, trig: str = LIBRARY) -> Geometry:
     """The geometry at crank angle `phi`, written for XLA's CPU fusion.
 
     `w = 1/cos(delta)` is a single `rsqrt` and every other quantity is a product of it:
     XLA does not duplicate "expensive" ops (sqrt, division) into several consumers, so
     each extra one becomes its own kernel in a solver's stage. sin, cos and rsqrt come
-    from [`trig`][]: in a lockstep batch, arithmetic that XLA:CPU vectorises over the
-    members; elsewhere JAX's own. The parameters enter only
+    from [`trig`][], in the form `trig` says: `"arithmetic"` (what a lockstep batch steps)
+    vectorises over the members on XLA:CPU, `"library"` is JAX's own. The parameters enter only
     through [`Coefficients`][] (products of parameters alone, formed outside any step
     loop), and `cos(delta)^2` is `1 -` a polynomial in `sin(phi)` rather than
     `1 - sin(delta)^2`: with traced parameters the latter left `sin(delta) = (r/L) sin(phi)`
@@ -84,15 +84,14 @@ def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
 
     **Arguments:** `mech`, the parameters or their [`Coefficients`][]; `phi`, crank angle
     in rad, any shape; `structure`: with `offset=False` the offset `e` is left out (it must
-    then be 0).
+    then be 0); `trig`, one of `trig.FORMS`: how sin, cos and 1/sqrt are traced.
 
     **Returns:** a [`Geometry`][].
     """
     p = mech if isinstance(mech, Coefficients) else coefficients(mech, structure)
     r, L, b, s = p.r, p.L, p.b, p.s
     phi = jnp.asarray(phi)
-    # Arithmetic in a lockstep batch (vectorised by XLA:CPU), jnp.sin/cos elsewhere (trig.py).
-    sphi, cphi = sincos(phi)
+    sphi, cphi = sincos(phi, trig)
     if structure.offset:
         sd = p.lam * sphi - p.eL
         u = 1.0 - (p.eL2 + sphi * (p.lam2 * sphi - p.a1))
@@ -100,7 +99,7 @@ def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
         sd = p.lam * sphi
         u = 1.0 - p.lam2 * (sphi * sphi)
     # u = cos(delta)^2 >= 1 - ((r + |e|)/L)^2 > 0: bounded away from zero, smooth.
-    w = rsqrt(u)
+    w = rsqrt(u, trig)
     cd = u * w
     d1 = p.lam * (cphi * w)
     # delta'' = (sin(delta) delta'^2 - (r/L) sin(phi)) / cos(delta), and

@@ -38,6 +38,7 @@ from . import trig
 from .load_base import AbstractLoad, Nonsmooth
 from .params import as_float_array
 from .sampled import INTERPOLATIONS, InputLoad, SampledLoad, is_sampled
+from .trig import check_form, form_field
 
 __all__ = ["AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineLoad",
            "SampledLoad", "InputLoad", "is_sampled", "as_load", "INTERPOLATIONS", "Nonsmooth",
@@ -80,9 +81,14 @@ class HarmonicLoad(AbstractLoad):
     X1: Float[Array, ""] = eqx.field(converter=as_float_array)
     freq_hz: Float[Array, ""] = eqx.field(converter=as_float_array)
     phase: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
+    trig: str = form_field()  # how sin is traced (trig.py): a solver's choice
+
+    def __check_init__(self):
+        check_form(self.trig)
 
     def __call__(self, t: ArrayLike) -> Array:
-        return self.X0 + self.X1 * trig.sin(2 * jnp.pi * self.freq_hz * t + self.phase)
+        return self.X0 + self.X1 * trig.sin(2 * jnp.pi * self.freq_hz * t + self.phase,
+                                            self.trig)
 
     def mean(self) -> Array:
         return self.X0
@@ -102,11 +108,15 @@ class MultiSineLoad(AbstractLoad):
     freqs_hz: Float[Array, " k"] = eqx.field(converter=as_float_array)
     phases: Float[Array, " k"] = eqx.field(converter=as_float_array)
     X0: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
+    trig: str = form_field()  # how sin is traced (trig.py): a solver's choice
+
+    def __check_init__(self):
+        check_form(self.trig)
 
     def __call__(self, t: ArrayLike) -> Array:
         t = jnp.asarray(t, dtype=float)[..., None]
         arg = 2 * jnp.pi * self.freqs_hz * t + self.phases
-        return self.X0 + jnp.sum(self.amplitudes * trig.sin(arg), axis=-1)
+        return self.X0 + jnp.sum(self.amplitudes * trig.sin(arg, self.trig), axis=-1)
 
     def mean(self) -> Array:
         return self.X0

@@ -12,6 +12,7 @@ from jaxtyping import Array, ArrayLike, Float
 from . import trig
 from .load_base import AbstractLoad, Nonsmooth
 from .params import as_float_array
+from .trig import check_form, form_field
 
 __all__ = ["SampledLoad", "InputLoad", "is_sampled", "bind_input", "INTERPOLATIONS"]
 
@@ -153,6 +154,10 @@ class InputLoad(AbstractLoad):
     freq_hz: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
     phase: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
     signal: SampledLoad | None = None
+    trig: str = form_field()  # how sin is traced (trig.py): a solver's choice
+
+    def __check_init__(self):
+        check_form(self.trig)
 
     def _u(self, t):
         if self.signal is None:
@@ -162,7 +167,8 @@ class InputLoad(AbstractLoad):
         return self.signal(t)
 
     def __call__(self, t: ArrayLike) -> Array:
-        harmonic = self.X0 + self.X1 * trig.sin(2 * jnp.pi * self.freq_hz * t + self.phase)
+        harmonic = self.X0 + self.X1 * trig.sin(2 * jnp.pi * self.freq_hz * t + self.phase,
+                                                self.trig)
         return harmonic + self.gain * self._u(t)
 
     def mean(self) -> Array:

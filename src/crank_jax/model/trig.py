@@ -20,13 +20,17 @@ stage (68 kernels per step instead of 29). The seed is the bit-level estimate of
 <= 3.5%), refined by four Newton steps (quadratic convergence: 3.5e-2, 1.8e-3, 5e-6,
 4e-11, then rounding): within 2 ulp of `1/np.sqrt` over positive normal floats.
 
-When: only while tracing inside [`arithmetic`][], which the lockstep batch
-(solve/lockstep.py) enters; elsewhere these functions are `jnp.sin`, `jnp.cos` and
-`jax.lax.rsqrt`. A single trajectory has nothing to vectorise (measured: the same run
-time either way), and the polynomials made its programs ~20-28% slower to compile
-(the lab rig's solve 2.0 -> 2.6 s, its forward Jacobian 8.0 -> 9.7 s), which every
-command-line fit and the test suite pay. The two forms agree to 1-2 ulp, so which one a
-cached trace holds changes speed, not results.
+Which form is an explicit, static choice (issue 39: numerics are arguments or fields,
+not context state): each function takes `form`, one of [`FORMS`][], and a module that
+traces them (the crank's fields, the harmonic loads) holds it in a static field made by
+[`form_field`][], default `"library"`. A solver that wants the arithmetic form asks for
+the field in it with [`traced_as`][]: the lockstep batch (solve/lockstep.py) and the
+discrete adjoint's vectorised blocks (solve/adjoint.py) do. A user's own field offers no
+choice and is stepped as it is. A single trajectory has nothing to vectorise (measured:
+the same run time either way), and the polynomials made its programs ~20-28% slower to
+compile (the lab rig's solve 2.0 -> 2.6 s, its forward Jacobian 8.0 -> 9.7 s), which every
+command-line fit and the test suite pay. The two forms agree to 1-2 ulp; the form is part
+of the field's static structure, so a compiled program's key says which one it holds.
 
 Accuracy of [`sincos`][] (tests/test_trig.py checks it against NumPy): within 1 ulp of
 the correctly rounded value for |x| <= 1e3 rad, 2 ulp to 1e6 rad. The reduction
@@ -42,32 +46,72 @@ GPU: the same arithmetic runs there (CUDA's own sin is a polynomial of this kind
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
+import copy
+import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-__all__ = ["arithmetic", "sincos", "sin", "rsqrt"]
+__all__ = ["LIBRARY", "ARITHMETIC", "FORMS", "form_field", "check_form", "traced_as",
+           "sincos", "sin", "rsqrt"]
 
-_ARITHMETIC = contextvars.ContextVar("crank_jax_trig_arithmetic", default=False)
+#: JAX's own `sin`, `cos` and `rsqrt` (cheaper to compile; the default).
+LIBRARY = "library"
+#: The arithmetic forms of this module, for float64 (other types take JAX's own).
+ARITHMETIC = "arithmetic"
+#: The forms a `form` argument or a [`form_field`][] takes.
+FORMS: tuple[str, ...] = (LIBRARY, ARITHMETIC)
 
-
-@contextlib.contextmanager
-def arithmetic(on: bool = True):
-    """While tracing inside this context, [`sincos`][], [`sin`][] and [`rsqrt`][] are the
-    arithmetic forms (for code that runs over a batch); outside it, JAX's own functions.
-    Read at trace time only: it changes the program that is traced, not a running one."""
-    token = _ARITHMETIC.set(on)
-    try:
-        yield
-    finally:
-        _ARITHMETIC.reset(token)
+# Marks the field that [`traced_as`][] sets (a name alone could be a user's own field's).
+_MARK = "crank_jax_trig_form"
 
 
-def _use_arithmetic(x) -> bool:
-    return _ARITHMETIC.get() and x.dtype == jnp.float64
+def form_field():
+    """A module's static field `trig`, one of [`FORMS`][] (default `"library"`): how the
+    module traces sin, cos and 1/sqrt. [`traced_as`][] sets it."""
+    return eqx.field(static=True, default=LIBRARY, metadata={_MARK: True})
+
+
+def check_form(form: str) -> None:
+    """`ValueError` naming the field unless `form` is one of [`FORMS`][] (for
+    `__check_init__`)."""
+    if form not in FORMS:
+        raise ValueError(f"trig must be one of {FORMS}, got {form!r}")
+
+
+def _chooses(x) -> bool:
+    return isinstance(x, eqx.Module) and any(
+        f.metadata.get(_MARK) for f in dataclasses.fields(x))
+
+
+def _set_form(module, form: str):
+    if not _chooses(module):
+        return module
+    # A copy with the static field changed, set as JAX's unflattening sets fields (no
+    # __init__): a partitioned module (None for its arrays, `eqx.partition`) cannot pass
+    # its converters. Its other fields may hold such modules too (a field's loads).
+    new = copy.copy(module)
+    for f in dataclasses.fields(module):
+        if f.metadata.get(_MARK):
+            object.__setattr__(new, f.name, form)
+        elif not f.metadata.get("static"):
+            object.__setattr__(new, f.name, traced_as(getattr(module, f.name), form))
+    return new
+
+
+def traced_as(tree, form: str):
+    """`tree` (a vector field, a load, any pytree) with every module in it that holds a
+    [`form_field`][] set to `form`: what a solver steps to have the field's sin, cos and
+    1/sqrt traced in that form. Parts that offer no choice (a user's own field or load)
+    are left as they are. Static fields are not searched."""
+    check_form(form)
+    return jax.tree_util.tree_map(lambda x: _set_form(x, form), tree, is_leaf=_chooses)
+
+
+def _use_arithmetic(x, form: str) -> bool:
+    return form == ARITHMETIC and x.dtype == jnp.float64
 
 # pi/2 = _PIO2_1 + _PIO2_2 + _PIO2_3 (fdlibm's pio2_1, pio2_2, pio2_2t): 33 + 33 + 53 bits.
 _PIO2_1 = 1.57079632673412561417e+00
@@ -108,15 +152,15 @@ def _sincos(x):
     return sin_x, cos_x
 
 
-def sincos(x: ArrayLike) -> tuple[Array, Array]:
+def sincos(x: ArrayLike, form: str = LIBRARY) -> tuple[Array, Array]:
     """`(sin(x), cos(x))` of an angle `x` in rad, any shape.
 
-    Inside [`arithmetic`][] and for float64 the polynomial form: within 1 ulp of
+    With `form="arithmetic"` and for float64 the polynomial form: within 1 ulp of
     `jnp.sin`/`jnp.cos` for |x| <= 1e3 (see the module docstring) and ~10x cheaper per
     element in a batch on XLA:CPU. Otherwise `jnp.sin`/`jnp.cos`.
     """
     x = jnp.asarray(x)
-    if not _use_arithmetic(x):
+    if not _use_arithmetic(x, form):
         return jnp.sin(x), jnp.cos(x)
     return _sincos(x)
 
@@ -128,9 +172,9 @@ def _sincos_jvp(primals, tangents):
     return (s, c), (c * dx, -s * dx)
 
 
-def sin(x: ArrayLike) -> Array:
+def sin(x: ArrayLike, form: str = LIBRARY) -> Array:
     """`sin(x)` through [`sincos`][] (the unused cosine is removed by XLA)."""
-    return sincos(x)[0]
+    return sincos(x, form)[0]
 
 
 _RSQRT_MAGIC = 0x5FE6EB50C7B537A9  # the float64 constant of the bit-level 1/sqrt estimate
@@ -150,11 +194,11 @@ def _rsqrt(u):
     return jnp.where(u > 0.0, w, jnp.nan)
 
 
-def rsqrt(u: ArrayLike) -> Array:
-    """`1/sqrt(u)`, any shape. Inside [`arithmetic`][] and for float64 the Newton form:
+def rsqrt(u: ArrayLike, form: str = LIBRARY) -> Array:
+    """`1/sqrt(u)`, any shape. With `form="arithmetic"` and for float64 the Newton form:
     within 2 ulp for positive normal `u`, NaN for `u <= 0`. Otherwise `jax.lax.rsqrt`."""
     u = jnp.asarray(u)
-    if not _use_arithmetic(u):
+    if not _use_arithmetic(u, form):
         return jax.lax.rsqrt(u)
     return _rsqrt(u)
 

@@ -40,15 +40,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import library_api as compat
+from .controller import PIDController
 from .erk import FusedERK, dopri8, packer
 
 __all__ = ["solve_adaptive", "dopri8_dense", "outcome", "Recorder"]
 
-# The integral controller (as scipy's DOP853 and diffrax's PIDController default): safety
-# factor, and the step growth per step kept in [_FAC_MIN, _FAC_MAX].
-_SAFETY = 0.9
-_FAC_MIN = 0.2
-_FAC_MAX = 10.0
 # Step attempts per loop iteration, and save times one block may write. Measured on the
 # lab rig (10 s, 1001 saves, rtol 1e-8): one trajectory costs the same per step with 1, 4
 # or 8 attempts per iteration (within the noise of a shared machine); a 10^4 batch in
@@ -166,6 +162,8 @@ class _Step(NamedTuple):
     rejected: jax.Array
     # The step attempts that `record` (a [`Recorder`][]) has pending; None without it.
     log: object = None
+    # The step-size controller's state (`PIDController.init`; None for an integral one).
+    control: object = None
 
 
 class Recorder(NamedTuple):
@@ -203,14 +201,14 @@ class _Attempt(NamedTuple):
     ks: list
 
 
-def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None, record=None):
+def _attempt(erk: FusedERK, controller: PIDController, f, rtol, atol, max_steps,
+             error_size=None, record=None):
     """`attempt(state, t_lim) -> (state, record)`: one step attempt of `erk` on the packed
     field `f(t, y)` per member, shortened to end at `t_lim`, with diffrax's error norm and
-    an integral controller (a [`_Step`][] and an [`_Attempt`][]). A member is inactive
-    (takes no step, its state frozen) once `t >= t_lim` or its budget `max_steps` is
-    spent."""
+    the step size from `controller` (a [`_Step`][] and an [`_Attempt`][]). A member is
+    inactive (takes no step, its state frozen) once `t >= t_lim` or its budget
+    `max_steps` is spent."""
     sg = jax.lax.stop_gradient
-    expo = 1.0 / erk.order
     n_st = erk.num_stages
 
     def attempt(c: _Step, t_lim):
@@ -225,14 +223,10 @@ def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None, record=No
         err = _error_norm(sg(erk.error(h_try, [k[..., :E] for k in ks])) / scale,
                           error_size)
         # A non-finite estimate (a step too long for stability) is a rejection.
-        finite = jnp.isfinite(err)
         ok = active & (err <= 1.0)
         t1 = jnp.where(h_try == t_lim - t, t_lim, t + h_try)
         k1 = f(t1, y1)
-        # Integral controller; no growth right after a rejection (as scipy's DOP853).
-        fac = jnp.where(err == 0, _FAC_MAX, _SAFETY * sg(err) ** -expo)
-        fac = jnp.where(ok & rejected, jnp.minimum(fac, 1.0), fac)
-        fac = jnp.where(finite, jnp.clip(fac, _FAC_MIN, _FAC_MAX), _FAC_MIN)
+        fac, control = controller.factor(sg(err), ok, rejected, erk.order, c.control)
         # A step shortened to end at the window (or the end) and accepted leaves the
         # controller's proposal `h` valid: the next step may take it again.
         h_next = jnp.where(ok & (h_try < h), jnp.maximum(h_try * fac, h), h_try * fac)
@@ -240,7 +234,7 @@ def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None, record=No
         new = _Step(jnp.where(ok, t1, t), jnp.where(ok, y1, y), jnp.where(ok, k1, k),
                     jnp.where(active, sg(h_next), h), steps + active,
                     jnp.where(active, ~ok, rejected),
-                    c.log if record is None else record.write(c.log, rec))
+                    c.log if record is None else record.write(c.log, rec), control)
         return new, rec
 
     return attempt
@@ -249,7 +243,8 @@ def _attempt(erk: FusedERK, f, rtol, atol, max_steps, error_size=None, record=No
 def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
                    erk: FusedERK | None = None, unroll: int = UNROLL, window: int = WINDOW,
                    chunk: int = CHUNK, batched: bool = False,
-                   error_size: int | None = None, record=None):
+                   error_size: int | None = None, record=None,
+                   controller: PIDController | None = None):
     """Integrate `dy/dt = field(t, y, args)` with adaptive steps of `erk`, saving at `ts`
     through the method's dense output.
 
@@ -267,6 +262,8 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
       `lockstep.py`, whose backward pass is the discrete adjoint of adjoint.py).
     - `erk`: the method, default [`dopri8`][]`()`; its last stage must be `f(t1, y1)`
       (first same as last), and `dopri8_dense()` its dense output.
+    - `controller`: the step-size law, a [`PIDController`][] (default: an integral
+      controller, `PIDController()`).
     - `unroll`, `window`: step attempts per loop iteration; save times one iteration may
       write (a step is shortened so that the iteration writes no more).
     - `chunk`: save times the step loop records before the outer loop copies them out.
@@ -289,6 +286,7 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     accepted and rejected (batched: (B,)). With `record`, the final log comes fourth.
     """
     erk = dopri8() if erk is None else erk
+    controller = PIDController() if controller is None else controller
     n = ts.shape[0]
     dtype = ts.dtype
     pack, unpack = packer(y0, 1 if batched else 0)
@@ -308,8 +306,9 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), erk.order,
                        sg(ts[-1]) - sg(ts[0]), error_size)
     state0 = _Step(t0, y0p, k0, h0, jnp.zeros(lead, int), jnp.zeros(lead, bool),
-                   None if record is None else record.pending0)
-    attempt = _attempt(erk, f, rtol, atol, max_steps, error_size, record)
+                   None if record is None else record.pending0,
+                   controller.init(lead, dtype))
+    attempt = _attempt(erk, controller, f, rtol, atol, max_steps, error_size, record)
     state, out, log = _step_loop(attempt, state0, y0p, ts, window, unroll, chunk, max_steps,
                                  record)
     t_end = sg(ts[-1])

@@ -16,7 +16,7 @@ parameter cotangents, by one of two programs (`program`, the static field
   by a hand-written adjoint of the stage recursion that needs of the field only its
   Jacobian with respect to the state at each stage (forward mode, N tangents) and one VJP
   with respect to its parameters over all the block's 14 x 256 evaluation points, with
-  sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises (`trig.arithmetic`): no JAX
+  sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises (`trig.traced_as`): no JAX
   transformation of the whole step (whose vectorised Jacobian and VJP compiled to kernels
   10x and 6x dearer than the field's own, and 60 s of compile time).
 
@@ -64,11 +64,12 @@ def _rows(max_steps: int) -> int:
     return max(1, min(int(max_steps), LOG_ROWS))
 
 
-def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=None):
+def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=None,
+            controller=None):
     """The solve of [`solve_adaptive`][] (one member, not batched) with its log.
 
     **Arguments:** as `solve_adaptive`; `upto`: log accepted steps below this index only
-    (default: all, the last `LOG_ROWS` kept).
+    (default: all, the last `LOG_ROWS` kept); `controller`, the step-size law.
 
     **Returns:** `(ys, result, num_steps, log)`, a [`Log`][] fourth."""
     # A rerun (`backward`) must take the same steps bit for bit; but XLA folds the inputs
@@ -81,7 +82,7 @@ def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=
     upto = jnp.asarray(max_steps + 1 if upto is None else upto, jnp.int32)
     record = recorder(_rows(max_steps), n_state, ts.dtype, upto)
     return solve_adaptive(field, y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
-                          record=record)
+                          record=record, controller=controller)
 
 
 def _step_outputs(field, pack, unpack, row, tw, n_state, e=None):
@@ -122,15 +123,15 @@ def _step_outputs(field, pack, unpack, row, tw, n_state, e=None):
 
 
 def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int,
-             error_size=None, program: str = "blocks"):
+             error_size=None, controller=None, program: str = "blocks"):
     """The cotangents of the field's array leaves `dyn` and of `y0` from `g_ys`, the
     cotangent of the solve's `ys` (a pytree like `y0` with a leading axis n), by the
     steps of `log` in reverse (see the module docstring).
 
     **Arguments:** `rebuild(dyn) -> field`; `dyn`, the field's array leaves (a list);
-    `y0`, `ts`, `rtol`, `atol`, `max_steps`, `error_size`: the forward solve's (a rerun
-    of an earlier segment needs them); `program`, the backward program, `"blocks"` or
-    `"loop"` (see the module docstring).
+    `y0`, `ts`, `rtol`, `atol`, `max_steps`, `error_size`, `controller`: the forward
+    solve's (a rerun of an earlier segment needs them); `program`, the backward program,
+    `"blocks"` or `"loop"` (see the module docstring).
 
     **Returns:** `(d_dyn, d_y0)`: a list like `dyn` (None for a leaf that is not a float
     array) and a pytree like `y0`."""
@@ -170,7 +171,7 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
         m, carry, head = c
         r = jax.lax.cond(m == m_last, lambda: log._replace(mark=head), lambda: forward(
             rebuild(dyn), y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
-            upto=(m + 1) * S)[3])
+            upto=(m + 1) * S, controller=controller)[3])
         # A rerun that does not take the forward pass's steps bit for bit (its step
         # (m + 1) S, `mark`, the next segment's first) would give a wrong gradient. (m < 0:
         # a member done while others of a `vmap` go on, its result not taken.)
@@ -200,6 +201,12 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B, program):
     program `program` (`"blocks"` or `"loop"`)."""
     W = WINDOW
     n_state = g.shape[1]
+
+    def arithmetic(dd):
+        # The field's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises over a
+        # block's points, where it offers the choice (trig.py; the module docstring).
+        return trig.traced_as(full(dd), trig.ARITHMETIC)
+
     ts_pad = jnp.concatenate([ts, jnp.full((W,), jnp.inf, ts.dtype)])
     g_pad = jnp.concatenate([g, jnp.zeros((W, n_state), g.dtype)])
 
@@ -215,7 +222,7 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B, program):
         rows = jnp.where(valid[:, None], rows, rows[:1])
         tw, gw = jax.vmap(lambda r: window(r, "compare_all"))(rows)
         gw = jnp.where(valid[:, None, None], gw, 0.0)
-        st = _stages(full(dd), pack, unpack, rows, n_state)
+        st = _stages(arithmetic(dd), pack, unpack, rows, n_state)
         # G[i]: the cotangent of stage i that the dense output sends directly, (B, N).
         G = _dense_cotangents(rows, tw, gw)
         # Each step is the affine map ybar = A^T u + c of its end state's cotangent u.
@@ -224,21 +231,15 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B, program):
         ybar = _reverse_affine(a, c, u_end)
         u_in = jnp.where(valid[:, None], jnp.concatenate([ybar[1:], u_end[None]]), 0.0)
         kbar = _stage_cotangents(st, rows[:, 2], G, u_in)
-        d = _field_vjp(full, dd, pack, unpack, st.T, st.Y, kbar)
+        d = _field_vjp(arithmetic, dd, pack, unpack, st.T, st.Y, kbar)
         return ybar[0], [x + y for x, y in zip(dbar, d)]
 
-    def vectorised(rows, kb, size, carry):
-        # The block's field evaluations run over its B x 14 points side by side: sin,
-        # cos and 1/sqrt as arithmetic that XLA:CPU vectorises (trig.py), as the lockstep
-        # batch's (see the module docstring). With the CPU flags these blocks took 3.3 ms
-        # against 2.5 ms for a loop of one VJP per step (2026-11-27), so the flags keep
-        # the loop (`_deferred`).
-        with trig.arithmetic():
-            return block(rows, kb, size, carry)
-
+    # The block's field evaluations run over its B x 14 points side by side. With the CPU
+    # flags these blocks took 3.3 ms against 2.5 ms for a loop of one VJP per step
+    # (2026-11-27), so the flags keep the loop (`_deferred`).
     if program == "blocks":
-        return vectorised
-    return _deferred(full, dd, pack, unpack, window, B, n_state)
+        return block
+    return _deferred(full, arithmetic, dd, pack, unpack, window, B, n_state)
 
 
 class _Stages(NamedTuple):
@@ -377,7 +378,7 @@ def _window(ts, ts_pad, g_pad, row, method):
 _CHUNK = 64
 
 
-def _deferred(full, dd, pack, unpack, window, B, n_state):
+def _deferred(full, arithmetic, dd, pack, unpack, window, B, n_state):
     """`block` as `_block_vjp`'s, with the block's steps one after another, each one VJP
     of the step with respect to its start state and its 14 stages' values (`e` of
     `_step_outputs`), not the field's parameters. The parameters' cotangents are the sum
@@ -416,11 +417,10 @@ def _deferred(full, dd, pack, unpack, window, B, n_state):
         T, Y, K = T.reshape(-1, W), Y.reshape(-1, W, n_state), K.reshape(-1, W, n_state)
 
         def chunk(j, dbar):
-            d = _field_vjp(full, dd, pack, unpack, T[j], Y[j], K[j])
+            d = _field_vjp(arithmetic, dd, pack, unpack, T[j], Y[j], K[j])
             return [a + b for a, b in zip(dbar, d)]
 
-        with trig.arithmetic():  # vectorised over the chunk (see `vectorised`)
-            return ybar, jax.lax.fori_loop(0, (14 * n + W - 1) // W, chunk, dbar)
+        return ybar, jax.lax.fori_loop(0, (14 * n + W - 1) // W, chunk, dbar)
 
     return block
 

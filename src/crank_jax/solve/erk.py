@@ -17,17 +17,14 @@ run in a loop instead, for a field that is costly to trace (the fit's variationa
 from __future__ import annotations
 
 import functools
-from typing import TYPE_CHECKING
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-if TYPE_CHECKING:  # annotations only: diffrax is imported where it is used
-    import diffrax
-
-__all__ = ["FusedERK", "dopri8", "rms_error", "packer"]
+__all__ = ["FusedERK", "Tableau", "dopri8", "rms_error", "packer"]
 
 # Rounding noise in the embedded error estimate, in units of eps h sum |e_i k_i| (`step`).
 _NOISE = 8.0
@@ -52,19 +49,45 @@ def _combine(y, h, coeffs, ks):
     return jax.tree_util.tree_map(leaf, y, *[k for _, k in terms])
 
 
+class Tableau(NamedTuple):
+    """A Butcher tableau as tuples of Python floats: `c` (s-1,), `b_sol`, `b_error`
+    (s,), `a_lower` (row i: (i,), i = 1..s-1), and whether it is `implicit`. Hashable and
+    compared by value (diffrax's `ButcherTableau` holds NumPy arrays, which are neither),
+    so that a solver holding its method is a key of compiled programs."""
+
+    c: tuple
+    b_sol: tuple
+    b_error: tuple | None
+    a_lower: tuple
+    implicit: bool = False
+
+
+def as_tableau(tableau) -> Tableau:
+    """A [`Tableau`][] from a `diffrax.ButcherTableau` (or a `Tableau`)."""
+    if isinstance(tableau, Tableau):
+        return tableau
+
+    def floats(x):
+        return None if x is None else tuple(float(v) for v in np.asarray(x, float))
+
+    return Tableau(floats(tableau.c), floats(tableau.b_sol), floats(tableau.b_error),
+                   tuple(floats(row) for row in tableau.a_lower),
+                   bool(getattr(tableau, "implicit", False)))
+
+
 class FusedERK(eqx.Module):
     """An explicit Runge-Kutta method with an embedded error estimate, its stages unrolled.
 
     **Fields:** `tableau`, a `diffrax.ButcherTableau` (explicit; e.g.
-    `diffrax.Dopri8.tableau`); `order`, the order of the solution (the embedded estimate is
-    of order `order - 1`).
+    `diffrax.Dopri8.tableau`), held as a hashable [`Tableau`][]; `order`, the order of the
+    solution (the embedded estimate is of order `order - 1`).
 
     Trailing stages whose weights are zero in both the solution and the error estimate
     (Dopri8's 14th, first-same-as-last stage) are not evaluated: recomputing such a stage at
     the next step costs what carrying it would.
     """
 
-    tableau: diffrax.ButcherTableau = eqx.field(static=True)
+    tableau: Tableau = eqx.field(static=True, converter=as_tableau, repr=False)
     order: int = eqx.field(static=True)
     rolled: bool = eqx.field(static=True, default=False)
     """Evaluate the stages in a loop (`lax.fori_loop`) instead of unrolled: the field is

@@ -46,13 +46,14 @@ from jax.custom_batching import custom_vmap
 from ..model import trig
 from . import adjoint as discrete
 from .adaptive import outcome, solve_adaptive
+from .erk import dopri8
 from .library_api import result_code
 
 __all__ = ["adaptive_solve"]
 
 
 def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint,
-                   error_size: int | None = None, erk=None):
+                   error_size: int | None = None, erk=None, controller=None):
     """Solve with [`solve_adaptive`][] so that `jax.vmap` steps a batch in lockstep.
 
     **Arguments:** `field`, the vector field (a pytree; its array leaves may be traced or
@@ -60,13 +61,15 @@ def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint,
     phi')`); `ts` (n,) save times; `rtol`, `atol` scalars; `max_steps`, the step budget;
     `adjoint`, an adjoint object (`adjoints.py`: `DiscreteAdjoint` for `jax.grad` by the
     discrete adjoint of adjoint.py); `erk`, the method (a `FusedERK`, default `dopri8()`;
-    forward mode only); `error_size`, the leading state components the step
-    control sees (see `solve_adaptive`).
+    reverse mode takes that one only); `controller`, the step-size law (a
+    `PIDController`, default `PIDController()`); `error_size`, the leading state
+    components the step control sees (see `solve_adaptive`).
 
     **Returns:** `(ys, result, num_steps)`, as `solve_adaptive` (`ys` like `y0` with a
     leading axis n; `result` a `diffrax.RESULTS`).
     """
-    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk)
+    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk,
+                    controller)
     ys, code, steps = out
     return (ys, *outcome(code.astype(jnp.int32), steps.astype(jnp.int32)))
 
@@ -184,29 +187,31 @@ def _as_float(x, like):
     return jnp.asarray(x).astype(like.dtype)
 
 
-def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk):
+def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk, controller):
     """`lockstep(dyn_b, y0, rtol, atol) -> (ys, code, steps)`: one group of a batch in one
     loop ([`solve_adaptive`][] batched), its members' batched field leaves `dyn_b` joined
     with the shared `dyn_c`; outputs with the batch axis first."""
+
+    def arithmetic(dyn):
+        # The field's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises over the
+        # members, where the field offers that choice (trig.py).
+        return trig.traced_as(rebuild(dyn), trig.ARITHMETIC)
 
     def lockstep(dyn_b, y0, rtol, atol):
         # Per-member tolerances scale that member's state (the last axis).
         rtol = rtol[:, None] if in_batched[3] else rtol
         atol = atol[:, None] if in_batched[4] else atol
-        # The geometry's sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises
-        # over the members (trig.py).
-        with trig.arithmetic():
-            ys, result, steps = solve_adaptive(
-                _side_by_side(rebuild, _join(dyn_b, dyn_c, in_batched[0]), in_batched[0]),
-                y0, ts, rtol, atol, max_steps=max_steps, batched=True,
-                error_size=error_size, erk=erk)
+        ys, result, steps = solve_adaptive(
+            _side_by_side(arithmetic, _join(dyn_b, dyn_c, in_batched[0]), in_batched[0]),
+            y0, ts, rtol, atol, max_steps=max_steps, batched=True,
+            error_size=error_size, erk=erk, controller=controller)
         ys = jax.tree_util.tree_map(lambda v: jnp.moveaxis(v, 1, 0), ys)
         return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
     return lockstep
 
 
-def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
+def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk, controller):
     # The field's arrays as a flat list: `custom_vmap` cannot take the `None` leaves that
     # `eqx.partition` leaves (jax issue 9066).
     dyn_tree, static = eqx.partition(field, eqx.is_array)
@@ -221,7 +226,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
         dyn, y0, ts, rtol, atol = jax.lax.optimization_barrier((dyn, y0, ts, rtol, atol))
         ys, result, steps = solve_adaptive(rebuild(dyn), y0, ts, rtol, atol,
                                            max_steps=max_steps, error_size=error_size,
-                                           erk=erk)
+                                           erk=erk, controller=controller)
         # Every output a float: JAX's JVP of a `custom_vmap` takes float outputs only.
         return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
@@ -240,7 +245,8 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
             lambda v, b: v if b else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)),
             y0, in_batched[1])
         dyn_b, dyn_c = _split(dyn, in_batched[0])
-        lockstep = _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk)
+        lockstep = _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk,
+                             controller)
         out = _in_chunks(lockstep, axis_size, dyn_b, y0, rtol, atol, in_batched[3],
                          in_batched[4], spread=spread)
         return out, _all_batched(out)
@@ -262,15 +268,15 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk):
     # The adjoint's rule (adjoints.py): JAX's tangents through the batched solve, or the
     # discrete adjoint's `custom_vjp` around it.
     with_vjp = functools.partial(_with_adjoint_vjp, batched, rebuild, max_steps, error_size,
-                                 erk)
+                                 erk, controller)
     return adjoint.fused(batched(spread=True), with_vjp)(dyn, y0, ts, rtol, atol)
 
 
-def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, erk, backward):
+def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, erk, controller, backward):
     """The solve `batched(spread)` with reverse mode by the discrete adjoint of its steps
     (adjoint.py; see the module's docstring), by the backward program `backward`
     (`DiscreteAdjoint.backward`)."""
-    if erk is not None:  # the discrete adjoint differentiates dopri8()'s own steps
+    if erk is not None and erk != dopri8():  # the adjoint differentiates dopri8()'s steps
         raise ValueError("reverse mode steps the default method only")
 
     @jax.custom_vjp
@@ -285,7 +291,8 @@ def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, erk, backward):
         # (it returned a gradient of 0.0 otherwise).
         dyn, y0 = jax.tree_util.tree_map(jnp.asarray, (dyn, y0))
         ys, result, steps, log = discrete.forward(rebuild(dyn), y0, ts, rtol, atol,
-                                                 max_steps=max_steps, error_size=error_size)
+                                                 max_steps=max_steps, error_size=error_size,
+                                                 controller=controller)
         out = (ys, _as_float(result_code(result), ts), _as_float(steps, ts))
         return out, (dyn, y0, ts, rtol, atol, log)
 
@@ -293,7 +300,7 @@ def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, erk, backward):
         dyn, y0, ts, rtol, atol, log = res
         d_dyn, d_y0 = discrete.backward(rebuild, dyn, y0, ts, rtol, atol, log, g[0],
                                        max_steps=max_steps, error_size=error_size,
-                                       program=backward)
+                                       controller=controller, program=backward)
         # No derivative with respect to the save times or the tolerances.
         return d_dyn, d_y0, jnp.zeros_like(ts), jnp.zeros_like(rtol), jnp.zeros_like(atol)
 

@@ -31,7 +31,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .adjoints import ADJOINTS, AbstractAdjoint, DiscreteAdjoint, as_adjoint
-from .erk import dopri8
+from .controller import PIDController
+from .erk import FusedERK, dopri8
 from .lockstep import adaptive_solve
 from .uniform import solve_uniform
 from .variational import flatten_state
@@ -115,9 +116,26 @@ class AdaptiveDopri8(AbstractSolver):
     instead of 4.4 s (XLA's defaults) or 3.4 s (CPU flags), and runs 1.2x longer (17.1
     against 14.3 ms; 2.1 against 1.8 ms). The fit uses it (`identify.problem.pick_solver`):
     its first fit in a process took 5.5 s instead of 12.1 s (multiple shooting; 8.2 s
-    with only the segments' batch in a loop), its later fits no longer."""
+    with only the segments' batch in a loop), its later fits no longer.
+
+    **Fields:** `erk`, the method, a [`FusedERK`][crank_jax.solve.erk.FusedERK]: Dopri8,
+    `erk.dopri8()` (its dense output and adjoint are Dopri8's); `controller`, the
+    step-size law, a [`PIDController`][crank_jax.solve.controller.PIDController] (default:
+    an integral controller, as diffrax's default). The tolerances come with each solve."""
 
     loop_stages: bool = eqx.field(static=True, default=False)
+    erk: FusedERK = eqx.field(default_factory=dopri8)
+    controller: PIDController = eqx.field(default_factory=PIDController)
+
+    def __check_init__(self):
+        # The dense output (adaptive.dopri8_dense) and the adjoint are Dopri8's: another
+        # tableau would give wrong samples, not an error.
+        if not isinstance(self.erk, FusedERK) or self.erk.tableau != dopri8().tableau:
+            raise ValueError("AdaptiveDopri8: erk must be Dopri8's tableau, "
+                             "crank_jax.solve.erk.dopri8() (its dense output is Dopri8's)")
+        if not isinstance(self.controller, PIDController):
+            raise TypeError("AdaptiveDopri8: controller must be a "
+                            f"crank_jax.solve.controller.PIDController, got {self.controller!r}")
 
     def with_loop_stages(self) -> AdaptiveDopri8:
         """This solver with `loop_stages=True`."""
@@ -131,9 +149,10 @@ class AdaptiveDopri8(AbstractSolver):
 
         def steps(fld, y, ts_, r, a, error_size):
             # `error_size` is set for the variational solve only.
-            erk = dopri8(rolled=True) if error_size is not None and self.loop_stages else None
+            erk = (dataclasses.replace(self.erk, rolled=True)
+                   if error_size is not None and self.loop_stages else self.erk)
             return adaptive_solve(fld, y, ts_, r, a, max_steps=max_steps, adjoint=adjoint,
-                                  error_size=error_size, erk=erk)
+                                  error_size=error_size, erk=erk, controller=self.controller)
 
         # The adjoint's rule: forward mode steps the variational equation (adjoints.py).
         ys, result, num = adjoint.adaptive(steps, field, prepare, y0, ts, rtol, atol)
