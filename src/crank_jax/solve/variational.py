@@ -260,10 +260,7 @@ def with_sensitivities(solve: Callable, field, prepare: Callable, y0, ts, rtol, 
     def run_jvp(primals, tangents):
         zero = jax.custom_derivatives.SymbolicZero
         is_zero = lambda x: isinstance(x, zero)  # noqa: E731
-        # A Python number a user differentiates (`jax.jacfwd(f)(2.0)`) arrives as a
-        # literal, not an array: as arrays, so that the sums below have its dtype.
-        primals = jax.tree_util.tree_map(jnp.asarray, primals)
-        dyn, y0, ts, rtol, atol = primals
+        dyn, y0, ts, rtol, atol = primals = _as_arrays(primals)
         leaves, treedef = jax.tree_util.tree_flatten(dyn)
         dleaves = jax.tree_util.tree_leaves(tangents[0], is_leaf=is_zero)
         live = [i for i, d in enumerate(dleaves) if not is_zero(d)]
@@ -309,6 +306,12 @@ def with_sensitivities(solve: Callable, field, prepare: Callable, y0, ts, rtol, 
     run.defjvp(run_jvp, symbolic_zeros=True)
     ys, code, steps = run(dyn, y0, ts, rtol, atol)
     return (ys, *outcome(code, steps))
+
+
+def _as_arrays(tree):
+    """`tree` with every leaf an array: a Python number a user differentiates
+    (`jax.jacfwd(f)(2.0)`) reaches a custom rule as a literal, which has no dtype."""
+    return jax.tree_util.tree_map(jnp.asarray, tree)
 
 
 def _column_scale(theta):
