@@ -49,16 +49,23 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
     zp = recoordinate(shoot, ss, run.z)
     if not np.isfinite(run.cost):
         return run._replace(z=zp)
-    pol = guarded(run_fn if req.method == "lm" else least_squares,
-                   Subspace(ss, jnp.asarray(zp), jnp.asarray(plan.Bg)),
-                   np.zeros(plan.Bg.shape[1]), req.max_steps, req.tol, desc + " (polish)",
-                   req.progress)
+    pol = _single_from(run_fn if req.method == "lm" else least_squares, req, ss, zp,
+                       np.asarray(plan.Bg), desc + " (polish)")
     # The estimate is the polish's, on the single-shooting cost: whether it converged is
     # the polish's verdict (multiple shooting only brought it near; its own stall on the
     # continuity defects says nothing about the point reported).
-    return off_the_bound(req, plan, Run(zp + plan.Bg @ pol.z, pol.cost,
-                                        run.iterations + pol.iterations, pol.converged,
-                                        pol.message, pol.termination), desc)
+    return off_the_bound(req, plan, pol._replace(iterations=run.iterations + pol.iterations),
+                         desc)
+
+
+def _single_from(run_fn, req: FitRequest, ss: Problem, z: np.ndarray, B: np.ndarray,
+                 desc: str) -> Run:
+    """One optimisation of the single-shooting problem `ss` over `z + B w` from `w = 0`
+    (the polish, and the runs held at and released from a bound); its estimate in `ss`'s
+    coordinates."""
+    run = guarded(run_fn, Subspace(ss, jnp.asarray(z), jnp.asarray(B)), np.zeros(B.shape[1]),
+                  req.max_steps, req.tol, desc, req.progress)
+    return run._replace(z=z + B @ run.z)
 
 
 def _optimiser(req: FitRequest, plan: Plan):
@@ -101,11 +108,9 @@ def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
     Bh[at0, :] = 0.0
     U, S, _ = np.linalg.svd(Bh, full_matrices=False)
     Bh = U[:, S > 1e-9]  # orthonormal again, the held coordinates' directions removed
-    held = guarded(run_fn, Subspace(ss, jnp.asarray(zc), jnp.asarray(Bh)),
-                   np.zeros(Bh.shape[1]), req.max_steps, req.tol,
-                   desc + " (friction held at 0)", req.progress)
-    zc = zc + Bh @ held.z
-    tries = [run, held._replace(z=zc)]
+    held = _single_from(run_fn, req, ss, zc, Bh, desc + " (friction held at 0)")
+    zc = held.z
+    tries = [run, held]
     r, failed, _, J = jacobian_at(ss, jnp.asarray(zc))
     r, J = np.asarray(r), np.asarray(J)
     grad = J[:, at0].T @ r
@@ -114,10 +119,8 @@ def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
         for i, g in zip(at0, grad):
             if g < 0:
                 zr[i] = -g / max(float(J[:, i] @ J[:, i]), 1e-300)
-        free = guarded(run_fn, Subspace(ss, jnp.asarray(zr), jnp.asarray(plan.Bg)),
-                       np.zeros(plan.Bg.shape[1]), req.max_steps, req.tol,
-                       desc + " (friction released)", req.progress)
-        tries.append(free._replace(z=zr + plan.Bg @ free.z))
+        tries.append(_single_from(run_fn, req, ss, zr, np.asarray(plan.Bg),
+                                  desc + " (friction released)"))
     finite = [t for t in tries if np.isfinite(t.cost)]
     best = min(finite, key=lambda t: (not t.converged, t.cost))
     return best._replace(iterations=sum(t.iterations for t in tries))
@@ -151,8 +154,8 @@ def multistart(req, plan, shoot, z0, count, seed, label, until=None
     rng = np.random.default_rng(seed)
     out = []
     for k in range(count):
-        zk = z0 if k == 0 and not label else perturb(z0, shoot.names, shoot.log, rng,
-                                                              shoot.folded)
+        zk = (z0 if k == 0 and not label
+              else perturb(z0, shoot.names, shoot.log, rng, shoot.folded))
         name = (label + (f" start {k + 1} of {count}" if count > 1 else "")).strip()
         out.append((attempt(req, plan, shoot, z0, zk, f"fit {name}".strip()), name))
         if until is not None and until(out):
