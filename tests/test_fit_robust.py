@@ -13,7 +13,8 @@ import crank_jax as cj
 from crank_jax.cli import main
 from crank_jax.cli.identify import demo_data
 from crank_jax.identify.attempt import best_run as _best
-from crank_jax.identify.optimise import Run, least_squares
+from crank_jax.identify.optimise import least_squares
+from crank_jax.identify.outcome import Run
 from crank_jax.identify.problem import build_problem, coordinate
 from crank_jax.identify.programs import Subspace, residuals_at
 from crank_jax.identify.start import noise_level
@@ -215,7 +216,7 @@ def test_each_record_is_judged_by_its_own_solve():
 
 def test_fit_messages_name_the_commands_options():
     from crank_jax.cli.identify import cli_words
-    from crank_jax.identify.optimise import budget_spent as _budget_spent
+    from crank_jax.identify.outcome import budget_spent as _budget_spent
     from crank_jax.identify.strategy import absurd_start
 
     assert "--max-steps 7" in cli_words(_budget_spent(7))
@@ -255,7 +256,7 @@ class _Cubic:
         return w
 
     @staticmethod
-    def restrict(J):
+    def restrict(J, w=None):
         return J
 
 

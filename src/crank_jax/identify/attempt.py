@@ -18,9 +18,10 @@ from ..solve.adjoints import DiscreteAdjoint
 from . import channel_noise as ch
 from .fit_plan import Plan, basis, recoordinate, recoordinate_basis
 from .optax_fit import minimise_optax
-from .optimise import Run, least_squares
+from .optimise import least_squares
+from .outcome import Run
 from .problem import Problem
-from .programs import Subspace, jacobian_at
+from .programs import InValues, Subspace, jacobian_at
 from .request import FitRequest
 from .strategy import AT_ZERO, noise_unit, perturb, stall_rms
 
@@ -60,12 +61,15 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
 
 def _single_from(run_fn, req: FitRequest, ss: Problem, z: np.ndarray, B: np.ndarray,
                  desc: str) -> Run:
-    """One optimisation of the single-shooting problem `ss` over `z + B w` from `w = 0`
-    (the polish, and the runs held at and released from a bound); its estimate in `ss`'s
-    coordinates."""
-    run = guarded(run_fn, Subspace(ss, jnp.asarray(z), jnp.asarray(B)), np.zeros(B.shape[1]),
-                  req.max_steps, req.tol, desc, req.progress)
-    return run._replace(z=z + B @ run.z)
+    """One LM optimisation of the single-shooting problem `ss` over the directions `B`
+    from `z` (the polish, and the runs held at and released from a bound), in value
+    coordinates ([`InValues`][crank_jax.identify.programs.InValues]: these runs start
+    near the minimum, where its valleys are the equation of motion's linear balances);
+    its estimate in `ss`'s coordinates."""
+    view = InValues(ss, z, B)
+    run = guarded(run_fn, view, np.zeros(view.B.shape[1]), req.max_steps, req.tol, desc,
+                  req.progress)
+    return run._replace(z=view.lift(run.z) if np.all(np.isfinite(run.z)) else z)
 
 
 def _optimiser(req: FitRequest, plan: Plan):
@@ -76,7 +80,7 @@ def _optimiser(req: FitRequest, plan: Plan):
         return minimise_optax
     sigma = ch.known_sigma(req)
     return functools.partial(least_squares, stall_rms=stall_rms(plan.noise, sigma),
-                             noise=noise_unit(plan.noise, sigma))
+                             noise=noise_unit(plan.noise, sigma), at_bounds=True)
 
 
 def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
@@ -87,7 +91,9 @@ def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
     rejected, its damping grows, and it stalls there, the other parameters short of
     their valley's floor too (experiments/misfit_rig.py, case `friction`: `F_s` at 0,
     rms 0.0916, where the fit with `F_s` held at 0 reaches 0.091495 and the free optimum
-    0.091464). As an active-set method does, the parameters at the bound are held there
+    0.091464). The fit's LM runs stop once a folded parameter has sat at its bound for
+    a few iterations (`least_squares(at_bounds=True)`) instead of crawling there for
+    30-100. As an active-set method does, the parameters at the bound are held there
     while LM finishes the others; then, where the cost falls into the feasible side
     (the gradient `J_i . r < 0`, `J` taken at `z_i = 0+`: `_fold`'s derivative there is
     +1), they are released from their one-dimensional Gauss-Newton step and LM runs over
@@ -119,8 +125,10 @@ def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
         for i, g in zip(at0, grad):
             if g < 0:
                 zr[i] = -g / max(float(J[:, i] @ J[:, i]), 1e-300)
-        tries.append(_single_from(run_fn, req, ss, zr, np.asarray(plan.Bg),
-                                  desc + " (friction released)"))
+        # (Without the stop at a bound: released from the constrained minimum, a run
+        # that comes back to the bound crawls there to its own verdict.)
+        tries.append(_single_from(functools.partial(run_fn, at_bounds=False), req, ss, zr,
+                                  np.asarray(plan.Bg), desc + " (friction released)"))
     finite = [t for t in tries if np.isfinite(t.cost)]
     best = min(finite, key=lambda t: (not t.converged, t.cost))
     return best._replace(iterations=sum(t.iterations for t in tries))

@@ -14,7 +14,7 @@ from . import attempt as at
 from . import channel_noise as ch
 from .fit_plan import Plan, recoordinate, shooting
 from .motion_start import motion_start
-from .optimise import Run
+from .outcome import Run
 from .problem import Problem
 from .programs import jacobian_at
 from .request import FitRequest

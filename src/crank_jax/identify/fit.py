@@ -49,7 +49,7 @@ from .fit_result import (
     with_wrapped_angles,
 )
 from .measurement import fitted_channels
-from .optimise import Run, termination
+from .outcome import Run, termination
 from .profile import hessian_disagreement, profile_likelihood
 from .request import free_names, normalise
 from .start import regressor_start

@@ -94,7 +94,7 @@ class FitResult(NamedTuple):
     coordinate, in standard errors), `falling_per_iteration` (the cost's fall per
     iteration over the last 8, `sigma^2`), `direction` (of a stall: the combination, in
     standard errors) and `noise` (sigma, the first channel's unit); see
-    `optimise.termination`."""
+    `outcome.termination`."""
 
     def to_json(self) -> dict:
         """The `fit.json` document (exactly the documented top-level keys)."""

@@ -18,7 +18,7 @@ from ..runtime.xla_flags import small_loop_bytes
 from .problem import Problem
 
 __all__ = ["Program", "residuals_at", "jacobian_at", "Subspace",
-           "Pinned", "segment_coloring", "compile_options", "FAST_COMPILE"]
+           "InValues", "Pinned", "segment_coloring", "compile_options", "FAST_COMPILE"]
 
 #: XLA's CPU compile options for the fit's programs where they leave every result bit for
 #: bit the same (`compile_options`): XLA's older elemental emitters for the fusions
@@ -141,9 +141,58 @@ class Subspace(eqx.Module):
         """On the host: the problem's coordinates `z` (p,) of the point `w` (q,)."""
         return np.asarray(self.z0) + np.asarray(self.B) @ w
 
-    def restrict(self, J: np.ndarray) -> np.ndarray:
+    def restrict(self, J: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """On the host: the sensitivities `dr/dw` (N, q) from `dr/dz` (N, p)."""
         return J @ np.asarray(self.B)
+
+
+class InValues:
+    """The residuals on the affine subspace `u = u0 + B w` of *value* coordinates, for
+    LM on the host: every parameter linear in its value (`u_i = value_i / s_i`, `s_i`
+    the value at the start), where `problem` has some in log space (`z_i = ln value_i`).
+
+    Why: the equation of motion is linear in the mechanism's coefficients (damping,
+    friction, motor gain, inertias), so the valley of a balance such as `tau0 = c dphi
+    + F_s ...` (a rotating rig's mean speed) is straight in values and curved in logs,
+    and LM crawls along a curved one. Multiple shooting's problems are built in linear
+    coordinates for this (`build_problem(linear=True)`); this view gives single shooting
+    the same coordinates with no second compiled program: the map `u -> z` is diagonal,
+    applied on the host to the point and, by the chain rule, to the sensitivities.
+    (The friction stand-in of experiments/misfit_rig.py: its run with `F_s` held at 0
+    took 45 LM iterations in `problem`'s coordinates, 10 in these.)
+
+    A point with a log-space value at or below 0 is outside (`lift` gives NaN there),
+    which the optimiser sees as a failed point and rejects."""
+
+    def __init__(self, problem: Problem, z0: np.ndarray, B: np.ndarray):
+        self.problem = problem
+        z0 = np.asarray(z0, dtype=float)
+        self.log = np.asarray(problem.log, dtype=bool)
+        # u0 = 1 for a log coordinate (its value the scale s), z0 for the others
+        self.s = np.where(self.log, np.exp(np.where(self.log, z0, 0.0)), 1.0)
+        self.u0 = np.where(self.log, 1.0, z0)
+        # d u / d z at z0 is diag(u0) for a log coordinate (u = exp(z) / s), 1 otherwise:
+        # the basis spans the same directions at the start, orthonormal again.
+        q, _ = np.linalg.qr(np.asarray(B, dtype=float))
+        self.B = q
+
+    def _u(self, w) -> np.ndarray:
+        return self.u0 + self.B @ np.asarray(w, dtype=float)
+
+    def lift(self, w: np.ndarray) -> np.ndarray:
+        """On the host: the problem's coordinates `z` (p,) of the point `w` (q,); NaN in
+        a log coordinate whose value is not positive."""
+        u = self._u(w)
+        ok = ~self.log | (u > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lg = np.log(np.where(ok, u, 1.0) * self.s)
+        return np.where(self.log, np.where(ok, lg, np.nan), u)
+
+    def restrict(self, J: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+        """On the host: `dr/dw` (N, q) at `w` from `dr/dz` (N, p) there."""
+        u = self._u(np.zeros(self.B.shape[1]) if w is None else w)
+        dz_du = np.where(self.log, 1.0 / np.where(self.log, u, 1.0), 1.0)
+        return J @ (dz_du[:, None] * self.B)
 
 
 class Pinned(eqx.Module):
@@ -163,6 +212,6 @@ class Pinned(eqx.Module):
         """On the host: the problem's coordinates (p,) of the free ones `zr` (p - 1,)."""
         return np.insert(np.asarray(zr, float), self.j, float(self.zj))
 
-    def restrict(self, J: np.ndarray) -> np.ndarray:
+    def restrict(self, J: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """On the host: the sensitivities to the free coordinates (N, p - 1)."""
         return np.delete(J, self.j, axis=1)

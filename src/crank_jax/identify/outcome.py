@@ -1,0 +1,73 @@
+"""How an optimisation of a fit ended: the [`Run`][] it returns, its `termination` record
+(`fit.json`'s), and the words of its messages. Shared by LM
+([`optimise`][crank_jax.identify.optimise]), optax's methods
+([`optax_fit`][crank_jax.identify.optax_fit]) and the fit's result.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = ["Run", "termination", "budget_spent", "failed_message", "stalled_message"]
+
+
+class Run(NamedTuple):
+    """One optimisation: final coordinates, cost `0.5 |r|^2`, iterations, outcome, and
+    how it ended (`termination`, see [`termination`][])."""
+
+    z: np.ndarray
+    cost: float
+    iterations: int
+    converged: bool
+    message: str
+    termination: dict | None = None
+
+
+def termination(verdict: str, words: str, *, predicted_decrease: float | None = None,
+                largest_step: float | None = None, falling_per_iteration: float | None = None,
+                direction: str | None = None, noise: float | None = None) -> dict:
+    """How an optimisation ended, as `fit.json`'s `termination` holds it.
+
+    `verdict`: `"converged"` (at a stationary point of the weighted cost, judged in the
+    data's units), `"stalled"` (the cost stopped falling while the linearisation still
+    predicts a decrease: along `direction`, a ridge or a curved valley), `"budget"` (the
+    iteration budget spent, the cost still falling by `falling_per_iteration`), or
+    `"failed"`. The figures are in noise-level units of cost, `sigma^2` (`noise`, the
+    residuals' noise level, in the first channel's unit), when the noise level is known;
+    `largest_step` is the largest step of a coordinate over its standard error."""
+    def num(x):
+        return None if x is None or not math.isfinite(x) else float(x)
+
+    return {"verdict": verdict, "words": words,
+            "predicted_decrease": num(predicted_decrease), "largest_step": num(largest_step),
+            "falling_per_iteration": num(falling_per_iteration), "direction": direction,
+            "noise": num(noise)}
+
+
+def budget_spent(max_steps: int, falling: float | None = None,
+                  unit: str = "sigma^2") -> str:
+    """The message of a run that used its iteration budget without converging, with the
+    cost's fall per iteration over the last [`STALL_STEPS`][] (in `unit`) when known."""
+    still = ("" if falling is None or not math.isfinite(falling)
+             else f", the cost still falling by {falling:.3g} {unit} per iteration")
+    return (f"stopped after {max_steps} iterations without converging{still} (max_steps = "
+            f"{max_steps}: raise it to go on)")
+
+
+def failed_message(failed: int) -> str:
+    """The message of a run whose best point still has failed ODE solves."""
+    return (f"the ODE solve fails at every point tried ({failed} samples failed at the best "
+            "one): the parameters make the model far stiffer or faster than the record; "
+            "choose other start values")
+
+
+def stalled_message(rms: float, noise: float) -> str:
+    """The message of a run whose cost stopped falling far above the noise level `noise`
+    (both in the residuals' unit)."""
+    return (f"stalled: the cost stopped falling at an rms residual {rms / noise:.3g} times "
+            "the record's noise level, before the Gauss-Newton step became small (a local "
+            "minimum, or a model that cannot follow the record); try start values nearer "
+            "the truth or more starts (multistart)")
