@@ -3,6 +3,7 @@ raises on a numerical failure of its own making, never calls a failed solve conv
 reports the lowest-cost converged try, and claims only what holds for the parameters
 actually free and fixed."""
 
+import json
 import math
 
 import jax.numpy as jnp
@@ -168,6 +169,22 @@ def test_record_with_no_motion_above_its_noise_is_refused_before_any_solve(lab_r
                      warn=False)
         assert not res.converged and res.iterations == 0
         assert "no motion above its noise" in res.message
+
+
+def test_a_refused_fit_exits_2_after_writing_its_verdict(tmp_path, capsys):
+    # A record that cannot tell anything (here a constant angle) is refused before any
+    # solve. The command said "not converged" and exited 0, as for a fit that ran; it is
+    # the input's to fix: exit 2, one line, and fit.json still written with the verdict.
+    ts = np.arange(401) / 100.0
+    cj.save_data(cj.Data(ts, np.full(ts.size, 0.3), source="flat.csv"), tmp_path / "d.csv")
+    out = tmp_path / "fit.json"
+    code = main(["fit", str(tmp_path / "d.csv"), "lab-rig", "--free", "k", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    line = [ln for ln in err.splitlines() if ln.startswith("crank-jax: error:")]
+    assert len(line) == 1 and "nothing was fitted" in line[0] and "no motion" in line[0]
+    assert "Traceback" not in err
+    assert json.loads(out.read_text())["termination"]["verdict"] == "refused"
 
 
 def test_pure_noise_of_any_length_is_no_motion_and_a_small_motion_is_one():

@@ -226,6 +226,11 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
     if getattr(a, "scene_out", None):
         _write_scene(res, a)
         print(f"wrote {a.scene_out}", file=sys.stderr)
+    if (res.termination or {}).get("verdict") == "refused":
+        # Nothing was fitted: the records cannot tell (a constant channel, no motion above
+        # the noise, an absurd start). That is the input's to fix, as any bad input: exit
+        # 2, after the outputs asked for are written (they hold the verdict and why).
+        raise UserError(f"nothing was fitted: {res.message}")
     # Not identifiable or not converged is a result, reported in full: exit 0.
     return 0
 
