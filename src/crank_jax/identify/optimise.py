@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import math
 import sys
-from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
+from .gauss_newton import Step, direction, gauss_newton
 from .outcome import Run, budget_spent, failed_message, stalled_message, termination
 from .programs import jacobian_at, residuals_at
 from .strategy import AT_ZERO, FAR_FROM_NOISE
@@ -83,51 +83,6 @@ class _Stop(Exception):
         super().__init__(message)
         self.converged, self.message = converged, message
         self.term = term or termination("converged" if converged else "failed", message)
-
-
-class _Step(NamedTuple):
-    """The Gauss-Newton step at a point, in the problem's coordinates `z`."""
-
-    dz: np.ndarray  # (p,) the step
-    se: np.ndarray  # (p,) standard errors at the noise level (inf: flat)
-    decrease: float  # the cost decrease the linearisation predicts, 0.5 |J dw|^2
-
-
-def _gauss_newton(model, w: np.ndarray, r: np.ndarray, J: np.ndarray,
-                  noise: float) -> _Step:
-    """The Gauss-Newton step at `w` from its SVD, with each coordinate's standard error at
-    the noise level `noise` (singular values below `eps max(N, q)` of the largest count
-    as 0, as `lstsq`'s default)."""
-    U, S, Vt = np.linalg.svd(J, full_matrices=False)
-    keep = S > S[0] * np.finfo(float).eps * max(J.shape) if S.size and S[0] > 0 else S > 0
-    Ur, Sr, Vr = U[:, keep], S[keep], Vt[keep].T
-    ur = Ur.T @ r
-    dw = -Vr @ (ur / Sr)
-    # The view's map onto the problem's coordinates, linearised at `w` (a subspace's
-    # basis, a pinned coordinate's insertion, value coordinates' chain rule): `dz/dw`.
-    L = model.restrict(np.eye(np.asarray(model.lift(w)).shape[0]), w)
-    dz = L @ dw
-    A = L @ (Vr / Sr)
-    se = noise * np.sqrt(np.sum(A * A, axis=1))
-    return _Step(dz, np.where(se > 0, se, np.inf), 0.5 * float(ur @ ur))
-
-
-def _direction(names, dz: np.ndarray, se: np.ndarray) -> str:
-    """The step `dz` as a combination of the named coordinates, each in units of its
-    standard error (unit length; terms below 0.2 left out), e.g. "0.86 tau0 - 0.51 P0";
-    coordinates beyond `names` (segment states) are summed up as one term."""
-    v = np.where(np.isfinite(se), dz / se, 0.0)
-    norm = float(np.linalg.norm(v))
-    if norm == 0 or not math.isfinite(norm):
-        return "no direction"
-    v = v / norm
-    terms = [(float(x), n) for x, n in zip(v, names)]
-    rest = float(np.linalg.norm(v[len(names):]))
-    terms = sorted([t for t in terms if abs(t[0]) >= 0.2], key=lambda t: -abs(t[0]))
-    out = " ".join(f"{'-' if x < 0 else '+'} {abs(x):.2f} {n}" for x, n in terms)
-    if rest >= 0.2:
-        out += f" + {rest:.2f} (segment states)"
-    return out.lstrip("+ ").replace("- ", "-", 1) if out.startswith("-") else out.lstrip("+ ")
 
 
 class _Evaluations:
@@ -213,76 +168,110 @@ class _Evaluations:
         self.history = self.history[1:] + [self.best_cost]
         self.bar.n = self.iterations
         self.bar.set_postfix(cost=f"{self.best_cost:.4g}", refresh=True)
-        h, n = self.history, self.r.shape[0]
-        unit, uname = self._unit(n)
-        seen = [c for c in h if math.isfinite(c)]
-        # The fall per iteration over the stall window (or the iterations so far).
-        fell = (seen[0] - seen[-1]) / (len(seen) - 1) if len(seen) > 1 else math.inf
         if self.failed:
-            # A failed solve's residuals are a constant, so its Jacobian rows are zero:
-            # the tests below would see no slope and call that convergence. With nothing
-            # left to move (every row failed, or no change over the stall window), stop
-            # as a failure.
-            if not np.any(self.J) or (math.isfinite(h[0]) and h[0] - h[-1] <= 0.0):
-                raise _Stop(False, failed_message(self.failed))
-            if self.iterations > self.max_steps:
-                self.iterations = self.max_steps
-                raise _Stop(False, failed_message(self.failed))
-            return self.J
-        # Converged when the Gauss-Newton step, the distance to the minimum the
-        # linearisation predicts, is small in the data's units: its predicted cost
-        # decrease a small fraction of sigma^2 (a chi-squared change far below 1) and
-        # every coordinate's move a small fraction of its standard error (with both at
-        # the same sigma, the first bounds the second by Cauchy-Schwarz: the second is
-        # the one that binds). MINPACK's own tests look at the damped step or the cost
-        # change, which are small also where LM crawls with a large damping. The step
-        # test `tol + tol |z|` in every coordinate of the problem (`z`, not the view's
-        # `w`: a subspace's `w` is the offset from its start, near 0) stays, for records
-        # with no noise.
-        gn = _gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
+            stop = self._failed_stop()
+        else:
+            # Converged when the Gauss-Newton step, the distance to the minimum the
+            # linearisation predicts, is small in the data's units: its predicted cost
+            # decrease a small fraction of sigma^2 (a chi-squared change far below 1) and
+            # every coordinate's move a small fraction of its standard error (with both at
+            # the same sigma, the first bounds the second by Cauchy-Schwarz: the second is
+            # the one that binds). MINPACK's own tests look at the damped step or the cost
+            # change, which are small also where LM crawls with a large damping.
+            unit = self._unit(self.r.shape[0])[0]
+            gn = gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
+            largest = float(np.max(np.abs(gn.dz) / gn.se, initial=0.0))
+            stop = (self._converged_stop(gn, largest) or self._bound_stop(gn, largest)
+                    or self._window_stop(gn, largest) or self._budget_stop(gn, largest))
+        if stop is not None:
+            raise stop
+        return self.J
+
+    def _fell(self) -> float:
+        """The best cost's fall per iteration over the stall window (or the iterations so
+        far; inf before the second)."""
+        seen = [c for c in self.history if math.isfinite(c)]
+        return (seen[0] - seen[-1]) / (len(seen) - 1) if len(seen) > 1 else math.inf
+
+    def _failed_stop(self) -> _Stop | None:
+        """A point with failed samples: its residuals are a constant, so its Jacobian rows
+        are zero and the tests would see no slope and call that convergence. With nothing
+        left to move (every row failed, or no change over the stall window), or the budget
+        spent, the run stops as a failure."""
+        h = self.history
+        if not np.any(self.J) or (math.isfinite(h[0]) and h[0] - h[-1] <= 0.0):
+            return _Stop(False, failed_message(self.failed))
+        if self.iterations > self.max_steps:
+            self.iterations = self.max_steps
+            return _Stop(False, failed_message(self.failed))
+        return None
+
+    def _converged_stop(self, gn: Step, largest: float) -> _Stop | None:
+        """Converged in the data's units (see `jacobian`), or, whatever the noise, the
+        step below `tol + tol |z|` in every coordinate of the problem (`z`, not the
+        view's `w`: a subspace's `w` is the offset from its start, near 0), for records
+        with no noise."""
+        unit, uname = self._unit(self.r.shape[0])
         z = np.asarray(self.model.lift(self.w))
-        largest = float(np.max(np.abs(gn.dz) / gn.se, initial=0.0))
         in_units = (self.noise is not None and gn.decrease <= DECREASE_FRACTION * unit
                     and largest <= STEP_FRACTION)
-        if in_units or np.all(np.abs(gn.dz) <= self.tol + self.tol * np.abs(z)):
-            words = (f"converged: the Gauss-Newton step predicts a cost decrease of "
-                     f"{gn.decrease / unit:.2g} {uname} and moves no coordinate by more "
-                     f"than {largest:.2g} of its standard error")
-            raise _Stop(True, "converged", termination(
-                "converged", words, predicted_decrease=gn.decrease / unit,
-                largest_step=largest, falling_per_iteration=fell / unit,
-                noise=self.noise))
-        if self.at_bounds:
-            pressed = self._pressed(z)
-            self.pressing = self.pressing + 1 if pressed else 0
-            if self.pressing >= BOUND_STEPS:
-                raise self._at_bound(pressed, gn, largest, fell)
-        full = math.isfinite(h[0])
-        stall = full and (h[0] - h[-1] <= STALL_DECREASE * unit if self.noise
-                          else h[0] - h[-1] <= 0.02 * h[-1] / n)
-        if stall and self.noise and gn.decrease <= STALL_DECREASE * unit:
-            # The cost has stopped falling and the linearisation promises no more than the
-            # stall test would notice: at rest at a minimum, as `at_end` judges MINPACK's
-            # own stop (the friction stand-in's run released from its bound ended at the
-            # best minimum "stalled" with 1.4e-4 sigma^2 left to gain, and the fit
-            # reported a worse point that had converged).
+        if not (in_units or np.all(np.abs(gn.dz) <= self.tol + self.tol * np.abs(z))):
+            return None
+        words = (f"converged: the Gauss-Newton step predicts a cost decrease of "
+                 f"{gn.decrease / unit:.2g} {uname} and moves no coordinate by more "
+                 f"than {largest:.2g} of its standard error")
+        return _Stop(True, "converged", termination(
+            "converged", words, predicted_decrease=gn.decrease / unit, largest_step=largest,
+            falling_per_iteration=self._fell() / unit, noise=self.noise))
+
+    def _bound_stop(self, gn: Step, largest: float) -> _Stop | None:
+        """With `at_bounds`: the stop of a run whose folded parameter has sat at its bound
+        for [`BOUND_STEPS`][] iterations (see `_at_bound`)."""
+        if not self.at_bounds:
+            return None
+        pressed = self._pressed(np.asarray(self.model.lift(self.w)))
+        self.pressing = self.pressing + 1 if pressed else 0
+        if self.pressing < BOUND_STEPS:
+            return None
+        return self._at_bound(pressed, gn, largest, self._fell())
+
+    def _window_stop(self, gn: Step, largest: float) -> _Stop | None:
+        """The stall window: a run whose best cost has fallen by less than
+        [`STALL_DECREASE`][] `sigma^2` over [`STALL_STEPS`][] iterations (without a noise
+        level, by less than 0.01 of the rms residual's square) has converged where the
+        linearisation promises no more than that either, and has stalled otherwise."""
+        h, n = self.history, self.r.shape[0]
+        unit, uname = self._unit(n)
+        if not (math.isfinite(h[0]) and (h[0] - h[-1] <= STALL_DECREASE * unit if self.noise
+                                         else h[0] - h[-1] <= 0.02 * h[-1] / n)):
+            return None
+        if self.noise and gn.decrease <= STALL_DECREASE * unit:
+            # At rest at a minimum, as `at_end` judges MINPACK's own stop (the friction
+            # stand-in's run released from its bound ended at the best minimum "stalled"
+            # with 1.4e-4 sigma^2 left to gain, and the fit reported a worse point that
+            # had converged).
             words = (f"converged: the cost fell by {(h[0] - h[-1]) / unit:.2g} {uname} over "
                      f"the last {STALL_STEPS} iterations and the Gauss-Newton step predicts "
                      f"{gn.decrease / unit:.2g} {uname} more, moving no coordinate by more "
                      f"than {largest:.2g} of its standard error")
-            raise _Stop(True, "converged", termination(
+            return _Stop(True, "converged", termination(
                 "converged", words, predicted_decrease=gn.decrease / unit,
-                largest_step=largest, falling_per_iteration=fell / unit, noise=self.noise))
-        if stall:
-            raise self._stalled(gn, largest, h[0] - h[-1], STALL_STEPS)
-        if self.iterations > self.max_steps:
-            self.iterations = self.max_steps
-            per = fell / unit if math.isfinite(fell) else None
-            message = budget_spent(self.max_steps, per, uname)
-            raise _Stop(False, message, termination(
-                "budget", "budget spent: " + message, predicted_decrease=gn.decrease / unit,
-                largest_step=largest, falling_per_iteration=per, noise=self.noise))
-        return self.J
+                largest_step=largest, falling_per_iteration=self._fell() / unit,
+                noise=self.noise))
+        return self._stalled(gn, largest, h[0] - h[-1], STALL_STEPS)
+
+    def _budget_stop(self, gn: Step, largest: float) -> _Stop | None:
+        """The iteration budget spent, with how fast the cost still falls."""
+        if self.iterations <= self.max_steps:
+            return None
+        self.iterations = self.max_steps
+        unit, uname = self._unit(self.r.shape[0])
+        fell = self._fell()
+        per = fell / unit if math.isfinite(fell) else None
+        message = budget_spent(self.max_steps, per, uname)
+        return _Stop(False, message, termination(
+            "budget", "budget spent: " + message, predicted_decrease=gn.decrease / unit,
+            largest_step=largest, falling_per_iteration=per, noise=self.noise))
 
     def _pressed(self, z: np.ndarray) -> list[str]:
         """The folded parameters (`value = ref |z|`, see `problem.folded`) at their bound 0
@@ -294,7 +283,7 @@ class _Evaluations:
         return [names[i] for i, f in enumerate(getattr(pr, "folded", ()))
                 if f and moves[i] and abs(z[i]) < AT_ZERO]
 
-    def _at_bound(self, pressed: list[str], gn: _Step, largest: float, fell: float) -> _Stop:
+    def _at_bound(self, pressed: list[str], gn: Step, largest: float, fell: float) -> _Stop:
         """The stop of a run that has sat on a bound for [`BOUND_STEPS`][] iterations,
         short of the Gauss-Newton test. The cost has a kink there in the folded
         coordinate: LM's steps across it are reflected, its damping grows, and it crawls
@@ -313,14 +302,14 @@ class _Evaluations:
             falling_per_iteration=fell / unit if math.isfinite(fell) else None,
             direction=f"{along} at its bound 0", noise=self.noise))
 
-    def _stalled(self, gn: _Step, largest: float, fell: float, steps: int) -> _Stop:
+    def _stalled(self, gn: Step, largest: float, fell: float, steps: int) -> _Stop:
         """The stop of a run whose cost fell by only `fell` over its last `steps`
         iterations while the Gauss-Newton step `gn` predicts more: along the direction
         of that step (a curved valley or a ridge)."""
         n = self.r.shape[0]
         unit, uname = self._unit(n)
         converged, message = self._stall(self.best_cost, n)
-        along = _direction(getattr(self.model.problem, "names", ()), gn.dz, gn.se)
+        along = direction(getattr(self.model.problem, "names", ()), gn.dz, gn.se)
         words = (f"stalled along {along}: the cost fell by {fell / unit:.2g} {uname} over "
                  f"the last {steps} iterations while the linearization predicts "
                  f"{gn.decrease / unit:.3g} {uname} more (a curved valley or a ridge in "
@@ -335,7 +324,7 @@ class _Evaluations:
         step is small in the data's units (or relative to `tol`), else a stall."""
         self._at(self.best_w)
         unit, uname = self._unit(self.r.shape[0])
-        gn = _gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
+        gn = gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
         z = np.asarray(self.model.lift(self.w))
         largest = float(np.max(np.abs(gn.dz) / gn.se, initial=0.0))
         # MINPACK found no step that lowers the cost at machine precision (the solve's
