@@ -29,8 +29,8 @@ jax = setup_jax()
 import jax.numpy as jnp  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.model import trig  # noqa: E402
-from crank_jax.model.dynamics import CrankField, Structure  # noqa: E402
+from crank_jax.model import CrankField, trig  # noqa: E402
+from crank_jax.model.dynamics import Structure  # noqa: E402
 from crank_jax.solve.adaptive import solve_adaptive  # noqa: E402
 
 

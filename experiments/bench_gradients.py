@@ -39,10 +39,11 @@ jax = setup_jax()
 import jax.numpy as jnp  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.model.dynamics import CrankField, Structure  # noqa: E402
+from crank_jax import AdaptiveDopri8  # noqa: E402
+from crank_jax.model import CrankField  # noqa: E402
+from crank_jax.model.dynamics import Structure  # noqa: E402
 from crank_jax.model.loads import as_load  # noqa: E402
 from crank_jax.solve.adaptive import solve_adaptive  # noqa: E402
-from crank_jax.solve.solvers import AdaptiveDopri8  # noqa: E402
 
 PARAMS = ("L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
 

@@ -21,8 +21,7 @@ from _bench import median_time, save, setup_jax
 jax = setup_jax()
 import crank_jax as cj  # noqa: E402
 from crank_jax.model.dynamics import Structure  # noqa: E402
-from crank_jax.solve.names import solver_named  # noqa: E402
-from crank_jax.solve.trajectory import OUTPUTS  # noqa: E402
+from crank_jax.solve import OUTPUTS, solver_named  # noqa: E402
 from crank_jax.solve.trajectory import solve_trajectory as _solve  # noqa: E402
 
 

@@ -29,10 +29,11 @@ import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.model.dynamics import Structure  # noqa: E402
-from crank_jax.vibration.chart import floquet_max, mathieu_tongue  # noqa: E402
+from crank_jax.vibration import mathieu_tongue, periodic_orbit  # noqa: E402
+from crank_jax.vibration.chart import floquet_max  # noqa: E402
 from crank_jax.vibration.drive import field_at  # noqa: E402
 from crank_jax.vibration.flow import flow  # noqa: E402
-from crank_jax.vibration.orbit import extremes, periodic_orbit  # noqa: E402
+from crank_jax.vibration.orbit import extremes  # noqa: E402
 from crank_jax.vibration.plots import plot_chart, plot_response  # noqa: E402
 
 SMOKE = "--smoke" in sys.argv

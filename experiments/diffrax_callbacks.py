@@ -69,7 +69,7 @@ import jax.numpy as jnp  # noqa: E402
 import crank_jax as cj  # noqa: E402
 from crank_jax.identify.problem import build_problem, pick_solver  # noqa: E402
 from crank_jax.identify.programs import jacobian_at, residuals_at  # noqa: E402
-from crank_jax.solve.solvers import Diffrax, Solution  # noqa: E402
+from crank_jax.solve import Diffrax, Solution  # noqa: E402
 
 
 class _SaveAtTs(Diffrax):

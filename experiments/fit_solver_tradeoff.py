@@ -31,9 +31,9 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import crank_jax as cj
 from crank_jax.identify import plan
-from crank_jax.solve.names import solver_named
+from crank_jax.solve import solver_named
 if sys.argv[1] == "unrolled":  # the fused solver, its variational stages unrolled
-    from crank_jax.solve.solvers import AdaptiveDopri8
+    from crank_jax import AdaptiveDopri8
     AdaptiveDopri8.with_loop_stages = lambda self: self
 elif sys.argv[1] != "default":  # the fit's solver, whatever the policy would pick
     plan.pick_solver = lambda *a, **k: solver_named(sys.argv[1])

@@ -55,8 +55,8 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.model.geometry import geometry  # noqa: E402
-from crank_jax.model.loads import ConstantLoad  # noqa: E402
+from crank_jax.model import ConstantLoad  # noqa: E402
+from crank_jax.model import geometry_at as geometry  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 RATE, JITTER, T1, T_START = 50.0, 3e-3, 6.0, 1.0

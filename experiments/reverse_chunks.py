@@ -16,7 +16,7 @@ import sys
 import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "src"))
-from crank_jax.xla_flags import with_cpu_flags  # noqa: E402
+from crank_jax.runtime.xla_flags import with_cpu_flags  # noqa: E402
 
 os.environ["XLA_FLAGS"] = with_cpu_flags(os.environ.get("XLA_FLAGS"))
 

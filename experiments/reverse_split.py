@@ -49,7 +49,7 @@ def measure(mode: str, smoke: bool) -> dict:
     import jax.numpy as jnp
 
     import crank_jax as cj
-    from crank_jax.model.dynamics import CrankField
+    from crank_jax.model import CrankField
 
     adjoint = importlib.import_module("crank_jax.solve.adjoint")
     if backward_program() != "loop":

@@ -245,3 +245,92 @@ def test_the_rules_catch_what_they_forbid(tmp_path, monkeypatch):
                   test_no_cycles_between_subpackages):
         with pytest.raises((AssertionError, pytest.fail.Exception)):
             check()
+
+
+EXPERIMENTS = sorted((SRC.parents[1] / "experiments").glob("*.py"))
+#: Internal modules the experiments may import (issue 39 asks for the public API only):
+#: the experiments' own tooling (results written atomically, the CPU flags they compare,
+#: the figures' style), and the internals an experiment exists to measure (a solver's
+#: inner loop, a fit's compiled programs, the stores of its compile options). A module
+#: not listed here is public (`crank_jax`, or a subpackage's `__all__`) or a new breach.
+EXPERIMENT_INTERNALS = {
+    "crank_jax.runtime.io": "tooling: results written atomically",
+    "crank_jax.runtime.xla_flags": "tooling: the CPU flags the benchmarks compare",
+    "crank_jax.report.plotting": "tooling: the figures' style",
+    "crank_jax.cli.identify": "the demo's own record (demo_data), as the CLI makes it",
+    "crank_jax.model.dynamics": "measures the field's static structure (Structure)",
+    "crank_jax.model.loads": "load kinds not in the front door (InputLoad, Nonsmooth)",
+    "crank_jax.solve.adaptive": "measures the fused solver's inner loop",
+    "crank_jax.solve.trajectory": "measures the solve without simulate's front door",
+    "crank_jax.solve.adjoint": "measures the backward pass's programs",
+    "crank_jax.model.trig": "measures the traced trigonometry's forms",
+    "crank_jax.identify.problem": "measures the fit's residual problem",
+    "crank_jax.identify.programs": "measures the fit's compiled programs",
+    "crank_jax.identify.fit_plan": "measures the fit's plan",
+    "crank_jax.identify.channel_noise": "measures the fit's plan",
+    "crank_jax.identify.attempt": "swaps the fit's optimiser under its tries",
+    "crank_jax.identify.request": "measures the fit's plan",
+    "crank_jax.identify.uncertainty": "measures the design criteria",
+    "crank_jax.identify.corner": "draws the posterior's corner plot",
+    "crank_jax.vibration.chart": "measures the Floquet test",
+    "crank_jax.vibration.drive": "measures the forced field",
+    "crank_jax.vibration.flow": "measures the flow map",
+    "crank_jax.vibration.orbit": "measures the orbit's extremes",
+    "crank_jax.vibration.plots": "draws the vibration figures",
+}
+
+
+def _experiment_imports(path: Path):
+    """(module, names) of every `crank_jax` import of an experiment, at any depth."""
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("crank_jax"):
+            yield node.module, [a.name for a in node.names]
+        elif isinstance(node, ast.Import):
+            yield from ((a.name, []) for a in node.names if a.name.startswith("crank_jax"))
+
+
+def test_every_experiment_imports_what_exists():
+    # experiments/reverse_chunks.py imported `crank_jax.xla_flags`, gone since the
+    # runtime moved into `runtime/`: the script could not start, and nothing ran it.
+    import importlib
+
+    missing = []
+    for path in EXPERIMENTS:
+        for mod, names in _experiment_imports(path):
+            try:
+                m = importlib.import_module(mod)
+            except ImportError:
+                missing.append(f"{path.name}: {mod}")
+                continue
+            missing += [f"{path.name}: {mod}.{n}" for n in names
+                        if not hasattr(m, n) and not _is_module(f"{mod}.{n}")]
+    assert not missing, f"experiments import what does not exist: {missing}"
+
+
+def _is_module(name: str) -> bool:
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ModuleNotFoundError:  # a name inside a module, not a submodule
+        return False
+
+
+def test_experiments_import_the_public_api_or_a_listed_internal():
+    import importlib
+
+    breaches = set()
+    for path in EXPERIMENTS:
+        for mod, names in _experiment_imports(path):
+            if mod == "crank_jax":
+                continue
+            public = set(getattr(importlib.import_module(mod), "__all__", ()))
+            for n in names or [""]:
+                # a public name of a subpackage; else the module it names, or `mod` itself
+                used = (f"{mod}.{n}" if n and _is_module(f"{mod}.{n}") else mod)
+                if mod.count(".") == 1 and n in public:
+                    continue
+                if used not in EXPERIMENT_INTERNALS:
+                    breaches.add(f"{path.name}: {used}" + (f" ({n})" if used == mod else ""))
+    assert not breaches, ("experiments import internals not in EXPERIMENT_INTERNALS "
+                          f"(use the public API, or list it with its reason): {breaches}")
