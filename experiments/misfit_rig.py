@@ -124,18 +124,21 @@ def case(name: str, seed: int = 0, **kw):
     return fit_records(name, records(name, seed), **kw)
 
 
+def _rig(name: str) -> tuple[tuple, tuple]:
+    """(sensors, drive torques) of case `name`."""
+    return (SLIDE,) if name == "slide" else (ENCODER,), TAU if name == "three" else TAU[:1]
+
+
 def records(name: str, seed: int = 0) -> list:
     """The records of case `name`, synthesised from the truth (not part of a user's fit:
     `main` times the fit alone)."""
-    sensors = (SLIDE,) if name == "slide" else (ENCODER,)
-    taus = TAU if name == "three" else TAU[:1]
+    sensors, taus = _rig(name)
     return [record(t, sensors, seed * 10 + i) for i, t in enumerate(taus)]
 
 
 def fit_records(name: str, recs: list, **kw):
     """Fit case `name`'s records `recs` under defaults, from its generic start."""
-    sensors = (SLIDE,) if name == "slide" else (ENCODER,)
-    taus = TAU if name == "three" else TAU[:1]
+    sensors, taus = _rig(name)
     free = ["tau0", "c", "phi0", "dphi0"]
     start = dict(c=START["c"], P0=START["P0"])
     if name == "friction":

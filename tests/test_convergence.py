@@ -29,7 +29,7 @@ class _View:
         return np.asarray(w, dtype=float)
 
     @staticmethod
-    def restrict(J, w=None):
+    def restrict(J, w):
         return J
 
 
@@ -350,7 +350,7 @@ def test_a_coordinate_held_by_the_view_is_not_a_bound_stall(monkeypatch):
             return np.array([0.0, float(np.asarray(w)[0])])
 
         @staticmethod
-        def restrict(J, w=None):
+        def restrict(J, w):
             return np.asarray(J)[:, 1:]
 
     run = least_squares(Held(), np.array([0.0]), 100, 1e-12, "", False,

@@ -273,7 +273,7 @@ class _Cubic:
         return w
 
     @staticmethod
-    def restrict(J, w=None):
+    def restrict(J, w):
         return J
 
 

@@ -181,7 +181,8 @@ class _Evaluations:
             unit = self._unit(self.r.shape[0])[0]
             gn = gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
             largest = float(np.max(np.abs(gn.dz) / gn.se, initial=0.0))
-            stop = (self._converged_stop(gn, largest) or self._bound_stop(gn, largest)
+            z = np.asarray(self.model.lift(self.w))
+            stop = (self._converged_stop(gn, largest, z) or self._bound_stop(gn, largest, z)
                     or self._window_stop(gn, largest) or self._budget_stop(gn, largest))
         if stop is not None:
             raise stop
@@ -206,13 +207,12 @@ class _Evaluations:
             return _Stop(False, failed_message(self.failed))
         return None
 
-    def _converged_stop(self, gn: Step, largest: float) -> _Stop | None:
+    def _converged_stop(self, gn: Step, largest: float, z: np.ndarray) -> _Stop | None:
         """Converged in the data's units (see `jacobian`), or, whatever the noise, the
         step below `tol + tol |z|` in every coordinate of the problem (`z`, not the
         view's `w`: a subspace's `w` is the offset from its start, near 0), for records
         with no noise."""
         unit, uname = self._unit(self.r.shape[0])
-        z = np.asarray(self.model.lift(self.w))
         in_units = (self.noise is not None and gn.decrease <= DECREASE_FRACTION * unit
                     and largest <= STEP_FRACTION)
         if not (in_units or np.all(np.abs(gn.dz) <= self.tol + self.tol * np.abs(z))):
@@ -224,12 +224,12 @@ class _Evaluations:
             "converged", words, predicted_decrease=gn.decrease / unit, largest_step=largest,
             falling_per_iteration=self._fell() / unit, noise=self.noise))
 
-    def _bound_stop(self, gn: Step, largest: float) -> _Stop | None:
+    def _bound_stop(self, gn: Step, largest: float, z: np.ndarray) -> _Stop | None:
         """With `at_bounds`: the stop of a run whose folded parameter has sat at its bound
         for [`BOUND_STEPS`][] iterations (see `_at_bound`)."""
         if not self.at_bounds:
             return None
-        pressed = self._pressed(np.asarray(self.model.lift(self.w)))
+        pressed = self._pressed(z)
         self.pressing = self.pressing + 1 if pressed else 0
         if self.pressing < BOUND_STEPS:
             return None
@@ -277,11 +277,12 @@ class _Evaluations:
         """The folded parameters (`value = ref |z|`, see `problem.folded`) at their bound 0
         (within [`AT_ZERO`][] of it) that the view can move."""
         pr = self.model.problem
-        names = getattr(pr, "names", ())
+        at0 = [i for i, f in enumerate(getattr(pr, "folded", ())) if f and abs(z[i]) < AT_ZERO]
+        if not at0:
+            return []
         # (Not those the view holds, at their bound on purpose: rows of `dz/dw` at 0.)
         moves = np.linalg.norm(self.model.restrict(np.eye(z.shape[0]), self.w), axis=1) > 1e-9
-        return [names[i] for i, f in enumerate(getattr(pr, "folded", ()))
-                if f and moves[i] and abs(z[i]) < AT_ZERO]
+        return [pr.names[i] for i in at0 if moves[i]]
 
     def _at_bound(self, pressed: list[str], gn: Step, largest: float, fell: float) -> _Stop:
         """The stop of a run that has sat on a bound for [`BOUND_STEPS`][] iterations,

@@ -141,8 +141,9 @@ class Subspace(eqx.Module):
         """On the host: the problem's coordinates `z` (p,) of the point `w` (q,)."""
         return np.asarray(self.z0) + np.asarray(self.B) @ w
 
-    def restrict(self, J: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
-        """On the host: the sensitivities `dr/dw` (N, q) from `dr/dz` (N, p)."""
+    def restrict(self, J: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """On the host: the sensitivities `dr/dw` (N, q) from `dr/dz` (N, p) (at any `w`:
+        the map is affine)."""
         return J @ np.asarray(self.B)
 
 
@@ -171,10 +172,9 @@ class InValues:
         # u0 = 1 for a log coordinate (its value the scale s), z0 for the others
         self.s = np.where(self.log, np.exp(np.where(self.log, z0, 0.0)), 1.0)
         self.u0 = np.where(self.log, 1.0, z0)
-        # d u / d z at z0 is diag(u0) for a log coordinate (u = exp(z) / s), 1 otherwise:
-        # the basis spans the same directions at the start, orthonormal again.
-        q, _ = np.linalg.qr(np.asarray(B, dtype=float))
-        self.B = q
+        # `du/dz` at z0 is 1 in every coordinate (u = exp(z) / s = 1 there for a log one),
+        # so `B` (orthonormal, as `Subspace`'s) spans the same directions in u as in z.
+        self.B = np.asarray(B, dtype=float)
 
     def _u(self, w) -> np.ndarray:
         return self.u0 + self.B @ np.asarray(w, dtype=float)
@@ -188,9 +188,9 @@ class InValues:
             lg = np.log(np.where(ok, u, 1.0) * self.s)
         return np.where(self.log, np.where(ok, lg, np.nan), u)
 
-    def restrict(self, J: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    def restrict(self, J: np.ndarray, w: np.ndarray) -> np.ndarray:
         """On the host: `dr/dw` (N, q) at `w` from `dr/dz` (N, p) there."""
-        u = self._u(np.zeros(self.B.shape[1]) if w is None else w)
+        u = self._u(w)
         dz_du = np.where(self.log, 1.0 / np.where(self.log, u, 1.0), 1.0)
         return J @ (dz_du[:, None] * self.B)
 
@@ -212,6 +212,6 @@ class Pinned(eqx.Module):
         """On the host: the problem's coordinates (p,) of the free ones `zr` (p - 1,)."""
         return np.insert(np.asarray(zr, float), self.j, float(self.zj))
 
-    def restrict(self, J: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
-        """On the host: the sensitivities to the free coordinates (N, p - 1)."""
+    def restrict(self, J: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """On the host: the sensitivities to the free coordinates (N, p - 1) (at any `w`)."""
         return np.delete(J, self.j, axis=1)
