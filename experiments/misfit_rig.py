@@ -31,8 +31,8 @@ found before (rms 0.0915 rad), but after 397 LM iterations: the escalation's ext
 (a record far above its noise level), not a crawl (results/misfit_rig.json, "after-errconS").
 Since the polish steps in values, a run sitting on the friction bound stops for the
 active-set hold and a stall with nothing left to gain counts as converged (2026-11-28,
-"quiet-2026-11-28-values-bound"): friction 83 LM iterations (315 before), the three
-records 29 and 49 s for the fit; docs/benchmarks/identification.md has the table.
+"quiet-2026-11-28-review"): friction 78 LM iterations (315 before), the three records 29
+and 46-53 s for the fit; docs/benchmarks/identification.md has the table.
 
 Run: `python experiments/misfit_rig.py --label after --out
 experiments/results/misfit_rig.json` (each case in a fresh process, so the wall time

@@ -311,5 +311,5 @@ def test_the_friction_stand_in_ends_at_its_best_minimum_not_at_the_friction_boun
     assert res.converged, res.message
     assert res.rms_residual <= 0.091465 and res.values["F_s"] > 0.3, res.values
     # 315 LM iterations before the polish stepped in values and a run sitting on the
-    # bound stopped for the active-set hold (2026-11-28); 83 since.
+    # bound stopped for the active-set hold (2026-11-28); 78-83 since.
     assert res.iterations <= 100, res.iterations
