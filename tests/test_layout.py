@@ -19,9 +19,10 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "crank_jax"
 MODULES = sorted(SRC.rglob("*.py"))
-MAX_FUNCTION_LINES = 80
-# The solver core, which a newcomer should follow in one sitting (issue 26).
-MAX_SOLVE_FUNCTION_LINES = 60
+# Issue 39's guide for every function (80 outside the solver core until 2026-11-28, when
+# the last eight longer ones were split into named steps; the solver core, which a
+# newcomer should follow in one sitting, had 60 since issue 26).
+MAX_FUNCTION_LINES = 60
 MAX_MODULE_LINES = 450
 
 
@@ -85,11 +86,6 @@ def _long_functions(paths, limit: int) -> dict[str, int]:
 def test_functions_are_short():
     long = _long_functions(MODULES, MAX_FUNCTION_LINES)
     assert not long, f"functions longer than {MAX_FUNCTION_LINES} lines: {long}"
-
-
-def test_solver_functions_are_shorter():
-    long = _long_functions(sorted((SRC / "solve").glob("*.py")), MAX_SOLVE_FUNCTION_LINES)
-    assert not long, f"solve/ functions longer than {MAX_SOLVE_FUNCTION_LINES} lines: {long}"
 
 
 def test_no_private_names_across_modules():

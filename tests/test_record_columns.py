@@ -11,9 +11,9 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.cli import main
+from crank_jax.identify import fitted_scene
 from crank_jax.model.loads import InputLoad, SampledLoad
 from crank_jax.records.sensors import Sensor, SensorError, sensors_from_table
-from crank_jax.scene import fitted_scene
 
 TS = np.linspace(0.0, 0.5, 26)
 ANGLE = np.cos(9 * TS)

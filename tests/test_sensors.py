@@ -12,6 +12,7 @@ from conftest import random_mech
 
 import crank_jax as cj
 from crank_jax.cli import main
+from crank_jax.identify import fitted_scene
 from crank_jax.identify.angle import slide_angle
 from crank_jax.model.outputs import OUTPUT_NAMES, output
 from crank_jax.records.sensors import (
@@ -22,7 +23,6 @@ from crank_jax.records.sensors import (
     select_sensors,
     sensors_from_table,
 )
-from crank_jax.scene import fitted_scene
 
 # --- outputs: the hand-written slider kinematics against autodiff of x_s(phi(t)) ----------
 

@@ -7,7 +7,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.scene import fitted_scene  # noqa: E402
+from crank_jax.identify import fitted_scene  # noqa: E402
 
 rig = cj.load_scene("lab-rig")
 run1 = cj.Scene(rig.mech, torque=cj.HarmonicLoad(0.0, 0.2, 3.0), phi0=0.5)

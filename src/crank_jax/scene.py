@@ -7,7 +7,6 @@ load from TOML (see the README for the format) and ship as presets.
 
 from __future__ import annotations
 
-import dataclasses
 import importlib.resources
 import math
 import os
@@ -22,18 +21,15 @@ from jaxtyping import Array
 
 from .model.dynamics import Structure
 from .model.loads import (
-    LOAD_PARAMS,
     AbstractLoad,
     NoLoad,
     load_from_table,
     load_to_table,
-    set_param,
     toml_keys,
 )
 from .model.params import PAPER_FIELDS, SliderCrank, as_float_array
 from .records.column_checks import scene_columns_problem
 from .records.sensors import (
-    OFFSET_NAMES,
     Sensor,
     SensorError,
     sensors_from_table,
@@ -46,7 +42,7 @@ from .solve.policy import SOLVERS
 from .solve.trajectory import OUTPUTS, Trajectory
 
 __all__ = ["Scene", "SceneError", "load_scene", "scene_to_toml", "save_scene", "presets",
-           "PRESETS", "fitted_scene", "read_scene_doc"]
+           "PRESETS", "read_scene_doc"]
 
 #: Preset scene names; `load_scene(name)` loads one.
 PRESETS: tuple[str, ...] = ("lab-rig", "torsional", "near-buckling", "pendulum")
@@ -187,61 +183,15 @@ def _load(where: str, doc: dict, side: str) -> AbstractLoad:
 
 def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> Scene:
     """Build a [`Scene`][] from a parsed TOML document, rejecting unknown tables and keys."""
-    for key in doc:
-        if key not in _TABLES and key not in _TOP_KEYS:
-            raise SceneError(f"{where}: unknown table or key {key!r}; valid tables are "
-                             f"{['[' + t + ']' for t in _TABLES]}")
-    for table, keys in _TABLES.items():
-        if table in doc:
-            if not isinstance(doc[table], dict):
-                raise SceneError(f"{where}: {table!r} must be a table [{table}]")
-            for key in doc[table]:
-                if key not in keys:
-                    raise SceneError(f"{where}: unknown key {key!r} in [{table}]; valid keys "
-                                     f"are {list(keys)}")
-    if "mechanism" not in doc:
-        raise SceneError(f"{where}: the [mechanism] table is required")
-    mt = doc["mechanism"]
-    missing = [f for f in PAPER_FIELDS if f not in mt and f != "g"]
-    if missing:
-        raise SceneError(f"{where}: [mechanism] is missing {missing}; every field but g "
-                         f"(default 9.81) and {list(_OPTIONAL_MECH)} (default 0) is required")
-    values = {f: _number(where, f"mechanism.{f}", mt.get(f, _DEFAULT_MECH.get(f)))
-              for f in PAPER_FIELDS + _OPTIONAL_MECH}
-    ft = doc.get("friction", {})
-    values.update({f: _number(where, f"friction.{key}", ft.get(key, _DEFAULT_MECH[f]))
-                   for key, f in _FRICTION.items()})
-    try:
-        mech = SliderCrank(**values)
-    except ValueError as e:
-        raise SceneError(f"{where}: [mechanism] {e}") from None
-
+    _check_tables(doc, where)
+    mech = _mechanism(doc, where)
     load = _load(where, doc, "load")
     torque = _load(where, doc, "torque")
     init = doc.get("initial", {})
     phi0 = _number(where, "initial.phi0", init.get("phi0", 1.0))
     dphi0 = _number(where, "initial.dphi0", init.get("dphi0", 0.0))
-    st = doc.get("solver", {})
-    solver = st.get("name", "auto")
-    if solver not in SOLVERS:
-        raise SceneError(f"{where}: [solver] name {solver!r} is unknown; choose from "
-                         f"{list(SOLVERS)}")
-    rtol = _number(where, "solver.rtol", st.get("rtol", 1e-8))
-    atol = _number(where, "solver.atol", st.get("atol", 1e-10))
-    if not (0 < rtol <= MAX_RTOL and 0 < atol):
-        raise SceneError(f"{where}: [solver] needs 0 < rtol <= {MAX_RTOL:g} and atol > 0, got "
-                         f"rtol = {rtol:g}, atol = {atol:g} (a looser rtol lets the step "
-                         "control drift far enough to fail, or to give a wrong answer)")
-    out = doc.get("output", {})
-    t1 = _number(where, "output.t1", out.get("t1", 10.0))
-    samples = out.get("samples", 1001)
-    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 2:
-        raise SceneError(f"{where}: [output] samples must be an integer >= 2, got {samples!r}")
-    extras = out.get("extras", [])
-    if not isinstance(extras, list) or not all(isinstance(e, str) and e in OUTPUTS
-                                               for e in extras):
-        raise SceneError(f"{where}: [output] extras must be a list drawn from "
-                         f"{sorted(OUTPUTS)}, got {_short(extras)}")
+    solver, rtol, atol = _solver(doc.get("solver", {}), where)
+    t1, samples, extras = _output(doc.get("output", {}), where)
     description = doc.get("description", "")
     if not isinstance(description, str):
         raise SceneError(f"{where}: description must be a string")
@@ -255,6 +205,71 @@ def scene_from_dict(doc: dict, where: str = "<scene>", name: str = "custom") -> 
                      description=description, sensors=sensors)
     except SceneError as e:
         raise SceneError(f"{where}: {e}") from None
+
+
+def _check_tables(doc: dict, where: str) -> None:
+    """`SceneError` for an unknown table or key, or a table that is not one."""
+    for key in doc:
+        if key not in _TABLES and key not in _TOP_KEYS:
+            raise SceneError(f"{where}: unknown table or key {key!r}; valid tables are "
+                             f"{['[' + t + ']' for t in _TABLES]}")
+    for table, keys in _TABLES.items():
+        if table in doc:
+            if not isinstance(doc[table], dict):
+                raise SceneError(f"{where}: {table!r} must be a table [{table}]")
+            for key in doc[table]:
+                if key not in keys:
+                    raise SceneError(f"{where}: unknown key {key!r} in [{table}]; valid keys "
+                                     f"are {list(keys)}")
+
+
+def _mechanism(doc: dict, where: str) -> SliderCrank:
+    """The [mechanism] and [friction] tables' mechanism."""
+    if "mechanism" not in doc:
+        raise SceneError(f"{where}: the [mechanism] table is required")
+    mt = doc["mechanism"]
+    missing = [f for f in PAPER_FIELDS if f not in mt and f != "g"]
+    if missing:
+        raise SceneError(f"{where}: [mechanism] is missing {missing}; every field but g "
+                         f"(default 9.81) and {list(_OPTIONAL_MECH)} (default 0) is required")
+    values = {f: _number(where, f"mechanism.{f}", mt.get(f, _DEFAULT_MECH.get(f)))
+              for f in PAPER_FIELDS + _OPTIONAL_MECH}
+    ft = doc.get("friction", {})
+    values.update({f: _number(where, f"friction.{key}", ft.get(key, _DEFAULT_MECH[f]))
+                   for key, f in _FRICTION.items()})
+    try:
+        return SliderCrank(**values)
+    except ValueError as e:
+        raise SceneError(f"{where}: [mechanism] {e}") from None
+
+
+def _solver(st: dict, where: str) -> tuple[str, float, float]:
+    """The [solver] table's name, rtol and atol."""
+    solver = st.get("name", "auto")
+    if solver not in SOLVERS:
+        raise SceneError(f"{where}: [solver] name {solver!r} is unknown; choose from "
+                         f"{list(SOLVERS)}")
+    rtol = _number(where, "solver.rtol", st.get("rtol", 1e-8))
+    atol = _number(where, "solver.atol", st.get("atol", 1e-10))
+    if not (0 < rtol <= MAX_RTOL and 0 < atol):
+        raise SceneError(f"{where}: [solver] needs 0 < rtol <= {MAX_RTOL:g} and atol > 0, got "
+                         f"rtol = {rtol:g}, atol = {atol:g} (a looser rtol lets the step "
+                         "control drift far enough to fail, or to give a wrong answer)")
+    return solver, rtol, atol
+
+
+def _output(out: dict, where: str) -> tuple[float, int, list]:
+    """The [output] table's t1 (s), number of samples and extra outputs."""
+    t1 = _number(where, "output.t1", out.get("t1", 10.0))
+    samples = out.get("samples", 1001)
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 2:
+        raise SceneError(f"{where}: [output] samples must be an integer >= 2, got {samples!r}")
+    extras = out.get("extras", [])
+    if not isinstance(extras, list) or not all(isinstance(e, str) and e in OUTPUTS
+                                               for e in extras):
+        raise SceneError(f"{where}: [output] extras must be a list drawn from "
+                         f"{sorted(OUTPUTS)}, got {_short(extras)}")
+    return t1, samples, extras
 
 
 def presets() -> dict[str, str]:
@@ -371,70 +386,6 @@ def scene_to_toml(scene: Scene) -> str:
                   + " }" for name, spec in sensors_to_table(scene.sensors).items()]
         lines.append("")
     return "\n".join(lines)
-
-
-def _fitted_sensors(scene: Scene, result, record: int, values: dict,
-                    sensors: tuple[Sensor, ...] | None) -> tuple[Sensor, ...]:
-    """The scene's sensors joined by those record `record` was read through (they win by
-    channel; default: its `Data`'s), each fitted offset put into its channel's sensor, so
-    that the scene reads the record as the fit did. A plain angle read (`phi` in rad, no
-    calibration, nothing else) joins only with a fitted offset: a plain fit's scene stays
-    as it was (its sensors, if any, were not in the record, which reads plain again)."""
-    from .records.sensors import DEFAULT_SENSOR
-
-    records = getattr(result, "data", None)
-    data = records[record] if records else None
-    if sensors is None:
-        sensors = tuple(s for s, _ in data.outputs()) if data is not None else ()
-    merged = {s.name: s for s in scene.sensors}
-    if tuple(sensors) != (DEFAULT_SENSOR,) or "phi_offset" in values:
-        merged.update({s.name: s for s in sensors})
-    for name, value in values.items():
-        if name in OFFSET_NAMES:
-            channel = OFFSET_NAMES[name]
-            if channel not in merged:
-                raise SceneError(f"the fitted {name} has no {channel} sensor to go into; "
-                                 "give fitted_scene the sensors the record was read through")
-            merged[channel] = dataclasses.replace(merged[channel], offset=float(value))
-    return tuple(merged.values())
-
-
-def fitted_scene(scene: Scene, result, record: int = 0,
-                 sensors: tuple[Sensor, ...] | None = None) -> Scene:
-    """`scene` with a fit's estimates: the fitted mechanism, the fitted load amplitudes
-    (`P0`, `P1`, `tau0`, `tau1`, the gains) and, where they were free, record `record`'s
-    fitted initial state (the state at that record's first sample). A record's own sampled
-    loads are data, not scene, so the scene's loads are kept for them.
-
-    **Arguments:** `scene`, the scene the fit started from; `result`, its
-    [`FitResult`][crank_jax.FitResult]; `record`, which record's values to take for
-    names fitted per record (`name[i]`, `fit(per_record=...)`, and the states of a
-    multi-record fit); `sensors`, the sensors that record was read through (default:
-    its `Data`'s, in `result.data`), which join the scene's so that the written scene
-    reads the record as the fit did. **Returns:** a [`Scene`][]; fitted channel offsets
-    (`x_s_offset`, ...) become its sensors' offsets.
-    """
-    values = {n: v for n, v in result.values.items() if "[" not in n}
-    suffix = f"[{record}]"
-    values.update({n[:-len(suffix)]: v for n, v in result.values.items() if n.endswith(suffix)})
-    loads = {"load": scene.load, "torque": scene.torque}
-    for name, value in values.items():
-        if name in LOAD_PARAMS:
-            side, role = LOAD_PARAMS[name]
-            loads[side] = set_param(loads[side], role, as_float_array(value), side)
-    state = {n: values.get(n) for n in ("phi0", "dphi0")}
-    # The record's sensors, with the fitted offsets, become the scene's calibration.
-    sensors = _fitted_sensors(scene, result, record, values, sensors)
-    scene = dataclasses.replace(scene, sensors=sensors) if sensors != scene.sensors else scene
-    # A mechanism field fitted per record: the shared mechanism holds its start value.
-    own = {n: float(values[n]) for n in result.mech.as_dict() if f"{n}{suffix}" in
-           result.values}
-    mech = result.mech.replace(**own) if own else result.mech
-    return eqx.tree_at(
-        lambda s: (s.mech, s.load, s.torque, s.phi0, s.dphi0), scene,
-        (mech, loads["load"], loads["torque"],
-         as_float_array(scene.phi0 if state["phi0"] is None else state["phi0"]),
-         as_float_array(scene.dphi0 if state["dphi0"] is None else state["dphi0"])))
 
 
 def save_scene(scene: Scene, path: str | os.PathLike) -> None:

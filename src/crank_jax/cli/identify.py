@@ -350,7 +350,8 @@ def _write_scene(res, a: argparse.Namespace) -> None:
     first record's fitted initial state and per-record values; with `--per-record`, one
     scene per record (see `_record_scenes`), each a scene `synth`, `fit` and `validate`
     take. Written atomically, never over an input."""
-    from ..scene import fitted_scene, save_scene
+    from ..identify.fitted import fitted_scene
+    from ..scene import save_scene
 
     paths = _record_scenes(a)
     for i, path in enumerate(paths):

@@ -14,7 +14,6 @@ are the tools around them:
   variances as a floor under it); `robust_uncertainty` and its `RobustUncertainty`.
 """
 
-from ..scene import fitted_scene
 from .diagnostics import (
     Diagnostics,
     RobustUncertainty,
@@ -25,6 +24,7 @@ from .diagnostics import (
 from .diagnostics import widen as widen_covariance
 from .fit import FREE_NAMES, regressor_start
 from .fit_result import Profile
+from .fitted import fitted_scene
 
 __all__ = ["fitted_scene", "FREE_NAMES", "regressor_start", "Profile", "residual_diagnostics",
            "Diagnostics",

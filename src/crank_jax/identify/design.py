@@ -281,27 +281,8 @@ def design(
     def loss(w):
         return -crit(fisher(*unpack(w)))
 
-    step = jax.jit(lambda w: (loss(w), jax.jacfwd(loss)(w)))
-    opt = optax.adam(learning_rate)
-    state = opt.init(w)
-    history = []
-    best = (math.inf, w)
-    from tqdm.auto import tqdm
-
-    for _ in tqdm(range(iterations), desc="design", disable=not progress, leave=False):
-        value, g = step(w)
-        value = float(value)
-        history.append(-value)
-        if math.isfinite(value) and value < best[0]:
-            best = (value, w)
-        if not np.all(np.isfinite(np.asarray(g))):
-            break
-        updates, state = opt.update(g, state)
-        w = optax.apply_updates(w, updates)
-    final = float(jax.jit(loss)(w)) if iterations else math.inf
-    if math.isfinite(final) and final < best[0]:
-        best = (final, w)
-    torque, load, y0 = unpack(best[1])
+    w, history = _adam(loss, w, iterations, learning_rate, progress)
+    torque, load, y0 = unpack(w)
     torque, peak = _within_bound(torque, amplitude, t1, 10 * grid.shape[0])
     force = None
     if force_amplitude is not None:
@@ -317,6 +298,32 @@ def design(
                   {k: {"designed": se_d[k], "baseline": se_b[k]} for k in free},
                   criterion, target if criterion == "c" else None, history, peak, force,
                   y0 if release or release_speed is not None else None)
+
+
+def _adam(loss, w, iterations: int, learning_rate: float, progress: bool):
+    """Adam on `loss` from `w` for `iterations` steps (stopping at a non-finite gradient).
+    **Returns:** the best point seen and the criterion's history (`-loss` per step)."""
+    from tqdm.auto import tqdm
+
+    step = jax.jit(lambda w: (loss(w), jax.jacfwd(loss)(w)))
+    opt = optax.adam(learning_rate)
+    state = opt.init(w)
+    history = []
+    best = (math.inf, w)
+    for _ in tqdm(range(iterations), desc="design", disable=not progress, leave=False):
+        value, g = step(w)
+        value = float(value)
+        history.append(-value)
+        if math.isfinite(value) and value < best[0]:
+            best = (value, w)
+        if not np.all(np.isfinite(np.asarray(g))):
+            break
+        updates, state = opt.update(g, state)
+        w = optax.apply_updates(w, updates)
+    final = float(jax.jit(loss)(w)) if iterations else math.inf
+    if math.isfinite(final) and final < best[0]:
+        best = (final, w)
+    return best[1], history
 
 
 def _start(scene, tones, seed, fn, f_lo, f_hi, force, release, release_speed):

@@ -105,25 +105,32 @@ def optimise_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
             runs.append(_from_point(req, plan, zm, "a start from the motion"))
             tried.append(runs[-1][1])
     if escalate and req.multistart == 1 and go_on():
-        budget = max(ESCALATION_ITERATIONS, sum(r.iterations for r, _ in runs))
-
-        def enough(done):
-            every = runs + done
-            return (not _stalled(done[-1][0], n, plan, req) or _reproduced(every, unit2)
-                    or sum(r.iterations for r, _ in done) >= budget)
-
-        # Around the best point so far (basin hopping): a start that comes back to it
-        # confirms it, one that finds a lower minimum replaces it.
-        more = at.multistart(req, plan, plan.shoot, _in_shoot(plan, at.best_run(runs)[0].z),
-                           ESCALATION_STARTS, req.seed + 1, "multistart", until=enough)
-        runs += more
-        tried.append(f"{len(more)} more start{'s' if len(more) > 1 else ''}"
-                     + (f" (of {ESCALATION_STARTS}: {budget} iterations spent)"
-                        if len(more) < ESCALATION_STARTS and _stalled(more[-1][0], n, plan,
-                                                                      req)
-                        and not _reproduced(runs, unit2) else ""))
+        tried.append(_hop(req, plan, runs))
     best = _conclude(req, plan, runs, first, tried, moved_first, notes)
     return best, sum(r.iterations for r, _ in runs), notes
+
+
+def _hop(req: FitRequest, plan: Plan, runs: list) -> str:
+    """Extra starts around the best point so far (basin hopping), appended to `runs`: a
+    start that comes back to it confirms it, one that finds a lower minimum replaces it.
+    They stop at the first that converges near the noise level or reproduces the best
+    minimum, or once they have spent the iterations of the runs before them (at least
+    [`ESCALATION_ITERATIONS`][]). **Returns:** what was tried, in words."""
+    n = plan.single.n_residuals
+    unit2 = noise_unit(plan.noise, ch.known_sigma(req)) ** 2
+    budget = max(ESCALATION_ITERATIONS, sum(r.iterations for r, _ in runs))
+
+    def enough(done):
+        return (not _stalled(done[-1][0], n, plan, req) or _reproduced(runs + done, unit2)
+                or sum(r.iterations for r, _ in done) >= budget)
+
+    more = at.multistart(req, plan, plan.shoot, _in_shoot(plan, at.best_run(runs)[0].z),
+                         ESCALATION_STARTS, req.seed + 1, "multistart", until=enough)
+    runs += more
+    cut_short = (len(more) < ESCALATION_STARTS and _stalled(more[-1][0], n, plan, req)
+                 and not _reproduced(runs, unit2))
+    return (f"{len(more)} more start{'s' if len(more) > 1 else ''}"
+            + (f" (of {ESCALATION_STARTS}: {budget} iterations spent)" if cut_short else ""))
 
 
 def _conclude(req: FitRequest, plan: Plan, runs, first: Run, tried: list[str],

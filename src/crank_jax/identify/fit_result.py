@@ -139,6 +139,13 @@ class FitResult(NamedTuple):
             "termination": (None if self.termination is None else dict(self.termination)),
         }
 
+    def fitted_scene(self, scene, record: int = 0, sensors=None):
+        """`scene` (the scene the fit started from) with this fit's estimates: see
+        [`fitted_scene`][crank_jax.identify.fitted_scene]."""
+        from .fitted import fitted_scene
+
+        return fitted_scene(scene, self, record, sensors)
+
     def report(self, path, *, scene=None, command=None, title: str = "") -> None:
         """Write a self-contained HTML report to `path` (see
         [`write_fit_report`][crank_jax.report.write_fit_report]); `scene`: the fit's."""

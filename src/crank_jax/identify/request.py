@@ -263,13 +263,8 @@ def _check_per_record(per_record, free) -> tuple[str, ...]:
     return per_record
 
 
-def normalise(scene, data, free, *, init, method, shooting, segments, multistart, seed,
-              max_steps, tol, sigma, profile, window, progress, warn, per_record=(),
-              force=None) -> FitRequest:
-    """Check a fit request and bring it to one form (the arguments are those of [`fit`][]).
-
-    **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
-    """
+def _pairs(scene, data) -> tuple[list[Scene], list[Data]]:
+    """The records of `data` and a scene for each (one `Scene` stands for every record)."""
     records = [data] if isinstance(data, Data) else list(data)
     if not records or not all(isinstance(d, Data) for d in records):
         raise ValueError("data must be a Data record or a non-empty sequence of them")
@@ -278,6 +273,32 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
         raise ValueError(f"got {len(scenes)} scenes for {len(records)} records; give one "
                          "Scene, or one per record")
     _check_scenes(scenes)
+    return scenes, records
+
+
+def _init(init, start: dict) -> str:
+    """The kind of `init` (`"scene"`, `"regressor"` or `"dict"`); a dict's start values
+    go into `start`, which must already hold every free global parameter."""
+    if isinstance(init, dict):
+        bad = [n for n in init if n not in start]
+        if bad:
+            raise ValueError(f"init gives start values for {bad}, which are not free global "
+                             f"parameters ({sorted(start)})")
+        start.update({n: float(v) for n, v in init.items()})
+        return "dict"
+    if init in ("scene", "regressor"):
+        return init
+    raise ValueError(f"init must be 'scene', 'regressor' or a dict, got {init!r}")
+
+
+def normalise(scene, data, free, *, init, method, shooting, segments, multistart, seed,
+              max_steps, tol, sigma, profile, window, progress, warn, per_record=(),
+              force=None) -> FitRequest:
+    """Check a fit request and bring it to one form (the arguments are those of [`fit`][]).
+
+    **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
+    """
+    scenes, records = _pairs(scene, data)
     free = tuple(dict.fromkeys(free))
     known = free_names() + tuple(force_names(force))
     unknown = [n for n in free if n not in known]
@@ -302,17 +323,7 @@ def normalise(scene, data, free, *, init, method, shooting, segments, multistart
     start.update(_offset_starts(free, records))
     start.update(force_starts(force, free))
     _check_sigma_names(sigma, records)
-    if isinstance(init, dict):
-        bad = [n for n in init if n not in start]
-        if bad:
-            raise ValueError(f"init gives start values for {bad}, which are not free global "
-                             f"parameters ({sorted(start)})")
-        start.update({n: float(v) for n, v in init.items()})
-        init_kind = "dict"
-    elif init in ("scene", "regressor"):
-        init_kind = init
-    else:
-        raise ValueError(f"init must be 'scene', 'regressor' or a dict, got {init!r}")
+    init_kind = _init(init, start)
     _check_start(start)
     per_record = per_record if len(records) > 1 else ()
     names = reported_names(free, len(records), per_record)

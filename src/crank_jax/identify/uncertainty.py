@@ -150,35 +150,9 @@ def analyse(
     weak &= np.array([confirmed(V[:, i]) for i in range(V.shape[1])], dtype=bool)
     flagged = numeric_null | weak
 
-    # Known structural directions, tested explicitly so they can be stated in words.
     known = _known_directions(names, values, log, ref, geometry, fixed_scale)
-    directions: list[str] = []
-    Vf = V[:, flagged]
-    found, candidates = [], []
-    for u, message in known:
-        gain = float(np.linalg.norm(J @ u))
-        exact = gain <= RANK_TOL * s_max
-        if exact or (sigma / max(gain, 1e-300) > PRACTICAL_LIMIT and confirmed(u)):
-            directions.append(message)
-            found.append(u)
-            if not exact:
-                candidates.append((u, sigma / gain))
-    in_known = (np.linalg.qr(np.column_stack(found))[0] if found else np.zeros((p, 0)))
-    for i in np.flatnonzero(weak):
-        # A weak singular direction not (mostly) one of the named symmetries.
-        if np.linalg.norm(in_known.T @ V[:, i]) < _SAME_DIRECTION:
-            candidates.append((V[:, i], float(se_dir[i])))
-    if found:
-        Q, _ = np.linalg.qr(np.column_stack(found))
-        rest = Vf - Q @ (Q.T @ Vf)
-        if rest.size:
-            ur, sr, _ = np.linalg.svd(rest, full_matrices=False)
-            rest = ur[:, sr > 0.5]
-        _describe(rest, names, log, se_dir, directions)
-        Vf = np.column_stack([Q, rest]) if rest.size else Q
-    else:
-        _describe(Vf, names, log, se_dir, directions)
-
+    directions, Vf, candidates = _named(J, V, flagged, weak, se_dir, sigma, s_max, known,
+                                        names, log, confirmed)
     affected = (np.linalg.norm(Vf, axis=1) > _AFFECTED) if Vf.size else np.zeros(p, bool)
     # Laplace covariance; the numerical null space is left out (a pseudo-inverse), so
     # parameters orthogonal to it keep their (correct) standard errors.
@@ -197,6 +171,41 @@ def analyse(
     cond = float(s_max / s_min) if s_min > 0 else math.inf
     return Uncertainty(stderr, np.column_stack([lo, hi]), corr, cov, s, cond, sigma,
                        not directions, directions, affected, tuple(candidates))
+
+
+def _named(J, V, flagged, weak, se_dir, sigma, s_max, known, names, log, confirmed):
+    """The flagged directions in words: the known structural ones (`known`, tested
+    explicitly so they can be stated by name) first, then what is left of the flagged
+    singular directions `V[:, flagged]`. **Returns:** `(directions, Vf, candidates)`:
+    the messages, an orthonormal basis (p, f) of everything flagged, and the weak
+    (not exactly flat) directions with their standard errors, for the profile check."""
+    p = V.shape[0]
+    directions: list[str] = []
+    Vf = V[:, flagged]
+    found, candidates = [], []
+    for u, message in known:
+        gain = float(np.linalg.norm(J @ u))
+        exact = gain <= RANK_TOL * s_max
+        if exact or (sigma / max(gain, 1e-300) > PRACTICAL_LIMIT and confirmed(u)):
+            directions.append(message)
+            found.append(u)
+            if not exact:
+                candidates.append((u, sigma / gain))
+    in_known = (np.linalg.qr(np.column_stack(found))[0] if found else np.zeros((p, 0)))
+    for i in np.flatnonzero(weak):
+        # A weak singular direction not (mostly) one of the named symmetries.
+        if np.linalg.norm(in_known.T @ V[:, i]) < _SAME_DIRECTION:
+            candidates.append((V[:, i], float(se_dir[i])))
+    if not found:
+        _describe(Vf, names, log, se_dir, directions)
+        return directions, Vf, candidates
+    Q, _ = np.linalg.qr(np.column_stack(found))
+    rest = Vf - Q @ (Q.T @ Vf)
+    if rest.size:
+        ur, sr, _ = np.linalg.svd(rest, full_matrices=False)
+        rest = ur[:, sr > 0.5]
+    _describe(rest, names, log, se_dir, directions)
+    return directions, (np.column_stack([Q, rest]) if rest.size else Q), candidates
 
 
 def _intervals(values, se_z, log, ref, folded) -> tuple[np.ndarray, np.ndarray]:

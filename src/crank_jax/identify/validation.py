@@ -255,34 +255,16 @@ def validate(
     load, torque = _loads(scene, win, scene_loads)
     win = Data(win.ts, win.phi, load, torque, source=win.source, channels=win.channels,
                sensors=win.sensors, inputs=win.inputs)
-    if init_window is None:
-        s = default_init_window(scene, load)
-        init_window = max(s, float(win.ts[min(MIN_SAMPLES, win.n) - 1] - win.ts[0]))
-    elif not (math.isfinite(init_window) and init_window > 0):
-        raise ValueError(f"init_window (--init-window) must be a time > 0 s, got {init_window}")
-    t_init = float(win.ts[0]) + float(init_window)
-    n_init = int(np.sum(win.ts <= t_init))
+    init_window = _init_window(scene, win, load, init_window)
+    t_init = float(win.ts[0]) + init_window
     scored = win.ts > t_init
-    if n_init < MIN_SAMPLES or int(scored.sum()) < MIN_SAMPLES:
-        raise ValueError(f"init_window (--init-window) = {init_window:g} s takes {n_init} of "
-                         f"the window's {win.n} samples and leaves {int(scored.sum())} to "
-                         f"score; both need at least {MIN_SAMPLES}: change the window or "
-                         "--init-window")
     windows = None
     if horizon is not None:
         windows, scored = hz.scored_windows(np.asarray(win.ts), t_init, float(horizon))
     for sensor, y in win.outputs():
         _check_spread(np.asarray(y)[scored], win, t_init, sensor.name)
     warnings: list[str] = []
-    head = win.window(None, t_init)
-    fit_scene = scene
-    if any(n in LOAD_NAMES for n in init_free):
-        # A free load amplitude is the scene's: hand the fit the record's loads as the
-        # scene's (the record's own columns are refused by `_check_init_free`).
-        fit_scene = dataclasses.replace(scene, load=load, torque=torque)
-        head = Data(head.ts, head.phi, source=head.source, channels=head.channels,
-                    sensors=head.sensors, inputs=head.inputs)
-    res = fit(fit_scene, head, free=STATE_NAMES + init_free, progress=progress, warn=False)
+    res = _state_fit(scene, win.window(None, t_init), load, torque, init_free, progress)
     if not res.converged:
         warnings.append(f"the initial-state fit did not converge ({res.message}); the "
                         "prediction starts from its last iterate")
@@ -294,15 +276,8 @@ def validate(
     predicted = {s.name: np.full(win.n, np.nan) for s in sensors}
     info = None
     if windows is None:
-        ts = np.asarray(win.ts)
-        traj = model.simulate(ts, phi0=phi0, dphi0=dphi0, load=load, torque=torque,
-                              outputs=(), throw=False)
-        if not bool(traj.ok):
-            raise RuntimeError(f"the prediction's solve failed ({traj.result}); check the "
-                               "scene's solver settings")
-        for sensor in sensors:
-            h = output(sensor.name, mech, ts, traj.phi, traj.dphi, load, torque)
-            predicted[sensor.name][:] = np.asarray(sensor.measure(np.asarray(h)))
+        _open_loop(model, load, torque, sensors, np.asarray(win.ts), (phi0, dphi0),
+                   predicted)
     else:
         info = hz.predict_windows(scene, mech, load, torque, sensors, win, windows,
                         (float(phi0), float(dphi0)), predicted, warnings)
@@ -319,6 +294,51 @@ def validate(
         channels=scores, predicted_channels=predicted, data_channels=dict(win.outputs_items()),
         horizon=None if horizon is None else float(horizon), windows=info,
         init_values=own or None)
+
+
+def _init_window(scene: Scene, win: Data, load, init_window: float | None) -> float:
+    """The initial-state window's length, s: `init_window`, or about one period (and at
+    least [`MIN_SAMPLES`][] samples) when None. `ValueError` naming `--init-window` where
+    it takes or leaves fewer than [`MIN_SAMPLES`][] samples."""
+    if init_window is None:
+        s = default_init_window(scene, load)
+        init_window = max(s, float(win.ts[min(MIN_SAMPLES, win.n) - 1] - win.ts[0]))
+    elif not (math.isfinite(init_window) and init_window > 0):
+        raise ValueError(f"init_window (--init-window) must be a time > 0 s, got {init_window}")
+    t_init = float(win.ts[0]) + float(init_window)
+    n_init = int(np.sum(win.ts <= t_init))
+    n_scored = int(np.sum(win.ts > t_init))
+    if n_init < MIN_SAMPLES or n_scored < MIN_SAMPLES:
+        raise ValueError(f"init_window (--init-window) = {init_window:g} s takes {n_init} of "
+                         f"the window's {win.n} samples and leaves {n_scored} to "
+                         f"score; both need at least {MIN_SAMPLES}: change the window or "
+                         "--init-window")
+    return float(init_window)
+
+
+def _state_fit(scene: Scene, head: Data, load, torque, init_free: tuple[str, ...],
+               progress: bool):
+    """The fit of the state (and of `init_free`) on the initial-state window `head`."""
+    if any(n in LOAD_NAMES for n in init_free):
+        # A free load amplitude is the scene's: hand the fit the record's loads as the
+        # scene's (the record's own columns are refused by `_check_init_free`).
+        scene = dataclasses.replace(scene, load=load, torque=torque)
+        head = Data(head.ts, head.phi, source=head.source, channels=head.channels,
+                    sensors=head.sensors, inputs=head.inputs)
+    return fit(scene, head, free=STATE_NAMES + init_free, progress=progress, warn=False)
+
+
+def _open_loop(model: Scene, load, torque, sensors, ts: np.ndarray, state, predicted):
+    """Predict every sample of `ts` open loop from `state` (phi0, dphi0) into
+    `predicted[sensor name]`; `RuntimeError` where the solve fails."""
+    traj = model.simulate(ts, phi0=state[0], dphi0=state[1], load=load, torque=torque,
+                          outputs=(), throw=False)
+    if not bool(traj.ok):
+        raise RuntimeError(f"the prediction's solve failed ({traj.result}); check the "
+                           "scene's solver settings")
+    for sensor in sensors:
+        h = output(sensor.name, model.mech, ts, traj.phi, traj.dphi, load, torque)
+        predicted[sensor.name][:] = np.asarray(sensor.measure(np.asarray(h)))
 
 
 def init_free_names(names) -> tuple[str, ...]:

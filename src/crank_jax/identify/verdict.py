@@ -99,82 +99,107 @@ def profile_direction(problem, z_hat, u, se: float, n: int, rss_min: float, wide
     residuals; `rss_min`: `|r|^2` at `z_hat`; `hold` (p, h): directions held fixed in the
     re-fits besides `u` (the exactly flat ones, which the fit holds fixed too: LM crawls
     along them without converging)."""
-    from .optimise import least_squares
-    from .programs import Subspace
-
-    u = np.asarray(u, dtype=float)
-    z_hat = np.asarray(z_hat, dtype=float)
-    # An orthonormal basis of the complement of u and `hold`: every other direction is
-    # re-fitted.
-    held = np.column_stack([u] + ([] if hold is None else [np.asarray(hold, float)]))
-    basis, sv, _ = np.linalg.svd(held, full_matrices=True)
-    B = basis[:, int(np.sum(sv > 1e-12 * sv[0])):]
-    ts, devs, traced, is_open = [0.0], [0.0], True, False
+    trace = _Trace(problem, z_hat, u, hold, n, rss_min, max_steps, tol)
     ends, at_bound = [math.nan, math.nan], [False, False]
-    best = rss_min
-
-    def at(t, w0):
-        import jax.numpy as jnp
-
-        run = least_squares(Subspace(problem, jnp.asarray(z_hat + t * u), jnp.asarray(B)),
-                            w0, max_steps, tol, "", False)
-        return run
-
-    runs = {}
+    traced, is_open = True, False
     for side, sign in ((1, 1.0), (0, -1.0)):
         limit = min(wide, bounds[side])
-        w = np.zeros(B.shape[1])
-        prev_t, prev_d = 0.0, 0.0
-        t = min(1.5 * _Z95 * se, limit) if math.isfinite(se) and se > 0 else limit
+        first = min(1.5 * _Z95 * se, limit) if math.isfinite(se) and se > 0 else limit
+        outcome, walk = trace.walk(sign, first, limit)
+        if outcome == "untraced":
+            traced = False
+            break
+        if outcome == "below":
+            if walk[2] >= bounds[side] and bounds[side] <= wide:
+                ends[side], at_bound[side] = sign * bounds[side], True
+                continue
+            is_open = True
+            break  # one open side is enough: not determined
+        ends[side] = sign * trace.crossing(sign, *walk)
+    if n * math.log(trace.best / rss_min) < -0.1:
+        # A re-fit found a lower cost than the estimate: the fit did not reach its
+        # minimum along u, and nothing here is a profile around the estimate.
+        traced = False
+    order = np.argsort(trace.ts)
+    return DirectionProfile(is_open, traced, ends[0], ends[1], tuple(at_bound),
+                            np.asarray(trace.ts)[order], np.asarray(trace.devs)[order])
+
+
+class _Trace:
+    """The re-fits of one direction's profile: the points `ts`, `devs` traced so far (the
+    estimate's first), each point's re-fitted coordinates, and the lowest `|r|^2` seen."""
+
+    def __init__(self, problem, z_hat, u, hold, n: int, rss_min: float, max_steps: int,
+                 tol: float):
+        self.problem, self.n, self.rss_min = problem, n, rss_min
+        self.max_steps, self.tol = max_steps, tol
+        self.u = np.asarray(u, dtype=float)
+        self.z_hat = np.asarray(z_hat, dtype=float)
+        # An orthonormal basis of the complement of u and `hold`: every other direction
+        # is re-fitted.
+        held = np.column_stack([self.u] + ([] if hold is None else [np.asarray(hold, float)]))
+        basis, sv, _ = np.linalg.svd(held, full_matrices=True)
+        self.B = basis[:, int(np.sum(sv > 1e-12 * sv[0])):]
+        self.ts, self.devs, self.runs, self.best = [0.0], [0.0], {}, rss_min
+
+    def refit(self, t: float, w0: np.ndarray):
+        """The re-fit at offset `t` from `w0` and its deviance (inf where it failed)."""
+        import jax.numpy as jnp
+
+        from .optimise import least_squares
+        from .programs import Subspace
+
+        run = least_squares(Subspace(self.problem, jnp.asarray(self.z_hat + t * self.u),
+                                     jnp.asarray(self.B)), w0, self.max_steps, self.tol,
+                            "", False)
+        d = (self.n * math.log(2.0 * run.cost / self.rss_min) if math.isfinite(run.cost)
+             else math.inf)
+        return run, d
+
+    def walk(self, sign: float, t: float, limit: float):
+        """Outwards on one side from offset `t`, at least doubling, to `limit`, until the
+        deviance passes the threshold. **Returns:** `(outcome, (prev_t, prev_d, t, d))`:
+        `"crossed"` between the last two points, `"below"` (below it up to the last
+        point `t`) or `"untraced"` (a re-fit that did not converge above it)."""
         # At least doubling, and fast enough to reach the limit within the points allowed.
         grow = max(2.0, (limit / t) ** (1.0 / (_MAX_POINTS - 1)))
-        crossed = False
+        w = np.zeros(self.B.shape[1])
+        prev_t, prev_d, d = 0.0, 0.0, 0.0
         for _ in range(_MAX_POINTS):
-            run = at(sign * t, w)
-            d = n * math.log(2.0 * run.cost / rss_min) if math.isfinite(run.cost) else math.inf
-            # A re-fit that did not converge is an upper bound on the profile there: below
-            # the threshold it still shows the profile below it; above, nothing.
+            run, d = self.refit(sign * t, w)
+            # A re-fit that did not converge is an upper bound on the profile there:
+            # below the threshold it still shows the profile below it; above, nothing.
             if not (run.converged or d <= CHI2_95):
-                traced = False
-                break
+                return "untraced", (prev_t, prev_d, t, d)
             w = np.asarray(run.z)
-            best = min(best, 2.0 * run.cost)
-            ts.append(sign * t)
-            devs.append(d)
-            runs[sign * t] = w
+            self._keep(sign * t, d, run)
             if d > CHI2_95:
-                crossed = True
-                break
+                return "crossed", (prev_t, prev_d, t, d)
             prev_t, prev_d = t, d
             if t >= limit:
                 break
             t = min(grow * t, limit)
-        if not traced:
-            break
-        if not crossed:
-            if t >= bounds[side] and bounds[side] <= wide:
-                ends[side], at_bound[side] = sign * bounds[side], True
-            else:
-                is_open = True
-                break  # one open side is enough: not determined
-            continue
-        # One re-fit where sqrt(deviance) interpolates to the threshold's root.
+        return "below", (prev_t, prev_d, t, d)
+
+    def crossing(self, sign: float, prev_t: float, prev_d: float, t: float,
+                 d: float) -> float:
+        """The offset (> 0) where the deviance crosses the threshold between `prev_t` and
+        `t`: one re-fit where `sqrt(deviance)` interpolates to the threshold's root."""
         t_c = _root(prev_t, prev_d, t, d)
-        run = at(sign * t_c, runs.get(sign * prev_t, np.zeros(B.shape[1])))
-        d_c = n * math.log(2.0 * run.cost / rss_min) if math.isfinite(run.cost) else math.inf
+        run, d_c = self.refit(sign * t_c, self.runs.get(sign * prev_t,
+                                                         np.zeros(self.B.shape[1])))
         if run.converged or d_c <= CHI2_95:
-            ts.append(sign * t_c)
-            devs.append(d_c)
+            self.ts.append(sign * t_c)
+            self.devs.append(d_c)
             t_c = (_root(prev_t, prev_d, t_c, d_c) if d_c > CHI2_95
                    else _root(t_c, d_c, t, d))
-        ends[side] = sign * t_c
-    order = np.argsort(ts)
-    if n * math.log(best / rss_min) < -0.1:
-        # A re-fit found a lower cost than the estimate: the fit did not reach its
-        # minimum along u, and nothing here is a profile around the estimate.
-        traced = False
-    return DirectionProfile(is_open, traced, ends[0], ends[1], tuple(at_bound),
-                            np.asarray(ts)[order], np.asarray(devs)[order])
+        return t_c
+
+    def _keep(self, t: float, d: float, run) -> None:
+        self.best = min(self.best, 2.0 * run.cost)
+        self.ts.append(t)
+        self.devs.append(d)
+        self.runs[t] = np.asarray(run.z)
 
 
 def _root(t0, d0, t1, d1) -> float:

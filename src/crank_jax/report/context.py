@@ -123,10 +123,8 @@ def fit_context(res, *, scene=None, command=None, title: str = "") -> dict:
     doc = res.to_json()
     fitted = None
     if scene is not None:
-        from ..scene import fitted_scene
-
         try:
-            fitted = fitted_scene(scene, res)
+            fitted = res.fitted_scene(scene)
         except ValueError:  # a load that cannot take the estimates: show the given scene
             fitted = None
     summary = [("parameters", str(len(res.names))), ("samples", str(doc["n_samples"])),

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import sys
+
 import equinox as eqx
 import numpy as np
 
 from ..model.dynamics import Structure
 from ..runtime.io import atomic_write
 from ..solve.policy import SOLVERS
+from .reductions import TRAJECTORY_OUTPUTS
 
-__all__ = ["SweepResult", "STATUS", "OK", "INVALID", "MAX_STEPS", "FAILED", "NONFINITE"]
+__all__ = ["SweepResult", "Filling", "STATUS", "OK", "INVALID", "MAX_STEPS", "FAILED", "NONFINITE"]
 
 #: Per-sample status codes: `SweepResult.status == i` means `STATUS[i]`.
 STATUS: tuple[str, ...] = ("ok", "invalid", "max_steps", "failed", "nonfinite")
@@ -79,3 +82,58 @@ class SweepResult(eqx.Module):
                       solver_names=np.array(SOLVERS), ts=self.ts, seed=np.int64(self.seed))
         with atomic_write(path, "wb") as f:
             np.savez(f, **arrays)
+
+
+class Filling:
+    """A [`SweepResult`][] being filled chunk by chunk, in the original sample order, and
+    the sweep's progress (a tqdm bar on stderr with `progress`; `callback(done, total)`
+    per chunk)."""
+
+    def __init__(self, plan, progress: bool, callback):
+        n, n_t = plan.n, plan.ts.shape[0]
+        self.out = {k: np.zeros((n, n_t) if k in TRAJECTORY_OUTPUTS else n)
+                    for k in plan.reductions}
+        self.values = {k: np.empty(n) for k in plan.spec.names}
+        self.status = np.full(n, INVALID, np.int8)
+        self.steps = np.zeros(n, np.int64)
+        self.solver_used = np.full(n, -1, np.int8)
+        self.n, self.done, self.callback, self.bar = n, 0, callback, None
+        if progress:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=n, file=sys.stderr, unit="sample", desc="sweep")
+
+    def drawn(self, b0: int, b1: int, drawn: dict, invalid: np.ndarray) -> None:
+        """Samples `b0:b1`'s drawn values; the invalid ones count as done."""
+        for k, v in drawn.items():
+            self.values[k][b0:b1] = v
+        self._advance(int(invalid.sum()))
+
+    def sink(self, b0: int):
+        """What the sweep hands each solved chunk of the block starting at `b0` to:
+        `sink(idx, res, st, ns, solver_index)`, the chunk's sample indices within the
+        block, outputs, status codes, step counts and solver index."""
+        def sink(idx, res, st, ns, solver_index):
+            i = b0 + idx
+            for k, v in res.items():
+                self.out[k][i] = v
+            self.status[i], self.steps[i], self.solver_used[i] = st, ns, solver_index
+            self._advance(idx.size)
+            if self.callback is not None:
+                self.callback(self.done, self.n)
+        return sink
+
+    def _advance(self, k: int) -> None:
+        self.done += k
+        if self.bar is not None:
+            self.bar.update(k)
+
+    def close(self) -> None:
+        """Closes the progress bar."""
+        if self.bar is not None:
+            self.bar.close()
+
+    def result(self, plan) -> SweepResult:
+        """The filled result."""
+        return SweepResult(self.values, self.out, self.status, self.steps, self.solver_used,
+                           plan.ts, plan.structure, plan.seed if plan.random else -1)

@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 from collections.abc import Callable, Mapping, Sequence
 
 import equinox as eqx
@@ -59,7 +58,7 @@ from .collective import gather, on_process_0, same_everywhere
 from .distributions import AbstractDistribution
 from .plan import SORT_BLOCK, VARIABLES, Plan, make_plan
 from .reductions import DEFAULT_OUTPUTS, REDUCTIONS, TRAJECTORY_OUTPUTS, reduce
-from .result import FAILED, INVALID, MAX_STEPS, NONFINITE, OK, STATUS, SweepResult
+from .result import FAILED, MAX_STEPS, NONFINITE, OK, STATUS, Filling, SweepResult
 from .trajectories import TrajectoryStore
 
 diffrax = lazy_import("diffrax")  # imported on first use (see lazy.py)
@@ -303,12 +302,7 @@ def sweep(
 
     **Returns:** a [`SweepResult`][] in the original sample order.
     """
-    for name, where in (("checkpoint", checkpoint), ("save_trajectories", save_trajectories)):
-        # `Path("")` is the working directory: an empty path would scatter a sweep's
-        # files there (the CLI's `--checkpoint ""` included).
-        if where is not None and not os.fspath(where).strip():
-            raise ValueError(f"{name}: the path is empty; give a directory (it is created "
-                             "if missing), or leave it out")
+    _check_paths(checkpoint=checkpoint, save_trajectories=save_trajectories)
     plan = make_plan(scene, samples, outputs, n=n, seed=seed, t1=t1, num_saves=num_saves,
                      solver=solver, chunk_size=chunk_size, sort=sort, max_memory=max_memory)
     n = plan.n
@@ -332,48 +326,28 @@ def sweep(
         if ckpt is not None:
             ckpt.require = store.has if store is not None else None
     block = max(chunk, SORT_BLOCK // chunk * chunk)
-    n_t = plan.ts.shape[0]
-    out = {k: np.zeros((n, n_t) if k in TRAJECTORY_OUTPUTS else n) for k in plan.reductions}
-    values = {k: np.empty(n) for k in plan.spec.names}
-    status = np.full(n, INVALID, np.int8)
-    steps = np.zeros(n, np.int64)
-    solver_used = np.full(n, -1, np.int8)
     consts = (np.asarray(plan.ts), np.asarray(plan.rtol), np.asarray(plan.atol))
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=n, file=sys.stderr, unit="sample", desc="sweep")
-    done = 0
+    results = Filling(plan, progress, callback)
     for b0 in range(0, n, block):
         b1 = min(b0 + block, n)
         drawn, cols, invalid, order = plan.block(b0, b1)
-        for k, v in drawn.items():
-            values[k][b0:b1] = v
-        done += int(invalid.sum())
-        if bar is not None:
-            bar.update(int(invalid.sum()))
-
-        def sink(idx, res, st, ns, solver_index, b0=b0):
-            nonlocal done
-            i = b0 + idx
-            for k, v in res.items():
-                out[k][i] = v
-            status[i], steps[i], solver_used[i] = st, ns, solver_index
-            done += idx.size
-            if bar is not None:
-                bar.update(idx.size)
-            if callback is not None:
-                callback(done, n)
-
-        _run_block(plan, cols, order, chunk, dev, consts, max_steps, sink, ckpt, b0, store,
-                   save_trajectories is not None)
-    if bar is not None:
-        bar.close()
+        results.drawn(b0, b1, drawn, invalid)
+        _run_block(plan, cols, order, chunk, dev, consts, max_steps, results.sink(b0), ckpt,
+                   b0, store, save_trajectories is not None)
+    results.close()
     if store is not None:
         store.finish()
-    return SweepResult(values, out, status, steps, solver_used, plan.ts, plan.structure,
-                       plan.seed if plan.random else -1)
+    return results.result(plan)
+
+
+def _check_paths(**paths) -> None:
+    """`ValueError` naming the argument for an empty directory path."""
+    for name, where in paths.items():
+        # `Path("")` is the working directory: an empty path would scatter a sweep's
+        # files there (the CLI's `--checkpoint ""` included).
+        if where is not None and not os.fspath(where).strip():
+            raise ValueError(f"{name}: the path is empty; give a directory (it is created "
+                             "if missing), or leave it out")
 
 
 def sweep_cost(
