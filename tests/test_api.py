@@ -153,3 +153,19 @@ def test_unknown_names_raise_attribute_error():
             cj.no_such_name  # noqa: B018
         assert not hasattr(cj, "io")  # an internal module, not an attribute
     assert inspect.ismodule(cj.report)  # a namespace, imported on first use
+
+
+def test_importing_the_package_leaves_the_optimisers_unloaded():
+    # `scipy.optimize` (and the scipy.linalg it pulls in) took 0.65 s of a 2.75-s
+    # `import crank_jax` (2026-11-28, 2-core VM), loaded at import by the k-step-ahead
+    # validation although only a fit or a validation runs it: `simulate` and sweeps
+    # never need it.
+    import subprocess
+    import sys
+
+    code = ("import sys, crank_jax; "
+            "print(sorted(m for m in ('scipy.optimize', 'optax', 'jinja2', 'matplotlib') "
+            "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip().splitlines()[-1]
+    assert out == "[]", out
