@@ -133,3 +133,27 @@ def test_bad_solver_and_adjoint_are_one_line_errors():
                        adjoint="backward")
     with pytest.raises(ValueError, match="unknown solver 'rk4'"):
         cj.solve.solver_named("rk4")
+
+
+def test_the_dopri8_tableau_is_diffraxs():
+    # The default solver's tableau is a copy of diffrax's numbers (importing diffrax to
+    # read them cost 0.6-1.0 s of every warm process): bit for bit the same, every run.
+    from crank_jax.solve.erk import as_tableau, dopri8
+
+    assert dopri8().tableau == as_tableau(diffrax.Dopri8.tableau)
+    assert dopri8(True).tableau == as_tableau(diffrax.Dopri8.tableau)
+
+
+def test_the_default_solver_is_made_without_importing_diffrax():
+    # A warm `crank-jax fit` (its programs from the store) runs nothing of diffrax; it
+    # imported diffrax, lineax and optimistix (0.6-1.0 s) only to read the Dopri8 tableau
+    # when the policy made the default solver.
+    import subprocess
+    import sys
+
+    code = ("import sys, crank_jax; from crank_jax.solve.names import solver_named; "
+            "solver_named('dopri8-adaptive').with_loop_stages(); "
+            "print(sorted(m for m in ('diffrax', 'lineax', 'optimistix') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip().splitlines()[-1]
+    assert out == "[]", out

@@ -235,6 +235,8 @@ def rms_error(err, y0, y1, rtol, atol):
 def dopri8(rolled: bool = False) -> FusedERK:
     """Dormand-Prince 8(5,3) (diffrax's tableau) as a [`FusedERK`][]: one object per
     `rolled` (see `FusedERK.rolled`), so that programs keyed on it compile once."""
-    import diffrax
+    # diffrax's numbers, copied (see the module `dopri8_tableau`: reading them from
+    # diffrax imports it, 0.6-1.0 s of a process that needs nothing else of it).
+    from .dopri8_tableau import DOPRI8
 
-    return FusedERK(diffrax.Dopri8.tableau, 8, rolled)
+    return FusedERK(Tableau(**DOPRI8), 8, rolled)
