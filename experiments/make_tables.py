@@ -629,7 +629,28 @@ def _end_to_end(ee) -> list[str]:
             "fit's solver steps those stages in a loop (`loop_stages`: trace 1.0 s, compile "
             "1.7-1.9 s; `experiments/fit_solver_tradeoff.py`) and the no-motion check takes "
             "its F quantile from `scipy.special` (importing `scipy.stats` had cost 1.0 s of "
-            "every fit)."]
+            "every fit).",
+            "", "2026-11-28 (issue 40): `import crank_jax` no longer loads `scipy.optimize` "
+            "(2.75 -> 2.1 s on the slow machine of the table above, medians of 6), and the "
+            "default solver's Dopri8 tableau is diffrax's numbers copied "
+            "(`solve/dopri8_tableau.py`, tested bit for bit against diffrax's): reading "
+            "`diffrax.Dopri8.tableau` imported diffrax, lineax and optimistix, 0.6-1.0 s "
+            "of every warm fit, which runs nothing else of diffrax (a warm `crank-jax fit` "
+            "3.77 -> 3.11 s, medians of 5). What is left of a warm fit (cProfile, 5.0 s "
+            "under the profiler): importing JAX 1.1 s and equinox 0.4 s, `scipy.optimize` "
+            "for MINPACK 0.8 s (0.37 s of it scipy parsing its own docstrings), loading the "
+            "three stored programs 0.5 s, the fit's own work about 1.5 s. Where a cold "
+            "fit's time goes, on the same machine: the multiple-shooting Jacobian takes "
+            "2.6-3.0 s to trace and 4.0-4.5 s to compile, the single-shooting one 1.0-1.5 s "
+            "and 3.4-3.7 s; 2 s of the first trace is JAX's batching interpreter walking the "
+            "solver under the segments' `vmap` (each segment has its own save times, so the "
+            "lockstep rule falls back to a plain `vmap`). Tried and not kept (2026-11-28): "
+            "compiling the two Jacobian programs in two threads (11.25 and 12.27 s in "
+            "sequence, 10.69 and 11.47 s side by side: XLA's compile already uses both "
+            "cores and the traces hold the GIL), and tracing the segment solve once and "
+            "replaying its jaxpr under the `vmap` (the trace under cProfile 5.8 -> 4.7 s: "
+            "the batching of the replayed jaxpr costs what the batching of the traced solve "
+            "did; not worth a second form of the solve)."]
     return out + [""]
 
 
