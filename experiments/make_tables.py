@@ -601,8 +601,9 @@ def _end_to_end(ee) -> list[str]:
            "the fits inside a Python process use XLA's defaults, as a library user's do. "
            "The third column is each time over the scipy script's in the same run: the "
            "machine's speed moves between runs (the scipy script, single-threaded Python, "
-           "took 5.44 s on 2026-11-27 03:27 UTC and 13.18 s on 2026-11-28 09:40 UTC, both "
-           "on this project's 2-core VMs), the ratios much less.",
+           "took 5.44 s on 2026-11-27 03:27 UTC, 13.18 s on 2026-11-28 09:40 UTC and "
+           "9.3-13.3 s within the run of 10:21, all on this project's 2-core VMs), the "
+           "ratios less; a median of three runs still moves by 10-20%.",
            "", "| run | wall time | × the scipy script |", "|---|---|---|"]
     peer = m.get("scipy_peer_s")
     out += [f"| {label} | {m[key]:.2f} s | "
