@@ -50,6 +50,16 @@ def experiment(name: str):
         sys.path.pop(0)
 
 
+def loaded_after(code: str, modules) -> list[str]:
+    """Which of `modules` a fresh interpreter has imported after running `code`."""
+    import subprocess
+
+    probe = f"{code}\nimport sys; print(sorted(m for m in {tuple(modules)!r} if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         check=True).stdout.strip().splitlines()[-1]
+    return ast.literal_eval(out)  # the list the probe printed
+
+
 def random_mech(rng: np.random.Generator, **overrides) -> "cj.SliderCrank":
     """A random valid mechanism with every body present (geometry spans r/L in 0.05..0.9)."""
     r = rng.uniform(0.02, 0.1)

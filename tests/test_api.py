@@ -160,12 +160,7 @@ def test_importing_the_package_leaves_the_optimisers_unloaded():
     # `import crank_jax` (2026-11-28, 2-core VM), loaded at import by the k-step-ahead
     # validation although only a fit or a validation runs it: `simulate` and sweeps
     # never need it.
-    import subprocess
-    import sys
+    from conftest import loaded_after
 
-    code = ("import sys, crank_jax; "
-            "print(sorted(m for m in ('scipy.optimize', 'optax', 'jinja2', 'matplotlib') "
-            "if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True).stdout.strip().splitlines()[-1]
-    assert out == "[]", out
+    assert loaded_after("import crank_jax",
+                        ("scipy.optimize", "optax", "jinja2", "matplotlib")) == []

@@ -148,12 +148,8 @@ def test_the_default_solver_is_made_without_importing_diffrax():
     # A warm `crank-jax fit` (its programs from the store) runs nothing of diffrax; it
     # imported diffrax, lineax and optimistix (0.6-1.0 s) only to read the Dopri8 tableau
     # when the policy made the default solver.
-    import subprocess
-    import sys
+    from conftest import loaded_after
 
-    code = ("import sys, crank_jax; from crank_jax.solve.names import solver_named; "
-            "solver_named('dopri8-adaptive').with_loop_stages(); "
-            "print(sorted(m for m in ('diffrax', 'lineax', 'optimistix') if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True).stdout.strip().splitlines()[-1]
-    assert out == "[]", out
+    made = ("from crank_jax.solve.names import solver_named; "
+            "solver_named('dopri8-adaptive').with_loop_stages()")
+    assert loaded_after(made, ("diffrax", "lineax", "optimistix")) == []
