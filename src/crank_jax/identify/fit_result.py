@@ -141,7 +141,7 @@ class FitResult(NamedTuple):
 
     def fitted_scene(self, scene, record: int = 0, sensors=None):
         """`scene` (the scene the fit started from) with this fit's estimates: see
-        [`fitted_scene`][crank_jax.identify.fitted_scene]."""
+        [`fitted_scene`][crank_jax.identify.fitted.fitted_scene]."""
         from .fitted import fitted_scene
 
         return fitted_scene(scene, self, record, sensors)
