@@ -18,7 +18,9 @@ import jax.numpy as jnp
 def per_step(params: bool = True):
     from crank_jax.solve import adjoint
 
-    def make(full, dd, pack, unpack, window, B, n_state):
+    def make(full, arithmetic, dd, pack, unpack, window, B, n_state):
+        # (`arithmetic`, the field with its trig as arithmetic, is the deferred VJPs'; the
+        # per-step loop takes the field as the forward pass ran it.)
         def outputs(row, tw, dd):
             return adjoint._step_outputs(full(dd), pack, unpack, row, tw, n_state)
 

@@ -76,7 +76,11 @@ def reverse_table() -> list[str]:
                 "whole block."]
     out += ["", f"Goals (issue 40): the crank-jax grad <= {base['goal']['ratio']:g}x under "
             f"the defaults ({_met(base['goal']['met'])}), <= {flags['goal']['ratio']:g}x "
-            f"with the flags ({_met(flags['goal']['met'])}). Its first call (compilation) "
+            f"with the flags ({_met(flags['goal']['met'])}). The ratios move between runs "
+            "on one machine: on 2026-11-28 between 10:44 and 10:50 UTC three runs gave "
+            "2.53x, 3.79x and 3.72x with the flags and 5.01x, 5.55x and 4.52x under the "
+            "defaults (cpu clock; the table is the last), against 2.54x and 4.24x at "
+            "01:57 UTC. Its first call (compilation) "
             f"took {comp}. It agrees with plain diffrax's gradient to "
             f"{base['grad_vs_plain_diffrax_rel']:.1e} (relative to the largest component: "
             "two solutions at the tolerance). Before issue 26 the grad differentiated a "
