@@ -20,7 +20,8 @@ from crank_jax.identify.problem import build_problem, coordinate
 from crank_jax.identify.programs import Subspace, residuals_at
 from crank_jax.identify.start import noise_level
 from crank_jax.identify.strategy import no_motion
-from crank_jax.identify.uncertainty import analyse, fixed_scale_members
+from crank_jax.identify.symmetries import fixed_scale_members
+from crank_jax.identify.uncertainty import analyse
 
 
 @pytest.fixture(scope="module")

@@ -26,10 +26,10 @@ import numpy as np
 
 from .diagnostics import robust_uncertainty
 from .programs import jacobian_at
-from .request import FRICTION_SCALED, LOAD_NAMES, SCALE_GROUP
+from .symmetries import fixed_scale_members, known_directions, name_list
 
 __all__ = ["Uncertainty", "analyse", "assess", "undefined", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
-           "scale_message", "sample_rows", "inflate", "misfit", "fixed_scale_members"]
+           "sample_rows", "inflate", "misfit"]
 
 #: Two-sided 95% quantile of the standard normal distribution.
 Z95 = 1.959963984540054
@@ -76,18 +76,6 @@ class Uncertainty(NamedTuple):
     likelihood to confirm (`verdict.check`)."""
 
 
-def _name_list(names: Sequence[str]) -> str:
-    names = list(names)
-    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
-
-
-def scale_message(names: Sequence[str]) -> str:
-    """The sentence for the common-scale direction, e.g. "m_c, m_p, m_s, I_c, I_p, k and c
-    are determined only up to a common scale: fix one of them or supply a known load"."""
-    return (f"{_name_list(names)} are determined only up to a common scale: fix one of them "
-            "or supply a known load")
-
-
 def _term(name: str, coef: float, log: bool) -> str:
     sign = "-" if coef < 0 else "+"
     return f"{sign} {abs(coef):.2f} {'ln ' + name if log else name}"
@@ -122,7 +110,9 @@ def analyse(
     - `folded` (p,): parameters that are `>= 0`, fitted in linear coordinates from 0 (see
       `problem.folded`): their interval is the linear one cut at 0.
     - `fixed_scale`: fixed parameters and loads that take part in the common scale and are
-      not zero (see [`fixed_scale_members`][]): when there is one, no common scale exists.
+      not zero (see
+      [`fixed_scale_members`][crank_jax.identify.symmetries.fixed_scale_members]): when
+      there is one, no common scale exists.
     - `closed`: unit vectors of z along which the profile likelihood closes
       ([`verdict.check`][crank_jax.identify.verdict.check]): a weak direction along one
       of them is determined after all, and is not flagged.
@@ -150,7 +140,7 @@ def analyse(
     weak &= np.array([confirmed(V[:, i]) for i in range(V.shape[1])], dtype=bool)
     flagged = numeric_null | weak
 
-    known = _known_directions(names, values, log, ref, geometry, fixed_scale)
+    known = known_directions(names, values, log, ref, geometry, fixed_scale)
     directions, Vf, candidates = _named(J, V, flagged, weak, se_dir, sigma, s_max, known,
                                         names, log, confirmed)
     affected = (np.linalg.norm(Vf, axis=1) > _AFFECTED) if Vf.size else np.zeros(p, bool)
@@ -221,85 +211,6 @@ def _intervals(values, se_z, log, ref, folded) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def fixed_scale_members(base, names: Sequence[str], loads) -> list[str]:
-    """The members of the common scale that are fixed and not zero: mechanism fields of
-    the scale group (and friction) not in `names` with a non-zero value in `base` (a
-    `SliderCrank`), and each record's load or torque with a non-zero part that is not free
-    (`loads`: `(load, torque)` per record). Any one of them fixes the scale."""
-    out = [n for n in SCALE_GROUP + FRICTION_SCALED
-           if n not in names and np.any(np.asarray(getattr(base, n)) != 0)]
-    free_roles = {LOAD_NAMES[n] for n in names if n in LOAD_NAMES}
-    for i, pair in enumerate(loads):
-        for side, obj in zip(("load", "torque"), pair):
-            label = ("P" if side == "load" else "tau") + (f" of record {i}" if i else "")
-            if _fixed_part(obj, side, free_roles) and label not in out:
-                out.append(label)
-    return out
-
-
-def _fixed_part(load, side: str, free_roles) -> bool:
-    """True when `load` has a non-zero part that is not free: a mean or amplitude that is
-    not free, a multisine's amplitudes, a sampled record."""
-    from ..model.loads import SampledLoad, get_param, load_kind
-
-    kind = load_kind(load)
-    if isinstance(load, SampledLoad):
-        return bool(np.any(np.asarray(load.values) != 0))
-    for role in ("mean", "amp", "gain"):
-        v = get_param(load, role) if role in kind.fields else None
-        if v is not None and np.any(np.asarray(v) != 0) and (side, role) not in free_roles:
-            return True
-    return any(a == "amplitudes" and np.any(np.asarray(getattr(load, a)) != 0)
-               for a in kind.arrays)
-
-
-def _known_directions(names, values, log, ref, geometry, fixed_scale=()
-                      ) -> list[tuple[np.ndarray, str]]:
-    """Unit vectors in z of the structural symmetries whose members are all free (and,
-    for the common scale, whose fixed members are all zero: `fixed_scale` is empty)."""
-    p = len(names)
-    idx = {n: i for i, n in enumerate(names)}
-    out = []
-
-    def vector(dv: dict[str, float]) -> np.ndarray | None:
-        u = np.zeros(p)
-        for n, d in dv.items():
-            if d == 0.0:
-                continue
-            if n not in idx:
-                return None  # a member this direction needs is fixed: no symmetry
-            i = idx[n]
-            u[i] = d / values[i] if log[i] else d / ref[i]
-        norm = np.linalg.norm(u)
-        return u / norm if norm > 0 else None
-
-    # 1. Common scale: every mass, inertia, k, c and load amplitude times one factor.
-    group = [n for n in names if n in SCALE_GROUP or n in LOAD_NAMES or n in FRICTION_SCALED]
-    u = vector({n: values[idx[n]] for n in group}) if group and not fixed_scale else None
-    if u is not None:
-        out.append((u, scale_message(group)))
-    # 2. The coupler is dynamically equivalent to point masses m_p (1 - b/L) at A and
-    #    m_p b/L at B plus an inertia I_p - m_p b (L - b) about its centre of mass. So one
-    #    more kg of coupler can be undone by the crank (mass at radius r), the slider and
-    #    I_p: a second exact symmetry when m_c, I_c, m_s, I_p and m_p are all free.
-    if geometry is not None and "m_p" in idx:
-        r, L, b, s = (geometry[k] for k in ("r", "L", "b", "s"))
-        a = 1 - b / L
-        dm_c = -a * r / s if s > 0 else 0.0
-        dv = {"m_p": 1.0, "m_s": -b / L, "I_p": b * (L - b), "m_c": dm_c,
-              "I_c": -a * r * r - dm_c * s * s}
-        if s == 0 and a != 0:
-            dv = {}  # the crank cannot absorb the coupler's weight without an offset s
-        u = vector(dv) if dv else None
-        if u is not None:
-            members = [n for n in ("m_p", "m_c", "I_c", "m_s", "I_p") if dv.get(n, 0) != 0]
-            out.append((u, f"{_name_list(members)} are not separately determined: a coupler "
-                           "moves like point masses at its two joints plus an inertia, so "
-                           f"m_p trades against {_name_list(members[1:])}: fix one of them "
-                           "(e.g. weigh the coupler)"))
-    return out
-
-
 def _describe(Vf: np.ndarray, names, log, se_dir, out: list[str]) -> None:
     """Append one sentence for the unidentifiable subspace spanned by the columns of Vf."""
     if Vf.size == 0:
@@ -313,14 +224,14 @@ def _describe(Vf: np.ndarray, names, log, se_dir, out: list[str]) -> None:
         order = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) > _AFFECTED]
         combo = " ".join(_term(names[i], v[i], bool(log[i])) for i in order).lstrip("+ ")
         out.append(f"the combination {combo} is not determined by the data: fix one of "
-                   f"{_name_list(involved)}, or make the experiment richer (a larger amplitude, "
+                   f"{name_list(involved)}, or make the experiment richer (a larger amplitude, "
                    "a known load)")
     elif len(involved) <= d:
-        out.append(f"none of {_name_list(involved)} is determined by the data, alone or in "
+        out.append(f"none of {name_list(involved)} is determined by the data, alone or in "
                    "combination: fix them, or make the experiment richer (a larger "
                    "amplitude, a known load)")
     else:
-        out.append(f"{_name_list(involved)} enter the data only through "
+        out.append(f"{name_list(involved)} enter the data only through "
                    f"{max(len(involved) - d, 0)} combinations ({d} directions are not "
                    f"determined): fix {d} of them, or make the "
                    "experiment richer (a larger amplitude, a known load)")
