@@ -39,8 +39,9 @@ def _package(path: Path) -> str:
 
 
 def _imports(path: Path) -> list[tuple[str, list[str]]]:
-    """(absolute module, imported names) for every intra-package import, at any depth (a
-    function-level import too: a lazy import is an import)."""
+    """(absolute module, imported names) for every import of crank-jax (relative ones
+    resolved), at any depth (a function-level import too: a lazy import is an import):
+    a module's of the package, or an experiment's."""
     out = []
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.Import):
@@ -276,15 +277,6 @@ EXPERIMENT_INTERNALS = {
 }
 
 
-def _experiment_imports(path: Path):
-    """(module, names) of every `crank_jax` import of an experiment, at any depth."""
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("crank_jax"):
-            yield node.module, [a.name for a in node.names]
-        elif isinstance(node, ast.Import):
-            yield from ((a.name, []) for a in node.names if a.name.startswith("crank_jax"))
-
-
 def test_every_experiment_imports_what_exists():
     # experiments/reverse_chunks.py imported `crank_jax.xla_flags`, gone since the
     # runtime moved into `runtime/`: the script could not start, and nothing ran it.
@@ -292,7 +284,7 @@ def test_every_experiment_imports_what_exists():
 
     missing = []
     for path in EXPERIMENTS:
-        for mod, names in _experiment_imports(path):
+        for mod, names in _imports(path):
             try:
                 m = importlib.import_module(mod)
             except ImportError:
@@ -317,7 +309,7 @@ def test_experiments_import_the_public_api_or_a_listed_internal():
 
     breaches = set()
     for path in EXPERIMENTS:
-        for mod, names in _experiment_imports(path):
+        for mod, names in _imports(path):
             if mod == "crank_jax":
                 continue
             public = set(getattr(importlib.import_module(mod), "__all__", ()))

@@ -20,6 +20,11 @@ class Step(NamedTuple):
     se: np.ndarray  # (p,) standard errors at the noise level (inf: flat)
     decrease: float  # the cost decrease the linearisation predicts, 0.5 |J dw|^2
 
+    @property
+    def largest(self) -> float:
+        """The step's largest move of a coordinate over its standard error."""
+        return float(np.max(np.abs(self.dz) / self.se, initial=0.0))
+
 
 def gauss_newton(model, w: np.ndarray, r: np.ndarray, J: np.ndarray,
                   noise: float) -> Step:

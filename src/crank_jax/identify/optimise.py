@@ -178,15 +178,27 @@ class _Evaluations:
             # the same sigma, the first bounds the second by Cauchy-Schwarz: the second is
             # the one that binds). MINPACK's own tests look at the damped step or the cost
             # change, which are small also where LM crawls with a large damping.
-            unit = self._unit(self.r.shape[0])[0]
-            gn = gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
-            largest = float(np.max(np.abs(gn.dz) / gn.se, initial=0.0))
-            z = np.asarray(self.model.lift(self.w))
-            stop = (self._converged_stop(gn, largest, z) or self._bound_stop(gn, largest, z)
-                    or self._window_stop(gn, largest) or self._budget_stop(gn, largest))
+            gn, z = self._step_here()
+            stop = (self._converged_stop(gn, z) or self._bound_stop(gn, z)
+                    or self._window_stop(gn) or self._budget_stop(gn))
         if stop is not None:
             raise stop
         return self.J
+
+    def _step_here(self) -> tuple[Step, np.ndarray]:
+        """The Gauss-Newton step at the current point (standard errors at the noise level,
+        or at the rms residual without one) and the point in the problem's coordinates."""
+        unit = self._unit(self.r.shape[0])[0]
+        gn = gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
+        return gn, np.asarray(self.model.lift(self.w))
+
+    def _converged(self, words: str, gn: Step, fell: float | None) -> _Stop:
+        """The stop of a converged run, `words` its verdict in words."""
+        unit = self._unit(self.r.shape[0])[0]
+        return _Stop(True, "converged", termination(
+            "converged", words, predicted_decrease=gn.decrease / unit,
+            largest_step=gn.largest,
+            falling_per_iteration=None if fell is None else fell / unit, noise=self.noise))
 
     def _fell(self) -> float:
         """The best cost's fall per iteration over the stall window (or the iterations so
@@ -207,24 +219,22 @@ class _Evaluations:
             return _Stop(False, failed_message(self.failed))
         return None
 
-    def _converged_stop(self, gn: Step, largest: float, z: np.ndarray) -> _Stop | None:
+    def _converged_stop(self, gn: Step, z: np.ndarray) -> _Stop | None:
         """Converged in the data's units (see `jacobian`), or, whatever the noise, the
         step below `tol + tol |z|` in every coordinate of the problem (`z`, not the
         view's `w`: a subspace's `w` is the offset from its start, near 0), for records
         with no noise."""
         unit, uname = self._unit(self.r.shape[0])
         in_units = (self.noise is not None and gn.decrease <= DECREASE_FRACTION * unit
-                    and largest <= STEP_FRACTION)
+                    and gn.largest <= STEP_FRACTION)
         if not (in_units or np.all(np.abs(gn.dz) <= self.tol + self.tol * np.abs(z))):
             return None
-        words = (f"converged: the Gauss-Newton step predicts a cost decrease of "
-                 f"{gn.decrease / unit:.2g} {uname} and moves no coordinate by more "
-                 f"than {largest:.2g} of its standard error")
-        return _Stop(True, "converged", termination(
-            "converged", words, predicted_decrease=gn.decrease / unit, largest_step=largest,
-            falling_per_iteration=self._fell() / unit, noise=self.noise))
+        return self._converged(f"converged: the Gauss-Newton step predicts a cost decrease "
+                               f"of {gn.decrease / unit:.2g} {uname} and moves no coordinate "
+                               f"by more than {gn.largest:.2g} of its standard error", gn,
+                               self._fell())
 
-    def _bound_stop(self, gn: Step, largest: float, z: np.ndarray) -> _Stop | None:
+    def _bound_stop(self, gn: Step, z: np.ndarray) -> _Stop | None:
         """With `at_bounds`: the stop of a run whose folded parameter has sat at its bound
         for [`BOUND_STEPS`][] iterations (see `_at_bound`)."""
         if not self.at_bounds:
@@ -233,9 +243,9 @@ class _Evaluations:
         self.pressing = self.pressing + 1 if pressed else 0
         if self.pressing < BOUND_STEPS:
             return None
-        return self._at_bound(pressed, gn, largest, self._fell())
+        return self._at_bound(pressed, gn, self._fell())
 
-    def _window_stop(self, gn: Step, largest: float) -> _Stop | None:
+    def _window_stop(self, gn: Step) -> _Stop | None:
         """The stall window: a run whose best cost has fallen by less than
         [`STALL_DECREASE`][] `sigma^2` over [`STALL_STEPS`][] iterations (without a noise
         level, by less than 0.01 of the rms residual's square) has converged where the
@@ -250,17 +260,14 @@ class _Evaluations:
             # stand-in's run released from its bound ended at the best minimum "stalled"
             # with 1.4e-4 sigma^2 left to gain, and the fit reported a worse point that
             # had converged).
-            words = (f"converged: the cost fell by {(h[0] - h[-1]) / unit:.2g} {uname} over "
-                     f"the last {STALL_STEPS} iterations and the Gauss-Newton step predicts "
-                     f"{gn.decrease / unit:.2g} {uname} more, moving no coordinate by more "
-                     f"than {largest:.2g} of its standard error")
-            return _Stop(True, "converged", termination(
-                "converged", words, predicted_decrease=gn.decrease / unit,
-                largest_step=largest, falling_per_iteration=self._fell() / unit,
-                noise=self.noise))
-        return self._stalled(gn, largest, h[0] - h[-1], STALL_STEPS)
+            return self._converged(
+                f"converged: the cost fell by {(h[0] - h[-1]) / unit:.2g} {uname} over the "
+                f"last {STALL_STEPS} iterations and the Gauss-Newton step predicts "
+                f"{gn.decrease / unit:.2g} {uname} more, moving no coordinate by more than "
+                f"{gn.largest:.2g} of its standard error", gn, self._fell())
+        return self._stalled(gn, h[0] - h[-1], STALL_STEPS)
 
-    def _budget_stop(self, gn: Step, largest: float) -> _Stop | None:
+    def _budget_stop(self, gn: Step) -> _Stop | None:
         """The iteration budget spent, with how fast the cost still falls."""
         if self.iterations <= self.max_steps:
             return None
@@ -271,7 +278,7 @@ class _Evaluations:
         message = budget_spent(self.max_steps, per, uname)
         return _Stop(False, message, termination(
             "budget", "budget spent: " + message, predicted_decrease=gn.decrease / unit,
-            largest_step=largest, falling_per_iteration=per, noise=self.noise))
+            largest_step=gn.largest, falling_per_iteration=per, noise=self.noise))
 
     def _pressed(self, z: np.ndarray) -> list[str]:
         """The folded parameters (`value = ref |z|`, see `problem.folded`) at their bound 0
@@ -284,7 +291,7 @@ class _Evaluations:
         moves = np.linalg.norm(self.model.restrict(np.eye(z.shape[0]), self.w), axis=1) > 1e-9
         return [pr.names[i] for i in at0 if moves[i]]
 
-    def _at_bound(self, pressed: list[str], gn: Step, largest: float, fell: float) -> _Stop:
+    def _at_bound(self, pressed: list[str], gn: Step, fell: float) -> _Stop:
         """The stop of a run that has sat on a bound for [`BOUND_STEPS`][] iterations,
         short of the Gauss-Newton test. The cost has a kink there in the folded
         coordinate: LM's steps across it are reflected, its damping grows, and it crawls
@@ -299,11 +306,11 @@ class _Evaluations:
                  f"while the Gauss-Newton step predicts {gn.decrease / unit:.3g} {uname} "
                  "more; to be held there while the others are fitted")
         return _Stop(False, f"stalled at the bound {along} = 0", termination(
-            "stalled", words, predicted_decrease=gn.decrease / unit, largest_step=largest,
-            falling_per_iteration=fell / unit if math.isfinite(fell) else None,
+            "stalled", words, predicted_decrease=gn.decrease / unit,
+            largest_step=gn.largest, falling_per_iteration=fell / unit,
             direction=f"{along} at its bound 0", noise=self.noise))
 
-    def _stalled(self, gn: Step, largest: float, fell: float, steps: int) -> _Stop:
+    def _stalled(self, gn: Step, fell: float, steps: int) -> _Stop:
         """The stop of a run whose cost fell by only `fell` over its last `steps`
         iterations while the Gauss-Newton step `gn` predicts more: along the direction
         of that step (a curved valley or a ridge)."""
@@ -316,8 +323,9 @@ class _Evaluations:
                  f"{gn.decrease / unit:.3g} {uname} more (a curved valley or a ridge in "
                  "that combination)")
         return _Stop(converged, message, termination(
-            "stalled", words, predicted_decrease=gn.decrease / unit, largest_step=largest,
-            falling_per_iteration=fell / steps / unit, direction=along, noise=self.noise))
+            "stalled", words, predicted_decrease=gn.decrease / unit,
+            largest_step=gn.largest, falling_per_iteration=fell / steps / unit,
+            direction=along, noise=self.noise))
 
     def at_end(self) -> _Stop:
         """The verdict where MINPACK stopped by itself (no further progress at machine
@@ -325,23 +333,19 @@ class _Evaluations:
         step is small in the data's units (or relative to `tol`), else a stall."""
         self._at(self.best_w)
         unit, uname = self._unit(self.r.shape[0])
-        gn = gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
-        z = np.asarray(self.model.lift(self.w))
-        largest = float(np.max(np.abs(gn.dz) / gn.se, initial=0.0))
+        gn, z = self._step_here()
         # MINPACK found no step that lowers the cost at machine precision (the solve's
         # own rounding, near a minimum). What the linearisation still promises counts as
         # nothing when it is below what the stall test would notice.
         if (gn.decrease <= (STALL_DECREASE if self.noise else DECREASE_FRACTION) * unit
                 or np.all(np.abs(gn.dz) <= self.tol + self.tol * np.abs(z))):
-            return _Stop(True, "converged", termination(
-                "converged", "converged: no further progress at machine precision, the "
-                f"Gauss-Newton step predicting a cost decrease of {gn.decrease / unit:.2g} "
-                f"{uname} and moving no coordinate by more than {largest:.2g} of its "
-                "standard error", predicted_decrease=gn.decrease / unit,
-                largest_step=largest, noise=self.noise))
+            return self._converged(
+                "converged: no further progress at machine precision, the Gauss-Newton "
+                f"step predicting a cost decrease of {gn.decrease / unit:.2g} {uname} and "
+                f"moving no coordinate by more than {gn.largest:.2g} of its standard error",
+                gn, None)
         seen = [c for c in self.history if math.isfinite(c)]
-        return self._stalled(gn, largest, seen[0] - seen[-1] if seen else 0.0,
-                             max(len(seen) - 1, 1))
+        return self._stalled(gn, seen[0] - seen[-1] if seen else 0.0, max(len(seen) - 1, 1))
 
     def _stall(self, cost: float, n: int) -> tuple[bool, str]:
         """(converged, message) of a run whose best cost has stopped falling."""

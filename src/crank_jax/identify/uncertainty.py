@@ -181,15 +181,15 @@ def _named(J, V, flagged, weak, se_dir, sigma, s_max, known, names, log, confirm
             found.append(u)
             if not exact:
                 candidates.append((u, sigma / gain))
-    in_known = (np.linalg.qr(np.column_stack(found))[0] if found else np.zeros((p, 0)))
+    # An orthonormal basis of the named directions found.
+    Q = np.linalg.qr(np.column_stack(found))[0] if found else np.zeros((p, 0))
     for i in np.flatnonzero(weak):
         # A weak singular direction not (mostly) one of the named symmetries.
-        if np.linalg.norm(in_known.T @ V[:, i]) < _SAME_DIRECTION:
+        if np.linalg.norm(Q.T @ V[:, i]) < _SAME_DIRECTION:
             candidates.append((V[:, i], float(se_dir[i])))
     if not found:
         _describe(Vf, names, log, se_dir, directions)
         return directions, Vf, candidates
-    Q, _ = np.linalg.qr(np.column_stack(found))
     rest = Vf - Q @ (Q.T @ Vf)
     if rest.size:
         ur, sr, _ = np.linalg.svd(rest, full_matrices=False)

@@ -90,6 +90,7 @@ class Filling:
     per chunk)."""
 
     def __init__(self, plan, progress: bool, callback):
+        self.plan = plan
         n, n_t = plan.n, plan.ts.shape[0]
         self.out = {k: np.zeros((n, n_t) if k in TRAJECTORY_OUTPUTS else n)
                     for k in plan.reductions}
@@ -133,7 +134,8 @@ class Filling:
         if self.bar is not None:
             self.bar.close()
 
-    def result(self, plan) -> SweepResult:
+    def result(self) -> SweepResult:
         """The filled result."""
+        plan = self.plan
         return SweepResult(self.values, self.out, self.status, self.steps, self.solver_used,
                            plan.ts, plan.structure, plan.seed if plan.random else -1)

@@ -337,7 +337,7 @@ def sweep(
     results.close()
     if store is not None:
         store.finish()
-    return results.result(plan)
+    return results.result()
 
 
 def _check_paths(**paths) -> None:
