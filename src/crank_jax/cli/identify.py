@@ -350,13 +350,14 @@ def _write_scene(res, a: argparse.Namespace) -> None:
     first record's fitted initial state and per-record values; with `--per-record`, one
     scene per record (see `_record_scenes`), each a scene `synth`, `fit` and `validate`
     take. Written atomically, never over an input."""
+    from ..identify.fitted import fitted_scene
     from ..scene import save_scene
 
     paths = _record_scenes(a)
     for i, path in enumerate(paths):
         read = getattr(a, "record_sensors", None)  # what record i was read through
-        save_scene(res.fitted_scene(a.fitted_scene, record=i,
-                                    sensors=read[i] if read else None), path)
+        save_scene(fitted_scene(a.fitted_scene, res, record=i,
+                                sensors=read[i] if read else None), path)
         if i:
             print(f"wrote {path} (record {i}'s fitted scene)", file=sys.stderr)
 
