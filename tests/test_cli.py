@@ -110,8 +110,10 @@ def test_console_script_entry_point(tmp_path):
 def _commands():
     from crank_jax.cli import identify, sweep
     from crank_jax.cli import simulate_command as simulate
+    from crank_jax.cli import synth_command as synth
 
-    return [c[0] for c in simulate.COMMANDS + identify.COMMANDS + sweep.COMMANDS]
+    return [c[0] for c in simulate.COMMANDS + synth.COMMANDS + identify.COMMANDS
+            + sweep.COMMANDS]
 
 
 @pytest.mark.parametrize("argv", [["--help"]] + [[c, "--help"] for c in _commands()])

@@ -14,9 +14,10 @@ import crank_jax as cj
 from crank_jax.cli import main
 from crank_jax.cli.identify import demo_data
 from crank_jax.identify.attempt import best_run as _best
+from crank_jax.identify.coordinates import coordinate
 from crank_jax.identify.optimise import least_squares
 from crank_jax.identify.outcome import Run
-from crank_jax.identify.problem import build_problem, coordinate
+from crank_jax.identify.problem import build_problem
 from crank_jax.identify.programs import Subspace, residuals_at
 from crank_jax.identify.start import noise_level
 from crank_jax.identify.strategy import no_motion

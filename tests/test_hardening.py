@@ -18,6 +18,7 @@ import pytest
 import crank_jax as cj
 import crank_jax.cli.simulate_command as cli_simulate
 import crank_jax.records.data as cj_data
+import crank_jax.records.table as cj_table
 import crank_jax.runtime.io as cj_io
 import crank_jax.scene as cj_scene
 from crank_jax.cli import main
@@ -229,7 +230,7 @@ def test_header_that_is_data_says_so(tmp_path):
 
 
 def test_record_too_long_refused(tmp_path, monkeypatch):
-    monkeypatch.setattr(cj_data, "MAX_RECORD_SAMPLES", 10)
+    monkeypatch.setattr(cj_table, "MAX_RECORD_SAMPLES", 10)
     p = tmp_path / "d.csv"
     p.write_text("t,phi\n" + "".join(f"{i},0\n" for i in range(11)))
     with pytest.raises(cj.DataError, match="more than 10 samples"):

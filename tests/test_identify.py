@@ -13,7 +13,8 @@ import pytest
 import crank_jax as cj
 from crank_jax.cli.identify import DEMO, demo_data
 from crank_jax.identify import fit_plan as plan_module
-from crank_jax.identify.problem import build_problem, coordinate
+from crank_jax.identify.coordinates import coordinate
+from crank_jax.identify.problem import build_problem
 from crank_jax.identify.start import observed_period, smooth_derivatives
 
 

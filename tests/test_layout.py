@@ -1,8 +1,8 @@
 """The package's layout rules (issue 7's measured proxies; issue 39's architecture),
 checked on the source text.
 
-No function longer than 80 lines (60 in `solve/`, issue 26; docstring excluded), no module
-longer than 450 lines, no import cycle between the package's modules nor between its
+No function longer than 60 lines (docstring excluded), no module longer than 400 lines
+(issue 39's guides), no import cycle between the package's modules nor between its
 subpackages (function-level imports included), no underscore-private name imported from
 another module of the package. The architecture (docs/guide/architecture.md): the core,
 `model/` and `solve/`, imports nothing outside itself (no runtime, records, fit, sweep,
@@ -23,7 +23,10 @@ MODULES = sorted(SRC.rglob("*.py"))
 # the last eight longer ones were split into named steps; the solver core, which a
 # newcomer should follow in one sitting, had 60 since issue 26).
 MAX_FUNCTION_LINES = 60
-MAX_MODULE_LINES = 450
+# Issue 39's guide for every module (450 until 2026-11-28, when the last seven longer ones
+# gave a part with its own job a module: coordinates, the blocks' stage adjoint, the dense
+# output, the text table, the validation figure, `synth`, the progress bar).
+MAX_MODULE_LINES = 400
 
 
 def _name(path: Path) -> str:

@@ -36,6 +36,9 @@ from . import (
     simulate_command as simulate,
 )
 from . import (
+    synth_command as synth,
+)
+from . import (
     validate_command as validate,
 )
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
@@ -73,8 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help=f"show the traceback of any error (also: {ENV_DEBUG}=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
-    for name, help_, add, run in (simulate.COMMANDS + identify.COMMANDS + sweep.COMMANDS
-                               + validate.COMMANDS + bayes.COMMANDS + vibration.COMMANDS):
+    for name, help_, add, run in (simulate.COMMANDS + synth.COMMANDS + identify.COMMANDS
+                               + sweep.COMMANDS + validate.COMMANDS + bayes.COMMANDS
+                               + vibration.COMMANDS):
         p = sub.add_parser(name, help=help_, description=help_)
         add(p)
         p.set_defaults(_run=run)

@@ -82,7 +82,8 @@ def _read(a: argparse.Namespace, scene):
 
 
 def _validate_run(a: argparse.Namespace) -> int:
-    from ..identify.validation import plot_validation, validate
+    from ..identify.validation import validate
+    from ..report.validation_plot import plot_validation
     from ..runtime.io import atomic_write, check_figure_format, check_input, check_output
     from ..scene import load_scene
 

@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..runtime.lazy import lazy_import
-from .optimise import evaluate, progress_bar
+from ..runtime.progress import progress_bar
+from .optimise import evaluate
 from .outcome import Run, budget_spent
 
 # Imported on first use (see lazy.py): only the optax method needs it.

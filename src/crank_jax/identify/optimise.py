@@ -11,17 +11,17 @@ and progress is shown after every iteration.
 from __future__ import annotations
 
 import math
-import sys
 
 import jax.numpy as jnp
 import numpy as np
 
+from ..runtime.progress import progress_bar
 from .gauss_newton import Step, direction, gauss_newton
 from .outcome import Run, budget_spent, failed_message, stalled_message, termination
 from .programs import jacobian_at, residuals_at
 from .strategy import AT_ZERO, FAR_FROM_NOISE
 
-__all__ = ["least_squares", "evaluate", "STALL_STEPS", "progress_bar",
+__all__ = ["least_squares", "evaluate", "STALL_STEPS",
            "DECREASE_FRACTION", "STEP_FRACTION", "STALL_DECREASE", "BOUND_STEPS"]
 
 #: The stall test looks this many iterations back (see `_Evaluations`).
@@ -39,34 +39,6 @@ STALL_DECREASE = 1e-2
 #: A run with `at_bounds` stops once a folded parameter has sat at its bound 0 (within
 #: `AT_ZERO`) this many iterations in a row without the run converging.
 BOUND_STEPS = 3
-
-
-class _NoBar:
-    """What `progress_bar` returns when there is no progress to show."""
-
-    n = 0
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-    def update(self, n=1):
-        pass
-
-    def set_postfix(self, *args, **kwargs):
-        pass
-
-
-def progress_bar(total: int, desc: str, progress: bool):
-    """A tqdm bar on stderr, or a silent stand-in when not `progress` (tqdm is imported
-    only for a bar that shows: 0.1-0.3 s of a warm CLI fit otherwise)."""
-    if not progress:
-        return _NoBar()
-    from tqdm import tqdm  # the text bar: it works in terminals, logs and notebooks
-
-    return tqdm(total=total, desc=desc, file=sys.stderr, leave=False, dynamic_ncols=True)
 
 
 def evaluate(problem, z) -> tuple[float, int]:

@@ -1,22 +1,8 @@
 """The least-squares problem behind [`fit`][]: free parameters, their coordinates, and the
 residual function (single or multiple shooting, one or several records).
 
-Coordinates `z` (what the optimisers see, all O(1)), chosen per name by
-[`coordinate`][]:
-
-- a mechanism field that cannot be negative and starts positive is fitted as
-  `z = ln(value)`: a step in `z` is a relative change, positivity needs no constraint,
-  and the columns of the Jacobian are the sensitivities *scaled by the parameter values*
-  that the identifiability analysis needs;
-- a field that cannot be negative and starts at 0 (an absent body's mass), and the
-  friction terms `T_c`, `c_s`, `F_s` whatever their start, are *folded*:
-  `value = ref |z|`. It stays valid whatever step the optimiser takes (a step below 0
-  is reflected), its sensitivity at the start is not zero (as it would be for `z^2` or
-  a softplus at its floor), and a value whose truth is 0 converges near 0 (see
-  `uncertainty` for its interval, cut at 0);
-- everything else (a signed field such as the offset `e`, the initial states and load
-  amplitudes) is linear: `z = value / ref`, with `ref` a typical magnitude (the start
-  value, the record's angle amplitude, that times the natural frequency).
+Coordinates `z` (what the optimisers see, all O(1)) are chosen per name in
+[`coordinates`][crank_jax.identify.coordinates]: log, folded or linear.
 
 Every trial point is also checked against the mechanism's validation rules (e.g.
 `b <= L`, `L > r + |e|`) inside the compiled residuals: a point outside them counts as a
@@ -49,76 +35,19 @@ from ..simulation import linearize
 from ..solve import AbstractAdjoint, AbstractSolver, AdaptiveDopri8, ForwardSensitivities
 from ..solve.policy import is_concrete, resolve_solver
 from ..solve.trajectory import solve_crank
+from .coordinates import coordinates, fold
 from .measurement import calibration, channel_errors, fitted_channels
-from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS, record_mech
+from .request import LOAD_NAMES, record_mech
 from .segments import Experiment, make_segments, padded_load
 from .userforce import PREFIX, with_force_values
 
-__all__ = ["Problem", "Experiment", "build_problem", "coordinate", "folded",
-           "natural_period", "linear_frequency", "pick_solver"]
+__all__ = ["Problem", "Experiment", "build_problem", "natural_period", "linear_frequency",
+           "pick_solver"]
 
 # A failed solve gives NaN samples; a large finite residual instead makes the trust
 # region reject that step, where a NaN could poison the linear algebra.
 _FAILED_RESIDUAL = 10.0
-# Linear scale of a mechanism field that starts at 0 (a friction coefficient, an offset
-# in units of r): the optimiser's first steps are O(1) in z.
-_ZERO_START_REF = 1e-3
 _TINY = 1e-9
-
-
-def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None = None
-               ) -> tuple[bool, float]:
-    """`(log, ref)` of a global free name: log coordinates for a mechanism field that
-    cannot be negative and starts positive (but for the friction terms [`FOLDED`][]);
-    otherwise linear with scale `ref` (folded for a field that cannot be negative, see
-    [`folded`][]).
-
-    A field that starts at 0 takes its scale from the record's observed angular frequency
-    `omega` (rad/s) and the linearised inertia `mu`: `mu omega^2` for k, 5% damping
-    (`0.1 mu omega`) for c; an offset e takes a tenth of r.
-    """
-    if name in FIELDS and name not in SIGNED_FIELDS and start > 0 and name not in FOLDED:
-        return True, 1.0
-    if start != 0:
-        return False, abs(start)
-    if name in SIGNED_FIELDS:
-        return False, 0.1 * float(mech.r)
-    if omega and name in ("k", "c"):
-        mu = float(np.asarray(linearize(mech).mu))
-        if math.isfinite(mu) and mu > 0:
-            return False, mu * omega**2 if name == "k" else 0.1 * mu * omega
-    return False, _ZERO_START_REF
-
-
-#: Friction terms (Coulomb torque, slider friction) whose true value is often 0: always
-#: folded, whatever their start. In log coordinates a true 0 sends ln(value) to -inf,
-#: LM crawls there, and the estimate (1e-265, say) is then reported as "ln T_c not
-#: determined" instead of "0, at most v + 1.96 se".
-FOLDED = frozenset(FRICTION_SCALED)
-
-
-def folded(name: str, log: bool) -> bool:
-    """True for a free name fitted as `ref |z|`: a mechanism field that cannot be negative
-    and is not in log coordinates (it starts at 0)."""
-    return name in FIELDS and name not in SIGNED_FIELDS and not log
-
-
-def _coordinates(name: str, start: float, mech: SliderCrank, omega: float | None,
-                 linear: bool) -> tuple[bool, float, bool]:
-    """`(log, ref, folded)` of a free name (see [`coordinate`][], [`folded`][]). `linear`:
-    a name that would be in log coordinates is linear instead, `z = value / start`, and
-    not folded (a step below 0 is outside the valid set, a failed point the optimiser
-    rejects). These are multiple shooting's coordinates (see [`build_problem`][])."""
-    lg, rf = coordinate(name, start, mech, omega)
-    if linear and lg:
-        return False, abs(start), False
-    return lg, rf, folded(name, lg)
-
-
-def _fold(z):
-    """`|z|` with derivative +1 at 0 (`jnp.abs` has 0 there, which would make a folded
-    parameter that starts at 0 look exactly flat: `fit` holds flat directions fixed)."""
-    return jnp.where(z >= 0, z, -z)
 
 
 def _invalid(mech: SliderCrank) -> Array:
@@ -178,7 +107,7 @@ class Problem(eqx.Module):
     def values(self, z: Array) -> Array:
         """Physical values of the reported parameters, shape (p,)."""
         return jnp.stack([jnp.exp(z[i]) if self.log[i]
-                          else _fold(z[i]) * self.ref[i] if self.folded[i]
+                          else fold(z[i]) * self.ref[i] if self.folded[i]
                           else z[i] * self.ref[i] for i in range(self.p)])
 
     def to_z(self, values: Sequence[float]) -> np.ndarray:
@@ -375,7 +304,7 @@ def build_problem(
     - `per_record`: free names with a separate value per record (`name[i]`).
     - `force`: a user's force term (its free fields are `force.<field>` names).
     - `linear`: every coordinate linear in its value (none in log space; see
-      `_coordinates`). Multiple shooting optimises in these: the dynamics are linear in
+      `coordinates`). Multiple shooting optimises in these: the dynamics are linear in
       the mechanism's coefficients (damping, friction, motor gain, inertias), so in them
       the valley of a constant mean speed, `gain u - T_c = c dphi`, is straight, where in
       log coordinates it curves and LM crawls along it (56 iterations instead of 16-28 on
@@ -388,7 +317,7 @@ def build_problem(
     state_free = (("phi0" in free), ("dphi0" in free))
     names, log, ref, fold = [], [], [], []
     for n in glob:
-        lg, rf, fd = _coordinates(n, float(start[n]), mech, omega, linear)
+        lg, rf, fd = coordinates(n, float(start[n]), mech, omega, linear)
         names.append(n)
         log.append(lg)
         ref.append(rf)
@@ -405,7 +334,7 @@ def build_problem(
         omega = 2 * math.pi / (period if period is not None else span)
         ref_phi, ref_dphi = max(amp, abs(phi0)), max(amp * omega, abs(dphi0))
         for n in per_record:
-            lg, rf, fd = _coordinates(n, float(start[n]), mech, omega_obs, linear)
+            lg, rf, fd = coordinates(n, float(start[n]), mech, omega_obs, linear)
             names.append(f"{n}[{i}]")
             log.append(lg)
             ref.append(rf)

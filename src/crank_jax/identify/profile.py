@@ -7,8 +7,9 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from ..runtime.progress import progress_bar
 from .fit_result import Profile
-from .optimise import evaluate, least_squares, progress_bar
+from .optimise import evaluate, least_squares
 from .problem import Problem
 from .programs import Pinned
 

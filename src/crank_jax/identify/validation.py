@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -47,8 +46,7 @@ from .diagnostics import residual_diagnostics
 from .fit import fit
 from .request import LOAD_NAMES, STATE_NAMES, free_names
 
-__all__ = ["validate", "Validation", "default_init_window", "plot_validation", "MIN_SPREAD_EPS",
-           "init_free_names"]
+__all__ = ["validate", "Validation", "default_init_window", "MIN_SPREAD_EPS", "init_free_names"]
 
 
 class Validation(NamedTuple):
@@ -400,43 +398,3 @@ def _scores(y: np.ndarray, yhat: np.ndarray, name: str) -> dict:
     fit_pct = 100.0 * (1.0 - float(np.linalg.norm(e)) / float(np.linalg.norm(y - y.mean())))
     return {"rms": float(np.sqrt(np.mean(e**2))), "max_abs": float(np.max(np.abs(e))),
             "fit_percent": fit_pct, "n_samples": int(y.shape[0]), "unit": SI_UNITS[name]}
-
-
-def _how(val: Validation) -> str:
-    return ("prediction (open loop)" if val.horizon is None
-            else f"prediction ({val.horizon:g} s ahead, windows)")
-
-
-def plot_validation(val: Validation, path: str | os.PathLike, title: str = "") -> None:
-    """Draw, for each channel, data and prediction and below them the error; the
-    initial-state window is shaded."""
-    from ..report.plotting import pyplot, save_figure
-    from ..runtime.io import printable
-
-    plt = pyplot()
-    chans = val.channels or {"phi": {"unit": "rad"}}
-    preds = val.predicted_channels or {"phi": val.predicted}
-    data = val.data_channels or {"phi": val.phi}
-    fig, axes = plt.subplots(2 * len(chans), 1, figsize=(9, 1 + 5 * len(chans)), sharex=True,
-                             gridspec_kw={"height_ratios": [2, 1] * len(chans)})
-    t0 = float(val.ts[0])
-    for ax in axes:
-        ax.axvspan(t0, t0 + val.init_window, color="0.9", zorder=0)
-        ax.grid(alpha=0.3)
-    for c, (name, info) in enumerate(chans.items()):
-        ax1, ax2 = axes[2 * c], axes[2 * c + 1]
-        y = data[name]
-        ax1.plot(val.ts, y, ".", ms=2, color="C0", label="data")
-        ax1.plot(val.ts, preds[name], "-", lw=1, color="C1", label=_how(val))
-        ax1.set_ylabel(f"{name} [{info['unit']}]")
-        ax1.legend(loc="upper right", fontsize=8)
-        ax2.plot(val.ts, y - preds[name], "-", lw=0.8, color="C3")
-        ax2.set_ylabel(f"data - prediction [{info['unit']}]")
-    axes[-1].set_xlabel("t [s] (shaded: initial-state window)")
-    unit = next(iter(chans.values()))["unit"]
-    head = printable(title) + "\n" if title else ""  # a file name that is not UTF-8
-    axes[0].set_title(head + f"fit {val.fit_percent:.2f}%, rms "
-                      f"{val.rms:.3g} {unit}, max |error| {val.max_abs:.3g} {unit} over "
-                      f"{val.n_samples} samples", fontsize=9)
-    fig.tight_layout()
-    save_figure(fig, path)

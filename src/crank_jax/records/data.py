@@ -10,22 +10,21 @@ it (slider force P, N; crank torque tau, N*m). Loads that come from a file are
 
 from __future__ import annotations
 
-import csv
 import math
 import os
-from array import array
 from collections.abc import Sequence
 
 import equinox as eqx
 import numpy as np
 
 from ..model.loads import INTERPOLATIONS, AbstractLoad, NoLoad, SampledLoad
-from ..runtime.io import atomic_write, check_input
+from ..runtime.io import atomic_write
 from .checks import MAX_TIME_SPAN, MIN_STEP_ULPS, MIN_TIME_STEP, series_problem
 from .column_checks import data_fields_problem, data_roles
-from .columns import TIME_ROLE, load_roles, role_conflict
-from .fields import LineLabels, cut_names, split_fields, to_float
+from .columns import TIME_ROLE, load_roles
+from .fields import LineLabels
 from .sensors import DEFAULT_SENSOR, Sensor
+from .table import MAX_RECORD_SAMPLES, DataError, header_columns, read_table
 
 __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
            "MAX_RECORD_SAMPLES", "header_columns", "MAX_TIME_SPAN", "MIN_TIME_STEP",
@@ -33,10 +32,6 @@ __all__ = ["Data", "load_data", "save_data", "DataError", "MIN_SAMPLES",
 
 #: The fewest samples a record may have.
 MIN_SAMPLES = 5
-
-
-class DataError(ValueError):
-    """A data file or array is malformed; the message names the row or column."""
 
 
 def _check_series(ts: np.ndarray, phi: np.ndarray, where: str, rows: Sequence[str] | None,
@@ -193,122 +188,6 @@ class Data(eqx.Module):
 # Files
 
 
-#: The most samples [`load_data`][] reads: a longer record is refused as soon as it is
-#: seen, before it fills memory (each used column takes 8 bytes per sample).
-MAX_RECORD_SAMPLES = 10**7
-
-
-def _open_text(path: str | os.PathLike):
-    """Open a text file as pandas would read it: a UTF-8 byte-order mark (as Excel writes)
-    is dropped, a UTF-16 one selects UTF-16, and CRLF or CR line ends read as LF. Anything
-    but a regular file (a FIFO would wait for a writer forever) is refused unopened."""
-    try:
-        check_input(path, "data file")
-    except ValueError as e:
-        raise DataError(str(e)) from None
-    with open(path, "rb") as f:
-        head = f.read(2)
-    enc = "utf-16" if head in (b"\xff\xfe", b"\xfe\xff") else "utf-8-sig"
-    return open(path, encoding=enc, errors="replace", newline=None)
-
-
-def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
-            required: Sequence[tuple[str, str]] | None = None):
-    """Find the header line; return (its line number, delimiter, column names).
-    `required`: (column, the option that names it) of every column that must be there
-    (default: `t_col` and `phi_col`)."""
-    if required is None:
-        required = ((t_col, "--t-col"), (phi_col, "--phi-col"))
-    for lineno, text in lines:
-        delim = "," if "," in text else (";" if ";" in text else None)
-        names = split_fields(text, delim)
-        dup = sorted({n for n in names if n in used and names.count(n) > 1})
-        if dup:
-            raise DataError(f"{where}: line {lineno}: column {dup[0]!r} appears more than "
-                            "once in the header; rename one")
-        for want, opt in required:
-            if want in names:
-                continue
-            try:
-                [to_float(x, delim) for x in names]
-            except ValueError:
-                raise DataError(f"{where}: missing column {want!r}; the header (line "
-                                f"{lineno}) has {cut_names(names)}; choose the column with "
-                                f"{opt}") from None
-            raise DataError(f"{where}: line {lineno} is data, not a header: add a header "
-                            f"line naming the columns, e.g. '{t_col},{phi_col}'")
-        return lineno, delim, names
-    raise DataError(f"{where}: no header line and no data (the file is empty or all "
-                    "comments)")
-
-
-#: The longest line [`load_data`][] reads, in characters: a binary file or a device such
-#: as /dev/zero has no line ends, and reading its "line" would fill memory.
-MAX_LINE_CHARS = 1 << 16
-
-
-def _numbered_lines(f, where: str):
-    """(line number, line without its end) for each line, refusing overlong lines."""
-    for i, ln in enumerate(iter(lambda: f.readline(MAX_LINE_CHARS + 1), ""), start=1):
-        if len(ln) > MAX_LINE_CHARS:
-            raise DataError(f"{where}: line {i} is longer than {MAX_LINE_CHARS} characters; "
-                            "this is not a text table")
-        yield i, ln.rstrip("\n")
-
-
-def _read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
-                required: Sequence[tuple[str, str]] | None = None,
-                roles: Sequence[tuple[str, str]] = (),
-                optional: Sequence[tuple[str, str]] = ()):
-    """Read the used columns of a text table: (names, {name: array}, line numbers).
-
-    `roles`: (column, role) of every column read; `optional`: those read only when the
-    header has them (the load columns). A column with two roles is refused once the header
-    is read (see [`role_conflict`][crank_jax.records.columns.role_conflict])."""
-    where = str(path)
-    with _open_text(path) as f:
-        lines = _numbered_lines(f, where)
-        body = ((i, ln) for i, ln in lines
-                if ln.strip() and not ln.lstrip().startswith(("#", "%")))
-        lineno, delim, names = _header(where, body, t_col, phi_col, used, required)
-        problem = role_conflict(list(roles) + [(c, r) for c, r in optional if c in names])
-        if problem:
-            raise DataError(f"{where}: {problem}")
-        want = [(j, n) for j, n in enumerate(names) if n in used]
-        cols = {n: array("d") for _, n in want}
-        numbers = array("q")
-        for ln, text in body:
-            try:
-                fields = split_fields(text, delim)
-            except csv.Error as e:
-                raise DataError(f"{where}: line {ln}: {e}") from None
-            if len(fields) != len(names):
-                raise DataError(f"{where}: line {ln}: {len(fields)} values but the header "
-                                f"has {len(names)} columns")
-            if len(numbers) >= MAX_RECORD_SAMPLES:
-                raise DataError(f"{where}: more than {MAX_RECORD_SAMPLES} samples; split the "
-                                "record or decimate it")
-            for j, name in want:
-                try:
-                    cols[name].append(to_float(fields[j], delim))
-                except ValueError:
-                    raise DataError(f"{where}: line {ln}: column {name!r}: "
-                                    f"{fields[j][:40]!r} is not a number") from None
-            numbers.append(ln)
-    return names, {n: np.array(c, dtype=np.float64) for n, c in cols.items()}, numbers
-
-
-def header_columns(path: str | os.PathLike) -> list[str]:
-    """The column names in a record's header line (the first line that is not blank or a
-    comment); [`DataError`][] when there is none."""
-    where = str(path)
-    with _open_text(path) as f:
-        for _, text in _numbered_lines(f, where):
-            if text.strip() and not text.lstrip().startswith(("#", "%")):
-                return split_fields(text, "," if "," in text else (";" if ";" in text else None))
-    raise DataError(f"{where}: no header line (the file is empty or all comments)")
-
-
 def load_data(
     path: str | os.PathLike,
     *,
@@ -363,7 +242,7 @@ def load_data(
     if sensors or inputs:
         sensors = tuple(sensors or (Sensor("phi", phi_col, angle_unit),))
         return _load_channels(path, t_col, P_col, tau_col, interp, sensors, tuple(inputs))
-    names, col, numbers = _read_table(
+    names, col, numbers = read_table(
         path, t_col, phi_col, (t_col, phi_col, P_col, tau_col),
         roles=[(t_col, TIME_ROLE), (phi_col, "the angle (phi_col, --phi-col)")],
         optional=load_roles(P_col, tau_col))
@@ -405,7 +284,7 @@ def _load_channels(path, t_col, P_col, tau_col, interp, sensors: tuple[Sensor, .
         (s.column, f"channel {s.name} (--channel, or the scene's [sensors])")
         for s in sensors] + [(c, f"the input of a load (the scene's input = {c!r})")
                              for c in inputs]
-    names, col, numbers = _read_table(path, t_col, "", used, required, roles,
+    names, col, numbers = read_table(path, t_col, "", used, required, roles,
                                       load_roles(P_col, tau_col))
     labels = LineLabels(numbers)
     _check_columns(where, names, col, labels)

@@ -32,18 +32,17 @@ The steps are chosen on values (`stop_gradient`), so forward mode (`jax.jvp`,
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from . import library_api as compat
 from .controller import PIDController
+from .dense_output import dopri8_dense, window_values
 from .erk import FusedERK, dopri8, packer
 
-__all__ = ["solve_adaptive", "dopri8_dense", "outcome", "Recorder"]
+__all__ = ["solve_adaptive", "outcome", "Recorder"]
 
 # Step attempts per loop iteration, and save times one block may write. Measured on the
 # lab rig (10 s, 1001 saves, rtol 1e-8): one trajectory costs the same per step with 1, 4
@@ -57,14 +56,6 @@ WINDOW = 4
 # are 512 bytes. (A state with its sensitivities, variational.py, is larger; 2 or 28 save
 # times per chunk measured the same for the crank's 10-parameter Jacobian.)
 CHUNK = 28
-
-
-@functools.cache
-def dopri8_dense() -> np.ndarray:
-    """diffrax's Dopri8 dense output: `y(t0 + theta h) = y0 + theta sum_i P_i(theta) h k_i`,
-    `P_i` the polynomial in row i (highest power first) over the 14 stages (the 14th is
-    `f(t1, y1)`, first same as last). Shape (14, powers)."""
-    return compat.dopri8_dense_coefficients()
 
 
 def _rms(x):
@@ -101,47 +92,6 @@ def _initial_step(f, t0, y0, k0, rtol, atol, order, span, error_size=None):
     h1 = jnp.where(jnp.maximum(d1, d2) <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3),
                    (0.01 / jnp.maximum(d1, d2)) ** (1.0 / order))
     return jnp.minimum(jnp.minimum(100 * h0, h1), span)
-
-
-def _dense_coefficients(coeffs, h, ks):
-    """The dense output's polynomial coefficients times h, highest power first: a list of
-    (..., N) arrays, one per power (unrolled over the nonzero stage weights)."""
-    d = []
-    for j in range(coeffs.shape[1]):
-        acc = None
-        for i, k in enumerate(ks):
-            a = float(coeffs[i, j])
-            if a != 0.0:
-                acc = a * k if acc is None else acc + a * k
-        d.append(h * acc)
-    return d
-
-
-def _window_values(dense, taken, tw, ndim):
-    """The dense output at the window's save times `tw` (W,): each one that lies in
-    `(t, t1]` of an accepted attempt in `taken` (per member of a batch) takes that
-    attempt's coefficients (a select per attempt), then one polynomial evaluation for the
-    whole window.
-
-    **Returns:** `(values, covered)`: values of shape (W,) + the packed state's shape,
-    and where an attempt covered the save time, shape (W,) + (..., 1) (save times no
-    attempt covers are pending: their values are zeros, written by a later block)."""
-    W = tw.shape[0]
-    twr = tw.reshape((W,) + (1,) * ndim)
-    theta = covered = base = coef = None
-    for rec in taken:
-        mine = rec.ok[None] & (twr > rec.t[None]) & (twr <= rec.t1[None])
-        d = _dense_coefficients(dense, rec.h, rec.ks)
-        th = (twr - rec.t[None]) / rec.h[None]
-        theta = jnp.where(mine, th, 0.0 if theta is None else theta)
-        covered = mine if covered is None else covered | mine
-        base = jnp.where(mine, rec.y[None], 0.0 if base is None else base)
-        coef = [jnp.where(mine, dj[None], 0.0 if coef is None else cj)
-                for dj, cj in zip(d, coef or [None] * len(d))]
-    poly = coef[0]
-    for cj in coef[1:]:
-        poly = poly * theta + cj
-    return base + theta * poly, covered
 
 
 class _Step(NamedTuple):
@@ -376,7 +326,7 @@ def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps
         for _ in range(K):
             state, rec = attempt(state, t_lim)
             taken.append(rec)
-        values, covered = _window_values(dense, taken, tw, y0p.ndim)
+        values, covered = window_values(dense, taken, tw, y0p.ndim)
         # Rows from j on are pending: each member's covered rows are written, the others
         # keep what an earlier block wrote (members step on their own).
         old = jax.lax.dynamic_slice_in_dim(buf, j, W)

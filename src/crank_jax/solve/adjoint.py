@@ -41,16 +41,16 @@ memory for `LOG_ROWS` rows, whatever `n`).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ..model import trig
-from .adaptive import WINDOW, dopri8_dense, solve_adaptive
+from .adaptive import WINDOW, solve_adaptive
+from .dense_output import dopri8_dense
 from .erk import dopri8, packer
+from .stage_adjoint import dense_cotangents, field_vjp, reverse_affine, stage_cotangents, stages
 from .steplog import PENDING, Log, recorder
 
 __all__ = ["forward", "backward", "LOG_ROWS"]
@@ -104,7 +104,7 @@ def _step_outputs(field, pack, unpack, row, tw, n_state, e=None):
         k = pack(field(tt[..., 0], unpack(yp), None)).astype(dtype)
         return k if e is None else k + e[len(points) - 1]
 
-    ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h)[:erk.num_stages]
+    ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h)[:erk.numstages]
     y1 = erk.solution(y, h, ks)
     ks = ks + [f(t1, y1)]
     dense = dopri8_dense()
@@ -222,16 +222,16 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B, program):
         rows = jnp.where(valid[:, None], rows, rows[:1])
         tw, gw = jax.vmap(lambda r: window(r, "compare_all"))(rows)
         gw = jnp.where(valid[:, None, None], gw, 0.0)
-        st = _stages(arithmetic(dd), pack, unpack, rows, n_state)
+        st = stages(arithmetic(dd), pack, unpack, rows, n_state)
         # G[i]: the cotangent of stage i that the dense output sends directly, (B, N).
-        G = _dense_cotangents(rows, tw, gw)
+        G = dense_cotangents(rows, tw, gw)
         # Each step is the affine map ybar = A^T u + c of its end state's cotangent u.
         c = gw.sum(1) + jnp.einsum("kbij,kbi->bj", st.D, G)
         a = jnp.where(valid[:, None, None], jnp.swapaxes(st.A, 1, 2), jnp.eye(n_state))
-        ybar = _reverse_affine(a, c, u_end)
+        ybar = reverse_affine(a, c, u_end)
         u_in = jnp.where(valid[:, None], jnp.concatenate([ybar[1:], u_end[None]]), 0.0)
-        kbar = _stage_cotangents(st, rows[:, 2], G, u_in)
-        d = _field_vjp(arithmetic, dd, pack, unpack, st.T, st.Y, kbar)
+        kbar = stage_cotangents(st, rows[:, 2], G, u_in)
+        d = field_vjp(arithmetic, dd, pack, unpack, st.T, st.Y, kbar)
         return ybar[0], [x + y for x, y in zip(dbar, d)]
 
     # The block's field evaluations run over its B x 14 points side by side. With the CPU
@@ -240,119 +240,6 @@ def _block_vjp(full, dd, pack, unpack, ts, g, B, program):
     if program == "blocks":
         return block
     return _deferred(full, arithmetic, dd, pack, unpack, window, B, n_state)
-
-
-class _Stages(NamedTuple):
-    """A block of B logged steps recomputed side by side (`_stages`), each step's 13
-    stages and its last, `f(t1, y1)` (14 evaluations of the field, first same as last),
-    stage first:
-
-    - `T` (14, B), `Y` (14, B, N): where the field was evaluated (time, s; packed state);
-    - `J` (14, B, N, N): the field's Jacobian with respect to the state there;
-    - `D` (14, B, N, N): the derivative of each stage `k_i` with respect to the step's
-      start state; `A` (B, N, N): that of its end state `y1`."""
-
-    T: jax.Array
-    Y: jax.Array
-    J: jax.Array
-    D: jax.Array
-    A: jax.Array
-
-
-def _tableau(dtype):
-    """Dopri8's `(a, b, c)` over its 14 stages, the 14th `f(t1, y1)`: `a` (14, 14)
-    strictly lower (row 13 the solution's weights `b`), `c` (14,)."""
-    tab = dopri8().tableau
-    a = np.zeros((14, 14))
-    for i, row in enumerate(tab.a_lower):
-        a[i + 1, :len(row)] = np.asarray(row)
-    c = np.concatenate([[0.0], np.asarray(tab.c)])
-    return jnp.asarray(a, dtype), jnp.asarray(a[13], dtype), jnp.asarray(c, dtype)
-
-
-def _point_field(field, pack, unpack, dtype):
-    """`f(t, y) -> dy/dt` on one packed state (N,) at a scalar time `t`."""
-    return lambda t, y: pack(field(t, unpack(y), None)).astype(dtype)
-
-
-def _stages(field, pack, unpack, rows, n_state):
-    """The [`_Stages`][] of the logged steps `rows` (B, 3 + N), with forward-mode
-    derivatives with respect to the start state carried through them: N tangents, for a
-    state of a few components the cheapest way to each step's (N, N) Jacobians (one
-    field Jacobian per stage). One `scan` over the stages, so that the program holds one
-    copy of the field's derivative (compile time), not 14."""
-    B, dtype = rows.shape[0], rows.dtype
-    t, t1, h, y = rows[:, 0], rows[:, 1], rows[:, 2], rows[:, 3:3 + n_state]
-    f = _point_field(field, pack, unpack, dtype)
-    a, _, c = _tableau(dtype)
-    eye = jnp.eye(n_state, dtype=dtype)
-
-    def value_and_jac(tt, yy):
-        # vmap over the N unit tangents: the value once, the Jacobian (N, N) by columns.
-        return jax.vmap(lambda v: jax.jvp(lambda z: f(tt, z), (yy,), (v,)),
-                        out_axes=(None, 1))(eye)
-
-    def stage(carry, i):
-        ks, Ds = carry  # (14, B, N), (14, B, N, N): the stages so far (zero after)
-        w = a[i][:, None] * h[None]  # (14, B): h a_ij
-        yi = y + jnp.einsum("jb,jbn->bn", w, ks)
-        di = eye + jnp.einsum("jb,jbmn->bmn", w, Ds)
-        ti = jnp.where(i == 13, t1, t + c[i] * h)  # the 14th at the step's end, t1
-        k, jac = jax.vmap(value_and_jac)(ti, yi)
-        d = jnp.einsum("bij,bjk->bik", jac, di)
-        return (ks.at[i].set(k), Ds.at[i].set(d)), (ti, yi, jac, d)
-
-    zeros = (jnp.zeros((14, B, n_state), dtype), jnp.zeros((14, B, n_state, n_state), dtype))
-    _, (T, Y, J, D) = jax.lax.scan(stage, zeros, jnp.arange(14))
-    # y1 is the 14th stage's point; its derivative D's 14th input, I + h sum_j b_j D_j.
-    A = eye + jnp.einsum("j,b,jbmn->bmn", a[13], h, D)
-    return _Stages(T, Y, J, D, A)
-
-
-def _dense_cotangents(rows, tw, gw):
-    """`G` (14, B, N): the cotangent that the dense output at the save times `tw` (B, W),
-    with cotangents `gw` (B, W, N), sends to each stage `k_i` of its step: the output is
-    `y + h sum_i w_i(theta) k_i`, `w_i(theta) = theta P_i(theta)` (`dopri8_dense`),
-    `theta = (tw - t) / h` (0 where a step does not cover a save time, and `gw` 0)."""
-    dense = jnp.asarray(dopri8_dense(), rows.dtype)  # (14, powers), highest first
-    t, h = rows[:, 0:1], rows[:, 2:3]
-    theta = (tw - t) / h
-    powers = dense.shape[1]
-    basis = jnp.stack([theta ** (powers - j) for j in range(powers)], -1)  # theta P_i
-    w = jnp.einsum("bsp,ip->ibs", basis, dense)
-    return h[None] * jnp.einsum("ibs,bsn->ibn", w, gw)
-
-
-def _stage_cotangents(st: _Stages, h, G, u):
-    """The cotangents of the 14 stages of each step (14, B, N), given `u` (B, N), that of
-    its end state, and `G`, what the dense output sends directly: the reverse of the stage
-    recursion `Y_i = y + h sum_j a_ij k_j`, `k_i = f(t_i, Y_i)`, one transposed field
-    Jacobian per stage (the step size is a constant of the computed solution); a reverse
-    `scan` over the stages."""
-    a, b, _ = _tableau(G.dtype)
-    y1bar = u + jnp.einsum("bij,bi->bj", st.J[13], G[13])
-    kbar = G + (b[:, None] * h[None])[:, :, None] * y1bar[None]
-
-    def stage(kbar, i):
-        ybar_i = jnp.einsum("bij,bi->bj", st.J[i], kbar[i])
-        return kbar + (a[i][:, None] * h[None])[:, :, None] * ybar_i[None], None
-
-    kbar, _ = jax.lax.scan(stage, kbar, jnp.arange(1, 13), reverse=True)
-    return kbar
-
-
-def _field_vjp(full, dd, pack, unpack, T, Y, kbar):
-    """The cotangent of the field's parameters `dd` from the stages of a block of steps:
-    one VJP of the field over all its evaluation points, times `T` (...,) and packed
-    states `Y` (..., N), with cotangents `kbar` (..., N)."""
-    n_state = kbar.shape[-1]
-    T, Y, K = T.reshape(-1), Y.reshape(-1, n_state), kbar.reshape(-1, n_state)
-
-    def at_points(dd):
-        return jax.vmap(_point_field(full(dd), pack, unpack, Y.dtype))(T, Y)
-
-    _, pull = jax.vjp(at_points, dd)
-    return pull(K)[0]
 
 
 def _window(ts, ts_pad, g_pad, row, method):
@@ -417,23 +304,9 @@ def _deferred(full, arithmetic, dd, pack, unpack, window, B, n_state):
         T, Y, K = T.reshape(-1, W), Y.reshape(-1, W, n_state), K.reshape(-1, W, n_state)
 
         def chunk(j, dbar):
-            d = _field_vjp(arithmetic, dd, pack, unpack, T[j], Y[j], K[j])
+            d = field_vjp(arithmetic, dd, pack, unpack, T[j], Y[j], K[j])
             return [a + b for a, b in zip(dbar, d)]
 
         return ybar, jax.lax.fori_loop(0, (14 * n + W - 1) // W, chunk, dbar)
 
     return block
-
-
-def _reverse_affine(a, c, u_end):
-    """`x[i] = a[i] x[i + 1] + c[i]` for i = B-1, ..., 0, with `x[B] = u_end`: a parallel
-    (associative) scan of the affine maps, log2(B) vectorised levels rather than B
-    dependent steps. `a` (B, N, N), `c` (B, N), `u_end` (N,); returns x (B, N)."""
-
-    def compose(p, q):  # q after p
-        ap, cp = p
-        aq, cq = q
-        return (jnp.einsum("bij,bjk->bik", aq, ap), jnp.einsum("bij,bj->bi", aq, cp) + cq)
-
-    a_all, c_all = jax.lax.associative_scan(compose, (a[::-1], c[::-1]))
-    return (jnp.einsum("bij,j->bi", a_all, u_end) + c_all)[::-1]

@@ -128,7 +128,7 @@ class AdaptiveDopri8(AbstractSolver):
     controller: PIDController = eqx.field(default_factory=PIDController)
 
     def __check_init__(self):
-        # The dense output (adaptive.dopri8_dense) and the adjoint are Dopri8's: another
+        # The dense output (dense_output.dopri8_dense) and the adjoint are Dopri8's: another
         # tableau would give wrong samples, not an error.
         if not isinstance(self.erk, FusedERK) or self.erk.tableau != dopri8().tableau:
             raise ValueError("AdaptiveDopri8: erk must be Dopri8's tableau, "

@@ -1,0 +1,92 @@
+"""The optimisers' coordinates of a fit's free parameters.
+
+Coordinates `z` (what the optimisers see, all O(1)), chosen per name by
+[`coordinate`][]:
+
+- a mechanism field that cannot be negative and starts positive is fitted as
+  `z = ln(value)`: a step in `z` is a relative change, positivity needs no constraint,
+  and the columns of the Jacobian are the sensitivities *scaled by the parameter values*
+  that the identifiability analysis needs;
+- a field that cannot be negative and starts at 0 (an absent body's mass), and the
+  friction terms `T_c`, `c_s`, `F_s` whatever their start, are *folded*:
+  `value = ref |z|`. It stays valid whatever step the optimiser takes (a step below 0
+  is reflected), its sensitivity at the start is not zero (as it would be for `z^2` or
+  a softplus at its floor), and a value whose truth is 0 converges near 0 (see
+  `uncertainty` for its interval, cut at 0);
+- everything else (a signed field such as the offset `e`, the initial states and load
+  amplitudes) is linear: `z = value / ref`, with `ref` a typical magnitude (the start
+  value, the record's angle amplitude, that times the natural frequency).
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.params import FIELDS, SliderCrank
+from ..simulation import linearize
+from .request import FRICTION_SCALED, SIGNED_FIELDS
+
+__all__ = ["coordinate", "coordinates", "folded", "fold", "FOLDED"]
+
+# Linear scale of a mechanism field that starts at 0 (a friction coefficient, an offset
+# in units of r): the optimiser's first steps are O(1) in z.
+_ZERO_START_REF = 1e-3
+
+
+def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None = None
+               ) -> tuple[bool, float]:
+    """`(log, ref)` of a global free name: log coordinates for a mechanism field that
+    cannot be negative and starts positive (but for the friction terms [`FOLDED`][]);
+    otherwise linear with scale `ref` (folded for a field that cannot be negative, see
+    [`folded`][]).
+
+    A field that starts at 0 takes its scale from the record's observed angular frequency
+    `omega` (rad/s) and the linearised inertia `mu`: `mu omega^2` for k, 5% damping
+    (`0.1 mu omega`) for c; an offset e takes a tenth of r.
+    """
+    if name in FIELDS and name not in SIGNED_FIELDS and start > 0 and name not in FOLDED:
+        return True, 1.0
+    if start != 0:
+        return False, abs(start)
+    if name in SIGNED_FIELDS:
+        return False, 0.1 * float(mech.r)
+    if omega and name in ("k", "c"):
+        mu = float(np.asarray(linearize(mech).mu))
+        if math.isfinite(mu) and mu > 0:
+            return False, mu * omega**2 if name == "k" else 0.1 * mu * omega
+    return False, _ZERO_START_REF
+
+
+#: Friction terms (Coulomb torque, slider friction) whose true value is often 0: always
+#: folded, whatever their start. In log coordinates a true 0 sends ln(value) to -inf,
+#: LM crawls there, and the estimate (1e-265, say) is then reported as "ln T_c not
+#: determined" instead of "0, at most v + 1.96 se".
+FOLDED = frozenset(FRICTION_SCALED)
+
+
+def folded(name: str, log: bool) -> bool:
+    """True for a free name fitted as `ref |z|`: a mechanism field that cannot be negative
+    and is not in log coordinates (it starts at 0)."""
+    return name in FIELDS and name not in SIGNED_FIELDS and not log
+
+
+def coordinates(name: str, start: float, mech: SliderCrank, omega: float | None,
+                 linear: bool) -> tuple[bool, float, bool]:
+    """`(log, ref, folded)` of a free name (see [`coordinate`][], [`folded`][]). `linear`:
+    a name that would be in log coordinates is linear instead, `z = value / start`, and
+    not folded (a step below 0 is outside the valid set, a failed point the optimiser
+    rejects). These are multiple shooting's coordinates (see
+    [`build_problem`][crank_jax.identify.problem.build_problem])."""
+    lg, rf = coordinate(name, start, mech, omega)
+    if linear and lg:
+        return False, abs(start), False
+    return lg, rf, folded(name, lg)
+
+
+def fold(z):
+    """`|z|` with derivative +1 at 0 (`jnp.abs` has 0 there, which would make a folded
+    parameter that starts at 0 look exactly flat: `fit` holds flat directions fixed)."""
+    return jnp.where(z >= 0, z, -z)
