@@ -93,6 +93,19 @@ def test_a_solve_longer_than_the_log_reruns_its_segments(monkeypatch):
         _close(batch[i], grad(thetas[i]), tol=1e-8)
 
 
+@pytest.mark.parametrize("backward", ["loop", "blocks"], ids=["step-by-step", "blocks"])
+def test_both_backward_programs_trace(backward):
+    # The fast tier's check of both backward programs: traced, not compiled (a compile
+    # of the step-by-step program under XLA's defaults takes ~45 s; the slow tests below
+    # compare their numbers with forward mode). The CLI's program is "loop" (it sets the
+    # CPU flags), which no fast test ran: a renamed attribute in it (`erk.numstages`,
+    # 2026-11-28, while the blocks' adjoint moved to its own module) passed the fast and
+    # the full tier and failed every gradient taken with the flags.
+    theta0, _, _, loss = _problem(t1=0.2, samples=3)
+    jaxpr = jax.make_jaxpr(jax.grad(lambda th: loss(th, DiscreteAdjoint(backward))))(theta0)
+    assert "custom_vjp_call" in str(jaxpr) or "while" in str(jaxpr)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("backward", ["loop", "blocks"], ids=["step-by-step", "blocks"])
 def test_both_backward_programs_give_the_forward_jacobian(backward):

@@ -104,7 +104,7 @@ def _step_outputs(field, pack, unpack, row, tw, n_state, e=None):
         k = pack(field(tt[..., 0], unpack(yp), None)).astype(dtype)
         return k if e is None else k + e[len(points) - 1]
 
-    ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h)[:erk.numstages]
+    ks = erk.stages(lambda tt, yy, _: f(tt, yy), t, y, None, h)[:erk.num_stages]
     y1 = erk.solution(y, h, ks)
     ks = ks + [f(t1, y1)]
     dense = dopri8_dense()
