@@ -1,18 +1,13 @@
-"""Shared helpers for the benchmark scripts: machine record, median timing, results I/O
-(written atomically), figures. The scripts import crank-jax's public API; these helpers
-keep its runtime internals (`crank_jax.runtime.io`, `crank_jax.report.plotting`) out of
-them."""
+"""Shared helpers for the benchmark scripts: machine record, median timing, results I/O."""
 
 from __future__ import annotations
 
-import contextlib
 import datetime
 import json
 import os
 import platform
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -102,44 +97,6 @@ def save(name: str, payload: dict, smoke: bool) -> Path:
     path.write_text(json.dumps(payload, indent=1, default=float))
     print(f"wrote {path}")
     return path
-
-
-@contextlib.contextmanager
-def atomic_write(path, mode: str = "w"):
-    """Write `path` through a temporary file beside it, renamed into place when the block
-    ends: a run cut short leaves the earlier results whole."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp's file is 0600; a results file is not secret
-    try:
-        with os.fdopen(fd, mode) as f:
-            yield f
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-
-
-def pyplot():
-    """matplotlib's pyplot on the Agg backend (no display needed)."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_figure(fig, path, dpi: int = 120) -> None:
-    """Save a figure atomically (the format from the file's suffix) and close it."""
-    fmt = os.path.splitext(str(path))[1].lstrip(".") or "png"
-    with atomic_write(path, "wb") as f:
-        fig.savefig(f, format=fmt, dpi=dpi, bbox_inches="tight")
-    pyplot().close(fig)
 
 
 def interp_time(errors, times, target: float) -> float | None:

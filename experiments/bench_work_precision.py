@@ -228,7 +228,7 @@ STYLE = {
 
 
 def plot(results, smoke, tag=""):
-    from _bench import pyplot, save_figure
+    from crank_jax.report.plotting import pyplot, save_figure
 
     plt = pyplot()
     fig, axes = plt.subplots(1, len(results), figsize=(5.2 * len(results), 4.6), squeeze=False)

@@ -27,10 +27,10 @@ jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, os.path.dirname(__file__))
 
 import rotating_rig as rr  # noqa: E402
-from _bench import atomic_write  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 
 def _tutorial():

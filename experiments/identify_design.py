@@ -26,13 +26,13 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _bench import atomic_write  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.identify.problem import build_problem  # noqa: E402
 from crank_jax.identify.programs import jacobian_at  # noqa: E402
 from crank_jax.identify.uncertainty import analyse  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SEVEN = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")

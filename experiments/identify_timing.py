@@ -24,11 +24,12 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from _bench import atomic_write, pyplot, save_figure  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
+from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 FREE = ("k", "c", "phi0", "dphi0")

@@ -12,9 +12,9 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from _bench import pyplot, save_figure  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
 
 
 def main(argv=None) -> None:

@@ -57,10 +57,10 @@ jax = setup_jax()
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _bench import atomic_write  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 RIGS = ("osc", "rot")
 EFFECTS = ("guide_friction", "motor_droop", "speed_wander", "geometry", "eccentricity",

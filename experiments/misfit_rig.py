@@ -58,11 +58,11 @@ jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-from _bench import atomic_write  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.model import ConstantLoad  # noqa: E402
 from crank_jax.model import geometry_at as geometry  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 RATE, JITTER, T1, T_START = 50.0, 3e-3, 6.0, 1.0
 #: The drive torque per record, N*m (a motor at three voltages).

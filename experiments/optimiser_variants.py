@@ -151,7 +151,9 @@ def main() -> None:
     if bad:
         raise SystemExit(f"--variants: unknown {bad[0]!r}; choose from {', '.join(VARIANTS)}")
     sys.path.insert(0, HERE)
-    from _bench import atomic_write, machine
+    from _bench import machine
+
+    from crank_jax.runtime.io import atomic_write
 
     out = {"machine": machine(), "cases": {},
            "note": "shared 2-core machine (other jobs ran): wall times rough, iterations exact"}

@@ -19,9 +19,8 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from _bench import atomic_write  # noqa: E402
-
 import crank_jax as cj  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 cj.configure_cpu()
 

@@ -25,10 +25,11 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from _bench import atomic_write, pyplot, save_figure  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.identify.corner import _ellipse  # noqa: E402
+from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 cj.configure_cpu()
 

@@ -21,9 +21,8 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from _bench import atomic_write  # noqa: E402
-
 import crank_jax as cj  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 FLAGS = "--no-cpu-flags" not in sys.argv
 if FLAGS:

@@ -34,10 +34,10 @@ jax.config.update("jax_enable_x64", True)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _bench import atomic_write  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.model.loads import Nonsmooth  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TONES = dict(amplitudes=[0.4, 0.3, 0.25, 0.2], freqs_hz=[1.3, 2.9, 4.7, 6.8],

@@ -28,9 +28,10 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
-from _bench import atomic_write, pyplot, save_figure  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
+from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
+from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 T_C, T_S, W_S, W_C, C_TRUE = 0.004, 0.006, 0.8, 0.2, 0.001
 

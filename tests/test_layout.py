@@ -254,7 +254,9 @@ EXPERIMENTS = sorted((SRC.parents[1] / "experiments").glob("*.py"))
 #: inner loop, a fit's compiled programs, the stores of its compile options). A module
 #: not listed here is public (`crank_jax`, or a subpackage's `__all__`) or a new breach.
 EXPERIMENT_INTERNALS = {
+    "crank_jax.runtime.io": "tooling: results written atomically",
     "crank_jax.runtime.xla_flags": "tooling: the CPU flags the benchmarks compare",
+    "crank_jax.report.plotting": "tooling: the figures' style",
     "crank_jax.cli.identify": "the demo's own record (demo_data), as the CLI makes it",
     "crank_jax.model.dynamics": "measures the field's static structure (Structure)",
     "crank_jax.model.loads": "load kinds not in the front door (InputLoad, Nonsmooth)",
