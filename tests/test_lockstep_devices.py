@@ -51,6 +51,9 @@ SCRIPT = textwrap.dedent("""
                      "devices_used": len(r.sharding.device_set),
                      "finite": bool(np.all(np.isfinite(np.asarray(r))))}
     ls._can_spread = spread_rule
+    if "batch" not in cases:
+        print(json.dumps(out))
+        raise SystemExit
     # Inside a user's shard_map the body runs per device already: no second spread.
     mesh = jax.make_mesh((2,), ("u",), axis_types=(jax.sharding.AxisType.Explicit,))
     body = jax.shard_map(every["batch"], mesh=mesh, in_specs=P("u"), out_specs=P("u"),
@@ -75,8 +78,9 @@ def _run(cases):
         assert res[name]["finite"], name
         # The same groups of members take the same steps on either device.
         assert res[name]["diff"] == 0.0, (name, res[name])
-    # Members in a user's shard_map are grouped per device: within the tolerance.
-    assert res["user_shard_map"] < 1e-7
+    if "batch" in cases:
+        # Members in a user's shard_map are grouped per device: within the tolerance.
+        assert res["user_shard_map"] < 1e-7
     return res
 
 
