@@ -39,7 +39,7 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
 
 
 def _check_record_size(a: argparse.Namespace, scene) -> None:
-    from ..records.data import MAX_RECORD_SAMPLES
+    from ..records.table import MAX_RECORD_SAMPLES
 
     t1 = scene.t1 if a.t1 is None else a.t1
     n = (t1 - a.t_start) * a.rate  # NaN or inf (a bad option) is synthesize's to name
