@@ -237,7 +237,7 @@ def test_rolled_stages_equal_the_unrolled_ones_and_trace_the_field_once():
 def test_jacobian_with_its_stages_in_a_loop_equals_the_unrolled_one(smooth, solution_steps):
     """`AdaptiveDopri8(loop_stages=True)`, the fit's solver (`pick_solver`): the same
     Jacobian, for the parameters and the initial state, and under `vmap` over members
-    with their own save times (multiple shooting's segments: a plain `vmap`), on the same
+    with their own save times (multiple shooting's segments, in lockstep), on the same
     steps. (With the step control on the sensitivities, the stages' rounding can flip an
     accept/reject decision: 406 against 405 steps, 7e-10 apart, both 2e-9 off a tight
     reference, 2026-11-28.)"""

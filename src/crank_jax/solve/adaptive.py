@@ -203,7 +203,8 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     - `field`: the vector field `field(t, y, args) -> dy/dt`, a callable pytree; its
       inexact-array leaves are differentiable parameters. Batched, `t` has shape (B,).
     - `y0`: the state at `ts[0]`, a pytree of arrays (small: the stages are unrolled).
-    - `ts` (n,): increasing save times, any spacing; `rtol`, `atol`: tolerances of the
+    - `ts` (n,): increasing save times, any spacing; batched, also (B, n), each member's
+      own (a member writes its i-th sample at its own i-th time); `rtol`, `atol`: tolerances of the
       local error per step as diffrax's `PIDController` scales them (RMS over the state of
       `err / (atol + rtol max(|y0|, |y1|))`; a step is accepted when it is <= 1).
     - `args`: passed to `field`; its inexact-array leaves are differentiable too.
@@ -237,7 +238,7 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     """
     erk = dopri8() if erk is None else erk
     controller = PIDController() if controller is None else controller
-    n = ts.shape[0]
+    n = ts.shape[-1]
     dtype = ts.dtype
     pack, unpack = packer(y0, 1 if batched else 0)
     sg = jax.lax.stop_gradient
@@ -251,6 +252,8 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     y0p = pack(y0).astype(dtype)
     # Times, step sizes and counts have the state's leading (batch) axes and a trailing 1.
     lead = y0p.shape[:-1] + (1,)
+    if ts.ndim > 1:  # each member's own save times, (B, n): as rows (n, B, 1)
+        ts = jnp.moveaxis(ts, -1, 0)[..., None]
     t0 = jnp.broadcast_to(sg(ts[0]), lead)
     k0 = f(t0, y0p)
     h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), erk.order,
@@ -272,7 +275,7 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
         outcome_of = jax.vmap(outcome_of)
     result = outcome_of(done[..., 0])
     # Save times a member never reached (a failed solve) hold inf, as diffrax leaves them.
-    reached = ts.reshape((n,) + (1,) * y0p.ndim) <= state.t[None]
+    reached = _rows(ts, y0p.ndim) <= state.t[None]
     ys = jnp.where(reached, out[:n], jnp.inf)
     if record is not None:
         return unpack(ys), result, state.steps[..., 0], log
@@ -301,12 +304,12 @@ def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps
     window,) + the packed state's shape (rows past a member's last time are not valid),
     and the log (None without `record`)."""
     dense = dopri8_dense()
-    n, dtype = ts.shape[0], ts.dtype
+    n, dtype = ts.shape[0], ts.dtype  # ts: (n,), or each member's own, (n, B, 1)
     W, K, CH = int(window), int(unroll), int(chunk)
     t_end = jax.lax.stop_gradient(ts[-1])
     # Pending save times padded with +inf and outputs with CH + W rows, so that a chunk at
     # any pending index stays in range.
-    ts_pad = jnp.concatenate([ts, jnp.full((CH + W,), jnp.inf, dtype)])
+    ts_pad = jnp.concatenate([ts, jnp.full((CH + W,) + ts.shape[1:], jnp.inf, dtype)])
     out0 = jnp.zeros((n + CH + W,) + y0p.shape, dtype).at[0].set(y0p)
 
     def waiting(state):
@@ -332,8 +335,7 @@ def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps
         old = jax.lax.dynamic_slice_in_dim(buf, j, W)
         buf = jax.lax.dynamic_update_slice_in_dim(buf, jnp.where(covered, values, old), j, 0)
         # The window moves on past the save times every member still stepping has reached.
-        twr = tw.reshape((W,) + (1,) * y0p.ndim)
-        past = (twr <= state.t[None]) | ~waiting(state)[None]
+        past = (_rows(tw, y0p.ndim) <= state.t[None]) | ~waiting(state)[None]
         past = jnp.all(past.reshape(W, -1), axis=1)
         reached = jnp.sum(past & (i0 + j + jnp.arange(W) < n))
         return _Chunk(j + reached, i0, state, buf, tc)
@@ -359,6 +361,12 @@ def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps
     log0 = None if record is None else record.log0
     _, state, out, log = jax.lax.while_loop(cond, body, (jnp.array(1), state0, out0, log0))
     return state, out, log
+
+
+def _rows(ts, ndim):
+    """Save times (n,) as rows against the state's times, (n, 1, ..., 1) (`ndim` ones);
+    a batch's own save times, (n, B, 1), as they are."""
+    return ts.reshape(ts.shape + (1,) * ndim) if ts.ndim == 1 else ts
 
 
 def outcome(code: jax.Array, steps: jax.Array) -> tuple:

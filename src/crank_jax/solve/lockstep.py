@@ -7,8 +7,12 @@ lab rigs (rtol 1e-8, 10 s, 1001 saves, 2-core CPU): 1.56 ms per trajectory for a
 `vmap` of the solver against 0.40 ms for the batched solver of `solve_adaptive`, whose
 members share the loop and the window of save times being written.
 `jax.custom_batching.custom_vmap` gives that rule to `jax.vmap`: mapped over parameters,
-initial states or tolerances with shared save times, the members' fields are evaluated
-side by side; with save times that differ per member it falls back to a plain `vmap`.
+initial states, tolerances or save times, the members' fields are evaluated side by side.
+Members with their own save times (a fit's multiple-shooting segments, records sampled
+at other instants) write their own samples at a shared index of save time: the window
+moves on when every member has passed its own. Before, they fell back to a plain `vmap`
+of one member's solve, whose batching JAX traced through the whole solver: 2 s of a
+cold fit's 3 s trace of its multiple-shooting Jacobian.
 
 Every member gets its own answer: each has its own time, step size, accept/reject
 decisions, step budget and outcome (`solve_adaptive`, `batched=True`), so a member that
@@ -111,12 +115,12 @@ def _join(dyn_b, dyn_c, batched):
     return [next(it_b) if b else next(it_c) for b in batched]
 
 
-def _in_chunks(lockstep, n, dyn_b, y0, rtol, atol, rtol_b, atol_b, spread=True):
-    """`lockstep(dyn_b, y0, rtol, atol) -> (ys, code, steps)` over the batch of `n` in
+def _in_chunks(lockstep, n, dyn_b, y0, rtol, atol, ts, rtol_b, atol_b, ts_b, spread=True):
+    """`lockstep(dyn_b, y0, rtol, atol, ts) -> (ys, code, steps)` over the batch of `n` in
     groups of `CHUNK` members (on the CPU; see `CHUNK`), the groups spread over the CPU
     devices when there are several (see [`_spread`][])."""
     if n <= CHUNK or jax.default_backend() != "cpu":
-        return lockstep(dyn_b, y0, rtol, atol)
+        return lockstep(dyn_b, y0, rtol, atol, ts)
     # This process's devices: in a multi-host run the caller's program is its own.
     devices = jax.local_devices()
     groups = -(-n // CHUNK)
@@ -128,11 +132,13 @@ def _in_chunks(lockstep, n, dyn_b, y0, rtol, atol, rtol_b, atol_b, spread=True):
         x = jnp.concatenate([x, jnp.repeat(x[-1:], m - n, axis=0)]) if m > n else x
         return x.reshape((groups, CHUNK) + x.shape[1:])
 
-    per_member = (dyn_b, y0, rtol if rtol_b else None, atol if atol_b else None)
+    per_member = (dyn_b, y0, rtol if rtol_b else None, atol if atol_b else None,
+                  ts if ts_b else None)
 
     def run(args):
-        d, y, r, a = args
-        return lockstep(d, y, rtol if r is None else r, atol if a is None else a)
+        d, y, r, a, t = args
+        return lockstep(d, y, rtol if r is None else r, atol if a is None else a,
+                        ts if t is None else t)
 
     def run_groups(xs):
         return jax.lax.map(run, xs)
@@ -187,8 +193,8 @@ def _as_float(x, like):
     return jnp.asarray(x).astype(like.dtype)
 
 
-def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk, controller):
-    """`lockstep(dyn_b, y0, rtol, atol) -> (ys, code, steps)`: one group of a batch in one
+def _lockstep(rebuild, dyn_c, in_batched, max_steps, error_size, erk, controller):
+    """`lockstep(dyn_b, y0, rtol, atol, ts) -> (ys, code, steps)`: one group of a batch in one
     loop ([`solve_adaptive`][] batched), its members' batched field leaves `dyn_b` joined
     with the shared `dyn_c`; outputs with the batch axis first."""
 
@@ -197,8 +203,9 @@ def _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk, contro
         # members, where the field offers that choice (trig.py).
         return trig.traced_as(rebuild(dyn), trig.ARITHMETIC)
 
-    def lockstep(dyn_b, y0, rtol, atol):
-        # Per-member tolerances scale that member's state (the last axis).
+    def lockstep(dyn_b, y0, rtol, atol, ts):
+        # Per-member tolerances scale that member's state (the last axis); per-member save
+        # times, (B, n), are each member's own (`solve_adaptive`).
         rtol = rtol[:, None] if in_batched[3] else rtol
         atol = atol[:, None] if in_batched[4] else atol
         ys, result, steps = solve_adaptive(
@@ -235,20 +242,14 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk, co
             # Nothing mapped (JAX's JVP of this rule asks so): one solve, not batched.
             out = single(dyn, y0, ts, rtol, atol)
             return out, jax.tree_util.tree_map(lambda _: False, out)
-        if in_batched[2]:
-            # Members with their own save times: a plain vmap.
-            axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, bt)
-                         for bt in in_batched)
-            out = jax.vmap(single, in_axes=axes)(dyn, y0, ts, rtol, atol)
-            return out, _all_batched(out)
         y0 = jax.tree_util.tree_map(
             lambda v, b: v if b else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)),
             y0, in_batched[1])
         dyn_b, dyn_c = _split(dyn, in_batched[0])
-        lockstep = _lockstep(rebuild, dyn_c, in_batched, ts, max_steps, error_size, erk,
+        lockstep = _lockstep(rebuild, dyn_c, in_batched, max_steps, error_size, erk,
                              controller)
-        out = _in_chunks(lockstep, axis_size, dyn_b, y0, rtol, atol, in_batched[3],
-                         in_batched[4], spread=spread)
+        out = _in_chunks(lockstep, axis_size, dyn_b, y0, rtol, atol, ts, in_batched[3],
+                         in_batched[4], in_batched[2], spread=spread)
         return out, _all_batched(out)
 
     def batched(spread: bool):
