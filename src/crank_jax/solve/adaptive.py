@@ -34,6 +34,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -42,7 +43,7 @@ from .controller import PIDController
 from .dense_output import dopri8_dense, window_values
 from .erk import FusedERK, dopri8, packer
 
-__all__ = ["solve_adaptive", "outcome", "Recorder"]
+__all__ = ["AdaptiveERK", "solve_adaptive", "outcome", "Recorder"]
 
 # Step attempts per loop iteration, and save times one block may write. Measured on the
 # lab rig (10 s, 1001 saves, rtol 1e-8): one trajectory costs the same per step with 1, 4
@@ -151,17 +152,44 @@ class _Attempt(NamedTuple):
     ks: list
 
 
-def _attempt(erk: FusedERK, controller: PIDController, f, rtol, atol, max_steps,
-             error_size=None, record=None):
-    """`attempt(state, t_lim) -> (state, record)`: one step attempt of `erk` on the packed
-    field `f(t, y)` per member, shortened to end at `t_lim`, with diffrax's error norm and
-    the step size from `controller` (a [`_Step`][] and an [`_Attempt`][]). A member is
-    inactive (takes no step, its state frozen) once `t >= t_lim` or its budget
-    `max_steps` is spent."""
-    sg = jax.lax.stop_gradient
-    n_st = erk.num_stages
+class AdaptiveERK(eqx.Module):
+    """An adaptive explicit Runge-Kutta solver's step, in diffrax's shape: [`init`][] makes
+    the step loop's state at the start and [`step`][] one step attempt from a state;
+    [`solve_adaptive`][]'s loop drives them (one loop for every such solver, a lockstep
+    batch and the discrete adjoint's logged solve included). `AdaptiveDopri8` is one.
 
-    def attempt(c: _Step, t_lim):
+    **Fields:** `erk`, the method, a [`FusedERK`][] (default Dopri8, `dopri8()`; its last
+    stage must be `f(t1, y1)`, first same as last); `controller`, the step-size law, a
+    [`PIDController`][] (default: an integral controller, as diffrax's default)."""
+
+    erk: FusedERK = eqx.field(default_factory=dopri8)
+    controller: PIDController = eqx.field(default_factory=PIDController)
+
+    def init(self, f, ts, y0p, rtol, atol, error_size=None, log=None) -> _Step:
+        """The [`_Step`][] at the first save time: the packed state `y0p` (..., N) there,
+        `f(t0, y0p)`, Hairer's starting step (within the span of the save times `ts`,
+        (n,), or a batch's own, (n, B, 1)), no step taken; times and step sizes with
+        shape (..., 1), one per member; `log`, the recorder's empty pending buffer (or
+        None)."""
+        sg = jax.lax.stop_gradient
+        lead = y0p.shape[:-1] + (1,)
+        t0 = jnp.broadcast_to(sg(ts[0]), lead)
+        k0 = f(t0, y0p)
+        h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), self.erk.order,
+                           sg(ts[-1]) - sg(ts[0]), error_size)
+        return _Step(t0, y0p, k0, h0, jnp.zeros(lead, int), jnp.zeros(lead, bool), log,
+                     self.controller.init(lead, y0p.dtype))
+
+    def step(self, f, c: _Step, t_lim, rtol, atol, max_steps: int, error_size=None,
+             record=None) -> tuple[_Step, _Attempt]:
+        """One step attempt of `erk` on the packed field `f(t, y)` per member, from `c`,
+        shortened to end at `t_lim`, with diffrax's error norm and the step size from
+        `controller`: `(state, attempt)` (a [`_Step`][] and an [`_Attempt`][]; with a
+        [`Recorder`][] `record`, the attempt is written to the state's log). A member is
+        inactive (takes no step, its state frozen) once `t >= t_lim` or its budget
+        `max_steps` is spent."""
+        sg = jax.lax.stop_gradient
+        erk, n_st = self.erk, self.erk.num_stages
         t, y, k, h, steps, rejected = c[:6]
         # The steps are chosen on values: t and h carry no derivative.
         active = (t < t_lim) & (steps < max_steps)
@@ -176,7 +204,7 @@ def _attempt(erk: FusedERK, controller: PIDController, f, rtol, atol, max_steps,
         ok = active & (err <= 1.0)
         t1 = jnp.where(h_try == t_lim - t, t_lim, t + h_try)
         k1 = f(t1, y1)
-        fac, control = controller.factor(sg(err), ok, rejected, erk.order, c.control)
+        fac, control = self.controller.factor(sg(err), ok, rejected, erk.order, c.control)
         # A step shortened to end at the window (or the end) and accepted leaves the
         # controller's proposal `h` valid: the next step may take it again.
         h_next = jnp.where(ok & (h_try < h), jnp.maximum(h_try * fac, h), h_try * fac)
@@ -187,16 +215,14 @@ def _attempt(erk: FusedERK, controller: PIDController, f, rtol, atol, max_steps,
                     c.log if record is None else record.write(c.log, rec), control)
         return new, rec
 
-    return attempt
-
 
 def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
-                   erk: FusedERK | None = None, unroll: int = UNROLL, window: int = WINDOW,
-                   chunk: int = CHUNK, batched: bool = False,
-                   error_size: int | None = None, record=None,
-                   controller: PIDController | None = None):
-    """Integrate `dy/dt = field(t, y, args)` with adaptive steps of `erk`, saving at `ts`
-    through the method's dense output.
+                   solver: AdaptiveERK | None = None, unroll: int = UNROLL,
+                   window: int = WINDOW, chunk: int = CHUNK, batched: bool = False,
+                   error_size: int | None = None, record=None):
+    """Integrate `dy/dt = field(t, y, args)` with adaptive steps of `solver`, saving at
+    `ts` through Dopri8's dense output: the loop that drives the solver's `init` and
+    `step`.
 
     **Arguments:**
 
@@ -211,10 +237,8 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     - `max_steps`: the budget of step attempts (accepted and rejected), static. The loop
       is a plain `lax` loop: forward mode goes through it; reverse mode does not (see
       `lockstep.py`, whose backward pass is the discrete adjoint of adjoint.py).
-    - `erk`: the method, default [`dopri8`][]`()`; its last stage must be `f(t1, y1)`
-      (first same as last), and `dopri8_dense()` its dense output.
-    - `controller`: the step-size law, a [`PIDController`][] (default: an integral
-      controller, `PIDController()`).
+    - `solver`: an [`AdaptiveERK`][] (its method and step-size controller), default
+      `AdaptiveERK()`: Dopri8, whose dense output (`dopri8_dense()`) this loop writes.
     - `unroll`, `window`: step attempts per loop iteration; save times one iteration may
       write (a step is shortened so that the iteration writes no more).
     - `chunk`: save times the step loop records before the outer loop copies them out.
@@ -236,8 +260,7 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     budget ran out before `ts[-1]`; batched: shape (B,)); `num_steps`, the step attempts,
     accepted and rejected (batched: (B,)). With `record`, the final log comes fourth.
     """
-    erk = dopri8() if erk is None else erk
-    controller = PIDController() if controller is None else controller
+    solver = AdaptiveERK() if solver is None else solver
     n = ts.shape[-1]
     dtype = ts.dtype
     pack, unpack = packer(y0, 1 if batched else 0)
@@ -250,18 +273,16 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
         return pack(field(t[..., 0], unpack(yp), args)).astype(dtype)
 
     y0p = pack(y0).astype(dtype)
-    # Times, step sizes and counts have the state's leading (batch) axes and a trailing 1.
-    lead = y0p.shape[:-1] + (1,)
+    # Times, step sizes and counts have the state's leading (batch) axes and a trailing 1
+    # (`AdaptiveERK.init`).
     if ts.ndim > 1:  # each member's own save times, (B, n): as rows (n, B, 1)
         ts = jnp.moveaxis(ts, -1, 0)[..., None]
-    t0 = jnp.broadcast_to(sg(ts[0]), lead)
-    k0 = f(t0, y0p)
-    h0 = _initial_step(f, t0, sg(y0p), sg(k0), sg(rtol), sg(atol), erk.order,
-                       sg(ts[-1]) - sg(ts[0]), error_size)
-    state0 = _Step(t0, y0p, k0, h0, jnp.zeros(lead, int), jnp.zeros(lead, bool),
-                   None if record is None else record.pending0,
-                   controller.init(lead, dtype))
-    attempt = _attempt(erk, controller, f, rtol, atol, max_steps, error_size, record)
+    state0 = solver.init(f, ts, y0p, rtol, atol, error_size,
+                         None if record is None else record.pending0)
+
+    def attempt(state, t_lim):
+        return solver.step(f, state, t_lim, rtol, atol, max_steps, error_size, record)
+
     state, out, log = _step_loop(attempt, state0, y0p, ts, window, unroll, chunk, max_steps,
                                  record)
     t_end = sg(ts[-1])

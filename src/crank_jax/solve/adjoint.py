@@ -65,11 +65,12 @@ def _rows(max_steps: int) -> int:
 
 
 def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=None,
-            controller=None):
+            solver=None):
     """The solve of [`solve_adaptive`][] (one member, not batched) with its log.
 
     **Arguments:** as `solve_adaptive`; `upto`: log accepted steps below this index only
-    (default: all, the last `LOG_ROWS` kept); `controller`, the step-size law.
+    (default: all, the last `LOG_ROWS` kept); `solver`, the steps' `AdaptiveERK` (its
+    method Dopri8, whose steps `backward` reverses).
 
     **Returns:** `(ys, result, num_steps, log)`, a [`Log`][] fourth."""
     # A rerun (`backward`) must take the same steps bit for bit; but XLA folds the inputs
@@ -82,7 +83,7 @@ def forward(field, y0, ts, rtol, atol, *, max_steps: int, error_size=None, upto=
     upto = jnp.asarray(max_steps + 1 if upto is None else upto, jnp.int32)
     record = recorder(_rows(max_steps), n_state, ts.dtype, upto)
     return solve_adaptive(field, y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
-                          record=record, controller=controller)
+                          record=record, solver=solver)
 
 
 def _step_outputs(field, pack, unpack, row, tw, n_state, e=None):
@@ -123,13 +124,13 @@ def _step_outputs(field, pack, unpack, row, tw, n_state, e=None):
 
 
 def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int,
-             error_size=None, controller=None, program: str = "blocks"):
+             error_size=None, solver=None, program: str = "blocks"):
     """The cotangents of the field's array leaves `dyn` and of `y0` from `g_ys`, the
     cotangent of the solve's `ys` (a pytree like `y0` with a leading axis n), by the
     steps of `log` in reverse (see the module docstring).
 
     **Arguments:** `rebuild(dyn) -> field`; `dyn`, the field's array leaves (a list);
-    `y0`, `ts`, `rtol`, `atol`, `max_steps`, `error_size`, `controller`: the forward
+    `y0`, `ts`, `rtol`, `atol`, `max_steps`, `error_size`, `solver`: the forward
     solve's (a rerun of an earlier segment needs them); `program`, the backward program,
     `"blocks"` or `"loop"` (see the module docstring).
 
@@ -171,7 +172,7 @@ def backward(rebuild, dyn, y0, ts, rtol, atol, log: Log, g_ys, *, max_steps: int
         m, carry, head = c
         r = jax.lax.cond(m == m_last, lambda: log._replace(mark=head), lambda: forward(
             rebuild(dyn), y0, ts, rtol, atol, max_steps=max_steps, error_size=error_size,
-            upto=(m + 1) * S, controller=controller)[3])
+            upto=(m + 1) * S, solver=solver)[3])
         # A rerun that does not take the forward pass's steps bit for bit (its step
         # (m + 1) S, `mark`, the next segment's first) would give a wrong gradient. (m < 0:
         # a member done while others of a `vmap` go on, its result not taken.)

@@ -57,23 +57,22 @@ __all__ = ["adaptive_solve"]
 
 
 def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint,
-                   error_size: int | None = None, erk=None, controller=None):
+                   error_size: int | None = None, solver=None):
     """Solve with [`solve_adaptive`][] so that `jax.vmap` steps a batch in lockstep.
 
     **Arguments:** `field`, the vector field (a pytree; its array leaves may be traced or
     batched); `y0`, one member's state, a pytree of small arrays (the crank: `(phi,
     phi')`); `ts` (n,) save times; `rtol`, `atol` scalars; `max_steps`, the step budget;
     `adjoint`, an adjoint object (`adjoints.py`: `DiscreteAdjoint` for `jax.grad` by the
-    discrete adjoint of adjoint.py); `erk`, the method (a `FusedERK`, default `dopri8()`;
-    reverse mode takes that one only); `controller`, the step-size law (a
-    `PIDController`, default `PIDController()`); `error_size`, the leading state
-    components the step control sees (see `solve_adaptive`).
+    discrete adjoint of adjoint.py); `solver`, the steps' method and step-size law (an
+    `AdaptiveERK`, default `AdaptiveERK()`, Dopri8 with an integral controller; reverse
+    mode takes Dopri8 only); `error_size`, the leading state components the step control
+    sees (see `solve_adaptive`).
 
     **Returns:** `(ys, result, num_steps)`, as `solve_adaptive` (`ys` like `y0` with a
     leading axis n; `result` a `diffrax.RESULTS`).
     """
-    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk,
-                    controller)
+    out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, solver)
     ys, code, steps = out
     return (ys, *outcome(code.astype(jnp.int32), steps.astype(jnp.int32)))
 
@@ -193,7 +192,7 @@ def _as_float(x, like):
     return jnp.asarray(x).astype(like.dtype)
 
 
-def _lockstep(rebuild, dyn_c, in_batched, max_steps, error_size, erk, controller):
+def _lockstep(rebuild, dyn_c, in_batched, max_steps, error_size, solver):
     """`lockstep(dyn_b, y0, rtol, atol, ts) -> (ys, code, steps)`: one group of a batch in one
     loop ([`solve_adaptive`][] batched), its members' batched field leaves `dyn_b` joined
     with the shared `dyn_c`; outputs with the batch axis first."""
@@ -211,14 +210,14 @@ def _lockstep(rebuild, dyn_c, in_batched, max_steps, error_size, erk, controller
         ys, result, steps = solve_adaptive(
             _side_by_side(arithmetic, _join(dyn_b, dyn_c, in_batched[0]), in_batched[0]),
             y0, ts, rtol, atol, max_steps=max_steps, batched=True,
-            error_size=error_size, erk=erk, controller=controller)
+            error_size=error_size, solver=solver)
         ys = jax.tree_util.tree_map(lambda v: jnp.moveaxis(v, 1, 0), ys)
         return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
     return lockstep
 
 
-def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk, controller):
+def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, solver):
     # The field's arrays as a flat list: `custom_vmap` cannot take the `None` leaves that
     # `eqx.partition` leaves (jax issue 9066).
     dyn_tree, static = eqx.partition(field, eqx.is_array)
@@ -233,7 +232,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk, co
         dyn, y0, ts, rtol, atol = jax.lax.optimization_barrier((dyn, y0, ts, rtol, atol))
         ys, result, steps = solve_adaptive(rebuild(dyn), y0, ts, rtol, atol,
                                            max_steps=max_steps, error_size=error_size,
-                                           erk=erk, controller=controller)
+                                           solver=solver)
         # Every output a float: JAX's JVP of a `custom_vmap` takes float outputs only.
         return ys, _as_float(result_code(result), ts), _as_float(steps, ts)
 
@@ -246,8 +245,7 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk, co
             lambda v, b: v if b else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)),
             y0, in_batched[1])
         dyn_b, dyn_c = _split(dyn, in_batched[0])
-        lockstep = _lockstep(rebuild, dyn_c, in_batched, max_steps, error_size, erk,
-                             controller)
+        lockstep = _lockstep(rebuild, dyn_c, in_batched, max_steps, error_size, solver)
         out = _in_chunks(lockstep, axis_size, dyn_b, y0, rtol, atol, ts, in_batched[3],
                          in_batched[4], in_batched[2], spread=spread)
         return out, _all_batched(out)
@@ -269,15 +267,15 @@ def _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, erk, co
     # The adjoint's rule (adjoints.py): JAX's tangents through the batched solve, or the
     # discrete adjoint's `custom_vjp` around it.
     with_vjp = functools.partial(_with_adjoint_vjp, batched, rebuild, max_steps, error_size,
-                                 erk, controller)
+                                 solver)
     return adjoint.fused(batched(spread=True), with_vjp)(dyn, y0, ts, rtol, atol)
 
 
-def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, erk, controller, backward):
+def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, solver, backward):
     """The solve `batched(spread)` with reverse mode by the discrete adjoint of its steps
     (adjoint.py; see the module's docstring), by the backward program `backward`
     (`DiscreteAdjoint.backward`)."""
-    if erk is not None and erk != dopri8():  # the adjoint differentiates dopri8()'s steps
+    if solver is not None and solver.erk != dopri8():  # the adjoint differentiates Dopri8
         raise ValueError("reverse mode steps the default method only")
 
     @jax.custom_vjp
@@ -293,7 +291,7 @@ def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, erk, controller, 
         dyn, y0 = jax.tree_util.tree_map(jnp.asarray, (dyn, y0))
         ys, result, steps, log = discrete.forward(rebuild(dyn), y0, ts, rtol, atol,
                                                  max_steps=max_steps, error_size=error_size,
-                                                 controller=controller)
+                                                 solver=solver)
         out = (ys, _as_float(result_code(result), ts), _as_float(steps, ts))
         return out, (dyn, y0, ts, rtol, atol, log)
 
@@ -301,7 +299,7 @@ def _with_adjoint_vjp(batched, rebuild, max_steps, error_size, erk, controller, 
         dyn, y0, ts, rtol, atol, log = res
         d_dyn, d_y0 = discrete.backward(rebuild, dyn, y0, ts, rtol, atol, log, g[0],
                                        max_steps=max_steps, error_size=error_size,
-                                       controller=controller, program=backward)
+                                       solver=solver, program=backward)
         # No derivative with respect to the save times or the tolerances.
         return d_dyn, d_y0, jnp.zeros_like(ts), jnp.zeros_like(rtol), jnp.zeros_like(atol)
 

@@ -30,6 +30,7 @@ import jax.flatten_util
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
+from .adaptive import AdaptiveERK
 from .adjoints import ADJOINTS, AbstractAdjoint, DiscreteAdjoint, as_adjoint
 from .controller import PIDController
 from .erk import FusedERK, dopri8
@@ -100,7 +101,7 @@ class AbstractSolver(eqx.Module):
         return self
 
 
-class AdaptiveDopri8(AbstractSolver):
+class AdaptiveDopri8(AdaptiveERK, AbstractSolver):
     """`"dopri8-adaptive"`: adaptive fused Dopri8 steps with dense output (`adaptive.py`).
     Error per step as diffrax's `PIDController` measures it; a `jax.vmap`-ed batch steps
     in one loop, each member with its own steps (`lockstep.py`). Forward mode steps the
@@ -121,11 +122,11 @@ class AdaptiveDopri8(AbstractSolver):
     **Fields:** `erk`, the method, a [`FusedERK`][crank_jax.solve.erk.FusedERK]: Dopri8,
     `erk.dopri8()` (its dense output and adjoint are Dopri8's); `controller`, the
     step-size law, a [`PIDController`][crank_jax.solve.controller.PIDController] (default:
-    an integral controller, as diffrax's default). The tolerances come with each solve."""
+    an integral controller, as diffrax's default). The tolerances come with each solve.
+    Its step is [`AdaptiveERK`][crank_jax.solve.adaptive.AdaptiveERK]'s `init` and
+    `step`, which `solve_adaptive`'s one loop drives (diffrax's solver shape)."""
 
     loop_stages: bool = eqx.field(static=True, default=False)
-    erk: FusedERK = eqx.field(default_factory=dopri8)
-    controller: PIDController = eqx.field(default_factory=PIDController)
 
     def __check_init__(self):
         # The dense output (dense_output.dopri8_dense) and the adjoint are Dopri8's: another
@@ -149,10 +150,10 @@ class AdaptiveDopri8(AbstractSolver):
 
         def steps(fld, y, ts_, r, a, error_size):
             # `error_size` is set for the variational solve only.
-            erk = (dataclasses.replace(self.erk, rolled=True)
-                   if error_size is not None and self.loop_stages else self.erk)
+            solver = (dataclasses.replace(self, erk=dataclasses.replace(self.erk, rolled=True))
+                      if error_size is not None and self.loop_stages else self)
             return adaptive_solve(fld, y, ts_, r, a, max_steps=max_steps, adjoint=adjoint,
-                                  error_size=error_size, erk=erk, controller=self.controller)
+                                  error_size=error_size, solver=solver)
 
         # The adjoint's rule: forward mode steps the variational equation (adjoints.py).
         ys, result, num = adjoint.adaptive(steps, field, prepare, y0, ts, rtol, atol)
