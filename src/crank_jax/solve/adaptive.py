@@ -166,7 +166,7 @@ class AdaptiveERK(eqx.Module):
     controller: PIDController = eqx.field(default_factory=PIDController)
 
     def init(self, f, ts, y0p, rtol, atol, error_size=None, log=None) -> _Step:
-        """The [`_Step`][] at the first save time: the packed state `y0p` (..., N) there,
+        """The `_Step` at the first save time: the packed state `y0p` (..., N) there,
         `f(t0, y0p)`, Hairer's starting step (within the span of the save times `ts`,
         (n,), or a batch's own, (n, B, 1)), no step taken; times and step sizes with
         shape (..., 1), one per member; `log`, the recorder's empty pending buffer (or
@@ -184,7 +184,7 @@ class AdaptiveERK(eqx.Module):
              record=None) -> tuple[_Step, _Attempt]:
         """One step attempt of `erk` on the packed field `f(t, y)` per member, from `c`,
         shortened to end at `t_lim`, with diffrax's error norm and the step size from
-        `controller`: `(state, attempt)` (a [`_Step`][] and an [`_Attempt`][]; with a
+        `controller`: `(state, attempt)` (a `_Step` and an `_Attempt`; with a
         [`Recorder`][] `record`, the attempt is written to the state's log). A member is
         inactive (takes no step, its state frozen) once `t >= t_lim` or its budget
         `max_steps` is spent."""
