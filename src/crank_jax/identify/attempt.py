@@ -10,9 +10,9 @@ import dataclasses
 import functools
 import math
 
-import jax.numpy as jnp
 import numpy as np
 
+from ..runtime.arrays import device_array
 from ..runtime.xla_flags import backward_program
 from ..solve.adjoints import DiscreteAdjoint
 from . import channel_noise as ch
@@ -42,7 +42,7 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
     problem = shoot if req.method == "lm" else dataclasses.replace(
         shoot, adjoint=DiscreteAdjoint(backward=backward_program()))
     run_fn = _optimiser(req, plan)
-    run = guarded(run_fn, Subspace(problem, jnp.asarray(z0), jnp.asarray(B)),
+    run = guarded(run_fn, Subspace(problem, device_array(z0), device_array(B)),
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
     run = run._replace(z=z0 + B @ run.z)
     if shoot is ss:
@@ -117,7 +117,7 @@ def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
     held = _single_from(run_fn, req, ss, zc, Bh, desc + " (friction held at 0)")
     zc = held.z
     tries = [run, held]
-    r, failed, _, J = jacobian_at(ss, jnp.asarray(zc))
+    r, failed, _, J = jacobian_at(ss, device_array(zc))
     r, J = np.asarray(r), np.asarray(J)
     grad = J[:, at0].T @ r
     if int(failed) == 0 and np.all(np.isfinite(grad)) and np.any(grad < 0):

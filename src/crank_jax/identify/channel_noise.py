@@ -15,10 +15,10 @@ import dataclasses
 import math
 
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 
 from ..records.data import Data
+from ..runtime.arrays import device_array
 from .angle import angle_estimate, motion_period
 from .diagnostics import residual_diagnostics
 from .measurement import fitted_channels
@@ -131,7 +131,7 @@ def reweighted(problem: Problem, sigmas: dict[str, float]) -> Problem:
     """`problem` with each channel weighted by the first channel's level over its own
     (`sigmas`, SI); the weights are array leaves, so nothing recompiles."""
     first = problem.exps[0].channels[0]
-    new = tuple(jnp.asarray([sigmas[first] / sigmas[n] for n in e.channels], float)
+    new = tuple(device_array([sigmas[first] / sigmas[n] for n in e.channels], float)
                 for e in problem.exps)
     return eqx.tree_at(lambda p: tuple(e.weight for e in p.exps), problem, new)
 
@@ -151,7 +151,7 @@ def new_levels(req: FitRequest, ss: Problem, z: np.ndarray) -> dict[str, float] 
     unknown = unknown_levels(req)
     if len(req.sigmas) < 2 or not unknown:
         return None
-    r, failed, _ = (np.asarray(x) for x in residuals_at(ss, jnp.asarray(z)))
+    r, failed, _ = (np.asarray(x) for x in residuals_at(ss, device_array(z)))
     if int(failed) > 0 or not np.all(np.isfinite(r)):
         return None
     dof = math.sqrt(ss.n_residuals / max(ss.n_residuals - ss.p, 1))

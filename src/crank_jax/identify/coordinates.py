@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -29,7 +30,7 @@ from ..model.params import FIELDS, SliderCrank
 from ..simulation import linearize
 from .request import FRICTION_SCALED, SIGNED_FIELDS
 
-__all__ = ["coordinate", "coordinates", "folded", "fold", "FOLDED"]
+__all__ = ["coordinate", "coordinates", "folded", "fold", "FOLDED", "values_of", "values_program"]
 
 # Linear scale of a mechanism field that starts at 0 (a friction coefficient, an offset
 # in units of r): the optimiser's first steps are O(1) in z.
@@ -90,3 +91,14 @@ def fold(z):
     """`|z|` with derivative +1 at 0 (`jnp.abs` has 0 there, which would make a folded
     parameter that starts at 0 look exactly flat: `fit` holds flat directions fixed)."""
     return jnp.where(z >= 0, z, -z)
+
+
+def values_of(z, ref, log: tuple, folded: tuple):
+    """Physical values (p,) of coordinates `z` (p,): `exp(z)` where `log`, `ref |z|`
+    where `folded`, else `ref z` (`ref`, (p,), each one's unit)."""
+    return jnp.stack([jnp.exp(z[i]) if log[i] else fold(z[i]) * ref[i] if folded[i]
+                      else z[i] * ref[i] for i in range(len(log))])
+
+
+#: [`values_of`][] compiled, for coordinates on the host (`Problem.host_values`).
+values_program = jax.jit(values_of, static_argnums=(2, 3))

@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import math
 
-import jax.numpy as jnp
 import numpy as np
 
+from ..runtime.arrays import device_array
 from . import attempt as at
 from . import channel_noise as ch
 from .fit_plan import Plan, recoordinate, shooting
@@ -181,7 +181,7 @@ def _reproduced(runs, unit2: float) -> bool:
 def _start_cost(problem: Problem, z: np.ndarray) -> float:
     """The cost `0.5 |r|^2` of `problem` at `z` (inf where a solve fails), from the
     residuals-and-sensitivities program the LM compiles anyway."""
-    r, failed, _, _ = jacobian_at(problem, jnp.asarray(z))
+    r, failed, _, _ = jacobian_at(problem, device_array(z))
     r = np.asarray(r)
     return 0.5 * float(r @ r) if int(failed) == 0 and np.all(np.isfinite(r)) else math.inf
 

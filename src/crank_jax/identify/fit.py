@@ -32,7 +32,6 @@ import time
 import warnings
 from collections.abc import Sequence
 
-import jax.numpy as jnp
 import numpy as np
 
 from ..records.data import Data
@@ -71,7 +70,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
              else ss.to_z([plan.start[n] for n in ss.names]))
     converged, message = best.converged, best.message
     if plan.abort:  # nothing was solved, and nothing more is
-        r_hat, values = ss.no_residuals(), np.asarray(ss.values(z_hat))
+        r_hat, values = ss.no_residuals(), ss.host_values(z_hat)
         rms, unc, more, diag = float("nan"), undefined(ss.p, "did not converge"), [], None
     else:
         r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, ch.known_sigma(req))
@@ -117,7 +116,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         message=message, method=req.method,
         shooting=("multiple" + plan.strategy.split("multiple shooting", 1)[1].split(",")[0]
                   if plan.strategy.startswith("multiple") else "single"),
-        mech=ss.unpack(jnp.asarray(z_hat))[0], data=list(req.records),
+        mech=ss.host_mech(z_hat), data=list(req.records),
         fitted=ss.fitted(r_hat), profile=prof, strategy=plan.strategy, diagnostics=diag,
         channels=ch.channel_report(ss, r_hat, req.sigmas, converged),
         fitted_channels=fitted_channels(ss, r_hat), termination=term)

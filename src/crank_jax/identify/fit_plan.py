@@ -12,10 +12,10 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax.numpy as jnp
 import numpy as np
 
 from ..model.outputs import SI_UNITS
+from ..runtime.arrays import device_array
 from ..solve.adjoints import ForwardSensitivities
 from ..solve.solvers import AbstractSolver
 from . import channel_noise as ch
@@ -106,7 +106,7 @@ def _start_solve(req, start, states, solver, periods):
     for budget in (SMALL_ODE_BUDGET, MAX_ODE_STEPS):
         ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
         z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
-        r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z)))
+        r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, device_array(z)))
         absurd = any(absurd_start(int(n), sp, p, turns=_turns(a)) for n, sp, p, a in
                      zip(np.atleast_1d(steps), spans, periods, req.angles))
         if int(failed) == 0 or budget == MAX_ODE_STEPS or absurd:
@@ -191,7 +191,7 @@ def make_plan(req: FitRequest) -> Plan:
     if too_far:
         return _aborted(req, start, states, solver, too_far, notes)
     ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
-    full_start = {n: float(v) for n, v in zip(ss.names, np.asarray(ss.values(z_start)))}
+    full_start = {n: float(v) for n, v in zip(ss.names, ss.host_values(z_start))}
     plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, notes,
                  "single shooting", start, states, solver)
     spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
@@ -233,7 +233,7 @@ def _aborted(req, start, states, solver, why: str, notes) -> Plan:
     """A plan that stops before any solve (see `absurd_frequency`)."""
     ss = _problem(req, start, states, [1] * len(req.records), SMALL_ODE_BUDGET, solver)
     z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
-    full = {n: float(v) for n, v in zip(ss.names, np.asarray(ss.values(z)))}
+    full = {n: float(v) for n, v in zip(ss.names, ss.host_values(z))}
     return Plan(ss, ss, z, np.eye(ss.p), full, float("nan"), [], notes, "none", start,
                  states, solver, abort=why)
 
@@ -251,7 +251,7 @@ def recoordinate(src: Problem, dst: Problem, z: np.ndarray) -> np.ndarray:
     """The reported parameters at `src`'s coordinates `z` (its first `p` entries) in
     `dst`'s coordinates (p,). A value at 0 (a linear coordinate's bound) is taken a hair
     above it where `dst` has it in log space."""
-    v = np.asarray(src.values(jnp.asarray(z[:src.p])))
+    v = src.host_values(z[:src.p])
     v = np.where(dst.log, np.maximum(v, np.finfo(float).tiny), v)
     return dst.to_z(v)
 
@@ -262,7 +262,7 @@ def recoordinate_basis(src: Problem, dst: Problem, Bg: np.ndarray, z: np.ndarray
     `src`'s coordinates at `z` (to first order: the map between them is diagonal, each
     coordinate a function of its own value). Flat directions held fixed in single shooting
     stay held in multiple shooting."""
-    v = np.asarray(src.values(jnp.asarray(z[:src.p])))
+    v = src.host_values(z[:src.p])
     dv = np.where(src.log, v, np.asarray(src.ref))  # d value / d z_src
     dz = np.where(dst.log, 1.0 / np.where(dst.log, v, 1.0), 1.0 / np.asarray(dst.ref))
     q, _ = np.linalg.qr((dv * dz)[:, None] * Bg)

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..model.outputs import output
 from ..records.sensors import Sensor
+from ..runtime.arrays import device_array
 
 __all__ = ["calibration", "channel_errors", "fitted_channels"]
 
@@ -25,9 +26,9 @@ def calibration(sensors: Sequence[Sensor], sigmas, first_sigma: float, mech,
     first = sensors[0]
     r = float(mech.r)
     per = {"phi": 1.0, "dphi": omega, "x_s": r, "v_s": r * omega, "a_s": r * omega**2}
-    return (jnp.asarray([float(s.scale) for s in sensors]),
-            jnp.asarray([float(s.offset) for s in sensors]), jnp.asarray(weight, float),
-            jnp.asarray(abs(float(first.scale)) * per[first.name], float),
+    return (device_array([float(s.scale) for s in sensors]),
+            device_array([float(s.offset) for s in sensors]), device_array(weight, float),
+            device_array(abs(float(first.scale)) * per[first.name], float),
             tuple(s.name for s in sensors))
 
 
@@ -49,7 +50,8 @@ def fitted_channels(problem, r) -> list[dict[str, np.ndarray]]:
     for e in problem.exps:
         size = int(np.prod(e.seg.ts.shape))
         w = np.asarray(e.weight)
-        out.append({name: np.asarray(e.seg.ys[c, 0, :e.n])
+        ys = np.asarray(e.seg.ys)  # sliced on the host: no compiled slice per shape
+        out.append({name: ys[c, 0, :e.n]
                     + r[k + c * size:k + c * size + e.n] / w[c]
                     for c, name in enumerate(e.channels)})
         k += size * len(e.channels)

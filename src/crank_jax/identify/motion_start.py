@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..model.dynamics import coriolis, generalized_force, mass
+from ..runtime.arrays import device_array
 from .problem import Problem
 from .request import record_mech
 from .start import regressor_samples
@@ -76,8 +77,8 @@ def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
     rows = tuple(regressor_samples(d.ts, np.asarray(a, float), per)
                  for d, a, per in zip(records, angles, periods))
     z = np.asarray(z[:problem.p], dtype=float)
-    v0 = np.asarray(problem.values(jnp.asarray(z)), dtype=float)
-    base = np.asarray(_eom(problem, jnp.asarray(z), rows))
+    v0 = np.asarray(problem.host_values(z), dtype=float)
+    base = np.asarray(_eom(problem, device_array(z), rows))
     cols, idx = [], []
     for i in range(problem.n_global):
         h = max(abs(v0[i]), 1e-3 * max(np.abs(v0[:problem.n_global]).max(), 1e-12))
@@ -87,7 +88,7 @@ def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
             v[i] += step * h
             if problem.log[i] and v[i] <= 0:
                 return None
-            return np.asarray(_eom(problem, jnp.asarray(problem.to_z(v)), rows)) - base
+            return np.asarray(_eom(problem, device_array(problem.to_z(v)), rows)) - base
 
         one, two = at(1.0), at(2.0)
         if one is None or two is None or not np.any(one):

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import math
 
-import jax.numpy as jnp
 import numpy as np
 
+from ..runtime.arrays import device_array
 from ..runtime.progress import progress_bar
 from .gauss_newton import Step, direction, gauss_newton
 from .outcome import Run, budget_spent, failed_message, stalled_message, termination
@@ -43,7 +43,7 @@ BOUND_STEPS = 3
 
 def evaluate(problem, z) -> tuple[float, int]:
     """(0.5 |r|^2, number of failed samples) at `z`."""
-    r, failed, _ = residuals_at(problem, jnp.asarray(z))
+    r, failed, _ = residuals_at(problem, device_array(z))
     r = np.asarray(r)
     return 0.5 * float(r @ r), int(failed)
 
@@ -106,7 +106,7 @@ class _Evaluations:
             self.w, self.r, self.failed = np.array(w), np.full(n, 1e3), n
             self.J = np.zeros((n, np.asarray(w).shape[0]))
             return
-        r, failed, _, J = jacobian_at(self.model.problem, jnp.asarray(z))
+        r, failed, _, J = jacobian_at(self.model.problem, device_array(z))
         # A failed solve's samples are residuals of 10 rad already (problem.py); anything
         # non-finite left must not reach MINPACK, which has no test for it.
         r = np.nan_to_num(np.asarray(r), nan=1e3, posinf=1e3, neginf=-1e3)

@@ -5,11 +5,11 @@ problem holds it ([`Experiment`][])."""
 from __future__ import annotations
 
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
 from ..model.loads import AbstractLoad, InputLoad, SampledLoad
+from ..runtime.arrays import device_array
 
 __all__ = ["bucket", "Segments", "Experiment", "make_segments", "padded_load"]
 
@@ -99,8 +99,7 @@ def make_segments(ts: np.ndarray, ys: np.ndarray, n_segments: int, pad: bool = T
         if S > 1 and s < S - 1:
             W[s, k - 1] = 0.0  # the shared sample belongs to the next segment
         E[s], F[s] = k - 1, a
-    return Segments(jnp.asarray(T), jnp.asarray(P), jnp.asarray(W), jnp.asarray(E),
-                    jnp.asarray(F))
+    return Segments(*(device_array(x) for x in (T, P, W, E, F)))
 
 
 def padded_load(load: AbstractLoad) -> AbstractLoad:

@@ -18,6 +18,7 @@ from ..model.dynamics import coriolis, generalized_force, mass
 from ..model.loads import AbstractLoad
 from ..model.params import SliderCrank
 from ..records.data import Data
+from ..runtime.arrays import device_array
 from .request import SCALE_GROUP
 
 __all__ = ["smooth_derivatives", "half_window", "regressor_start", "regressor_samples",
@@ -185,7 +186,7 @@ def regressor_samples(ts: np.ndarray, phi: np.ndarray, period: float | None):
     step = max(1, -(-(hi - lo) // MAX_REGRESSOR_ROWS))
     at = np.arange(lo, hi, step)
     p, dp, ddp = smooth_derivatives(ts, phi, half, at)
-    return tuple(jnp.asarray(x) for x in (p, dp, ddp, ts[at]))
+    return tuple(device_array(x) for x in (p, dp, ddp, ts[at]))
 
 
 def _rows(data: Data, load, torque, mech, period):

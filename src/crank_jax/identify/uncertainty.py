@@ -21,9 +21,9 @@ import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
-import jax.numpy as jnp
 import numpy as np
 
+from ..runtime.arrays import device_array
 from .diagnostics import robust_uncertainty
 from .programs import jacobian_at
 from .symmetries import fixed_scale_members, known_directions, name_list
@@ -320,12 +320,12 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
     Identifiability is judged only at a converged estimate: a fit that did not converge
     says so, not that the data cannot determine a direction."""
     try:
-        r_hat, failed, _, J = (np.asarray(x) for x in jacobian_at(ss, jnp.asarray(z_hat)))
+        r_hat, failed, _, J = (np.asarray(x) for x in jacobian_at(ss, device_array(z_hat)))
     except (RuntimeError, ValueError) as e:
-        return (ss.no_residuals(), np.asarray(ss.values(jnp.asarray(z_hat))),
+        return (ss.no_residuals(), ss.host_values(z_hat),
                 float("nan"), undefined(ss.p, f"sensitivities could not be computed: "
                                                 f"{str(e).splitlines()[0]}"), [], None)
-    values = np.asarray(ss.values(jnp.asarray(z_hat)))
+    values = ss.host_values(z_hat)
     n = ss.n_residuals
     rms = float(np.sqrt(np.sum(r_hat**2) / n)) if int(failed) == 0 else float("nan")
     notes: list[str] = []

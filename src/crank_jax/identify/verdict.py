@@ -32,6 +32,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..runtime.arrays import device_array
+
 __all__ = ["DirectionProfile", "Checked", "profile_direction", "check", "wide_offset",
            "bound_offsets", "CHI2_95", "DISAGREE"]
 
@@ -144,13 +146,12 @@ class _Trace:
 
     def refit(self, t: float, w0: np.ndarray):
         """The re-fit at offset `t` from `w0` and its deviance (inf where it failed)."""
-        import jax.numpy as jnp
 
         from .optimise import least_squares
         from .programs import Subspace
 
-        run = least_squares(Subspace(self.problem, jnp.asarray(self.z_hat + t * self.u),
-                                     jnp.asarray(self.B)), w0, self.max_steps, self.tol,
+        run = least_squares(Subspace(self.problem, device_array(self.z_hat + t * self.u),
+                                     device_array(self.B)), w0, self.max_steps, self.tol,
                             "", False)
         d = (self.n * math.log(2.0 * run.cost / self.rss_min) if math.isfinite(run.cost)
              else math.inf)
