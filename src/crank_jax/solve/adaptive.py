@@ -230,9 +230,10 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
       inexact-array leaves are differentiable parameters. Batched, `t` has shape (B,).
     - `y0`: the state at `ts[0]`, a pytree of arrays (small: the stages are unrolled).
     - `ts` (n,): increasing save times, any spacing; batched, also (B, n), each member's
-      own (a member writes its i-th sample at its own i-th time); `rtol`, `atol`: tolerances of the
-      local error per step as diffrax's `PIDController` scales them (RMS over the state of
-      `err / (atol + rtol max(|y0|, |y1|))`; a step is accepted when it is <= 1).
+      own (a member writes its i-th sample at its own i-th time).
+    - `rtol`, `atol`: tolerances of the local error per step as diffrax's `PIDController`
+      scales them (RMS over the state of `err / (atol + rtol max(|y0|, |y1|))`; a step is
+      accepted when it is <= 1).
     - `args`: passed to `field`; its inexact-array leaves are differentiable too.
     - `max_steps`: the budget of step attempts (accepted and rejected), static. The loop
       is a plain `lax` loop: forward mode goes through it; reverse mode does not (see
@@ -273,8 +274,6 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
         return pack(field(t[..., 0], unpack(yp), args)).astype(dtype)
 
     y0p = pack(y0).astype(dtype)
-    # Times, step sizes and counts have the state's leading (batch) axes and a trailing 1
-    # (`AdaptiveERK.init`).
     if ts.ndim > 1:  # each member's own save times, (B, n): as rows (n, B, 1)
         ts = jnp.moveaxis(ts, -1, 0)[..., None]
     state0 = solver.init(f, ts, y0p, rtol, atol, error_size,
@@ -350,13 +349,14 @@ def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps
         for _ in range(K):
             state, rec = attempt(state, t_lim)
             taken.append(rec)
-        values, covered = window_values(dense, taken, tw, y0p.ndim)
+        twr = _rows(tw, y0p.ndim)  # against the members' times
+        values, covered = window_values(dense, taken, twr)
         # Rows from j on are pending: each member's covered rows are written, the others
         # keep what an earlier block wrote (members step on their own).
         old = jax.lax.dynamic_slice_in_dim(buf, j, W)
         buf = jax.lax.dynamic_update_slice_in_dim(buf, jnp.where(covered, values, old), j, 0)
         # The window moves on past the save times every member still stepping has reached.
-        past = (_rows(tw, y0p.ndim) <= state.t[None]) | ~waiting(state)[None]
+        past = (twr <= state.t[None]) | ~waiting(state)[None]
         past = jnp.all(past.reshape(W, -1), axis=1)
         reached = jnp.sum(past & (i0 + j + jnp.arange(W) < n))
         return _Chunk(j + reached, i0, state, buf, tc)

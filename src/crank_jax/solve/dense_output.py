@@ -37,18 +37,16 @@ def dense_coefficients(coeffs, h, ks):
     return d
 
 
-def window_values(dense, taken, tw, ndim):
-    """The dense output at the window's save times `tw` (W,) (or (W, B, 1), each member's
-    own): each one that lies in `(t, t1]` of an accepted attempt in `taken` (per member of
-    a batch) takes that attempt's coefficients (a select per attempt), then one
-    polynomial evaluation for the whole window.
+def window_values(dense, taken, twr):
+    """The dense output at the window's save times `twr`, (W, 1, ..., 1) as rows against
+    the members' times (or (W, B, 1), each member's own): each one that lies in `(t, t1]`
+    of an accepted attempt in `taken` (per member of a batch) takes that attempt's
+    coefficients (a select per attempt), then one polynomial evaluation for the whole
+    window.
 
     **Returns:** `(values, covered)`: values of shape (W,) + the packed state's shape,
     and where an attempt covered the save time, shape (W,) + (..., 1) (save times no
     attempt covers are pending: their values are zeros, written by a later block)."""
-    W = tw.shape[0]
-    # (W,) shared by the members, or each member's own, (W, B, 1)
-    twr = tw.reshape((W,) + (1,) * ndim) if tw.ndim == 1 else tw
     theta = covered = base = coef = None
     for rec in taken:
         mine = rec.ok[None] & (twr > rec.t[None]) & (twr <= rec.t1[None])
