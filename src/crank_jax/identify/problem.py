@@ -113,14 +113,19 @@ class Problem(eqx.Module):
         """[`values`][] of host coordinates `z` (p,) or longer, as numpy: one compiled
         program of the same arithmetic, where the eager operations compiled five small
         programs (~0.3 s of a cold fit)."""
-        return np.asarray(values_program(device_array(z)[:self.p], self.ref,
-                                          self.log[:self.p], self.folded))
+        # The whole `z` goes in: `values_of` reads its first p entries (a slice here would
+        # be one more small program).
+        return np.asarray(values_program(device_array(z), self.ref, self.log[:self.p],
+                                          self.folded))
 
     def host_mech(self, z) -> SliderCrank:
         """The mechanism of host coordinates `z`: [`unpack`][]'s first part, its fields
         from [`host_values`][] (the same numbers, with no small program compiled per
         operation)."""
-        vals = self.host_values(z)
+        return self._mech(self.host_values(z))
+
+    def _mech(self, vals) -> SliderCrank:
+        """The base mechanism with the global names' values `vals` (p,) in its fields."""
         return self.base.replace(**{n: vals[i] for i, n in
                                     enumerate(self.names[:self.n_global]) if n in FIELDS})
 
@@ -136,14 +141,9 @@ class Problem(eqx.Module):
         every value but the shared mechanism fields' (name -> value), and under `"force."`
         the record's force term."""
         vals = self.values(z)
-        fields = {n: getattr(self.base, n) for n in FIELDS}
-        load_vals = {}
-        for i, name in enumerate(self.names[:self.n_global]):
-            if name in fields:
-                fields[name] = vals[i]
-            else:
-                load_vals[name] = vals[i]
-        mech = SliderCrank(**fields)
+        mech = self._mech(vals)
+        load_vals = {name: vals[i] for i, name in enumerate(self.names[:self.n_global])
+                     if name not in FIELDS}
         out = []
         k = self.n_global
         x = self.p  # segment states start after the reported parameters

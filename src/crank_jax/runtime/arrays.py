@@ -17,10 +17,11 @@ __all__ = ["device_array"]
 
 
 def device_array(x, dtype=None) -> jax.Array:
-    """`x` (a numpy array, a numpy scalar or a list of numbers) as a JAX array with the
-    dtype `jnp.asarray(x, dtype)` gives it (strongly typed: not for a bare Python scalar,
-    which `jnp.asarray` makes weakly typed), copied without a compiled program. A JAX
-    array passes through as it is (cast when `dtype` asks)."""
+    """`x` (a numpy array, a numpy scalar, a list of numbers, or a Python number with
+    `dtype` given) as a JAX array with the dtype `jnp.asarray(x, dtype)` gives it, copied
+    without a compiled program. Always strongly typed: not for a Python number without
+    `dtype`, which `jnp.asarray` makes weakly typed. A JAX array passes through as it is
+    (cast when `dtype` asks)."""
     if isinstance(x, jax.Array):
         return x if dtype is None else x.astype(dtype)
     return jax.device_put(np.asarray(x, dtype))
