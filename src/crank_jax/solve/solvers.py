@@ -35,7 +35,7 @@ from .adjoints import ADJOINTS, AbstractAdjoint, DiscreteAdjoint, as_adjoint
 from .controller import PIDController
 from .erk import FusedERK, dopri8
 from .lockstep import adaptive_solve
-from .uniform import solve_uniform
+from .uniform import UniformERK, solve_uniform
 from .variational import flatten_state
 
 __all__ = ["solve", "Solution", "AbstractSolver", "AdaptiveDopri8", "UniformDopri8",
@@ -162,7 +162,7 @@ class AdaptiveDopri8(AdaptiveERK, AbstractSolver):
         return Solution(ys, result, num)
 
 
-class UniformDopri8(AbstractSolver):
+class UniformDopri8(UniformERK, AbstractSolver):
     """`"dopri8-uniform"`: `m_i` equal fused Dopri8 steps in save interval i, chosen from a
     summed error estimate and checked a posteriori (`uniform.py`). Needs uniform save
     times; each member of a `vmap`-ed batch takes its own steps, so a batch's results do
@@ -176,7 +176,17 @@ class UniformDopri8(AbstractSolver):
     loaded 2-core machine, XLA's defaults, 2026-11-26): jacfwd 209 ms with its rule,
     436 ms without, 177 ms through diffrax's Dopri8 (`ForwardMode`); `jax.grad` of a sum
     of squares 237 ms, 498 ms, 113 ms (`RecursiveCheckpointAdjoint`). To differentiate,
-    use `"dopri8-adaptive"` or `"dopri8"`."""
+    use `"dopri8-adaptive"` or `"dopri8"`.
+
+    **Field:** `erk`, the method, a [`FusedERK`][crank_jax.solve.erk.FusedERK] (default
+    Dopri8, `erk.dopri8()`). Its step is [`UniformERK`][crank_jax.solve.uniform.UniformERK]'s
+    `init` and `step` (one save interval), which `solve_uniform`'s passes drive (diffrax's
+    solver shape)."""
+
+    def __check_init__(self):
+        if not isinstance(self.erk, FusedERK):
+            raise TypeError("UniformDopri8: erk must be a crank_jax.solve.erk.FusedERK, "
+                            f"got {self.erk!r}")
 
     def run(self, field, ts, y0, args, *, rtol, atol, max_steps, adjoint, throw, prepare,
             rate=None, step_ts=None, jump_ts=None):
@@ -185,7 +195,8 @@ class UniformDopri8(AbstractSolver):
         kind = adjoint.loop_kind
         guess = rate() if callable(rate) else (0.0 if rate is None else rate)
         ys, result, num = solve_uniform(prepare(field), y0, ts, rtol, atol, args,
-                                        rate=guess, max_steps=max_steps, kind=kind)
+                                        rate=guess, max_steps=max_steps, kind=kind,
+                                        solver=self)
         if throw:
             ys = result.error_if(ys, result != diffrax.RESULTS.successful)
         return Solution(ys, result, num)

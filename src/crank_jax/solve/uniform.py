@@ -35,7 +35,7 @@ import numpy as np
 from . import library_api as compat
 from .erk import FusedERK, dopri8, packer, rms_error
 
-__all__ = ["solve_uniform", "uniform_grid"]
+__all__ = ["UniformERK", "solve_uniform", "uniform_grid"]
 
 # Constant of the global-error model E ~ C T omega (omega h)^p-1 / rtol used for the first
 # guess, fitted on the lab rig with Dopri8 (a wrong guess costs one more pass, never
@@ -120,40 +120,64 @@ class _Select(NamedTuple):
     j: jax.Array
 
 
-def _interval(erk: FusedERK, f, args, rtol, atol, max_sub, kind, t0, t1, aim, m_floor,
-              dtype):
-    """`interval(c: _Interval) -> _Interval`: one pass's save interval (t0, t1] with `c.m`
-    equal steps of `erk`, redone with more while its error overshoots `_REJECT` times its
-    share `aim`, and the next interval's `m` (see [`_make_pass`][])."""
-    expo = 1 / (erk.order - 1)
+class UniformERK(eqx.Module):
+    """A uniform-step solver's step, in diffrax's shape: [`init`][] makes a pass's state at
+    the first save time and [`step`][] takes it over one save interval (the unit of this
+    solver: `m` equal steps that land on the next save time, redone with more while their
+    error overshoots). One loop drives them, the scan of a pass over the save intervals
+    (`_make_pass`), for the pilot and every full pass of [`solve_uniform`][] alike.
+    `UniformDopri8` is one.
 
-    def run(m, y):
-        h = (t1 - t0) / m.astype(dtype)
+    **Field:** `erk`, the method, a [`FusedERK`][] (default Dopri8, `dopri8()`). The step
+    counts' law (each interval's share of the error budget, its rejection at `_REJECT`
+    times the share, at most `_TRIES` tries) is this module's; the tolerances come with
+    each solve."""
 
-        def body(c):
-            i, yy, Ei = c
-            y1, err = erk.step(f, t0 + i.astype(dtype) * h, yy, args, h)
-            # The estimate only picks the step: stop_gradient keeps its arithmetic
-            # (and its tangents) out of every derivative.
-            e = rms_error(*jax.lax.stop_gradient((err, yy, y1)), rtol, atol)
-            return i + 1, y1, Ei + e
+    erk: FusedERK = eqx.field(default_factory=dopri8)
 
-        _, y1, Ei = compat.while_loop(lambda c: c[0] < m, body,
-                                      (jnp.array(0), y, jnp.zeros((), dtype)),
-                                      max_steps=max_sub, kind=kind)
-        return y1, jnp.where(_all_finite(y1), Ei, jnp.inf)
+    def init(self, y0, m1, dtype) -> _Interval:
+        """The `_Interval` state at the first save time: state `y0`, no error, no
+        steps, `m1` steps for the first interval."""
+        return _Interval(y0, jnp.zeros((), dtype), m1, jnp.zeros((), m1.dtype),
+                         jnp.array(False))
 
-    def grow_to(m, Ei):
-        fac = (Ei / aim) ** expo
-        return jnp.where(jnp.isfinite(fac), jnp.ceil(m * fac), 4.0 * m)
+    def step(self, f, args, c: _Interval, t0, t1, rtol, atol, aim, m_floor, max_sub: int,
+             kind: str) -> _Interval:
+        """One save interval (t0, t1] from `c`: `c.m` equal steps of `erk` on
+        `f(t, y, args)`, redone with more while the interval's error overshoots `_REJECT`
+        times its share `aim`, and the next interval's `m` (at least `m_floor`, at most
+        `max_sub`; see `_make_pass`). `kind`: the `compat.while_loop` kind."""
+        erk = self.erk
+        dtype = t0.dtype
+        expo = 1 / (erk.order - 1)
 
-    # An interval whose error overshoots its share by _REJECT is redone with more
-    # steps, as an adaptive solver rejects a step: the relative scale atol + rtol |y|
-    # jumps where a component crosses zero, which the previous interval cannot predict.
-    def try_cond(c: _Try):
-        return (c.j == 0) | ((c.Ei > _REJECT * aim) & (c.m < max_sub) & (c.j < _TRIES))
+        def run(m, y):
+            h = (t1 - t0) / m.astype(dtype)
 
-    def interval(c: _Interval):
+            def body(cc):
+                i, yy, Ei = cc
+                y1, err = erk.step(f, t0 + i.astype(dtype) * h, yy, args, h)
+                # The estimate only picks the step: stop_gradient keeps its arithmetic
+                # (and its tangents) out of every derivative.
+                e = rms_error(*jax.lax.stop_gradient((err, yy, y1)), rtol, atol)
+                return i + 1, y1, Ei + e
+
+            _, y1, Ei = compat.while_loop(lambda cc: cc[0] < m, body,
+                                          (jnp.array(0), y, jnp.zeros((), dtype)),
+                                          max_steps=max_sub, kind=kind)
+            return y1, jnp.where(_all_finite(y1), Ei, jnp.inf)
+
+        def grow_to(m, Ei):
+            fac = (Ei / aim) ** expo
+            return jnp.where(jnp.isfinite(fac), jnp.ceil(m * fac), 4.0 * m)
+
+        # An interval whose error overshoots its share by _REJECT is redone with more
+        # steps, as an adaptive solver rejects a step: the relative scale atol + rtol |y|
+        # jumps where a component crosses zero, which the previous interval cannot
+        # predict.
+        def try_cond(t: _Try):
+            return (t.j == 0) | ((t.Ei > _REJECT * aim) & (t.m < max_sub) & (t.j < _TRIES))
+
         def try_body(t: _Try):  # every try starts from the interval's start, c.y
             m = jnp.where(t.j == 0, t.m, jnp.minimum(jnp.maximum(grow_to(t.m, t.Ei),
                                                                  t.m + 1),
@@ -169,14 +193,13 @@ def _interval(erk: FusedERK, f, args, rtol, atol, max_sub, kind, t0, t1, aim, m_
         return _Interval(t.y, c.E + t.Ei, jnp.minimum(want, max_sub).astype(t.m.dtype),
                          t.steps, c.top | (want > max_sub))
 
-    return interval
 
+def _make_pass(solver: UniformERK, f, args, rtol, atol, max_sub, kind):
+    """`one_pass(y0, ts, m1, aim, m_floor) -> _Pass`: the loop that drives `solver`'s
+    `init` and `step` over the save intervals.
 
-def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
-    """`one_pass(y0, ts, m1, aim, m_floor) -> _Pass`.
-
-    Integrates `dy/dt = f(t, y, args)` over `ts` with `m_i` equal steps of `erk` in save
-    interval i. `m1` is the first interval's; then `m_{i+1}` comes from interval i's error,
+    Integrates `dy/dt = f(t, y, args)` over `ts` with `m_i` equal steps of `solver.erk` in
+    save interval i. `m1` is the first interval's; then `m_{i+1}` comes from interval i's error,
     as a step-size controller would pick it: the summed scaled error estimate of an
     interval, `E_i`, goes as `m^-(p-1)` (p = `erk.order`), so
     `m_{i+1} = ceil(m_i (E_i / aim)^(1/(p-1)))`, which aims every interval at the same share
@@ -190,13 +213,11 @@ def _make_pass(erk: FusedERK, f, args, rtol, atol, max_sub, kind):
         pack, _ = packer(y0)
 
         def scanned(c: _Interval, tt):
-            c = _interval(erk, f, args, rtol, atol, max_sub, kind,
-                          tt[0], tt[1], aim, m_floor, dtype)(c)
+            c = solver.step(f, args, c, tt[0], tt[1], rtol, atol, aim, m_floor, max_sub,
+                            kind)
             return c, pack(c.y)
 
-        init = _Interval(y0, jnp.zeros((), dtype), m1, jnp.zeros((), m1.dtype),
-                         jnp.array(False))
-        last, ys = jax.lax.scan(scanned, init, (ts[:-1], ts[1:]))
+        last, ys = jax.lax.scan(scanned, solver.init(y0, m1, dtype), (ts[:-1], ts[1:]))
         ys = jnp.concatenate([pack(y0)[None].astype(ys.dtype), ys])
         # A non-finite solution (an unstable step) counts as a failed pass.
         E = jnp.where(_all_finite(jax.lax.stop_gradient(ys)), last.E, jnp.inf)
@@ -238,8 +259,8 @@ def _first_m(pilot_pass, y0, ts, rtol, m_model, m_floor0, max_sub, expo):
 
 
 def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind,
-                  erk: FusedERK | None = None):
-    """Integrate `dy/dt = field(t, y, args)` with `m_i` equal steps of `erk` in save
+                  solver: UniformERK | None = None):
+    """Integrate `dy/dt = field(t, y, args)` with `m_i` equal steps of `solver.erk` in save
     interval i, chosen to meet the tolerance.
 
     **Arguments:**
@@ -256,7 +277,8 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
       sets which autodiff works: `"lax"` (forward), `"checkpointed"` (reverse),
       `"bounded"` (both). JAX differentiates the loop itself (no rule of its own: see
       the module docstring).
-    - `erk`: the method, default [`dopri8`][]`()`.
+    - `solver`: the [`UniformERK`][] whose `init` and `step` the passes drive (default
+      `UniformERK()`, Dopri8).
 
     **Returns:** `(ys, result, num_steps)`: `ys` a pytree like `y0` with a leading axis n;
     `num_steps` counts the steps of every pass (the pilot passes included). `result` is
@@ -287,12 +309,12 @@ def solve_uniform(field, y0, ts, rtol, atol, args=None, *, rate, max_steps, kind
     # Static bound on steps per interval, from the caller's overall step budget.
     max_sub = max(1, int(max_steps) // n_int)
     dtype = ts.dtype
-    erk = dopri8() if erk is None else erk
-    expo = 1 / (erk.order - 1)
+    solver = UniformERK() if solver is None else solver
+    expo = 1 / (solver.erk.order - 1)
     sg = jax.lax.stop_gradient
-    one_pass = _make_pass(erk, field, args, rtol, atol, max_sub, kind)
+    one_pass = _make_pass(solver, field, args, rtol, atol, max_sub, kind)
     # The pilot never carries tangents, so a plain lax loop is fine in every adjoint mode.
-    pilot_pass = _make_pass(erk, *_no_grad((field, args)), sg(rtol), sg(atol), max_sub, "lax")
+    pilot_pass = _make_pass(solver, *_no_grad((field, args)), sg(rtol), sg(atol), max_sub, "lax")
 
     # Model guess from E ~ C T omega (omega h)^(p-1) / rtol <= 1/2 (see `_C_MODEL`).
     span = sg(ts[-1] - ts[0])
