@@ -78,6 +78,29 @@ def test_generic_solver_on_another_field():
     np.testing.assert_allclose(jax.jacfwd(solve)(p), jax.jacfwd(exact)(p), atol=1e-8)
 
 
+def test_the_solver_steps_with_the_method_it_holds():
+    # UniformDopri8 holds its method (`erk`), whose init/step the passes drive: another
+    # tableau (Tsit5, order 5) meets the tolerance on the oscillator with more steps than
+    # Dopri8, and a field that is not a FusedERK is refused.
+    from crank_jax.solve import solve
+    from crank_jax.solve.erk import FusedERK
+
+    ts = jnp.linspace(0.0, 5.0, 51)
+    field = _Oscillator(jnp.asarray(3.0), jnp.asarray(0.1))
+    y0 = {"x": jnp.asarray(1.2), "v": jnp.asarray(0.0)}
+    exact = _oscillator_exact(3.0, 0.1, 0.7, 1.2, ts)
+    steps = {}
+    for name, solver in [("dopri8", cj.UniformDopri8()),
+                         ("tsit5", cj.UniformDopri8(erk=FusedERK(diffrax.Tsit5.tableau, 5)))]:
+        sol = solve(field, solver, ts, y0, jnp.asarray(0.7), rtol=1e-9, atol=1e-11,
+                    rate=3.0, max_steps=10**5)
+        np.testing.assert_allclose(sol.ys["x"], exact, atol=1e-7)
+        steps[name] = int(sol.num_steps)
+    assert steps["tsit5"] > 2 * steps["dopri8"], steps
+    with pytest.raises(TypeError, match="FusedERK"):
+        cj.UniformDopri8(erk="tsit5")
+
+
 def test_no_solver_module_imports_the_mechanism():
     # Solvers know vector fields: only trajectory.py (which builds the CrankField and the
     # derived outputs) and policy.py (the stiffness test) import crank_jax.model.
