@@ -158,7 +158,26 @@ def simulate(
     else:
         y0 = jnp.stack([jnp.asarray(phi0, dtype), jnp.asarray(dphi0, dtype)])
         rtol_, atol_ = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
-    args = (mech, load, torque, force, y0, ts, rtol_, atol_)
+    adjoint = _adjoint_for(adjoint, shorthand, host,
+                           (mech, load, torque, force, y0, ts, rtol_, atol_))
+    static = dict(solver=plan.solver, max_steps=int(max_steps), adjoint=adjoint,
+                  structure=plan.structure, outputs=tuple(sorted(set(outputs))))
+    traj = (_program_solve(mech, load, torque, force, y0, ts, rtol_, atol_, **static)
+            if host and force is None else None)
+    if traj is None:
+        traj = solve_trajectory(mech, load, torque, force, y0, ts, rtol_, atol_, **static,
+                                throw=bool(throw) and not host,
+                                mode="host" if host else ("checked" if checks else "unchecked"))
+    if host and throw and not succeeded(traj.result):
+        raise eqx.EquinoxRuntimeError(_diffrax_results()[traj.result])
+    return traj
+
+
+
+def _adjoint_for(adjoint: AbstractAdjoint, shorthand: bool, host: bool, inputs
+                 ) -> AbstractAdjoint:
+    """The adjoint `simulate` solves with: the caller's, except where the inputs say
+    otherwise (`inputs`: the solve's arguments, to see forward-mode tracers)."""
     # Concrete inputs take no derivative, so the adjoint only picks the program: forward
     # mode's, the same values (the adjoints differ in their backward passes), is the one
     # of diffrax's explicit solvers that saves inside its steps (saves.py) and so holds no
@@ -170,21 +189,12 @@ def simulate(
         # `"reverse"`: the backward program that suits this process's XLA flags, read here
         # at the edge (the core reads none), on traced calls only (~10 us).
         adjoint = as_adjoint("reverse", backward=backward_program())
-    if isinstance(adjoint, DiscreteAdjoint) and forward_differentiated(args):
+    if isinstance(adjoint, DiscreteAdjoint) and forward_differentiated(inputs):
         # Under jax.jacfwd / jax.jvp: the reverse adjoint is a custom_vjp, which JAX cannot
         # differentiate forward ("can't apply forward-mode autodiff (jvp) to a custom_vjp
         # function"); forward mode gives the same derivatives of the same solution.
         adjoint = as_adjoint("forward")
-    static = dict(solver=plan.solver, max_steps=int(max_steps), adjoint=adjoint,
-                  structure=plan.structure, outputs=tuple(sorted(set(outputs))))
-    traj = _program_solve(*args, **static) if host and force is None else None
-    if traj is None:
-        traj = solve_trajectory(*args, **static, throw=bool(throw) and not host,
-                      mode="host" if host else ("checked" if checks else "unchecked"))
-    if host and throw and not succeeded(traj.result):
-        raise eqx.EquinoxRuntimeError(_diffrax_results()[traj.result])
-    return traj
-
+    return adjoint
 
 
 # Outcomes of a stored solve, by index (names of `diffrax.RESULTS`): a stored program

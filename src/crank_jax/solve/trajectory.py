@@ -159,9 +159,14 @@ def _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_st
     return Trajectory(ts, phi, dphi, extras, result, steps)
 
 
-#: The solve `simulate` runs (arguments as `_solve_impl`'s), one compiled program per
-#: static choice.
-solve_trajectory = eqx.filter_jit(_solve_impl)
+@eqx.filter_jit
+def solve_trajectory(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max_steps,
+                     adjoint, structure, outputs, throw, mode="checked") -> Trajectory:
+    """The solve `simulate` runs, compiled once per static choice (`solver`, `max_steps`,
+    `adjoint`, `structure`, `outputs`, `throw`, `mode`; see `_solve_impl`)."""
+    return _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, solver=solver,
+                       max_steps=max_steps, adjoint=adjoint, structure=structure,
+                       outputs=outputs, throw=throw, mode=mode)
 
 
 def solve_crank(mech, load, torque, force, y0, ts, rtol, atol, *, solver: AbstractSolver,
