@@ -681,7 +681,27 @@ def _end_to_end(ee) -> list[str]:
             "instead of 3.8 s for the single-shooting one, and its calls 1.3-2.2x as long). "
             "A cold fit under 5 s needs one Jacobian program fewer, or much smaller ones: "
             "not done."]
-    return out + [""]
+    return out + _blas_threads() + [""]
+
+
+def _blas_threads() -> list[str]:
+    """The fit's host BLAS on one thread (runtime/blas.py), from fit_blas_threads.json."""
+    bt = _load("fit_blas_threads")
+    if bt is None:
+        return []
+    out = ["", f"The fit's host linear algebra on one BLAS thread (`runtime/blas.py`; "
+           f"{_machine(bt['machine'])}; `experiments/fit_blas_threads.py`): NumPy's SVD of "
+           "a 1318 x 26 matrix (the lab record's multiple-shooting Jacobian) 30 times, "
+           "and the warm lab fit 4 times, alternated, with busy processes beside them:", "",
+           "| busy processes | SVD, OpenBLAS's default threads: median (worst) | one thread "
+           "| warm fit, default threads | one thread |", "|---|---|---|---|---|"]
+    for name, row in bt["rows"].items():
+        sd, so = row["svd_default"], row["svd_one_thread"]
+        out.append(f"| {name.split()[0]} | {_ms(sd['median_s'])} ({_ms(sd['max_s'])}) | "
+                   f"{_ms(so['median_s'])} ({_ms(so['max_s'])}) | "
+                   f"{row['fit_default']['median_s']:.3f} s | "
+                   f"{row['fit_one_thread']['median_s']:.3f} s |")
+    return out
 
 
 def main(argv=None):

@@ -32,6 +32,7 @@ import numpy as np
 from ..model.dynamics import CrankField, Structure
 from ..model.loads import MultiSineLoad, NoLoad
 from ..model.params import FIELDS, SIGNED_FIELDS
+from ..runtime.blas import one_blas_thread
 from ..runtime.lazy import lazy_import
 from ..scene import Scene
 from ..simulation import linearize
@@ -207,6 +208,7 @@ def _log_det(F: np.ndarray) -> float:
     return float(ld) if sign > 0 else -math.inf
 
 
+@one_blas_thread
 def design(
     scene: Scene,
     free: Sequence[str],

@@ -35,6 +35,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..records.data import Data
+from ..runtime.blas import one_blas_thread
 from ..scene import Scene
 from . import channel_noise as ch
 from .attempt import attempt
@@ -122,6 +123,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         fitted_channels=fitted_channels(ss, r_hat), termination=term)
 
 
+@one_blas_thread
 def fit(
     scene: Scene | Sequence[Scene],
     data: Data | Sequence[Data],

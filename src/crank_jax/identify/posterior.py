@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..records.data import Data
+from ..runtime.blas import one_blas_thread
 from ..runtime.lazy import lazy_import
 from ..scene import Scene
 from ..sweep.distributions import AbstractDistribution
@@ -213,6 +214,7 @@ def _laplace_z(problem: Problem, z: np.ndarray, codes, params) -> np.ndarray:
     return (V / w) @ V.T
 
 
+@one_blas_thread
 def posterior(
     scene: Scene | Sequence[Scene],
     data: Data | Sequence[Data],

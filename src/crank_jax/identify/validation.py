@@ -8,8 +8,7 @@ when it has them, and scores the prediction on the samples after the initial-sta
 
 - `rms = sqrt(mean((y - yhat)^2))` and `max_abs = max |y - yhat|`, rad;
 - `fit_percent = 100 (1 - |y - yhat| / |y - mean(y)|)` with 2-norms (MATLAB's `compare`):
-  100 is a perfect prediction, 0 is no better than the record's mean, and it can be
-  negative.
+  100 is a perfect prediction, 0 is no better than the record's mean; it can be negative.
 
 A record with several channels (see [`sensors`][crank_jax.records.sensors]) is predicted and
 scored in each (what its sensor reads under the model, `scale h + offset`, SI); the
@@ -39,6 +38,7 @@ from ..model.outputs import SI_UNITS, output
 from ..model.params import FIELDS
 from ..model.sampled import bind_input
 from ..records.data import MIN_SAMPLES, Data, DataError
+from ..runtime.blas import one_blas_thread
 from ..scene import Scene
 from ..simulation import linearize
 from . import horizon as hz
@@ -194,12 +194,12 @@ def _check_spread(y: np.ndarray, win: Data, t_init: float, name: str = "phi") ->
         raise DataError(
             f"{win.source}: the {y.size} scored samples (t > {t_init:g} s) hold a constant "
             f"{_WHAT.get(name, name)} ({float(y.mean()):.17g} {SI_UNITS[name]}; spread "
-            f"{spread:.3g} "
-            f"{SI_UNITS[name]}, float rounding "
-            "at most), so fit_percent is undefined: validate on a record in which the crank "
-            "moves after the initial-state window")
+            f"{spread:.3g} {SI_UNITS[name]}, float rounding at most), so fit_percent is "
+            "undefined: validate on a record in which the crank moves after the "
+            "initial-state window")
 
 
+@one_blas_thread
 def validate(
     scene: Scene,
     data: Data,
