@@ -257,7 +257,6 @@ EXPERIMENT_INTERNALS = {
     "crank_jax.runtime.io": "tooling: results written atomically",
     "crank_jax.runtime.xla_flags": "tooling: the CPU flags the benchmarks compare",
     "crank_jax.report.plotting": "tooling: the figures' style",
-    "crank_jax.cli.identify": "the demo's own record (demo_data), as the CLI makes it",
     "crank_jax.model.dynamics": "measures the field's static structure (Structure)",
     "crank_jax.model.loads": "load kinds not in the front door (InputLoad, Nonsmooth)",
     "crank_jax.solve.adaptive": "measures the fused solver's inner loop",
