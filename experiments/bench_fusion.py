@@ -29,8 +29,7 @@ jax = setup_jax()
 import jax.numpy as jnp  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.model import CrankField, trig  # noqa: E402
-from crank_jax.model.dynamics import Structure  # noqa: E402
+from crank_jax.model import CrankField, ModelTerms, trig  # noqa: E402
 from crank_jax.solve.adaptive import solve_adaptive  # noqa: E402
 
 
@@ -88,7 +87,7 @@ def main(argv=None):
     y0 = (jnp.array(1.0), jnp.array(0.0))
     rows = []
     for label, mech in cases.items():
-        st = Structure.of(mech)
+        st = ModelTerms.of(mech)
 
         def solve(m, packed, st=st):
             field = CrankField(m, cj.NoLoad(), cj.NoLoad(), st)

@@ -28,7 +28,6 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.model.dynamics import Structure  # noqa: E402
 from crank_jax.vibration import mathieu_tongue, periodic_orbit  # noqa: E402
 from crank_jax.vibration.chart import floquet_max  # noqa: E402
 from crank_jax.vibration.drive import field_at  # noqa: E402
@@ -57,7 +56,7 @@ def _hold(scene, structure, f, y0, n):
 
 
 def brute_sweep(scene, freqs, n):
-    structure = Structure.of(scene.mech)
+    structure = scene.structure
     y = jnp.zeros(2)
     out = []
     for f in list(freqs) + list(freqs[::-1]):
@@ -115,7 +114,7 @@ def main():
 
     # Three frequencies, one inside the hysteresis region (both stable branches).
     checks = []
-    structure = Structure.of(scene.mech)
+    structure = scene.structure
     for f, sweep in ((3.5, [3.5]), (4.0, [4.0]), (4.0, [4.3, 4.0]), (5.0, [5.0])):
         y = jnp.zeros(2)
         for fs in sweep:

@@ -29,7 +29,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 import rotating_rig as rr  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
+from crank_jax.identify import DEMO, demo_record  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 
@@ -43,7 +43,7 @@ def _tutorial():
 
 
 def _demo():
-    scene, data = demo_data(1)
+    scene, data = demo_record(1)
     return cj.fit(scene, data, free=("k", "c", "phi0", "dphi0"), init=dict(DEMO["start"]),
                   progress=False, warn=False)
 

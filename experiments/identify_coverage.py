@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
+from crank_jax.identify import DEMO, demo_record  # noqa: E402
 from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
@@ -38,14 +38,14 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=60)
     args = ap.parse_args()
     names = ("k", "c", "phi0", "dphi0")
-    scene, _ = demo_data(seed=0)
+    scene, _ = demo_record(seed=0)
     truth = {"k": float(scene.mech.k), "c": float(scene.mech.c), "phi0": DEMO["phi0"],
              "dphi0": 0.0}
     rows = []
     t0 = time.perf_counter()
     for seed in tqdm(range(args.seeds), desc="seeds"):
-        _, data = demo_data(seed=1000 + seed)
-        res = cj.fit(scene, data, free=names, init=DEMO["start"], progress=False, warn=False)
+        _, data = demo_record(seed=1000 + seed)
+        res = cj.fit(scene, data, free=names, init=dict(DEMO["start"]), progress=False, warn=False)
         rows.append({
             "seed": 1000 + seed, "converged": res.converged, "identifiable": res.identifiable,
             "seconds": res.seconds, "iterations": res.iterations,

@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
+from crank_jax.identify import DEMO, demo_record  # noqa: E402
 from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
@@ -41,7 +41,7 @@ def main() -> None:
     ap.add_argument("--optax-steps", type=int, default=600)
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
-    scene0, _ = demo_data(seed=0)
+    scene0, _ = demo_record(seed=0)
     rows = []
     jobs = [(t1, m) for t1 in args.lengths for m in ("lm", "optax")]
     for t1, method in tqdm(jobs, desc="lengths x methods"):
@@ -52,7 +52,7 @@ def main() -> None:
                                  seed=100 + rep)
             kw = dict(method=method, max_steps=args.optax_steps) if method == "optax" else {}
             t = time.perf_counter()
-            res = cj.fit(scene, data, free=FREE, init=DEMO["start"], progress=False,
+            res = cj.fit(scene, data, free=FREE, init=dict(DEMO["start"]), progress=False,
                          warn=False, **kw)
             times.append(time.perf_counter() - t)
             its.append(res.iterations)

@@ -46,7 +46,7 @@ import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.cli.identify import DEMO, demo_data  # noqa: E402
+from crank_jax.identify import DEMO, demo_record  # noqa: E402
 from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
@@ -117,7 +117,7 @@ def covered(z_hat, se_z, z_true) -> np.ndarray:
 
 def run_seed(scene, kind, level, seed, z_true):
     data = disturbed_record(scene, kind, level, seed)
-    res = cj.fit(scene, data, free=NAMES, init=DEMO["start"], progress=False, warn=False)
+    res = cj.fit(scene, data, free=NAMES, init=dict(DEMO["start"]), progress=False, warn=False)
     r, J, z = sensitivities(scene, data, res.values)
     ru = cj.identify.robust_uncertainty(J, r)
     se_w = np.sqrt(np.diag(ru.cov_white))
@@ -208,7 +208,7 @@ def main() -> None:
     seeds = args.seeds
     if args.smoke:
         scenarios, seeds = ["torque:0.002"], 2
-    scene, _ = demo_data(seed=0)
+    scene, _ = demo_record(seed=0)
     z_true = np.array([np.log(float(scene.mech.k)), np.log(float(scene.mech.c)),
                        DEMO["phi0"], 0.0])
     t0 = time.perf_counter()

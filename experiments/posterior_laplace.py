@@ -27,7 +27,6 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.identify.corner import _ellipse  # noqa: E402
 from crank_jax.report.plotting import pyplot, save_figure  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
@@ -61,6 +60,17 @@ def run_case(spec, draws):
     return post, out
 
 
+def ellipse95(mean, cov, n=100):
+    """(n, 2) points of the 95% ellipse of the 2-d Gaussian N(mean, cov): the unit circle
+    scaled by the square roots of cov's eigenvalues and sqrt(chi2_2(0.95)), rotated by
+    its eigenvectors."""
+    t = np.linspace(0, 2 * np.pi, n)
+    w, V = np.linalg.eigh(cov)
+    radius = np.sqrt(-2 * np.log(0.05))  # sqrt of chi-square(2)'s 95% quantile
+    circle = np.stack([np.cos(t), np.sin(t)], axis=1) * np.sqrt(np.maximum(w, 0)) * radius
+    return mean + circle @ V.T
+
+
 def draw(ax_row, post, title):
     x = {n: np.asarray(post.draws[n]).reshape(-1) for n in FREE}
     se, v = post.fit.stderr, post.fit.values
@@ -83,7 +93,7 @@ def draw(ax_row, post, title):
     corr = np.asarray(post.fit.correlation)
     s = np.array([se["k"], se["c"]])
     cov = np.outer(s, s) * np.array([[1, corr[0, 1]], [corr[1, 0], 1]])
-    e = _ellipse(np.array([v["k"], v["c"]]), cov)
+    e = ellipse95(np.array([v["k"], v["c"]]), cov)
     ax.plot(e[:, 0], e[:, 1], color="C3", lw=1)
     ax.set_xlabel("k")
     ax.set_ylabel("c")

@@ -45,7 +45,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.model.loads import InputLoad  # noqa: E402
+from crank_jax.model import InputLoad  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 TRUTH = dict(tau_gain=0.03, c=0.01, T_c=0.02)

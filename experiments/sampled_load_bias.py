@@ -36,7 +36,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.model.loads import Nonsmooth  # noqa: E402
+from crank_jax.model import Nonsmooth  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -124,6 +124,21 @@ def test_demo_prints_estimates_with_intervals(tmp_path, capsys):
     assert set(doc["estimates"]) == {"k", "c", "phi0", "dphi0"}
 
 
+def test_demo_fits_the_public_demo_record(monkeypatch, capsys):
+    # `crank-jax demo` fits `crank_jax.identify.demo_record(--noise-seed)`, the record a
+    # script or test gets from the library, not a copy of its own.
+    import crank_jax.identify.demo as demo
+    from crank_jax.cli.errors import UserError
+
+    def spy(seed=1):
+        raise UserError(f"demo_record({seed}) called")
+
+    monkeypatch.setattr(demo, "demo_record", spy)
+    assert main(["demo", "--quiet", "--noise-seed", "7"]) == 2
+    assert "demo_record(7) called" in capsys.readouterr().err
+    assert cj.identify.DEMO is demo.DEMO and cj.identify.demo_record is not spy
+
+
 def test_fit_window_options(pendulum_csv, tmp_path):
     out = tmp_path / "fit.json"
     assert main(["fit", str(pendulum_csv), "pendulum", "--free", "c,phi0,dphi0",

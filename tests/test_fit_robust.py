@@ -12,7 +12,7 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.cli import main
-from crank_jax.cli.identify import demo_data
+from crank_jax.identify import demo_record
 from crank_jax.identify.attempt import best_run as _best
 from crank_jax.identify.coordinates import coordinate
 from crank_jax.identify.optimise import least_squares
@@ -27,7 +27,7 @@ from crank_jax.identify.uncertainty import analyse
 
 @pytest.fixture(scope="module")
 def demo():
-    return demo_data(1)
+    return demo_record(1)
 
 
 def test_friction_that_starts_at_zero_stays_valid_and_gets_a_one_sided_interval(demo):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
-from crank_jax.cli.identify import DEMO, demo_data
+from crank_jax.identify import DEMO, demo_record
 from crank_jax.identify import fit_plan as plan_module
 from crank_jax.identify.coordinates import coordinate
 from crank_jax.identify.problem import build_problem
@@ -21,8 +21,8 @@ from crank_jax.identify.start import observed_period, smooth_derivatives
 @pytest.fixture(scope="module")
 def demo_fit():
     """The README demo: 5 s of noisy lab-rig data under a known harmonic torque."""
-    scene, data = demo_data(seed=1)
-    res = cj.fit(scene, data, free=("k", "c", "phi0", "dphi0"), init=DEMO["start"],
+    scene, data = demo_record(seed=1)
+    res = cj.fit(scene, data, free=("k", "c", "phi0", "dphi0"), init=dict(DEMO["start"]),
                  progress=False)
     return scene, data, res
 

@@ -9,7 +9,7 @@ jax.config.update("jax_enable_x64", True)
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.identify import fitted_scene  # noqa: E402
-from crank_jax.model.loads import InputLoad  # noqa: E402
+from crank_jax.model import InputLoad  # noqa: E402
 
 # The rig: 8 mm offset, a mount tilted by 0.35 rad, no spring, Coulomb friction in the
 # crank bearing, a DC motor whose torque is gain * volts (its back-EMF is the damping c).

@@ -20,15 +20,6 @@ from .channel_options import (
 from .errors import UserError
 from .options import free_list, seed
 
-#: The demo experiment: the lab rig driven by a known harmonic crank torque (a shaker),
-#: which fixes the common scale of the inertial parameters; 5 s sampled at 200 Hz with
-#: 1 mrad of noise. The fit starts 20% off in k and 2x off in c. Single shooting: the
-#: record holds 16.6 periods, which single shooting fits from that start (9 LM
-#: iterations); under `--shooting auto` the fit would print the reason of its choice as a
-#: warning on every run, a warning about the demo's own setup.
-DEMO = dict(scene="lab-rig", tau1=0.2, freq_hz=3.0, phi0=0.5, t1=5.0, rate=200.0,
-            noise_std=1e-3, start={"k": 2.4, "c": 0.004}, shooting="single")
-
 
 def _warn(msg: str) -> None:
     print(f"crank-jax: warning: {msg}", file=sys.stderr)
@@ -308,22 +299,8 @@ def _demo_args(p: argparse.ArgumentParser) -> None:
     _fit_options(p)
 
 
-def demo_data(seed: int = 1):
-    """The demo's scene (the lab rig with its known shaker torque) and synthetic record."""
-    from ..model.loads import HarmonicLoad
-    from ..records.synth import synthesize
-    from ..scene import load_scene
-
-    base = load_scene(DEMO["scene"])
-    scene = base.__class__(base.mech, torque=HarmonicLoad(0.0, DEMO["tau1"], DEMO["freq_hz"]),
-                           phi0=DEMO["phi0"], dphi0=0.0, rtol=base.rtol, atol=base.atol,
-                           t1=DEMO["t1"], name="lab-rig+shaker",
-                           description="lab rig driven by a known harmonic crank torque")
-    data = synthesize(scene, rate=DEMO["rate"], noise_std=DEMO["noise_std"], seed=seed)
-    return scene, data
-
-
 def _demo(a: argparse.Namespace) -> int:
+    from ..identify.demo import DEMO, demo_record
     from ..identify.fit import fit
 
     _outputs_ok(a, [])
@@ -333,7 +310,7 @@ def _demo(a: argparse.Namespace) -> int:
     if a.shooting is None and not (a.segments or 0) > 1:
         a.shooting = DEMO["shooting"]  # the demo's own choice (see DEMO), not a warning
     kw = _fit_kwargs(a)  # every option before the record is synthesised
-    scene, data = demo_data(seed)
+    scene, data = demo_record(seed)
     _check_free(kw["free"], a, scene, 1)
     truth_mech = scene.mech.as_dict()
     print(f"demo: {scene.description}; tau(t) = {DEMO['tau1']} sin(2 pi {DEMO['freq_hz']} t) "

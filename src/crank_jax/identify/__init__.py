@@ -6,6 +6,8 @@ are the tools around them:
 
 - `fitted_scene`: the scene a fit started from, with its estimates (what
   `crank-jax fit` writes as the fitted scene file);
+- `DEMO` and `demo_record`: the settings, scene and synthetic record of the demo
+  experiment (`crank-jax demo`), for a script or test that fits what the demo fits;
 - `FREE_NAMES`: every name `fit(free=...)` accepts; `regressor_start`: start values of the
   masses, inertias, k and c from the linear regressor form; `Profile`: a profile likelihood
   (`FitResult.profile`);
@@ -14,6 +16,7 @@ are the tools around them:
   variances as a floor under it); `robust_uncertainty` and its `RobustUncertainty`.
 """
 
+from .demo import DEMO, demo_record
 from .diagnostics import (
     Diagnostics,
     RobustUncertainty,
@@ -28,4 +31,5 @@ from .fitted import fitted_scene
 
 __all__ = ["fitted_scene", "FREE_NAMES", "regressor_start", "Profile", "residual_diagnostics",
            "Diagnostics",
-           "hac_covariance", "widen_covariance", "robust_uncertainty", "RobustUncertainty"]
+           "hac_covariance", "widen_covariance", "robust_uncertainty", "RobustUncertainty",
+           "DEMO", "demo_record"]

@@ -31,8 +31,10 @@ from .loads import (
     AbstractLoad,
     ConstantLoad,
     HarmonicLoad,
+    InputLoad,
     MultiSineLoad,
     NoLoad,
+    Nonsmooth,
     SampledLoad,
 )
 from .newton_euler import GlobalForm as NewtonEulerForm
@@ -46,7 +48,7 @@ __all__ = [
     "SliderCrank", "FIELDS", "SIGNED_FIELDS",
     # loads
     "AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineLoad", "SampledLoad",
-    "INTERPOLATIONS", "LOAD_PARAMS",
+    "InputLoad", "Nonsmooth", "INTERPOLATIONS", "LOAD_PARAMS",
     # geometry and kinematics
     "geometry_at", "Geometry", "coupler_angle", "CouplerAngle", "kinematics", "Kinematics",
     # the equation of motion
