@@ -31,7 +31,7 @@ from tqdm import tqdm  # noqa: E402
 import crank_jax as cj  # noqa: E402
 from crank_jax.identify.problem import build_problem  # noqa: E402
 from crank_jax.identify.programs import jacobian_at  # noqa: E402
-from crank_jax.identify.uncertainty import analyse  # noqa: E402
+from crank_jax.identify.uncertainty import analyze  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,7 +49,7 @@ FREE_SETS = {"all seven free": SEVEN,
              "m_p known": tuple(n for n in SEVEN if n != "m_p")}
 
 
-def analyse_design(mech, kind: dict, phi0: float, params: tuple[str, ...]):
+def analyze_design(mech, kind: dict, phi0: float, params: tuple[str, ...]):
     scene = cj.Scene(mech, phi0=phi0, dphi0=0.0, **kind)
     data = cj.synthesize(scene, t1=5.0, rate=100.0)
     free = params + ("phi0", "dphi0")
@@ -60,7 +60,7 @@ def analyse_design(mech, kind: dict, phi0: float, params: tuple[str, ...]):
     r, _, _, J = jacobian_at(pr, z)
     J = np.asarray(J)
     values = np.asarray(pr.values(z))
-    unc = analyse(J, np.asarray(r), data.n, pr.names, values, pr.log, np.asarray(pr.ref),
+    unc = analyze(J, np.asarray(r), data.n, pr.names, values, pr.log, np.asarray(pr.ref),
                   sigma=SIGMA, geometry={k: float(getattr(mech, k)) for k in "rLbs"})
     rel = {n: (None if unc.affected[i] else float(unc.stderr[i] / abs(values[i])))
            for i, n in enumerate(pr.names) if n in SEVEN}
@@ -76,7 +76,7 @@ def main() -> None:
     t0 = time.perf_counter()
     jobs = [(f, e, a) for f in FREE_SETS for e in EXPERIMENTS for a in AMPLITUDES]
     for fs, exp, amp in tqdm(jobs, desc="designs"):
-        table[f"{fs}, {exp}, {amp}"] = analyse_design(mech, EXPERIMENTS[exp], AMPLITUDES[amp],
+        table[f"{fs}, {exp}, {amp}"] = analyze_design(mech, EXPERIMENTS[exp], AMPLITUDES[amp],
                                                       FREE_SETS[fs])
     doc = {"sigma": SIGMA, "record": "5 s at 100 Hz, lab rig", "table": table,
            "date": time.strftime("%Y-%m-%d"), "seconds": time.perf_counter() - t0,

@@ -2,7 +2,7 @@
 same fits under other optimisers, counted in the same iterations.
 
 The fit's optimiser is MINPACK's Levenberg-Marquardt (`scipy.optimize.least_squares(
-method="lm")`, Marquardt's scaling, `identify/optimise.py`), driven by the fit's own
+method="lm")`, Marquardt's scaling, `identify/optimize.py`), driven by the fit's own
 termination tests in the data's units. This script swaps the optimiser under those same
 tests (every variant gets the same residuals, Jacobians, stop tests and escalation) and
 runs the rotating-rig stand-ins of `misfit_rig.py`:
@@ -80,7 +80,7 @@ def geodesic_lm(fun, x0, jac, max_nfev=10_000, alpha=0.75, h=0.1):
 
 
 def _swap_optimiser(variant: str, log: list) -> None:
-    """Make `scipy.optimize.least_squares`, as `identify/optimise.py` imports it at each
+    """Make `scipy.optimize.least_squares`, as `identify/optimize.py` imports it at each
     call, run `variant` under the same callbacks, logging each run's Jacobian calls."""
     import scipy.optimize as so
 

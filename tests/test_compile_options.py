@@ -14,7 +14,7 @@ import crank_jax as cj
 from crank_jax.identify import channel_noise as ch
 from crank_jax.identify.fit_plan import recoordinate
 from crank_jax.identify.programs import FAST_COMPILE, compile_options, jacobian_at
-from crank_jax.identify.request import normalise
+from crank_jax.identify.request import normalize
 from crank_jax.runtime import persistent
 from crank_jax.runtime.xla_flags import small_loop_bytes
 
@@ -35,7 +35,7 @@ def problems(lab_rig):
     start = cj.Scene(lab_rig.mech.replace(k=2.4, c=0.004), phi0=1.0, name="start")
     ts = np.linspace(0.0, 1.5, 151)  # a decaying swing: a record's shapes, no solve
     data = cj.Data(ts, np.exp(-0.2 * ts) * np.cos(8.0 * ts))
-    req = ch.with_channels(normalise(
+    req = ch.with_channels(normalize(
         start, data, ("k", "c", "phi0", "dphi0"), init="scene", method="lm",
         shooting="single", segments=None, multistart=1, seed=0, max_steps=None,
         tol=1e-8, sigma=None, profile=None, window=None, progress=False, warn=False))

@@ -14,8 +14,8 @@ import pytest
 from crank_jax.identify import attempt as attempt_module
 from crank_jax.identify import escalation as esc_module
 from crank_jax.identify import fit as fit_module
-from crank_jax.identify import optimise
-from crank_jax.identify.optimise import DECREASE_FRACTION, STEP_FRACTION, least_squares
+from crank_jax.identify import optimize
+from crank_jax.identify.optimize import DECREASE_FRACTION, STEP_FRACTION, least_squares
 from crank_jax.identify.outcome import Run
 
 
@@ -39,7 +39,7 @@ def _use(monkeypatch, fn):
         r, J = fn(np.asarray(z, dtype=float))
         return np.asarray(r, float), 0, None, np.asarray(J, float)
 
-    monkeypatch.setattr(optimise, "jacobian_at", jacobian_at)
+    monkeypatch.setattr(optimize, "jacobian_at", jacobian_at)
 
 
 def _misfit_line(z):
@@ -77,7 +77,7 @@ def test_a_stall_names_the_combination_it_stalled_along(monkeypatch):
     assert term["direction"] in ("-0.71 a - 0.71 b", "0.71 a + 0.71 b")
     assert term["words"].startswith(f"stalled along {term['direction']}: the cost fell by 0")
     assert term["predicted_decrease"] == pytest.approx(100.0)  # 0.5 |r|^2 / sigma^2
-    assert run.iterations <= optimise.STALL_STEPS + 1
+    assert run.iterations <= optimize.STALL_STEPS + 1
 
 
 def test_a_spent_budget_says_how_fast_the_cost_still_falls(monkeypatch):
@@ -136,7 +136,7 @@ def test_escalation_ends_once_a_second_start_reaches_the_same_minimum(stubbed):
     stubbed.setattr(attempt_module, "attempt", _stub([cost, cost + 0.1 * noise**2, cost,
                                                   cost, cost], calls))
     plan, req = _plan_and_request(noise)
-    best, iterations, notes = esc_module.optimise_fit(req, plan)
+    best, iterations, notes = esc_module.optimize_fit(req, plan)
     assert len(calls) == 2 and iterations == 20
     assert best.cost == cost
     assert any("reached from more than one start" in n for n in notes), notes
@@ -148,7 +148,7 @@ def test_escalation_goes_on_while_each_start_finds_a_new_minimum(stubbed):
     costs = [0.5 * 100 * (k * noise) ** 2 for k in (20, 18, 16, 14, 12)]
     stubbed.setattr(attempt_module, "attempt", _stub(costs, calls))
     plan, req = _plan_and_request(noise)
-    best, _, notes = esc_module.optimise_fit(req, plan)
+    best, _, notes = esc_module.optimize_fit(req, plan)
     assert len(calls) == 5 and best.cost == costs[-1]
     assert not any("more than one start" in n for n in notes)
 
@@ -165,7 +165,7 @@ def test_no_clock_is_read_between_the_start_and_the_result(monkeypatch):
             assert word not in text, (path.name, word)
     fit_text = (root / "fit.py").read_text()
     assert fit_text.count("perf_counter()") == 2  # `seconds`: the start and the result
-    assert math.isfinite(optimise.STALL_DECREASE)
+    assert math.isfinite(optimize.STALL_DECREASE)
 
 
 def test_where_minpack_can_go_no_further_a_tiny_promise_is_convergence(monkeypatch):
@@ -185,7 +185,7 @@ def test_where_minpack_can_go_no_further_a_tiny_promise_is_convergence(monkeypat
     term = run.termination
     assert run.converged and term["verdict"] == "converged", term
     assert term["words"].startswith("converged: no further progress at machine precision")
-    assert DECREASE_FRACTION < term["predicted_decrease"] <= optimise.STALL_DECREASE
+    assert DECREASE_FRACTION < term["predicted_decrease"] <= optimize.STALL_DECREASE
 
 
 def test_a_polished_run_takes_the_polish_verdict(stubbed):
@@ -417,7 +417,7 @@ def test_the_optax_method_reaches_a_least_squares_minimum(monkeypatch):
         return 0.5 * float(r @ r), 0
 
     monkeypatch.setattr(optax_fit, "evaluate", evaluate)
-    run = optax_fit.minimise_optax(line, np.zeros(2), 400, 1e-12, "", False)
+    run = optax_fit.minimize_optax(line, np.zeros(2), 400, 1e-12, "", False)
     A = np.stack([np.ones(30), np.asarray(t)], axis=1)
     want = np.linalg.lstsq(A, np.asarray(line.y), rcond=None)[0]
     assert run.converged and run.iterations < 400

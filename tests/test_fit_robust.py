@@ -15,14 +15,14 @@ from crank_jax.cli import main
 from crank_jax.identify import demo_record
 from crank_jax.identify.attempt import best_run as _best
 from crank_jax.identify.coordinates import coordinate
-from crank_jax.identify.optimise import least_squares
+from crank_jax.identify.optimize import least_squares
 from crank_jax.identify.outcome import Run
 from crank_jax.identify.problem import build_problem
 from crank_jax.identify.programs import Subspace, residuals_at
 from crank_jax.identify.start import noise_level
 from crank_jax.identify.strategy import no_motion
 from crank_jax.identify.symmetries import fixed_scale_members
-from crank_jax.identify.uncertainty import analyse
+from crank_jax.identify.uncertainty import analyze
 
 
 @pytest.fixture(scope="module")
@@ -116,9 +116,9 @@ def test_scale_ridge_is_claimed_only_when_no_fixed_member_breaks_it(lab_rig):
     J -= np.outer(J @ np.ones(3), np.ones(3)) / 3  # log coordinates: (1,1,1) is flat
     r = rng.normal(scale=1e-3, size=200)
     common = "common scale"
-    with_scale = analyse(J, r, 200, names, values, [True] * 3, np.ones(3))
+    with_scale = analyze(J, r, 200, names, values, [True] * 3, np.ones(3))
     assert any(common in d for d in with_scale.directions)
-    fixed = analyse(J, r, 200, names, values, [True] * 3, np.ones(3), fixed_scale=["m_s"])
+    fixed = analyze(J, r, 200, names, values, [True] * 3, np.ones(3), fixed_scale=["m_s"])
     assert not fixed.identifiable and not any(common in d for d in fixed.directions)
     # The lab rig's masses are fixed and non-zero; a harmonic torque's free amplitude is
     # no fixed member, its fixed non-zero mean is.
@@ -289,9 +289,9 @@ def _cubic_jacobian(problem, z):
 def test_a_stall_far_above_the_noise_is_not_convergence(monkeypatch):
     # Issue 25: a fit stalled at 100x the noise level said "converged", so `fit` ranked it
     # above better tries and printed "stalled ... the lowest-cost converged try".
-    from crank_jax.identify import optimise
+    from crank_jax.identify import optimize
 
-    monkeypatch.setattr(optimise, "jacobian_at", _cubic_jacobian)
+    monkeypatch.setattr(optimize, "jacobian_at", _cubic_jacobian)
     far = least_squares(_Cubic(), np.array([1.0]), 100, 1e-8, "", False, stall_rms=0.1)
     assert not far.converged and far.message.startswith("stalled")
     assert "21.2 times the record's noise level" in far.message  # 0.707 / (0.1 / 3)

@@ -279,13 +279,13 @@ EXPERIMENT_INTERNALS = {
                                    "lowered and timed or evaluated at the true parameters "
                                    "(jacobian_at, residuals_at): diffrax_callbacks, "
                                    "fit_programs_options, identify_design",
-    "crank_jax.identify.request": "fit_programs_options builds the fit's plan (normalise) "
+    "crank_jax.identify.request": "fit_programs_options builds the fit's plan (normalize) "
                                   "to compile its Jacobian programs under each option",
     "crank_jax.identify.channel_noise": "fit_programs_options: the plan's channels "
                                         "(with_channels)",
     "crank_jax.identify.fit_plan": "fit_programs_options: the plan itself (make_plan)",
     "crank_jax.identify.uncertainty": "identify_design applies the fit's identifiability "
-                                      "analysis (analyse) to the Jacobian at the true "
+                                      "analysis (analyze) to the Jacobian at the true "
                                       "parameters, without a fit",
     "crank_jax.identify.attempt": "optimiser_variants swaps the optimiser under the fit's "
                                   "tries (attempt)",

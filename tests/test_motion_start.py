@@ -13,7 +13,7 @@ from crank_jax.identify import channel_noise as ch
 from crank_jax.identify.angle import slide_angle
 from crank_jax.identify.fit_plan import make_plan, recoordinate
 from crank_jax.identify.motion_start import motion_start
-from crank_jax.identify.request import normalise
+from crank_jax.identify.request import normalize
 from crank_jax.model.loads import InputLoad
 
 TRUTH = dict(tau_gain=0.03, c=0.01, T_c=0.02)
@@ -58,7 +58,7 @@ def test_slide_angle_bridges_the_dead_centres(monkeypatch):
 
 
 def _plan(records, start):
-    req = normalise(start, records, FREE, init="scene", method="lm", shooting="auto",
+    req = normalize(start, records, FREE, init="scene", method="lm", shooting="auto",
                     segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8,
                     sigma=None, profile=None, window=None, progress=False, warn=False,
                     per_record=(), force=None)
@@ -91,7 +91,7 @@ def test_motion_start_leaves_a_nonlinear_parameter_at_its_start():
     records = [cj.synthesize(motor_rig(6.0, sensors=(ENCODER,)), t_start=0.5, rate=500,
                              noise_std={"phi": 1e-9}, seed=0, sensors=(ENCODER,))]
     start = motor_rig(6.0, c=0.02, sensors=(ENCODER,))
-    req = normalise(start, records, ("c", "r", "phi0", "dphi0"), init="scene", method="lm",
+    req = normalize(start, records, ("c", "r", "phi0", "dphi0"), init="scene", method="lm",
                     shooting="single", segments=None, multistart=1, seed=0, max_steps=None,
                     tol=1e-8, sigma=None, profile=None, window=None, progress=False,
                     warn=False, per_record=(), force=None)

@@ -68,11 +68,11 @@ def test_chains_one_after_another_match_the_vmapped_chains(short_record):
     from crank_jax.identify import nuts
     from crank_jax.identify.posterior import _laplace_z, _problem_at
     from crank_jax.identify.priors import prior_arrays
-    from crank_jax.identify.request import normalise
+    from crank_jax.identify.request import normalize
 
     scene, data = short_record
     free = ("k", "c")
-    req = normalise(scene, data, free, init="scene", method="lm", shooting="auto",
+    req = normalize(scene, data, free, init="scene", method="lm", shooting="auto",
                     segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8,
                     sigma=None, profile=None, window=None, progress=False, warn=False)
     res = cj.fit(scene, data, free, progress=False, warn=False)

@@ -142,13 +142,13 @@ def test_posterior_problem_reads_channels_as_the_fit():
 
     from crank_jax.identify.posterior import _problem_at
     from crank_jax.identify.programs import jacobian_at
-    from crank_jax.identify.request import normalise
+    from crank_jax.identify.request import normalize
 
     scene = dataclasses.replace(cj.load_scene("lab-rig"),
                                 sensors=(Sensor("phi", scale=-1.0, offset=0.3),))
     data = cj.synthesize(scene, t1=0.5, rate=60, noise_std=2e-3, seed=3)
     assert data.phi is None
-    req = normalise(scene, data, ("k", "c"), init="scene", method="lm", shooting="auto",
+    req = normalize(scene, data, ("k", "c"), init="scene", method="lm", shooting="auto",
                     segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8,
                     sigma=None, profile=None, window=None, progress=False, warn=False)
     truth = types.SimpleNamespace(values={"k": 2.0, "c": 0.002}, mech=scene.mech,

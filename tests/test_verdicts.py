@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from crank_jax.identify.uncertainty import analyse
+from crank_jax.identify.uncertainty import analyze
 from crank_jax.identify.verdict import CHI2_95, bound_offsets, check, wide_offset
 
 SIGMA = 1e-3
@@ -54,10 +54,10 @@ def verdicts(toy, z_hat, names, values, log, ref, folded=(False, False)):
     J = np.asarray(jax.jacfwd(lambda z: toy.residuals(z)[0])(jnp.asarray(z_hat)))
     n = r.size
     args = (J, r, n, names, np.asarray(values, float), log, np.asarray(ref, float))
-    first = analyse(*args, folded=folded)
+    first = analyze(*args, folded=folded)
     out = check(toy, z_hat, first.candidates, values, log, ref, folded, names, n,
                 float(r @ r))
-    final = analyse(*args, folded=folded, closed=out.closed) if out.closed else first
+    final = analyze(*args, folded=folded, closed=out.closed) if out.closed else first
     return first, final, out.notes
 
 

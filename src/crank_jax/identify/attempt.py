@@ -17,8 +17,8 @@ from ..runtime.xla_flags import backward_program
 from ..solve.adjoints import DiscreteAdjoint
 from . import channel_noise as ch
 from .fit_plan import Plan, basis, recoordinate, recoordinate_basis
-from .optax_fit import minimise_optax
-from .optimise import least_squares
+from .optax_fit import minimize_optax
+from .optimize import least_squares
 from .outcome import Run
 from .problem import Problem
 from .programs import InValues, Subspace, jacobian_at
@@ -41,7 +41,7 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
     # Gradient methods: reverse mode, its backward program chosen here, at the edge.
     problem = shoot if req.method == "lm" else dataclasses.replace(
         shoot, adjoint=DiscreteAdjoint(backward=backward_program()))
-    run_fn = _optimiser(req, plan)
+    run_fn = _optimizer(req, plan)
     run = guarded(run_fn, Subspace(problem, device_array(z0), device_array(B)),
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
     run = run._replace(z=z0 + B @ run.z)
@@ -72,12 +72,12 @@ def _single_from(run_fn, req: FitRequest, ss: Problem, z: np.ndarray, B: np.ndar
     return run._replace(z=view.lift(run.z) if np.all(np.isfinite(run.z)) else z)
 
 
-def _optimiser(req: FitRequest, plan: Plan):
+def _optimizer(req: FitRequest, plan: Plan):
     """The optimiser of `req`: LM with its tests judged in the data's units (the
     residuals' noise level; a stall counts as convergence only near that level), or
     optax's."""
     if req.method != "lm":
-        return minimise_optax
+        return minimize_optax
     sigma = ch.known_sigma(req)
     return functools.partial(least_squares, stall_rms=stall_rms(plan.noise, sigma),
                              noise=noise_unit(plan.noise, sigma), at_bounds=True)
@@ -107,7 +107,7 @@ def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
     at0 = [i for i in range(ss.n_global) if ss.folded[i] and abs(z[i]) < AT_ZERO]
     if not at0:
         return run
-    run_fn = _optimiser(req, plan)
+    run_fn = _optimizer(req, plan)
     zc = z.copy()
     zc[at0] = 0.0
     Bh = np.asarray(plan.Bg, dtype=float).copy()

@@ -20,12 +20,12 @@ from .programs import jacobian_at
 from .request import FitRequest
 from .strategy import far_from_noise, noise_unit, record_segments
 
-__all__ = ["optimise_fit", "ESCALATION_STARTS", "ESCALATION_ITERATIONS", "REPRODUCED"]
+__all__ = ["optimize_fit", "ESCALATION_STARTS", "ESCALATION_ITERATIONS", "REPRODUCED"]
 
 #: Extra starts tried when a fit stalls far from the noise level.
 ESCALATION_STARTS = 4
 #: The extra starts stop once they have taken as many LM iterations as the tries before
-#: them, or this many if those took fewer (see `optimise_fit`): room for every extra start
+#: them, or this many if those took fewer (see `optimize_fit`): room for every extra start
 #: at the default budget of 100. Iterations, not seconds: a fit's outcome and its
 #: iteration count do not depend on the machine's load. (A floor of 100 cut the starts
 #: that found a slide-only rotating record's branch: experiments/rotating_rig.py.)
@@ -36,7 +36,7 @@ REPRODUCED = 0.5
 
 
 
-def optimise_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
+def optimize_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
     """The planned optimisation(s), escalated when they stall far from the noise level:
     multiple shooting (one segment per two observed periods), then a second start (the
     motion's, or the scene's when the first was the motion's), then more starts.

@@ -3,8 +3,8 @@
 `fit` reads as its steps, each in its own module: check the request
 ([`request`][]), take start values from the data ([`start`][]), build the least-squares
 problem ([`problem`][]), plan the shooting and the step budget ([`plan`][],
-[`strategy`][]), optimise
-([`optimise`][]), escalate if the fit stalls far from the noise level, then the
+[`strategy`][]), optimize
+([`optimize`][]), escalate if the fit stalls far from the noise level, then the
 uncertainty and identifiability at the estimate ([`uncertainty`][]) and the result
 ([`result`][]).
 
@@ -39,7 +39,7 @@ from ..runtime.blas import one_blas_thread
 from ..scene import Scene
 from . import channel_noise as ch
 from .attempt import attempt
-from .escalation import optimise_fit
+from .escalation import optimize_fit
 from .fit_plan import make_plan
 from .fit_result import (
     ConvergenceWarning,
@@ -51,7 +51,7 @@ from .fit_result import (
 from .measurement import fitted_channels
 from .outcome import Run, termination
 from .profile import hessian_disagreement, profile_likelihood
-from .request import free_names, normalise
+from .request import free_names, normalize
 from .start import regressor_start
 from .strategy import (
     AUTO_PERIODS,
@@ -205,7 +205,7 @@ def fit(
     of its range) raise `ValueError` before any compute.
     """
     t_begin = time.perf_counter()
-    req = normalise(scene, data, free, init=init, method=method, shooting=shooting,
+    req = normalize(scene, data, free, init=init, method=method, shooting=shooting,
                     segments=segments, multistart=multistart, seed=seed, max_steps=max_steps,
                     tol=tol, sigma=sigma, profile=profile, window=window, progress=progress,
                     warn=warn, per_record=per_record, force=force)
@@ -214,7 +214,7 @@ def fit(
     if plan.abort:
         best, iterations, notes = Run(plan.z0, float("nan"), 0, False, plan.abort), 0, []
     else:
-        best, iterations, notes = optimise_fit(req, plan)
+        best, iterations, notes = optimize_fit(req, plan)
         req, best, iterations = ch.reweight(req, plan, best, iterations, notes, attempt)
     res = with_wrapped_angles(_result(req, plan, best, iterations, notes, t_begin))
     if req.warn:

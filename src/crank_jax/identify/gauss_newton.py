@@ -1,6 +1,6 @@
 """The Gauss-Newton step at a point of a fit, with each coordinate's standard error at
 the noise level, and the step in words: what LM's termination tests
-([`optimise`][crank_jax.identify.optimise]) judge in the data's units.
+([`optimize`][crank_jax.identify.optimize]) judge in the data's units.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ the speed ripple that the known masses set (DESIGN.md section 3).
 This is the regressor start (`start.regressor_start`) written over the fit's own problem,
 so it serves every free name that enters linearly, found numerically: a name whose column
 changes between two steps is left at its start value. It is tried when the fit from the
-scene's values stalls (`escalation.optimise_fit`), before random restarts: a wrong branch of a
+scene's values stalls (`escalation.optimize_fit`), before random restarts: a wrong branch of a
 slide-only record (the crank's half-turn ambiguity) starts far from where the motion
 puts it.
 """

@@ -1,6 +1,6 @@
 """The optax method of a fit (`method="optax"`): Adam, then L-BFGS, on the sum of squares
 with reverse-mode gradients (one backward solve, whatever the number of coordinates), for
-large problems; [`optimise`][crank_jax.identify.optimise] holds Levenberg-Marquardt."""
+large problems; [`optimize`][crank_jax.identify.optimize] holds Levenberg-Marquardt."""
 
 from __future__ import annotations
 
@@ -14,13 +14,13 @@ import numpy as np
 
 from ..runtime.lazy import lazy_import
 from ..runtime.progress import progress_bar
-from .optimise import evaluate
+from .optimize import evaluate
 from .outcome import Run, budget_spent
 
 # Imported on first use (see lazy.py): only the optax method needs it.
 optax = lazy_import("optax")
 
-__all__ = ["minimise_optax"]
+__all__ = ["minimize_optax"]
 
 
 def _outcome(model, z0, cost0, z, it, done, max_steps) -> Run:
@@ -69,7 +69,7 @@ def _lbfgs_step(z, st, model):
     return optax.apply_updates(z, u), st, v, jnp.max(jnp.abs(g))
 
 
-def minimise_optax(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
+def minimize_optax(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
                    progress: bool) -> Run:
     """Adam (a robust first phase far from the optimum), then L-BFGS, on 0.5 |r|^2, with
     reverse-mode gradients (the model must use the reverse adjoint)."""

@@ -1,6 +1,6 @@
 """How an optimisation of a fit ended: the [`Run`][] it returns, its `termination` record
 (`fit.json`'s), and the words of its messages. Shared by LM
-([`optimise`][crank_jax.identify.optimise]), optax's methods
+([`optimize`][crank_jax.identify.optimize]), optax's methods
 ([`optax_fit`][crank_jax.identify.optax_fit]) and the fit's result.
 """
 

@@ -49,7 +49,7 @@ from .nuts import adaptation, initial_carry, run_chains, schedule
 from .priors import base_name, in_support, parse_priors, prior_arrays, prior_precision
 from .problem import Problem, pick_solver
 from .programs import jacobian_at
-from .request import STATE_NAMES, normalise, reported_names
+from .request import STATE_NAMES, normalize, reported_names
 from .strategy import MAX_ODE_STEPS, ode_budget
 
 blackjax = lazy_import("blackjax")  # imported on first use (see lazy.py)
@@ -254,7 +254,7 @@ def posterior(
     improper).
     """
     _check_counts(draws, chains, warmup)
-    req = normalise(scene, data, free, init="scene", method="lm", shooting="auto",
+    req = normalize(scene, data, free, init="scene", method="lm", shooting="auto",
                     segments=None, multistart=1, seed=seed, max_steps=None, tol=1e-8,
                     sigma=None, profile=None, window=window, progress=progress, warn=False)
     check_posterior_memory(draws, chains, warmup,

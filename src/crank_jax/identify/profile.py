@@ -9,7 +9,7 @@ import numpy as np
 
 from ..runtime.progress import progress_bar
 from .fit_result import Profile
-from .optimise import evaluate, least_squares
+from .optimize import evaluate, least_squares
 from .problem import Problem
 from .programs import Pinned
 

@@ -24,7 +24,7 @@ from ..scene import Scene
 from ..sweep.distributions import MAX_SEED
 from .userforce import force_names, force_starts
 
-__all__ = ["FitRequest", "normalise", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
+__all__ = ["FitRequest", "normalize", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
            "SIGNED_FIELDS", "FRICTION_SCALED", "MAX_ITERATIONS", "SIGMA_RANGE", "free_names",
            "load_param", "reported_names", "window_data", "record_mech"]
 
@@ -291,7 +291,7 @@ def _init(init, start: dict) -> str:
     raise ValueError(f"init must be 'scene', 'regressor' or a dict, got {init!r}")
 
 
-def normalise(scene, data, free, *, init, method, shooting, segments, multistart, seed,
+def normalize(scene, data, free, *, init, method, shooting, segments, multistart, seed,
               max_steps, tol, sigma, profile, window, progress, warn, per_record=(),
               force=None) -> FitRequest:
     """Check a fit request and bring it to one form (the arguments are those of [`fit`][]).

@@ -8,7 +8,7 @@
   plus an inertia, so one more kg of coupler can be undone by the crank, the slider and
   `I_p` when `m_p`, `m_c`, `I_c`, `m_s` and `I_p` are all free.
 
-[`uncertainty.analyse`][crank_jax.identify.uncertainty.analyse] tests each against the
+[`uncertainty.analyze`][crank_jax.identify.uncertainty.analyze] tests each against the
 sensitivities and reports those the data leave flat.
 """
 

@@ -28,7 +28,7 @@ from .diagnostics import robust_uncertainty
 from .programs import jacobian_at
 from .symmetries import fixed_scale_members, known_directions, name_list
 
-__all__ = ["Uncertainty", "analyse", "assess", "undefined", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
+__all__ = ["Uncertainty", "analyze", "assess", "undefined", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
            "sample_rows", "inflate", "misfit"]
 
 #: Two-sided 95% quantile of the standard normal distribution.
@@ -81,7 +81,7 @@ def _term(name: str, coef: float, log: bool) -> str:
     return f"{sign} {abs(coef):.2f} {'ln ' + name if log else name}"
 
 
-def analyse(
+def analyze(
     J: np.ndarray,
     residuals: np.ndarray,
     n: int,
@@ -338,7 +338,7 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
     kw = dict(geometry={k: float(getattr(ss.base, k)) for k in "rLbs"}, folded=ss.folded,
               fixed_scale=fixed_scale_members(ss.base, ss.names,
                                               [(e.load, e.torque) for e in ss.exps]))
-    unc = analyse(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma, **kw)
+    unc = analyze(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma, **kw)
     if unc.candidates:
         # The sensitivities only suggest a weak direction; the profile likelihood decides.
         from .verdict import check
@@ -347,7 +347,7 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
                         ss.folded, ss.names, n, float(r_hat @ r_hat), hold=null_space(J))
         notes += checked.notes
         if checked.closed:
-            unc = analyse(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
+            unc = analyze(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
                           closed=checked.closed, **kw)
     if not unc.identifiable:
         notes += [f"not identifiable: {m}" for m in unc.directions]

@@ -1,7 +1,7 @@
 """Identifiability verdicts checked against the profile likelihood.
 
 The sensitivity matrix flags a direction `u` of the coordinates z (unit length) as weakly
-determined when its standard error `sigma / |J u|` is large (see `uncertainty.analyse`).
+determined when its standard error `sigma / |J u|` is large (see `uncertainty.analyze`).
 That is a quadratic guess, in coordinates whose scale can be arbitrary (a parameter that
 starts at 0 is linear with a made-up scale), so it is only a candidate. The verdict is
 the likelihood's: the profile along `u` (every other direction re-fitted, the offset `t`
@@ -147,7 +147,7 @@ class _Trace:
     def refit(self, t: float, w0: np.ndarray):
         """The re-fit at offset `t` from `w0` and its deviance (inf where it failed)."""
 
-        from .optimise import least_squares
+        from .optimize import least_squares
         from .programs import Subspace
 
         run = least_squares(Subspace(self.problem, device_array(self.z_hat + t * self.u),
@@ -213,7 +213,7 @@ def _root(t0, d0, t1, d1) -> float:
 
 class Checked(NamedTuple):
     """Output of [`check`][]: the candidate directions the profile closes (unit vectors
-    of z, for `analyse(closed=...)`), and the notes to add to the fit's warnings."""
+    of z, for `analyze(closed=...)`), and the notes to add to the fit's warnings."""
 
     closed: list
     notes: list
