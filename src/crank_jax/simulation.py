@@ -173,7 +173,6 @@ def simulate(
     return traj
 
 
-
 def _adjoint_for(adjoint: AbstractAdjoint, shorthand: bool, host: bool, inputs
                  ) -> AbstractAdjoint:
     """The adjoint `simulate` solves with: the caller's, except where the inputs say

@@ -6,7 +6,7 @@ from __future__ import annotations
 from types import MappingProxyType
 
 from ..records.data import Data
-from ..scene import Scene
+from ..scene import Scene, load_scene
 
 __all__ = ["DEMO", "demo_record"]
 
@@ -32,14 +32,13 @@ def demo_record(seed: int = 1) -> tuple[Scene, Data]:
     - `seed`: seed of the record's noise (`crank-jax demo --noise-seed`; default 1).
 
     **Returns:** `(scene, data)`: the lab rig driven by the known harmonic torque of
-    `DEMO` (`name="lab-rig+shaker"`, its true parameters
-    the preset's), and a [`Data`][] record of the crank angle `phi` (rad) at `DEMO["rate"]`
-    Hz over `DEMO["t1"]` s with Gaussian noise of standard deviation `DEMO["noise_std"]`
-    rad. The same seed gives the same record.
+    `DEMO` (`name="lab-rig+shaker"`, its true parameters the preset's), and a [`Data`][]
+    record of the crank angle `phi` (rad) at `DEMO["rate"]` Hz over `DEMO["t1"]` s with
+    Gaussian noise of standard deviation `DEMO["noise_std"]` rad. The same seed gives the
+    same record.
     """
     from ..model.loads import HarmonicLoad
     from ..records.synth import synthesize
-    from ..scene import load_scene
 
     base = load_scene(DEMO["scene"])
     scene = Scene(base.mech, torque=HarmonicLoad(0.0, DEMO["tau1"], DEMO["freq_hz"]),
