@@ -1,0 +1,113 @@
+"""The solvers' field traces the acceleration once per program (`model/dynamics.py`,
+`_traced_once`): fewer traces, the same compiled numbers, and no cached trace for a
+user's code."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import crank_jax as cj
+from crank_jax.model import HarmonicLoad
+from crank_jax.model import dynamics as dyn
+from crank_jax.model.structure import Structure
+from crank_jax.solve import ForwardSensitivities, solver_named
+from crank_jax.solve.trajectory import solve_crank
+
+SCENE = cj.load_scene("lab-rig")
+TS = jnp.linspace(0.0, 0.5, 51)
+
+
+class _Drag(eqx.Module):
+    """A user's force term (a class from outside crank-jax)."""
+
+    a: jax.Array
+
+    def __call__(self, t, phi, dphi):
+        return -self.a * dphi * jnp.abs(dphi)
+
+
+def _solve(k, *, force=None, adjoint=ForwardSensitivities(), solver="dopri8-adaptive",
+           torque=None):
+    mech = SCENE.mech.replace(k=k)
+    torque = torque if torque is not None else cj.model.NoLoad()
+    return solve_crank(mech, SCENE.load, torque, force, jnp.array([0.5, 0.0]), TS,
+                       jnp.asarray(1e-8), jnp.asarray(1e-10), solver=solver_named(solver),
+                       max_steps=4096, adjoint=adjoint,
+                       structure=Structure.of(mech).union(Structure.of(SCENE.mech))).phi
+
+
+def _count_geometry(monkeypatch) -> list:
+    """Count the acceleration's traces (each calls `geometry` once)."""
+    calls = []
+    real = dyn.geometry
+
+    def counted(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(dyn, "geometry", counted)
+    return calls
+
+
+def test_a_jacobian_traces_the_acceleration_at_most_once(monkeypatch):
+    # A harmonic torque of a value used nowhere else: this trace's shapes and static
+    # data are new to the cache (a cached one would count 0, which is also "at most once").
+    calls = _count_geometry(monkeypatch)
+    torque = HarmonicLoad(0.0123, 0.0456, 0.789)
+    jax.make_jaxpr(jax.jacfwd(lambda k: _solve(k, torque=torque)))(2.0)
+    # Traced afresh at every evaluation site, the same Jacobian takes 7 traces.
+    assert len(calls) <= 1
+
+
+def test_a_users_force_is_traced_afresh_at_every_site(monkeypatch):
+    calls = _count_geometry(monkeypatch)
+    jax.make_jaxpr(lambda k: _solve(k, force=_Drag(jnp.asarray(0.01))))(2.0)
+    assert not dyn._own_code(SCENE.load, SCENE.load, _Drag(jnp.asarray(0.01)))
+    assert len(calls) > 1
+
+
+def _bits(x) -> bytes:
+    return b"".join(np.asarray(v).tobytes() for v in jax.tree_util.tree_leaves(x))
+
+
+def _same_bits(monkeypatch, make, exact=True):
+    """`make()` (a fresh function to jit) gives the same bits with the cached trace and
+    with the acceleration traced in place at every site; with `exact=False`, the same
+    numbers up to rounding (1e-13 of the largest magnitude)."""
+    cached = jax.jit(make())(2.0)
+    monkeypatch.setattr(dyn, "_traced_once", dyn._acceleration)
+    plain = jax.jit(make())(2.0)
+    if exact:
+        assert _bits(cached) == _bits(plain)
+    else:
+        scale = float(np.max(np.abs(plain)))
+        np.testing.assert_allclose(cached, plain, rtol=0, atol=1e-13 * scale)
+
+
+def test_the_forward_solve_gives_the_same_bits(monkeypatch):
+    _same_bits(monkeypatch, lambda: (lambda k: _solve(k)))
+
+
+@pytest.mark.parametrize("mode", ["jacfwd", "grad", "vmap"])
+def test_derivatives_and_batches_give_the_same_numbers(monkeypatch, mode):
+    torque = HarmonicLoad(0.01, 0.02, 0.7)
+    if mode == "jacfwd":
+        def make():
+            return jax.jacfwd(lambda k: _solve(k, torque=torque))
+    elif mode == "grad":
+        def make():
+            return jax.grad(lambda k: jnp.sum(_solve(k, torque=torque,
+                                                     adjoint=cj.solve.DiscreteAdjoint()) ** 2))
+    else:
+        def make():
+            return lambda k: jax.vmap(lambda kk: _solve(kk, torque=torque))(
+                k * jnp.linspace(0.8, 1.2, 4))
+    # A lockstep batch's program fuses the inlined call differently here (a harmonic
+    # torque's argument reduction lands in another kernel): its rounding differs by
+    # ~1e-15 of the angle's scale, where the other programs (and `simulate`'s batch on
+    # the lab rig) are bit for bit the same.
+    _same_bits(monkeypatch, make, exact=mode != "vmap")
