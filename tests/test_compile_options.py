@@ -1,5 +1,6 @@
-"""Per-program XLA compile options (issue 40): the fit's programs compile with XLA's
-older fusion emitters (`identify/programs.py`, `FAST_COMPILE`, 0.6-0.7x the compile time)
+"""Per-program XLA compile options (issue 40): the fit's programs and the linearisation
+compile with XLA's older fusion emitters (`runtime/persistent.py`, `FAST_COMPILE`, 0.4-0.7x
+the compile time)
 only where that leaves every bit of their results the same, and an option this XLA does
 not know never fails a program (`persistent.py`)."""
 
@@ -70,6 +71,35 @@ def test_fast_compile_same_bits(problems):
     for a, b in zip(fast, plain, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert np.all(np.isfinite(np.asarray(fast[3])))
+
+
+def test_linearization_compiles_fast_with_the_same_bits():
+    """The linearisation's program (`simulation._linearize_program`) asks for the fast
+    compile, and gives the same bits with and without it: a sample of mechanisms of the
+    four preset scenes, with a constant and a harmonic slider force and a crank torque
+    (experiments: 960 of them, under the defaults and the CPU flags)."""
+    from crank_jax.model import ConstantLoad, HarmonicLoad, NoLoad
+    from crank_jax.model.linear import linearize_tuple, mean_loads
+    from crank_jax.simulation import _linearize_program
+
+    lab = cj.load_scene("lab-rig")
+    assert _linearize_program.options(lab.mech, mean_loads(None, None)) == tuple(
+        FAST_COMPILE.items())
+    rng = np.random.default_rng(3)
+    for name in ("lab-rig", "near-buckling", "pendulum", "torsional"):
+        mech0 = cj.load_scene(name).mech
+        for load, torque in ((NoLoad(), NoLoad()), (ConstantLoad(3.0), ConstantLoad(0.01)),
+                             (HarmonicLoad(-2.0, 1.0, 2.0), NoLoad())):
+            loads = mean_loads(load, torque)
+            low = jax.jit(linearize_tuple).lower(mech0, loads)
+            fast = low.compile(dict(FAST_COMPILE))
+            plain = low.compile({"xla_cpu_use_fusion_emitters": True})
+            for _ in range(4):
+                mech = mech0.replace(k=float(mech0.k) * rng.uniform(0.2, 3.0),
+                                     c=rng.uniform(0.0, 0.02), e=rng.uniform(-0.01, 0.01),
+                                     gravity_angle=rng.uniform(-1.0, 1.0))
+                for a, b in zip(fast(mech, loads), plain(mech, loads), strict=True):
+                    assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
 
 
 @pytest.mark.parametrize("stored", [False, True])

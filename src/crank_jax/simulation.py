@@ -28,7 +28,7 @@ from .model.linear import linearize as _model_linearize
 from .model.loads import AbstractLoad, as_load
 from .model.params import SliderCrank
 from .runtime.identity_memo import IdentityMemo
-from .runtime.persistent import PersistentProgram, enum_code, enum_name
+from .runtime.persistent import PersistentProgram, enum_code, enum_name, fast_compile_on_cpu
 from .runtime.xla_flags import backward_program
 from .solve.adjoints import AbstractAdjoint, DiscreteAdjoint, as_adjoint
 from .solve.policy import check_travel, host_plan, is_concrete
@@ -238,8 +238,11 @@ def _program_solve(mech, load, torque, force, y0, ts, rtol, atol, *, solver, max
 # --- the linearisation, stored ---------------------------------------------------------
 
 # Concrete calls (the solver policy's, before every concrete solve; a fit's start) in a
-# fresh CLI process: the stored program skips tracing the Newton loop (0.1-0.3 s).
-_linearize_program = PersistentProgram(linearize_tuple, "linearize")
+# fresh CLI process: the stored program skips tracing the Newton loop (0.1-0.3 s). Its
+# compile with XLA's older emitters took 0.31 s instead of 0.62-0.71 s, the same bits on
+# 960 mechanisms of the four preset scenes with and without loads, under the defaults and
+# the CPU flags (tests/test_compile_options.py checks a sample).
+_linearize_program = PersistentProgram(linearize_tuple, "linearize", fast_compile_on_cpu)
 
 
 def linearize(mech: SliderCrank, load: AbstractLoad | None = None,

@@ -13,20 +13,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..runtime.persistent import PersistentProgram
+from ..runtime.persistent import FAST_COMPILE, PersistentProgram
 from ..runtime.xla_flags import small_loop_bytes
 from .problem import Problem
 
 __all__ = ["Program", "residuals_at", "jacobian_at", "Subspace",
            "InValues", "Pinned", "segment_coloring", "compile_options", "FAST_COMPILE"]
-
-#: XLA's CPU compile options for the fit's programs where they leave every result bit for
-#: bit the same (`compile_options`): XLA's older elemental emitters for the fusions
-#: instead of its MLIR fusion emitters. LLVM's part of the compile is ~80% of a fit
-#: program's, and with these it took 0.6-0.7x as long (the multiple-shooting Jacobian
-#: 21.6 -> 15.0 s, the single-shooting one 16.2 -> 10.4 s on a 2-core VM at load 12;
-#: experiments/results/fit_programs_options*.json), their calls as fast.
-FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 
 
 def compile_options(problem, *_) -> dict:

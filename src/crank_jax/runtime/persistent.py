@@ -43,7 +43,23 @@ from . import program_store
 from .foreign_code import foreign_classes
 from .xla_flags import instruction_sets
 
-__all__ = ["PersistentProgram", "program_store_dir", "enum_code", "enum_name"]
+__all__ = ["PersistentProgram", "program_store_dir", "enum_code", "enum_name", "FAST_COMPILE",
+           "fast_compile_on_cpu"]
+
+#: XLA's CPU compile options for a program where they leave every result bit for bit the
+#: same: XLA's older elemental emitters for the fusions instead of its MLIR fusion
+#: emitters. LLVM's part of the compile is ~80% of a fit program's, and with these it
+#: took 0.6-0.7x as long (the multiple-shooting Jacobian 21.6 -> 15.0 s, the
+#: single-shooting one 16.2 -> 10.4 s on a 2-core VM at load 12;
+#: experiments/results/fit_programs_options*.json), their calls as fast. Used by the
+#: fit's programs (`identify/programs.py`) and the linearisation (`simulation.py`).
+FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+
+
+def fast_compile_on_cpu(*_) -> dict:
+    """[`FAST_COMPILE`][] on the CPU, XLA's defaults elsewhere: the `compiler_options` of a
+    program that gives the same bits either way on the CPU."""
+    return dict(FAST_COMPILE) if jax.default_backend() == "cpu" else {}
 
 # Libraries whose code is traced into the programs: a new version changes the program.
 _TRACED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax")
