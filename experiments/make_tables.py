@@ -681,7 +681,39 @@ def _end_to_end(ee) -> list[str]:
             "instead of 3.8 s for the single-shooting one, and its calls 1.3-2.2x as long). "
             "A cold fit under 5 s needs one Jacobian program fewer, or much smaller ones: "
             "not done."]
-    return out + _blas_threads() + [""]
+    return out + _trace_once() + _blas_threads() + [""]
+
+
+def _trace_once() -> list[str]:
+    """The acceleration traced once per program (model/dynamics.py), from trace_once.json."""
+    tr = _load("trace_once")
+    if tr is None:
+        return []
+    once, every = tr["medians"]["once"], tr["medians"]["every-site"]
+    n = len(tr["runs"]["once"])
+
+    def secs(xs):
+        return " and ".join(f"{x:.2f}" for x in xs)
+
+    return ["", "2026-11-28, evening (issue 40): a solver evaluates its field at several "
+            "places of one program (the first stage, the initial step's two, the stage "
+            "loop, the variational equation's reverse passes), and each traced the same "
+            "jnp arithmetic again (~50 ms a time: jnp's operators cost ~0.25 ms each to "
+            "trace, 5x `lax`'s). The acceleration is now a jitted call, traced once per "
+            "input shape, whose trace, JVP and transpose JAX caches; XLA inlines it before "
+            "optimising, so the compiled programs are the same (normalised optimised HLO "
+            "compared, tests/test_field_trace.py). A user's load or force class is traced "
+            "afresh at every site (its code may read state the cache does not see). "
+            f"On the first fit in a fresh process ({_machine(tr['machine'])}; "
+            f"`experiments/trace_once.py`, {n} alternated pairs, medians): the two "
+            f"Jacobians traced in {secs(once['jacobian_trace_s'])} s instead of "
+            f"{secs(every['jacobian_trace_s'])} s, all tracing {once['all_tracing_s']:.2f} s "
+            f"instead of {every['all_tracing_s']:.2f} s, the whole first fit "
+            f"{once['first_fit_s']:.2f} s instead of {every['first_fit_s']:.2f} s (the same "
+            "estimate in every run). The linearisation's program compiles with XLA's older "
+            "emitters (`FAST_COMPILE`): 0.31 s instead of 0.62-0.71 s, the same bits on 960 "
+            "mechanisms of the preset scenes. What a cold fit is left with is XLA compiling "
+            "the two Jacobian programs, 2-3.5 s each."]
 
 
 def _blas_threads() -> list[str]:
