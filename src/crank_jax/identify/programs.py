@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from ..runtime.persistent import FAST_COMPILE, PersistentProgram
+from ..runtime.persistent import FAST_COMPILE, PersistentProgram, fast_compile_on_cpu
 from ..runtime.xla_flags import small_loop_bytes
 from .problem import Problem
 
@@ -29,11 +29,9 @@ def compile_options(problem, *_) -> dict:
     the `crank-jax` program sets). Not a single-shooting problem under XLA's defaults:
     there the two emitters round its scalar solve differently (the Jacobian moved by 1e-9,
     the step count by 7 of 1959), and a fit's result must not depend on a compile choice."""
-    if jax.default_backend() != "cpu":
-        return {}
     inner = getattr(problem, "problem", problem)
     if getattr(inner, "n_extra", 0) > 0 or small_loop_bytes() is not None:
-        return dict(FAST_COMPILE)
+        return fast_compile_on_cpu()
     return {}
 
 
