@@ -70,6 +70,23 @@ def test_a_users_force_is_traced_afresh_at_every_site(monkeypatch):
     assert len(calls) > 1
 
 
+def test_a_users_load_nested_in_a_crank_jax_load_is_not_cached():
+    """A user's class anywhere in the loads (here the input signal of crank-jax's
+    `InputLoad`) counts as user code, as the program store counts it."""
+    from crank_jax.model import InputLoad
+
+    class Ramp(cj.model.AbstractLoad):
+        def __call__(self, t):
+            return 0.1 * t
+
+        def mean(self):
+            return jnp.asarray(0.0)
+
+    nested = InputLoad(gain=1.0, column="u", signal=Ramp())
+    assert not dyn._own_code(nested, cj.model.NoLoad(), None)
+    assert dyn._own_code(InputLoad(gain=1.0, column="u"), HarmonicLoad(0.0, 1.0, 2.0), None)
+
+
 def _bits(x) -> bytes:
     return b"".join(np.asarray(v).tobytes() for v in jax.tree_util.tree_leaves(x))
 

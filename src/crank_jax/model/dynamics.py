@@ -21,10 +21,12 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .coefficients import Coefficients, coefficients, pack, unpack
+from .foreign_code import foreign_classes
 from .geometry import Geometry, geometry
 from .loads import AbstractLoad, NoLoad, as_load
 from .params import SliderCrank
@@ -322,9 +324,12 @@ _traced_once = eqx.filter_jit(_acceleration)
 
 
 def _own_code(load, torque, force) -> bool:
-    """Whether the field's loads are crank-jax's own classes and it has no user force:
-    only then is the acceleration's cached trace used. A user's class may read a module
-    global or a closure cell that JAX's trace cache does not see (issue 37's stale
-    programs), so the field is traced afresh wherever its caller's program is."""
-    return force is None and all(type(x).__module__.startswith("crank_jax.")
-                                 for x in (load, torque))
+    """Whether the field's loads hold only crank-jax's own classes, at any depth, and it
+    has no user force: only then is the acceleration's cached trace used. A user's class
+    may read a module global or a closure cell that JAX's trace cache does not see (issue
+    37's stale programs), so the field is traced afresh wherever its caller's program is.
+    The same test as the program store's ([`foreign_classes`][])."""
+    if force is not None:
+        return False
+    leaves, treedef = jax.tree_util.tree_flatten((load, torque))
+    return not foreign_classes((treedef,), [x for x in leaves if not eqx.is_array(x)])

@@ -1,5 +1,7 @@
 """Code from outside crank-jax in a program's inputs (a user's `AbstractLoad` subclass, a
-force module of their own), which the program store (`persistent.py`) never stores.
+force module of their own), which the program store (`runtime/persistent.py`) never
+stores and the field's cached trace of its acceleration never serves (`dynamics.py`).
+In the core because both need it, and the core imports nothing from the runtime.
 
 A stored program is loaded without tracing, so its key must hold every input of the
 trace. For crank-jax's own classes it does (the package's source, the traced libraries'
