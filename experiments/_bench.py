@@ -89,6 +89,14 @@ def wall(cmd, env) -> float:
     return time.perf_counter() - t
 
 
+def child_json(code: str, args, env) -> dict:
+    """Run the Python source `code` in a fresh interpreter with arguments `args` and
+    environment `env`; its last line of output, read as JSON."""
+    out = subprocess.run([sys.executable, "-c", code, *map(str, args)], env=env,
+                         check=True, capture_output=True, text=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def save(name: str, payload: dict, smoke: bool) -> Path:
     """Write `experiments/results/<name>.json` (or `<name>.smoke.json` in smoke mode)."""
     RESULTS.mkdir(parents=True, exist_ok=True)

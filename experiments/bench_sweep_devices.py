@@ -11,12 +11,9 @@ Run: `python experiments/bench_sweep_devices.py [--smoke] [--n 20000]`.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
-import sys
 
-from _bench import save, setup_jax
+from _bench import child_json, save, setup_jax
 
 setup_jax()
 
@@ -42,9 +39,7 @@ def run(devices: int, n: int, repeats: int) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     env.update(JAX_NUM_CPU_DEVICES=str(devices), CRANK_JAX_NO_CACHE="1")
     code = CHILD.replace("__REPEATS__", str(repeats)).replace("__N__", str(n))
-    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                       text=True, check=True)
-    return json.loads(p.stdout.strip().splitlines()[-1])
+    return child_json(code, (), env)
 
 
 def main(argv=None):

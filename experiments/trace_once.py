@@ -18,13 +18,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
-from _bench import save, setup_jax
+from _bench import child_json, save, setup_jax
 from bench_end_to_end import records
 
 setup_jax()
@@ -64,10 +62,7 @@ print(json.dumps(dict(total=total, strategy=r.strategy,
 
 
 def run(arm: str, start: Path, rec: Path) -> dict:
-    env = dict(os.environ, CRANK_JAX_NO_CACHE="1")
-    out = subprocess.run([sys.executable, "-c", CHILD, arm, str(start), str(rec)],
-                         env=env, check=True, capture_output=True, text=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return child_json(CHILD, (arm, start, rec), dict(os.environ, CRANK_JAX_NO_CACHE="1"))
 
 
 def main(argv=None):
