@@ -109,7 +109,8 @@ def _plan_and_request(noise):
     single = types.SimpleNamespace(n_residuals=100)
     shoot = types.SimpleNamespace(names=("a",), log=(True,), folded=(False,))
     plan = types.SimpleNamespace(single=single, shoot=shoot, z0=np.zeros(1),
-                                 periods=[1.0], noise=noise, strategy="multiple shooting")
+                                 periods=[1.0], noise=noise, strategy="multiple shooting",
+                                 ranges=None)
     req = types.SimpleNamespace(shooting="auto", segments=None, method="lm", multistart=1,
                                 seed=0, sigma=None, records=[])
     return plan, req

@@ -122,3 +122,29 @@ def test_slide_only_record_that_stalls_is_mended_by_the_motion_start():
     for name, want in TRUTH.items():
         lo, hi = res.ci95[name]
         assert lo <= want <= hi, (name, res.values[name], res.ci95[name])
+
+
+def test_motion_start_keeps_its_values_in_range_instead_of_discarding_them():
+    # The truth adds a constant assisting torque (0.01 N*m) that the fitted model lacks:
+    # the free least squares puts the Coulomb friction at -0.01 N*m, outside its domain.
+    # The start from the motion was then discarded whole (None); bounded, T_c sits at 0
+    # and the gain and damping are still solved from the motion.
+    def truth(volts):
+        scene = motor_rig(volts, T_c=0.0, sensors=(ENCODER,))
+        torque = InputLoad(gain=TRUTH["tau_gain"], column="volts", X0=0.01).bind(
+            [0.0, 4.0], [volts, volts], interp="linear")
+        return cj.Scene(scene.mech, torque=torque, phi0=0.0, dphi0=5.0, t1=2.0,
+                        sensors=(ENCODER,))
+
+    records = [cj.synthesize(truth(v), t_start=0.5, rate=1000, noise_std={"phi": 1e-9},
+                             seed=i, sensors=(ENCODER,)) for i, v in enumerate((6.0, 9.0))]
+    req, plan = _plan(records, motor_rig(None, gain=0.015, c=0.02, T_c=0.005,
+                                         sensors=(ENCODER,)))
+    ss = plan.single
+    z = plan.z0[:ss.p] if plan.shoot is ss else recoordinate(plan.shoot, ss, plan.z0)
+    zs = motion_start(ss, z, req.records, req.angles, plan.periods)
+    assert zs is not None
+    got = dict(zip(ss.names, np.asarray(ss.values(zs))))
+    assert got["T_c"] == 0.0
+    assert 0.0 < got["c"] and got["c"] == pytest.approx(TRUTH["c"], rel=0.3)
+    assert got["tau_gain"] == pytest.approx(TRUTH["tau_gain"], rel=0.3)

@@ -19,13 +19,13 @@ from . import channel_noise as ch
 from .fit_plan import Plan, basis, recoordinate, recoordinate_basis
 from .optax_fit import minimize_optax
 from .optimize import least_squares
-from .outcome import Run
+from .outcome import Run, termination
 from .problem import Problem
 from .programs import InValues, Subspace, jacobian_at
 from .request import FitRequest
 from .strategy import AT_ZERO, noise_unit, perturb, stall_rms
 
-__all__ = ["attempt", "guarded", "multistart", "best_run", "run_rms"]
+__all__ = ["attempt", "guarded", "multistart", "best_run", "run_rms", "in_range"]
 
 
 def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.ndarray,
@@ -46,7 +46,7 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
     run = run._replace(z=z0 + B @ run.z)
     if shoot is ss:
-        return off_the_bound(req, plan, run, desc)
+        return in_range(plan, off_the_bound(req, plan, run, desc))
     zp = recoordinate(shoot, ss, run.z)
     if not np.isfinite(run.cost):
         return run._replace(z=zp)
@@ -55,8 +55,22 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
     # The estimate is the polish's, on the single-shooting cost: whether it converged is
     # the polish's verdict (multiple shooting only brought it near; its own stall on the
     # continuity defects says nothing about the point reported).
-    return off_the_bound(req, plan, pol._replace(iterations=run.iterations + pol.iterations),
-                         desc)
+    return in_range(plan, off_the_bound(
+        req, plan, pol._replace(iterations=run.iterations + pol.iterations), desc))
+
+
+def in_range(plan: Plan, run: Run) -> Run:
+    """`run`, not converged where its estimate (single-shooting coordinates) ran off the
+    physical range ([`Ranges`][crank_jax.identify.physical.Ranges]): a point far along a
+    flat, absurd direction is no converged minimum, whatever the step test said. The
+    escalation then treats it as the failed try it is."""
+    ss = plan.single
+    if plan.ranges is None or not np.all(np.isfinite(run.z[:ss.p])):
+        return run
+    why = plan.ranges.ran_off(ss.names, ss.host_values(run.z[:ss.p]))
+    if why is None:
+        return run
+    return run._replace(converged=False, message=why, termination=termination("ran off", why))
 
 
 def _single_from(run_fn, req: FitRequest, ss: Problem, z: np.ndarray, B: np.ndarray,

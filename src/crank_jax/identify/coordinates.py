@@ -8,7 +8,7 @@ Coordinates `z` (what the optimisers see, all O(1)), chosen per name by
   and the columns of the Jacobian are the sensitivities *scaled by the parameter values*
   that the identifiability analysis needs;
 - a field that cannot be negative and starts at 0 (an absent body's mass), and the
-  friction terms `T_c`, `c_s`, `F_s` whatever their start, are *folded*:
+  damping and friction terms `c`, `T_c`, `c_s`, `F_s` whatever their start, are *folded*:
   `value = ref |z|`. It stays valid whatever step the optimiser takes (a step below 0
   is reflected), its sensitivity at the start is not zero (as it would be for `z^2` or
   a softplus at its floor), and a value whose truth is 0 converges near 0 (see
@@ -28,7 +28,7 @@ import numpy as np
 
 from ..model.params import FIELDS, SliderCrank
 from ..simulation import linearize
-from .request import FRICTION_SCALED, SIGNED_FIELDS
+from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
 
 __all__ = ["coordinate", "coordinates", "folded", "fold", "FOLDED", "values_of", "values_program"]
 
@@ -37,8 +37,8 @@ __all__ = ["coordinate", "coordinates", "folded", "fold", "FOLDED", "values_of",
 _ZERO_START_REF = 1e-3
 
 
-def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None = None
-               ) -> tuple[bool, float]:
+def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None = None,
+               torque: float | None = None) -> tuple[bool, float]:
     """`(log, ref)` of a global free name: log coordinates for a mechanism field that
     cannot be negative and starts positive (but for the friction terms [`FOLDED`][]);
     otherwise linear with scale `ref` (folded for a field that cannot be negative, see
@@ -46,7 +46,10 @@ def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None =
 
     A field that starts at 0 takes its scale from the record's observed angular frequency
     `omega` (rad/s) and the linearised inertia `mu`: `mu omega^2` for k, 5% damping
-    (`0.1 mu omega`) for c; an offset e takes a tenth of r.
+    (`0.1 mu omega`) for c; an offset e takes a tenth of r; a load's mean or amplitude
+    takes the records' torque scale `torque` (N*m, see
+    [`load_scale`][crank_jax.identify.physical.load_scale]; over the crank radius for a
+    slider force).
     """
     if name in FIELDS and name not in SIGNED_FIELDS and start > 0 and name not in FOLDED:
         return True, 1.0
@@ -54,6 +57,9 @@ def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None =
         return False, abs(start)
     if name in SIGNED_FIELDS:
         return False, 0.1 * float(mech.r)
+    side, role = LOAD_NAMES.get(name, (None, None))
+    if torque and role in ("mean", "amp"):
+        return False, torque if side == "torque" else torque / float(mech.r)
     if omega and name in ("k", "c"):
         mu = float(np.asarray(linearize(mech).mu))
         if math.isfinite(mu) and mu > 0:
@@ -61,11 +67,12 @@ def coordinate(name: str, start: float, mech: SliderCrank, omega: float | None =
     return False, _ZERO_START_REF
 
 
-#: Friction terms (Coulomb torque, slider friction) whose true value is often 0: always
-#: folded, whatever their start. In log coordinates a true 0 sends ln(value) to -inf,
-#: LM crawls there, and the estimate (1e-265, say) is then reported as "ln T_c not
-#: determined" instead of "0, at most v + 1.96 se".
-FOLDED = frozenset(FRICTION_SCALED)
+#: Damping and friction terms (viscous crank damping, Coulomb torque, slider friction)
+#: whose true value may be 0: always folded, whatever their start. In log coordinates a
+#: true 0 sends ln(value) to -inf, LM crawls there, and the estimate (1e-265, say) is then
+#: reported as "ln T_c not determined" instead of "0, at most v + 1.96 se"; in linear ones
+#: a step below 0 fails every solve (a wall LM stalls on, every parameter frozen).
+FOLDED = frozenset(FRICTION_SCALED + ("c",))
 
 
 def folded(name: str, log: bool) -> bool:
@@ -75,15 +82,16 @@ def folded(name: str, log: bool) -> bool:
 
 
 def coordinates(name: str, start: float, mech: SliderCrank, omega: float | None,
-                 linear: bool) -> tuple[bool, float, bool]:
+                 linear: bool, torque: float | None = None) -> tuple[bool, float, bool]:
     """`(log, ref, folded)` of a free name (see [`coordinate`][], [`folded`][]). `linear`:
-    a name that would be in log coordinates is linear instead, `z = value / start`, and
-    not folded (a step below 0 is outside the valid set, a failed point the optimiser
-    rejects). These are multiple shooting's coordinates (see
+    a name that would be in log coordinates is folded instead, `value = start |z|`: linear
+    where the value is positive (multiple shooting's straight valleys), and a step below 0
+    is reflected, not a failed point (every solve failing there is a wall the optimiser
+    stalls on, every parameter frozen). These are multiple shooting's coordinates (see
     [`build_problem`][crank_jax.identify.problem.build_problem])."""
-    lg, rf = coordinate(name, start, mech, omega)
+    lg, rf = coordinate(name, start, mech, omega, torque)
     if linear and lg:
-        return False, abs(start), False
+        return False, abs(start), True
     return lg, rf, folded(name, lg)
 
 

@@ -20,7 +20,8 @@ from .programs import jacobian_at
 from .request import FitRequest
 from .strategy import far_from_noise, noise_unit, record_segments
 
-__all__ = ["optimize_fit", "ESCALATION_STARTS", "ESCALATION_ITERATIONS", "REPRODUCED"]
+__all__ = ["optimize_fit", "ESCALATION_STARTS", "ESCALATION_ITERATIONS", "REPRODUCED",
+           "PROGRESS"]
 
 #: Extra starts tried when a fit stalls far from the noise level.
 ESCALATION_STARTS = 4
@@ -33,6 +34,10 @@ ESCALATION_ITERATIONS = 100 * ESCALATION_STARTS
 #: Two converged tries whose costs differ by less than this many noise-level units
 #: (`sigma^2`: a chi-squared difference of 1) reached the same minimum.
 REPRODUCED = 0.5
+#: An escalation try that converges without lowering the best converged cost by more
+#: than this many noise-level units (`sigma^2`) ends the escalation (see
+#: `_no_progress`).
+PROGRESS = 1.0
 
 
 
@@ -52,7 +57,8 @@ def optimize_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
     stall is the model's answer, reported at once. Escalation ends at the first try that
     reaches the noise level; or once a converged minimum has been reached from two
     different starts (within [`REPRODUCED`][] noise-level units of cost: the model's best
-    from here, on a record it cannot fully explain); or once the extra starts have taken
+    from here, on a record it cannot fully explain); or at the first converged try that
+    does not lower the best cost by [`PROGRESS`][] noise-level units; or once the extra starts have taken
     as many LM iterations as the tries before them (at least
     [`ESCALATION_ITERATIONS`][]). Iterations and costs, never wall time, decide, so the
     same fit does the same tries, and reports the same result, on any machine.
@@ -86,7 +92,8 @@ def optimize_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
 
     def go_on():
         best = at.best_run(runs)[0]
-        return _stalled(best, n, plan, req) and not _reproduced(runs, unit2)
+        return (_stalled(best, n, plan, req) and not _reproduced(runs, unit2)
+                and not _no_progress(runs, unit2))
 
     if escalate and plan.shoot is plan.single and go_on():
         nseg = [record_segments(float(d.ts[-1] - d.ts[0]), p)
@@ -122,6 +129,7 @@ def _hop(req: FitRequest, plan: Plan, runs: list) -> str:
 
     def enough(done):
         return (not _stalled(done[-1][0], n, plan, req) or _reproduced(runs + done, unit2)
+                or _no_progress(runs + done, unit2)
                 or sum(r.iterations for r, _ in done) >= budget)
 
     more = at.multistart(req, plan, plan.shoot, _in_shoot(plan, at.best_run(runs)[0].z),
@@ -176,6 +184,15 @@ def _reproduced(runs, unit2: float) -> bool:
         return False
     low = min(r.cost for r in ok)
     return sum(r.cost - low <= REPRODUCED * unit2 for r in ok) >= 2
+
+
+def _no_progress(runs, unit2: float) -> bool:
+    """Whether the latest converged try failed to lower the best converged cost before
+    it by [`PROGRESS`][] noise-level units `unit2`: the escalation stops there. Far above
+    the noise (a model that cannot follow the record), a try that finds no lower minimum
+    says the search from here is done; it does not wait for a level it cannot reach."""
+    ok = [r.cost for r, _ in runs if r.converged and np.isfinite(r.cost)]
+    return len(ok) >= 2 and min(ok[:-1]) - ok[-1] <= PROGRESS * unit2
 
 
 def _start_cost(problem: Problem, z: np.ndarray) -> float:

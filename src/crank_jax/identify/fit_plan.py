@@ -20,9 +20,10 @@ from ..solve.adjoints import ForwardSensitivities
 from ..solve.solvers import AbstractSolver
 from . import channel_noise as ch
 from .angle import motion_period
+from .physical import Ranges, load_scale, ranges
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at
-from .request import STATE_NAMES, FitRequest
+from .request import LOAD_NAMES, STATE_NAMES, FitRequest
 from .start import half_window, noise_level, observed_period, regressor_start, smooth_derivatives
 from .strategy import (
     MAX_ODE_STEPS,
@@ -58,6 +59,7 @@ class Plan:
     states: list  # start state of each record
     solver: AbstractSolver  # the ODE solver of every solve (`pick_solver`'s)
     abort: str | None = None
+    ranges: Ranges | None = None  # the estimates' physical range (None: not judged)
 
 
 def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
@@ -82,11 +84,21 @@ def _problem(req: FitRequest, start, states, nseg, budget, solver, linear: bool 
     recs = [(d, lo, to, s[0], s[1]) for d, (lo, to), s in zip(req.records, req.loads, states)]
     periods = [motion_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     omega = next((2 * math.pi / p for p in periods if p), None)
+    # A load that starts at 0 takes its unit from the records (see `load_scale`).
+    zero_load = any(n in LOAD_NAMES and start.get(n) == 0 for n in req.free)
+    torque = (load_scale(_start_mech(req, start), req.records, req.angles, periods)
+              if zero_load else None)
     return build_problem(req.scene.mech, recs, req.free, start, nseg, solver=solver,
                          rtol=float(req.scene.rtol), atol=float(req.scene.atol),
                          max_steps=budget, adjoint=ForwardSensitivities(), omega=omega,
                          angles=req.angles, sigmas=req.sigmas, per_record=req.per_record,
-                         force=req.force, linear=linear)
+                         force=req.force, linear=linear, torque=torque)
+
+
+def _start_mech(req: FitRequest, start: dict):
+    """The scene's mechanism at the start values."""
+    return req.scene.mech.replace(**{n: v for n, v in start.items()
+                                     if n in req.scene.mech.as_dict()})
 
 
 def single_problem(req: FitRequest, start, states, budget, solver) -> Problem:
@@ -181,8 +193,7 @@ def make_plan(req: FitRequest) -> Plan:
                   ((no_motion(ang, n) or constant_channel(d) or aliased(ang), d)
                    for d, ang, n in zip(req.records, req.angles, noises)) if a), None)
     start, states, notes = _starts(req, periods)
-    mech_start = req.scene.mech.replace(**{n: v for n, v in start.items()
-                                           if n in req.scene.mech.as_dict()})
+    mech_start = _start_mech(req, start)
     solver = pick_solver(mech_start, req.loads[0][0], float(req.scene.rtol), req.scene.solver)
     too_far = quiet or next((f"record {d.source}: {a}" if multi else a
                     for a, d in ((absurd_frequency(linear_frequency(mech_start, lo), p), d)
@@ -193,7 +204,8 @@ def make_plan(req: FitRequest) -> Plan:
     ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
     full_start = {n: float(v) for n, v in zip(ss.names, ss.host_values(z_start))}
     plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, notes,
-                 "single shooting", start, states, solver)
+                 "single shooting", start, states, solver,
+                 ranges=ranges(mech_start, req.records, req.angles, periods, start))
     spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
     # Each record judged by its own solve: one absurd record among good ones is as
     # absurd as alone (the steps of the slowest record against the periods of another
@@ -215,7 +227,8 @@ def make_plan(req: FitRequest) -> Plan:
                                     solver)
     model = ch.model_angles(req, ss, r0)
     segs = [n_segments(sp, p, observed_period(d.ts, m), req.shooting, req.segments,
-                       _turns(a), _turns(m))
+                       _turns(a), _turns(m), blind=not any(s.name == "phi"
+                                                           for s, _ in d.outputs()))
             for d, a, sp, p, m in zip(req.records, req.angles, spans, periods, model)]
     # A crank that turns has the time of a turn for its cycle: escalation cuts its
     # record per two turns, as an oscillation's per two periods.

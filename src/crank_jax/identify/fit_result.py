@@ -88,7 +88,7 @@ class FitResult(NamedTuple):
     """Per record, channel name -> what its sensor reads under the fitted model (n,), SI."""
     termination: dict | None = None
     """How the reported optimisation ended, judged in the data's units: `verdict`
-    (`"converged"`, `"stalled"`, `"budget"`, `"failed"` or `"refused"`), `words` (the
+    (`"converged"`, `"stalled"`, `"budget"`, `"ran off"`, `"failed"` or `"refused"`), `words` (the
     same in a sentence), `predicted_decrease` (the cost decrease the Gauss-Newton step
     predicts, in noise-level units `sigma^2`), `largest_step` (its largest move of a
     coordinate, in standard errors), `falling_per_iteration` (the cost's fall per

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..model.dynamics import coriolis, generalized_force, mass
 from ..runtime.arrays import device_array
+from .physical import RUNAWAY
 from .problem import Problem
 from .request import record_mech
 from .start import regressor_samples
@@ -69,10 +70,10 @@ def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
     coordinates; `records`, the [`Data`][] records; `angles`, each record's crank angle as
     its channels tell it, rad; `periods`, each record's cycle, s (sets the smoothing).
 
-    **Returns:** the new coordinates, or None when no free parameter enters linearly,
-    the least squares is rank-deficient, or a solved value lies outside its parameter's
-    domain (a negative damping, say): then the motion says nothing the scene's values do
-    not.
+    **Returns:** the new coordinates, or None when no free parameter enters linearly or
+    the least squares is rank-deficient: then the motion says nothing the scene's values
+    do not. The least squares is bounded: each value stays in its physical range (see
+    `_bounds`), a damping at 0 rather than the whole start discarded.
     """
     rows = tuple(regressor_samples(d.ts, np.asarray(a, float), per)
                  for d, a, per in zip(records, angles, periods))
@@ -101,12 +102,33 @@ def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
         return None
     Y = np.stack(cols, axis=1)
     scale = np.linalg.norm(Y, axis=0)
-    sol, _, rank, _ = np.linalg.lstsq(Y / scale, -base, rcond=1e-10)
-    if rank < len(idx):
+    if np.linalg.matrix_rank(Y / scale, tol=1e-10) < len(idx):
         return None
+    lo, hi = _bounds(problem, v0, idx)
+    # Bounded least squares (each value in its physical range) rather than the free
+    # solution discarded whole when one value leaves its domain: the angle differentiated
+    # twice shrinks some terms, and one negative damping cost every other value.
+    from scipy.optimize import lsq_linear
+
+    sol = lsq_linear(Y / scale, -base, bounds=((lo - v0[idx]) * scale,
+                                               (hi - v0[idx]) * scale),
+                     method="bvls").x
     v = v0.copy()
     v[idx] += sol / scale
-    folded = problem.folded
-    if any(v[i] <= 0 if problem.log[i] else (folded[i] and v[i] < 0) for i in idx):
-        return None
+    v[idx] = np.clip(v[idx], lo, hi)  # (bvls meets its bounds to rounding)
     return problem.to_z(v)
+
+
+def _bounds(problem: Problem, v0: np.ndarray, idx) -> tuple[np.ndarray, np.ndarray]:
+    """The range of each solved value (`idx` of `v0`): a field in log coordinates within
+    [`RUNAWAY`][crank_jax.identify.physical.RUNAWAY] of its start either way (a start
+    outside that is no start the fit would call converged), a folded one at least 0,
+    the others free."""
+    lo = np.full(len(idx), -np.inf)
+    hi = np.full(len(idx), np.inf)
+    for k, i in enumerate(idx):
+        if problem.log[i]:
+            lo[k], hi[k] = v0[i] / RUNAWAY, v0[i] * RUNAWAY
+        elif problem.folded[i]:
+            lo[k] = 0.0
+    return lo, hi

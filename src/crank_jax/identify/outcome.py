@@ -34,8 +34,9 @@ def termination(verdict: str, words: str, *, predicted_decrease: float | None = 
     `verdict`: `"converged"` (at a stationary point of the weighted cost, judged in the
     data's units), `"stalled"` (the cost stopped falling while the linearisation still
     predicts a decrease: along `direction`, a ridge or a curved valley), `"budget"` (the
-    iteration budget spent, the cost still falling by `falling_per_iteration`), or
-    `"failed"`. The figures are in noise-level units of cost, `sigma^2` (`noise`, the
+    iteration budget spent, the cost still falling by `falling_per_iteration`), `"ran
+    off"` (the estimate left the physical range, see
+    [`physical`][crank_jax.identify.physical]), or `"failed"`. The figures are in noise-level units of cost, `sigma^2` (`noise`, the
     residuals' noise level, in the first channel's unit), when the noise level is known;
     `largest_step` is the largest step of a coordinate over its standard error."""
     def num(x):

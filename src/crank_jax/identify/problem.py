@@ -293,6 +293,7 @@ def build_problem(
     per_record: Sequence[str] = (),
     force=None,
     linear: bool = False,
+    torque: float | None = None,
 ) -> Problem:
     """Assemble a [`Problem`][].
 
@@ -324,6 +325,8 @@ def build_problem(
       log coordinates it curves and LM crawls along it (56 iterations instead of 16-28 on
       the rotating rig, experiments/results/fit_speed.json). Single shooting, whose
       coordinates the polish, the intervals and the identifiability use, keeps log ones.
+    - `torque`: the records' torque scale, N*m (the unit of a load that starts at 0; see
+      [`coordinate`][]).
     """
     per_record = tuple(per_record)
     glob = [n for n in free if n not in ("phi0", "dphi0") and n not in per_record]
@@ -331,7 +334,7 @@ def build_problem(
     state_free = (("phi0" in free), ("dphi0" in free))
     names, log, ref, fold = [], [], [], []
     for n in glob:
-        lg, rf, fd = coordinates(n, float(start[n]), mech, omega, linear)
+        lg, rf, fd = coordinates(n, float(start[n]), mech, omega, linear, torque)
         names.append(n)
         log.append(lg)
         ref.append(rf)
@@ -348,7 +351,7 @@ def build_problem(
         omega = 2 * math.pi / (period if period is not None else span)
         ref_phi, ref_dphi = max(amp, abs(phi0)), max(amp * omega, abs(dphi0))
         for n in per_record:
-            lg, rf, fd = coordinates(n, float(start[n]), mech, omega_obs, linear)
+            lg, rf, fd = coordinates(n, float(start[n]), mech, omega_obs, linear, torque)
             names.append(f"{n}[{i}]")
             log.append(lg)
             ref.append(rf)

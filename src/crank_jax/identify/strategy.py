@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-__all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "MAX_ODE_STEPS", "SMALL_ODE_BUDGET",
+__all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "BLIND_DRIFT", "MAX_ODE_STEPS", "SMALL_ODE_BUDGET",
            "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
            "absurd_start", "absurd_frequency", "segment_count", "record_segments",
            "MAX_SEGMENTS", "MIN_MOTION", "no_motion", "aliased",
@@ -32,6 +32,9 @@ SEGMENT_PERIODS = 2.0
 MAX_SEGMENTS = 48
 #: Largest predicted phase drift (rad) over a record that `"auto"` fits by single shooting.
 MAX_DRIFT = 1.0
+#: Largest predicted drift (rad) of one multiple-shooting segment of a record that no
+#: channel measures the angle of (see [`n_segments`][]).
+BLIND_DRIFT = math.pi / 2
 #: The ODE step budget of a fit's solves when the start solve is cheap, and otherwise.
 SMALL_ODE_BUDGET = 32_768
 MAX_ODE_STEPS = 200_000
@@ -59,7 +62,7 @@ FAR_FROM_NOISE = 3.0
 
 def n_segments(span: float, period_data: float | None, period_model: float | None,
                shooting: str, segments: int | None, turns_data: float = 0.0,
-               turns_model: float = 0.0) -> tuple[int, str]:
+               turns_model: float = 0.0, blind: bool = False) -> tuple[int, str]:
     """Shooting segments for one record and the reason, in words.
 
     The start values decide only *whether* to shoot multiply (`"auto"`: when their
@@ -74,6 +77,12 @@ def n_segments(span: float, period_data: float | None, period_model: float | Non
     the start model over it. A record with no period whose crank turns is judged by its
     turns: the start model's drift is its turns' shortfall (times 2 pi), and segments
     are cut per two turns.
+
+    `blind`: no channel of the record measures the angle (a slide position, a speed).
+    A slide reading repeats every turn and has two angles per position, so a segment
+    whose start may drift by more than [`BLIND_DRIFT`][] can be pulled onto another turn
+    or half-turn, where its continuity defect cannot close: such a record gets at least
+    one segment per `BLIND_DRIFT` of predicted drift (at most [`MAX_SEGMENTS`][]).
     """
     if shooting == "single":
         return 1, "single shooting (requested)"
@@ -86,7 +95,7 @@ def n_segments(span: float, period_data: float | None, period_model: float | Non
                f"{turns_model:.3g} times (predicted drift {drift:.1f} rad)")
         if shooting == "auto" and drift <= MAX_DRIFT and turns_data <= AUTO_PERIODS:
             return 1, why
-        return record_segments(span, span / turns_data), why
+        return _blind(record_segments(span, span / turns_data), drift, blind), why
     if period_data is None:
         n = 1 if shooting == "auto" else 2
         return n, "the record holds less than one period and less than one turn"
@@ -101,7 +110,15 @@ def n_segments(span: float, period_data: float | None, period_model: float | Non
            + f" (predicted drift {drift:.1f} rad)")
     if shooting == "auto" and drift <= MAX_DRIFT and periods <= AUTO_PERIODS:
         return 1, why
-    return record_segments(span, period_data), why
+    return _blind(record_segments(span, period_data), drift, blind), why
+
+
+def _blind(n: int, drift: float, blind: bool) -> int:
+    """`n` segments, or more for a record no channel of which measures the angle: at
+    most [`BLIND_DRIFT`][] of predicted drift each (see [`n_segments`][])."""
+    if not blind or not math.isfinite(drift):
+        return n
+    return segment_count(min(max(n, math.ceil(drift / BLIND_DRIFT)), MAX_SEGMENTS))
 
 
 def record_segments(span: float, period_data: float | None) -> int:
