@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..runtime.progress import progress_bar
 from ..solve.names import SOLVERS
 from .errors import UserError
 from .scene_inputs import refuse_input_loads
@@ -150,13 +151,11 @@ def _write_rows(f, cols: dict) -> None:
 def _stream(scene, t1: float, samples: int, kw: dict, f, plot_stride: int, quiet: bool):
     """Simulate chunk by chunk, each starting from the last state of the one before, and
     write the CSV rows to `f`. Returns (column names, solver steps, decimated ts/phi/dphi)."""
-    from tqdm import tqdm
-
     chunks = max(1, -(-(samples - 1) // CHUNK_SAMPLES))
     kw = dict(kw)
     steps, names, keep = 0, None, ([], [], [])
-    with tqdm(total=samples, unit="sample", unit_scale=True, file=sys.stderr, leave=False,
-              disable=quiet or chunks == 1, desc="simulate") as bar:
+    with progress_bar(samples, "simulate", not quiet and chunks > 1, unit="sample",
+                      unit_scale=True) as bar:
         for k in range(chunks):
             lo = k * CHUNK_SAMPLES
             hi = samples if k == chunks - 1 else lo + CHUNK_SAMPLES + 1

@@ -34,6 +34,7 @@ from ..model.loads import MultiSineLoad, NoLoad
 from ..model.params import FIELDS, SIGNED_FIELDS
 from ..runtime.blas import one_blas_thread
 from ..runtime.lazy import lazy_import
+from ..runtime.progress import progress_bar
 from ..scene import Scene
 from ..simulation import linearize
 from ..solve.adjoints import ForwardSensitivities
@@ -305,14 +306,14 @@ def design(
 def _adam(loss, w, iterations: int, learning_rate: float, progress: bool):
     """Adam on `loss` from `w` for `iterations` steps (stopping at a non-finite gradient).
     **Returns:** the best point seen and the criterion's history (`-loss` per step)."""
-    from tqdm.auto import tqdm
-
     step = jax.jit(lambda w: (loss(w), jax.jacfwd(loss)(w)))
     opt = optax.adam(learning_rate)
     state = opt.init(w)
     history = []
     best = (math.inf, w)
-    for _ in tqdm(range(iterations), desc="design", disable=not progress, leave=False):
+    bar = progress_bar(iterations, "design", progress)
+    for _ in range(iterations):
+        bar.update()
         value, g = step(w)
         value = float(value)
         history.append(-value)
@@ -322,6 +323,7 @@ def _adam(loss, w, iterations: int, learning_rate: float, progress: bool):
             break
         updates, state = opt.update(g, state)
         w = optax.apply_updates(w, updates)
+    bar.close()
     final = float(jax.jit(loss)(w)) if iterations else math.inf
     if math.isfinite(final) and final < best[0]:
         best = (final, w)

@@ -58,8 +58,8 @@ def optimize_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
     reaches the noise level; or once a converged minimum has been reached from two
     different starts (within [`REPRODUCED`][] noise-level units of cost: the model's best
     from here, on a record it cannot fully explain); or at the first converged try that
-    does not lower the best cost by [`PROGRESS`][] noise-level units; or once the extra starts have taken
-    as many LM iterations as the tries before them (at least
+    does not lower the best cost by [`PROGRESS`][] noise-level units; or once the extra
+    starts have taken as many LM iterations as the tries before them (at least
     [`ESCALATION_ITERATIONS`][]). Iterations and costs, never wall time, decide, so the
     same fit does the same tries, and reports the same result, on any machine.
 

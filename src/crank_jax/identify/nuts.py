@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..runtime.lazy import lazy_import
+from ..runtime.progress import progress_bar
 from .priors import log_prior
 from .problem import Problem
 
@@ -204,8 +205,6 @@ def run_chains(problem, codes, params, zL, carry, key, stages, desc, progress):
     """Run the schedule `stages` (n, 2) in chunks; positions (C, n, p), divergences,
     leapfrog steps. Each device of `_shares` runs its chains' program at once (JAX
     dispatches without waiting); the chains' draws do not depend on how they are shared."""
-    from tqdm.auto import tqdm
-
     n = stages.shape[0]
     chains = carry[3].shape[0]
     shares = _shares(chains)
@@ -215,8 +214,7 @@ def run_chains(problem, codes, params, zL, carry, key, stages, desc, progress):
                     devices[i])
                for i, ix in enumerate(shares)]
     pos, div, steps = [], [], []
-    with tqdm(total=n, desc=desc, unit="step", disable=not progress or n == 0,
-              leave=False) as bar:
+    with progress_bar(n, desc, progress and n > 0, unit="step") as bar:
         for start in range(0, n, CHUNK):
             block = stages[start:start + CHUNK]
             m = block.shape[0]

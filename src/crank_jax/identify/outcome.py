@@ -36,9 +36,10 @@ def termination(verdict: str, words: str, *, predicted_decrease: float | None = 
     predicts a decrease: along `direction`, a ridge or a curved valley), `"budget"` (the
     iteration budget spent, the cost still falling by `falling_per_iteration`), `"ran
     off"` (the estimate left the physical range, see
-    [`physical`][crank_jax.identify.physical]), or `"failed"`. The figures are in noise-level units of cost, `sigma^2` (`noise`, the
-    residuals' noise level, in the first channel's unit), when the noise level is known;
-    `largest_step` is the largest step of a coordinate over its standard error."""
+    [`physical`][crank_jax.identify.physical]), or `"failed"`. The figures are in
+    noise-level units of cost, `sigma^2` (`noise`, the residuals' noise level, in the
+    first channel's unit), when the noise level is known; `largest_step` is the largest
+    step of a coordinate over its standard error."""
     def num(x):
         return None if x is None or not math.isfinite(x) else float(x)
 

@@ -15,7 +15,8 @@ import math
 
 import numpy as np
 
-__all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "BLIND_DRIFT", "MAX_ODE_STEPS", "SMALL_ODE_BUDGET",
+__all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "BLIND_DRIFT", "MAX_ODE_STEPS",
+           "SMALL_ODE_BUDGET",
            "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
            "absurd_start", "absurd_frequency", "segment_count", "record_segments",
            "MAX_SEGMENTS", "MIN_MOTION", "no_motion", "aliased",

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import sys
-
 import equinox as eqx
 import numpy as np
 
 from ..model.dynamics import Structure
 from ..runtime.io import atomic_write
+from ..runtime.progress import progress_bar
 from ..solve.policy import SOLVERS
 from .reductions import TRAJECTORY_OUTPUTS
 
@@ -100,9 +99,7 @@ class Filling:
         self.solver_used = np.full(n, -1, np.int8)
         self.n, self.done, self.callback, self.bar = n, 0, callback, None
         if progress:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=n, file=sys.stderr, unit="sample", desc="sweep")
+            self.bar = progress_bar(n, "sweep", True, unit="sample", leave=True)
 
     def drawn(self, b0: int, b1: int, drawn: dict, invalid: np.ndarray) -> None:
         """Samples `b0:b1`'s drawn values; the invalid ones count as done."""

@@ -1,0 +1,40 @@
+"""Progress that fits a log: whole lines every few seconds when stderr is not a terminal,
+never a carriage-return stream."""
+
+import io
+
+from crank_jax.runtime import progress
+
+
+def test_progress_in_a_log_is_whole_lines_at_an_interval(capsys, monkeypatch):
+    clock = iter(float(t) for t in range(0, 1000, 2))  # each reading 2 s after the last
+    monkeypatch.setattr(progress.time, "monotonic", lambda: next(clock))
+    with progress.progress_bar(100, "fit", True, unit="it") as bar:
+        for _ in range(10):
+            bar.update()
+        bar.set_postfix(rms=0.5)
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    lines = err.splitlines()
+    # 2 s a reading, a line at most every LOG_INTERVAL = 5 s, and one at the end.
+    assert 3 <= len(lines) <= 5, lines
+    assert lines[0].startswith("fit: ") and "/100 it" in lines[0]
+    assert lines[-1].startswith("fit: 10/100 it (rms=0.5), ")
+
+
+def test_short_work_in_a_log_prints_nothing(capsys):
+    with progress.progress_bar(3, "fit", True) as bar:
+        bar.update(3)
+    assert capsys.readouterr().err == ""
+
+
+def test_a_terminal_gets_the_bar_and_no_progress_gets_nothing(monkeypatch):
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(progress.sys, "stderr", Tty())
+    bar = progress.progress_bar(5, "fit", True)
+    assert type(bar).__name__ == "tqdm"
+    bar.close()
+    assert type(progress.progress_bar(5, "fit", False)).__name__ == "_NoBar"
