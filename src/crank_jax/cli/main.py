@@ -39,6 +39,9 @@ from . import (
     synth_command as synth,
 )
 from . import (
+    track_command as track,
+)
+from . import (
     validate_command as validate,
 )
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
@@ -78,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     for name, help_, add, run in (simulate.COMMANDS + synth.COMMANDS + identify.COMMANDS
                                + sweep.COMMANDS + validate.COMMANDS + bayes.COMMANDS
-                               + vibration.COMMANDS):
+                               + vibration.COMMANDS + track.COMMANDS):
         p = sub.add_parser(name, help=help_, description=help_)
         add(p)
         p.set_defaults(_run=run)

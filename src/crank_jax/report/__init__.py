@@ -14,8 +14,9 @@ import os
 from collections.abc import Sequence
 
 from .context import fit_context, validation_context
+from .track_report import track_context
 
-__all__ = ["write_fit_report", "write_validation_report", "render"]
+__all__ = ["write_fit_report", "write_validation_report", "write_track_report", "render"]
 
 
 def render(context: dict) -> str:
@@ -54,3 +55,10 @@ def write_validation_report(val, path: str | os.PathLike, *, scene=None,
     """Write the HTML report of a [`Validation`][crank_jax.Validation] to `path`,
     atomically (arguments as [`write_fit_report`][])."""
     _write(path, render(validation_context(val, scene=scene, command=command, title=title)))
+
+
+def write_track_report(res, path: str | os.PathLike, *, scene=None,
+                       command: Sequence[str] | str | None = None, title: str = "") -> None:
+    """Write the HTML report of a [`TrackResult`][crank_jax.track.tracked.TrackResult] to
+    `path`, atomically (arguments as [`write_fit_report`][])."""
+    _write(path, render(track_context(res, scene=scene, command=command, title=title)))

@@ -11,7 +11,8 @@ from ..model.params import UNITS
 from .figures import fit_figures, validation_figures
 from .provenance import provenance
 
-__all__ = ["fit_context", "validation_context", "unit", "fmt", "VERDICT_CLASSES"]
+__all__ = ["fit_context", "validation_context", "unit", "fmt", "cell", "verdicts",
+           "VERDICT_CLASSES"]
 
 _STATE_UNITS = {"phi0": "rad", "dphi0": "rad/s"}
 _ROLE_UNITS = {"freq_hz": "Hz", "phase": "rad"}
@@ -40,7 +41,7 @@ def fmt(x) -> str:
     return f"{x:.6g}"
 
 
-def _cell(x) -> dict:
+def cell(x) -> dict:
     return {"text": fmt(x), "full": "" if x is None else repr(float(x))}
 
 
@@ -49,10 +50,10 @@ def _estimates(doc: dict) -> list[dict]:
     for name, e in doc["estimates"].items():
         ci = e["ci95"] or [None, None]
         prof = e.get("profile", {}).get("ci95")
-        rows.append({"name": name, "unit": unit(name), "start": _cell(e["start"]),
-                     "value": _cell(e["value"]), "stderr": _cell(e["stderr"]),
-                     "lo": _cell(ci[0]), "hi": _cell(ci[1]),
-                     "profile": None if prof is None else [_cell(prof[0]), _cell(prof[1])]})
+        rows.append({"name": name, "unit": unit(name), "start": cell(e["start"]),
+                     "value": cell(e["value"]), "stderr": cell(e["stderr"]),
+                     "lo": cell(ci[0]), "hi": cell(ci[1]),
+                     "profile": None if prof is None else [cell(prof[0]), cell(prof[1])]})
     return rows
 
 
@@ -108,7 +109,7 @@ def _whiteness(diag, what: str = "residuals") -> tuple[str, str]:
     return "bad", diag.not_white_message().replace("the residuals", f"The {what}", 1)
 
 
-def _verdicts(pairs: list[tuple[str, tuple[str, str]]]) -> list[dict]:
+def verdicts(pairs: list[tuple[str, tuple[str, str]]]) -> list[dict]:
     return [{"topic": topic, "cls": cls, "text": text} for topic, (cls, text) in pairs]
 
 
@@ -135,7 +136,7 @@ def fit_context(res, *, scene=None, command=None, title: str = "") -> dict:
                ("iterations", str(doc["iterations"])), ("time", f"{doc['seconds']:.1f} s")]
     return {
         "kind": "fit", "title": title or "crank-jax fit report",
-        "verdicts": _verdicts([("Convergence", _convergence(res)),
+        "verdicts": verdicts([("Convergence", _convergence(res)),
                                ("Identifiability", _identifiability(res)),
                                ("Whiteness", _whiteness(res.diagnostics))]),
         "summary": summary, "estimates": _estimates(doc), "correlation": _correlation(doc),
@@ -154,19 +155,19 @@ def validation_context(val, *, scene=None, command=None, title: str = "") -> dic
     doc = val.to_json()
     diag = val.error_diagnostics()
     u = _first_unit(val.channels)
-    scores = [("fit", _cell(doc["fit_percent"]), "%"), ("rms error", _cell(doc["rms"]), u),
-              ("max |error|", _cell(doc["max_abs"]), u),
+    scores = [("fit", cell(doc["fit_percent"]), "%"), ("rms error", cell(doc["rms"]), u),
+              ("max |error|", cell(doc["max_abs"]), u),
               ("scored samples", {"text": str(doc["n_samples"]), "full": ""}, ""),
-              ("phi0 (estimated)", _cell(doc["phi0"]), "rad"),
-              ("dphi0 (estimated)", _cell(doc["dphi0"]), "rad/s"),
-              ("initial-state window", _cell(doc["init_window"]), "s"),
-              ("t start", _cell(doc["t_start"]), "s"), ("t end", _cell(doc["t_end"]), "s")]
+              ("phi0 (estimated)", cell(doc["phi0"]), "rad"),
+              ("dphi0 (estimated)", cell(doc["dphi0"]), "rad/s"),
+              ("initial-state window", cell(doc["init_window"]), "s"),
+              ("t start", cell(doc["t_start"]), "s"), ("t end", cell(doc["t_end"]), "s")]
     if len(doc["channels"]) > 1:  # the rows above are the first channel's: each in turn
         for n, c in doc["channels"].items():
             cu = val.channels[n]["unit"]
-            scores += [(f"{n}: fit", _cell(c["fit_percent"]), "%"),
-                       (f"{n}: rms error", _cell(c["rms"]), cu),
-                       (f"{n}: max |error|", _cell(c["max_abs"]), cu)]
+            scores += [(f"{n}: fit", cell(c["fit_percent"]), "%"),
+                       (f"{n}: rms error", cell(c["rms"]), cu),
+                       (f"{n}: max |error|", cell(c["max_abs"]), cu)]
     first = next(iter(doc["channels"]), "phi")
     # A score, not a pass/fail: what is good enough is the user's call.
     verdict = ("info",
@@ -176,7 +177,7 @@ def validation_context(val, *, scene=None, command=None, title: str = "") -> dic
                "estimate.")
     return {
         "kind": "validation", "title": title or "crank-jax validation report",
-        "verdicts": _verdicts([("Prediction", verdict),
+        "verdicts": verdicts([("Prediction", verdict),
                                ("Whiteness", _whiteness(diag, "prediction errors"))]),
         "summary": [], "estimates": [], "correlation": None, "scores": scores,
         "warnings": list(val.warnings), "figures": validation_figures(val, diag),

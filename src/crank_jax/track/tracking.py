@@ -1,0 +1,221 @@
+"""`track`: follow a running machine's parameters sample by sample, with honest bands and
+change alarms (DESIGN.md section 9).
+
+The record is read as [`fit`][crank_jax.fit] reads it (channels, sensors, calibrations,
+measured `P`/`tau` columns and input-driven loads, per-channel noise levels). The filter
+starts from a batch fit of the record's first seconds (`start="batch"`, the default) or
+from the scene's values (`start="scene"`), then runs the extended Kalman filter of
+[`ekf`][crank_jax.track.ekf] over the whole record in chunks of a fixed shape (one
+compiled program whatever the record's length, memory bounded by the chunk), and turns
+the CUSUM's alarms into named changes ([`alarms`][crank_jax.track.alarms]).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..identify import channel_noise as ch
+from ..identify.request import normalize
+from ..identify.start import half_window, smooth_derivatives
+from ..model.params import FIELDS, SIGNED_FIELDS, WIDTH_FIELDS
+from ..records.data import Data
+from ..runtime.progress import progress_bar
+from ..scene import Scene
+from ..simulation import linearize
+from .alarms import name_alarms
+from .ekf import FilterSettings, TrackModel, init_state, run_filter
+from .tracked import TrackResult
+
+__all__ = ["track", "STARTS", "CHUNK"]
+
+#: How the filter starts: a batch fit of the record's first seconds, or the scene.
+STARTS = ("batch", "scene")
+#: Samples per compiled chunk: the filter's program has this shape whatever the record.
+CHUNK = 4096
+#: A Runge-Kutta step covers at most this fraction of the linearised period, and at most
+#: `_MAX_TURN` rad of the fastest speed the record shows.
+_PERIOD_FRACTION, _MAX_TURN = 1 / 40, 0.05
+#: The batch start's covariance is inflated by this factor (it saw the samples the filter
+#: sees again) and a scene start's relative standard deviation.
+_BATCH_INFLATION, _SCENE_PRIOR = 10.0, 0.1
+
+
+def _check_free(free: Sequence[str]) -> tuple[str, ...]:
+    free = tuple(dict.fromkeys(free))
+    bad = [n for n in free if n not in FIELDS or n in WIDTH_FIELDS]
+    if not free or bad:
+        ok = [n for n in FIELDS if n not in WIDTH_FIELDS]
+        raise ValueError(f"free= must name mechanism fields to follow, got {list(free)}; "
+                         f"choose from {ok}")
+    return free
+
+
+def _check_options(start, start_seconds, false_alarm_rate, change_ratio, settle, every):
+    if start not in STARTS:
+        raise ValueError(f"start= must be one of {STARTS}, got {start!r}")
+    for name, v in (("start_seconds", start_seconds), ("false_alarm_rate", false_alarm_rate),
+                    ("settle", settle)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{name}= must be a finite number > 0, got {v!r}")
+    if not (isinstance(change_ratio, (int, float)) and math.isfinite(change_ratio)
+            and change_ratio > 1):
+        raise ValueError(f"change_ratio= must be a finite variance ratio > 1, got "
+                         f"{change_ratio!r}")
+    if not (isinstance(every, int) and every >= 1):
+        raise ValueError(f"every= must be an integer >= 1, got {every!r}")
+
+
+def track(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
+          start: str = "batch", start_seconds: float = 5.0, false_alarm_rate: float = 1.0,
+          change_ratio: float = 4.0, settle: float = 5.0, q_param: float = 1e-4,
+          every: int = 1, progress: bool = True) -> TrackResult:
+    """Follow the free parameters of `scene` through the record `data`, sample by sample.
+
+    **Arguments:**
+
+    - `scene`: the fixed values, loads and sensors (as for [`fit`][crank_jax.fit]);
+      `data`: one record (its channels, measured inputs and `P`/`tau` columns).
+    - `free`: mechanism fields to follow (the others stay at the scene's values).
+    - `start`: `"batch"` (a fit of the first `start_seconds` s, its covariance inflated
+      tenfold) or `"scene"` (the scene's values, 10% relative standard deviation).
+    - `false_alarm_rate`: alarms per hour of record the change test may raise on a
+      machine that does not change (an upper bound, by Lorden's inequality).
+    - `change_ratio`: the growth of the innovations' variance the test looks for.
+    - `settle`: seconds after an alarm at which the new values are read.
+    - `q_param`: each parameter's random walk, per sqrt(s): relative for a field that
+      cannot be negative, in its unit otherwise.
+    - `every`: keep every `every`-th sample in the result (a long record's memory).
+    - `progress`: show progress on stderr.
+
+    **Returns:** a [`TrackResult`][crank_jax.track.tracked.TrackResult].
+    **Raises:** `ValueError` naming the argument for a request it cannot serve.
+    """
+    free = _check_free(free)
+    _check_options(start, start_seconds, false_alarm_rate, change_ratio, settle, every)
+    req = ch.with_channels(normalize(
+        scene, data, free + ("phi0", "dphi0"), init="scene", method="lm", shooting="auto",
+        segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8, sigma=None,
+        profile=None, window=None, progress=progress, warn=False))
+    rec = req.records[0]
+    ts = np.asarray(rec.ts, float)
+    outs = rec.outputs()
+    values, se, x0_state, se_state, start_note = _start(req, scene, data, free, start,
+                                                          start_seconds, progress)
+    log = tuple(n not in SIGNED_FIELDS and values[n] > 0 for n in free)
+    model = TrackModel(scene.mech.replace(**values), *req.loads[0],
+                       jnp.asarray([float(s.scale) for s, _ in outs]),
+                       jnp.asarray([float(s.offset) for s, _ in outs]), free, log,
+                       tuple(s.name for s, _ in outs), _substeps(req, values, ts))
+    z0 = np.array([math.log(values[n]) if lg else values[n] for n, lg in zip(free, log)])
+    sz = np.array([se[n] / values[n] if lg else se[n] for n, lg in zip(free, log)])
+    P_param = np.diag(sz**2)
+    dt = float(np.median(np.diff(ts)))
+    alpha = min(false_alarm_rate * dt / 3600.0, 0.5)
+    settings = FilterSettings(
+        R=jnp.asarray([req.sigmas[s.name] ** 2 for s, _ in outs]),
+        q_accel=jnp.asarray(_accel_noise(req, ts, dt)),
+        q_param=jnp.asarray([(q_param if lg else q_param * max(abs(values[n]), 1e-12)) ** 2
+                             for n, lg in zip(free, log)]),
+        P_param=jnp.asarray(P_param), threshold=jnp.asarray(math.log(1 / alpha)),
+        lam=jnp.asarray(float(change_ratio)))
+    x0 = np.concatenate([x0_state, z0])
+    P0 = np.diag(np.concatenate([se_state**2, sz**2]))
+    ys = np.stack([np.asarray(y, float) for _, y in outs], axis=1)
+    steps, events = _run_chunks(model, settings, init_state(x0, P0, ts[0]), ts, ys, every,
+                                progress)
+    alarms = name_alarms(steps, ts, events, free, log, settle, every)
+    return TrackResult.build(ts[::every], steps, free, log, alarms, {
+        "filter": "extended Kalman filter on the state and parameters",
+        "start": start_note, "substeps": model.substeps, "chunk": CHUNK,
+        "noise": {s.name: float(req.sigmas[s.name]) for s, _ in outs},
+        "q_param": q_param, "q_accel": float(settings.q_accel),
+        "alarm_test": "CUSUM on the log-likelihood ratio of the normalised innovations "
+                      f"(variance ratio {change_ratio:g})",
+        "false_alarm_rate_per_hour": false_alarm_rate, "threshold": float(settings.threshold),
+        "settle": settle, "every": every, "log": dict(zip(free, log))}, source=rec.source)
+
+
+def _start(req, scene, data, free, start, seconds, progress):
+    """Parameter values and standard errors (physical units), the initial state (2,) and
+    its standard errors, and the start in words."""
+    rec = req.records[0]
+    ts = np.asarray(rec.ts, float)
+    if start == "batch":
+        from ..identify.fit import fit
+
+        t_end = min(float(ts[0]) + seconds, float(ts[-1]))
+        res = fit(scene, data, free=free + ("phi0", "dphi0"), window=(None, t_end),
+                  progress=progress, warn=False)
+        if res.converged and all(res.stderr[n] is not None for n in free + ("phi0", "dphi0")):
+            k = _BATCH_INFLATION
+            vals = {n: res.values[n] for n in free}
+            se = {n: math.sqrt(k) * res.stderr[n] for n in free}
+            st = np.array([res.values["phi0"], res.values["dphi0"]])
+            sst = math.sqrt(k) * np.array([res.stderr["phi0"], res.stderr["dphi0"]])
+            return vals, se, st, sst, (f"a batch fit of the first {t_end - ts[0]:.3g} s "
+                                       f"({res.iterations} LM iterations, covariance x{k:g})")
+        why = res.message if not res.converged else "some standard errors not determined"
+        note = f"the scene's values (the batch fit of the first {seconds:g} s: {why})"
+    else:
+        note = "the scene's values"
+    vals = {n: float(getattr(scene.mech, n)) for n in free}
+    se = {n: _SCENE_PRIOR * abs(v) if abs(v) > 0 else _SCENE_PRIOR for n, v in vals.items()}
+    per = 2 * math.pi / max(_omega(req, vals), 1e-9)
+    ps, dps, _ = smooth_derivatives(ts, req.angles[0], half_window(ts, per), [0])
+    noise = float(req.sigmas.get("phi", 1e-2))
+    st = np.array([float(ps[0]), float(dps[0])])
+    return vals, se, st, np.array([10 * noise + 1e-3, 0.1 * abs(st[1]) + 1e-2]), note
+
+
+def _omega(req, values) -> float:
+    """The linearised natural frequency at `values` (rad/s), or 0."""
+    w = float(np.asarray(linearize(req.scene.mech.replace(**values), req.loads[0][0]).omega_n))
+    return w if math.isfinite(w) else 0.0
+
+
+def _substeps(req, values, ts) -> int:
+    """Runge-Kutta steps per sample interval: a fortieth of the linearised period and
+    `_MAX_TURN` rad of the fastest speed the record shows, at most."""
+    dt = float(np.max(np.diff(ts))) if ts.size > 1 else 0.0
+    w = _omega(req, values)
+    _, dphi, _ = smooth_derivatives(ts, req.angles[0], half_window(ts, None))
+    h = min(_PERIOD_FRACTION * 2 * math.pi / w if w > 0 else math.inf,
+            _MAX_TURN / max(float(np.max(np.abs(dphi))), 1e-9))
+    return int(min(max(1, math.ceil(dt / h)), 64))
+
+
+def _accel_noise(req, ts, dt) -> float:
+    """The state's acceleration noise, (rad/s^2)^2 per Hz: a thousandth of the record's rms
+    angular acceleration per sample interval (what a model that is nearly right misses)."""
+    _, _, dd = smooth_derivatives(ts, req.angles[0], half_window(ts, None))
+    return float((1e-3 * np.sqrt(np.mean(dd**2))) ** 2 * dt)
+
+
+def _run_chunks(model, settings, state, ts, ys, every, progress):
+    """The filter over the record in chunks of `CHUNK` samples (the last one padded),
+    keeping every `every`-th sample. **Returns:** the kept [`Steps`][] on the host, and
+    each alarm at full resolution: `(sample index, samples since the statistic left 0,
+    statistic)`."""
+    n = ts.shape[0]
+    kept, events = [], []
+    with progress_bar(n, "track", progress, unit="sample") as bar:
+        for lo in range(0, n, CHUNK):
+            hi = min(lo + CHUNK, n)
+            pad = CHUNK - (hi - lo)
+            t = np.concatenate([ts[lo:hi], np.full(pad, ts[hi - 1])])
+            y = np.concatenate([ys[lo:hi], np.repeat(ys[hi - 1:hi], pad, axis=0)])
+            ok = np.arange(CHUNK) < hi - lo
+            state, out = run_filter(model, settings, state, jnp.asarray(t), jnp.asarray(y),
+                                    jnp.asarray(ok))
+            first = (-lo) % every  # the kept samples' indices are multiples of `every`
+            kept.append([np.asarray(a)[:hi - lo][first::every] for a in out])
+            alarm = np.asarray(out.alarm)[:hi - lo]
+            events += [(lo + int(i), int(out.run[i]), float(out.g[i]))
+                       for i in np.flatnonzero(alarm)]
+            bar.update(hi - lo)
+    steps = type(out)(*(np.concatenate([k[i] for k in kept]) for i in range(len(out))))
+    return steps, events
