@@ -34,12 +34,14 @@ def driven_record(T: float, t_change: float | None = None, drop: float = 0.05, s
     if t_change is None:
         phi = np.asarray(cj.simulate(LAB.mech, phi0, 0.0, ts, **kw).phi)
     else:
-        a, b = ts[ts < t_change], ts[ts >= t_change]
+        a, later = ts[ts < t_change], ts[ts >= t_change]
         tr = cj.simulate(LAB.mech, phi0, 0.0, np.append(a, t_change), **kw)
         after = LAB.mech.replace(**{name: getattr(LAB.mech, name) * (1 - drop)})
-        b = np.concatenate([[t_change], b[b > t_change]])
+        b = np.concatenate([[t_change], later[later > t_change]])
         tr2 = cj.simulate(after, float(tr.phi[-1]), float(tr.dphi[-1]), b, **kw)
-        phi = np.concatenate([np.asarray(tr.phi)[:-1], np.asarray(tr2.phi)[b.size - ts[ts >= t_change].size:]])
+        # (The solve from the change starts at t_change, a sample or not.)
+        phi = np.concatenate([np.asarray(tr.phi)[:-1],
+                              np.asarray(tr2.phi)[b.size - later.size:]])
     phi = phi + np.random.default_rng(seed).normal(0.0, noise, phi.shape)
     return cj.Data(ts, phi, torque=SampledLoad(ts, tau[:ts.size]), source=f"seed {seed}")
 
