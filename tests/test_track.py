@@ -13,8 +13,8 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.model.sampled import SampledLoad
-from crank_jax.track import run_filter, track
-from crank_jax.track import tracking as tracking_module
+from crank_jax.online import prepare, run_filter, track
+from crank_jax.online import tracking as tracking_module
 
 jax.config.update("jax_enable_x64", True)
 
@@ -89,27 +89,22 @@ def test_chunks_and_thinning_give_the_plain_path(monkeypatch):
     np.testing.assert_array_equal(chunked.t, whole.t[::3])
 
 
-def test_a_fleet_is_one_vmap_and_equals_its_members(monkeypatch):
-    # The filter's program is a pure function of its records: `jax.vmap` runs a fleet.
-    seen = {}
-    real = tracking_module.run_filter
-
-    def spy(model, settings, state, ts, ys, ok):
-        seen["args"] = (model, settings, state)
-        return real(model, settings, state, ts, ys, ok)
-
-    monkeypatch.setattr(tracking_module, "run_filter", spy)
-    monkeypatch.setattr(tracking_module, "CHUNK", 800)
-    recs = [driven_record(4.0, seed=s) for s in range(3)]
-    track(LAB, recs[0], free=("k",), start="scene", progress=False)
-    model, settings, state = seen["args"]
-    ts = jnp.asarray(recs[0].ts[:800])
-    ys = jnp.stack([jnp.asarray(r.phi[:800])[:, None] for r in recs])
-    ok = jnp.ones(800, bool)
-    _, batch = jax.vmap(lambda y: run_filter(model, settings, state, ts, y, ok))(ys)
-    for i in range(3):
-        _, one = run_filter(model, settings, state, ts, ys[i], ok)
+def test_a_fleet_is_one_vmap_and_equals_its_members():
+    # The filter's program is a pure function of its records: `jax.vmap` runs a fleet,
+    # each machine from its own first state.
+    probs = [prepare(LAB, driven_record(4.0, seed=s, phi0=0.2 + 0.1 * s), free=("k",),
+                     start="scene", progress=False) for s in range(3)]
+    p0 = probs[0]
+    ts = jnp.asarray(p0.ts)
+    ok = jnp.ones(ts.shape, bool)
+    states = jax.tree.map(lambda *a: jnp.stack(a), *[p.state for p in probs])
+    ys = jnp.stack([jnp.asarray(p.ys) for p in probs])
+    _, batch = jax.jit(jax.vmap(lambda st, y: run_filter(p0.model, p0.settings, st, ts, y,
+                                                         ok)))(states, ys)
+    for i, p in enumerate(probs):
+        _, one = run_filter(p0.model, p0.settings, p.state, ts, jnp.asarray(p.ys), ok)
         np.testing.assert_allclose(batch.x[i], one.x, rtol=1e-10, atol=1e-12)
+    assert len({float(p.state.x[0]) for p in probs}) == 3
 
 
 def test_requests_it_cannot_serve_name_the_argument():

@@ -15,7 +15,7 @@ __all__ = ["COMMANDS"]
 
 
 def _track_args(p: argparse.ArgumentParser) -> None:
-    from ..track.tracking import STARTS
+    from ..online.tracking import STARTS
 
     p.add_argument("data", help="the record, CSV (t and its channels, measured P/tau columns)")
     p.add_argument("scene", help="the scene: preset name or TOML scene file (its values are "
@@ -73,9 +73,9 @@ _FLAGS = {"free=": "--free", "start_seconds=": "--start-seconds",
 def _track_run(a: argparse.Namespace) -> int:
     import os
 
+    from ..online.tracking import track
     from ..runtime.io import atomic_write, check_input, check_output
     from ..scene import load_scene
-    from ..track.tracking import track
 
     _check(a)
     free = _free(a)

@@ -59,6 +59,6 @@ def write_validation_report(val, path: str | os.PathLike, *, scene=None,
 
 def write_track_report(res, path: str | os.PathLike, *, scene=None,
                        command: Sequence[str] | str | None = None, title: str = "") -> None:
-    """Write the HTML report of a [`TrackResult`][crank_jax.track.tracked.TrackResult] to
+    """Write the HTML report of a [`TrackResult`][crank_jax.online.tracked.TrackResult] to
     `path`, atomically (arguments as [`write_fit_report`][])."""
     _write(path, render(track_context(res, scene=scene, command=command, title=title)))

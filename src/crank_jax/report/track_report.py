@@ -56,7 +56,7 @@ def track_figures(res) -> list[dict]:
 
 
 def track_context(res, *, scene=None, command=None, title: str = "") -> dict:
-    """The template's values for a [`TrackResult`][crank_jax.track.tracked.TrackResult]."""
+    """The template's values for a [`TrackResult`][crank_jax.online.tracked.TrackResult]."""
     scores = []
     for n, v in res.values.items():
         scores += [(f"{n} at the end", cell(float(v[-1])), UNITS[n]),

@@ -180,5 +180,6 @@ def run_filter(model: TrackModel, settings: FilterSettings, state: FilterState, 
     `valid` (n,) is False (a chunk's padding) leave the carry as it was.
 
     **Returns:** the carry after the last sample and the per-sample [`Steps`][]."""
+    # (Not unrolled: 4 or 8 samples per iteration measured 1.4-1.5x slower on the CPU.)
     return jax.lax.scan(lambda c, smp: _step(model, settings, c, smp), state,
                         (ts, ys, valid))

@@ -1,4 +1,4 @@
-"""What [`track`][crank_jax.track.tracking.track] returns: the parameters' paths with
+"""What [`track`][crank_jax.online.tracking.track] returns: the parameters' paths with
 their standard errors, the alarms, and the settings, as `track.json` holds them."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ class TrackResult:
     `dphi` (n,): the filtered state, rad and rad/s; `innovations` (n, C): the normalised
     innovations (white, unit variance when the model and its noise levels are right);
     `statistic` (n,): the change test's CUSUM; `alarms`: see
-    [`name_alarms`][crank_jax.track.alarms.name_alarms]; `settings`: the filter, its noise
+    [`name_alarms`][crank_jax.online.alarms.name_alarms]; `settings`: the filter, its noise
     levels and the change test; `source`: the record."""
 
     t: np.ndarray
@@ -38,7 +38,7 @@ class TrackResult:
 
     @classmethod
     def build(cls, t, steps, free, log, alarms, settings, source="") -> TrackResult:
-        """From the filter's kept [`Steps`][crank_jax.track.ekf.Steps] (coordinates)."""
+        """From the filter's kept [`Steps`][crank_jax.online.ekf.Steps] (coordinates)."""
         z, sz = steps.x[:, 2:], steps.se[:, 2:]
         values, stderr = {}, {}
         for j, (n, lg) in enumerate(zip(free, log)):

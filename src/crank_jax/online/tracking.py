@@ -5,15 +5,16 @@ The record is read as [`fit`][crank_jax.fit] reads it (channels, sensors, calibr
 measured `P`/`tau` columns and input-driven loads, per-channel noise levels). The filter
 starts from a batch fit of the record's first seconds (`start="batch"`, the default) or
 from the scene's values (`start="scene"`), then runs the extended Kalman filter of
-[`ekf`][crank_jax.track.ekf] over the whole record in chunks of a fixed shape (one
+[`ekf`][crank_jax.online.ekf] over the whole record in chunks of a fixed shape (one
 compiled program whatever the record's length, memory bounded by the chunk), and turns
-the CUSUM's alarms into named changes ([`alarms`][crank_jax.track.alarms]).
+the CUSUM's alarms into named changes ([`alarms`][crank_jax.online.alarms]).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -27,10 +28,10 @@ from ..runtime.progress import progress_bar
 from ..scene import Scene
 from ..simulation import linearize
 from .alarms import name_alarms
-from .ekf import FilterSettings, TrackModel, init_state, run_filter
+from .ekf import FilterSettings, FilterState, TrackModel, init_state, run_filter
 from .tracked import TrackResult
 
-__all__ = ["track", "STARTS", "CHUNK"]
+__all__ = ["track", "prepare", "TrackProblem", "STARTS", "CHUNK"]
 
 #: How the filter starts: a batch fit of the record's first seconds, or the scene.
 STARTS = ("batch", "scene")
@@ -69,6 +70,78 @@ def _check_options(start, start_seconds, false_alarm_rate, change_ratio, settle,
         raise ValueError(f"every= must be an integer >= 1, got {every!r}")
 
 
+class TrackProblem(NamedTuple):
+    """A record made ready for the filter: its [`TrackModel`][crank_jax.online.ekf.TrackModel],
+    [`FilterSettings`][crank_jax.online.ekf.FilterSettings] and first
+    [`FilterState`][crank_jax.online.ekf.FilterState]; its times `ts` (n,), s, and
+    channels `ys` (n, C), SI; the free names and which are in log coordinates; the
+    settings in words (`track.json`'s) and the record's name. Records of one scene,
+    free set and length give problems of one structure: `jax.vmap` of
+    [`run_filter`][crank_jax.online.ekf.run_filter] runs them as a fleet."""
+
+    model: TrackModel
+    settings: FilterSettings
+    state: FilterState
+    ts: np.ndarray
+    ys: np.ndarray
+    free: tuple
+    log: tuple
+    info: dict
+    source: str
+
+
+def prepare(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
+            start: str = "batch", start_seconds: float = 5.0, false_alarm_rate: float = 1.0,
+            change_ratio: float = 4.0, q_param: float = 1e-4, progress: bool = True
+            ) -> TrackProblem:
+    """The [`TrackProblem`][] of `data` (arguments as [`track`][]'s)."""
+    free = _check_free(free)
+    _check_options(start, start_seconds, false_alarm_rate, change_ratio, 1.0, 1)
+    req = ch.with_channels(normalize(
+        scene, data, free + ("phi0", "dphi0"), init="scene", method="lm", shooting="auto",
+        segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8, sigma=None,
+        profile=None, window=None, progress=progress, warn=False))
+    rec = req.records[0]
+    ts = np.asarray(rec.ts, float)
+    outs = rec.outputs()
+    values, se, x0_state, se_state, start_note = _start(req, scene, data, free, start,
+                                                          start_seconds, progress)
+    log = tuple(n not in SIGNED_FIELDS and values[n] > 0 for n in free)
+    # The record's speeds and accelerations at most 512 samples (the step size and the
+    # acceleration noise need their scale, not every sample: 2 s of a 12,000-sample call).
+    at = np.unique(np.linspace(0, ts.size - 1, min(ts.size, 512)).astype(int))
+    _, dphi, ddphi = smooth_derivatives(ts, req.angles[0], half_window(ts, None), at)
+    model = TrackModel(scene.mech.replace(**values), *req.loads[0],
+                       jnp.asarray([float(s.scale) for s, _ in outs]),
+                       jnp.asarray([float(s.offset) for s, _ in outs]), free, log,
+                       tuple(s.name for s, _ in outs), _substeps(req, values, ts, dphi))
+    z0 = np.array([math.log(values[n]) if lg else values[n] for n, lg in zip(free, log)])
+    sz = np.array([se[n] / values[n] if lg else se[n] for n, lg in zip(free, log)])
+    dt = float(np.median(np.diff(ts)))
+    alpha = min(false_alarm_rate * dt / 3600.0, 0.5)
+    # The state's acceleration noise, (rad/s^2)^2 per Hz: a thousandth of the record's rms
+    # angular acceleration per sample interval (what a model that is nearly right misses).
+    q_accel = float((1e-3 * np.sqrt(np.mean(ddphi**2))) ** 2 * dt)
+    settings = FilterSettings(
+        R=jnp.asarray([req.sigmas[s.name] ** 2 for s, _ in outs]), q_accel=jnp.asarray(q_accel),
+        q_param=jnp.asarray([(q_param if lg else q_param * max(abs(values[n]), 1e-12)) ** 2
+                             for n, lg in zip(free, log)]),
+        P_param=jnp.asarray(np.diag(sz**2)), threshold=jnp.asarray(math.log(1 / alpha)),
+        lam=jnp.asarray(float(change_ratio)))
+    P0 = np.diag(np.concatenate([se_state**2, sz**2]))
+    state = init_state(np.concatenate([x0_state, z0]), P0, ts[0])
+    ys = np.stack([np.asarray(y, float) for _, y in outs], axis=1)
+    info = {"filter": "extended Kalman filter on the state and parameters",
+            "start": start_note, "substeps": model.substeps, "chunk": CHUNK,
+            "noise": {s.name: float(req.sigmas[s.name]) for s, _ in outs},
+            "q_param": q_param, "q_accel": q_accel,
+            "alarm_test": "CUSUM on the log-likelihood ratio of the normalised innovations "
+                          f"(variance ratio {change_ratio:g})",
+            "false_alarm_rate_per_hour": false_alarm_rate,
+            "threshold": float(settings.threshold), "log": dict(zip(free, log))}
+    return TrackProblem(model, settings, state, ts, ys, free, log, info, rec.source)
+
+
 def track(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
           start: str = "batch", start_seconds: float = 5.0, false_alarm_rate: float = 1.0,
           change_ratio: float = 4.0, settle: float = 5.0, q_param: float = 1e-4,
@@ -91,52 +164,17 @@ def track(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
     - `every`: keep every `every`-th sample in the result (a long record's memory).
     - `progress`: show progress on stderr.
 
-    **Returns:** a [`TrackResult`][crank_jax.track.tracked.TrackResult].
+    **Returns:** a [`TrackResult`][crank_jax.online.tracked.TrackResult].
     **Raises:** `ValueError` naming the argument for a request it cannot serve.
     """
-    free = _check_free(free)
     _check_options(start, start_seconds, false_alarm_rate, change_ratio, settle, every)
-    req = ch.with_channels(normalize(
-        scene, data, free + ("phi0", "dphi0"), init="scene", method="lm", shooting="auto",
-        segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8, sigma=None,
-        profile=None, window=None, progress=progress, warn=False))
-    rec = req.records[0]
-    ts = np.asarray(rec.ts, float)
-    outs = rec.outputs()
-    values, se, x0_state, se_state, start_note = _start(req, scene, data, free, start,
-                                                          start_seconds, progress)
-    log = tuple(n not in SIGNED_FIELDS and values[n] > 0 for n in free)
-    model = TrackModel(scene.mech.replace(**values), *req.loads[0],
-                       jnp.asarray([float(s.scale) for s, _ in outs]),
-                       jnp.asarray([float(s.offset) for s, _ in outs]), free, log,
-                       tuple(s.name for s, _ in outs), _substeps(req, values, ts))
-    z0 = np.array([math.log(values[n]) if lg else values[n] for n, lg in zip(free, log)])
-    sz = np.array([se[n] / values[n] if lg else se[n] for n, lg in zip(free, log)])
-    P_param = np.diag(sz**2)
-    dt = float(np.median(np.diff(ts)))
-    alpha = min(false_alarm_rate * dt / 3600.0, 0.5)
-    settings = FilterSettings(
-        R=jnp.asarray([req.sigmas[s.name] ** 2 for s, _ in outs]),
-        q_accel=jnp.asarray(_accel_noise(req, ts, dt)),
-        q_param=jnp.asarray([(q_param if lg else q_param * max(abs(values[n]), 1e-12)) ** 2
-                             for n, lg in zip(free, log)]),
-        P_param=jnp.asarray(P_param), threshold=jnp.asarray(math.log(1 / alpha)),
-        lam=jnp.asarray(float(change_ratio)))
-    x0 = np.concatenate([x0_state, z0])
-    P0 = np.diag(np.concatenate([se_state**2, sz**2]))
-    ys = np.stack([np.asarray(y, float) for _, y in outs], axis=1)
-    steps, events = _run_chunks(model, settings, init_state(x0, P0, ts[0]), ts, ys, every,
-                                progress)
-    alarms = name_alarms(steps, ts, events, free, log, settle, every)
-    return TrackResult.build(ts[::every], steps, free, log, alarms, {
-        "filter": "extended Kalman filter on the state and parameters",
-        "start": start_note, "substeps": model.substeps, "chunk": CHUNK,
-        "noise": {s.name: float(req.sigmas[s.name]) for s, _ in outs},
-        "q_param": q_param, "q_accel": float(settings.q_accel),
-        "alarm_test": "CUSUM on the log-likelihood ratio of the normalised innovations "
-                      f"(variance ratio {change_ratio:g})",
-        "false_alarm_rate_per_hour": false_alarm_rate, "threshold": float(settings.threshold),
-        "settle": settle, "every": every, "log": dict(zip(free, log))}, source=rec.source)
+    p = prepare(scene, data, free, start=start, start_seconds=start_seconds,
+                false_alarm_rate=false_alarm_rate, change_ratio=change_ratio,
+                q_param=q_param, progress=progress)
+    steps, events = _run_chunks(p.model, p.settings, p.state, p.ts, p.ys, every, progress)
+    alarms = name_alarms(steps, p.ts, events, p.free, p.log, settle, every)
+    return TrackResult.build(p.ts[::every], steps, p.free, p.log, alarms,
+                             p.info | {"settle": settle, "every": every}, source=p.source)
 
 
 def _start(req, scene, data, free, start, seconds, progress):
@@ -177,22 +215,14 @@ def _omega(req, values) -> float:
     return w if math.isfinite(w) else 0.0
 
 
-def _substeps(req, values, ts) -> int:
+def _substeps(req, values, ts, dphi) -> int:
     """Runge-Kutta steps per sample interval: a fortieth of the linearised period and
-    `_MAX_TURN` rad of the fastest speed the record shows, at most."""
+    `_MAX_TURN` rad of the fastest speed `dphi` (rad/s) the record shows, at most."""
     dt = float(np.max(np.diff(ts))) if ts.size > 1 else 0.0
     w = _omega(req, values)
-    _, dphi, _ = smooth_derivatives(ts, req.angles[0], half_window(ts, None))
     h = min(_PERIOD_FRACTION * 2 * math.pi / w if w > 0 else math.inf,
             _MAX_TURN / max(float(np.max(np.abs(dphi))), 1e-9))
     return int(min(max(1, math.ceil(dt / h)), 64))
-
-
-def _accel_noise(req, ts, dt) -> float:
-    """The state's acceleration noise, (rad/s^2)^2 per Hz: a thousandth of the record's rms
-    angular acceleration per sample interval (what a model that is nearly right misses)."""
-    _, _, dd = smooth_derivatives(ts, req.angles[0], half_window(ts, None))
-    return float((1e-3 * np.sqrt(np.mean(dd**2))) ** 2 * dt)
 
 
 def _run_chunks(model, settings, state, ts, ys, every, progress):
