@@ -1,0 +1,78 @@
+"""Hostile inputs to the identification commands: a stuck posterior chain, verdicts that
+contradict each other, unconverged fitted scenes, a horizon below the record's spacing,
+the same record counted twice, `--per-record` on one record, the iteration count."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from crank_jax.cli import main
+from crank_jax.identify.horizon import cut
+
+
+def _one_line(capsys, *needles) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    for n in needles:
+        assert n in err[0], err[0]
+    return err[0]
+
+
+def _csv(path, ts, phi):
+    rows = "".join(f"{float(t)!r},{float(p)!r}\n" for t, p in zip(ts, phi))
+    path.write_text("t,phi\n" + rows)
+    return path
+
+
+# --- a horizon below the record's spacing is refused at once, never a hang ------------------
+
+
+def _cut_within(seconds, *args):
+    """`cut(*args)` in a thread given `seconds`: the old window loop never returned."""
+    out = {}
+
+    def run():
+        try:
+            out["value"] = cut(*args)
+        except Exception as e:  # noqa: BLE001 (handed to the test)
+            out["error"] = e
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(seconds)
+    assert not t.is_alive(), f"cut{args[1:]} did not return within {seconds} s"
+    return out
+
+
+@pytest.mark.parametrize("horizon", [1e-15, 1e-300, 0.019])
+def test_a_horizon_under_two_sample_intervals_is_refused_at_once(horizon):
+    ts = 1.0 + np.arange(0.0, 3.0, 0.01)  # times near 1 s: float spacing 2.2e-16 s
+    out = _cut_within(5.0, ts, 1.5, horizon)
+    e = out.get("error")
+    assert isinstance(e, ValueError), out
+    assert "horizon (--horizon)" in str(e) and "shorter than two sample intervals" in str(e)
+    assert "at least 0.06 s" in str(e)
+
+
+def test_a_long_gap_costs_a_few_empty_windows_not_one_per_horizon():
+    # A record with a gap of 1e9 horizons (times exact in binary): the window loop jumps
+    # over it to the window after the gap.
+    dt = 1 / 128
+    ts = np.concatenate([np.arange(0.0, 1.0, dt), 1.25e8 + dt + np.arange(0.0, 1.0, dt)])
+    out = _cut_within(5.0, ts, 0.5, 0.125)
+    ws = out["value"]
+    assert ws[-1].stop == ts.size and ws[0].t_start == 0.5
+    assert [w.t_start for w in ws if w.t_start > 1][:2] == [1.25e8, 1.25e8 + 0.125]
+    assert all(a.start < b.start for a, b in zip(ws, ws[1:]))
+
+
+def test_cli_validate_refuses_a_tiny_horizon_with_one_line(tmp_path, capsys):
+    ts = np.arange(0.0, 2.0, 0.01)
+    rec = _csv(tmp_path / "rec.csv", ts, 0.3 * np.cos(2 * np.pi * 1.3 * ts))
+    out = tmp_path / "val.json"
+    rc = main(["validate", "lab-rig", str(rec), "--horizon", "1e-15", "--out", str(out),
+               "--quiet"])
+    assert rc == 2
+    _one_line(capsys, "--horizon", "shorter than two sample intervals")
+    assert not out.exists()
