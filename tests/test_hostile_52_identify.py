@@ -2,11 +2,13 @@
 contradict each other, unconverged fitted scenes, a horizon below the record's spacing,
 the same record counted twice, `--per-record` on one record, the iteration count."""
 
+import json
 import threading
 
 import numpy as np
 import pytest
 
+import crank_jax as cj
 from crank_jax.cli import main
 from crank_jax.identify.horizon import cut
 
@@ -76,3 +78,79 @@ def test_cli_validate_refuses_a_tiny_horizon_with_one_line(tmp_path, capsys):
     assert rc == 2
     _one_line(capsys, "--horizon", "shorter than two sample intervals")
     assert not out.exists()
+
+
+# --- the same record twice counts twice: refused; --per-record on one record: refused ------
+
+
+def _record(tmp_path, name="rec.csv"):
+    ts = np.arange(0.0, 2.0, 0.02)
+    return _csv(tmp_path / name, ts, 0.3 * np.cos(2 * np.pi * 1.3 * ts) * np.exp(-0.2 * ts))
+
+
+def test_the_same_samples_twice_are_refused_by_the_api():
+    ts = np.arange(0.0, 2.0, 0.02)
+    d = cj.Data(ts, 0.3 * np.cos(8 * ts))
+    copy = cj.Data(ts.copy(), 0.3 * np.cos(8 * ts), source="copy")
+    for fn in (cj.fit, cj.posterior):
+        with pytest.raises(ValueError, match=r"data: records 0 and 2 hold the same samples"):
+            fn(cj.load_scene("lab-rig"), [d, cj.Data(ts, 0.2 * np.cos(8 * ts)), copy],
+               free=("k",), progress=False)
+
+
+@pytest.mark.parametrize("how", ["same", "dot", "link", "copy"])
+@pytest.mark.parametrize("command", ["fit", "posterior"])
+def test_cli_refuses_a_record_given_twice(tmp_path, capsys, how, command):
+    rec = _record(tmp_path)
+    other = {"same": rec, "dot": tmp_path / "." / "rec.csv",
+             "link": tmp_path / "link.csv", "copy": tmp_path / "copy.csv"}[how]
+    if how == "link":
+        other.symlink_to(rec)
+    if how == "copy":
+        other.write_bytes(rec.read_bytes())
+    out = tmp_path / "out.json"
+    rc = main([command, str(rec), "lab-rig", "--more-data", str(other), "--free", "k",
+               "--out", str(out), "--quiet"])
+    assert rc == 2
+    _one_line(capsys, "--more-data", "DATA", "given twice",
+              "a copy of" if how == "copy" else "the same file as")
+    assert not out.exists()
+
+
+def test_per_record_with_one_record_is_refused(tmp_path, capsys):
+    rec = _record(tmp_path)
+    rc = main(["fit", str(rec), "lab-rig", "--free", "k,c", "--per-record", "k", "--quiet"])
+    assert rc == 2
+    _one_line(capsys, "--per-record k needs several records (--more-data)")
+    with pytest.raises(ValueError, match="per_record names k, but there is one record"):
+        cj.fit(cj.load_scene("lab-rig"), cj.Data(np.arange(0.0, 2.0, 0.02),
+                                                 np.zeros(100)), free=("k", "c"),
+               per_record=("k",), progress=False)
+
+
+# --- a budget spent over several tries: the words and fit.json count alike ------------------
+
+
+def test_the_words_of_a_budget_spent_over_several_tries_give_every_tries_count():
+    from crank_jax.identify.fit import _all_tries
+    from crank_jax.identify.outcome import budget_spent, termination
+
+    words = budget_spent(1)
+    assert "after 1 iteration without" in words
+    msg, term = _all_tries(words, termination("budget", words), 1, 8, 1)
+    assert "8 iterations in all over the fit's tries (max_steps = 1 per try)" in msg
+    assert term["words"] == msg
+    # One try: its count is every try's, nothing to add.
+    assert _all_tries(words, termination("budget", words), 1, 1, 1)[0] == words
+
+
+def test_cli_max_steps_1_words_and_fit_json_count_alike(tmp_path, capsys):
+    out = tmp_path / "fit.json"
+    assert main(["fit", "--max-steps", "1", "--shooting", "auto", "--out", str(out),
+                 "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    text = capsys.readouterr().out
+    n = doc["iterations"]
+    assert n > 1 and not doc["converged"]
+    assert f"{n} iterations in all" in doc["termination"]["words"]
+    assert f"{n} iterations in all" in text and f"after {n} iterations in" in text

@@ -225,6 +225,10 @@ def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
     if bad:
         raise UserError(f"--per-record names {', '.join(bad)}, which is not free; add it to "
                         "--free or leave it out of --per-record")
+    if per_record and n_records < 2:
+        raise UserError(f"--per-record {','.join(per_record)} needs several records "
+                        "(--more-data): with one record every free parameter is already its "
+                        "own; leave --per-record out")
     lo, hi = getattr(a, "fit_t_start", None), getattr(a, "fit_t_end", None)
     if lo is not None and hi is not None and not lo < hi:
         raise UserError(f"--t-start ({lo:g}) must be before --t-end ({hi:g})")
