@@ -2,8 +2,10 @@
 contradict each other, unconverged fitted scenes, a horizon below the record's spacing,
 the same record counted twice, `--per-record` on one record, the iteration count."""
 
+import dataclasses
 import json
 import threading
+import types
 
 import numpy as np
 import pytest
@@ -154,3 +156,82 @@ def test_cli_max_steps_1_words_and_fit_json_count_alike(tmp_path, capsys):
     assert n > 1 and not doc["converged"]
     assert f"{n} iterations in all" in doc["termination"]["words"]
     assert f"{n} iterations in all" in text and f"after {n} iterations in" in text
+
+
+# --- a fit that did not converge writes no fitted scene unless asked, and marks it ----------
+
+
+def _unconverged(scene, **values):
+    return types.SimpleNamespace(values=dict(values), mech=scene.mech.replace(k=13.3),
+                                 data=[cj.Data(np.arange(0.0, 1.0, 0.02), np.zeros(50))],
+                                 converged=False, message="stopped after 3 iterations\n(x)")
+
+
+def test_the_api_refuses_an_unconverged_fitted_scene_unless_asked_and_marks_it(tmp_path):
+    from crank_jax.identify import fitted as ft
+
+    scene = cj.load_scene("lab-rig")
+    res = _unconverged(scene, k=13.3, dphi0=33.0)
+    path = tmp_path / "fitted.toml"
+    for call in (lambda: ft.fitted_scene(scene, res),
+                 lambda: ft.save_fitted_scene(scene, res, path)):
+        with pytest.raises(ValueError, match=r"did not converge \(stopped after 3 "
+                                             r"iterations \(x\)\).*pass anyway=True"):
+            call()
+    assert not path.exists()
+    ft.save_fitted_scene(scene, res, path, anyway=True)
+    text = path.read_text()
+    assert text.startswith("# NOT CONVERGED")
+    assert ft.fit_mark(path) == {"converged": False, "message": "stopped after 3 "
+                                                               "iterations (x)"}
+    back = cj.load_scene(path)  # still a scene: the mark is a table load_scene allows
+    assert float(back.mech.k) == 13.3 and float(back.dphi0) == 33.0
+    assert ft.fit_mark("lab-rig") is None
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace("converged = false", 'converged = "no"'))
+    with pytest.raises(cj.SceneError, match=r"\[fit\] must hold converged = true or false"):
+        ft.fit_mark(bad)
+
+
+def test_validate_refuses_a_scene_marked_unconverged_unless_asked(tmp_path, capsys):
+    from crank_jax.identify.fitted import save_fitted_scene
+
+    scene = cj.load_scene("lab-rig")
+    marked = tmp_path / "fitted.toml"
+    save_fitted_scene(scene, _unconverged(scene, k=13.3), marked, anyway=True)
+    rec = _record(tmp_path)
+    out = tmp_path / "val.json"
+    rc = main(["validate", str(marked), str(rec), "--out", str(out), "--quiet"])
+    assert rc == 2
+    _one_line(capsys, "did not converge", "--allow-unconverged")
+    assert not out.exists()
+
+
+def test_cli_fit_that_did_not_converge_writes_no_scene_unless_asked(tmp_path, capsys):
+    scene = cj.load_scene("lab-rig")
+    rec = tmp_path / "rec.csv"
+    cj.save_data(cj.synthesize(scene, t1=1.0, rate=50.0, noise_std=1e-3, seed=1), rec)
+    start = tmp_path / "start.toml"
+    cj.save_scene(dataclasses.replace(scene, mech=scene.mech.replace(k=4.0)), start)
+    fitted, out = tmp_path / "fitted.toml", tmp_path / "fit.json"
+    argv = ["fit", str(rec), str(start), "--free", "k", "--shooting", "single",
+            "--max-steps", "1", "--scene-out", str(fitted), "--out", str(out), "--quiet"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "not written: the fit did not converge" in err[-1]
+    assert "--scene-out-anyway" in err[-1] and not fitted.exists()
+    assert json.loads(out.read_text())["converged"] is False  # the report is written
+    assert main(argv + ["--scene-out-anyway"]) == 0
+    assert "marked NOT converged" in capsys.readouterr().err
+    assert fitted.read_text().startswith("# NOT CONVERGED")
+    val = tmp_path / "val.json"
+    assert main(["validate", str(fitted), str(rec), "--out", str(val), "--quiet",
+                 "--allow-unconverged"]) == 0
+    doc = json.loads(val.read_text())
+    assert "did not converge" in doc["warnings"][0]
+
+
+def test_scene_out_anyway_needs_scene_out(tmp_path, capsys):
+    rc = main(["fit", str(_record(tmp_path)), "lab-rig", "--scene-out-anyway", "--quiet"])
+    assert rc == 2
+    _one_line(capsys, "--scene-out-anyway needs --scene-out")
