@@ -30,7 +30,7 @@ from .fit import FREE_NAMES, regressor_start
 from .fit_result import Profile
 from .fitted import fitted_scene, save_fitted_scene
 
-__all__ = ["fitted_scene", "save_fitted_scene", "FREE_NAMES", "regressor_start", "Profile", "residual_diagnostics",
-           "Diagnostics",
+__all__ = ["fitted_scene", "save_fitted_scene", "FREE_NAMES", "regressor_start", "Profile",
+           "residual_diagnostics", "Diagnostics",
            "hac_covariance", "widen_covariance", "robust_uncertainty", "RobustUncertainty",
            "DEMO", "demo_record"]
