@@ -235,3 +235,91 @@ def test_scene_out_anyway_needs_scene_out(tmp_path, capsys):
     rc = main(["fit", str(_record(tmp_path)), "lab-rig", "--scene-out-anyway", "--quiet"])
     assert rc == 2
     _one_line(capsys, "--scene-out-anyway needs --scene-out")
+
+
+# --- a stuck posterior chain is never reported as certainty ---------------------------------
+
+
+def test_a_chain_that_never_moves_is_found():
+    from crank_jax.identify.posterior import MIN_MOVED, moved_fraction
+
+    rng = np.random.default_rng(0)
+    w = rng.normal(size=(3, 40, 2))
+    w[1] = w[1, :1]  # chain 1 repeats its start
+    w[2, 1::2] = w[2, ::2][:20]  # chain 2 repeats every other draw
+    moved = moved_fraction(w)
+    assert moved[0] == 1.0 and moved[1] == 0.0 and moved[1] < MIN_MOVED
+    assert moved[2] == pytest.approx(19 / 39)
+    assert moved_fraction(w[:, :1]).tolist() == [1.0, 1.0, 1.0]  # one draw: nothing to judge
+
+
+def _post(stuck=(0,), chains=1):
+    from crank_jax.identify.posterior import Posterior, sampler_warnings
+
+    moved = np.array([0.0 if i in stuck else 1.0 for i in range(chains)])
+    draws = {"k": np.full((chains, 30), 2.0)}
+    fit = types.SimpleNamespace(values={"k": 2.0}, stderr={"k": 0.1}, ci95={"k": (1.8, 2.2)})
+    return Posterior(names=("k",), draws=draws, rhat={"k": float("nan")},
+                     ess={"k": float("nan")}, divergences=0, chains=chains, n_draws=30,
+                     warmup=20, step_size=np.full(chains, 0.2), mean_tree_steps=1.0,
+                     gradient_evaluations=100, seconds=1.0, fit=fit, priors={},
+                     moved=moved, stuck=tuple(stuck),
+                     warnings=sampler_warnings(moved, np.full(chains, 0.2), chains, 30))
+
+
+def test_a_stuck_posterior_is_marked_and_one_chain_says_no_rhat():
+    post = _post()
+    doc = post.to_json()
+    assert doc["reliable"] is False and doc["stuck_chains"] == [0]
+    assert doc["moved_fraction"] == [0.0]
+    assert doc["warnings"][0].startswith("UNRELIABLE: chain(s) 0 moved in only 0% of their "
+                                         "30 draws")
+    assert "one chain: R-hat cannot be computed" in doc["warnings"][1]
+    ok = _post(stuck=(), chains=2).to_json()
+    assert ok["reliable"] is True and ok["warnings"] == []
+
+
+def test_cli_posterior_with_a_stuck_chain_exits_1_and_marks_the_json(tmp_path, capsys,
+                                                                     monkeypatch):
+    import crank_jax.identify.posterior as ps
+
+    monkeypatch.setattr(ps, "posterior", lambda *a, **k: _post())
+    out, plot = tmp_path / "post.json", tmp_path / "corner.png"
+    rc = main(["posterior", str(_record(tmp_path)), "lab-rig", "--free", "k", "--chains",
+               "1", "--out", str(out), "--plot", str(plot), "--quiet"])
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert "crank-jax: warning: UNRELIABLE: chain(s) 0" in err
+    assert "R-hat cannot be computed" in err
+    assert "error: the posterior is unreliable: chain(s) 0 never moved" in err
+    assert json.loads(out.read_text())["reliable"] is False and not plot.exists()
+
+
+def test_a_chain_stuck_after_a_short_warmup_is_sampled_again_with_a_smaller_step():
+    # One chain, 20 warm-up steps: the adapted step (3.3 in whitened coordinates) was
+    # rejected at every draw, and the posterior reported sd = 0 with no warning.
+    from crank_jax.identify.posterior import MIN_MOVED
+
+    scene = cj.load_scene("lab-rig")
+    data = cj.synthesize(scene, t1=1.5, rate=100, noise_std=2e-3, seed=3)
+    post = cj.posterior(scene, data, ("k", "c"), draws=30, chains=1, warmup=20, seed=1,
+                        progress=False)
+    assert "sampled again with it cut by 4" in post.warnings[0]
+    assert post.reliable and post.moved[0] >= MIN_MOVED
+    for n, s in post.summary().items():
+        assert 0.3 * post.fit.stderr[n] < s["sd"] < 3 * post.fit.stderr[n]
+
+
+# --- a refusal's words agree with its numbers ------------------------------------------------
+
+
+def test_no_motion_words_agree_with_the_numbers_on_a_short_record():
+    # "no motion above its noise (spread 0.319 rad, noise 0.000576 rad)" read as a
+    # contradiction: on a few samples pure noise can reach 7760 times its level.
+    from crank_jax.identify.strategy import no_motion
+
+    ts = np.arange(10) / 50
+    msg = no_motion(0.3 * np.sin(3 * ts) + 0.1, 0.000576)
+    assert "that 10 samples can tell" in msg and "is 85.8 times its noise level" in msg
+    assert "pure noise of 10 samples reaches 7.76e+03 times one time in 10000" in msg
+    assert "constant" in no_motion(np.full(10, 0.3), 0.0)
