@@ -323,3 +323,39 @@ def test_no_motion_words_agree_with_the_numbers_on_a_short_record():
     assert "that 10 samples can tell" in msg and "is 85.8 times its noise level" in msg
     assert "pure noise of 10 samples reaches 7.76e+03 times one time in 10000" in msg
     assert "constant" in no_motion(np.full(10, 0.3), 0.0)
+
+
+# --- verdicts agree: a channel's reported noise level is its residuals' when converged -------
+
+
+def test_superseded_notes_no_longer_say_none_converged_alone():
+    from crank_jax.identify.channel_noise import _superseded
+
+    notes = ["the single shooting fit did not converge; tried x; the result is y (rms 1 rad, "
+             "the lowest-cost try: none converged)", "none of the 3 starts converged; z",
+             "other"]
+    _superseded(notes)
+    assert all("the refit from that try converged" in n for n in notes[:2])
+    assert notes[2] == "other"
+
+
+def test_a_converged_fit_reports_each_channels_residual_level(monkeypatch):
+    # A slide channel with a slow misfit (1e-3 m, 50x its noise): its level from the
+    # record is the noise's, its residuals' is the misfit's. With the refits stopped
+    # before the levels settled (none here), the report gave the stale level and the
+    # uncertainty weighted by it.
+    import crank_jax.identify.channel_noise as ch
+    from crank_jax.records.sensors import Sensor
+
+    monkeypatch.setattr(ch, "REWEIGHT_ROUNDS", 0)
+    scene = dataclasses.replace(cj.load_scene("lab-rig"),
+                                sensors=(Sensor("phi"), Sensor("x_s")), t1=1.5)
+    rec = cj.synthesize(scene, rate=100, noise_std={"phi": 1e-3, "x_s": 2e-5}, seed=2)
+    ts, ys = np.asarray(rec.ts), {n: np.asarray(y) for n, y in rec.outputs_items()}
+    ys["x_s"] = ys["x_s"] + 1e-3 * np.sin(2 * np.pi * 0.4 * ts)
+    data = cj.Data(ts, None, channels=ys, sensors=scene.sensors)
+    res = cj.fit(scene, data, free=("k", "phi0", "dphi0"), progress=False, warn=False)
+    assert res.converged
+    for name, c in res.channels.items():
+        assert 1 / 1.25 < c["sigma"] / c["rms"] < 1.25, (name, c)
+    assert any("had not settled" in w for w in res.warnings)
