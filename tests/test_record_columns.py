@@ -197,7 +197,8 @@ def test_save_data_never_writes_a_corrupt_header(tmp_path, kwargs, match):
 
 
 def _fake_result(scene, data, **values):
-    return types.SimpleNamespace(values=dict(values), mech=scene.mech, data=[data])
+    return types.SimpleNamespace(values=dict(values), mech=scene.mech, data=[data],
+                                 converged=True)
 
 
 def _same_scene(a, b):

@@ -88,8 +88,11 @@ def _posterior_run(a: argparse.Namespace) -> int:
     for n, s in post.summary().items():
         print(f"{n:>10} {s['mean']:12.6g} {s['sd']:10.3g} {s['q2.5']:12.6g} "
               f"{s['q97.5']:12.6g} {s['rhat']:6.3f} {s['ess_bulk']:6.0f}")
-    print(f"{post.chains} chains x {post.n_draws} draws after {post.warmup} warm-up steps in "
-          f"{post.seconds:.1f} s; {post.divergences} divergences")
+    print(f"{post.chains} chain{'s' if post.chains != 1 else ''} x {post.n_draws} draws "
+          f"after {post.warmup} warm-up steps in {post.seconds:.1f} s; {post.divergences} "
+          "divergences" + ("" if post.reliable else "; UNRELIABLE: a chain never moved"))
+    for w in post.warnings:
+        print(f"crank-jax: warning: {w}", file=sys.stderr)
     if post.divergences:
         print(f"crank-jax: warning: {post.divergences} divergent transitions: the posterior "
               "may be under-explored; try a longer --warmup or priors", file=sys.stderr)
@@ -101,6 +104,13 @@ def _posterior_run(a: argparse.Namespace) -> int:
         json.dump(post.to_json(), f, indent=1, allow_nan=True)
         f.write("\n")
     print(f"wrote {a.out}", file=sys.stderr)
+    if not post.reliable:
+        # A stuck chain's draws repeat its start: sd 0 would read as certainty. The JSON
+        # says so (reliable: false); no corner plot draws it, and the run fails.
+        raise RuntimeError(f"the posterior is unreliable: chain(s) "
+                           f"{', '.join(map(str, post.stuck))} never moved (see the warning); "
+                           f"{a.out} is marked reliable = false" +
+                           (f" and {a.plot} was not drawn" if a.plot else ""))
     if a.plot:
         from ..identify.corner import plot_corner
 

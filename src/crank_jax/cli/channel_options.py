@@ -9,7 +9,7 @@ import math
 from .errors import UserError
 
 __all__ = ["add_channel_options", "add_angle_options", "parse_sigma", "record_sensors",
-           "scene_inputs", "read_records", "read_sensors"]
+           "scene_inputs", "read_records", "read_sensors", "distinct_files"]
 
 
 def add_channel_options(p: argparse.ArgumentParser) -> None:
@@ -115,12 +115,41 @@ def read_records(a: argparse.Namespace, scene, files) -> list:
     Options a command lacks take their defaults."""
     from ..records.data import load_data
 
+    distinct_files(files)
     return [load_data(f, t_col=getattr(a, "t_col", None) or "t",
                       phi_col=getattr(a, "phi_col", None) or "phi",
                       angle_unit=getattr(a, "angle_unit", None) or "rad",
                       interp=getattr(a, "load_interp", None) or "cubic",
                       sensors=record_sensors(a, scene, f), inputs=scene_inputs(scene))
             for f in files]
+
+
+def distinct_files(files) -> None:
+    """Refuse a record given twice (DATA and --more-data, or two --more-data): the same
+    file by its resolved path, or a copy of it by its content. The same data twice would
+    count twice: the intervals narrow as if there were twice the data."""
+    import hashlib
+    import os
+
+    seen: dict[tuple[str, str], int] = {}
+    for i, f in enumerate(files):
+        keys = [("path", os.path.realpath(f))]
+        if len(files) > 1 and os.path.isfile(f):  # (never opened unless a regular file)
+            with open(f, "rb") as fh:
+                keys.append(("content", hashlib.file_digest(fh, "sha256").hexdigest()))
+        for key in keys:
+            if key in seen:
+                j = seen[key]
+                how = "the same file as" if key[0] == "path" else "a copy of"
+                raise UserError(f"{_record_option(i)} {f!r} is {how} {_record_option(j)} "
+                                f"{files[j]!r}: the same record given twice would count "
+                                "twice (intervals as if there were twice the data); give "
+                                "each record once")
+            seen[key] = i
+
+
+def _record_option(i: int) -> str:
+    return "DATA" if i == 0 else "--more-data"
 
 
 def scene_inputs(scene) -> tuple[str, ...]:

@@ -60,7 +60,12 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene-out", metavar="FITTED.toml",
                    help="write the fitted mechanism and loads as a complete scene file "
                         "(the first record's; with --per-record, also STEM.recordI.toml "
-                        "for each further record)")
+                        "for each further record); not written for a fit that did not "
+                        "converge, unless --scene-out-anyway")
+    p.add_argument("--scene-out-anyway", action="store_true",
+                   help="write --scene-out even for a fit that did not converge: its last "
+                        "iterate, marked in the file ([fit] converged = false), which "
+                        "validate refuses without --allow-unconverged")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -94,6 +99,8 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
              for i, path in enumerate(_record_scenes(a)[1:], start=1)]
     for path, option in outs:
         check_output(path, inputs, option)
+    if getattr(a, "scene_out_anyway", False) and not getattr(a, "scene_out", None):
+        raise UserError("--scene-out-anyway needs --scene-out FITTED.toml (the file to write)")
     if a.plot:
         check_figure_format(a.plot)
     # Every output its own file (as the paths resolve: ./fit.json is fit.json), so none
@@ -152,14 +159,23 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
         res.report(a.report, scene=a.fitted_scene, command=getattr(a, "_argv", None),
                    title=title)
         print(f"wrote {a.report}", file=sys.stderr)
-    if getattr(a, "scene_out", None):
+    withheld = bool(getattr(a, "scene_out", None)) and not (
+        res.converged or getattr(a, "scene_out_anyway", False))
+    if getattr(a, "scene_out", None) and not withheld:
         _write_scene(res, a)
-        print(f"wrote {a.scene_out}", file=sys.stderr)
+        print(f"wrote {a.scene_out}" + ("" if res.converged else " (marked NOT converged: "
+                                        "the last iterate)"), file=sys.stderr)
     if (res.termination or {}).get("verdict") == "refused":
         # Nothing was fitted: the records cannot tell (a constant channel, no motion above
         # the noise, an absurd start). That is the input's to fix, as any bad input: exit
         # 2, after the outputs asked for are written (they hold the verdict and why).
         raise UserError(f"nothing was fitted: {res.message}")
+    if withheld:
+        # The last iterate of a fit that did not converge is no fitted scene: the output
+        # asked for is not there, so the run did not finish what it was asked.
+        raise RuntimeError(f"--scene-out {a.scene_out} not written: the fit did not "
+                           "converge, so there is no fitted scene; fix the fit, or pass "
+                           "--scene-out-anyway for its last iterate, marked unconverged")
     # Not identifiable or not converged is a result, reported in full: exit 0.
     return 0
 
@@ -225,6 +241,10 @@ def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
     if bad:
         raise UserError(f"--per-record names {', '.join(bad)}, which is not free; add it to "
                         "--free or leave it out of --per-record")
+    if per_record and n_records < 2:
+        raise UserError(f"--per-record {','.join(per_record)} needs several records "
+                        "(--more-data): with one record every free parameter is already its "
+                        "own; leave --per-record out")
     lo, hi = getattr(a, "fit_t_start", None), getattr(a, "fit_t_end", None)
     if lo is not None and hi is not None and not lo < hi:
         raise UserError(f"--t-start ({lo:g}) must be before --t-end ({hi:g})")
@@ -278,15 +298,16 @@ def _write_scene(res, a: argparse.Namespace) -> None:
     """The fitted mechanism (and fitted load amplitudes) as a complete scene file, with the
     first record's fitted initial state and per-record values; with `--per-record`, one
     scene per record (see `_record_scenes`), each a scene `synth`, `fit` and `validate`
-    take. Written atomically, never over an input."""
-    from ..identify.fitted import fitted_scene
-    from ..scene import save_scene
+    take. Written atomically, never over an input; the last iterate of a fit that did not
+    converge only with --scene-out-anyway, marked in the file."""
+    from ..identify.fitted import save_fitted_scene
 
     paths = _record_scenes(a)
     for i, path in enumerate(paths):
         read = getattr(a, "record_sensors", None)  # what record i was read through
-        save_scene(fitted_scene(a.fitted_scene, res, record=i,
-                                sensors=read[i] if read else None), path)
+        save_fitted_scene(a.fitted_scene, res, path, record=i,
+                          sensors=read[i] if read else None,
+                          anyway=getattr(a, "scene_out_anyway", False))
         if i:
             print(f"wrote {path} (record {i}'s fitted scene)", file=sys.stderr)
 

@@ -48,6 +48,10 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plot", help="draw data, prediction and error to this PNG")
     p.add_argument("--report", metavar="HTML",
                    help="write a self-contained HTML report (scores, figures, provenance)")
+    p.add_argument("--allow-unconverged", action="store_true",
+                   help="validate a scene marked as the last iterate of a fit that did not "
+                        "converge ([fit] converged = false, from fit --scene-out-anyway); "
+                        "refused by default")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -77,6 +81,23 @@ def _init_free(a: argparse.Namespace) -> tuple[str, ...]:
         raise UserError(str(e).replace("init_free (--init-free)", "--init-free")) from None
 
 
+def _unconverged(a: argparse.Namespace) -> str | None:
+    """Refuse a scene marked as the last iterate of a fit that did not converge (`[fit]
+    converged = false`) unless --allow-unconverged; with it, the warning to give."""
+    from ..identify.fitted import fit_mark
+
+    mark = fit_mark(a.scene)
+    if mark is None or mark["converged"]:
+        return None
+    why = mark.get("message") or "no reason given"
+    if not a.allow_unconverged:
+        raise UserError(f"{a.scene} is marked as the last iterate of a fit that did not "
+                        f"converge ([fit] converged = false: {why}); fit again until it "
+                        "converges, or pass --allow-unconverged to validate it anyway")
+    return (f"{a.scene} is the last iterate of a fit that did not converge ({why}): its "
+            "scores judge that iterate, not a fitted model")
+
+
 def _read(a: argparse.Namespace, scene):
     return read_records(a, scene, [a.data])[0]  # as fit reads its records
 
@@ -103,10 +124,13 @@ def _validate_run(a: argparse.Namespace) -> int:
     if len(set(named)) < len(named):
         raise UserError("--out, --plot and --report must name different files")
     scene = load_scene(a.scene)
+    unconverged = _unconverged(a)
     data = _read(a, scene)
     val = validate(scene, data, t_start=a.t_start, t_end=a.t_end, init_window=a.init_window,
                    scene_loads=a.scene_loads, progress=not a.quiet, horizon=a.horizon,
                    init_free=_init_free(a))
+    if unconverged:
+        val.warnings.insert(0, unconverged)
     print(val.summary())
     for w in val.warnings:
         print(f"crank-jax: warning: {w}", file=sys.stderr)

@@ -187,6 +187,7 @@ def reweight(req: FitRequest, plan, best, iterations: int, notes: list, attempt)
     noise levels, from the residuals, move (see the module); `attempt(req, plan, problem,
     z0, zk, label)` is the fit's one optimisation, and `plan` takes the last weights.
     **Returns:** `(req, best, iterations)`."""
+    converged_before = best.converged
     for _ in range(REWEIGHT_ROUNDS):
         if not (np.isfinite(best.cost) and np.all(np.isfinite(best.z))):
             break
@@ -201,12 +202,43 @@ def reweight(req: FitRequest, plan, best, iterations: int, notes: list, attempt)
         iterations += run.iterations
         if np.isfinite(run.cost):
             best = run
+    if best.converged and not converged_before:
+        _superseded(notes)
+    if best.converged and np.all(np.isfinite(best.z)):
+        req = _settle(req, plan, best, notes)
     if len(req.sigmas) > 1:
         notes.append("channel noise levels: " + ", ".join(
             f"{n} {v:.3g}" for n, v in req.sigmas.items()) + " (SI; "
             + ("given" if not unknown_levels(req) else "estimated from the residuals")
             + "); each channel's residuals are weighted by them")
     return req, best, iterations
+
+
+def _settle(req: FitRequest, plan, best, notes: list) -> FitRequest:
+    """A converged fit's channels weighted, for its uncertainty and report, by the levels
+    of its own final residuals where the refits stopped before those settled: the level a
+    channel reports is then its residuals' (a stale level 35x its residuals' made k's
+    standard error 35x too wide). **Returns:** `req` with those levels; `plan` takes them."""
+    levels = new_levels(req, plan.single, best.z[:plan.single.p])
+    if levels is None:
+        return req
+    moved = [f"{n} {req.sigmas[n]:.3g} -> {levels[n]:.3g}" for n in levels
+             if levels[n] != req.sigmas[n]]
+    notes.append(f"the channels' noise levels had not settled after {REWEIGHT_ROUNDS} refits "
+                 f"({', '.join(moved)}, SI): the uncertainty weights each channel by its "
+                 "final residuals' level")
+    plan.single = reweighted(plan.single, levels)
+    plan.noise = levels[first_channel(req)]
+    return dataclasses.replace(req, sigmas=levels)
+
+
+def _superseded(notes: list) -> None:
+    """Qualify, in place, the notes saying that no try converged, once a refit with the
+    channels reweighted did: one run never says both "converged" and "none converged"."""
+    for i, note in enumerate(notes):
+        if "none converged" in note or note.startswith("none of the"):
+            notes[i] = (f"{note}; with the channels then reweighted by their residuals' "
+                        "levels, the refit from that try converged: the result is that refit")
 
 
 def angle_records(req: FitRequest) -> list[tuple[Data, object, object]]:

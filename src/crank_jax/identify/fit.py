@@ -64,6 +64,19 @@ __all__ = ["fit", "FitResult", "Profile", "IdentifiabilityWarning", "Convergence
 
 #: Names that can be free (the mechanism fields, load amplitudes and initial state).
 FREE_NAMES: tuple[str, ...] = free_names()
+
+
+def _all_tries(message: str, term: dict, own: int, total: int, max_steps: int):
+    """`(message, term)` of a run whose budget ran out, saying the iterations of every
+    try (`total`, fit.json's `iterations`) beside the reported try's own (`own`, in its
+    words), so the two never seem to disagree."""
+    if total == own or term["verdict"] != "budget":
+        return message, term
+    extra = (f"; {total} iterations in all over the fit's tries (max_steps = {max_steps} "
+             "per try)")
+    return message + extra, {**term, "words": term["words"] + extra}
+
+
 def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
     ss = plan.single
     # (`plan.z0` may be multiple shooting's coordinates; the start values are not.)
@@ -83,6 +96,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         term = termination("refused", plan.abort)
     elif term is None:  # the optax method, or a failure outside LM's loop
         term = termination("converged" if converged else "failed", message)
+    message, term = _all_tries(message, term, best.iterations, iterations, req.max_steps)
     notes = more + notes + plan.notes
     if not converged:
         notes.insert(0, f"fit did not converge: {message}; no standard errors are given")

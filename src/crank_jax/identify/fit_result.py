@@ -139,12 +139,13 @@ class FitResult(NamedTuple):
             "termination": (None if self.termination is None else dict(self.termination)),
         }
 
-    def fitted_scene(self, scene, record: int = 0, sensors=None):
+    def fitted_scene(self, scene, record: int = 0, sensors=None, *, anyway: bool = False):
         """`scene` (the scene the fit started from) with this fit's estimates: see
-        [`fitted_scene`][crank_jax.identify.fitted.fitted_scene]."""
+        [`fitted_scene`][crank_jax.identify.fitted.fitted_scene] (a fit that did not
+        converge is refused unless `anyway`)."""
         from .fitted import fitted_scene
 
-        return fitted_scene(scene, self, record, sensors)
+        return fitted_scene(scene, self, record, sensors, anyway=anyway)
 
     def report(self, path, *, scene=None, command=None, title: str = "") -> None:
         """Write a self-contained HTML report to `path` (see

@@ -4,15 +4,17 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import equinox as eqx
 
 from ..model.loads import LOAD_PARAMS, set_param
 from ..model.params import as_float_array
 from ..records.sensors import DEFAULT_SENSOR, OFFSET_NAMES, Sensor
-from ..scene import Scene, SceneError
+from ..runtime.io import atomic_write
+from ..scene import PRESETS, Scene, SceneError, read_scene_doc, scene_to_toml
 
-__all__ = ["fitted_scene"]
+__all__ = ["fitted_scene", "save_fitted_scene", "fit_mark", "marked_unconverged"]
 
 
 def _fitted_sensors(scene: Scene, result, record: int, values: dict,
@@ -40,7 +42,7 @@ def _fitted_sensors(scene: Scene, result, record: int, values: dict,
 
 
 def fitted_scene(scene: Scene, result, record: int = 0,
-                 sensors: tuple[Sensor, ...] | None = None) -> Scene:
+                 sensors: tuple[Sensor, ...] | None = None, *, anyway: bool = False) -> Scene:
     """`scene` with a fit's estimates: the fitted mechanism, the fitted load amplitudes
     (`P0`, `P1`, `tau0`, `tau1`, the gains) and, where they were free, record `record`'s
     fitted initial state (the state at that record's first sample). A record's own sampled
@@ -51,9 +53,12 @@ def fitted_scene(scene: Scene, result, record: int = 0,
     names fitted per record (`name[i]`, `fit(per_record=...)`, and the states of a
     multi-record fit); `sensors`, the sensors that record was read through (default:
     its `Data`'s, in `result.data`), which join the scene's so that the written scene
-    reads the record as the fit did. **Returns:** a [`Scene`][]; fitted channel offsets
-    (`x_s_offset`, ...) become its sensors' offsets.
+    reads the record as the fit did; `anyway`: take the last iterate of a fit that did
+    not converge too (default: refused, it is no fit). **Returns:** a [`Scene`][]; fitted
+    channel offsets (`x_s_offset`, ...) become its sensors' offsets. **Raises:**
+    `ValueError` naming `anyway` for a fit that did not converge.
     """
+    _check_converged(result, anyway)
     values = {n: v for n, v in result.values.items() if "[" not in n}
     suffix = f"[{record}]"
     values.update({n[:-len(suffix)]: v for n, v in result.values.items() if n.endswith(suffix)})
@@ -75,3 +80,54 @@ def fitted_scene(scene: Scene, result, record: int = 0,
         (mech, loads["load"], loads["torque"],
          as_float_array(scene.phi0 if state["phi0"] is None else state["phi0"]),
          as_float_array(scene.dphi0 if state["dphi0"] is None else state["dphi0"])))
+
+
+def _check_converged(result, anyway: bool) -> None:
+    if not (result.converged or anyway):
+        why = " ".join(str(result.message).split())  # one line
+        raise ValueError(f"the fit did not converge ({why}): its last iterate is "
+                         "no fitted scene; fix the fit, or pass anyway=True for a scene "
+                         "marked unconverged")
+
+
+def marked_unconverged(text: str, result) -> str:
+    """Scene TOML `text` marked as the last iterate of a fit that did not converge: a
+    comment at its head and a `[fit]` table at its end (last: a table takes every key
+    after it), which [`fit_mark`][] reads back."""
+    # A JSON string of ASCII is a TOML basic string (the messages are ours: no lone
+    # surrogate, which neither could hold).
+    why = json.dumps(" ".join(str(result.message).split()), ensure_ascii=True)
+    return ("# NOT CONVERGED: the last iterate of a fit that did not converge, not a fitted\n"
+            "# scene; `crank-jax validate` refuses it without --allow-unconverged.\n"
+            + text.rstrip("\n") + "\n\n"
+            f"[fit]\nconverged = false\nmessage = {why}\n")
+
+
+def save_fitted_scene(scene: Scene, result, path, record: int = 0,
+                      sensors: tuple[Sensor, ...] | None = None, *,
+                      anyway: bool = False) -> None:
+    """Write [`fitted_scene`][]`(scene, result, record, sensors)` as a scene file,
+    atomically. A fit that did not converge is refused (`ValueError` naming `anyway`);
+    with `anyway=True` its last iterate is written, marked in a comment and a
+    `[fit] converged = false` table that [`fit_mark`][] reads and `validate` refuses."""
+    fitted = fitted_scene(scene, result, record, sensors, anyway=anyway)
+    text = scene_to_toml(fitted)
+    if not result.converged:
+        text = marked_unconverged(text, result)
+    with atomic_write(path, "wb") as f:
+        f.write(text.encode("utf-8"))
+
+
+def fit_mark(source) -> dict | None:
+    """The `[fit]` table of a scene file (None for a preset or a file without one), checked:
+    `converged` a boolean, `message` a string. Raises `SceneError` naming the file."""
+    if str(source) in PRESETS:
+        return None
+    mark = read_scene_doc(source).get("fit")
+    if mark is None:
+        return None
+    if not isinstance(mark, dict) or not isinstance(mark.get("converged"), bool) or not (
+            isinstance(mark.get("message", ""), str)) or set(mark) - {"converged", "message"}:
+        raise SceneError(f"{source}: [fit] must hold converged = true or false (and "
+                         "optionally message = \"...\"), as a fitted scene writes it")
+    return mark

@@ -56,18 +56,28 @@ def cut(ts: np.ndarray, t_init: float, horizon: float) -> list[Window]:
     `horizon` s long. A last window with no sample left to predict after its head is
     dropped. Raises `ValueError` (naming `horizon`) when a full window has no sample to
     predict."""
+    _check_horizon(ts, horizon)
     out = []
-    k = 0
+    k, last = 0, -math.inf
     while True:
         a = t_init + k * horizon
         if a >= ts[-1]:
             break
+        if not a > last:  # never true after _check_horizon; a guard against a hang
+            raise ValueError(f"horizon (--horizon) = {horizon:g} s is below the float "
+                             f"spacing of the record's times near t = {a:g} s; lengthen it")
+        last = a
         lo = int(np.searchsorted(ts, a, side="right"))
         # Both ends from the same products, so that consecutive windows share a boundary.
         hi = int(np.searchsorted(ts, t_init + (k + 1) * horizon, side="right"))
         k += 1
         if hi <= lo:
-            continue  # a gap in the record longer than the horizon
+            # A gap in the record longer than the horizon: on to a window or two before
+            # the one that holds the next sample (rounding never skips it), so a long gap
+            # costs a few empty windows, not one per horizon.
+            if lo < ts.size:
+                k = max(k, math.ceil((ts[lo] - t_init) / horizon) - 2)
+            continue
         head = max(MIN_SAMPLES, int(np.searchsorted(
             ts, a + HEAD_FRACTION * horizon, side="right")) - lo)
         if hi - lo <= head:
@@ -80,6 +90,21 @@ def cut(ts: np.ndarray, t_init: float, horizon: float) -> list[Window]:
             continue
         out.append(Window(lo, hi, head, float(a)))
     return out
+
+
+def _check_horizon(ts: np.ndarray, horizon: float) -> None:
+    """Raise `ValueError` naming `horizon` when it is shorter than two of the record's
+    shortest sample intervals: no window could then hold more than two samples, never
+    enough for a state fit and a prediction, and a horizon below the float spacing of
+    the times would never move the window loop on."""
+    steps = np.diff(np.asarray(ts, dtype=float))
+    shortest = float(np.min(steps)) if steps.size else math.inf
+    if not horizon >= 2 * shortest:
+        raise ValueError(
+            f"horizon (--horizon) = {horizon:g} s is shorter than two sample intervals of "
+            f"the record (its shortest is {shortest:g} s); a window needs at least "
+            f"{MIN_SAMPLES + 1} samples: give a horizon of at least "
+            f"{(MIN_SAMPLES + 1) * shortest:g} s")
 
 
 class Predictor(eqx.Module):

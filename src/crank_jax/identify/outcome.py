@@ -55,8 +55,8 @@ def budget_spent(max_steps: int, falling: float | None = None,
     cost's fall per iteration over the last [`STALL_STEPS`][] (in `unit`) when known."""
     still = ("" if falling is None or not math.isfinite(falling)
              else f", the cost still falling by {falling:.3g} {unit} per iteration")
-    return (f"stopped after {max_steps} iterations without converging{still} (max_steps = "
-            f"{max_steps}: raise it to go on)")
+    return (f"stopped after {max_steps} iteration{'s' if max_steps != 1 else ''} without "
+            f"converging{still} (max_steps = {max_steps}: raise it to go on)")
 
 
 def failed_message(failed: int) -> str:

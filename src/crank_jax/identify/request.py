@@ -9,6 +9,7 @@ one `ValueError` naming the field and the fix, before a single ODE is solved.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 from collections.abc import Sequence
 
@@ -276,6 +277,23 @@ def _pairs(scene, data) -> tuple[list[Scene], list[Data]]:
     return scenes, records
 
 
+def _check_distinct(records: list[Data]) -> None:
+    """Refuse two records with the same samples (times and every channel): the same data
+    given twice counts twice, and the intervals narrow as if there were twice the data."""
+    seen: dict[bytes, int] = {}
+    for i, d in enumerate(records):
+        h = hashlib.sha256(np.ascontiguousarray(d.ts, dtype=float).tobytes())
+        for name, y in d.outputs_items():
+            h.update(name.encode() + np.ascontiguousarray(y, dtype=float).tobytes())
+        key = h.digest()
+        if key in seen:
+            raise ValueError(f"data: records {seen[key]} and {i} hold the same samples (the "
+                             "same record given twice would count twice, narrowing the "
+                             "intervals as if there were twice the data); give each record "
+                             "once")
+        seen[key] = i
+
+
 def _init(init, start: dict) -> str:
     """The kind of `init` (`"scene"`, `"regressor"` or `"dict"`); a dict's start values
     go into `start`, which must already hold every free global parameter."""
@@ -310,6 +328,11 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
             or not 0 <= seed <= MAX_SEED):
         raise ValueError(f"seed must be an integer from 0 to {MAX_SEED}, got {seed!r}")
     per_record = _check_per_record(per_record, free)
+    if per_record and len(records) == 1:
+        raise ValueError(f"per_record names {', '.join(per_record)}, but there is one record: "
+                         "each free parameter is already its own; give several records, or "
+                         "leave per_record (--per-record) out")
+    _check_distinct(records)
     window = _check_window(window)
     records = [window_data(d, window) for d in records]
     loads = tuple((bind_input(d.load if d.load is not None else sc.load, d.inputs, d.source,
@@ -325,7 +348,6 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
     _check_sigma_names(sigma, records)
     init_kind = _init(init, start)
     _check_start(start)
-    per_record = per_record if len(records) > 1 else ()
     names = reported_names(free, len(records), per_record)
     if profile is not None and profile not in names:
         raise ValueError(f"profile {profile!r} is not a free parameter; choose from "

@@ -229,11 +229,20 @@ def no_motion(phi: np.ndarray, noise: float) -> str | None:
     spread = float(np.std(x))
     # A spread of float rounding (or none) is no motion either, whatever the noise says.
     rounding = spread <= 1e-12 * float(np.max(np.abs(x)))
-    if not (rounding or noise > 0 and spread**2 < noise**2 * _pure_noise_ratio(x.size)):
+    limit = _pure_noise_ratio(x.size)
+    if not (rounding or noise > 0 and spread**2 < noise**2 * limit):
         return None
-    return (f"the angle shows no motion above its noise (spread {spread:.3g} rad, noise "
-            f"level {noise:.3g} rad): there is nothing for a model to explain; check the "
-            "angle column and its unit, or record a motion")
+    if rounding:
+        return (f"the angle shows no motion above its noise: it is constant (spread "
+                f"{spread:.3g} rad, float rounding); check the angle column and its unit, or "
+                "record a motion")
+    # The words give the test's numbers: a spread far above the noise level, refused on a
+    # short record whose pure noise can reach as far, must not read as a contradiction.
+    return (f"the angle shows no motion above its noise that {x.size} samples can tell: its "
+            f"spread ({spread:.3g} rad) is {spread / noise:.3g} times its noise level "
+            f"({noise:.3g} rad), but pure noise of {x.size} samples reaches "
+            f"{math.sqrt(limit):.3g} times one time in {1 / NO_MOTION_FALSE_ALARM:.0f}; check "
+            "the angle column and its unit, or give more samples (a longer record or window)")
 
 
 def aliased(phi: np.ndarray) -> str | None:
