@@ -14,6 +14,9 @@ from crank_jax.model import AngleLoad
 from crank_jax.model.dynamics import CrankField
 from crank_jax.records.load_by import loads_by
 
+# Measured (rtol 1e-10, a 2 kHz record of 0.2 s at 1,400 rpm): the model's motion off the
+# truth's, 5.7e-5 rad with the column interpolated in time, 5.2e-6 rad tabled by angle.
+TOL_TIME, TOL_ANGLE = 2e-4, 2e-5
 MECH = cj.SliderCrank(r=0.025, L=0.09, b=0.03, s=0.0, m_c=0.3, m_p=0.15, m_s=0.12,
                       I_c=0.01, I_p=1e-4, k=0.0, c=5e-4)
 
@@ -55,22 +58,25 @@ def test_the_field_takes_the_force_at_the_models_angle():
 
 
 def test_angle_table_equals_time_interpolation_when_the_model_follows_the_record():
-    # The truth: the gas force by time along its own motion (a fine time table).
-    scene = cj.Scene(MECH, phi0=0.3, dphi0=150.0)
-    fine = np.linspace(0.0, 0.3, 3001)
-    tr = scene.simulate(jnp.asarray(fine))
-    truth_time = cj.SampledLoad(fine, _gas(np.asarray(tr.phi)))
-    truth = dataclasses.replace(scene, load=truth_time).simulate(jnp.asarray(fine))
-    # Its record, at 2 kHz, with the force column.
-    ts = fine[::15]
-    data = _record(ts, np.asarray(truth.phi)[::15])
-    by_time = cj.validate(dataclasses.replace(scene, load=cj.NoLoad()), data, init_window=0.02)
-    by_angle = cj.validate(dataclasses.replace(scene, load=cj.NoLoad()), data, init_window=0.02,
-                           load_by="angle")
-    # Both follow the record to interpolation error (the record's own motion is the
-    # model's), so their predictions agree closely.
-    assert by_time.rms < 2e-4 and by_angle.rms < 2e-4
-    np.testing.assert_allclose(by_angle.predicted, by_time.predicted, atol=2e-4)
+    # The truth: a force that follows the angle, and its record at 2 kHz with the column.
+    grid = np.linspace(-np.pi, np.pi, 721)
+    truth_load = AngleLoad.from_samples(grid, _gas(grid), period=2 * np.pi)
+    scene = cj.Scene(MECH, load=truth_load, phi0=0.3, dphi0=150.0)
+    ts = np.linspace(0.0, 0.2, 401)
+    truth = np.asarray(scene.simulate(jnp.asarray(ts), rtol=1e-10, atol=1e-10).phi)
+    data = _record(ts, truth)
+    # From the truth's state, the model follows the record: the column interpolated in
+    # time and tabled by angle give the same motion, to interpolation error.
+    by = {}
+    for how in ("time", "angle"):
+        load = loads_by(data, how).load
+        by[how] = np.asarray(dataclasses.replace(scene, load=load).simulate(
+            jnp.asarray(ts), rtol=1e-10, atol=1e-10).phi)
+    assert isinstance(loads_by(data, "angle").load, AngleLoad)
+    assert np.max(np.abs(by["time"] - truth)) < TOL_TIME
+    assert np.max(np.abs(by["angle"] - truth)) < TOL_ANGLE
+    assert np.max(np.abs(by["angle"] - by["time"])) < TOL_TIME
+    # The table gives back the column at the record's own angles.
     tabled = loads_by(data, "angle").load
     np.testing.assert_allclose(np.asarray(tabled.at(ts, data.phi)),
                                np.asarray(data.load(ts)), rtol=1e-12, atol=1e-9)
@@ -85,7 +91,12 @@ def test_gradient_through_the_angle_table_matches_finite_differences():
         h = 1e-6
         fd = (float(f(x + h)) - float(f(x - h))) / (2 * h)
         assert np.isfinite(g) and g == pytest.approx(fd, rel=1e-5, abs=1e-6)
-    # Through a solve: d(final angle)/d(I_c), forward-mode, against finite differences.
+
+
+def test_gradient_through_a_solve_with_the_angle_table_matches_finite_differences():
+    # d(final angle)/d(I_c), forward mode through the solve, against finite differences.
+    phi = np.linspace(0.0, 20.0, 400)
+    load = AngleLoad.from_samples(phi, _gas(phi))
     ts = jnp.linspace(0.0, 0.1, 11)
 
     def end(I_c):
@@ -159,3 +170,65 @@ def test_cli_load_by_flag(tmp_path, capsys):
     assert main(["validate", scene, rec, "--load-by", "angle", "--init-window", "0.05",
                  "--out", str(tmp_path / "v.json"), "--quiet"]) == 2
     assert "--load-by angle" in capsys.readouterr().err
+
+
+def _tooth_record(scene, t1, seed, teeth=36):
+    """A coast-down of `scene` sampled at the edges of a 36-1 toothed wheel: irregular
+    times (20 us of jitter), no sample at the missing tooth, the force column with 1%
+    noise."""
+    from scipy.interpolate import CubicHermiteSpline
+
+    tf = np.linspace(0.0, t1, int(t1 * 4000) + 1)
+    tr = scene.simulate(jnp.asarray(tf), rtol=1e-10, atol=1e-10)
+    phi, dphi = np.asarray(tr.phi), np.asarray(tr.dphi)
+    step = 2 * np.pi / teeth
+    k = np.arange(np.ceil(phi[0] / step), np.floor(phi[-1] / step) + 1)
+    angle = k[k % teeth != teeth - 1] * step
+    rng = np.random.default_rng(seed)
+    ts = CubicHermiteSpline(phi, tf, 1.0 / dphi)(angle) + rng.normal(0, 2e-5, angle.shape)
+    force = _gas(angle) + rng.normal(0.0, 15.0, angle.shape)
+    return cj.Data(ts, angle, load=cj.SampledLoad(ts, force), source=f"coast-{seed}")
+
+
+def test_force_by_angle_stand_in_tooth_wheel_coast_down():
+    # The misfit bench's "force by angle": a coast-down at high speed whose gas force
+    # follows the crank, recorded by a 36-1 toothed wheel, with crank-bearing Coulomb
+    # friction the fitted model lacks. Fitted by angle on one record (irregular samples
+    # with a gap each turn, taken as they are), it predicts a held-out record open loop;
+    # the held-out force interpolated in time meets the model's slipping crank at the
+    # wrong angle and the prediction runs off (experiments/force_by_angle.py measured
+    # 1.6-1.9 rad against 0.03-0.07 rad on 0.4 s records).
+    grid = np.linspace(-np.pi, np.pi, 721)
+    truth = MECH.replace(T_c=0.05, w_c=0.5)
+    load = AngleLoad.from_samples(grid, _gas(grid), period=2 * np.pi)
+    fit_rec = _tooth_record(cj.Scene(truth, load=load, phi0=0.3, dphi0=167.0), 0.3, 1)
+    held = _tooth_record(cj.Scene(truth, load=load, phi0=0.3, dphi0=126.0), 0.3, 2)
+    gaps = np.diff(fit_rec.ts)
+    assert gaps.max() > 1.8 * np.median(gaps)  # the missing tooth: irregular samples
+    model = cj.Scene(MECH.replace(I_c=0.012, c=1e-3), phi0=0.3, dphi0=150.0)
+    res = cj.fit(model, fit_rec, free=("I_c", "c", "phi0", "dphi0"), progress=False,
+                 warn=False, load_by="angle")
+    assert res.converged and res.rms_residual < 0.02
+    fitted = cj.Scene(res.mech, phi0=0.3, dphi0=150.0)
+    by_angle = cj.validate(fitted, held, init_window=0.05, load_by="angle")
+    by_time = cj.validate(fitted, held, init_window=0.05, load_by="time")
+    assert by_angle.rms < 0.1 < by_time.rms
+
+
+def test_a_new_table_of_the_same_length_does_not_recompile():
+    import equinox as eqx
+
+    traces = []
+
+    @eqx.filter_jit
+    def force(load, x):
+        traces.append(1)  # runs once per trace
+        return jax.vmap(lambda p: load.at(0.0, p))(x)
+
+    phi = np.linspace(-3.0, 3.0, 200)
+    x = jnp.asarray([-0.3, 0.1, 0.4])
+    a = force(AngleLoad.from_samples(phi, _gas(phi)), x)
+    b = force(AngleLoad.from_samples(phi + 0.1, 2.0 * _gas(phi)), x)
+    assert len(traces) == 1
+    np.testing.assert_allclose(np.asarray(a), _gas(np.asarray(x)), rtol=1e-3)
+    assert not np.allclose(np.asarray(a), np.asarray(b))
