@@ -91,6 +91,8 @@ class AngleLoad(AbstractLoad):
         return cls(SampledLoad(angle[order], values[order], interp), record, period)
 
     def at(self, t: ArrayLike, phi: ArrayLike) -> Array:
+        """The load with the crank at `phi` (rad), at any time `t` (s): the table at
+        `phi` (wrapped by `period` when given), of the broadcast shape of both."""
         phi = jnp.asarray(phi, dtype=self.table.ts.dtype)
         if self.period is not None:
             lo = self.table.ts[0]

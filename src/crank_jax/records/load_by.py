@@ -56,8 +56,9 @@ def _tabled(load: SampledLoad | None, data: Data, angle: np.ndarray,
 def loads_by(data: Data, load_by: str = "time", period: float | None = None) -> Data:
     """The record with its `P`/`tau` columns following `load_by` (see [`LOAD_BY`][]):
     itself for `"time"`; for `"angle"`, each column an
-    [`AngleLoad`][crank_jax.model.angle_load.AngleLoad] tabled by the record's angle (`period`, rad: wrap a periodic load by it; None: hold
-    the end values past the record's angles).
+    [`AngleLoad`][crank_jax.model.angle_load.AngleLoad] tabled by the record's angle
+    (`period`, rad: wrap a periodic load by it; None: hold the end values past the
+    record's angles).
 
     Raises `ValueError` naming `load_by` for a record without an angle channel, without
     `P`/`tau` columns, or whose angle is not strictly monotone (with the first sample
