@@ -189,5 +189,10 @@ def test_table_refusals():
         load_from_table({"kind": "multisine"}, "torque")
     with pytest.raises(ValueError, match="cannot be written to a scene file"):
         load_to_table(cj.SampledLoad([0.0, 1.0], [1.0, 2.0]), "load")
+    with pytest.raises(ValueError, match=r"kind 'angle' cannot be used in a scene.*load_by"):
+        load_from_table({"kind": "angle"}, "load")
+    angle = cj.model.AngleLoad.from_samples([0.0, 1.0, 2.0], [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="cannot be written to a scene file"):
+        load_to_table(angle, "load")
     assert {k.name for k in LOAD_KINDS} == {"none", "constant", "harmonic", "multisine",
-                                            "sampled", "input"}
+                                            "sampled", "input", "angle"}

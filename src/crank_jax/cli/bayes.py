@@ -9,6 +9,7 @@ import sys
 
 from .channel_options import add_angle_options, add_channel_options, read_records
 from .errors import UserError
+from .load_by_option import add_load_by_option, load_by_words
 from .options import free_list, seed
 from .scene_inputs import refuse_input_loads
 
@@ -23,6 +24,7 @@ def _posterior_args(p: argparse.ArgumentParser) -> None:
                    help="another record of the same mechanism (repeatable)")
     add_channel_options(p)  # records are read as fit reads them (the scene's [sensors])
     add_angle_options(p)
+    add_load_by_option(p)
     # The record options `fit` and `validate` take (read alike by `read_records`).
     p.add_argument("--t-col", default="t", help="name of the time column (t)")
     p.add_argument("--load-interp", default="cubic", choices=("cubic", "linear", "zoh"),
@@ -80,9 +82,10 @@ def _posterior_run(a: argparse.Namespace) -> int:
     records = read_records(a, scene, files)
     lo, hi = a.fit_t_start, a.fit_t_end
     window = None if lo is None and hi is None else (lo, hi)
-    post = posterior(scene, records if len(records) > 1 else records[0], free, priors,
-                     draws=a.draws, chains=a.chains, seed=a.seed, warmup=a.warmup,
-                     window=window, progress=not a.quiet)
+    with load_by_words():
+        post = posterior(scene, records if len(records) > 1 else records[0], free, priors,
+                         draws=a.draws, chains=a.chains, seed=a.seed, warmup=a.warmup,
+                         window=window, progress=not a.quiet, load_by=a.load_by)
     print(f"{'name':>10} {'mean':>12} {'sd':>10} {'q2.5':>12} {'q97.5':>12} {'rhat':>6} "
           f"{'ess':>6}")
     for n, s in post.summary().items():

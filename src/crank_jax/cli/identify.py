@@ -18,6 +18,7 @@ from .channel_options import (
     read_sensors,
 )
 from .errors import UserError
+from .load_by_option import add_load_by_option, load_by_words
 from .options import free_list, seed
 
 
@@ -82,6 +83,7 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--load-interp", default="cubic", choices=("cubic", "linear", "zoh"),
                    help="interpolation of the record's P/tau columns: cubic (C2 spline, for "
                         "measured signals; default), linear, or zoh (a held digital command)")
+    add_load_by_option(p)
     add_channel_options(p)
     p.add_argument("--per-record", default="", metavar="NAMES",
                    help="comma-separated free parameters that take a separate value in each "
@@ -252,7 +254,8 @@ def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
     return dict(free=free, init=a.init, method=a.method, shooting=shooting,
                 segments=a.segments, multistart=a.multistart, seed=a.seed,
                 max_steps=a.max_steps, sigma=sigma, profile=a.profile, window=window,
-                progress=not a.quiet, warn=False, per_record=per_record)
+                progress=not a.quiet, warn=False, per_record=per_record,
+                load_by=getattr(a, "load_by", "time"))
 
 
 def _fit_run(a: argparse.Namespace) -> int:
@@ -275,7 +278,8 @@ def _fit_run(a: argparse.Namespace) -> int:
     records = read_records(a, scene, files)
     # What each record was read through: its fitted scene (--scene-out) keeps it.
     a.record_sensors = [read_sensors(a, scene, f) for f in files]
-    res = fit(scene, records if len(records) > 1 else records[0], **kwargs)
+    with load_by_words():
+        res = fit(scene, records if len(records) > 1 else records[0], **kwargs)
     a.fitted_scene = scene
     return _report(res, a, title=f"{', '.join(files)} with {a.scene}")
 

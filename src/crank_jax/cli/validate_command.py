@@ -10,6 +10,7 @@ import sys
 
 from .channel_options import add_angle_options, add_channel_options, read_records
 from .errors import UserError
+from .load_by_option import add_load_by_option, load_by_words
 
 __all__ = ["COMMANDS", "LOAD_INTERP"]
 
@@ -41,6 +42,7 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
                    help=f"interpolation of the record's load columns: {', '.join(LOAD_INTERP)}")
     p.add_argument("--scene-loads", action="store_true",
                    help="use the scene's loads where the record has no P/tau column")
+    add_load_by_option(p)
     p.add_argument("--t-col", default="t", help="name of the time column (t)")
     add_angle_options(p)
     add_channel_options(p)
@@ -126,9 +128,11 @@ def _validate_run(a: argparse.Namespace) -> int:
     scene = load_scene(a.scene)
     unconverged = _unconverged(a)
     data = _read(a, scene)
-    val = validate(scene, data, t_start=a.t_start, t_end=a.t_end, init_window=a.init_window,
-                   scene_loads=a.scene_loads, progress=not a.quiet, horizon=a.horizon,
-                   init_free=_init_free(a))
+    with load_by_words():
+        val = validate(scene, data, t_start=a.t_start, t_end=a.t_end,
+                       init_window=a.init_window, scene_loads=a.scene_loads,
+                       progress=not a.quiet, horizon=a.horizon, init_free=_init_free(a),
+                       load_by=a.load_by)
     if unconverged:
         val.warnings.insert(0, unconverged)
     print(val.summary())

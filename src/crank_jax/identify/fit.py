@@ -158,6 +158,7 @@ def fit(
     warn: bool = True,
     per_record: Sequence[str] = (),
     force=None,
+    load_by: str = "time",
 ) -> FitResult:
     """Fit free parameters of a scene to crank-angle records by least squares.
 
@@ -202,6 +203,11 @@ def fit(
     - `force`: a user's force term, as `simulate` takes it (an `eqx.Module` callable
       `f(t, phi, dphi) -> N*m`); its float fields can be freed as `force.<field>` (or
       `force.<field>[i]` for an array's elements).
+    - `load_by`: what a record's measured `P`/`tau` columns follow: `"time"` (default,
+      interpolated in time) or `"angle"` (tabled by the record's own angle channel, which
+      must turn one way, and evaluated at the model's angle, held at the end values
+      beyond the record's angles; see `records.load_by`): a force that follows the
+      crank then meets the model's crank at the right angle when their phases differ.
 
     Records may carry any sensor channels (`phi`, `dphi`, `x_s`, `v_s`, `a_s`, see
     [`Data`][]): each is compared with the model's reading `scale h + offset` and
@@ -222,7 +228,7 @@ def fit(
     req = normalize(scene, data, free, init=init, method=method, shooting=shooting,
                     segments=segments, multistart=multistart, seed=seed, max_steps=max_steps,
                     tol=tol, sigma=sigma, profile=profile, window=window, progress=progress,
-                    warn=warn, per_record=per_record, force=force)
+                    warn=warn, per_record=per_record, force=force, load_by=load_by)
     req = ch.with_channels(req)
     plan = make_plan(req)
     if plan.abort:

@@ -243,6 +243,7 @@ def posterior(
     warmup: int = 500,
     window: tuple[float | None, float | None] | None = None,
     progress: bool = True,
+    load_by: str = "time",
 ) -> Posterior:
     """Sample the posterior of the free parameters with NUTS (blackjax).
 
@@ -255,8 +256,8 @@ def posterior(
 
     **Arguments:**
 
-    - `scene`, `data`, `free`, `window`: as for [`fit`][] (several records share the
-      mechanism; each has its own noise level and, when free, initial state).
+    - `scene`, `data`, `free`, `window`, `load_by`: as for [`fit`][] (several records
+      share the mechanism; each has its own noise level and, when free, initial state).
     - `priors`: name -> distribution (text like `"lognormal(0.7, 0.5)"`, see
       [`parse_priors`][]); default flat in the coordinates (log-uniform for positive
       parameters).
@@ -272,11 +273,13 @@ def posterior(
     _check_counts(draws, chains, warmup)
     req = normalize(scene, data, free, init="scene", method="lm", shooting="auto",
                     segments=None, multistart=1, seed=seed, max_steps=None, tol=1e-8,
-                    sigma=None, profile=None, window=window, progress=progress, warn=False)
+                    sigma=None, profile=None, window=window, progress=progress, warn=False,
+                    load_by=load_by)
     check_posterior_memory(draws, chains, warmup,
                            len(reported_names(req.free, len(req.records))))
     prior = parse_priors(priors, req.free)
-    res = fit(scene, data, req.free, window=window, progress=progress, warn=False)
+    res = fit(scene, data, req.free, window=window, progress=progress, warn=False,
+              load_by=load_by)
     if not res.converged:
         raise ValueError(f"the fit that starts the chains did not converge ({res.message}); "
                          "fix the start values or the free parameters first")

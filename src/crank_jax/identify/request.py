@@ -20,6 +20,7 @@ from ..model.params import FIELDS, SliderCrank
 from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
 from ..model.sampled import bind_input
 from ..records.data import Data
+from ..records.load_by import loads_by
 from ..records.sensors import OFFSET_NAMES
 from ..scene import Scene
 from ..sweep.distributions import MAX_SEED
@@ -311,7 +312,7 @@ def _init(init, start: dict) -> str:
 
 def normalize(scene, data, free, *, init, method, shooting, segments, multistart, seed,
               max_steps, tol, sigma, profile, window, progress, warn, per_record=(),
-              force=None) -> FitRequest:
+              force=None, load_by="time") -> FitRequest:
     """Check a fit request and bring it to one form (the arguments are those of [`fit`][]).
 
     **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
@@ -334,7 +335,11 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
                          "leave per_record (--per-record) out")
     _check_distinct(records)
     window = _check_window(window)
-    records = [window_data(d, window) for d in records]
+    records = [loads_by(window_data(d, window), load_by) for d in records]
+    if load_by == "angle" and "phi_offset" in free:
+        raise ValueError("phi_offset cannot be free with load_by='angle': the loads are "
+                         "tabled by the angle channel through its given calibration; fix "
+                         "phi_offset (the sensor's offset), or load_by='time'")
     loads = tuple((bind_input(d.load if d.load is not None else sc.load, d.inputs, d.source,
                               "slider force"),
                    bind_input(d.torque if d.torque is not None else sc.torque, d.inputs,

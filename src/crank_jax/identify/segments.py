@@ -8,7 +8,7 @@ import equinox as eqx
 import numpy as np
 from jaxtyping import Array
 
-from ..model.loads import AbstractLoad, InputLoad, SampledLoad
+from ..model.loads import AbstractLoad, AngleLoad, InputLoad, SampledLoad
 from ..runtime.arrays import device_array
 
 __all__ = ["bucket", "Segments", "Experiment", "make_segments", "padded_load"]
@@ -107,6 +107,8 @@ def padded_load(load: AbstractLoad) -> AbstractLoad:
     # outside its samples anyway) so records of other lengths reuse the programs.
     if isinstance(load, InputLoad) and load.signal is not None:
         return eqx.tree_at(lambda x: x.signal, load, padded_load(load.signal))
+    if isinstance(load, AngleLoad):  # its table's knots are angles: held past the last
+        return eqx.tree_at(lambda x: x.table, load, padded_load(load.table))
     if not isinstance(load, SampledLoad):
         return load
     ts, vs = np.asarray(load.ts), np.asarray(load.values)

@@ -1,10 +1,10 @@
 """Validation on a record the model was not fitted to: predict it open-loop and score it.
 
-[`validate`][] estimates only the initial state `(phi0, dphi0)` from the first
-`init_window` seconds of the record (a fit with every mechanism parameter fixed), then
-simulates the whole window open-loop from that state, with the record's own load columns
-when it has them, and scores the prediction on the samples after the initial-state window
-(those were not used at all):
+[`validate`][] estimates only the initial state `(phi0, dphi0)` from the first `init_window`
+seconds of the record (a fit with every mechanism parameter fixed), then simulates the whole
+window open-loop from that state, with the record's own load columns when it has them (by
+time or by angle, `load_by`), and scores the prediction on the samples after the
+initial-state window (those were not used at all):
 
 - `rms = sqrt(mean((y - yhat)^2))` and `max_abs = max |y - yhat|`, rad;
 - `fit_percent = 100 (1 - |y - yhat| / |y - mean(y)|)` with 2-norms (MATLAB's `compare`):
@@ -14,11 +14,11 @@ A record with several channels (see [`sensors`][crank_jax.records.sensors]) is p
 scored in each (what its sensor reads under the model, `scale h + offset`, SI); the
 top-level scores are the first channel's.
 
-`horizon=T` scores a k-step-ahead prediction instead (MATLAB's `compare(data, sys, k)`):
-after the initial-state window the record is cut into windows of `T` s, each window's state
-is estimated from its first samples and the rest of the window is predicted (see
-[`crank_jax.identify.horizon`][]). A driven rig whose drive level is a few percent off drifts by
-radians over a long open-loop prediction, yet predicts one revolution ahead to a small
+`horizon=T` scores a k-step-ahead prediction instead (MATLAB's `compare(data, sys, k)`): after
+the initial-state window the record is cut into windows of `T` s, each window's state is
+estimated from its first samples and the rest of the window is predicted (see
+[`crank_jax.identify.horizon`][]). A driven rig whose drive level is a few percent off drifts
+by radians over a long open-loop prediction, yet predicts one revolution ahead to a small
 fraction of a radian: that is what `T` of one revolution measures. `init_free` names
 parameters (e.g. `tau0`, the record's own drive level) estimated with the state on the
 initial-state window: the operating point of a held-out record.
@@ -38,6 +38,7 @@ from ..model.outputs import SI_UNITS, output
 from ..model.params import FIELDS
 from ..model.sampled import bind_input
 from ..records.data import MIN_SAMPLES, Data, DataError
+from ..records.load_by import loads_by
 from ..runtime.blas import one_blas_thread
 from ..scene import Scene
 from ..simulation import linearize
@@ -148,8 +149,8 @@ class Validation(NamedTuple):
 
 
 def default_init_window(scene: Scene, load: AbstractLoad | None = None) -> float:
-    """About one period: the linearised period `2 pi / omega_n` of the scene (with `load`
-    at its mean), or 1 s when phi = 0 is not a stable equilibrium."""
+    """About one period: the linearised period `2 pi / omega_n` of the scene (`load` at its
+    mean), or 1 s when phi = 0 is not a stable equilibrium."""
     w = float(np.asarray(linearize(scene.mech, load if load is not None else scene.load)
                          .omega_n))
     return 2 * math.pi / w if math.isfinite(w) and w > 0 else 1.0
@@ -211,6 +212,7 @@ def validate(
     progress: bool = False,
     horizon: float | None = None,
     init_free: tuple[str, ...] | list[str] = (),
+    load_by: str = "time",
 ) -> Validation:
     """Predict a record from an initial state estimated on its start, and score it.
 
@@ -235,12 +237,14 @@ def validate(
     - `init_free`: parameters estimated with the state on the initial-state window and
       then held (names a fit can free: mechanism fields, load amplitudes such as `tau0`,
       channel offsets such as `phi_offset`): the operating point of a held-out record.
+    - `load_by`: what the record's `P`/`tau` columns follow: `"time"` or `"angle"`, as in
+      [`fit`][].
 
-    **Returns:** a [`Validation`][]. Raises `ValueError` (naming the argument) for a
-    window with fewer than [`MIN_SAMPLES`][] samples, an initial-state window that leaves
-    fewer than that many to score, a horizon that leaves none to predict, a name
-    `init_free` cannot take, a missing load column, or scored angles that are constant up
-    to float rounding ([`MIN_SPREAD_EPS`][]; `fit_percent` would be meaningless);
+    **Returns:** a [`Validation`][]. Raises `ValueError` (naming the argument) for a window
+    with fewer than [`MIN_SAMPLES`][] samples, an initial-state window that leaves fewer than
+    that many to score, a horizon that leaves none to predict, a name `init_free` cannot take,
+    a missing load column, a record `load_by='angle'` cannot table, or scored angles that are
+    constant up to float rounding ([`MIN_SPREAD_EPS`][]; `fit_percent` would be meaningless);
     `RuntimeError` if a prediction's solve fails.
     """
     if not isinstance(scene, Scene) or not isinstance(data, Data):
@@ -248,7 +252,7 @@ def validate(
     if horizon is not None and not (isinstance(horizon, (int, float))
                                     and math.isfinite(horizon) and horizon > 0):
         raise ValueError(f"horizon (--horizon) must be a time > 0 s, got {horizon!r}")
-    win = data.window(t_start, t_end)
+    win = loads_by(data.window(t_start, t_end), load_by)
     init_free = _check_init_free(init_free, win)
     load, torque = _loads(scene, win, scene_loads)
     win = Data(win.ts, win.phi, load, torque, source=win.source, channels=win.channels,
@@ -327,8 +331,7 @@ def _state_fit(scene: Scene, head: Data, load, torque, init_free: tuple[str, ...
 
 
 def _open_loop(model: Scene, load, torque, sensors, ts: np.ndarray, state, predicted):
-    """Predict every sample of `ts` open loop from `state` (phi0, dphi0) into
-    `predicted[sensor name]`; `RuntimeError` where the solve fails."""
+    """`predicted[name]` at `ts`, open loop from `state` (phi0, dphi0); raises if it fails."""
     traj = model.simulate(ts, phi0=state[0], dphi0=state[1], load=load, torque=torque,
                           outputs=(), throw=False)
     if not bool(traj.ok):
@@ -358,8 +361,7 @@ def init_free_names(names) -> tuple[str, ...]:
 
 
 def _check_init_free(names, win: Data) -> tuple[str, ...]:
-    """[`init_free_names`][crank_jax.identify.validation.init_free_names], and for a load
-    amplitude, a load the record does not supply as a column."""
+    """[`init_free_names`][], and for a load amplitude, one the record has no column of."""
     names = init_free_names(names)
     for n in names:
         if n in LOAD_NAMES:
@@ -373,8 +375,7 @@ def _check_init_free(names, win: Data) -> tuple[str, ...]:
 
 
 def _with_values(scene: Scene, load, torque, sensors, own: dict):
-    """The mechanism, loads and sensors of the prediction, with the `init_free` values
-    `own` set."""
+    """The prediction's mechanism, loads and sensors, with the `init_free` values `own`."""
     mech = scene.mech
     fields = {n: v for n, v in own.items() if n in FIELDS}
     if fields:
@@ -392,8 +393,7 @@ def _with_values(scene: Scene, load, torque, sensors, own: dict):
 
 
 def _scores(y: np.ndarray, yhat: np.ndarray, name: str) -> dict:
-    """rms, max |error|, fit percent and count of one channel's scored samples (SI). The
-    data spread: `_check_spread` refused a constant channel before the fit."""
+    """rms, max |error|, fit % and count of a channel's scored samples (SI; nonzero spread)."""
     e = y - yhat
     fit_pct = 100.0 * (1.0 - float(np.linalg.norm(e)) / float(np.linalg.norm(y - y.mean())))
     return {"rms": float(np.sqrt(np.mean(e**2))), "max_abs": float(np.max(np.abs(e))),

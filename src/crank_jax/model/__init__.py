@@ -10,6 +10,7 @@ no name here is also one of this package's modules (`geometry_at`, not `geometry
 the module `crank_jax.model.geometry`).
 """
 
+from .angle_load import AngleLoad
 from .dynamics import (
     CrankField,
     acceleration,
@@ -48,7 +49,7 @@ __all__ = [
     "SliderCrank", "FIELDS", "SIGNED_FIELDS",
     # loads
     "AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineLoad", "SampledLoad",
-    "InputLoad", "Nonsmooth", "INTERPOLATIONS", "LOAD_PARAMS",
+    "InputLoad", "AngleLoad", "Nonsmooth", "INTERPOLATIONS", "LOAD_PARAMS",
     # geometry and kinematics
     "geometry_at", "Geometry", "coupler_angle", "CouplerAngle", "kinematics", "Kinematics",
     # the equation of motion

@@ -86,11 +86,11 @@ def force_terms(p: Coefficients, g: Geometry, phi, dphi, t, load: AbstractLoad,
             if structure.coupler:
                 q = q + p.gBy * g.d1 * g.cos
     if not isinstance(load, NoLoad):
-        q = q + load(t) * g.lever
+        q = q + load.at(t, phi) * g.lever
     if structure.spring:
         q = q - p.k * phi
     return q + dissipative_terms(p, g, dphi, structure) + (
-        0.0 if isinstance(torque, NoLoad) else torque(t))
+        0.0 if isinstance(torque, NoLoad) else torque.at(t, phi))
 
 
 def dissipative_terms(p: Coefficients, g: Geometry, dphi, structure: Structure = _FULL):
@@ -238,7 +238,7 @@ def power_in(
     phi, dphi = jnp.asarray(phi), jnp.asarray(dphi)
     p = coefficients(mech)
     g = geometry(p, phi)
-    gen = load(t) * g.lever + torque(t) + dissipative_terms(p, g, dphi)
+    gen = load.at(t, phi) * g.lever + torque.at(t, phi) + dissipative_terms(p, g, dphi)
     return gen * dphi
 
 

@@ -33,6 +33,11 @@ class AbstractLoad(eqx.Module):
     def mean(self) -> Array:
         """The time-average, used by the linearisation (a constant load shifts xi)."""
 
+    def at(self, t: ArrayLike, phi: ArrayLike) -> Array:
+        """The load at time `t` (s) with the crank at `phi` (rad): what the equation of
+        motion uses. A load of time (every kind but an angle table) ignores `phi`."""
+        return self(t)
+
     def nonsmooth(self) -> Nonsmooth:
         """Times where the load is not smooth enough for a high-order step (none here)."""
         return Nonsmooth()

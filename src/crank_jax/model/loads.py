@@ -35,13 +35,15 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import trig
+from .angle_load import AngleLoad
 from .load_base import AbstractLoad, Nonsmooth
 from .params import as_float_array
 from .sampled import INTERPOLATIONS, InputLoad, SampledLoad, is_sampled
 from .trig import check_form, form_field
 
 __all__ = ["AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineLoad",
-           "SampledLoad", "InputLoad", "is_sampled", "as_load", "INTERPOLATIONS", "Nonsmooth",
+           "SampledLoad", "InputLoad", "AngleLoad", "is_sampled", "as_load",
+           "INTERPOLATIONS", "Nonsmooth",
            "nonsmooth_times",
            "ROLES", "SIDES", "LoadKind", "LOAD_KINDS", "LOAD_PARAMS", "load_kind",
            "param_name", "toml_key", "get_param", "set_param", "promote", "toml_keys",
@@ -175,6 +177,7 @@ LOAD_KINDS: tuple[LoadKind, ...] = (
     LoadKind("multisine", MultiSineLoad, {"mean": "X0"},
              ("amplitudes", "freqs_hz", "phases")),
     LoadKind("sampled", SampledLoad, {}, toml=False),
+    LoadKind("angle", AngleLoad, {}, toml=False),
     LoadKind("input", InputLoad,
              {"mean": "X0", "amp": "X1", "freq_hz": "freq_hz", "phase": "phase",
               "gain": "gain"}),
@@ -277,8 +280,9 @@ def load_from_table(table: dict, side: str) -> AbstractLoad:
                 None)
     if kind is None or not kind.toml:
         ok = [k.name for k in LOAD_KINDS if k.toml]
-        why = " (sampled loads come from a data file's P/tau columns)" if name == "sampled" \
-            else ""
+        why = {"sampled": " (sampled loads come from a data file's P/tau columns)",
+               "angle": " (angle tables come from a record's P/tau columns with "
+                        "load_by='angle')"}.get(name, "")
         raise ValueError(f"[{side}] kind {name!r} cannot be used in a scene{why}; choose "
                          f"from {ok}")
     allowed = ({toml_key(side, r) for r in kind.fields} | set(kind.arrays) | {"kind"}

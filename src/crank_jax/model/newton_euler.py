@@ -86,12 +86,12 @@ def global_form(
     zero = jnp.zeros_like(sp)
     # Gravity's vector, m/s^2: g (-cos(gamma), -sin(gamma)), gamma = gravity_angle.
     gx, gy = -g * jnp.cos(mech.gravity_angle), -g * jnp.sin(mech.gravity_angle)
-    crank_torque = (-mech.k * phi - mech.c * dphi + torque(t)
+    crank_torque = (-mech.k * phi - mech.c * dphi + torque.at(t, phi)
                     - mech.T_c * jnp.tanh(dphi / mech.w_c))
     qbar_e = jnp.stack([
         mech.m_c * gx + zero, mech.m_c * gy + zero,
         mech.m_p * gx + zero, mech.m_p * gy + zero,
-        -load(t) + mech.m_s * gx + guide_friction(mech, J[4] * dphi) + zero,
+        -load.at(t, phi) + mech.m_s * gx + guide_friction(mech, J[4] * dphi) + zero,
         mech.m_s * gy + zero,
         crank_torque + zero, zero,
     ])
