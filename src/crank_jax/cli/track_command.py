@@ -10,6 +10,7 @@ import sys
 
 from .channel_options import add_angle_options, add_channel_options, read_records
 from .errors import UserError
+from .load_by_option import add_load_by_option, load_by_words
 
 __all__ = ["COMMANDS"]
 
@@ -37,6 +38,7 @@ def _track_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--every", type=int, default=1, metavar="N",
                    help="keep every N-th sample in track.json (a long record; default 1)")
     p.add_argument("--t-col", default="t", help="name of the time column (t)")
+    add_load_by_option(p)
     add_angle_options(p)
     add_channel_options(p)
     p.add_argument("--out", required=True, help="write the paths and alarms as JSON here")
@@ -88,9 +90,11 @@ def _track_run(a: argparse.Namespace) -> int:
     scene = load_scene(a.scene)
     data = read_records(a, scene, [a.data])[0]
     try:
-        res = track(scene, data, free=free, start=a.start, start_seconds=a.start_seconds,
-                    false_alarm_rate=a.false_alarm_rate, change_ratio=a.change_ratio,
-                    settle=a.settle, every=a.every, progress=not a.quiet)
+        with load_by_words():
+            res = track(scene, data, free=free, start=a.start,
+                        start_seconds=a.start_seconds, false_alarm_rate=a.false_alarm_rate,
+                        change_ratio=a.change_ratio, settle=a.settle, every=a.every,
+                        load_by=a.load_by, progress=not a.quiet)
     except ValueError as e:
         msg = str(e)
         for arg, flag in _FLAGS.items():

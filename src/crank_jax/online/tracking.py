@@ -92,20 +92,20 @@ class TrackProblem(NamedTuple):
 
 def prepare(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
             start: str = "batch", start_seconds: float = 5.0, false_alarm_rate: float = 1.0,
-            change_ratio: float = 4.0, q_param: float = 1e-4, progress: bool = True
-            ) -> TrackProblem:
+            change_ratio: float = 4.0, q_param: float = 1e-4, load_by: str = "time",
+            progress: bool = True) -> TrackProblem:
     """The [`TrackProblem`][] of `data` (arguments as [`track`][]'s)."""
     free = _check_free(free)
     _check_options(start, start_seconds, false_alarm_rate, change_ratio, 1.0, 1)
     req = ch.with_channels(normalize(
         scene, data, free + ("phi0", "dphi0"), init="scene", method="lm", shooting="auto",
         segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8, sigma=None,
-        profile=None, window=None, progress=progress, warn=False))
+        profile=None, window=None, progress=progress, warn=False, load_by=load_by))
     rec = req.records[0]
     ts = np.asarray(rec.ts, float)
     outs = rec.outputs()
     values, se, x0_state, se_state, start_note = _start(req, scene, data, free, start,
-                                                          start_seconds, progress)
+                                                          start_seconds, progress, load_by)
     log = tuple(n not in SIGNED_FIELDS and values[n] > 0 for n in free)
     # The record's speeds and accelerations at most 512 samples (the step size and the
     # acceleration noise need their scale, not every sample: 2 s of a 12,000-sample call).
@@ -138,14 +138,15 @@ def prepare(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
             "alarm_test": "CUSUM on the log-likelihood ratio of the normalised innovations "
                           f"(variance ratio {change_ratio:g})",
             "false_alarm_rate_per_hour": false_alarm_rate,
-            "threshold": float(settings.threshold), "log": dict(zip(free, log))}
+            "threshold": float(settings.threshold), "log": dict(zip(free, log)),
+            "load_by": load_by}
     return TrackProblem(model, settings, state, ts, ys, free, log, info, rec.source)
 
 
 def track(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
           start: str = "batch", start_seconds: float = 5.0, false_alarm_rate: float = 1.0,
           change_ratio: float = 4.0, settle: float = 5.0, q_param: float = 1e-4,
-          every: int = 1, progress: bool = True) -> TrackResult:
+          every: int = 1, load_by: str = "time", progress: bool = True) -> TrackResult:
     """Follow the free parameters of `scene` through the record `data`, sample by sample.
 
     **Arguments:**
@@ -162,6 +163,8 @@ def track(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
     - `q_param`: each parameter's random walk, per sqrt(s): relative for a field that
       cannot be negative, in its unit otherwise.
     - `every`: keep every `every`-th sample in the result (a long record's memory).
+    - `load_by`: what the record's measured `P`/`tau` columns follow, `"time"` or
+      `"angle"` (as for [`fit`][crank_jax.fit]: a force that follows the crank).
     - `progress`: show progress on stderr.
 
     **Returns:** a [`TrackResult`][crank_jax.online.tracked.TrackResult].
@@ -170,14 +173,14 @@ def track(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
     _check_options(start, start_seconds, false_alarm_rate, change_ratio, settle, every)
     p = prepare(scene, data, free, start=start, start_seconds=start_seconds,
                 false_alarm_rate=false_alarm_rate, change_ratio=change_ratio,
-                q_param=q_param, progress=progress)
+                q_param=q_param, load_by=load_by, progress=progress)
     steps, events = _run_chunks(p.model, p.settings, p.state, p.ts, p.ys, every, progress)
     alarms = name_alarms(steps, p.ts, events, p.free, p.log, settle, every)
     return TrackResult.build(p.ts[::every], steps, p.free, p.log, alarms,
                              p.info | {"settle": settle, "every": every}, source=p.source)
 
 
-def _start(req, scene, data, free, start, seconds, progress):
+def _start(req, scene, data, free, start, seconds, progress, load_by):
     """Parameter values and standard errors (physical units), the initial state (2,) and
     its standard errors, and the start in words."""
     rec = req.records[0]
@@ -187,7 +190,7 @@ def _start(req, scene, data, free, start, seconds, progress):
 
         t_end = min(float(ts[0]) + seconds, float(ts[-1]))
         res = fit(scene, data, free=free + ("phi0", "dphi0"), window=(None, t_end),
-                  progress=progress, warn=False)
+                  progress=progress, warn=False, load_by=load_by)
         if res.converged and all(res.stderr[n] is not None for n in free + ("phi0", "dphi0")):
             k = _BATCH_INFLATION
             vals = {n: res.values[n] for n in free}
