@@ -1,0 +1,140 @@
+"""Hostile inputs on the runtime's surfaces: the store's test of "our code" by file
+location, a varied parameter with no effect, the trajectories' manifest checksummed, two
+outputs that are one file, read-only outputs under root, and the API refusing what the
+command line refuses (`run_sweep(n=)`, `demo_record(seed)`, `initialize_distributed`)."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import sys
+import time
+
+import jax.numpy as jnp
+import pytest
+
+from crank_jax.model.foreign_code import foreign_classes
+from crank_jax.runtime import persistent
+
+# --- the store's "our code" is decided by file location -----------------------------------
+
+LOAD = """
+import jax.numpy as jnp
+from crank_jax.model.loads import AbstractLoad
+
+GAIN = 0.1
+
+class Torque(AbstractLoad):
+    a: float
+
+    def __call__(self, t):
+        return GAIN * self.a * jnp.sin(t)
+
+    def mean(self):
+        return jnp.asarray(0.0)
+"""
+
+
+def _write_module(tmp_path, name):
+    path = tmp_path / f"{name}.py"
+    path.write_text(LOAD)
+    old = time.time() - 3600  # as a module written before this process started
+    os.utime(path, (old, old))
+    return path
+
+
+@pytest.mark.parametrize("name", ["profile", "trace"])
+def test_a_user_load_in_a_module_named_like_the_standard_library_is_foreign(
+        tmp_path, monkeypatch, name):
+    """A user's "torque profile" in `profile.py`, imported through `sys.path`, counted as
+    the standard library's by its name: its program was stored, and a second process with
+    another `GAIN` got the first one's trajectory."""
+    _write_module(tmp_path, name)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    importlib.invalidate_caches()
+    module = importlib.import_module(name)
+    assert module.__file__.startswith(str(tmp_path))
+    load = module.Torque(2.0)
+    assert foreign_classes((), [load]) == {module.Torque}
+    assert persistent._signature("user_load", (load, jnp.zeros(3)))[0] is None
+
+
+def test_a_user_class_under_a_loaded_standard_module_name_is_foreign(tmp_path, monkeypatch):
+    """The standard library's `profile` is the one in `sys.modules`, the user's module is
+    loaded from its file under the same name: its methods' file gives it away."""
+    import profile  # noqa: F401  the real one, loaded first
+
+    path = _write_module(tmp_path, "profile")
+    spec = importlib.util.spec_from_file_location("profile", path)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
+    spec.loader.exec_module(module)
+    assert module.Torque.__module__ == "profile"
+    assert foreign_classes((), [module.Torque(1.0)]) == {module.Torque}
+
+
+def test_the_librarys_own_and_pinned_classes_stay_known():
+    """Crank-jax's classes, the pinned libraries' and Python's own stay stored."""
+    import jax
+
+    import crank_jax as cj
+
+    scene = cj.load_scene("lab-rig")
+    leaves = [cj.NoLoad(), cj.HarmonicLoad(0.0, 1.0, 2.0), jnp.float64, (1, "a"),
+              frozenset(), jax.numpy.zeros(2).dtype]
+    assert foreign_classes((), leaves) == set()
+    assert foreign_classes((jax.tree.structure(scene),), []) == set()
+
+
+# --- a varied parameter with no effect is refused --------------------------------------------
+
+@pytest.fixture(scope="module")
+def lab_rig():
+    import crank_jax as cj
+
+    return cj.load_scene("lab-rig")  # no [load], no [torque], no friction
+
+
+@pytest.mark.parametrize("samples, name", [
+    # the made-up tone has frequency 0: tau1 sin(0) = 0 in every sample
+    ({"tau1": "uniform(0,0.1)"}, "tau1"),
+    ({"P1": "normal(1,0.1)"}, "P1"),
+    ({"tau_freq_hz": "uniform(1,3)"}, "tau_freq_hz"),  # a tone of zero amplitude
+    ({"P_phase": "uniform(0,3)", "P1": "const(0)"}, "P_phase"),
+    ({"w_c": "uniform(0.01,0.1)"}, "w_c"),  # the width of a Coulomb friction T_c = 0
+    ({"k": "normal(2,0.1)", "w_s": "uniform(0.01,0.1)"}, "w_s"),
+])
+def test_a_varied_parameter_with_no_effect_is_refused(lab_rig, samples, name):
+    from crank_jax.sweep.plan import make_plan
+
+    with pytest.raises(ValueError, match=rf"cannot vary '{name}': it has no effect on this "
+                                         "scene"):
+        make_plan(lab_rig, samples, ("peak_phi",), n=2)
+
+
+@pytest.mark.parametrize("samples", [
+    {"tau1": "uniform(0,0.1)", "tau_freq_hz": 2.0},
+    {"tau1": "uniform(0,0.1)", "tau_phase": "uniform(0.1,1)"},  # a constant X1 sin(phase)
+    {"P1": "normal(1,0.1)", "P_freq_hz": "uniform(1,2)", "P_phase": 0.0},
+    {"w_c": "uniform(0.01,0.1)", "T_c": "uniform(0,0.01)"},
+    {"P0": "const(0)", "tau0": 0.1},  # a mean always acts (a zero mean is the user's value)
+])
+def test_a_varied_parameter_that_acts_is_planned(lab_rig, samples):
+    from crank_jax.sweep.plan import make_plan
+
+    assert make_plan(lab_rig, samples, ("peak_phi",), n=2).n == 2
+
+
+def test_cli_sweep_refuses_a_varied_parameter_with_no_effect(tmp_path, capsys):
+    from crank_jax import cli
+
+    out = tmp_path / "x.npz"
+    argv = ["sweep", "lab-rig", "--vary", "tau1=uniform(0,0.1)", "--n", "2", "--out",
+            str(out), "--quiet"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot vary 'tau1'" in err
+    assert "tau_freq_hz or tau_phase too" in err and not out.exists()
