@@ -138,3 +138,87 @@ def test_cli_sweep_refuses_a_varied_parameter_with_no_effect(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "cannot vary 'tau1'" in err
     assert "tau_freq_hz or tau_phase too" in err and not out.exists()
+
+
+# --- saved trajectories: the manifest is checksummed -----------------------------------------
+
+@pytest.fixture(scope="module")
+def saved(lab_rig, tmp_path_factory):
+    import crank_jax as cj
+
+    path = tmp_path_factory.mktemp("traj") / "tr"
+    cj.run_sweep(lab_rig, {"k": "normal(2.0,0.1)"}, ("peak_phi",), n=3, seed=1, t1=0.2,
+                 num_saves=5, chunk_size=2, save_trajectories=path)
+    return path
+
+
+def _edit(doc, key):
+    if key == "ts":
+        doc["ts"] = [2.0 * t for t in doc["ts"]]  # the same length, other times
+    elif key == "n":
+        doc["n"] += 1
+    elif key == "chunks":
+        doc["chunks"] = doc["chunks"][::-1]
+    elif key == "units":
+        doc["units"]["ts"] = "ms"
+    elif key == "sha256":
+        del doc["sha256"]
+
+
+@pytest.mark.parametrize("key", ["ts", "n", "chunks", "units", "sha256"])
+def test_an_edited_trajectory_manifest_is_refused(saved, tmp_path, key):
+    """The chunk files were checksummed, the manifest was not: its edited `ts` were
+    served as the sweep's save times."""
+    import json
+    import shutil
+
+    import crank_jax as cj
+
+    good = cj.load_trajectories(saved)
+    assert good.ts.shape == (5,) and good.ts[-1] == pytest.approx(0.2)
+    copy = tmp_path / "tr"
+    shutil.copytree(saved, copy)
+    doc = json.loads((copy / "manifest.json").read_text())
+    _edit(doc, key)
+    (copy / "manifest.json").write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=r"manifest.json' are damaged or were edited"):
+        cj.load_trajectories(copy)
+
+
+# --- a read-only output is kept, also for root -----------------------------------------------
+
+@pytest.mark.parametrize("mode", [0o444, 0o400, 0o000])
+def test_a_read_only_output_is_never_replaced_even_by_root(tmp_path, mode):
+    """The check relied on `os.access`, which root passes for any file: run as root (as
+    here), a file made read-only was replaced."""
+    from crank_jax.runtime.io import atomic_write, check_output
+
+    ro = tmp_path / "ro.csv"
+    ro.write_text("keep\n")
+    ro.chmod(mode)
+    with pytest.raises(ValueError, match=r"--out .* exists and is read-only"):
+        check_output(ro)
+    with pytest.raises(PermissionError, match="exists and is read-only"):
+        with atomic_write(ro) as f:
+            f.write("lost")
+    link = tmp_path / "link.csv"
+    link.symlink_to(ro)  # written through to its target: the same refusal
+    with pytest.raises(PermissionError, match="read-only"):
+        with atomic_write(link) as f:
+            f.write("lost")
+    ro.chmod(0o600)
+    assert ro.read_text() == "keep\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.csv", "ro.csv"]
+
+
+def test_cli_refuses_a_read_only_output_even_as_root(tmp_path, capsys):
+    from crank_jax import cli
+
+    ro = tmp_path / "ro.csv"
+    ro.write_text("keep\n")
+    ro.chmod(0o444)
+    assert cli.main(["simulate", "lab-rig", "--out", str(ro)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "read-only" in err and "--out" in err
+    ro.chmod(0o600)
+    assert ro.read_text() == "keep\n"
