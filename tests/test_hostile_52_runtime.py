@@ -222,3 +222,73 @@ def test_cli_refuses_a_read_only_output_even_as_root(tmp_path, capsys):
     assert err.count("\n") == 1 and "read-only" in err and "--out" in err
     ro.chmod(0o600)
     assert ro.read_text() == "keep\n"
+
+
+# --- two outputs that are one file are refused before any work --------------------------------
+
+# command line (with a "{data}" record file), the two options made to collide, and further
+# options each command needs
+_TWO_OUTPUTS = {
+    "validate": (["validate", "lab-rig", "{data}", "--quiet"], "--out", "--plot", []),
+    "validate-report": (["validate", "lab-rig", "{data}", "--quiet"], "--out", "--report",
+                        []),
+    "posterior": (["posterior", "{data}", "lab-rig"], "--out", "--plot", []),
+    "design": (["design", "lab-rig", "--free", "k,c", "--t1", "1", "--rate", "100",
+                "--torque-amplitude", "0.1"], "--scene-out", "--out", ["--plot", "d.png"]),
+    "design-plot": (["design", "lab-rig", "--free", "k,c", "--t1", "1", "--rate", "100",
+                     "--torque-amplitude", "0.1"], "--out", "--plot",
+                    ["--scene-out", "d.toml"]),
+    "response": (["response", "lab-rig", "--freq", "3:5"], "--out", "--plot", []),
+    "stability": (["stability", "lab-rig", "--load-amplitude", "0:10", "--freq", "1:2"],
+                  "--out", "--plot", []),
+    "fit": (["fit", "{data}", "pendulum", "--free", "c", "--quiet"], "--out", "--plot", []),
+    "fit-report": (["fit", "{data}", "pendulum", "--free", "c", "--quiet"], "--report",
+                   "--scene-out", []),
+    "simulate": (["simulate", "lab-rig"], "--out", "--plot", []),
+    "sweep": (["sweep", "lab-rig", "--n", "2", "--quiet"], "--out", "--checkpoint", []),
+}
+
+
+@pytest.mark.parametrize("how", ["dot", "symlink", "hardlink"])
+@pytest.mark.parametrize("command", list(_TWO_OUTPUTS))
+def test_two_outputs_that_are_one_file_are_refused(tmp_path, capsys, monkeypatch, command,
+                                                   how):
+    """`./x` and `x`, a symbolic link and its target, two hard links: one file, which the
+    output written last replaced (a JSON result by the figure, a TOML by the JSON)."""
+    from crank_jax import cli
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data.csv").write_text("t,phi\n0,0\n0.1,0\n")
+    argv, first, second, more = _TWO_OUTPUTS[command]
+    argv = [a.replace("{data}", "data.csv") for a in argv] + more
+    name = "o.png"  # every output here may have a figure's suffix
+    (tmp_path / name).write_text("keep\n")
+    other = {"dot": f"./{name}", "symlink": "link.png", "hardlink": "hard.png"}[how]
+    if how == "symlink":
+        (tmp_path / other).symlink_to(tmp_path / name)
+    elif how == "hardlink":
+        os.link(tmp_path / name, tmp_path / other)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    t = time.perf_counter()
+    assert cli.main(argv + [first, name, second, other]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and ("same file" in err or "same path" in err), err
+    assert first in err and second in err, err
+    assert time.perf_counter() - t < 30  # refused before the work
+    assert (tmp_path / name).read_text() == "keep\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_same_file_cases(tmp_path, monkeypatch):
+    from crank_jax.runtime.io import same_file
+
+    monkeypatch.chdir(tmp_path)
+    assert same_file("x", "./x") and same_file("x", str(tmp_path / "sub" / ".." / "x"))
+    (tmp_path / "x").write_text("a")
+    (tmp_path / "l").symlink_to("x")
+    os.link("x", "h")
+    assert same_file("l", "x") and same_file("h", "x") and same_file("h", "l")
+    (tmp_path / "dangling").symlink_to("y")  # a link to an output not yet written
+    assert same_file("dangling", "y")
+    (tmp_path / "y2").write_text("a")
+    assert not same_file("x", "y2") and not same_file("x", "y")

@@ -45,7 +45,7 @@ def _posterior_args(p: argparse.ArgumentParser) -> None:
 
 def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
     from ..identify.posterior import check_posterior_memory
-    from ..runtime.io import check_figure_format, check_output
+    from ..runtime.io import check_distinct_outputs, check_figure_format, check_output
 
     free = free_list(a.free)
     for option, value, lo in (("--draws", a.draws, 1), ("--chains", a.chains, 1),
@@ -62,8 +62,7 @@ def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
     if a.plot:
         check_output(a.plot, inputs, "--plot")
         check_figure_format(a.plot)
-        if a.plot == a.out:
-            raise UserError("--out and --plot must name different files")
+    check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot")])
     return free
 
 
@@ -144,7 +143,12 @@ def _design_args(p: argparse.ArgumentParser) -> None:
 
 def _design_run(a: argparse.Namespace) -> int:
     from ..identify.design import design
-    from ..runtime.io import atomic_write, check_figure_format, check_output
+    from ..runtime.io import (
+        atomic_write,
+        check_distinct_outputs,
+        check_figure_format,
+        check_output,
+    )
     from ..scene import load_scene, save_scene
 
     free = free_list(a.free)
@@ -162,8 +166,7 @@ def _design_run(a: argparse.Namespace) -> int:
         [(a.plot, "--plot")] if a.plot else [])
     for path, option in outs:
         check_output(path, [a.scene], option)
-    if len({p for p, _ in outs}) < len(outs):
-        raise UserError("--out, --scene-out and --plot must name different files")
+    check_distinct_outputs(outs)
     if a.plot:
         check_figure_format(a.plot)
     scene = load_scene(a.scene)

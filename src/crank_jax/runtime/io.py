@@ -19,7 +19,8 @@ from typing import IO
 __all__ = ["atomic_write", "make_dir", "check_input", "check_not_input", "check_output",
            "check_figure_format", "default_file_mode", "Terminated", "note_signal",
            "raise_if_terminated", "temp_file", "remove_stale_temps", "STALE_TEMP_S",
-           "DISK_FULL", "disk_full", "printable", "read_only"]
+           "DISK_FULL", "disk_full", "printable", "read_only", "same_file",
+           "check_distinct_outputs"]
 
 
 class Terminated(BaseException):
@@ -293,6 +294,28 @@ def check_output(out: str | os.PathLike, inputs: Sequence[str | os.PathLike | No
         # file is a user's way of saying "keep this".
         raise ValueError(f"{option} {text!r} exists and is read-only; choose another name "
                          "or make it writable")
+
+
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """Whether two paths name one file: the same inode when both exist (a hard link, a
+    case-insensitive file system), else the same path once symbolic links, `.` and `..`
+    are resolved (`./x` is `x`; a link is its target, even one not yet written)."""
+    with contextlib.suppress(OSError):
+        if os.path.exists(a) and os.path.exists(b):
+            return os.path.samefile(a, b)
+    return (os.path.normcase(os.path.realpath(a)) == os.path.normcase(os.path.realpath(b)))
+
+
+def check_distinct_outputs(outputs: Sequence[tuple[str | os.PathLike | None, str]]) -> None:
+    """Raise `ValueError` naming both options when two of `outputs` (`(path, option)`
+    pairs; a `None` path is skipped) are one file ([`same_file`][]): the one written last
+    would replace the other. Call it before any work."""
+    named = [(p, o) for p, o in outputs if p is not None and str(p)]
+    for i, (p1, o1) in enumerate(named):
+        for p2, o2 in named[i + 1:]:
+            if same_file(p1, p2):
+                raise ValueError(f"{o2} {str(p2)!r} is the same file as {o1} {str(p1)!r}; "
+                                 "give each output its own file")
 
 
 def check_figure_format(path: str | os.PathLike, option: str = "--plot") -> None:
