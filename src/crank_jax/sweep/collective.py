@@ -22,6 +22,8 @@ import time
 import jax
 import numpy as np
 
+from ..runtime.compat import distributed_client
+
 __all__ = ["gather", "broadcast", "lost", "on_process_0", "sync", "SYNC_TIMEOUT_S",
            "same_everywhere"]
 
@@ -41,9 +43,7 @@ def sync() -> None:
     global _barriers
     if jax.process_count() == 1:
         return
-    from jax._src import distributed  # the client of `jax.distributed.initialize`
-
-    client = distributed.global_state.client
+    client = distributed_client()
     if client is None:
         return
     _barriers += 1
