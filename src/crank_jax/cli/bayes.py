@@ -141,14 +141,22 @@ def _design_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _design_outputs(a: argparse.Namespace) -> None:
+    """--out, --scene-out and --plot: each a writable file, not the scene, none another."""
+    from ..runtime.io import check_distinct_outputs, check_figure_format, check_output
+
+    outs = [(a.out, "--out"), (a.scene_out, "--scene-out")] + (
+        [(a.plot, "--plot")] if a.plot else [])
+    for path, option in outs:
+        check_output(path, [a.scene], option)
+    check_distinct_outputs(outs)
+    if a.plot:
+        check_figure_format(a.plot)
+
+
 def _design_run(a: argparse.Namespace) -> int:
     from ..identify.design import design
-    from ..runtime.io import (
-        atomic_write,
-        check_distinct_outputs,
-        check_figure_format,
-        check_output,
-    )
+    from ..runtime.io import atomic_write
     from ..scene import load_scene, save_scene
 
     free = free_list(a.free)
@@ -162,13 +170,7 @@ def _design_run(a: argparse.Namespace) -> int:
         raise UserError("--criterion c needs --target NAME (a free parameter)")
     if a.target is not None and a.target not in free:
         raise UserError(f"--target {a.target} is not free; choose from {', '.join(free)}")
-    outs = [(a.out, "--out"), (a.scene_out, "--scene-out")] + (
-        [(a.plot, "--plot")] if a.plot else [])
-    for path, option in outs:
-        check_output(path, [a.scene], option)
-    check_distinct_outputs(outs)
-    if a.plot:
-        check_figure_format(a.plot)
+    _design_outputs(a)
     scene = load_scene(a.scene)
     refuse_input_loads(scene, a.scene, "design")
     try:
