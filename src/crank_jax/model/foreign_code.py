@@ -13,6 +13,12 @@ from one factory shared one program, and `fit(force=...)` returned wrong, "conve
 values. So a program with any class from outside crank-jax in its inputs is never
 stored: it is traced in every process (that is what tracing is for), and JAX's own
 persistent cache, keyed on the traced program, still spares the compilation.
+
+Which code is the library's own is decided by where its files lie, never by a module's
+name: a class counts only if its module's file, and the file of every function its body
+defines, is in crank-jax's package, a pinned library's installed package or the
+interpreter's standard library (a user's `profile.py`, a "torque profile", is named like
+the standard library's profiler but lies elsewhere).
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ import importlib.util
 import os
 import sys
 import sysconfig
+import types
 import weakref
 
 __all__ = ["foreign_classes"]
@@ -90,11 +97,15 @@ def _module_file(module_name: str):
 def _functions(cls):
     """The code objects of the functions a class body defines (methods, static and class
     methods, properties' accessors, wrapped methods)."""
-    for value in vars(cls).values():
-        for fn in (value, getattr(value, "__func__", None), getattr(value, "fget", None),
-                   getattr(value, "method", None), getattr(value, "__wrapped__", None)):
+    for value in list(vars(cls).values()):
+        try:
+            fns = (value, getattr(value, "__func__", None), getattr(value, "fget", None),
+                   getattr(value, "method", None), getattr(value, "__wrapped__", None))
+        except Exception:  # noqa: BLE001 (an attribute whose lookup runs code)
+            fns = (value,)
+        for fn in fns:
             code = getattr(fn, "__code__", None)
-            if code is not None:
+            if isinstance(code, types.CodeType):
                 yield code
 
 
