@@ -8,10 +8,12 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import os
+import re
 import sys
 import time
 
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from crank_jax.model.foreign_code import foreign_classes
@@ -21,6 +23,7 @@ from crank_jax.runtime import persistent
 
 LOAD = """
 import jax.numpy as jnp
+import numpy as np
 from crank_jax.model.loads import AbstractLoad
 
 GAIN = 0.1
@@ -292,3 +295,108 @@ def test_same_file_cases(tmp_path, monkeypatch):
     assert same_file("dangling", "y")
     (tmp_path / "y2").write_text("a")
     assert not same_file("x", "y2") and not same_file("x", "y")
+
+
+# --- the API refuses what the command line refuses --------------------------------------------
+
+@pytest.mark.parametrize("kw, words", [
+    ({"n": 2.5}, "n must be an integer >= 1, got 2.5"),  # ran 2 samples
+    ({"n": 2.0}, "n must be an integer"),
+    ({"n": True}, "n must be an integer"),
+    ({"n": 0}, "n must be an integer >= 1"),
+    ({"seed": 1.5}, "seed must be an integer from 0 to"),
+    ({"seed": 2**63}, "seed must be an integer from 0 to"),
+    ({"seed": -1}, "seed must be an integer from 0 to"),
+    ({"num_saves": 10.5}, "num_saves must be an integer >= 2"),
+    ({"chunk_size": 1.5}, "chunk_size must be an integer >= 1"),
+    ({"max_steps": 1.5}, "max_steps must be an integer >= 1"),
+    ({"max_steps": 0}, "max_steps must be an integer >= 1"),
+    ({"trajectory_every": 1.5, "save_trajectories": "unused"}, "trajectory_every must be"),
+    ({"max_memory": 1e9}, "max_memory must be an integer"),
+    ({"t1": float("inf")}, "finite t1 > 0"),
+])
+def test_run_sweep_refuses_what_the_cli_refuses(lab_rig, tmp_path, kw, words):
+    import crank_jax as cj
+
+    kw = {"n": 2, **kw}
+    if "save_trajectories" in kw:
+        kw["save_trajectories"] = tmp_path / "tr"
+    with pytest.raises(ValueError, match=re.escape(words)):
+        cj.run_sweep(lab_rig, {"k": "normal(2,0.1)"}, ("peak_phi",), **kw)
+    assert not (tmp_path / "tr").exists()
+
+
+def test_integer_arguments_of_numpy_types_are_taken(lab_rig):
+    from crank_jax.sweep.plan import make_plan
+
+    plan = make_plan(lab_rig, {"k": "normal(2,0.1)"}, ("peak_phi",), n=np.int64(3),
+                     seed=np.uint64(2**63 - 1), num_saves=np.int32(5))
+    assert plan.n == 3 and plan.seed == 2**63 - 1 and plan.ts.shape == (5,)
+
+
+@pytest.mark.parametrize("seed", [2**63, -1, 1.5, True, "1"])
+def test_demo_record_refuses_a_seed_the_cli_refuses(seed):
+    from crank_jax.identify.demo import demo_record
+
+    with pytest.raises(ValueError, match=r"demo_record: seed must be an integer from 0 to "
+                                         r"9223372036854775807"):
+        demo_record(seed)
+
+
+_JOIN = """
+import time, crank_jax as cj
+t = time.perf_counter()
+try:
+    cj.sweep.initialize_distributed(**{kw}, initialization_timeout=5)
+    print("JOINED")
+except Exception as e:
+    print(type(e).__name__, str(e).splitlines()[0] if str(e) else "")
+print(f"after {{time.perf_counter() - t:.1f}} s")
+"""
+
+
+@pytest.mark.parametrize("kw, env, words", [
+    ({"coordinator_address": "nohost", "num_processes": 1, "process_id": 0}, {},
+     "coordinator_address='nohost': expected 'HOST:PORT'"),  # IndexError
+    ({"coordinator_address": "localhost:99999", "num_processes": 1, "process_id": 0}, {},
+     "coordinator_address='localhost:99999'"),  # joined
+    ({"coordinator_address": ":1234", "num_processes": 1, "process_id": 0}, {},
+     "coordinator_address=':1234'"),  # aborted the process
+    ({"num_processes": 0, "process_id": 0, "coordinator_address": "localhost:1234"}, {},
+     "num_processes=0: expected an integer >= 1"),
+    ({}, {"JAX_COORDINATOR_ADDRESS": "localhost:1234", "JAX_NUM_PROCESSES": "2",
+          "JAX_PROCESS_ID": "2"},
+     "environment variable JAX_PROCESS_ID=2 must be below environment variable "
+     "JAX_NUM_PROCESSES=2"),
+])
+def test_initialize_distributed_refuses_a_bad_cluster_at_once(kw, env, words):
+    """Refused in the library as the CLI refuses it (in 2 s): JAX raised IndexError,
+    joined a port that cannot exist, aborted, or waited minutes."""
+    import subprocess
+
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
+    out = subprocess.run([sys.executable, "-c", _JOIN.format(kw=kw)], capture_output=True,
+                         text=True, timeout=120, env={**clean, **env})
+    assert f"ValueError {words}" in out.stdout, out.stdout + out.stderr[-2000:]
+    assert float(out.stdout.split("after ")[1].split()[0]) < 2.0
+
+
+# --- small ones a newcomer meets --------------------------------------------------------------
+
+def test_synth_takes_quiet_as_the_other_commands_do(tmp_path, capsys):
+    from crank_jax import cli
+
+    out = tmp_path / "r.csv"
+    argv = ["synth", "lab-rig", "--t1", "0.2", "--rate", "50", "--out", str(out), "--quiet"]
+    assert cli.main(argv) == 0, capsys.readouterr().err
+    assert out.stat().st_size > 0
+
+
+def test_readme_features_name_vibration_analysis_and_k_step_validation():
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    features = text[text.index("## Features"):text.index("## Architecture")]
+    for words in ("Nonlinear vibration analysis", "crank-jax backbone", "crank-jax response",
+                  "crank-jax stability", "k steps ahead", "--horizon"):
+        assert words in features, words

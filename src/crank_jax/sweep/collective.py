@@ -25,7 +25,7 @@ import numpy as np
 from ..runtime.compat import distributed_client
 
 __all__ = ["gather", "broadcast", "lost", "on_process_0", "sync", "SYNC_TIMEOUT_S",
-           "same_everywhere"]
+           "same_everywhere", "check_cluster"]
 
 #: The longest a process waits at a barrier for its peers (s): a day, for a chunk that
 #: takes long on one host. A peer that dies is noticed sooner (the heartbeat timeout).
@@ -34,6 +34,43 @@ SYNC_TIMEOUT_S = 86_400
 DELAY_ENV = "CRANK_JAX_TEST_COLLECTIVE_DELAY"
 
 _barriers = 0  # barriers passed by this process (their ids; the same on every process)
+
+
+def _cluster_value(kwargs: dict, key: str, env: str):
+    """(value, its name for a message): the argument `key`, else environment variable
+    `env` (None when neither is set)."""
+    if kwargs.get(key) is not None:
+        return kwargs[key], f"{key}="
+    text = os.environ.get(env, "").strip()
+    return (text or None), f"environment variable {env}="
+
+
+def check_cluster(kwargs: dict) -> None:
+    """`ValueError` naming the argument (or the environment variable it comes from) for a
+    cluster that `jax.distributed.initialize(**kwargs)` cannot join, before it tries: a
+    coordinator address that is not HOST:PORT with a port from 1 to 65535 (JAX raised
+    `IndexError`, aborted, or waited minutes), a process count below 1, a process index
+    outside 0 to count - 1."""
+    address, where = _cluster_value(kwargs, "coordinator_address", "JAX_COORDINATOR_ADDRESS")
+    if address is not None:
+        host, sep, port = address.rpartition(":") if isinstance(address, str) else ("",) * 3
+        if not (sep and host.strip("[]") and port.isdigit() and 0 < int(port) < 65536):
+            raise ValueError(f"{where}{address!r}: expected 'HOST:PORT', the address of "
+                             "process 0 with a port from 1 to 65535 (e.g. 'node0:1234')")
+    counts = {}
+    for key, env, low in (("num_processes", "JAX_NUM_PROCESSES", 1),
+                          ("process_id", "JAX_PROCESS_ID", 0)):
+        value, where = _cluster_value(kwargs, key, env)
+        if isinstance(value, str):
+            value = int(value) if value.lstrip("-").isdigit() else value
+        if value is not None and (isinstance(value, bool) or not isinstance(
+                value, (int, np.integer)) or value < low):
+            raise ValueError(f"{where}{value!r}: expected an integer >= {low}")
+        counts[key] = (value, where)
+    (n, n_where), (pid, pid_where) = counts["num_processes"], counts["process_id"]
+    if n is not None and pid is not None and pid >= n:
+        raise ValueError(f"{pid_where}{pid} must be below {n_where}{n} (processes are "
+                         "numbered from 0)")
 
 
 def sync() -> None:

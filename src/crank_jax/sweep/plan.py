@@ -35,7 +35,7 @@ from ..model.loads import (
 from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..simulation import linearize
 from ..solve.policy import check_solver, fastest_mode
-from .distributions import AbstractDistribution, Spec, draw, parse_spec
+from .distributions import MAX_SEED, AbstractDistribution, Spec, draw, parse_spec, whole
 from .reductions import REDUCTIONS, TRAJECTORY_OUTPUTS
 
 __all__ = ["VARIABLES", "STATE_NAMES", "SORT_BLOCK", "Plan", "make_plan", "result_bytes",
@@ -277,17 +277,19 @@ def make_plan(scene, samples, outputs, *, n=None, seed=0, t1=None, num_saves=Non
     for name in samples:
         if name not in VARIABLES:
             raise ValueError(f"cannot vary {name!r}; choose from {list(VARIABLES)}")
-    if chunk_size < 1:
-        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+    chunk_size = whole(chunk_size, "chunk_size", 1)
+    seed = whole(seed, "seed", 0, MAX_SEED)
+    n = None if n is None else whole(n, "n", 1)
     solver = check_solver(scene.solver if solver is None else solver)
-    spec = parse_spec(samples, n if samples else int(n or 1))
+    spec = parse_spec(samples, n if samples else (n or 1))
     t_end = scene.t1 if t1 is None else float(t1)
-    n_t = int(scene.samples if num_saves is None else num_saves)
-    if not (t_end > 0 and n_t >= 2):
-        raise ValueError("a sweep needs t1 > 0 and at least 2 save times")
+    n_t = int(scene.samples) if num_saves is None else whole(num_saves, "num_saves", 2)
+    if not (np.isfinite(t_end) and t_end > 0 and n_t >= 2):
+        raise ValueError(f"a sweep needs a finite t1 > 0 s and at least 2 save times, got "
+                         f"t1 = {t_end:g} and {n_t} save times")
     # Both bounds are checked before the save times themselves are made (10^9 of them
     # would already take 8 GB).
-    limit = host_memory() // 2 if max_memory is None else int(max_memory)
+    limit = host_memory() // 2 if max_memory is None else whole(max_memory, "max_memory", 1)
     why = "half this host's memory" if max_memory is None else "max_memory"
     need = result_bytes(spec.n, len(spec.names), reductions, n_t)
     if limit and need > limit:
