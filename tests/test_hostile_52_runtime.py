@@ -146,12 +146,17 @@ def test_cli_sweep_refuses_a_varied_parameter_with_no_effect(tmp_path, capsys):
 # --- saved trajectories: the manifest is checksummed -----------------------------------------
 
 @pytest.fixture(scope="module")
-def saved(lab_rig, tmp_path_factory):
-    import crank_jax as cj
+def saved(tmp_path_factory):
+    """A finished store of two chunks, written by the sweep's own writer (no solve)."""
+    from crank_jax.sweep.trajectories import TrajectoryStore
 
     path = tmp_path_factory.mktemp("traj") / "tr"
-    cj.run_sweep(lab_rig, {"k": "normal(2.0,0.1)"}, ("peak_phi",), n=3, seed=1, t1=0.2,
-                 num_saves=5, chunk_size=2, save_trajectories=path)
+    store = TrajectoryStore(path, {"plan": "stand-in"}, np.linspace(0.0, 0.2, 5), 1, 3)
+    rows = np.arange(15.0).reshape(3, 5)
+    for start, idx in ((0, np.array([0, 1])), (2, np.array([2]))):
+        store.save(0, start, idx, {"phi": rows[idx], "dphi": -rows[idx]})
+        store.chunks.append((0, start))
+    store.finish()
     return path
 
 
@@ -179,6 +184,7 @@ def test_an_edited_trajectory_manifest_is_refused(saved, tmp_path, key):
 
     good = cj.load_trajectories(saved)
     assert good.ts.shape == (5,) and good.ts[-1] == pytest.approx(0.2)
+    np.testing.assert_array_equal(good[[2, 0]]["phi"], [np.arange(10.0, 15.0), np.arange(5.0)])
     copy = tmp_path / "tr"
     shutil.copytree(saved, copy)
     doc = json.loads((copy / "manifest.json").read_text())
@@ -344,59 +350,50 @@ def test_demo_record_refuses_a_seed_the_cli_refuses(seed):
 
 
 _JOIN = """
-import time, crank_jax as cj
-t = time.perf_counter()
-try:
-    cj.sweep.initialize_distributed(**{kw}, initialization_timeout=5)
-    print("JOINED")
-except Exception as e:
-    print(type(e).__name__, str(e).splitlines()[0] if str(e) else "")
-print(f"after {{time.perf_counter() - t:.1f}} s")
+import json, os, sys, time
+import crank_jax as cj
+for kw, env in json.loads(sys.argv[1]):
+    for k in [k for k in os.environ if k.startswith("JAX_")]:
+        del os.environ[k]
+    os.environ.update(env)
+    t = time.perf_counter()
+    try:
+        cj.sweep.initialize_distributed(**kw, initialization_timeout=5)
+        what = "JOINED"
+    except Exception as e:
+        what = type(e).__name__ + " " + (str(e).splitlines() or [""])[0]
+    print(json.dumps([what, time.perf_counter() - t]), flush=True)
 """
 
-
-@pytest.mark.parametrize("kw, env, words", [
+_BAD_CLUSTERS = [
     ({"coordinator_address": "nohost", "num_processes": 1, "process_id": 0}, {},
      "coordinator_address='nohost': expected 'HOST:PORT'"),  # IndexError
     ({"coordinator_address": "localhost:99999", "num_processes": 1, "process_id": 0}, {},
      "coordinator_address='localhost:99999'"),  # joined
-    ({"coordinator_address": ":1234", "num_processes": 1, "process_id": 0}, {},
-     "coordinator_address=':1234'"),  # aborted the process
+    ({"coordinator_address": "localhost:0", "num_processes": 1, "process_id": 0}, {},
+     "coordinator_address='localhost:0'"),
     ({"num_processes": 0, "process_id": 0, "coordinator_address": "localhost:1234"}, {},
      "num_processes=0: expected an integer >= 1"),
     ({}, {"JAX_COORDINATOR_ADDRESS": "localhost:1234", "JAX_NUM_PROCESSES": "2",
           "JAX_PROCESS_ID": "2"},
      "environment variable JAX_PROCESS_ID=2 must be below environment variable "
      "JAX_NUM_PROCESSES=2"),
-])
-def test_initialize_distributed_refuses_a_bad_cluster_at_once(kw, env, words):
+    ({"coordinator_address": ":1234", "num_processes": 1, "process_id": 0}, {},
+     "coordinator_address=':1234'"),  # aborted the process: last
+]
+
+
+def test_initialize_distributed_refuses_a_bad_cluster_at_once():
     """Refused in the library as the CLI refuses it (in 2 s): JAX raised IndexError,
-    joined a port that cannot exist, aborted, or waited minutes."""
+    joined a port that cannot exist, aborted the process, or waited minutes."""
+    import json
     import subprocess
 
-    clean = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
-    out = subprocess.run([sys.executable, "-c", _JOIN.format(kw=kw)], capture_output=True,
-                         text=True, timeout=120, env={**clean, **env})
-    assert f"ValueError {words}" in out.stdout, out.stdout + out.stderr[-2000:]
-    assert float(out.stdout.split("after ")[1].split()[0]) < 2.0
-
-
-# --- small ones a newcomer meets --------------------------------------------------------------
-
-def test_synth_takes_quiet_as_the_other_commands_do(tmp_path, capsys):
-    from crank_jax import cli
-
-    out = tmp_path / "r.csv"
-    argv = ["synth", "lab-rig", "--t1", "0.2", "--rate", "50", "--out", str(out), "--quiet"]
-    assert cli.main(argv) == 0, capsys.readouterr().err
-    assert out.stat().st_size > 0
-
-
-def test_readme_features_name_vibration_analysis_and_k_step_validation():
-    from pathlib import Path
-
-    text = (Path(__file__).resolve().parent.parent / "README.md").read_text()
-    features = text[text.index("## Features"):text.index("## Architecture")]
-    for words in ("Nonlinear vibration analysis", "crank-jax backbone", "crank-jax response",
-                  "crank-jax stability", "k steps ahead", "--horizon"):
-        assert words in features, words
+    cases = json.dumps([[kw, env] for kw, env, _ in _BAD_CLUSTERS])
+    out = subprocess.run([sys.executable, "-c", _JOIN, cases], capture_output=True,
+                         text=True, timeout=120)
+    lines = [json.loads(x) for x in out.stdout.splitlines() if x.startswith("[")]
+    assert len(lines) == len(_BAD_CLUSTERS), out.stdout + out.stderr[-2000:]
+    for (what, seconds), (_, _, words) in zip(lines, _BAD_CLUSTERS):
+        assert what.startswith(f"ValueError {words}"), what
+        assert seconds < 2.0
