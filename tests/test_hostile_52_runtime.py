@@ -397,3 +397,26 @@ def test_initialize_distributed_refuses_a_bad_cluster_at_once():
     for (what, seconds), (_, _, words) in zip(lines, _BAD_CLUSTERS):
         assert what.startswith(f"ValueError {words}"), what
         assert seconds < 2.0
+
+
+def test_initialize_distributed_without_its_coordinator_raises_instead_of_aborting():
+    """Process 1 whose coordinator never answers: JAX aborted the Python process (a C++
+    stack dump, no exception) after `initialization_timeout`; now a `RuntimeError` that
+    names the address."""
+    import json
+    import socket
+    import subprocess
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    kw = {"coordinator_address": f"127.0.0.1:{port}", "num_processes": 2, "process_id": 1}
+    cases = json.dumps([[kw, {}]])
+    out = subprocess.run([sys.executable, "-c", _JOIN, cases], capture_output=True,
+                         text=True, timeout=120)
+    lines = [json.loads(x) for x in out.stdout.splitlines() if x.startswith("[")]
+    assert out.returncode == 0 and len(lines) == 1, out.stdout + out.stderr[-2000:]
+    what, seconds = lines[0]
+    assert what.startswith(f"RuntimeError coordinator_address='127.0.0.1:{port}': process 0 "
+                           "(the coordinator) did not answer within 5 s"), what
+    assert seconds < 30

@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import socket
 import time
 
 import jax
@@ -25,7 +26,7 @@ import numpy as np
 from ..runtime.compat import distributed_client
 
 __all__ = ["gather", "broadcast", "lost", "on_process_0", "sync", "SYNC_TIMEOUT_S",
-           "same_everywhere", "check_cluster"]
+           "same_everywhere", "check_cluster", "wait_for_coordinator"]
 
 #: The longest a process waits at a barrier for its peers (s): a day, for a chunk that
 #: takes long on one host. A peer that dies is noticed sooner (the heartbeat timeout).
@@ -71,6 +72,31 @@ def check_cluster(kwargs: dict) -> None:
     if n is not None and pid is not None and pid >= n:
         raise ValueError(f"{pid_where}{pid} must be below {n_where}{n} (processes are "
                          "numbered from 0)")
+
+
+def wait_for_coordinator(kwargs: dict) -> None:
+    """In a process other than 0: wait, at most `initialization_timeout` s (JAX's default,
+    300), until the coordinator accepts connections. JAX aborts the whole Python process
+    (a C++ stack dump, no exception) when it cannot reach it; here it is a `RuntimeError`
+    naming the address. Call after [`check_cluster`][]."""
+    address, where = _cluster_value(kwargs, "coordinator_address", "JAX_COORDINATOR_ADDRESS")
+    pid, _ = _cluster_value(kwargs, "process_id", "JAX_PROCESS_ID")
+    if address is None or pid is None or int(pid) == 0:
+        return
+    host, _, port = address.rpartition(":")
+    wait = float(kwargs.get("initialization_timeout") or 300)
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            socket.create_connection((host.strip("[]"), int(port)), timeout=2).close()
+            return
+        except OSError as e:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{where}{address!r}: process 0 (the coordinator) did not "
+                                   f"answer within {wait:g} s ({e.strerror or e}); start "
+                                   "process 0 first, check the address, or give a longer "
+                                   "initialization_timeout") from None
+            time.sleep(0.5)
 
 
 def sync() -> None:

@@ -54,7 +54,7 @@ from ..simulation import linearize, simulate
 from ..solve.names import name_of
 from ..solve.policy import SOLVERS, is_concrete, resolve_solver
 from .checkpoint import Checkpoint, SharedCheckpoint, plan_manifest
-from .collective import check_cluster, gather, on_process_0, same_everywhere
+from .collective import check_cluster, gather, on_process_0, same_everywhere, wait_for_coordinator
 from .distributions import AbstractDistribution, whole
 from .plan import SORT_BLOCK, VARIABLES, Plan, make_plan
 from .reductions import DEFAULT_OUTPUTS, REDUCTIONS, TRAJECTORY_OUTPUTS, reduce
@@ -104,6 +104,7 @@ def initialize_distributed(**kwargs) -> None:
                     kwargs[key] = int(os.environ[env])
                 except ValueError:
                     raise ValueError(f"{env}={os.environ[env]!r} is not an integer") from None
+        wait_for_coordinator(kwargs)  # JAX aborts the process when it cannot reach it
         jax.distributed.initialize(**kwargs)
         _distributed_ready = True
 
