@@ -54,7 +54,8 @@ def structure_cost(smoke):
     kw = dict(n=n, t1=1.0, num_saves=101, chunk_size=n, solver="tsit5")
     cases = [
         ("lab rig, peak_phi", rig, {"k": "normal(2,0.1)"}, ("peak_phi",), None),
-        ("lab rig, P1 varied at const(0)", rig, {"k": "normal(2,0.1)", "P1": "const(0)"},
+        # (a mean: an amplitude with no frequency has no effect, and a sweep refuses it)
+        ("lab rig, P0 varied at const(0)", rig, {"k": "normal(2,0.1)", "P0": "const(0)"},
          ("peak_phi",), None),
         ("lab rig, harmonic P varied", rig, {"k": "normal(2,0.1)", "P1": "normal(1,0.1)",
                                              "P_freq_hz": 3.0}, ("peak_phi",), None),

@@ -87,3 +87,34 @@ def test_jax_internals():
     from jax._src.lax.linalg import initialize_lapack  # noqa: F401
 
     compat.initialize_lapack()
+
+
+def test_jax_distributed_client():
+    # "jax._src.distributed.global_state.client moved" if this fails: None before
+    # jax.distributed.initialize (as in this process), and the client's type still has
+    # the barrier that every multi-process sweep's collective waits at first.
+    from jax._src import lib
+
+    assert compat.distributed_client() is None
+    native = getattr(lib, "_jax", None) or lib.xla_extension  # its name before jax 0.7
+    assert callable(getattr(native.DistributedRuntimeClient, "wait_at_barrier", None))
+
+
+def test_private_apis_are_used_only_in_the_compat_modules():
+    # Every private use sits behind one of the two compat modules, with a test above that
+    # names it when it moves (sweep/collective.py imported jax._src.distributed itself).
+    import re
+    from pathlib import Path
+
+    import crank_jax
+
+    private = re.compile(r"(from|import)\s+(jax|jaxlib|equinox|diffrax|optimistix|lineax|"
+                         r"optax)(\.\w+)*\._\w+|\bjax\._src\b|\bequinox\.internal\b")
+    root = Path(crank_jax.__file__).parent
+    allowed = {root / "runtime" / "compat.py", root / "solve" / "library_api.py"}
+    for path in root.rglob("*.py"):
+        if path not in allowed:
+            hit = private.search(path.read_text())
+            assert hit is None, f"{path.relative_to(root)}: {hit.group(0)}"
+    assert private.search("    from jax._src import distributed")
+    assert private.search("import equinox.internal as eqxi")

@@ -213,10 +213,11 @@ def test_structure_is_the_union_of_scene_and_samples(lab_rig):
 def test_unused_outputs_bodies_and_loads_cost_nothing(lab_rig):
     spec = {"k": "normal(2,0.1)"}
     base = cj.sweep_cost(lab_rig, spec, ("peak_phi",), num_saves=11)
-    # A load varied at constant zero compiles exactly the program without it.
-    assert cj.sweep_cost(lab_rig, {**spec, "P1": "const(0)"}, ("peak_phi",),
+    # A load varied at constant zero compiles exactly the program without it. (A mean:
+    # an amplitude without a frequency has no effect, and is refused.)
+    assert cj.sweep_cost(lab_rig, {**spec, "P0": "const(0)"}, ("peak_phi",),
                          num_saves=11) == base
-    with_load = cj.sweep_cost(lab_rig, {**spec, "P1": "normal(1,0.1)"}, ("peak_phi",),
+    with_load = cj.sweep_cost(lab_rig, {**spec, "P0": "normal(1,0.1)"}, ("peak_phi",),
                               num_saves=11)
     assert with_load["flops"] > base["flops"]
     with_O = cj.sweep_cost(lab_rig, spec, ("peak_phi", "peak_O"), num_saves=11)

@@ -47,7 +47,7 @@ def _posterior_args(p: argparse.ArgumentParser) -> None:
 
 def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
     from ..identify.posterior import check_posterior_memory
-    from ..runtime.io import check_figure_format, check_output
+    from ..runtime.io import check_distinct_outputs, check_figure_format, check_output
 
     free = free_list(a.free)
     for option, value, lo in (("--draws", a.draws, 1), ("--chains", a.chains, 1),
@@ -64,8 +64,7 @@ def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
     if a.plot:
         check_output(a.plot, inputs, "--plot")
         check_figure_format(a.plot)
-        if a.plot == a.out:
-            raise UserError("--out and --plot must name different files")
+    check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot")])
     return free
 
 
@@ -155,9 +154,22 @@ def _design_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _design_outputs(a: argparse.Namespace) -> None:
+    """--out, --scene-out and --plot: each a writable file, not the scene, none another."""
+    from ..runtime.io import check_distinct_outputs, check_figure_format, check_output
+
+    outs = [(a.out, "--out"), (a.scene_out, "--scene-out")] + (
+        [(a.plot, "--plot")] if a.plot else [])
+    for path, option in outs:
+        check_output(path, [a.scene], option)
+    check_distinct_outputs(outs)
+    if a.plot:
+        check_figure_format(a.plot)
+
+
 def _design_run(a: argparse.Namespace) -> int:
     from ..identify.design import design
-    from ..runtime.io import atomic_write, check_figure_format, check_output
+    from ..runtime.io import atomic_write
     from ..scene import load_scene, save_scene
 
     free = free_list(a.free)
@@ -171,14 +183,7 @@ def _design_run(a: argparse.Namespace) -> int:
         raise UserError("--criterion c needs --target NAME (a free parameter)")
     if a.target is not None and a.target not in free:
         raise UserError(f"--target {a.target} is not free; choose from {', '.join(free)}")
-    outs = [(a.out, "--out"), (a.scene_out, "--scene-out")] + (
-        [(a.plot, "--plot")] if a.plot else [])
-    for path, option in outs:
-        check_output(path, [a.scene], option)
-    if len({p for p, _ in outs}) < len(outs):
-        raise UserError("--out, --scene-out and --plot must name different files")
-    if a.plot:
-        check_figure_format(a.plot)
+    _design_outputs(a)
     scene = load_scene(a.scene)
     refuse_input_loads(scene, a.scene, "design")
     try:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import sys
 from pathlib import Path
@@ -92,7 +91,7 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
 
 
 def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
-    from ..runtime.io import check_figure_format, check_output
+    from ..runtime.io import check_distinct_outputs, check_figure_format, check_output
 
     outs = [(path, option) for path, option in (
         (a.out, "--out"), (a.plot, "--plot"), (getattr(a, "scene_out", None), "--scene-out"),
@@ -105,15 +104,9 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
         raise UserError("--scene-out-anyway needs --scene-out FITTED.toml (the file to write)")
     if a.plot:
         check_figure_format(a.plot)
-    # Every output its own file (as the paths resolve: ./fit.json is fit.json), so none
-    # is written over another, whatever order they are written in.
-    seen: dict[str, tuple[str, str]] = {}
-    for path, option in outs:
-        key = os.path.realpath(path)
-        if key in seen:
-            raise UserError(f"{option} {path!r} is the same file as {seen[key][1]} "
-                            f"{seen[key][0]!r}; give each output its own file")
-        seen[key] = (path, option)
+    # Every output its own file (./fit.json is fit.json, a link its target), so none is
+    # written over another, whatever order they are written in.
+    check_distinct_outputs(outs)
 
 
 #: The library's words for its options -> the command's (each message the command prints

@@ -69,7 +69,7 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
 
 def _check_options(a: argparse.Namespace) -> dict:
     """Check every option that needs no scene, before any work; return simulate's kwargs."""
-    from ..runtime.io import check_figure_format, check_output
+    from ..runtime.io import check_distinct_outputs, check_figure_format, check_output
     from ..scene import MAX_RTOL
     from ..solve.trajectory import output_columns
 
@@ -104,8 +104,7 @@ def _check_options(a: argparse.Namespace) -> dict:
     if a.plot:
         check_output(a.plot, [a.scene], "--plot")
         check_figure_format(a.plot)
-        if Path(a.plot).resolve() == Path(a.out).resolve():
-            raise UserError("--out and --plot name the same file")
+        check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot")])
     return kw
 
 

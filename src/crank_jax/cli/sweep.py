@@ -89,7 +89,7 @@ def _parse_vary(items: list[str]) -> dict[str, object]:
 def _check_dirs(a: argparse.Namespace) -> None:
     """--checkpoint and --save-trajectories: not empty (the current directory), and no two
     of them and --out the same path (found only after the work)."""
-    from pathlib import Path
+    from ..runtime.io import same_file
 
     named = [(o, v) for o, v in (("--checkpoint", a.checkpoint),
                                  ("--save-trajectories", a.save_trajectories)) if v is not None]
@@ -100,7 +100,7 @@ def _check_dirs(a: argparse.Namespace) -> None:
     paths = [("--out", a.out)] + named
     for i, (o1, p1) in enumerate(paths):
         for o2, p2 in paths[i + 1:]:
-            if Path(p1).resolve() == Path(p2).resolve():
+            if same_file(p1, p2):
                 raise UserError(f"{o1} and {o2} name the same path {p1!r}; give each its own")
 
 

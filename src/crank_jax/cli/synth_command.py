@@ -36,6 +36,9 @@ def _synth_args(p: argparse.ArgumentParser) -> None:
                    help="its decay time, s (0.1)")
     p.add_argument("--seed", type=seed, default=0, help="noise seed (0)")
     p.add_argument("--out", required=True, help="output CSV (t,phi[,P][,tau])")
+    # As every command takes it: a script passes --quiet to each; synth shows no
+    # progress bar, so it changes nothing.
+    p.add_argument("--quiet", action="store_true", help="no progress bar (synth has none)")
 
 
 def _check_record_size(a: argparse.Namespace, scene) -> None:

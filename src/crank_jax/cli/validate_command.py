@@ -107,7 +107,13 @@ def _read(a: argparse.Namespace, scene):
 def _validate_run(a: argparse.Namespace) -> int:
     from ..identify.validation import validate
     from ..report.validation_plot import plot_validation
-    from ..runtime.io import atomic_write, check_figure_format, check_input, check_output
+    from ..runtime.io import (
+        atomic_write,
+        check_distinct_outputs,
+        check_figure_format,
+        check_input,
+        check_output,
+    )
     from ..scene import load_scene
 
     _check_numbers(a)
@@ -118,13 +124,9 @@ def _validate_run(a: argparse.Namespace) -> int:
             check_output(path, [a.data, a.scene], option)
     if a.plot:
         check_figure_format(a.plot)
-    if a.plot and a.out == a.plot:
-        raise UserError("--out and --plot name the same file")
     if a.report:
         check_output(a.report, [a.data, a.scene], "--report")
-    named = [p for p in (a.out, a.plot, a.report) if p]
-    if len(set(named)) < len(named):
-        raise UserError("--out, --plot and --report must name different files")
+    check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot"), (a.report, "--report")])
     scene = load_scene(a.scene)
     unconverged = _unconverged(a)
     data = _read(a, scene)

@@ -41,13 +41,14 @@ def _range(text: str, option: str, with_n: bool, lo_ok_zero: bool = False):
 
 
 def _outputs(a, *inputs) -> None:
-    from ..runtime.io import check_figure_format, check_output
+    from ..runtime.io import check_distinct_outputs, check_figure_format, check_output
 
     try:
         check_output(a.out, inputs, "--out")
         if getattr(a, "plot", None):
             check_output(a.plot, inputs, "--plot")
             check_figure_format(a.plot)
+            check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot")])
     except ValueError as e:
         raise UserError(str(e)) from None
 

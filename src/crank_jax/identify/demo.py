@@ -5,8 +5,11 @@ from __future__ import annotations
 
 from types import MappingProxyType
 
+import numpy as np
+
 from ..records.data import Data
 from ..scene import Scene, load_scene
+from ..sweep.distributions import MAX_SEED
 
 __all__ = ["DEMO", "demo_record"]
 
@@ -40,6 +43,11 @@ def demo_record(seed: int = 1) -> tuple[Scene, Data]:
     from ..model.loads import HarmonicLoad
     from ..records.synth import synthesize
 
+    # Checked here, in this function's words (synthesize names its own seed).
+    if (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
+            or not 0 <= seed <= MAX_SEED):
+        raise ValueError(f"demo_record: seed must be an integer from 0 to {MAX_SEED}, got "
+                         f"{seed!r}")
     base = load_scene(DEMO["scene"])
     scene = Scene(base.mech, torque=HarmonicLoad(0.0, DEMO["tau1"], DEMO["freq_hz"]),
                   phi0=DEMO["phi0"], dphi0=0.0, rtol=base.rtol, atol=base.atol,

@@ -13,28 +13,131 @@ from one factory shared one program, and `fit(force=...)` returned wrong, "conve
 values. So a program with any class from outside crank-jax in its inputs is never
 stored: it is traced in every process (that is what tracing is for), and JAX's own
 persistent cache, keyed on the traced program, still spares the compilation.
+
+Which code is the library's own is decided by where its files lie, never by a module's
+name: a class counts only if its module's file, and the file of every function its body
+defines, is in crank-jax's package, a pinned library's installed package or the
+interpreter's standard library (a user's `profile.py`, a "torque profile", is named like
+the standard library's profiler but lies elsewhere).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import importlib.util
+import os
 import sys
+import sysconfig
+import types
+import weakref
 
 __all__ = ["foreign_classes"]
 
-# Modules whose code is covered by the key already (crank-jax's source, the traced
-# libraries' versions) or that trace nothing into a program (Python's own, NumPy's types).
-_KNOWN = frozenset({"crank_jax", "builtins", "jax", "jaxlib", "equinox", "diffrax",
-                    "optimistix", "lineax", "optax", "numpy", "jaxtyping"})
+# Packages whose code is covered by the key already (crank-jax's source, the traced
+# libraries' versions, which `persistent.py` keys on) or that trace nothing into a
+# program (Python's own standard library, NumPy's types). Trusted by where their files
+# lie, never by a module's name: a user's `profile.py` is named like the standard
+# library's profiler but is not it.
+_PINNED = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax", "numpy",
+           "jaxtyping")
 
 _MAX_DEPTH = 32  # deeper static data than this counts as foreign (not stored)
 
 
-def _known(module_name) -> bool:
+def _real(path: str) -> str:
+    return os.path.normcase(os.path.realpath(path))
+
+
+@functools.cache
+def _trusted_roots() -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(trusted directories, directories inside them that are not trusted): crank-jax's
+    package, each pinned library's installed package, and the interpreter's standard
+    library without the site-packages an installation may keep inside it."""
+    roots = [os.path.dirname(os.path.dirname(_real(__file__)))]
+    for name in _PINNED:
+        spec = importlib.util.find_spec(name)
+        roots += [_real(d) for d in (spec.submodule_search_locations or ())] if spec else []
+    stdlib = {_real(sysconfig.get_paths()["stdlib"]), _real(os.path.dirname(os.__file__))}
+    roots += sorted(stdlib)
+    excluded = [os.path.join(d, sub) for d in stdlib
+                for sub in ("site-packages", "dist-packages")]
+    return tuple(roots), tuple(excluded)
+
+
+def _inside(path: str, dirs) -> bool:
+    return any(path == d or path.startswith(d + os.sep) for d in dirs)
+
+
+def _trusted_file(path) -> bool:
+    """Whether a source or extension file lies in a trusted package directory."""
+    if not isinstance(path, str) or not os.path.isabs(path):
+        return False
+    roots, excluded = _trusted_roots()
+    real = _real(path)
+    return _inside(real, roots) and not _inside(real, excluded)
+
+
+def _module_file(module_name: str):
+    """The file of the module a class names, or of its nearest enclosing package with one
+    (an extension's submodule, e.g. `jaxlib._jax.pytree`, has none); None for a module
+    that is not loaded, or has no file anywhere up its name."""
+    name = module_name
+    while name:
+        module = sys.modules.get(name)
+        if module is None:
+            return None
+        path = getattr(module, "__file__", None)
+        if path:
+            return path
+        name = name.rpartition(".")[0]
+    return None
+
+
+def _functions(cls):
+    """The code objects of the functions a class body defines (methods, static and class
+    methods, properties' accessors, wrapped methods)."""
+    for value in list(vars(cls).values()):
+        try:
+            fns = (value, getattr(value, "__func__", None), getattr(value, "fget", None),
+                   getattr(value, "method", None), getattr(value, "__wrapped__", None))
+        except Exception:  # noqa: BLE001 (an attribute whose lookup runs code)
+            fns = (value,)
+        for fn in fns:
+            code = getattr(fn, "__code__", None)
+            if isinstance(code, types.CodeType):
+                yield code
+
+
+_VERDICTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _known_class(cls) -> bool:
+    """Whether a class is trusted code: its module is a built-in one or its file lies in a
+    trusted directory, and so does every function its body defines that has a file
+    (a generated `__init__` has none: its filename is "<string>")."""
+    module_name = getattr(cls, "__module__", None)
     if not isinstance(module_name, str):
         return False
-    top = module_name.partition(".")[0]
-    return top in _KNOWN or top in sys.stdlib_module_names or top == "__future__"
+    if module_name in sys.builtin_module_names:
+        return True
+    if not _trusted_file(_module_file(module_name)):
+        return False
+    return all(_trusted_file(c.co_filename) or not os.path.isabs(c.co_filename)
+               for c in _functions(cls))
+
+
+def _known(cls) -> bool:
+    try:
+        return _VERDICTS[cls]
+    except (KeyError, TypeError):
+        pass
+    verdict = _known_class(cls)
+    try:
+        _VERDICTS[cls] = verdict
+    except TypeError:  # a class that takes no weak reference is judged every time
+        pass
+    return verdict
 
 
 class _TooDeep:
@@ -54,7 +157,7 @@ def foreign_classes(treedefs, static_leaves) -> set[type]:
             found.add(_TooDeep)
             return
         cls = obj if isinstance(obj, type) else type(obj)
-        if not _known(getattr(cls, "__module__", None)):
+        if not _known(cls):
             found.add(cls)
         if isinstance(obj, type) or id(obj) in seen:
             return

@@ -22,7 +22,7 @@ mode) runs unstored (`persistent.py`).
 
 from __future__ import annotations
 
-__all__ = ["backends_are_initialized", "initialize_lapack"]
+__all__ = ["backends_are_initialized", "initialize_lapack", "distributed_client"]
 
 
 # --- jax internals ---------------------------------------------------------------------
@@ -36,6 +36,20 @@ def backends_are_initialized() -> bool:
     from jax._src import xla_bridge
 
     return bool(xla_bridge.backends_are_initialized())
+
+
+def distributed_client():
+    """The client of JAX's coordination service once `jax.distributed.initialize` has run
+    (a `DistributedRuntimeClient`: a multi-process sweep waits at its barriers with
+    `wait_at_barrier(name, timeout_ms)`), else `None`.
+
+    Why private: JAX has no public handle on its coordination service; Gloo's collectives
+    time out after 30 s, which a peer still compiling exceeds, and a barrier of the service
+    has a timeout of ours. `jax._src.distributed.global_state.client`, jax 0.4-0.10 (0.10.2
+    tested)."""
+    from jax._src import distributed
+
+    return distributed.global_state.client
 
 
 def initialize_lapack() -> None:

@@ -19,7 +19,8 @@ from typing import IO
 __all__ = ["atomic_write", "make_dir", "check_input", "check_not_input", "check_output",
            "check_figure_format", "default_file_mode", "Terminated", "note_signal",
            "raise_if_terminated", "temp_file", "remove_stale_temps", "STALE_TEMP_S",
-           "DISK_FULL", "disk_full", "printable"]
+           "DISK_FULL", "disk_full", "printable", "read_only", "same_file",
+           "check_distinct_outputs"]
 
 
 class Terminated(BaseException):
@@ -71,6 +72,28 @@ def default_file_mode() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
     return 0o666 & ~mask
+
+
+def read_only(path: str | os.PathLike) -> bool:
+    """Whether `path` is an existing regular file that is read-only: it has no write
+    permission bit at all, or none that this process holds. The bits are read, not only
+    `os.access`: root passes `os.access` on any file, yet a file made read-only is its
+    owner's way of saying "keep this", whoever runs the writer."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    if not stat.S_ISREG(st.st_mode):
+        return False
+    return not st.st_mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH) or not os.access(
+        path, os.W_OK)
+
+
+def _read_only_error(path: Path) -> PermissionError:
+    err = PermissionError(f"output {str(path)!r} exists and is read-only; choose another "
+                          "name or make it writable")
+    err.errno = errno.EACCES
+    return err
 
 
 def _is_special(path: Path) -> bool:
@@ -177,7 +200,9 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
     temporary file beside the target guarantees. The file gets the permissions `open`
     would give: an existing file's mode, else `0o666` less the umask. A symbolic link is
     written through (its target is replaced), and an existing device or FIFO such as
-    `/dev/null` is written to directly, never replaced.
+    `/dev/null` is written to directly, never replaced. An existing read-only file
+    ([`read_only`][], by its mode bits, also for root) is never replaced:
+    `PermissionError`, before anything is written.
     """
     path = Path(path)
     if path.is_symlink():
@@ -188,6 +213,8 @@ def atomic_write(path: str | os.PathLike, mode: str = "w") -> Iterator[IO]:
         return
     if path.is_dir():
         raise IsADirectoryError(f"output {str(path)!r} is a directory; name a file")
+    if read_only(path):
+        raise _read_only_error(path)
     directory = path.parent if str(path.parent) else Path(".")
     if not directory.is_dir():
         raise FileNotFoundError(f"output directory {str(directory)!r} does not exist")
@@ -262,11 +289,33 @@ def check_output(out: str | os.PathLike, inputs: Sequence[str | os.PathLike | No
     if not os.access(directory, os.W_OK | os.X_OK):
         raise ValueError(f"{option} {text!r}: cannot write in directory {str(directory)!r} "
                          "(permission denied); choose another place")
-    if path.exists() and not os.access(path, os.W_OK):
+    if read_only(path):
         # os.replace would succeed anyway (it needs only the directory), but a read-only
         # file is a user's way of saying "keep this".
         raise ValueError(f"{option} {text!r} exists and is read-only; choose another name "
                          "or make it writable")
+
+
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """Whether two paths name one file: the same inode when both exist (a hard link, a
+    case-insensitive file system), else the same path once symbolic links, `.` and `..`
+    are resolved (`./x` is `x`; a link is its target, even one not yet written)."""
+    with contextlib.suppress(OSError):
+        if os.path.exists(a) and os.path.exists(b):
+            return os.path.samefile(a, b)
+    return (os.path.normcase(os.path.realpath(a)) == os.path.normcase(os.path.realpath(b)))
+
+
+def check_distinct_outputs(outputs: Sequence[tuple[str | os.PathLike | None, str]]) -> None:
+    """Raise `ValueError` naming both options when two of `outputs` (`(path, option)`
+    pairs; a `None` path is skipped) are one file ([`same_file`][]): the one written last
+    would replace the other. Call it before any work."""
+    named = [(p, o) for p, o in outputs if p is not None and str(p)]
+    for i, (p1, o1) in enumerate(named):
+        for p2, o2 in named[i + 1:]:
+            if same_file(p1, p2):
+                raise ValueError(f"{o2} {str(p2)!r} is the same file as {o1} {str(p1)!r}; "
+                                 "give each output its own file")
 
 
 def check_figure_format(path: str | os.PathLike, option: str = "--plot") -> None:

@@ -17,13 +17,16 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import socket
 import time
 
 import jax
 import numpy as np
 
+from ..runtime.compat import distributed_client
+
 __all__ = ["gather", "broadcast", "lost", "on_process_0", "sync", "SYNC_TIMEOUT_S",
-           "same_everywhere"]
+           "same_everywhere", "check_cluster", "wait_for_coordinator"]
 
 #: The longest a process waits at a barrier for its peers (s): a day, for a chunk that
 #: takes long on one host. A peer that dies is noticed sooner (the heartbeat timeout).
@@ -34,6 +37,68 @@ DELAY_ENV = "CRANK_JAX_TEST_COLLECTIVE_DELAY"
 _barriers = 0  # barriers passed by this process (their ids; the same on every process)
 
 
+def _cluster_value(kwargs: dict, key: str, env: str):
+    """(value, its name for a message): the argument `key`, else environment variable
+    `env` (None when neither is set)."""
+    if kwargs.get(key) is not None:
+        return kwargs[key], f"{key}="
+    text = os.environ.get(env, "").strip()
+    return (text or None), f"environment variable {env}="
+
+
+def check_cluster(kwargs: dict) -> None:
+    """`ValueError` naming the argument (or the environment variable it comes from) for a
+    cluster that `jax.distributed.initialize(**kwargs)` cannot join, before it tries: a
+    coordinator address that is not HOST:PORT with a port from 1 to 65535 (JAX raised
+    `IndexError`, aborted, or waited minutes), a process count below 1, a process index
+    outside 0 to count - 1."""
+    address, where = _cluster_value(kwargs, "coordinator_address", "JAX_COORDINATOR_ADDRESS")
+    if address is not None:
+        host, sep, port = address.rpartition(":") if isinstance(address, str) else ("",) * 3
+        if not (sep and host.strip("[]") and port.isdigit() and 0 < int(port) < 65536):
+            raise ValueError(f"{where}{address!r}: expected 'HOST:PORT', the address of "
+                             "process 0 with a port from 1 to 65535 (e.g. 'node0:1234')")
+    counts = {}
+    for key, env, low in (("num_processes", "JAX_NUM_PROCESSES", 1),
+                          ("process_id", "JAX_PROCESS_ID", 0)):
+        value, where = _cluster_value(kwargs, key, env)
+        if isinstance(value, str):
+            value = int(value) if value.lstrip("-").isdigit() else value
+        if value is not None and (isinstance(value, bool) or not isinstance(
+                value, (int, np.integer)) or value < low):
+            raise ValueError(f"{where}{value!r}: expected an integer >= {low}")
+        counts[key] = (value, where)
+    (n, n_where), (pid, pid_where) = counts["num_processes"], counts["process_id"]
+    if n is not None and pid is not None and pid >= n:
+        raise ValueError(f"{pid_where}{pid} must be below {n_where}{n} (processes are "
+                         "numbered from 0)")
+
+
+def wait_for_coordinator(kwargs: dict) -> None:
+    """In a process other than 0: wait, at most `initialization_timeout` s (JAX's default,
+    300), until the coordinator accepts connections. JAX aborts the whole Python process
+    (a C++ stack dump, no exception) when it cannot reach it; here it is a `RuntimeError`
+    naming the address. Call after [`check_cluster`][]."""
+    address, where = _cluster_value(kwargs, "coordinator_address", "JAX_COORDINATOR_ADDRESS")
+    pid, _ = _cluster_value(kwargs, "process_id", "JAX_PROCESS_ID")
+    if address is None or pid is None or int(pid) == 0:
+        return
+    host, _, port = address.rpartition(":")
+    wait = float(kwargs.get("initialization_timeout") or 300)
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            socket.create_connection((host.strip("[]"), int(port)), timeout=2).close()
+            return
+        except OSError as e:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{where}{address!r}: process 0 (the coordinator) did not "
+                                   f"answer within {wait:g} s ({e.strerror or e}); start "
+                                   "process 0 first, check the address, or give a longer "
+                                   "initialization_timeout") from None
+            time.sleep(0.5)
+
+
 def sync() -> None:
     """Wait until every process reaches this point (no-op with one process). Every
     process calls the collectives in the same order, so the n-th barrier is the same one
@@ -41,9 +106,7 @@ def sync() -> None:
     global _barriers
     if jax.process_count() == 1:
         return
-    from jax._src import distributed  # the client of `jax.distributed.initialize`
-
-    client = distributed.global_state.client
+    client = distributed_client()
     if client is None:
         return
     _barriers += 1

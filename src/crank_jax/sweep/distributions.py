@@ -221,6 +221,17 @@ class Spec(eqx.Module):
     names: tuple
 
 
+def whole(value, name: str, low: int, high: int | None = None) -> int:
+    """`value` as an `int`; `ValueError` naming `name` unless it is an integer (a Python or
+    NumPy integer: not a bool, and not a float, whose fraction would be dropped: `n=2.5` ran
+    2 samples) from `low` to `high`."""
+    if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
+            or value < low or (high is not None and value > high)):
+        bounds = f">= {low}" if high is None else f"from {low} to {high}"
+        raise ValueError(f"{name} must be an integer {bounds}, got {value!r}")
+    return int(value)
+
+
 def parse_spec(
     spec: Mapping[str, AbstractDistribution | str | float | np.ndarray], n: int | None = None
 ) -> Spec:
@@ -246,11 +257,9 @@ def parse_spec(
         if not lengths:
             raise ValueError("give the number of samples n (no explicit arrays to count)")
         n = lengths.pop()
-    elif lengths and lengths != {n}:
+    elif lengths and lengths != {whole(n, "n", 1)}:
         raise ValueError(f"n = {n} but the explicit sample arrays have length {lengths.pop()}")
-    if int(n) < 1:
-        raise ValueError(f"n must be >= 1, got {n}")
-    return Spec(dists, arrays, int(n), tuple(spec))
+    return Spec(dists, arrays, whole(n, "n", 1), tuple(spec))
 
 
 def draw(

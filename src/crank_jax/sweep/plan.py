@@ -30,11 +30,12 @@ from ..model.loads import (
     param_name,
     promote,
     set_param,
+    toml_key,
 )
 from ..model.params import FIELDS, SliderCrank, validation_rules
 from ..simulation import linearize
 from ..solve.policy import check_solver, fastest_mode
-from .distributions import AbstractDistribution, Spec, draw, parse_spec
+from .distributions import MAX_SEED, AbstractDistribution, Spec, draw, parse_spec, whole
 from .reductions import REDUCTIONS, TRAJECTORY_OUTPUTS
 
 __all__ = ["VARIABLES", "STATE_NAMES", "SORT_BLOCK", "Plan", "make_plan", "result_bytes",
@@ -213,6 +214,57 @@ def _load_plan(scene, spec: Spec, side: str) -> tuple[AbstractLoad, tuple] | Non
     return base, tuple(r for r in varied if r in load_kind(base).fields)
 
 
+# A varied parameter that only multiplies terms this scene holds at zero cannot change any
+# output: every sample would give the nominal result, with exit 0. Mechanism field -> the
+# fields that, all held at zero, leave it without effect, and why.
+_INERT_FIELDS: dict[str, tuple[tuple[str, ...], str]] = {
+    "w_c": (("T_c",), "w_c is the smoothing width of the crank's Coulomb friction T_c"),
+    "w_s": (("F_s",), "w_s is the smoothing width of the slider's Coulomb friction F_s"),
+    "gravity_angle": (("g",), "gravity_angle turns gravity, of strength g"),
+    "s": (("m_c",), "s places the crank's mass m_c"),
+    "b": (("m_p",), "b places the coupler's mass m_p"),
+}
+# A load's tone `X1 sin(2 pi freq_hz t + phase)`: role -> the roles that, all held at zero,
+# make the tone zero whatever this role's value.
+_INERT_ROLES = {"amp": ("freq_hz", "phase"), "freq_hz": ("amp",), "phase": ("amp",)}
+
+
+def _held_zero(scene, spec: Spec, name: str) -> bool:
+    """Whether `name` is zero in every sample: varied only by zeros, or not varied and
+    zero (or absent) in the scene."""
+    if name in spec.names:
+        return not _may_be_nonzero(spec.dists.get(name, spec.arrays.get(name)))
+    if name in FIELDS:
+        value = getattr(scene.mech, name)
+    else:
+        side, role = LOAD_PARAMS[name]
+        value = get_param(getattr(scene, side), role)
+    return value is None or not np.any(np.asarray(value) != 0)
+
+
+def _check_effect(scene, spec: Spec) -> None:
+    """`ValueError` for a varied parameter that has no effect on this scene's result."""
+    for name in spec.names:
+        if name in _INERT_FIELDS:
+            needs, why = _INERT_FIELDS[name]
+            fix = f"set {' or '.join(needs)} in the scene's mechanism"
+        elif name in LOAD_PARAMS and LOAD_PARAMS[name][1] in _INERT_ROLES:
+            side, role = LOAD_PARAMS[name]
+            needs = tuple(param_name(side, r) for r in _INERT_ROLES[role])
+            a, f, ph = (param_name(side, r) for r in ("amp", "freq_hz", "phase"))
+            why = f"the {side}'s tone is {a} sin(2 pi {f} t + {ph})"
+            key = toml_key(side, _INERT_ROLES[role][0])
+            fix = f"give the scene's {side} a nonzero {key}"
+        else:
+            continue
+        if all(_held_zero(scene, spec, x) for x in needs):
+            held = " and ".join(needs)
+            raise ValueError(f"cannot vary {name!r}: it has no effect on this scene, where "
+                             f"{held} {'is' if len(needs) == 1 else 'are'} 0 ({why}), so "
+                             "every sample would give the same result; vary "
+                             f"{' or '.join(needs)} too, or {fix}")
+
+
 def make_plan(scene, samples, outputs, *, n=None, seed=0, t1=None, num_saves=None,
               solver=None, chunk_size=1, sort=True, max_memory=None) -> Plan:
     """Check a sweep's arguments (see [`sweep`][]) and plan it; `ValueError` naming the
@@ -225,17 +277,19 @@ def make_plan(scene, samples, outputs, *, n=None, seed=0, t1=None, num_saves=Non
     for name in samples:
         if name not in VARIABLES:
             raise ValueError(f"cannot vary {name!r}; choose from {list(VARIABLES)}")
-    if chunk_size < 1:
-        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+    chunk_size = whole(chunk_size, "chunk_size", 1)
+    seed = whole(seed, "seed", 0, MAX_SEED)
+    n = None if n is None else whole(n, "n", 1)
     solver = check_solver(scene.solver if solver is None else solver)
-    spec = parse_spec(samples, n if samples else int(n or 1))
+    spec = parse_spec(samples, n if samples else (n or 1))
     t_end = scene.t1 if t1 is None else float(t1)
-    n_t = int(scene.samples if num_saves is None else num_saves)
-    if not (t_end > 0 and n_t >= 2):
-        raise ValueError("a sweep needs t1 > 0 and at least 2 save times")
+    n_t = int(scene.samples) if num_saves is None else whole(num_saves, "num_saves", 2)
+    if not (np.isfinite(t_end) and t_end > 0 and n_t >= 2):
+        raise ValueError(f"a sweep needs a finite t1 > 0 s and at least 2 save times, got "
+                         f"t1 = {t_end:g} and {n_t} save times")
     # Both bounds are checked before the save times themselves are made (10^9 of them
     # would already take 8 GB).
-    limit = host_memory() // 2 if max_memory is None else int(max_memory)
+    limit = host_memory() // 2 if max_memory is None else whole(max_memory, "max_memory", 1)
     why = "half this host's memory" if max_memory is None else "max_memory"
     need = result_bytes(spec.n, len(spec.names), reductions, n_t)
     if limit and need > limit:
@@ -255,6 +309,7 @@ def make_plan(scene, samples, outputs, *, n=None, seed=0, t1=None, num_saves=Non
                          "(--chunk-size)")
     ts = np.linspace(0.0, t_end, n_t)
     loads = {side: _load_plan(scene, spec, side) for side in SIDES}
+    _check_effect(scene, spec)
     # A result's seed is -1 when nothing was drawn at random (arrays and constants only).
     random = any(isinstance(v, (AbstractDistribution, str)) for v in samples.values())
     return Plan(scene, spec, int(seed), random, reductions, ts, float(np.asarray(scene.rtol)),

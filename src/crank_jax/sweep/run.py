@@ -54,8 +54,8 @@ from ..simulation import linearize, simulate
 from ..solve.names import name_of
 from ..solve.policy import SOLVERS, is_concrete, resolve_solver
 from .checkpoint import Checkpoint, SharedCheckpoint, plan_manifest
-from .collective import gather, on_process_0, same_everywhere
-from .distributions import AbstractDistribution
+from .collective import check_cluster, gather, on_process_0, same_everywhere, wait_for_coordinator
+from .distributions import AbstractDistribution, whole
 from .plan import SORT_BLOCK, VARIABLES, Plan, make_plan
 from .reductions import DEFAULT_OUTPUTS, REDUCTIONS, TRAJECTORY_OUTPUTS, reduce
 from .result import FAILED, MAX_STEPS, NONFINITE, OK, STATUS, Filling, SweepResult
@@ -82,7 +82,9 @@ def initialize_distributed(**kwargs) -> None:
     and a [`sweep`][] shards its chunks across all of them; every host draws the same
     samples from the seed and gets the whole result. Every process must call `sweep`
     with the same arguments: their plans' digests are compared before any work, and a
-    mismatch is a `ValueError` on every process, naming what differs.
+    mismatch is a `ValueError` on every process, naming what differs. A cluster JAX
+    cannot join (a coordinator address that is not HOST:PORT, a process index outside the
+    count) is a `ValueError` naming the argument or variable, before JAX is called.
 
     When a process dies in a sweep, the others' next collective fails and the sweep
     raises a `RuntimeError` saying a process was lost; when the coordinator (process 0)
@@ -92,6 +94,7 @@ def initialize_distributed(**kwargs) -> None:
     """
     global _distributed_ready
     if not _distributed_ready:
+        check_cluster(kwargs)  # before JAX, which aborts or waits minutes on a bad value
         # JAX itself reads only the coordinator's address from the environment; the
         # documented JAX_NUM_PROCESSES and JAX_PROCESS_ID are read here.
         for key, env in (("num_processes", "JAX_NUM_PROCESSES"),
@@ -101,6 +104,7 @@ def initialize_distributed(**kwargs) -> None:
                     kwargs[key] = int(os.environ[env])
                 except ValueError:
                     raise ValueError(f"{env}={os.environ[env]!r} is not an integer") from None
+        wait_for_coordinator(kwargs)  # JAX aborts the process when it cannot reach it
         jax.distributed.initialize(**kwargs)
         _distributed_ready = True
 
@@ -267,7 +271,8 @@ def sweep(
 
     - `scene`: the nominal scene; fields not in `samples` keep its values. Any load kind
       works; a varied load parameter must be one the scene's load has or can be promoted
-      to (none -> constant -> harmonic), else a `ValueError` names the load's parameters.
+      to (none -> constant -> harmonic), else a `ValueError` names the load's parameters;
+      one that cannot change this scene's result (e.g. `tau1` with no frequency) is refused.
     - `samples`: name (see [`VARIABLES`][]) -> a distribution (e.g. `Normal(2.0, 0.1)` or
       `"normal(2.0,0.1)"`), a number, or an explicit (n,) array.
     - `outputs`: reductions to compute (see [`REDUCTIONS`][]); nothing else is computed.
@@ -303,6 +308,8 @@ def sweep(
     **Returns:** a [`SweepResult`][] in the original sample order.
     """
     _check_paths(checkpoint=checkpoint, save_trajectories=save_trajectories)
+    max_steps = whole(max_steps, "max_steps", 1)
+    trajectory_every = whole(trajectory_every, "trajectory_every", 1)
     plan = make_plan(scene, samples, outputs, n=n, seed=seed, t1=t1, num_saves=num_saves,
                      solver=solver, chunk_size=chunk_size, sort=sort, max_memory=max_memory)
     n = plan.n

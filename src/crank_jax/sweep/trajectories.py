@@ -10,7 +10,9 @@ another chunk or field swapped in, or one of another sweep fails it). The reader
 chunk's files before returning anything from them (`ValueError` naming the file), and a
 resumed sweep computes such a chunk again. The manifest holds the plan (as a
 checkpoint's), `every`, the saved times, `n` and, once the sweep has finished,
-`"complete": true` and the list of chunks. Samples whose status is not `"ok"` hold 0 (as
+`"complete": true` and the list of chunks, and `"sha256"`, the SHA-256 of all the rest
+(an edited `ts`, `n` or chunk list would change what the reader serves: it refuses a
+manifest whose checksum does not match). Samples whose status is not `"ok"` hold 0 (as
 in the result), and invalid samples, never solved, have no row.
 
 Why `.npy` files and not zarr or parquet: `np.load(path, mmap_mode="r")` reads them
@@ -39,7 +41,9 @@ __all__ = ["TrajectoryStore", "Trajectories", "load_trajectories", "FIELDS"]
 
 FIELDS = ("phi", "dphi")
 _MANIFEST = "manifest.json"
-_FORMAT = "crank-jax sweep trajectories 2"  # 2: with per-chunk checksums (issue 37)
+# 2: with per-chunk checksums; 3: the manifest checksummed too
+_FORMAT = "crank-jax sweep trajectories 3"
+_OLDER = ("crank-jax sweep trajectories 1", "crank-jax sweep trajectories 2")
 _SUMS = "sha256.json"  # a chunk's checksums: f"{stem}.{_SUMS}"
 
 
@@ -48,6 +52,14 @@ def _file_digest(plan: str, stem: str, key: str, data: bytes) -> str:
     h = hashlib.sha256(f"{plan}\0{stem}.{key}\0".encode())
     h.update(data)
     return h.hexdigest()
+
+
+def _manifest_digest(doc: dict) -> str:
+    """SHA-256 of a manifest's every entry but its own checksum, in a canonical JSON
+    form (the same after a round trip through `json`)."""
+    body = {k: v for k, v in doc.items() if k != "sha256"}
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _npy_bytes(a: np.ndarray) -> bytes:
@@ -132,8 +144,9 @@ class TrajectoryStore:
         self.chunks: list[tuple[int, int]] = []
 
     def _manifest(self, complete: bool, chunks: list[str] | None = None) -> None:
+        doc = self.head | {"complete": complete, "chunks": chunks or []}
         with atomic_write(self.dir / _MANIFEST, "w") as f:
-            json.dump(self.head | {"complete": complete, "chunks": chunks or []}, f)
+            json.dump(doc | {"sha256": _manifest_digest(doc)}, f)
 
     def _stem(self, b0: int, start: int) -> str:
         return f"chunk-{b0}-{start}"
@@ -190,12 +203,7 @@ class Trajectories:
         except (OSError, ValueError) as e:
             raise ValueError(f"{str(self.dir)!r} holds no saved trajectories "
                              f"({_MANIFEST}: {e})") from None
-        if self.manifest.get("format") == "crank-jax sweep trajectories 1":
-            raise ValueError(f"{str(self.dir)!r} was written by an older crank-jax, "
-                             "without checksums; rerun the sweep into a new directory")
-        if self.manifest.get("format") != _FORMAT:
-            raise ValueError(f"{str(self.dir)!r}: {_MANIFEST} is not a crank-jax "
-                             "trajectory manifest")
+        self._check_manifest()
         if not self.manifest.get("complete"):
             raise ValueError(f"{str(self.dir)!r}: the sweep writing these trajectories has "
                              "not finished; rerun it (with a checkpoint only the missing "
@@ -205,6 +213,21 @@ class Trajectories:
         self._plan = plan_digest(self.manifest["plan"])
         self._checked: set[str] = set()  # chunks whose files passed their checksums
         self._index = None
+
+    def _check_manifest(self) -> None:
+        """`ValueError` for a manifest of another format, or edited or damaged."""
+        doc = self.manifest if isinstance(self.manifest, dict) else {}
+        if doc.get("format") in _OLDER:
+            raise ValueError(f"{str(self.dir)!r} was written by an older crank-jax, "
+                             "without checksums on all it holds; rerun the sweep into a new "
+                             "directory")
+        if doc.get("format") != _FORMAT:
+            raise ValueError(f"{str(self.dir)!r}: {_MANIFEST} is not a crank-jax "
+                             "trajectory manifest")
+        if doc.get("sha256") != _manifest_digest(doc):
+            raise ValueError(f"saved trajectories {str(self.dir / _MANIFEST)!r} are damaged "
+                             "or were edited (checksum mismatch: its times, sample count or "
+                             "chunk list are not the sweep's); rerun the sweep")
 
     def _check(self, stem: str) -> None:
         """A chunk's files against their checksums, once (`ValueError` naming a bad one)."""
