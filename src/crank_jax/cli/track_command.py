@@ -73,10 +73,8 @@ _FLAGS = {"free=": "--free", "start_seconds=": "--start-seconds",
 
 
 def _track_run(a: argparse.Namespace) -> int:
-    import os
-
     from ..online.tracking import track
-    from ..runtime.io import atomic_write, check_input, check_output
+    from ..runtime.io import atomic_write, check_distinct_outputs, check_input, check_output
     from ..scene import load_scene
 
     _check(a)
@@ -85,8 +83,7 @@ def _track_run(a: argparse.Namespace) -> int:
     check_output(a.out, [a.data, a.scene], "--out")
     if a.report:
         check_output(a.report, [a.data, a.scene], "--report")
-        if os.path.realpath(a.out) == os.path.realpath(a.report):  # TODO(merge): same_file
-            raise UserError("--out and --report name the same file; give each its own")
+    check_distinct_outputs([(a.out, "--out"), (a.report, "--report")])
     scene = load_scene(a.scene)
     data = read_records(a, scene, [a.data])[0]
     try:
