@@ -33,7 +33,8 @@ def profile_likelihood(problem: Problem, z_hat, j: int, se_z: float, n: int, max
     ref)`), then doubling steps until the deviance passes the 95% threshold of chi-squared(1)
     ([`CHI2_95`][]) or the parameter has moved by a decade of its own magnitude, or a
     parameter that cannot be negative reaches 0. The crossing is then refined by one
-    re-fit where `sqrt(deviance)` interpolates to the threshold. (4.5: past twice the
+    re-fit where the deviance interpolates to the threshold (as `sqrt(RSS / RSS_min -
+    1)`, linear in the offset for a quadratic cost). (4.5: past twice the
     Hessian's 95% half-width, so a profile 2x wider than it shows as one, see
     [`hessian_disagreement`][].) The steps are in the parameter's coordinate: a relative
     step for one in log coordinates, a step in the value itself for a signed one (whose
@@ -63,10 +64,15 @@ def profile_likelihood(problem: Problem, z_hat, j: int, se_z: float, n: int, max
     rss = np.array([points[t] for t in ts])
     rss_min = min(rss_min, float(np.nanmin(rss)))
     dev = n * np.log(rss / rss_min)
-    zs = z_hat[j] + ts
-    values = (np.exp(zs) if problem.log[j] else np.abs(zs) * ref if fold else zs * ref)
+
+    def value(t):  # the parameter at offset t: its sign kept where it has one
+        z = z_hat[j] + t
+        return np.exp(z) if problem.log[j] else np.abs(z) * ref if fold else z * ref
+
+    values = value(ts)
     centre = int(np.flatnonzero(ts == 0.0)[0])
-    lo, hi = _crossings(values, dev, centre)
+    lo, hi = (None if c is None else float(value(c))
+              for c in _crossings(ts, dev, centre, n))
     if fold and lo is None and values[0] == 0.0 and np.all(np.isfinite(dev[:centre + 1])):
         lo = 0.0  # the deviance stays below the threshold down to the bound
     return Profile(problem.names[j], values, dev, (lo, hi))
@@ -94,9 +100,9 @@ def _walk(problem, z_hat, j, sign, step, grid, wide, bound, rss_min, n, max_step
             below = (t, d, zr)
         elif not crossed:
             crossed = True
-            # One re-fit where sqrt(deviance), linear between the bracket's ends, meets
-            # the threshold: exact for a quadratic cost, and the interval's end.
-            _refit(problem, z_hat, j, sign * _root(below[0], below[1], t, d), below[2],
+            # One re-fit where the deviance, interpolated between the bracket's ends,
+            # meets the threshold: exact for a quadratic cost, and the interval's end.
+            _refit(problem, z_hat, j, sign * _root(below[0], below[1], t, d, n), below[2],
                    rss_min, n, max_steps, tol, points)
         if t >= bound:
             return
@@ -112,29 +118,36 @@ def _refit(problem, z_hat, j, t, zr, rss_min, n, max_steps, tol, points):
     return run, (n * math.log(2 * run.cost / rss_min) if ok else math.inf)
 
 
-def _root(t0, d0, t1, d1) -> float:
-    """Where `sqrt(deviance)`, linear between (t0, d0) and (t1, d1), meets the threshold."""
-    s0, s1 = math.sqrt(max(d0, 0.0)), math.sqrt(max(d1, 0.0))
-    if s1 == s0:
+def _q(d: float, n: int) -> float:
+    """`sqrt(RSS / RSS_min - 1)` of a deviance `d = n ln(RSS / RSS_min)`: linear in the
+    offset where the cost is quadratic, however far out (`sqrt(d)` is not: the log
+    flattens it)."""
+    return math.sqrt(math.expm1(max(d, 0.0) / n))
+
+
+def _root(t0, d0, t1, d1, n: int) -> float:
+    """Where the deviance, with `_q` linear between (t0, d0) and (t1, d1), meets the
+    threshold: exact for a quadratic cost."""
+    q0, q1 = _q(d0, n), _q(d1, n)
+    if q1 == q0:
         return t1
-    return t0 + (math.sqrt(CHI2_95) - s0) / (s1 - s0) * (t1 - t0)
+    return t0 + (_q(CHI2_95, n) - q0) / (q1 - q0) * (t1 - t0)
 
 
-def _crossings(values, dev, centre) -> tuple[float | None, float | None]:
+def _crossings(ts, dev, centre, n: int) -> tuple[float | None, float | None]:
+    """The offsets below and above `ts[centre]` where the deviance first passes the
+    threshold (None: not within the points traced, or past a failed re-fit)."""
     def cross(rng):
         prev = centre
         for k in rng:
             if not np.isfinite(dev[k]):
                 return None
             if dev[k] > CHI2_95:
-                # Linear in sqrt(deviance): exact where the cost is quadratic.
-                d0, d1 = math.sqrt(max(dev[prev], 0.0)), math.sqrt(dev[k])
-                f = (math.sqrt(CHI2_95) - d0) / (d1 - d0) if d1 != d0 else 0.0
-                return float(values[prev] + f * (values[k] - values[prev]))
+                return float(_root(ts[prev], dev[prev], ts[k], dev[k], n))
             prev = k
         return None
 
-    return cross(range(centre - 1, -1, -1)), cross(range(centre + 1, len(values)))
+    return cross(range(centre - 1, -1, -1)), cross(range(centre + 1, len(ts)))
 
 
 def hessian_disagreement(prof: Profile, value: float, ci_hessian, factor: float = 2.0

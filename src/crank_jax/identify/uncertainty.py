@@ -147,8 +147,8 @@ def own_scale(values, log, ref) -> np.ndarray:
     (a step of 1 is a factor e), `max(|value|, ref) / ref` for a linear one
     (`z = value / ref`)."""
     ref = np.asarray(ref, dtype=float)
-    return np.where(np.asarray(log, dtype=bool), 1.0,
-                    np.maximum(np.abs(np.asarray(values, dtype=float)), ref) / ref)
+    own = np.maximum(np.abs(np.asarray(values, dtype=float)), ref) / np.where(ref > 0, ref, 1)
+    return np.where(np.asarray(log, dtype=bool) | ~(own > 0), 1.0, own)
 
 
 def _unit(u: np.ndarray) -> np.ndarray:
