@@ -10,7 +10,7 @@ from crank_jax.cli import main
 
 KEYS = ["estimates", "identifiable", "unidentifiable_directions", "rms_residual", "n_samples",
         "converged", "iterations", "seconds", "warnings", "diagnostics", "channels",
-        "termination"]
+        "termination", "predictions"]
 
 
 @pytest.fixture(scope="module")

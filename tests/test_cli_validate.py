@@ -66,12 +66,17 @@ def test_bad_values_exit_2_and_write_nothing(files, tmp_path, capsys, extra, nee
     assert out.read_text() == "keep"
 
 
-def test_missing_load_column_is_named(files, tmp_path, capsys):
+def test_missing_load_column_takes_the_scenes_as_fit_does(files, tmp_path):
+    # As in `fit`, the scene's torque serves where the record has no tau column (it was
+    # refused unless --scene-loads was given); --scene-loads is kept and changes nothing.
     _, toml, _, bare = files
-    out = tmp_path / "val.json"
-    msg = run_error(["validate", str(toml), str(bare), "--out", str(out), "--quiet"], capsys)
-    assert "no 'tau' column" in msg and "--scene-loads" in msg
-    assert not out.exists()
+    docs = []
+    for extra in ([], ["--scene-loads"]):
+        out = tmp_path / f"val{len(extra)}.json"
+        assert main(["validate", str(toml), str(bare), "--init-window", "0.25", "--out",
+                     str(out), "--quiet"] + extra) == 0
+        docs.append(json.loads(out.read_text()))
+    assert docs[0]["rms"] < 1e-6 and docs[0]["rms"] == docs[1]["rms"]
 
 
 def test_out_onto_an_input_is_refused(files, capsys):

@@ -54,7 +54,7 @@ def test_fit_json_has_exactly_the_documented_keys(demo_fit):
     doc = json.loads(json.dumps(res.to_json()))
     assert list(doc) == ["estimates", "identifiable", "unidentifiable_directions",
                          "rms_residual", "n_samples", "converged", "iterations", "seconds",
-                         "warnings", "diagnostics", "channels", "termination"]
+                         "warnings", "diagnostics", "channels", "termination", "predictions"]
     assert doc["termination"]["verdict"] == "converged"
     assert doc["termination"]["words"].startswith("converged: the Gauss-Newton step")
     assert {"ljung_box_p", "lag1_autocorrelation", "effective_samples"} <= set(

@@ -69,7 +69,7 @@ def test_bad_requests_name_the_argument(shaken):
         cj.validate(shaken, data, init_window=-1.0)
     bare = cj.Data(data.ts, data.phi, source="bare.csv")
     with pytest.raises(ValueError, match="bare.csv: the record has no 'tau' column"):
-        cj.validate(shaken, bare)
+        cj.validate(shaken, bare, scene_loads=False)
 
 
 def test_scene_loads_fill_a_missing_column(shaken):

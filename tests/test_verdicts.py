@@ -64,11 +64,13 @@ def verdicts(toy, z_hat, names, values, log, ref, folded=(False, False)):
 def test_a_weak_direction_whose_profile_closes_is_determined_and_gets_its_interval():
     # The false verdict of issue 38 in miniature: a parameter that starts at 0 is linear
     # with a made-up scale (ref 1e-3), so its standard error in z (1, above the 0.5 limit)
-    # looked like "not determined", though it is 0.02 +- 0.001: 5% of its value.
+    # looked like "not determined", though it is 0.02 +- 0.001: 5% of its value. The
+    # sensitivities' verdict is now on the parameter's own scale (5%), and says so
+    # without a profile.
     toy = Toy(jnp.asarray(NOISE), jnp.asarray([1.0, SIGMA]), "linear")
     names, ref = ("x", "force.a"), [1.0, 1e-3]
     first, final, notes = verdicts(toy, [1.0, 20.0], names, [1.0, 0.02], [False, False], ref)
-    assert not first.identifiable and len(first.candidates) == 1
+    assert first.identifiable and first.candidates == ()
     assert final.identifiable and final.directions == [] and notes == []
     lo, hi = final.ci95[1]
     assert lo < 0.02 < hi and 0.5 * 1.96e-3 < (hi - lo) / 2 < 2 * 1.96e-3

@@ -33,6 +33,10 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
                         "fields, P0, P1, tau0, tau1, phi0, dphi0")
     p.add_argument("--out", help="write the report as JSON to this file")
     p.add_argument("--plot", help="draw data vs fit, residuals and correlations to this PNG")
+    p.add_argument("--predictions", metavar="CSV",
+                   help="write every sample's time, measurement and the fitted model's "
+                        "prediction per channel (SI units) to this CSV (also in --out's "
+                        "`predictions`)")
     p.add_argument("--report", metavar="HTML",
                    help="write a self-contained HTML report (estimates, correlations, "
                         "figures, verdicts, provenance) to this file")
@@ -95,7 +99,7 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
 
     outs = [(path, option) for path, option in (
         (a.out, "--out"), (a.plot, "--plot"), (getattr(a, "scene_out", None), "--scene-out"),
-        (a.report, "--report")) if path]
+        (a.report, "--report"), (getattr(a, "predictions", None), "--predictions")) if path]
     outs += [(path, f"--scene-out's record {i} scene")
              for i, path in enumerate(_record_scenes(a)[1:], start=1)]
     for path, option in outs:
@@ -145,6 +149,11 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
             json.dump(res.to_json(), f, indent=2)
             f.write("\n")
         print(f"wrote {a.out}", file=sys.stderr)
+    if getattr(a, "predictions", None):
+        from ..identify.predictions import write_predictions_csv
+
+        write_predictions_csv(a.predictions, res.predictions())
+        print(f"wrote {a.predictions}", file=sys.stderr)
     if a.plot:
         from ..report.fit_plot import plot_fit
 

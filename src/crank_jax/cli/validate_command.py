@@ -27,7 +27,9 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--t-end", type=float, help="end of the window, s (default: the last sample)")
     p.add_argument("--init-window", type=float, metavar="S",
                    help="seconds at the window's start used to estimate the initial state "
-                        "(default: about one linearized period)")
+                        "(default: one revolution at the record's mean speed for a crank "
+                        "that turns, at least 30 samples; else about one linearized period; "
+                        "at most half the record)")
     p.add_argument("--horizon", type=float, metavar="S",
                    help="predict S seconds ahead: after the initial-state window, cut the "
                         "record into windows of S s, estimate each window's state from its "
@@ -41,13 +43,17 @@ def _validate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--load-interp", metavar="KIND",
                    help=f"interpolation of the record's load columns: {', '.join(LOAD_INTERP)}")
     p.add_argument("--scene-loads", action="store_true",
-                   help="use the scene's loads where the record has no P/tau column")
+                   help="the scene's loads serve where the record has no P/tau column: "
+                        "the default, as in fit (kept for old command lines)")
     add_load_by_option(p)
     p.add_argument("--t-col", default="t", help="name of the time column (t)")
     add_angle_options(p)
     add_channel_options(p)
     p.add_argument("--out", required=True, help="write the scores as JSON to this file")
     p.add_argument("--plot", help="draw data, prediction and error to this PNG")
+    p.add_argument("--predictions", metavar="CSV",
+                   help="write every sample's time, measurement and prediction per channel "
+                        "(SI units) to this CSV (also in --out's `predictions`)")
     p.add_argument("--report", metavar="HTML",
                    help="write a self-contained HTML report (scores, figures, provenance)")
     p.add_argument("--allow-unconverged", action="store_true",
@@ -119,22 +125,22 @@ def _validate_run(a: argparse.Namespace) -> int:
     _check_numbers(a)
     check_input(a.data, "DATA")  # at once: a FIFO with no writer would block the read
     # Every output checked before the record is read (not when writing, after the work).
-    for path, option in ((a.out, "--out"), (a.plot, "--plot")):
+    for path, option in ((a.out, "--out"), (a.plot, "--plot"), (a.predictions, "--predictions")):
         if path:
             check_output(path, [a.data, a.scene], option)
     if a.plot:
         check_figure_format(a.plot)
     if a.report:
         check_output(a.report, [a.data, a.scene], "--report")
-    check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot"), (a.report, "--report")])
+    check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot"), (a.report, "--report"),
+                            (a.predictions, "--predictions")])
     scene = load_scene(a.scene)
     unconverged = _unconverged(a)
     data = _read(a, scene)
     with load_by_words():
         val = validate(scene, data, t_start=a.t_start, t_end=a.t_end,
-                       init_window=a.init_window, scene_loads=a.scene_loads,
-                       progress=not a.quiet, horizon=a.horizon, init_free=_init_free(a),
-                       load_by=a.load_by)
+                       init_window=a.init_window, progress=not a.quiet, horizon=a.horizon,
+                       init_free=_init_free(a), load_by=a.load_by)
     if unconverged:
         val.warnings.insert(0, unconverged)
     print(val.summary())
@@ -144,6 +150,11 @@ def _validate_run(a: argparse.Namespace) -> int:
         json.dump(val.to_json(), f, indent=2)
         f.write("\n")
     print(f"wrote {a.out}", file=sys.stderr)
+    if a.predictions:
+        from ..identify.predictions import write_predictions_csv
+
+        write_predictions_csv(a.predictions, [val.predictions()])
+        print(f"wrote {a.predictions}", file=sys.stderr)
     if a.plot:
         plot_validation(val, a.plot, title=f"{a.data} predicted by {a.scene}")
         print(f"wrote {a.plot}", file=sys.stderr)

@@ -137,7 +137,19 @@ class FitResult(NamedTuple):
                                              else num(c["ljung_box_p"]))}
                          for n, c in (self.channels or {}).items()},
             "termination": (None if self.termination is None else dict(self.termination)),
+            "predictions": self.predictions(),
         }
+
+    def predictions(self) -> list[dict]:
+        """Per record (each window fitted), its samples' times, measurements and the
+        fitted model's predictions per channel, SI (see
+        [`prediction_table`][crank_jax.identify.predictions.prediction_table]), with the
+        record's `source`."""
+        from .predictions import prediction_table
+
+        fitted = self.fitted_channels or [None] * len(self.data)
+        return [{"source": d.source, **prediction_table(d.ts, dict(d.outputs_items()), f)}
+                for d, f in zip(self.data, fitted)]
 
     def fitted_scene(self, scene, record: int = 0, sensors=None, *, anyway: bool = False):
         """`scene` (the scene the fit started from) with this fit's estimates: see

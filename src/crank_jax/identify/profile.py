@@ -19,64 +19,135 @@ __all__ = ["profile_likelihood", "hessian_disagreement", "CHI2_95"]
 CHI2_95 = 3.841458820694124
 
 
+#: Grid points on each side of the estimate before the walk outwards.
+_GRID_SIDE = 4
+#: Largest number of re-fits on one side (the grid's and the walk's).
+_MAX_SIDE = 14
+
+
 def profile_likelihood(problem: Problem, z_hat, j: int, se_z: float, n: int, max_steps: int,
                        tol: float, progress: bool) -> Profile:
-    """Profile likelihood of coordinate `j` on a grid of +-4.5 standard errors (or +-ln 2 /
-    +-50% of `ref` if none), warm-started outwards from the estimate `z_hat` (p,). (4.5:
-    past twice the Hessian's 95% half-width, so a profile 2x wider than it shows as one,
-    see [`hessian_disagreement`][].)
+    """Profile likelihood of coordinate `j`, warm-started outwards from the estimate
+    `z_hat` (p,) on each side: a grid of 4 steps to 4.5 standard errors `se_z` (in z;
+    without one, a first step of 1% of the parameter's own magnitude `max(|value|,
+    ref)`), then doubling steps until the deviance passes the 95% threshold of chi-squared(1)
+    ([`CHI2_95`][]) or the parameter has moved by a decade of its own magnitude, or a
+    parameter that cannot be negative reaches 0. The crossing is then refined by one
+    re-fit where the deviance interpolates to the threshold (as `sqrt(RSS / RSS_min -
+    1)`, linear in the offset for a quadratic cost). (4.5: past twice the
+    Hessian's 95% half-width, so a profile 2x wider than it shows as one, see
+    [`hessian_disagreement`][].) The steps are in the parameter's coordinate: a relative
+    step for one in log coordinates, a step in the value itself for a signed one (whose
+    sign the values keep).
 
-    **Returns:** a [`Profile`][] with `n ln(RSS / RSS_min)` per grid point.
+    **Returns:** a [`Profile`][] with `n ln(RSS / RSS_min)` per point traced.
     """
-    half = 4.5 * se_z if math.isfinite(se_z) and se_z > 0 else (
-        math.log(2) if problem.log[j] else 0.5)
     z_hat = np.array(z_hat, dtype=float)
-    fold = problem.folded[j]
+    fold = bool(problem.folded[j])
     if fold:
-        # A parameter >= 0 fitted as ref |z|: its profile stops at its bound, 0.
-        z_hat[j] = abs(z_hat[j])
-        grid = np.linspace(max(-half, -z_hat[j]), half, 9)
-    else:
-        grid = np.linspace(-half, half, 9)
+        z_hat[j] = abs(z_hat[j])  # a parameter >= 0 fitted as ref |z|: its bound is z = 0
+    ref = float(problem.ref[j])
+    # z units per unit of the parameter's own magnitude (1 in log coordinates).
+    per = 1.0 if problem.log[j] else max(abs(z_hat[j]), 1.0)
+    hessian = math.isfinite(se_z) and se_z > 0
+    step, grid = (4.5 * se_z / _GRID_SIDE, _GRID_SIDE) if hessian else (0.01 * per, 1)
+    wide = math.log(10.0) * per
     rss_min = 2 * evaluate(problem, z_hat)[0]
-    rss = np.full(grid.shape, np.nan)
-    centre = int(np.argmin(np.abs(grid)))
-    zr_hat = np.delete(z_hat, j)
-    with progress_bar(len(grid), f"profile {problem.names[j]}", progress) as bar:
-        for direction in (range(centre, len(grid)), range(centre - 1, -1, -1)):
-            zr = zr_hat.copy()
-            for k in direction:
-                pinned = Pinned(problem, jnp.asarray(z_hat[j] + grid[k]), j)
-                run = least_squares(pinned, zr, max_steps, tol, "", False)
-                if np.isfinite(run.cost):
-                    rss[k] = 2 * run.cost
-                    zr = run.z  # warm start the next grid point
-                bar.update(1)
-    rss_min = min(rss_min, float(np.nanmin(rss))) if np.any(np.isfinite(rss)) else rss_min
+    points = {0.0: rss_min}
+    with progress_bar(2 * _GRID_SIDE, f"profile {problem.names[j]}", progress) as bar:
+        for sign in (1.0, -1.0):
+            limit = z_hat[j] if fold and sign < 0 else math.inf
+            if limit > 0:  # (an estimate at its bound 0 has nothing below it)
+                _walk(problem, z_hat, j, sign, step, grid, min(wide, limit), limit, rss_min,
+                      n, max_steps, tol, points, bar)
+    ts = np.array(sorted(points))
+    rss = np.array([points[t] for t in ts])
+    rss_min = min(rss_min, float(np.nanmin(rss)))
     dev = n * np.log(rss / rss_min)
-    zs = z_hat[j] + grid
-    values = np.exp(zs) if problem.log[j] else np.abs(zs) * float(problem.ref[j])
-    lo, hi = _crossings(values, dev, centre)
+
+    def value(t):  # the parameter at offset t: its sign kept where it has one
+        z = z_hat[j] + t
+        return np.exp(z) if problem.log[j] else np.abs(z) * ref if fold else z * ref
+
+    values = value(ts)
+    centre = int(np.flatnonzero(ts == 0.0)[0])
+    lo, hi = (None if c is None else float(value(c))
+              for c in _crossings(ts, dev, centre, n))
     if fold and lo is None and values[0] == 0.0 and np.all(np.isfinite(dev[:centre + 1])):
         lo = 0.0  # the deviance stays below the threshold down to the bound
     return Profile(problem.names[j], values, dev, (lo, hi))
 
 
-def _crossings(values, dev, centre) -> tuple[float | None, float | None]:
+def _walk(problem, z_hat, j, sign, step, grid, wide, bound, rss_min, n, max_steps, tol,
+          points, bar) -> None:
+    """One side of the profile: re-fits at `sign` times the offsets `step`, 2 `step`, ...
+    (`grid` of them), then doubling while the deviance stays below the threshold
+    and the offset below `wide`; never past `bound` (a parameter's 0). The first crossing
+    is refined by one re-fit. Adds each point's `|r|^2` (NaN where the re-fit failed) to
+    `points` (offset -> `|r|^2`)."""
+    zr = np.delete(z_hat, j)
+    below, crossed, t = (0.0, 0.0, zr), False, 0.0
+    for k in range(_MAX_SIDE):
+        if k >= grid and (crossed or below[0] >= min(wide, bound)):
+            return
+        t = min(step * (k + 1) if k < grid else 2.0 * t, bound)
+        run, d = _refit(problem, z_hat, j, sign * t, zr, rss_min, n, max_steps, tol, points)
+        bar.update(1)
+        if not math.isfinite(d):
+            return  # a failed re-fit: nothing beyond it is traced on this side
+        zr = run.z  # warm start the next point
+        if d <= CHI2_95 and not crossed:
+            below = (t, d, zr)
+        elif not crossed:
+            crossed = True
+            # One re-fit where the deviance, interpolated between the bracket's ends,
+            # meets the threshold: exact for a quadratic cost, and the interval's end.
+            _refit(problem, z_hat, j, sign * _root(below[0], below[1], t, d, n), below[2],
+                   rss_min, n, max_steps, tol, points)
+        if t >= bound:
+            return
+
+
+def _refit(problem, z_hat, j, t, zr, rss_min, n, max_steps, tol, points):
+    """The re-fit with coordinate `j` pinned at `z_hat[j] + t`, from `zr`; its `|r|^2` goes
+    into `points[t]`. **Returns:** `(run, deviance)` (deviance inf where it failed)."""
+    run = least_squares(Pinned(problem, jnp.asarray(z_hat[j] + t), j), zr, max_steps, tol,
+                        "", False)
+    ok = np.isfinite(run.cost)
+    points[float(t)] = 2 * run.cost if ok else np.nan
+    return run, (n * math.log(2 * run.cost / rss_min) if ok else math.inf)
+
+
+def _q(d: float, n: int) -> float:
+    """`sqrt(RSS / RSS_min - 1)` of a deviance `d = n ln(RSS / RSS_min)`: linear in the
+    offset where the cost is quadratic, however far out (`sqrt(d)` is not: the log
+    flattens it)."""
+    return math.sqrt(math.expm1(max(d, 0.0) / n))
+
+
+def _root(t0, d0, t1, d1, n: int) -> float:
+    """Where the deviance, with `_q` linear between (t0, d0) and (t1, d1), meets the
+    threshold: exact for a quadratic cost."""
+    q0, q1 = _q(d0, n), _q(d1, n)
+    if q1 == q0:
+        return t1
+    return t0 + (_q(CHI2_95, n) - q0) / (q1 - q0) * (t1 - t0)
+
+
+def _crossings(ts, dev, centre, n: int) -> tuple[float | None, float | None]:
+    """The offsets below and above `ts[centre]` where the deviance first passes the
+    threshold (None: not within the points traced, or past a failed re-fit)."""
     def cross(rng):
         prev = centre
         for k in rng:
             if not np.isfinite(dev[k]):
                 return None
             if dev[k] > CHI2_95:
-                # Linear in sqrt(deviance): exact where the cost is quadratic.
-                d0, d1 = math.sqrt(max(dev[prev], 0.0)), math.sqrt(dev[k])
-                f = (math.sqrt(CHI2_95) - d0) / (d1 - d0) if d1 != d0 else 0.0
-                return float(values[prev] + f * (values[k] - values[prev]))
+                return float(_root(ts[prev], dev[prev], ts[k], dev[k], n))
             prev = k
         return None
 
-    return cross(range(centre - 1, -1, -1)), cross(range(centre + 1, len(values)))
+    return cross(range(centre - 1, -1, -1)), cross(range(centre + 1, len(ts)))
 
 
 def hessian_disagreement(prof: Profile, value: float, ci_hessian, factor: float = 2.0

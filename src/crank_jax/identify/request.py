@@ -28,7 +28,7 @@ from .userforce import force_names, force_starts
 
 __all__ = ["FitRequest", "normalize", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
            "SIGNED_FIELDS", "FRICTION_SCALED", "MAX_ITERATIONS", "SIGMA_RANGE", "free_names",
-           "load_param", "reported_names", "window_data", "record_mech"]
+           "load_param", "reported_names", "window_data", "record_mech", "record_loads"]
 
 STATE_NAMES = ("phi0", "dphi0")
 #: Load parameters that can be free, name -> (side, role), from the one load table
@@ -126,6 +126,17 @@ def record_mech(mech: SliderCrank, own: dict) -> SliderCrank:
     `Problem.unpack`) of its per-record mechanism fields (`per_record`)."""
     return SliderCrank(**{**{f: getattr(mech, f) for f in FIELDS},
                           **{n: v for n, v in own.items() if n in FIELDS}})
+
+
+def record_loads(scene: Scene, data: Data) -> tuple[AbstractLoad, AbstractLoad]:
+    """`(load, torque)` of a record as a fit and a validation take them: the record's own
+    `P`/`tau` column where it has one, else the scene's load (an input-driven one bound to
+    the record's input column; `ValueError` naming the record and the column where it
+    lacks it)."""
+    return (bind_input(data.load if data.load is not None else scene.load, data.inputs,
+                       data.source, "slider force"),
+            bind_input(data.torque if data.torque is not None else scene.torque,
+                       data.inputs, data.source, "crank torque"))
 
 
 def window_data(d: Data, window: tuple[float, float] | None) -> Data:
@@ -340,11 +351,7 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
         raise ValueError("phi_offset cannot be free with load_by='angle': the loads are "
                          "tabled by the angle channel through its given calibration; fix "
                          "phi_offset (the sensor's offset), or load_by='time'")
-    loads = tuple((bind_input(d.load if d.load is not None else sc.load, d.inputs, d.source,
-                              "slider force"),
-                   bind_input(d.torque if d.torque is not None else sc.torque, d.inputs,
-                              d.source, "crank torque"))
-                  for d, sc in zip(records, scenes))
+    loads = tuple(record_loads(sc, d) for d, sc in zip(records, scenes))
     mech = scenes[0].mech
     start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}
     start.update(_load_starts(free, records, loads))

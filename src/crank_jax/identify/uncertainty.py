@@ -9,7 +9,7 @@ so the Jacobian's columns are the sensitivities scaled by the parameter values):
   covariance `sigma^2 (J^T J)^-1`, from the SVD `J = U diag(s) V^T`;
 - a direction `v` of `z`-space is **unidentifiable** when it is numerically in the null
   space (`s < 1e-7 s_max`) or so weakly determined that its standard error `sigma / s`
-  exceeds [`PRACTICAL_LIMIT`][] (a 50% relative error in log coordinates);
+  exceeds [`PRACTICAL_LIMIT`][] (a 50% relative error, each parameter on its own scale);
 - the common-scale direction of DESIGN.md section 3 (every free mass, inertia, stiffness,
   damping and load amplitude multiplied by one factor) is tested explicitly and reported
   in words.
@@ -29,14 +29,15 @@ from .programs import jacobian_at
 from .symmetries import fixed_scale_members, known_directions, name_list
 
 __all__ = ["Uncertainty", "analyze", "assess", "undefined", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
-           "sample_rows", "inflate", "misfit"]
+           "sample_rows", "inflate", "misfit", "own_scale"]
 
 #: Two-sided 95% quantile of the standard normal distribution.
 Z95 = 1.959963984540054
 #: Relative singular values below this are the numerical null space.
 RANK_TOL = 1e-7
-#: A direction whose standard error (in log coordinates) exceeds this is unidentifiable
-#: in practice: the data cannot even pin it down to within +-50%.
+#: A direction whose standard error (in log coordinates, or a linear one in units of its
+#: own magnitude) exceeds this is unidentifiable in practice: the data cannot even pin it
+#: down to within +-50%.
 PRACTICAL_LIMIT = 0.5
 # A parameter whose unit vector has at least this component in an unidentifiable
 # subspace has no meaningful standard error.
@@ -117,12 +118,49 @@ def analyze(
       ([`verdict.check`][crank_jax.identify.verdict.check]): a weak direction along one
       of them is determined after all, and is not flagged.
 
+    Every verdict is judged on the parameters' own scale (see [`own_scale`][]): a linear
+    coordinate is measured in units of `max(|value|, ref)`, so that its standard error is
+    a relative one, as a log coordinate's is (a drive torque started near 0 has a tiny
+    `ref`, and in units of it a well-determined torque looked undetermined). The
+    covariance returned is that of z.
+
     **Returns:** an [`Uncertainty`][].
     """
-    J = np.asarray(J, dtype=float)
-    p = J.shape[1]
     log = np.asarray(log, dtype=bool)
     values = np.asarray(values, dtype=float)
+    per = own_scale(values, log, ref)
+    closed_w = [_unit(np.asarray(c, float) / per) for c in closed]
+    unc = _analyze_own(np.asarray(J, dtype=float) * per, residuals, n, names, values, log,
+                       np.asarray(ref, float) * per, sigma, geometry, folded, fixed_scale,
+                       closed_w)
+    # Back to z = per * w: the covariance, and each candidate direction with its error.
+    cands = []
+    for u, se in unc.candidates:
+        g = float(np.linalg.norm(u * per))
+        cands.append((u * per / g, se * g))
+    return unc._replace(covariance_z=unc.covariance_z * np.outer(per, per),
+                        candidates=tuple(cands))
+
+
+def own_scale(values, log, ref) -> np.ndarray:
+    """(p,) z units per unit of each parameter's own magnitude: 1 for a log coordinate
+    (a step of 1 is a factor e), `max(|value|, ref) / ref` for a linear one
+    (`z = value / ref`)."""
+    ref = np.asarray(ref, dtype=float)
+    own = np.maximum(np.abs(np.asarray(values, dtype=float)), ref) / np.where(ref > 0, ref, 1)
+    return np.where(np.asarray(log, dtype=bool) | ~(own > 0), 1.0, own)
+
+
+def _unit(u: np.ndarray) -> np.ndarray:
+    norm = float(np.linalg.norm(u))
+    return u / norm if norm > 0 else u
+
+
+def _analyze_own(J, residuals, n, names, values, log, ref, sigma, geometry, folded,
+                 fixed_scale, closed) -> Uncertainty:
+    """[`analyze`][] in coordinates on the parameters' own scale (`J`, `ref` and the
+    `closed` directions in them); the covariance and candidates returned are in them."""
+    p = J.shape[1]
     dof = max(n - p, 1)
     if sigma is None:
         sigma = float(np.sqrt(np.sum(np.square(residuals)) / dof))

@@ -1,10 +1,11 @@
 """Validation on a record the model was not fitted to: predict it open-loop and score it.
 
-[`validate`][] estimates only the initial state `(phi0, dphi0)` from the first `init_window`
-seconds of the record (a fit with every mechanism parameter fixed), then simulates the whole
-window open-loop from that state, with the record's own load columns when it has them (by
-time or by angle, `load_by`), and scores the prediction on the samples after the
-initial-state window (those were not used at all):
+[`validate`][] estimates only the initial state `(phi0, dphi0)` from the first
+`init_window` seconds of the record (a fit with every mechanism parameter fixed), then
+simulates the whole window open-loop from that state, with the record's own load columns
+where it has them (by time or by angle, `load_by`) and the scene's elsewhere (as [`fit`][]
+takes them), and scores the prediction on the samples after the initial-state window
+(those were not used at all):
 
 - `rms = sqrt(mean((y - yhat)^2))` and `max_abs = max |y - yhat|`, rad;
 - `fit_percent = 100 (1 - |y - yhat| / |y - mean(y)|)` with 2-norms (MATLAB's `compare`):
@@ -36,16 +37,16 @@ import numpy as np
 from ..model.loads import AbstractLoad, InputLoad, NoLoad, set_param
 from ..model.outputs import SI_UNITS, output
 from ..model.params import FIELDS
-from ..model.sampled import bind_input
-from ..records.data import MIN_SAMPLES, Data, DataError
+from ..records.data import Data, DataError
 from ..records.load_by import loads_by
 from ..runtime.blas import one_blas_thread
 from ..scene import Scene
-from ..simulation import linearize
 from . import horizon as hz
 from .diagnostics import residual_diagnostics
 from .fit import fit
-from .request import LOAD_NAMES, STATE_NAMES, free_names
+from .request import LOAD_NAMES, STATE_NAMES, free_names, record_loads
+from .state_window import default_init_window
+from .state_window import init_window as state_window
 
 __all__ = ["validate", "Validation", "default_init_window", "MIN_SPREAD_EPS", "init_free_names"]
 
@@ -110,7 +111,19 @@ class Validation(NamedTuple):
                 "windows": [{k: (num(v) if isinstance(v, float) else v)
                              for k, v in w.items()} for w in self.windows or []]}
                if self.horizon is not None else {}),
+            "predictions": self.predictions(),
         }
+
+    def predictions(self) -> dict:
+        """The window's times, measurements and predictions per channel, SI (see
+        [`prediction_table`][crank_jax.identify.predictions.prediction_table]), and
+        `scored` per sample (False: in the initial-state window, or a window's head)."""
+        from .predictions import prediction_table
+
+        measured = self.data_channels or {"phi": self.phi}
+        predicted = self.predicted_channels or {"phi": self.predicted}
+        return {**prediction_table(self.ts, measured, predicted),
+                "scored": [bool(x) for x in np.asarray(self.scored)]}
 
     def error_diagnostics(self):
         """The whiteness of the scored prediction errors (a
@@ -148,32 +161,18 @@ class Validation(NamedTuple):
         return text
 
 
-def default_init_window(scene: Scene, load: AbstractLoad | None = None) -> float:
-    """About one period: the linearised period `2 pi / omega_n` of the scene (`load` at its
-    mean), or 1 s when phi = 0 is not a stable equilibrium."""
-    w = float(np.asarray(linearize(scene.mech, load if load is not None else scene.load)
-                         .omega_n))
-    return 2 * math.pi / w if math.isfinite(w) and w > 0 else 1.0
-
-
 def _loads(scene: Scene, data: Data, scene_loads: bool) -> tuple[AbstractLoad, AbstractLoad]:
-    """The record's own loads, else (with `scene_loads`, or when the scene has none) the
-    scene's; raise naming the missing column otherwise."""
-    out = []
+    """The record's loads as a fit takes them (`request.record_loads`: its own columns,
+    else the scene's). With `scene_loads` False, a scene's load (not driven by an input
+    column) that the record does not carry is refused by name instead."""
     for own, model, col, what in ((data.load, scene.load, "P", "slider force P"),
                                   (data.torque, scene.torque, "tau", "crank torque tau")):
-        if own is not None:
-            out.append(own)
-        elif isinstance(model, InputLoad):
-            out.append(bind_input(model, data.inputs, data.source, what))
-        elif isinstance(model, NoLoad) or scene_loads:
-            out.append(model)
-        else:
+        if not (scene_loads or own is not None or isinstance(model, (InputLoad, NoLoad))):
             raise DataError(f"{data.source}: the record has no {col!r} column, but the scene "
-                            f"has a {what} ({type(model).__name__}); add the column with the "
-                            "load measured during this record, or use the scene's load "
-                            "(scene_loads=True, --scene-loads)")
-    return out[0], out[1]
+                            f"has a {what} ({type(model).__name__}) and scene_loads=False; "
+                            "add the column with the load measured during this record, or "
+                            "let the scene's load serve (scene_loads=True, the default)")
+    return record_loads(scene, data)
 
 
 #: The scored angles must spread (rms about their mean) by more than this many float64
@@ -208,7 +207,7 @@ def validate(
     t_start: float | None = None,
     t_end: float | None = None,
     init_window: float | None = None,
-    scene_loads: bool = False,
+    scene_loads: bool = True,
     progress: bool = False,
     horizon: float | None = None,
     init_free: tuple[str, ...] | list[str] = (),
@@ -222,10 +221,14 @@ def validate(
       record has no load columns, its loads.
     - `data`: the validation record, a [`Data`][].
     - `t_start`, `t_end`: the window of the record to use, s (`None`: its own ends).
-    - `init_window`: length of the initial-state window at the start, s (default: about
-      one period, [`default_init_window`][]; at least [`MIN_SAMPLES`][] samples).
-    - `scene_loads`: use the scene's loads where the record has no `P`/`tau` column
-      (default: a record must carry the loads the scene has).
+    - `init_window`: length of the initial-state window at the start, s (default: from
+      the record, [`record_init_window`][crank_jax.identify.state_window.record_init_window]:
+      one revolution of a crank that turns (at least 30 samples), else about one period;
+      at most half the record; at least
+      [`MIN_SAMPLES`][crank_jax.records.data.MIN_SAMPLES] samples).
+    - `scene_loads`: the scene's loads serve where the record has no `P`/`tau` column,
+      exactly as in [`fit`][] (default); False: a record must carry every load the scene
+      has (an input-driven one excepted), and one that lacks a column is refused.
     - `progress`: show the initial-state fit's progress bar.
     - `horizon`: `None` (default) predicts everything after the initial-state window open
       loop; a time `T` > 0 s predicts k steps ahead: after the initial-state window the
@@ -240,12 +243,13 @@ def validate(
     - `load_by`: what the record's `P`/`tau` columns follow: `"time"` or `"angle"`, as in
       [`fit`][].
 
-    **Returns:** a [`Validation`][]. Raises `ValueError` (naming the argument) for a window
-    with fewer than [`MIN_SAMPLES`][] samples, an initial-state window that leaves fewer than
-    that many to score, a horizon that leaves none to predict, a name `init_free` cannot take,
-    a missing load column, a record `load_by='angle'` cannot table, or scored angles that are
-    constant up to float rounding ([`MIN_SPREAD_EPS`][]; `fit_percent` would be meaningless);
-    `RuntimeError` if a prediction's solve fails.
+    **Returns:** a [`Validation`][]. Raises `ValueError` (naming the argument) for a
+    window with fewer than [`MIN_SAMPLES`][crank_jax.records.data.MIN_SAMPLES] samples, an
+    initial-state window that leaves fewer than that many to score, a horizon that leaves
+    none to predict, a name `init_free` cannot take, a missing load column (with
+    `scene_loads=False`), a record `load_by='angle'` cannot table, or scored angles that are
+    constant up to float rounding ([`MIN_SPREAD_EPS`][]; `fit_percent` would be
+    meaningless); `RuntimeError` if a prediction's solve fails.
     """
     if not isinstance(scene, Scene) or not isinstance(data, Data):
         raise TypeError("validate(scene, data): expected a Scene and a Data record")
@@ -257,7 +261,7 @@ def validate(
     load, torque = _loads(scene, win, scene_loads)
     win = Data(win.ts, win.phi, load, torque, source=win.source, channels=win.channels,
                sensors=win.sensors, inputs=win.inputs)
-    init_window = _init_window(scene, win, load, init_window)
+    init_window = state_window(scene, win, load, init_window)
     t_init = float(win.ts[0]) + init_window
     scored = win.ts > t_init
     windows = None
@@ -296,26 +300,6 @@ def validate(
         channels=scores, predicted_channels=predicted, data_channels=dict(win.outputs_items()),
         horizon=None if horizon is None else float(horizon), windows=info,
         init_values=own or None)
-
-
-def _init_window(scene: Scene, win: Data, load, init_window: float | None) -> float:
-    """The initial-state window's length, s: `init_window`, or about one period (and at
-    least [`MIN_SAMPLES`][] samples) when None. `ValueError` naming `--init-window` where
-    it takes or leaves fewer than [`MIN_SAMPLES`][] samples."""
-    if init_window is None:
-        s = default_init_window(scene, load)
-        init_window = max(s, float(win.ts[min(MIN_SAMPLES, win.n) - 1] - win.ts[0]))
-    elif not (math.isfinite(init_window) and init_window > 0):
-        raise ValueError(f"init_window (--init-window) must be a time > 0 s, got {init_window}")
-    t_init = float(win.ts[0]) + float(init_window)
-    n_init = int(np.sum(win.ts <= t_init))
-    n_scored = int(np.sum(win.ts > t_init))
-    if n_init < MIN_SAMPLES or n_scored < MIN_SAMPLES:
-        raise ValueError(f"init_window (--init-window) = {init_window:g} s takes {n_init} of "
-                         f"the window's {win.n} samples and leaves {n_scored} to "
-                         f"score; both need at least {MIN_SAMPLES}: change the window or "
-                         "--init-window")
-    return float(init_window)
 
 
 def _state_fit(scene: Scene, head: Data, load, torque, init_free: tuple[str, ...],
