@@ -101,3 +101,135 @@ def test_load_checks_skip_traced_amplitudes():
 
     assert np.all(np.isfinite(jax.vmap(end)(jnp.array([0.1, 0.2]))))
     assert np.isfinite(jax.grad(end)(0.1))
+
+
+# --- the vibration API refuses what the command line refuses ----------------------------
+
+def _driven():
+    import equinox as eqx
+
+    sc = cj.load_scene("lab-rig")
+    return eqx.tree_at(lambda s: s.torque, sc, cj.HarmonicLoad(0.0, 0.05, 4.0))
+
+
+def _loose(scene):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda s: s.rtol, scene, np.asarray(0.5))  # skips construction
+
+
+@pytest.mark.parametrize("call,match", [
+    (lambda: cj.periodic_orbit(_driven(), -4.0), "freq_hz must be one finite frequency > 0"),
+    (lambda: cj.periodic_orbit(_driven(), 0.0), "freq_hz must be one finite"),
+    (lambda: cj.periodic_orbit(_driven(), float("nan")), "freq_hz must be one finite"),
+    (lambda: cj.periodic_orbit(_driven(), 4.0, guess=np.zeros(3)), r"guess must be .* \(2,\)"),
+    (lambda: cj.periodic_orbit(_loose(_driven()), 4.0), "the scene's rtol must be"),
+    (lambda: cj.forced_response(_driven(), (3.0, 5.0), step=0.0), "step must be a number > 0"),
+    (lambda: cj.forced_response(_driven(), (3.0, 5.0), step=-1.0), "step must be"),
+    (lambda: cj.forced_response(_driven(), (3.0, 5.0), step=1e9), "at most 0.5"),
+    (lambda: cj.forced_response(_driven(), (3.0, 5.0), max_points=1), "max_points must be"),
+    (lambda: cj.forced_response(_driven(), (3.0, 4.0, 5.0)), "freq_hz must be a pair"),
+    (lambda: cj.forced_response(_driven(), 3.0), "freq_hz must be a pair"),
+    (lambda: cj.forced_response(_loose(_driven()), (3.0, 5.0)), "the scene's rtol"),
+    (lambda: cj.backbone(cj.load_scene("lab-rig").mech, []), "amplitudes must be one or more"),
+    (lambda: cj.backbone(cj.load_scene("lab-rig").mech, [[0.1, 0.2]]), "shape"),
+    (lambda: cj.backbone(cj.load_scene("lab-rig").mech.replace(k=np.array([2.0, 3.0])), [0.1]),
+     "mech.k has shape"),
+    (lambda: cj.backbone(cj.load_scene("lab-rig").mech, [0.1], rtol=0.5), "rtol must be"),
+    (lambda: cj.stability_chart(cj.load_scene("lab-rig"), (0.0, 1.0, 2.0), (1.0, 2.0)),
+     "load_amplitude must be a pair"),
+    (lambda: cj.stability_chart(cj.load_scene("lab-rig"), (0.0, 1.0), (2.0, 1.0)),
+     "freq_hz must be"),
+    (lambda: cj.stability_chart(_loose(cj.load_scene("lab-rig")), (0.0, 1.0), (1.0, 2.0)),
+     "the scene's rtol"),
+])
+def test_vibration_api_refuses_bad_arguments_naming_them(call, match):
+    with pytest.raises(cj.vibration.VibrationError, match=match):
+        call()
+
+
+# --- partial results say so, in the user's units, and do not exit 0 ---------------------
+
+def _half_failed(monkeypatch):
+    """Make every other chart point's monodromy solve fail (NaN), as a solve that ran out of
+    steps does, without the minutes such a solve takes."""
+    import jax.numpy as jnp
+
+    from crank_jax.vibration import chart
+
+    real = chart._chart
+
+    def failing(scene, amps, freqs, structure, rest):
+        fm = real(scene, amps, freqs, structure, rest)
+        return jnp.where(jnp.arange(fm.shape[0]) % 2 == 0, jnp.nan, fm)
+
+    monkeypatch.setattr(chart, "_chart", failing)
+
+
+def test_chart_failed_points_are_neither_stable_nor_unstable(monkeypatch, tmp_path, capsys):
+    _half_failed(monkeypatch)
+    lab = cj.load_scene("lab-rig")
+    ch = cj.stability_chart(lab, (0.0, 1e-3), (2.0, 3.0), grid=2)  # no forcing: damped rest
+    assert ch.ok.tolist() == [[False, True], [False, True]]
+    assert not ch.stable[:, 0].any() and not ch.unstable.any() and ch.stable[:, 1].all()
+    out = tmp_path / "c.json"
+    code, text, err = _run(capsys, "stability", "lab-rig", "--load-amplitude", "0:0.001",
+                           "--freq", "2:3", "--grid", "2", "--out", str(out))
+    assert code == 1, err
+    assert "0% unstable, 50% stable" in text, text
+    assert "partial: 2 of 4 points failed" in err and "Hz" in err, err
+    doc = json.loads(out.read_text())
+    assert doc["ok"] == [[False, True], [False, True]]
+    assert doc["floquet_max"][0][0] is None
+
+
+def test_backbone_below_the_resolvable_amplitude_is_refused(tmp_path, capsys):
+    code, _, err = _run(capsys, "backbone", "lab-rig", "--amplitudes", "1e-300:1e-299:2",
+                        "--out", str(tmp_path / "b.json"))
+    assert code == 2 and "amplitudes must be >= 1e-200 rad" in err, err
+    assert "rotation" not in err and not (tmp_path / "b.json").exists()
+    with pytest.raises(cj.vibration.VibrationError, match=r"amplitudes must be >= 0.00011 rad "
+                       r"about the rest at 3.14159 rad"):
+        cj.backbone(cj.load_scene("pendulum").mech, [3e-5, 0.1])
+
+
+def test_response_stopped_early_is_partial_in_hz(tmp_path, capsys):
+    import equinox as eqx
+
+    sc = cj.load_scene("lab-rig")
+    driven = eqx.tree_at(lambda s: s.torque, sc, cj.HarmonicLoad(0.0, 0.05, 4.0))
+    resp = cj.forced_response(driven, (3.0, 5.5), max_points=3)
+    assert resp.complete is False and resp.to_dict()["complete"] is False
+    assert resp.stopped.startswith("partial: the curve covers 3 to ")
+    assert "Hz of the 3 to 5.5 Hz asked" in resp.stopped and "max_points = 3" in resp.stopped
+    path = tmp_path / "d.toml"
+    cj.save_scene(driven, path)
+    out = tmp_path / "r.json"
+    code, _, err = _run(capsys, "response", str(path), "--freq", "3:5.5", "--max-points", "3",
+                        "--out", str(out))
+    assert code == 1 and "partial: the curve covers 3 to" in err, err
+    assert json.loads(out.read_text())["complete"] is False
+
+
+# --- a crank that hangs is analysed about its stable rest at pi --------------------------
+
+def test_pendulum_backbone_is_the_exact_pendulum_law():
+    from scipy.special import ellipk
+
+    mech = cj.load_scene("pendulum").mech
+    amps = np.array([0.1, 1.0, 2.0])
+    bb = cj.backbone(mech, amps)
+    assert np.all(bb.ok)
+    # A compound pendulum: omega0^2 = m g s / (I_c + m s^2), and the exact period of a swing
+    # of amplitude A is 2 K(sin^2(A/2)) / pi times the linear one.
+    f0 = np.sqrt(9.81 * 0.025 / (2e-4 + 0.025**2)) / (2 * np.pi)
+    assert float(bb.linear_frequency_hz) == pytest.approx(f0, rel=1e-12)
+    exact = f0 * np.pi / (2 * ellipk(np.sin(amps / 2) ** 2))
+    np.testing.assert_allclose(bb.frequency_hz, exact, rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(bb.phi_max) - amps, np.pi, atol=1e-9)
+
+
+def test_pendulum_chart_is_about_its_rest_at_pi():
+    ch = cj.stability_chart(cj.load_scene("pendulum"), (0.0, 1e-3), (1.0, 3.0), grid=2)
+    assert ch.rest == pytest.approx(np.pi)
+    assert ch.ok.all() and ch.stable.all()  # lightly damped, hardly forced: stable

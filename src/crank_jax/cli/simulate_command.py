@@ -54,7 +54,7 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dphi0", type=float, help="initial crank rate, rad/s")
     p.add_argument("--solver", help=f"one of {', '.join(SOLVERS)} (default: the scene's)")
     p.add_argument("--rtol", type=float, help="relative tolerance (at most 1e-2)")
-    p.add_argument("--atol", type=float, help="absolute tolerance")
+    p.add_argument("--atol", type=float, help="absolute tolerance, rad and rad/s (at most 1e-3)")
     p.add_argument("--max-steps", type=int, metavar="N",
                    help=f"solver step budget per chunk of {CHUNK_SAMPLES} samples "
                         f"({DEFAULT_MAX_STEPS}; 1 to {MAX_STEPS})")
