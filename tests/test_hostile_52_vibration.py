@@ -233,3 +233,19 @@ def test_pendulum_chart_is_about_its_rest_at_pi():
     ch = cj.stability_chart(cj.load_scene("pendulum"), (0.0, 1e-3), (1.0, 3.0), grid=2)
     assert ch.rest == pytest.approx(np.pi)
     assert ch.ok.all() and ch.stable.all()  # lightly damped, hardly forced: stable
+
+
+def test_backbone_cli_tells_a_rotation_from_a_failed_solve(tmp_path, capsys):
+    # The pendulum goes over the top beyond pi: no swing of 3.3 rad exists (a complete
+    # answer, exit 0). A jump from 2 to 3 rad fails although that swing exists: partial.
+    out = tmp_path / "b.json"
+    code, text, err = _run(capsys, "backbone", "pendulum", "--amplitudes", "0.5:3.3:4",
+                           "--out", str(out))
+    assert code == 0 and "beyond 3.14159 rad the crank goes over the top" in text, err
+    doc = json.loads(out.read_text())
+    assert len(doc["points"]) == 3 and doc["largest_swing"] == pytest.approx(np.pi)
+    code, _, err = _run(capsys, "backbone", "pendulum", "--amplitudes", "2:3:2", "--out",
+                        str(out))
+    assert code == 1 and "partial: no swing of amplitude 3 rad or more was found" in err
+    assert "swings up to 3.14159 rad exist" in err, err
+    assert len(json.loads(out.read_text())["points"]) == 1

@@ -101,21 +101,37 @@ def _backbone_run(a: argparse.Namespace) -> int:
                        "phi_min": float(bb.phi_min[i]),
                        "frequency_hz": float(bb.frequency_hz[i]),
                        "period": float(bb.period[i])} for i in np.flatnonzero(ok)]}
+    partial = None
     if not ok.all():
-        first = float(bb.amplitude[int(np.argmin(ok))])
-        doc["stopped"] = (f"no swing of amplitude {first:g} rad or more was found (the swing "
-                          "reaches the unstable position, where it turns into a rotation)")
-        print(f"note: {doc['stopped']}")
+        partial = _backbone_stop(scene.mech, float(bb.amplitude[int(np.argmin(ok))]), doc)
     if not ok.any():
-        # Not one point: nothing to write; a rotation explains it only at large amplitude.
-        raise RunFailed(f"no backbone point was found, from the first amplitude "
-                        f"{float(bb.amplitude[0]):g} rad on: nothing written (the largest "
-                        "swing about the rest is smaller, or its solve failed); start the "
-                        "amplitudes lower")
+        raise RunFailed(f"no backbone point was found: {doc['stopped']}; nothing written")
     _write(a.out, _clean(doc))
     print(f"wrote {int(ok.sum())} backbone points to {a.out} (linear frequency "
           f"{doc['linear_frequency_hz']:.6g} Hz)")
+    if partial:  # written, but short of what was asked where swings exist
+        raise RunFailed(f"partial: {doc['stopped']}")
     return 0
+
+
+def _backbone_stop(mech, first: float, doc: dict) -> bool:
+    """Say in `doc["stopped"]` why no swing of amplitude `first` (rad) or more was found;
+    True if it is a failure (swings that large exist) rather than the physics."""
+    from ..vibration.backbone import conservative
+    from ..vibration.rest import largest_swing, stable_rest
+
+    mech = conservative(mech)
+    top = largest_swing(mech, stable_rest(mech)[0])
+    doc["largest_swing"] = top
+    if first >= top:
+        doc["stopped"] = (f"no swing of amplitude {first:g} rad or more exists: beyond "
+                          f"{top:.6g} rad the crank goes over the top and rotates")
+        print(f"note: {doc['stopped']}")
+        return False
+    doc["stopped"] = (f"no swing of amplitude {first:g} rad or more was found, although "
+                      f"swings up to {top:.6g} rad exist: the solve failed there; ask for "
+                      "more closely spaced amplitudes")
+    return True
 
 
 # --- response ---------------------------------------------------------------------------

@@ -15,11 +15,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.dynamics import acceleration
+from ..model.dynamics import acceleration, potential_energy
 from ..model.loads import ConstantLoad, NoLoad
 from ..simulation import linearize
 
-__all__ = ["stable_rest", "rest_rate"]
+__all__ = ["stable_rest", "rest_rate", "largest_swing"]
 
 #: Grid over one turn on which the static acceleration's sign changes are looked for; its
 #: points sit half a cell off 0 and pi, the equilibria that symmetry makes exact.
@@ -76,3 +76,30 @@ def stable_rest(mech, load=None) -> tuple[float, float]:
         return float("nan"), float("nan")
     _, phi, omega = min(roots)
     return float(np.angle(np.exp(1j * phi))), float(omega)
+
+
+def largest_swing(mech, phi_eq: float) -> float:
+    """The largest amplitude `(phi_max - phi_min) / 2` (rad) of a free, conservative swing
+    about the stable rest `phi_eq` (no loads): the one whose energy reaches the lower of
+    the potential's nearest peaks on either side, beyond which the crank goes over the top
+    and rotates. `inf` where the potential rises for a whole turn on both sides (a stiff
+    spring: every swing turns back)."""
+    phis = phi_eq + np.linspace(-2 * np.pi, 2 * np.pi, 8 * _GRID + 1)
+    v = np.asarray(jax.jit(jax.vmap(lambda p: potential_energy(mech, p)))(jnp.asarray(phis)))
+    mid = 4 * _GRID
+    right, left = v[mid:], v[mid::-1]  # outwards from the rest on each side
+    peaks = []
+    for side in (right, left):
+        falls = np.flatnonzero(np.diff(side) < 0)
+        peaks.append(side[falls[0]] if falls.size else np.inf)
+    barrier = min(peaks)
+    if not np.isfinite(barrier):
+        return float("inf")
+    step = phis[1] - phis[0]
+    # Where each side first reaches the barrier's energy (linear between grid points).
+    reach = []
+    for side in (right, left):
+        i = int(np.argmax(side >= barrier))
+        frac = (barrier - side[i - 1]) / (side[i] - side[i - 1]) if i > 0 else 0.0
+        reach.append((i - 1 + frac) * step)
+    return float((reach[0] + reach[1]) / 2)
