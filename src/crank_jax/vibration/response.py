@@ -204,12 +204,15 @@ def _check_step(step, span: float) -> float:
     A step <= 0 never advances; one beyond `span` leaves the range in one step."""
     if step is None:
         return span / 40
-    if isinstance(step, bool) or not (isinstance(step, (int, float, np.number))
-                                      and np.isfinite(step) and 0 < step <= span):
+    try:
+        value = float(step) if not isinstance(step, bool) else np.nan
+    except (TypeError, ValueError):
+        value = np.nan
+    if not (np.isfinite(value) and 0 < value <= span):
         raise VibrationError(f"step must be a number > 0 and at most {span:.4g} (the range's "
                              f"length in the scaled frequency, (f1 - f0) / f_mid), got "
                              f"{step!r:.40}; the default is a 40th of it")
-    return float(step)
+    return value
 
 
 def _linear(scene, side, freqs) -> dict:
