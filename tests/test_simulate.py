@@ -232,8 +232,9 @@ def test_bad_time_grid_rejected():
     ({"rtol": 0.0}, "rtol must be a finite number >= 1e-15"),
     ({"rtol": float("nan")}, "rtol must be a finite number >= 1e-15"),
     ({"rtol": 1e-300}, "rtol must be a finite number >= 1e-15"),
-    ({"atol": -1e-9}, "atol must be a finite number >= 0"),
-    ({"atol": float("inf")}, "atol must be a finite number >= 0"),
+    ({"atol": -1e-9}, "atol must be a finite number > 0"),
+    ({"atol": float("inf")}, "atol must be a finite number > 0"),
+    ({"atol": 0.0}, "atol must be a finite number > 0"),
 ])
 def test_bad_tolerances_rejected_naming_the_argument(kw, match):
     mech = cj.load_scene("lab-rig").mech

@@ -77,10 +77,28 @@ def test_backbone_against_a_released_swing(lab_rig):
         assert pmax - pmin == pytest.approx(2 * a, rel=1e-10)
 
 
-def test_backbone_refuses_an_unstable_rest_position():
+def test_backbone_is_about_the_stable_rest_and_refuses_where_there_is_none():
+    # Below k_crit phi = 0 is unstable and the crank buckles: it swings about its buckled
+    # rest phi_b, an equilibrium whose stiffness the linear frequency is.
     mech = cj.load_scene("near-buckling").mech.replace(k=0.5)
+    from crank_jax.model import acceleration
+    from crank_jax.vibration.rest import stable_rest
+
+    bb = cj.backbone(mech, [1e-3])
+    phi_b, _ = stable_rest(mech.replace(c=0.0))
+    assert abs(phi_b) > 0.1 and bool(bb.ok[0])
+    assert abs(float(bb.phi_max[0] + bb.phi_min[0]) / 2 - phi_b) < 1e-5  # O(A^2) offset
+    rigid = mech.replace(c=0.0)
+    assert abs(float(acceleration(rigid, phi_b, 0.0))) < 1e-9
+    h = 1e-5
+    rate = -(float(acceleration(rigid, phi_b + h, 0.0))
+             - float(acceleration(rigid, phi_b - h, 0.0))) / (2 * h)
+    f_lin = np.sqrt(rate) / (2 * np.pi)
+    assert float(bb.linear_frequency_hz) == pytest.approx(f_lin, rel=1e-6)
+    assert float(bb.frequency_hz[0]) == pytest.approx(f_lin, rel=1e-3)
+    # No spring, no gravity, no load: neutral everywhere, no rest to swing about.
     with pytest.raises(VibrationError, match="k_crit"):
-        cj.backbone(mech, [0.1])
+        cj.backbone(mech.replace(k=0.0, g=0.0), [0.1])
     with pytest.raises(VibrationError, match="increasing"):
         cj.backbone(cj.load_scene("lab-rig").mech, [0.2, 0.1])
 

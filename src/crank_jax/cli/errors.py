@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["UserError", "EXIT_USAGE", "EXIT_FAILURE"]
+__all__ = ["UserError", "RunFailed", "EXIT_USAGE", "EXIT_FAILURE"]
 
 #: Exit status of a user mistake (bad file, bad value, unknown option).
 EXIT_USAGE = 2
@@ -12,3 +12,8 @@ EXIT_FAILURE = 1
 
 class UserError(Exception):
     """A mistake on the user's side: reported in one line, exit status 2."""
+
+
+class RunFailed(RuntimeError):
+    """A run that did not finish (a partial result, written and marked so): reported in one
+    line, exit status 1, as a failed solve is."""

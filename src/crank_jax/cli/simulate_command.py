@@ -55,7 +55,7 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dphi0", type=float, help="initial crank rate, rad/s")
     p.add_argument("--solver", help=f"one of {', '.join(SOLVERS)} (default: the scene's)")
     p.add_argument("--rtol", type=float, help="relative tolerance (at most 1e-2)")
-    p.add_argument("--atol", type=float, help="absolute tolerance")
+    p.add_argument("--atol", type=float, help="absolute tolerance, rad and rad/s (at most 1e-3)")
     p.add_argument("--max-steps", type=int, metavar="N",
                    help=f"solver step budget per chunk of {CHUNK_SAMPLES} samples "
                         f"({DEFAULT_MAX_STEPS}; 1 to {MAX_STEPS})")
@@ -70,7 +70,7 @@ def _simulate_args(p: argparse.ArgumentParser) -> None:
 def _check_options(a: argparse.Namespace) -> dict:
     """Check every option that needs no scene, before any work; return simulate's kwargs."""
     from ..runtime.io import check_distinct_outputs, check_figure_format, check_output
-    from ..scene import MAX_RTOL
+    from ..solve.inputs import MAX_ATOL, MAX_RTOL, MIN_RTOL
     from ..solve.trajectory import output_columns
 
     if a.t1 is not None and not (np.isfinite(a.t1) and a.t1 > 0):
@@ -86,6 +86,12 @@ def _check_options(a: argparse.Namespace) -> dict:
     if a.rtol is not None and a.rtol > MAX_RTOL:
         raise UserError(f"--rtol must be at most {MAX_RTOL:g}, got {a.rtol:g}: a looser "
                         "tolerance no longer bounds the solver's error")
+    if a.rtol is not None and a.rtol < MIN_RTOL:
+        raise UserError(f"--rtol must be at least {MIN_RTOL:g}, got {a.rtol:g}: float64 "
+                        "cannot resolve a tighter one")
+    if a.atol is not None and a.atol > MAX_ATOL:
+        raise UserError(f"--atol must be at most {MAX_ATOL:g} (rad, rad/s), got {a.atol:g}: "
+                        "a looser tolerance lets every step err by more")
     if a.max_steps is not None and not 1 <= a.max_steps <= MAX_STEPS:
         raise UserError(f"--max-steps must be from 1 to {MAX_STEPS}, got {a.max_steps}")
     for name in ("phi0", "dphi0"):

@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from .errors import UserError
+from .errors import RunFailed, UserError
 
 __all__ = ["COMMANDS"]
 
@@ -102,15 +102,37 @@ def _backbone_run(a: argparse.Namespace) -> int:
                        "phi_min": float(bb.phi_min[i]),
                        "frequency_hz": float(bb.frequency_hz[i]),
                        "period": float(bb.period[i])} for i in np.flatnonzero(ok)]}
+    partial = None
     if not ok.all():
-        first = float(bb.amplitude[int(np.argmin(ok))])
-        doc["stopped"] = (f"no swing of amplitude {first:g} rad or more was found (the swing "
-                          "reaches the unstable position, where it turns into a rotation)")
-        print(f"note: {doc['stopped']}")
+        partial = _backbone_stop(scene.mech, float(bb.amplitude[int(np.argmin(ok))]), doc)
+    if not ok.any():
+        raise RunFailed(f"no backbone point was found: {doc['stopped']}; nothing written")
     _write(a.out, _clean(doc))
     print(f"wrote {int(ok.sum())} backbone points to {a.out} (linear frequency "
           f"{doc['linear_frequency_hz']:.6g} Hz)")
+    if partial:  # written, but short of what was asked where swings exist
+        raise RunFailed(f"partial: {doc['stopped']}")
     return 0
+
+
+def _backbone_stop(mech, first: float, doc: dict) -> bool:
+    """Say in `doc["stopped"]` why no swing of amplitude `first` (rad) or more was found;
+    True if it is a failure (swings that large exist) rather than the physics."""
+    from ..vibration.backbone import conservative
+    from ..vibration.rest import largest_swing, stable_rest
+
+    mech = conservative(mech)
+    top = largest_swing(mech, stable_rest(mech)[0])
+    doc["largest_swing"] = top
+    if first >= top:
+        doc["stopped"] = (f"no swing of amplitude {first:g} rad or more exists: beyond "
+                          f"{top:.6g} rad the crank goes over the top and rotates")
+        print(f"note: {doc['stopped']}")
+        return False
+    doc["stopped"] = (f"no swing of amplitude {first:g} rad or more was found, although "
+                      f"swings up to {top:.6g} rad exist: the solve failed there; ask for "
+                      "more closely spaced amplitudes")
+    return True
 
 
 # --- response ---------------------------------------------------------------------------
@@ -142,6 +164,8 @@ def _response_run(a: argparse.Namespace) -> int:
         plot_response(resp, a.plot, title=f"{scene.name}: forced response")
     n = sum(len(b.freq_hz) for b in resp.branches)
     print(f"wrote {n} orbits, {len(resp.folds)} folds to {a.out} ({resp.stopped})")
+    if not resp.complete:  # written (marked "complete": false), but not a finished run
+        raise RunFailed(f"{resp.stopped}; {a.out} holds the partial curve")
     return 0
 
 
@@ -175,8 +199,18 @@ def _stability_run(a: argparse.Namespace) -> int:
         from ..vibration.plots import plot_chart
 
         plot_chart(chart, a.plot, title=f"{scene.name}: stability of the rest position")
-    frac = float(np.mean(~np.asarray(chart.stable)))
-    print(f"wrote a {a.grid} x {a.grid} chart to {a.out} ({100 * frac:.0f}% unstable)")
+    ok = np.asarray(chart.ok)
+    rest = "" if chart.rest == 0 else f", about the rest at phi = {chart.rest:.6g} rad"
+    print(f"wrote a {a.grid} x {a.grid} chart to {a.out} ("
+          f"{100 * float(np.mean(chart.unstable)):.0f}% unstable, "
+          f"{100 * float(np.mean(np.asarray(chart.stable))):.0f}% stable{rest})")
+    if not ok.all():  # written (null multipliers, "ok": false), but not a finished run
+        bad = np.argwhere(~ok)[0]
+        raise RunFailed(f"partial: {int((~ok).sum())} of {ok.size} points failed (their "
+                        f"monodromy solve did not finish; the first at P1 = "
+                        f"{chart.amplitude[bad[0]]:g} N, {chart.freq_hz[bad[1]]:g} Hz): "
+                        "they are neither stable nor unstable (each is a solve over one "
+                        "forcing period: a low frequency or a tight rtol needs more steps)")
     return 0
 
 

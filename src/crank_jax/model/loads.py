@@ -36,7 +36,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import trig
 from .angle_load import AngleLoad
-from .load_base import AbstractLoad, Nonsmooth
+from .load_base import AbstractLoad, Nonsmooth, check_load_values
 from .params import as_float_array
 from .sampled import INTERPOLATIONS, InputLoad, SampledLoad, is_sampled
 from .trig import check_form, form_field
@@ -66,6 +66,9 @@ class ConstantLoad(AbstractLoad):
 
     value: Float[Array, ""] = eqx.field(converter=as_float_array)
 
+    def __check_init__(self):
+        check_load_values(self, ("value",))
+
     def __call__(self, t: ArrayLike) -> Array:
         return self.value + jnp.zeros_like(jnp.asarray(t, dtype=float))
 
@@ -87,6 +90,7 @@ class HarmonicLoad(AbstractLoad):
 
     def __check_init__(self):
         check_form(self.trig)
+        check_load_values(self, ("X0", "X1", "freq_hz", "phase"), frequencies=("freq_hz",))
 
     def __call__(self, t: ArrayLike) -> Array:
         return self.X0 + self.X1 * trig.sin(2 * jnp.pi * self.freq_hz * t + self.phase,
@@ -114,6 +118,13 @@ class MultiSineLoad(AbstractLoad):
 
     def __check_init__(self):
         check_form(self.trig)
+        arrays = (self.amplitudes, self.freqs_hz, self.phases)
+        shapes = [np.shape(a) for a in arrays]
+        if len(set(shapes)) > 1 or 0 in shapes[0]:
+            raise ValueError(f"MultiSineLoad needs amplitudes, freqs_hz and phases of one "
+                             f"length >= 1 (one entry per sine), got shapes {shapes}")
+        check_load_values(self, ("amplitudes", "freqs_hz", "phases", "X0"),
+                          frequencies=("freqs_hz",))
 
     def __call__(self, t: ArrayLike) -> Array:
         t = jnp.asarray(t, dtype=float)[..., None]

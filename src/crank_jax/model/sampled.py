@@ -10,7 +10,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import trig
-from .load_base import AbstractLoad, Nonsmooth
+from .load_base import AbstractLoad, Nonsmooth, check_load_values
 from .params import as_float_array
 from .trig import check_form, form_field
 
@@ -64,6 +64,11 @@ def _check_samples(ts: Array, vs: Array, interp: str) -> None:
     if ts.ndim != 1 or vs.shape != ts.shape or ts.shape[0] < 2:
         raise ValueError(f"SampledLoad needs 1-D ts and values of equal length >= 2, got "
                          f"shapes {ts.shape} and {vs.shape}")
+    for name, v in (("ts", ts), ("values", vs)):
+        if not isinstance(v, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(v))):
+            bad = int(np.argmin(np.isfinite(np.asarray(v))))
+            raise ValueError(f"SampledLoad.{name} must be finite; sample {bad} is "
+                             f"{float(np.asarray(v)[bad])} (fill or drop the gap)")
     if not isinstance(ts, jax.core.Tracer):
         d = np.diff(np.asarray(ts))
         if not np.all(d > 0):
@@ -158,6 +163,8 @@ class InputLoad(AbstractLoad):
 
     def __check_init__(self):
         check_form(self.trig)
+        check_load_values(self, ("gain", "X0", "X1", "freq_hz", "phase"),
+                          frequencies=("freq_hz",))
 
     def _u(self, t):
         if self.signal is None:

@@ -12,7 +12,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-__all__ = ["check_tolerances", "check_unbatched"]
+__all__ = ["check_tolerances", "check_scene_values", "check_unbatched"]
 
 
 # Below this a relative tolerance cannot be verified in float64: the embedded error
@@ -23,16 +23,23 @@ MIN_RTOL = 1e-15
 # out of steps where a tighter tolerance passed, or finished with a wrong trajectory
 # (issue 24). scene.MAX_RTOL, the scene files' and `simulate --rtol`'s bound, is this.
 MAX_RTOL = 1e-2
+# The state is (phi, dphi) in rad and rad/s: an absolute tolerance above this lets each
+# step err by more than 0.06 degree, and at 1 the solver steps over a
+# whole swing (a rest called unstable, a backbone frequency off in its third digit).
+# Scene files, `simulate --atol` and the library take this bound.
+MAX_ATOL = 1e-3
 
 
 def check_tolerances(rtol, atol) -> None:
-    """`ValueError` unless `MIN_RTOL <= rtol <= MAX_RTOL` and `atol >= 0`, both finite
-    (concrete values only; traced ones are the caller's)."""
+    """`ValueError` unless `MIN_RTOL <= rtol <= MAX_RTOL` and `0 < atol <= MAX_ATOL`, both
+    finite (concrete values only; traced ones are the caller's)."""
     for name, value, ok, rule in (
         ("rtol", rtol, lambda v: (v >= MIN_RTOL) & (v <= MAX_RTOL),
          f"a finite number >= {MIN_RTOL:g} (float64 resolves ~2.2e-16) and <= "
          f"{MAX_RTOL:g} (a looser one does not bound the error), e.g. rtol=1e-8"),
-        ("atol", atol, lambda v: v >= 0, "a finite number >= 0, e.g. atol=1e-10"),
+        ("atol", atol, lambda v: (v > 0) & (v <= MAX_ATOL),
+         f"a finite number > 0 and <= {MAX_ATOL:g} (rad, rad/s: a looser one lets every "
+         "step err by more), e.g. atol=1e-10"),
     ):
         if isinstance(value, jax.core.Tracer):
             continue
@@ -42,6 +49,20 @@ def check_tolerances(rtol, atol) -> None:
         if not (np.all(np.isfinite(v)) and np.all(ok(v))):
             shown = v.item() if v.size == 1 else v
             raise ValueError(f"{name} must be {rule}; got {name}={shown}")
+
+
+def check_scene_values(phi0, dphi0, rtol, atol) -> None:
+    """`ValueError` naming the argument unless the tolerances pass [`check_tolerances`][]
+    and the initial state `phi0` (rad), `dphi0` (rad/s) is finite: a scene's solve
+    settings, checked as its file's are (concrete values only)."""
+    check_tolerances(rtol, atol)
+    for name, value, unit in (("phi0", phi0, "rad"), ("dphi0", dphi0, "rad/s")):
+        if isinstance(value, jax.core.Tracer) or not eqx.is_array_like(value):
+            continue
+        v = np.asarray(value, dtype=float)
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{name} must be finite ({unit}), got {name}="
+                             f"{v.item() if v.size == 1 else v}")
 
 
 def check_unbatched(name: str, tree) -> None:

@@ -28,8 +28,9 @@ from ..model.dynamics import CrankField, Structure
 from ..model.loads import NoLoad
 from ..runtime.lazy import lazy_import
 from ..simulation import linearize
-from .drive import VibrationError
+from .drive import VibrationError, check_mech, check_rtol
 from .flow import flow
+from .rest import stable_rest
 
 optx = lazy_import("optimistix")  # imported on first use (see lazy.py)
 
@@ -74,27 +75,52 @@ def backbone(mech, amplitudes: ArrayLike, *, rtol: float = 1e-10) -> Backbone:
     - `rtol`: the solver's relative tolerance (its absolute one is `rtol` times the
       amplitude) and Newton's.
 
-    **Returns:** a [`Backbone`][]. Raises [`VibrationError`][crank_jax.vibration.drive.
-    VibrationError] if the rest position is not statically stable (no small swings).
+    **Returns:** a [`Backbone`][] of the swings about the statically stable rest position
+    (a hanging crank's at phi = pi). Raises [`VibrationError`][crank_jax.vibration.drive.
+    VibrationError] if there is none (no small swings).
     """
-    amps = jnp.atleast_1d(jnp.asarray(amplitudes, float))
-    a = np.asarray(amps)
-    if a.ndim != 1 or not np.all(np.isfinite(a)) or np.any(a <= 0) or np.any(np.diff(a) <= 0):
-        raise VibrationError("amplitudes must be finite, > 0 rad and increasing, e.g. "
-                             "0.01:1.0:20")
+    amps = _amplitudes(amplitudes)
+    check_mech(mech, "backbone")
+    check_rtol(rtol)
     mech = conservative(mech)
-    lin = linearize(mech)
-    if not bool(np.asarray(lin.stable)):
-        raise VibrationError(f"the rest position is statically unstable (xi = "
-                             f"{float(lin.xi):.4g} N*m/rad <= 0): raise k above k_crit = "
+    phi_eq, omega = stable_rest(mech)
+    if not np.isfinite(omega):
+        lin = linearize(mech)
+        raise VibrationError(f"the mechanism has no statically stable rest position (xi = "
+                             f"{float(lin.xi):.4g} N*m/rad <= 0 at phi = "
+                             f"{float(lin.phi_eq):.4g} rad): raise k above k_crit = "
                              f"{float(lin.k_crit):.4g} N*m/rad for a backbone")
-    return _backbone(mech, amps, Structure.of(mech), rtol)
+    # A swing about phi_eq is resolved to eps |phi_eq| / A relative: below this floor
+    # Newton's method cannot meet rtol (a pendulum's 3e-5 rad about pi failed, 1e-4 passed),
+    # and below ~1e-200 rad the solver's absolute tolerance, rtol * A, underflows.
+    floor = max(16 * np.finfo(float).eps * abs(phi_eq) / rtol, 1e-200)
+    if float(amps[0]) < floor:
+        raise VibrationError(f"amplitudes must be >= {floor:.2g} rad about the rest at "
+                             f"{phi_eq:.6g} rad (smaller swings are lost in rounding at rtol "
+                             f"{rtol:g}; their frequency is linear_frequency_hz), got "
+                             f"{float(amps[0]):g}")
+    return _backbone(mech, amps, Structure.of(mech), rtol, jnp.asarray(phi_eq),
+                     jnp.asarray(omega))
+
+
+def _amplitudes(amplitudes) -> Array:
+    """The requested amplitudes as a (n,) float array, or a `VibrationError`."""
+    try:
+        a = np.atleast_1d(np.asarray(amplitudes, dtype=float))
+    except (TypeError, ValueError):
+        a = np.array([np.nan])
+    if a.ndim != 1 or a.size == 0 or not np.all(np.isfinite(a)) or np.any(a <= 0) \
+            or np.any(np.diff(a) <= 0):
+        shown = f"shape {a.shape}" if a.ndim != 1 or a.size == 0 else np.array2string(
+            a, threshold=6)
+        raise VibrationError(f"amplitudes must be one or more finite amplitudes > 0 rad, "
+                             f"increasing (a 1-D array, e.g. np.linspace(0.01, 1.0, 20)); "
+                             f"got {shown}")
+    return jnp.asarray(a)
 
 
 @eqx.filter_jit
-def _backbone(mech, amps, structure, rtol):
-    lin = linearize(mech)
-    phi_eq, omega = lin.phi_eq, lin.omega_n
+def _backbone(mech, amps, structure, rtol, phi_eq, omega):
     half = jnp.pi / omega  # the linear half period, s
     field = CrankField(mech, NoLoad(), NoLoad(), structure)
 

@@ -1,5 +1,6 @@
-"""Parametric-resonance charts: the stability of the rest position phi = 0 under a harmonic
-slider force `P(t) = P0 + P1 cos(2 pi f t)`, over a grid of `(P1, f)`.
+"""Parametric-resonance charts: the stability of the rest position phi = 0 (or pi, where a
+crank hangs) under a harmonic slider force `P(t) = P0 + P1 cos(2 pi f t)`, over a grid of
+`(P1, f)`.
 
 At the dead centre (no offset, gravity along the slider line, no crank torque) phi = 0 is an
 equilibrium for any P(t), and the slider force enters the linearised equation as a
@@ -22,8 +23,9 @@ import numpy as np
 from ..model.dynamics import CrankField, Structure
 from ..model.loads import ConstantLoad, HarmonicLoad, NoLoad
 from ..simulation import linearize
-from .drive import VibrationError, check_smooth
+from .drive import VibrationError, as_range, check_scene, check_smooth
 from .floquet import monodromy_at_rest, multipliers
+from .rest import rest_rate
 
 __all__ = ["Chart", "stability_chart", "floquet_max", "mathieu_tongue", "MAX_GRID"]
 
@@ -33,12 +35,22 @@ MAX_GRID = 400
 
 class Chart(NamedTuple):
     """A stability chart: `freq_hz` (N,), `amplitude` (N,) P1 values (N), `floquet_max`
-    (N, N) the largest multiplier modulus, one row per amplitude, `stable` (N, N) bool."""
+    (N, N) the largest multiplier modulus, one row per amplitude (NaN where its solve
+    failed), `stable` (N, N) bool, `ok` (N, N) bool: the point was computed (a failed point
+    is neither stable nor unstable), and `rest`, the rest angle analysed (0 or pi, rad)."""
 
     freq_hz: np.ndarray
     amplitude: np.ndarray
     floquet_max: np.ndarray
     stable: np.ndarray
+    ok: np.ndarray | None = None
+    rest: float = 0.0
+
+    @property
+    def unstable(self) -> np.ndarray:
+        """(N, N) bool: computed and unstable (`~stable` also holds the failed points)."""
+        ok = np.isfinite(self.floquet_max) if self.ok is None else np.asarray(self.ok)
+        return ok & ~np.asarray(self.stable)
 
     def to_dict(self) -> dict:
         return {k: np.asarray(v).tolist() for k, v in self._asdict().items()}
@@ -72,12 +84,14 @@ def check_chart_scene(scene) -> None:
     _mean_P(scene)
 
 
-def floquet_max(scene, amplitude, freq_hz, *, structure: Structure | None = None):
-    """The largest Floquet multiplier modulus of phi = 0 under `P0 + amplitude cos(2 pi
-    freq_hz t)` (N, Hz); `P0` is the scene's mean slider force. Traceable, vmappable."""
+def floquet_max(scene, amplitude, freq_hz, *, structure: Structure | None = None,
+                rest=0.0):
+    """The largest Floquet multiplier modulus of the rest `phi = rest` (0 or pi, rad) under
+    `P0 + amplitude cos(2 pi freq_hz t)` (N, Hz); `P0` is the scene's mean slider force.
+    NaN where the solve failed. Traceable, vmappable."""
     load = HarmonicLoad(_mean_P(scene), amplitude, freq_hz, jnp.pi / 2)
     field = CrankField(scene.mech, load, NoLoad(), structure or Structure())
-    y0 = jnp.zeros(2)
+    y0 = jnp.stack([jnp.asarray(rest, float), 0.0])
     lam = multipliers(monodromy_at_rest(field, y0, 1.0 / jnp.asarray(freq_hz, float),
                                 rtol=scene.rtol, atol=scene.atol))
     return jnp.abs(lam[0])
@@ -96,25 +110,34 @@ def stability_chart(scene, load_amplitude: tuple[float, float], freq_hz: tuple[f
     monodromy matrices (each a forward-mode solve over one period).
     """
     check_chart_scene(scene)
-    a0, a1 = (float(x) for x in load_amplitude)
-    f0, f1 = (float(x) for x in freq_hz)
-    if not (np.isfinite([a0, a1]).all() and 0 <= a0 < a1):
-        raise VibrationError(f"load amplitude must be P1_lo:P1_hi with 0 <= P1_lo < P1_hi N, "
-                             f"got {a0:g}:{a1:g}")
-    if not (np.isfinite([f0, f1]).all() and 0 < f0 < f1):
-        raise VibrationError(f"freq must be F0:F1 with 0 < F0 < F1 Hz, got {f0:g}:{f1:g}")
-    if not (isinstance(grid, int) and 2 <= grid <= MAX_GRID):
+    check_scene(scene, "stability_chart")
+    a0, a1 = as_range("load_amplitude", load_amplitude, "N", zero_ok=True)
+    f0, f1 = as_range("freq_hz", freq_hz, "Hz")
+    if isinstance(grid, bool) or not (isinstance(grid, int) and 2 <= grid <= MAX_GRID):
         raise VibrationError(f"grid must be an integer from 2 to {MAX_GRID}, got {grid!r}")
+    rest = chart_rest(scene)
     amps, freqs = np.linspace(a0, a1, grid), np.linspace(f0, f1, grid)
     A, F = np.meshgrid(amps, freqs, indexing="ij")
     fm = np.asarray(_chart(scene, jnp.asarray(A.ravel()), jnp.asarray(F.ravel()),
-                           Structure.of(scene.mech))).reshape(grid, grid)
-    return Chart(freqs, amps, fm, fm < 1.0)
+                           Structure.of(scene.mech), rest)).reshape(grid, grid)
+    ok = np.isfinite(fm)
+    return Chart(freqs, amps, fm, ok & (fm < 1.0), ok, rest)
+
+
+def chart_rest(scene) -> float:
+    """The rest a chart analyses, rad: phi = 0, or pi where only pi is statically stable
+    under the mean slider force (a crank hanging from its axis). Both are equilibria for
+    any P(t) under [`check_chart_scene`][]'s conditions; no other angle is."""
+    load = ConstantLoad(_mean_P(scene))
+    if rest_rate(scene.mech, load, 0.0) <= 0 < rest_rate(scene.mech, load, np.pi):
+        return float(np.pi)
+    return 0.0
 
 
 @eqx.filter_jit
-def _chart(scene, amps, freqs, structure):
-    return jax.vmap(lambda a, f: floquet_max(scene, a, f, structure=structure))(amps, freqs)
+def _chart(scene, amps, freqs, structure, rest):
+    return jax.vmap(lambda a, f: floquet_max(scene, a, f, structure=structure,
+                                             rest=rest))(amps, freqs)
 
 
 def mathieu_tongue(scene, amplitude) -> tuple[float, float]:

@@ -41,14 +41,17 @@ class Point(NamedTuple):
 
 class Curve(NamedTuple):
     """The continued curve: `u` (m, n+1), oriented tangents `t` (m, n+1), `extra` (a
-    list of m records), `folds` (indices i: a fold lies between points i and i+1), and
-    `stopped`, why the continuation ended."""
+    list of m records), `folds` (indices i: a fold lies between points i and i+1),
+    `stopped`, why the continuation ended, in words (in `u`'s units), and `reason`, the
+    same as one of `"range"` (the parameter left `[lo, hi]`: the only complete end),
+    `"max_points"` or `"corrector"` (Newton failed at the smallest step)."""
 
     u: np.ndarray
     t: np.ndarray
     extra: list
     folds: list[int]
     stopped: str
+    reason: str
 
 
 def null_vector(jac: np.ndarray) -> np.ndarray:
@@ -70,10 +73,10 @@ def continue_curve(correct: Callable[[np.ndarray, np.ndarray], Point], start: Po
     t = np.asarray(start.t, float)
     t = t * (np.sign(t[-1] * direction) or 1.0)
     us, ts, extras = [u], [t], [start.extra]
-    stopped = f"reached max_points = {max_points}"
+    stopped, reason = f"reached max_points = {max_points}", "max_points"
     while len(us) < max_points:
         if not lo <= u[-1] <= hi:
-            stopped = "left the parameter range"
+            stopped, reason = "left the parameter range", "range"
             break
         p = correct(u + ds * t, t)
         t_new = np.asarray(p.t, float)
@@ -84,6 +87,7 @@ def continue_curve(correct: Callable[[np.ndarray, np.ndarray], Point], start: Po
             if ds < ds_min:
                 stopped = (f"the corrector failed at parameter {u[-1]:.6g} with the smallest "
                            f"step {ds_min:.3g}")
+                reason = "corrector"
                 break
             continue
         u, t = np.asarray(p.u, float), t_new
@@ -92,6 +96,8 @@ def continue_curve(correct: Callable[[np.ndarray, np.ndarray], Point], start: Po
         extras.append(p.extra)
         if int(p.steps) <= 3 and turn < MAX_TURN / 3:
             ds = min(ds * 1.5, ds_max)
+    if reason == "max_points" and not lo <= u[-1] <= hi:  # its last point left the range
+        stopped, reason = "left the parameter range", "range"
     us_a, ts_a = np.array(us), np.array(ts)
     folds = [i for i in range(len(us) - 1) if ts_a[i, -1] * ts_a[i + 1, -1] < 0]
-    return Curve(us_a, ts_a, extras, folds, stopped)
+    return Curve(us_a, ts_a, extras, folds, stopped, reason)

@@ -15,8 +15,10 @@ import numpy as np
 
 from ..model.dynamics import CrankField, Structure
 from ..model.loads import ConstantLoad, HarmonicLoad, NoLoad
+from ..solve.inputs import check_scene_values, check_tolerances
 
-__all__ = ["VibrationError", "drive_side", "field_at", "check_smooth"]
+__all__ = ["VibrationError", "drive_side", "field_at", "check_smooth", "check_scene",
+           "check_mech", "check_rtol", "as_range"]
 
 
 class VibrationError(ValueError):
@@ -69,3 +71,45 @@ def check_smooth(mech, what: str) -> None:
             f"{what} is not defined with Coulomb friction ({', '.join(names)} > 0): its "
             "smoothed slope at rest is an artifact of the width w_c / w_s; set "
             f"{' and '.join(names)} = 0 (model it as viscous damping c, c_s instead)")
+
+
+def check_scene(scene, what: str) -> None:
+    """Refuse a scene whose tolerances or initial state its file could not hold (a scene
+    changed with `eqx.tree_at` skips construction's check), or a batch of mechanisms."""
+    try:
+        check_scene_values(scene.phi0, scene.dphi0, scene.rtol, scene.atol)
+    except ValueError as e:
+        raise VibrationError(f"the scene's {e}") from None
+    check_mech(scene.mech, what)
+
+
+def check_mech(mech, what: str) -> None:
+    """Refuse a batch of mechanisms (a field with a shape): `what` analyses one."""
+    for name in getattr(mech, "__dataclass_fields__", {}):
+        v = getattr(mech, name)
+        if eqx.is_array(v) and np.ndim(v) > 0:
+            raise VibrationError(f"mech.{name} has shape {tuple(np.shape(v))}: {what} analyses "
+                                 "one mechanism; call it once per mechanism of the batch")
+
+
+def check_rtol(rtol) -> None:
+    """Refuse a Newton (and solver) tolerance `rtol` that a scene's rtol could not be."""
+    try:
+        check_tolerances(rtol, 1e-10)
+    except ValueError as e:
+        raise VibrationError(str(e)) from None
+
+
+def as_range(name: str, value, unit: str, zero_ok: bool = False) -> tuple[float, float]:
+    """`(lo, hi)` from a pair of finite numbers with `0 < lo < hi` (`0 <= lo` if
+    `zero_ok`), else [`VibrationError`][] naming the argument `name`."""
+    try:
+        lo, hi = (float(x) for x in value)
+    except (TypeError, ValueError):
+        raise VibrationError(f"{name} must be a pair (lo, hi) of numbers, {unit}; got "
+                             f"{value!r:.60}") from None
+    if not (np.isfinite([lo, hi]).all() and (lo >= 0 if zero_ok else lo > 0) and hi > lo):
+        low = "0 <= lo" if zero_ok else "0 < lo"
+        raise VibrationError(f"{name} must be (lo, hi) with {low} < hi, {unit}; got "
+                             f"({lo:g}, {hi:g})")
+    return lo, hi

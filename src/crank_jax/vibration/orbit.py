@@ -25,7 +25,8 @@ from jaxtyping import Array
 from ..model.dynamics import Structure
 from ..runtime.lazy import lazy_import
 from ..simulation import linearize
-from .drive import drive_side, field_at
+from ..solve.policy import is_concrete
+from .drive import VibrationError, check_rtol, check_scene, drive_side, field_at
 from .floquet import STABLE_MARGIN, monodromy, multipliers
 from .flow import flow, flow_samples
 
@@ -202,13 +203,31 @@ def periodic_orbit(scene, freq_hz, guess: Array | None = None, *, rtol: float = 
     .amplitude)(k)`. Not raising: `ok` says whether Newton's method converged.
     """
     side = drive_side(scene)
+    check_scene(scene, "periodic_orbit")
+    check_rtol(rtol)
     if structure is None:
         structure = Structure.of(scene.mech)
+    _check_frequency(freq_hz)
     freq_hz = jnp.asarray(freq_hz, float)
     if guess is None:
         guess = linear_guess(scene, side, freq_hz)
     guess = jnp.asarray(guess, float)
+    if guess.shape != (2,) or (is_concrete(guess) and not np.all(np.isfinite(guess))):
+        raise VibrationError(f"guess must be a finite state (phi, dphi) of shape (2,), rad "
+                             f"and rad/s (an orbit's y0), got shape {guess.shape}")
     return _orbit(scene, freq_hz, guess, side, structure, rtol)
+
+
+def _check_frequency(freq_hz) -> None:
+    """Refuse a concrete forcing frequency that is not one finite number > 0 Hz: a negative
+    one gives a negative period and inverted Floquet multipliers."""
+    if not is_concrete(freq_hz):
+        return
+    f = np.asarray(freq_hz, dtype=float)
+    if f.ndim or not (np.isfinite(f) and f > 0):
+        shown = f.item() if f.ndim == 0 else f"shape {f.shape}"
+        raise VibrationError(f"freq_hz must be one finite frequency > 0 Hz, got {shown} "
+                             "(for several, map over them with jax.vmap)")
 
 
 @eqx.filter_jit

@@ -24,7 +24,7 @@ from ..runtime.lazy import lazy_import
 from ..simulation import linearize
 from .backbone import backbone
 from .continuation import Point, continue_curve, null_vector
-from .drive import VibrationError, drive_side, field_at
+from .drive import VibrationError, as_range, check_rtol, check_scene, drive_side, field_at
 from .floquet import STABLE_MARGIN, multipliers
 from .flow import flow
 from .orbit import extremes, lever_at, linear_guess
@@ -56,17 +56,21 @@ class Branch(NamedTuple):
 class ForcedResponse(NamedTuple):
     """A forced response curve: `branches` ([`Branch`][]), `folds` (dicts with `freq_hz`
     and `amplitude`), `drive` ("torque" or "load"), `stopped` (why the continuation
-    ended) and `linear` (`freq_hz`, `amplitude` of the linearised response, for plots)."""
+    ended, in Hz), `linear` (`freq_hz`, `amplitude` of the linearised response, for plots)
+    and `complete`: whether the branch reached the range's end f1. A partial curve
+    (`complete` False) covers only part of the range; `stopped` says which and why."""
 
     branches: list
     folds: list
     drive: str
     stopped: str
     linear: dict
+    complete: bool = True
 
     def to_dict(self) -> dict:
         return {"drive": self.drive, "branches": [b.to_dict() for b in self.branches],
-                "folds": self.folds, "stopped": self.stopped, "linear": self.linear}
+                "folds": self.folds, "stopped": self.stopped, "complete": self.complete,
+                "linear": self.linear}
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=1)
@@ -123,14 +127,15 @@ def forced_response(scene, freq_hz: tuple[float, float], *, max_points: int = 40
     multipliers' moduli per orbit, and the folds between them (linearly interpolated where
     the tangent's frequency component changes sign).
     """
-    f0, f1 = (float(x) for x in freq_hz)
-    if not (np.isfinite(f0) and np.isfinite(f1) and 0 < f0 < f1):
-        raise VibrationError(f"freq_hz must be (f0, f1) with 0 < f0 < f1 Hz, got {freq_hz!r}")
+    f0, f1 = as_range("freq_hz", freq_hz, "Hz")
     side = drive_side(scene)
+    check_scene(scene, "forced_response")
+    check_rtol(rtol)
+    _check_budget(max_points, backbone_points)
     structure = Structure.of(scene.mech)
     f_ref = jnp.asarray((f0 + f1) / 2)
     scale = np.asarray(_scales(f_ref))
-    ds_max = step if step is not None else (f1 - f0) / float(f_ref) / 40
+    ds_max = _check_step(step, (f1 - f0) / float(f_ref))
 
     def correct(u_pred, t):
         u, jac, ok, steps, (pmax, pmin, mods) = _correct(
@@ -169,7 +174,45 @@ def forced_response(scene, freq_hz: tuple[float, float], *, max_points: int = 40
         ok = np.asarray(bb.ok)
         linear["backbone_freq_hz"] = np.asarray(bb.frequency_hz)[ok].tolist()
         linear["backbone_amplitude"] = np.asarray(bb.amplitude)[ok].tolist()
-    return ForcedResponse([branch], folds, side, curve.stopped, linear)
+    complete, stopped = _ending(curve.reason, freq, (f0, f1), max_points)
+    return ForcedResponse([branch], folds, side, stopped, linear, complete)
+
+
+def _ending(reason: str, freq: np.ndarray, asked: tuple[float, float], max_points: int):
+    """`(complete, why)`: whether the branch reached f1, and why it ended, in Hz."""
+    f0, f1 = asked
+    if reason == "range" and freq[-1] > f1:
+        return True, f"left the range at {f1:g} Hz"
+    covered = (f"partial: the curve covers {np.nanmin(freq):.6g} to {np.nanmax(freq):.6g} Hz "
+               f"of the {f0:g} to {f1:g} Hz asked")
+    why = {"range": f"the branch turned back below {f0:g} Hz",
+           "max_points": f"it reached max_points = {max_points} at {freq[-1]:.6g} Hz (raise "
+                         "max_points)",
+           "corrector": f"no orbit was found beyond {freq[-1]:.6g} Hz even at the smallest "
+                        "step (a bifurcation, or an orbit the solver cannot follow)"}[reason]
+    return False, f"{covered}: {why}"
+
+
+def _check_budget(max_points, backbone_points) -> None:
+    for name, v, low in (("max_points", max_points, 2), ("backbone_points", backbone_points, 0)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+            raise VibrationError(f"{name} must be an integer >= {low}, got {v!r:.40}")
+
+
+def _check_step(step, span: float) -> float:
+    """The largest arclength step: `step`, or 1/40 of the range's scaled length `span`.
+    A step <= 0 never advances; one beyond `span` leaves the range in one step."""
+    if step is None:
+        return span / 40
+    try:
+        value = float(step) if not isinstance(step, bool) else np.nan
+    except (TypeError, ValueError):
+        value = np.nan
+    if not (np.isfinite(value) and 0 < value <= span):
+        raise VibrationError(f"step must be a number > 0 and at most {span:.4g} (the range's "
+                             f"length in the scaled frequency, (f1 - f0) / f_mid), got "
+                             f"{step!r:.40}; the default is a 40th of it")
+    return value
 
 
 def _linear(scene, side, freqs) -> dict:
