@@ -6,16 +6,20 @@ acceleration a compiled function called from Python).
 
     python experiments/bench_track.py [--fleet 64] [--peer-samples 2000] [--clock cpu]
     python experiments/bench_track.py --smoke        # tiny; bench_track.smoke.json
+    python experiments/bench_track.py --table        # rewrite the docs table and stop
 
-Writes experiments/results/bench_track.json.
+Writes experiments/results/bench_track.json; `--table` rewrites the section between
+`<!-- BEGIN tracking -->` and `<!-- END tracking -->` in docs/benchmarks/performance.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import re
 import time
 
-from _bench import median_time, save, setup_jax, use_clock
+from _bench import RESULTS, ROOT, median_time, save, setup_jax, use_clock
 
 jax = setup_jax()
 
@@ -26,6 +30,8 @@ import crank_jax as cj  # noqa: E402
 from crank_jax.online import prepare, run_filter, track  # noqa: E402
 
 LAB = cj.load_scene("lab-rig")
+PAGE = ROOT / "docs" / "benchmarks" / "performance.md"
+BEGIN, END = "<!-- BEGIN tracking -->", "<!-- END tracking -->"
 
 
 def record(n: int, seed: int = 0, rate: float = 200.0) -> cj.Data:
@@ -78,6 +84,42 @@ def numpy_ekf(model, settings, state, ts, ys) -> np.ndarray:
     return np.array(out)
 
 
+def table(doc: dict) -> str:
+    """The docs section from a results document."""
+    m = doc["machine"]
+    return "\n".join([
+        "## Tracking", "",
+        f"`experiments/bench_track.py` ({m['date']}, {m['cores']} cores, {m['cpu']}; a "
+        "shared machine, other jobs running: wall times are rough; results in "
+        "`experiments/results/bench_track.json`). The lab rig under a measured two-tone "
+        f"torque, {doc['samples']} samples at 200 Hz, free `k` and `c`, "
+        f"{doc['substeps']} Runge-Kutta substep(s) a sample.", "",
+        "| what | time | target |", "|---|---|---|",
+        f"| the filter, warm, {doc['samples']} samples | {doc['warm_filter_s']:.3g} s "
+        f"({doc['per_sample_us']:.3g} µs a sample) | |",
+        f"| a warm `track()` call (record read, start, filter, alarms) | "
+        f"{doc['warm_track_call_s']:.3g} s | <= 1 s |",
+        f"| the first `track()` call in a process (compilation) | "
+        f"{doc['first_track_call_s']:.3g} s | |",
+        f"| {doc['fleet']} records under one `vmap`, against one record | "
+        f"{doc['fleet_over_one']:.3g}x | <= 8x |",
+        f"| a plain numpy EKF on the same model (peer), per sample | "
+        f"{doc['peer_per_sample_us']:.3g} µs ({doc['peer_over_ours_per_sample']:.3g}x "
+        f"ours; parameters equal to {doc['peer_parameter_max_abs_difference']:.1g}) | |"])
+
+
+def write_table(doc: dict) -> None:
+    src = PAGE.read_text()
+    block = f"{BEGIN}\n{table(doc)}\n{END}"
+    pat = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
+    if pat.search(src):
+        text = pat.sub(lambda _: block, src)
+    else:
+        text = src.rstrip() + "\n\n" + block + "\n"
+    PAGE.write_text(text)
+    print(f"rewrote the tracking table in {PAGE.relative_to(ROOT)}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--samples", type=int, default=12_000)
@@ -85,7 +127,12 @@ def main() -> None:
     ap.add_argument("--peer-samples", type=int, default=2_000)
     ap.add_argument("--clock", choices=("wall", "cpu"), default="wall")
     ap.add_argument("--smoke", action="store_true")
+    ap.add_argument("--table", action="store_true",
+                    help="rewrite the docs table from bench_track.json and stop")
     a = ap.parse_args()
+    if a.table:
+        write_table(json.loads((RESULTS / "bench_track.json").read_text()))
+        return
     use_clock(a.clock)
     if a.smoke:
         a.samples, a.fleet, a.peer_samples = 1_000, 4, 50
