@@ -125,12 +125,17 @@ def _csv(path, data):
                header="t,phi,tau", comments="")
 
 
-def test_the_track_command_writes_its_json_and_report(tmp_path):
+def _command(tmp_path, seconds: float):
+    """A record of `seconds` s as CSV, and the `track` command line on it."""
     rec = tmp_path / "rec.csv"
-    _csv(rec, driven_record(3.0))
+    _csv(rec, driven_record(seconds))
     out = tmp_path / "track.json"
-    cmd = [sys.executable, "-m", "crank_jax", "track", str(rec), "lab-rig", "--free", "k,c",
-           "--start", "scene", "--out", str(out), "--quiet"]
+    return out, [sys.executable, "-m", "crank_jax", "track", str(rec), "lab-rig", "--free",
+                 "k,c", "--start", "scene", "--out", str(out), "--quiet"]
+
+
+def test_the_track_command_writes_its_json_and_report(tmp_path):
+    out, cmd = _command(tmp_path, 3.0)
     p = subprocess.run(cmd, capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     doc = json.loads(out.read_text())
@@ -143,11 +148,7 @@ def test_the_track_command_writes_its_json_and_report(tmp_path):
 
 
 def test_the_track_command_refuses_bad_options_in_its_own_words(tmp_path):
-    rec = tmp_path / "rec.csv"
-    _csv(rec, driven_record(1.0))
-    out = tmp_path / "track.json"
-    cmd = [sys.executable, "-m", "crank_jax", "track", str(rec), "lab-rig", "--free", "k,c",
-           "--start", "scene", "--out", str(out), "--quiet"]
+    out, cmd = _command(tmp_path, 1.0)
     for bad, word in ((["--change-ratio", "1"], "--change-ratio"),
                       (["--free", "tau0"], "--free")):
         p = subprocess.run(cmd + bad, capture_output=True, text=True)

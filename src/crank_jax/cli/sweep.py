@@ -106,26 +106,14 @@ def _check_dirs(a: argparse.Namespace) -> None:
 
 def _wait_for_coordinator(wait: int) -> None:
     """A process other than 0 first waits (at most `wait` s) until the coordinator accepts
-    connections: JAX aborts the whole process, with a C++ stack dump, when it cannot reach
-    it, so the clear one-line error has to come from here."""
-    import socket
-    import time
+    connections (the library's `wait_for_coordinator`: JAX aborts the whole process, with
+    a C++ stack dump, when it cannot reach it); its error in the command's words."""
+    from ..sweep.collective import wait_for_coordinator
 
-    address = os.environ.get("JAX_COORDINATOR_ADDRESS", "")
-    host, _, port = address.rpartition(":")
-    if not host or not port.isdigit() or os.environ.get("JAX_PROCESS_ID", "0") == "0":
-        return
-    deadline = time.monotonic() + wait
-    while True:
-        try:
-            socket.create_connection((host.strip("[]"), int(port)), timeout=2).close()
-            return
-        except OSError as e:
-            if time.monotonic() > deadline:
-                raise UserError(f"--distributed: the coordinator {address} did not answer "
-                                   f"within {wait} s ({e.strerror or e}); start process 0 "
-                                   f"first, or set {_ENV_TIMEOUT}") from None
-            time.sleep(0.5)
+    try:
+        wait_for_coordinator({"initialization_timeout": wait})
+    except RuntimeError as e:
+        raise UserError(f"--distributed: {e}; or set {_ENV_TIMEOUT}") from None
 
 
 def _join(a: argparse.Namespace) -> int | None:
