@@ -374,7 +374,7 @@ def test_fitted_scene_takes_a_records_own_mechanism_field():
 
     scene = rotating_scene((SLIDE,))
     # The shared fields are the fitted mechanism's (T_c); c was fitted per record.
-    res = SimpleNamespace(mech=scene.mech.replace(T_c=0.03),
+    res = SimpleNamespace(mech=scene.mech.replace(T_c=0.03), converged=True,
                           values={"c[0]": 0.1, "c[1]": 0.2, "T_c": 0.03, "phi0[1]": 0.5})
     for i, c in enumerate((0.1, 0.2)):
         got = fitted_scene(scene, res, record=i)

@@ -125,8 +125,7 @@ class Scene(eqx.Module):
         return simulate(self.mech, phi0, dphi0, self.ts() if ts is None else ts, **opts)
 
 
-# ---------------------------------------------------------------------------------------
-# TOML
+# TOML ----------------------------------------------------------------------------------
 
 #: Optional [mechanism] keys beyond the paper's (default 0), and the [friction] table's
 #: keys with the SliderCrank field each sets (default: the field's default).

@@ -114,6 +114,6 @@ def _track_run(a: argparse.Namespace) -> int:
 #: Subcommands added to `crank-jax` (see `cli.main` for the tuple layout).
 COMMANDS: list = [
     ("track", "follow the free parameters through a record sample by sample (an extended "
-              "Kalman filter), with 95% bands and change alarms",
+              "Kalman filter), with 95%% bands and change alarms",
      _track_args, _track_run),
 ]

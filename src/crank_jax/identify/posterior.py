@@ -113,8 +113,7 @@ class Posterior:
         return out
 
     def to_json(self) -> dict:
-        """The JSON form the CLI writes (`parameters`, `divergences`, `draws`, `chains`,
-        and the sampler's settings and the fit it started from)."""
+        """The JSON the CLI writes: parameters, divergences, draws, chains, settings, fit."""
         summary = {n: {k: (v if np.isfinite(v) else None) for k, v in s.items()}
                    for n, s in self.summary().items()}  # NaN (one chain's R-hat): null
         return {"reliable": self.reliable, "stuck_chains": list(self.stuck),
