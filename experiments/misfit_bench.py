@@ -22,6 +22,11 @@ The truth adds one effect per case (the fitted model has none of them):
 - `eccentricity`: a once-per-revolution encoder error `eps sin(phi + 0.7)`;
 - `startup`: a start-up transient in the record (`synthesize(transient=...)`).
 
+One case more changes the start, not the truth (`--extra`, not in the default run):
+
+- `zero_start`: the plain record, the fit started with its drive (`tau0`, rot) or its
+  stiffness (`k`, osc) at exactly 0, a start a user writes when the value is unknown.
+
 For each case the reference is the best rms the model can reach on that record, found
 by brute force with a different optimiser: `scipy.optimize.least_squares(method="trf")`
 with tight tolerances on the same single-shooting angle residuals (this script's own
@@ -46,7 +51,6 @@ from __future__ import annotations
 import argparse
 import functools
 import json
-import math
 import re
 import time
 
@@ -63,6 +67,8 @@ import crank_jax as cj  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 RIGS = ("osc", "rot")
+#: Cases that change the fit's start rather than the truth (`--extra`).
+START_CASES = ("zero_start",)
 EFFECTS = ("guide_friction", "motor_droop", "speed_wander", "geometry", "eccentricity",
            "startup")
 PAGE = ROOT / "docs" / "benchmarks" / "identification.md"
@@ -179,7 +185,7 @@ def record(rig: str, effect: str, seed: int, t1: float | None = None) -> cj.Data
         mech_over = {"r": float(loads(rig, truth)[0].r) * 1.005}
     elif effect == "startup":
         transient = 0.05 if rig == "osc" else 0.1
-    elif effect != "eccentricity":
+    elif effect not in ("eccentricity",) + START_CASES:
         raise ValueError(f"unknown effect {effect!r}")
     sc = scene(rig, truth, t1, **mech_over)
     d = cj.synthesize(sc, rate=cfg["rate"], noise_std=cfg["noise"], seed=seed, force=force,
@@ -223,8 +229,9 @@ def reference_program(rig: str):
 
 def theta_of(rig: str, values: dict) -> np.ndarray:
     a, = [n for n in _coords(rig) if n != "c"]
-    return np.array([math.log(values[a]), math.log(values["c"]), values["phi0"],
-                     values["dphi0"]])
+    with np.errstate(divide="ignore"):  # a value at 0 (a zero start) is ln 0 = -inf
+        return np.array([np.log(float(values[a])), np.log(float(values["c"])),
+                         values["phi0"], values["dphi0"]])
 
 
 def reference(rig: str, data: cj.Data, starts: list[np.ndarray]) -> dict:
@@ -270,6 +277,8 @@ def run_case(rig: str, effect: str, seed: int, n_starts: int, t1: float | None =
     cfg = RIG[rig]
     data = record(rig, effect, seed, t1)
     start_vals = dict(cfg["truth"], **cfg["start"])
+    if effect == "zero_start":
+        start_vals[_coords(rig)[0]] = 0.0
     start_scene = scene(rig, start_vals, float(data.ts[-1]))
     t = time.perf_counter()
     res = cj.fit(start_scene, data, free=cfg["free"], progress=False, warn=False)
@@ -281,6 +290,7 @@ def run_case(rig: str, effect: str, seed: int, n_starts: int, t1: float | None =
     rng = np.random.default_rng(seed + 1)
     t = time.perf_counter()
     fixed = [th_fit] if smoke else [th_fit, th_start]
+    fixed = [th for th in fixed if np.all(np.isfinite(th))]  # (a zero start has no log)
     ref = reference(rig, data, fixed + random_starts(rig, n_starts, rng))
     ref_wall = time.perf_counter() - t
     rms_fn = ref.pop("rms_fn", None)
@@ -322,6 +332,30 @@ def table(doc: dict) -> str:
     return "\n".join(lines)
 
 
+EXTRA_BEGIN, EXTRA_END = "<!-- BEGIN misfit-extra -->", "<!-- END misfit-extra -->"
+
+
+def extra_table(doc: dict, before: dict | None) -> str:
+    """The docs section of the `--extra` cases, with the code before beside (`before`)."""
+    rows = [("this code", doc)] + ([("before", before)] if before else [])
+    lines = [f"**Zero starts** ({doc['machine']['date']}, `experiments/misfit_bench.py "
+             "--extra`, results in `experiments/results/misfit_bench.extra.json`"
+             + (", the code before from `--before`" if before else "") + "): the plain "
+             "record, the fit started with the drive (rot) or the stiffness (osc) at 0. The "
+             "start from the motion already mended these before; the zero start that failed "
+             "(a drag torque held fixed as a flat direction) is a coast-down's, "
+             "`tests/test_physical_ranges.py::test_a_drag_torque_started_at_zero_is_"
+             "determined`.", "",
+             "| rig | code | converged | rms / reference | LM iterations | wall time (s) |",
+             "|---|---|---|---|---|---|"]
+    for label, d in rows:
+        for r in d["cases"]:
+            lines.append(f"| {r['rig']} | {d.get('code') or label} | "
+                         f"{'yes' if r['converged'] else '**no**'} | {r['rms_ratio']:.3f} | "
+                         f"{r['iterations']} | {r['seconds']:.1f} |")
+    return "\n".join(lines)
+
+
 def write_table(doc: dict) -> None:
     src = PAGE.read_text()
     pat = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
@@ -340,21 +374,43 @@ def main() -> None:
                     help="comma-separated RIG:EFFECT (default: every rig and effect)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--code", default="", help="what code ran (a note for the table)")
+    ap.add_argument("--extra", action="store_true",
+                    help=f"the cases that change the start instead ({', '.join(START_CASES)}), "
+                         "written to misfit_bench.extra.json (or --out)")
+    ap.add_argument("--before", help="with --extra --table: a results file of the code "
+                                     "before, shown beside")
+    ap.add_argument("--out", help="results file (default: experiments/results/misfit_bench"
+                                  "[.smoke|.extra].json)")
     ap.add_argument("--smoke", action="store_true",
                     help="one short case, one random start; misfit_bench.smoke.json")
     ap.add_argument("--table", action="store_true",
                     help="rewrite the docs table from misfit_bench.json and stop")
     a = ap.parse_args()
-    out = RESULTS / ("misfit_bench.smoke.json" if a.smoke else "misfit_bench.json")
+    out = RESULTS / ("misfit_bench.smoke.json" if a.smoke else "misfit_bench.extra.json"
+                     if a.extra else "misfit_bench.json")
+    if a.out:
+        out = ROOT / a.out if not a.out.startswith("/") else type(ROOT)(a.out)
+    if a.table and a.extra:
+        before = json.loads(open(a.before).read()) if a.before else None
+        doc = json.loads((RESULTS / "misfit_bench.extra.json").read_text())
+        src = PAGE.read_text()
+        block = f"{EXTRA_BEGIN}\n{extra_table(doc, before)}\n{EXTRA_END}"
+        pat = re.compile(re.escape(EXTRA_BEGIN) + ".*?" + re.escape(EXTRA_END), re.S)
+        text = pat.sub(lambda _: block, src) if pat.search(src) else src.replace(
+            END, END + "\n\n" + block, 1)
+        with atomic_write(PAGE) as f:
+            f.write(text)
+        return
     if a.table:
         write_table(json.loads((RESULTS / "misfit_bench.json").read_text()))
         return
     if a.starts < 0:
         raise SystemExit("--starts must be >= 0")
+    kinds = START_CASES if a.extra else EFFECTS
     cases = [c.split(":") for c in a.cases.split(",") if c] or [
-        (r, e) for r in RIGS for e in EFFECTS]
+        (r, e) for r in RIGS for e in kinds]
     for c in cases:
-        if len(c) != 2 or c[0] not in RIGS or c[1] not in EFFECTS:
+        if len(c) != 2 or c[0] not in RIGS or c[1] not in EFFECTS + START_CASES:
             raise SystemExit(f"--cases: {':'.join(c)} is not RIG:EFFECT with RIG in "
                              f"{', '.join(RIGS)} and EFFECT in {', '.join(EFFECTS)}")
     starts, t1 = a.starts, None
@@ -375,7 +431,7 @@ def main() -> None:
         with atomic_write(out) as f:  # rewritten after every case: a cut run keeps them
             json.dump(doc, f, indent=1)
             f.write("\n")
-    print(f"wrote {out.relative_to(ROOT)}")
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":
