@@ -22,6 +22,7 @@ EXP = Path(__file__).resolve().parent.parent / "experiments"
     ("bench_fusion.py", "fusion"),
     ("bench_sweep_devices.py", "sweep_devices"),
     ("misfit_bench.py", "misfit_bench"),
+    ("bench_track.py", "bench_track"),
     # Both settings, and with the flags the backward program of before 2026-11-28 from
     # `_reverse_programs.py`, whose signature had drifted from `adjoint._deferred`'s: the
     # script failed and nothing ran it (found 2026-11-28). About 100 s.
