@@ -13,6 +13,7 @@ share a name.
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -382,3 +383,36 @@ def test_the_experiment_rules_catch_what_they_forbid(tmp_path, monkeypatch):
         test_experiments_import_the_public_api_or_a_listed_internal()
     with pytest.raises(AssertionError, match="no experiment imports"):
         test_every_listed_internal_is_imported_by_an_experiment()
+
+
+#: A docstring names no issue of this project and no date: both go stale the day the code
+#: changes (figures belong on the benchmark pages, made by their scripts). An upstream
+#: project's issue, named with its project ("CPython issue 114763"), is a reference.
+_STALE = re.compile(r"(\w+ )?\b[Ii]ssues? #?\d+|\b20\d\d-\d\d-\d\d\b")
+_UPSTREAM = {"CPython ", "jax ", "JAX ", "diffrax ", "equinox ", "NumPy ", "numpy ",
+             "XLA ", "scipy ", "SciPy "}
+
+
+def _stale_docstrings(paths) -> list[str]:
+    out = []
+    for path in paths:
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if not isinstance(node, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef,
+                                     ast.ClassDef)):
+                continue
+            doc = ast.get_docstring(node, clean=False) or ""
+            for m in _STALE.finditer(doc):
+                if m.group(1) not in _UPSTREAM:
+                    out.append(f"{path.name}:{getattr(node, 'name', '<module>')}: "
+                               f"{m.group(0)!r}")
+    return out
+
+
+def test_docstrings_name_no_issue_and_no_date(tmp_path):
+    assert not _stale_docstrings(MODULES), _stale_docstrings(MODULES)
+    # The rule catches what it forbids, and lets an upstream reference through.
+    bad = tmp_path / "bad.py"
+    bad.write_text('"""Fixed in issue 39."""\n\ndef f():\n    """Measured 2026-11-27."""\n'
+                   '\n\ndef g():\n    """A CPython issue 114763 workaround."""\n')
+    assert len(_stale_docstrings([bad])) == 2

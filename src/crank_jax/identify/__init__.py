@@ -1,6 +1,6 @@
 """Parameter identification: the fit as parts.
 
-`crank_jax.identify` is a documented namespace (issue 39). The fit, the posterior, the
+`crank_jax.identify` is a documented namespace. The fit, the posterior, the
 experiment design and the validation are at the front door (`crank_jax.fit`, ...); here
 are the tools around them:
 

@@ -1,7 +1,7 @@
 """The physics, written once: parameters, loads, geometry, dynamics, Newton-Euler,
 linearization.
 
-`crank_jax.model` is a documented namespace (issue 39): the physics helpers a user calls
+`crank_jax.model` is a documented namespace: the physics helpers a user calls
 beside a simulation (energy, kinematics, reactions, the mass matrix, ...) live here, off the
 package's front door, which keeps the parameters, the loads and `linearize`. Names here
 that differ from their module's (`geometry_at`, `ModelTerms`, `nonconservative_power`,

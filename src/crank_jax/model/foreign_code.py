@@ -7,7 +7,7 @@ A stored program is loaded without tracing, so its key must hold every input of 
 trace. For crank-jax's own classes it does (the package's source, the traced libraries'
 versions, the static structure). For a user's class it cannot: its `__call__` may read a
 module global, a closure cell, a configuration file, an environment variable, none of
-which is in its source or in the arguments. Keyed on its source (as before issue 37), a
+which is in its source or in the arguments. Keyed on its source (as the store once was), a
 load reading `GAIN` gave the first run's trajectory after `GAIN` changed, two classes
 from one factory shared one program, and `fit(force=...)` returned wrong, "converged"
 values. So a program with any class from outside crank-jax in its inputs is never

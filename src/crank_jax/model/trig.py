@@ -20,8 +20,8 @@ stage (68 kernels per step instead of 29). The seed is the bit-level estimate of
 <= 3.5%), refined by four Newton steps (quadratic convergence: 3.5e-2, 1.8e-3, 5e-6,
 4e-11, then rounding): within 2 ulp of `1/np.sqrt` over positive normal floats.
 
-Which form is an explicit, static choice (issue 39: numerics are arguments or fields,
-not context state): each function takes `form`, one of [`FORMS`][], and a module that
+Which form is an explicit, static choice (numerics are arguments or fields, not
+context state): each function takes `form`, one of [`FORMS`][], and a module that
 traces them (the crank's fields, the harmonic loads) holds it in a static field made by
 [`form_field`][], default `"library"`. A solver that wants the arithmetic form asks for
 the field in it with [`traced_as`][]: the lockstep batch (solve/lockstep.py) and the

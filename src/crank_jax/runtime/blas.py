@@ -4,7 +4,7 @@ Why: a fit's host-side linear algebra (the Gauss-Newton step's SVD, the uncertai
 QR and SVD) works on small dense matrices, e.g. the lab record's multiple-shooting
 Jacobian of 1318 x 26, between calls of XLA programs. OpenBLAS (NumPy's and SciPy's) splits
 such a factorisation over a thread per core, whose barriers stall whenever another process
-holds a core. Measured on a 2-core VM (2026-11-28, experiments/fit_blas_threads.py, its
+holds a core. Measured on a 2-core VM (experiments/fit_blas_threads.py, its
 SVD 30 times, the warm lab fit 4 times, alternated):
 
 | busy processes | SVD, default: median (worst) | one thread | warm fit, default | one thread |

@@ -7,7 +7,7 @@ APIs only. Nothing here runs on import. The solver libraries' entries (diffrax's
 codes and Dopri8's dense output, `equinox.internal.while_loop`) are the core's own:
 [`crank_jax.solve.library_api`][], under the same rule and the same tests.
 
-Replaced by public APIs (issue 26): `diffrax.RESULTS` codes were read as `result._value`;
+Replaced by public APIs: `diffrax.RESULTS` codes were read as `result._value`;
 they are now the result's single pytree leaf
 ([`result_code`][crank_jax.solve.library_api.result_code],
 [`result_from_code`][crank_jax.solve.library_api.result_from_code]),

@@ -1,4 +1,4 @@
-"""Deprecated spellings of the public API, kept one release (issue 39): each warns with a
+"""Deprecated spellings of the public API, kept one release: each warns with a
 `DeprecationWarning` that names the new spelling, and gives the very object the old name
 gave.
 

@@ -97,10 +97,10 @@ def backward_program() -> str:
     [`SMALL_LOOP_BYTES`][], as the `crank-jax` program and `configure_cpu` set it), else
     `"blocks"`. Read at the edges (`simulate`'s front door, the fit, sweeps), so that the
     core reads no flags. With the flags one VJP per step, in a loop, is cheapest: lab
-    rig, grad 5.7x one forward solve against 16x for the vectorised blocks (2026-11-26,
-    load ~6, so both high). Without them every one of the ~600 kernels of a step's VJP is
-    dispatched per step (90x; also with a loop over 4 or 8 steps at a time, 23x: XLA did
-    not hoist it either), and the vectorised blocks win."""
+    rig, grad 5.7x one forward solve against 16x for the vectorised blocks (a loaded
+    machine, so both high; `experiments/bench_reverse.py`). Without them every one of the
+    ~600 kernels of a step's VJP is dispatched per step (90x; also with a loop over 4 or
+    8 steps at a time, 23x: XLA did not hoist it either), and the vectorised blocks win."""
     import jax
 
     threshold = small_loop_bytes()

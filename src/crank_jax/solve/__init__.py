@@ -1,6 +1,6 @@
 """Solvers and the simulation: they know vector fields, not mechanisms.
 
-`crank_jax.solve` is a documented namespace (issue 39). Its public names:
+`crank_jax.solve` is a documented namespace. Its public names:
 
 - `solve(field, solver, ts, y0, ...)` and its `Solution`: any vector field (a
   `crank_jax.model.CrankField` or your own) with the library's solvers;

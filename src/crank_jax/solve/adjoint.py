@@ -29,7 +29,7 @@ Why not differentiate the solve's loops? A `while_loop` has no reverse mode, and
 batched solve is a `custom_vmap` (lockstep.py), which has none either; before this module
 the backward pass re-solved the problem with diffrax's Dopri8 and its checkpointed
 reverse mode: 12x one forward solve with the CPU flags, 68x under XLA's defaults (lab
-rig, issue 26).
+rig).
 
 **Memory.** The log holds [`LOG_ROWS`][] steps (at most the step budget), as a ring: a
 solve of more steps keeps the last `LOG_ROWS`, and the backward pass, after those, runs
@@ -273,7 +273,8 @@ def _deferred(full, arithmetic, dd, pack, unpack, window, B, n_state):
     over every stage of every step of `K_i^T df/dtheta(T_i, Y_i)`, `K_i` the stage's
     cotangent, `(T_i, Y_i)` its point: after the loop, VJPs of the field over `_CHUNK`
     of the block's points at a time form it (one loop), instead of one small VJP per stage in the
-    loop (issue 40: 1.51 of the backward pass's 2.35 ms, 2026-11-27). The same sum in
+    loop (it took 1.51 of the backward pass's 2.35 ms;
+    `experiments/reverse_split.py`). The same sum in
     another order: equal to rounding."""
 
     def step(row, tw, e):

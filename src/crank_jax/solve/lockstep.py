@@ -17,7 +17,7 @@ cold fit's 3 s trace of its multiple-shooting Jacobian.
 Every member gets its own answer: each has its own time, step size, accept/reject
 decisions, step budget and outcome (`solve_adaptive`, `batched=True`), so a member that
 needs tiny steps or runs out of budget changes neither the others' results nor their
-statuses (a single shared step size, as before issue 26, let one stiff member fail the
+statuses (a single shared step size, as the batch once had, let one stiff member fail the
 whole batch). A member that is done with the current save window, or out of budget,
 waits, frozen, while the others step; the window moves on when every member still
 stepping has passed it. What that costs on a uniform batch:
@@ -32,8 +32,8 @@ the solve along the chosen steps (`custom_vmap` has a JVP rule). Reverse mode
 the solve carries a `custom_vjp` whose forward pass is one member's solve with a log of
 its steps and whose backward pass is the discrete adjoint of those steps (adjoint.py):
 the exact gradient of the computed solution, as forward mode's Jacobian is. Under
-`jax.vmap` both are a plain `vmap` of one member's (each member its own steps). Before
-issue 26 the backward pass differentiated a diffrax Dopri8 re-solve (12x one forward
+`jax.vmap` both are a plain `vmap` of one member's (each member its own steps). Before this
+solver the backward pass differentiated a diffrax Dopri8 re-solve (12x one forward
 solve with the CPU flags, 68x under XLA's defaults, lab rig).
 """
 

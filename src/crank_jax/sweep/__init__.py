@@ -1,6 +1,6 @@
 """Monte Carlo sweeps: a scene simulated for many sampled parameter values at once.
 
-`crank_jax.sweep` is a documented namespace (issue 39). `run_sweep`, `SweepResult`,
+`crank_jax.sweep` is a documented namespace. `run_sweep`, `SweepResult`,
 `sweep_cost`, `load_trajectories` and `Trajectories` are also at the front door; here too
 are the distributions a sweep samples from (`Normal`, `Uniform`, `LogNormal`, `LogUniform`,
 `Const`, `AbstractDistribution`), the names a sweep accepts (`VARIABLES`: the fields and

@@ -6,7 +6,7 @@ as one `RuntimeError` that says what happened and what to do.
 Gloo's collectives give up after 30 s, but a peer may be busy far longer: compiling the
 chunk (hosts compile at their own pace; a loaded 2-core machine took more than 30 s
 longer on one process than the other, and two of two 4000-sample two-process sweeps
-failed, issue 37 item 10), or solving a stiffer part. So every collective first waits at
+failed), or solving a stiffer part. So every collective first waits at
 a barrier of JAX's coordination service ([`sync`][]), whose timeout is ours
 ([`SYNC_TIMEOUT_S`][]); a dead peer still ends the wait, by the service's heartbeat.
 Every process then enters the collective within milliseconds of the others.
@@ -185,8 +185,8 @@ def same_everywhere(fields: dict, what: str) -> None:
     """Check that every process holds the same `fields` (JSON values, e.g. a sweep's plan),
     before any work: each process sends a digest of the whole and of each field, and
     every process raises the same `ValueError`, naming the processes and fields that
-    differ from process 0's, if any does (issue 37 item 8: a process given another
-    `--seed` wrote a file mixing two plans, exit 0)."""
+    differ from process 0's, if any does (a process given another `--seed` once wrote a
+    file mixing two plans, exit 0)."""
     if jax.process_count() == 1:
         return
     keys = sorted(fields)[:_SLOTS]

@@ -10,7 +10,7 @@ Modules, one job each: `flow` (the flow map over a span, the library's solver), 
 
 The function `backbone` is `crank_jax.backbone` (the front door): here `backbone` is the
 module of that name, never the function, so that `import crank_jax.vibration.backbone` and
-the attribute mean the same (issue 39). Calling the module (the old
+the attribute mean the same. Calling the module (the old
 `crank_jax.vibration.backbone(...)`) still runs the function for one release, with a
 `DeprecationWarning`.
 """
