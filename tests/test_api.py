@@ -21,7 +21,6 @@ MAX_PUBLIC_NAMES = 50
 PUBLIC_NAMESPACES = ("model", "solve", "identify", "sweep", "vibration", "report",
                      "online")
 NAMESPACES = ["crank_jax"] + [f"crank_jax.{n}" for n in PUBLIC_NAMESPACES]
-DEPRECATED = getattr(cj, "_DEPRECATED", {})
 REFERENCE = Path(__file__).resolve().parents[1] / "docs" / "reference" / "index.md"
 #: Functions that still shadow a top-level module of the same name on this branch because
 #: the module moves in the `house` branch (validate.py -> identify/): remove the entry when
@@ -102,21 +101,14 @@ def test_dir_shows_the_front_door_and_the_namespaces():
     assert set(eval(out[1])) <= set(PUBLIC_NAMESPACES)
 
 
-def _target(spec: str):
-    where = spec.partition("|")[0]
-    module, new = where.split(":")
-    return getattr(importlib.import_module(module), new), f"{module}.{new}"
-
-
-@pytest.mark.parametrize("old", sorted(DEPRECATED))
-def test_old_names_warn_and_give_the_same_object(old):
-    assert old not in cj.__all__ and old not in dir(cj)
-    target, new = _target(DEPRECATED[old])
-    advice = DEPRECATED[old].partition("|")[2] or new
-    with pytest.warns(DeprecationWarning, match=f"crank_jax.{old} is deprecated.*") as rec:
-        value = getattr(cj, old)
-    assert advice in str(rec[0].message)
-    assert value is target
+@pytest.mark.parametrize("old", ["geometry", "Structure", "power_in", "FIELDS", "PRESETS",
+                                 "with_cpu_flags", "atomic_write", "distributions"])
+def test_the_names_of_earlier_releases_are_gone(old):
+    # No deprecation shim before 1.0: an old name is an AttributeError, not a warning.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(AttributeError, match=old):
+            getattr(cj, old)
 
 
 def test_renamed_names_are_the_old_objects():
@@ -137,14 +129,10 @@ def test_renamed_names_are_the_old_objects():
     assert cj.run_sweep is cj.sweep.run_sweep is run.sweep
 
 
-@pytest.mark.parametrize("module,new", [(cj.sweep, "crank_jax.run_sweep"),
-                                        (cj.solve, "crank_jax.solve.solve"),
-                                        (sys.modules["crank_jax.vibration.backbone"],
-                                         "crank_jax.backbone")])
-def test_calling_a_former_function_still_runs_it_with_a_warning(module, new):
-    # The call reaches the function: here it refuses the missing arguments.
-    with pytest.warns(DeprecationWarning, match=new), pytest.raises(TypeError, match="missing"):
-        module()
+def test_a_namespace_is_no_function():
+    for module in (cj.sweep, cj.solve, sys.modules["crank_jax.vibration.backbone"]):
+        with pytest.raises(TypeError, match="not callable"):
+            module()
 
 
 def test_unknown_names_raise_attribute_error():

@@ -169,7 +169,9 @@ def test_single_shooting_same_bits_under_the_cpu_flags():
     import sys
     from pathlib import Path
 
-    env = dict(os.environ, XLA_FLAGS=cj.with_cpu_flags(os.environ.get("XLA_FLAGS")),
+    from crank_jax.runtime.xla_flags import with_cpu_flags
+
+    env = dict(os.environ, XLA_FLAGS=with_cpu_flags(os.environ.get("XLA_FLAGS")),
                CRANK_JAX_NO_CACHE="1")
     code = _UNDER_FLAGS.format(tests=str(Path(__file__).parent))
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,

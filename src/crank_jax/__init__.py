@@ -28,7 +28,8 @@ vector field, the solver policy), `crank_jax.identify` (residual diagnostics, pr
 start values), `crank_jax.sweep` (distributions, the names a sweep takes),
 `crank_jax.vibration` (result classes), `crank_jax.report` (HTML reports),
 `crank_jax.online` (`track`: follow a running machine's parameters, change alarms). Every other
-module is internal. Old names warn for one release (`_DEPRECATED` below).
+module is internal. The names of earlier releases are gone (docs/reference/index.md,
+"Changes").
 """
 
 import sys as _sys
@@ -65,8 +66,6 @@ from .records.data import (
 from .records.sensors import Sensor, SensorError
 from .records.synth import synthesize
 from .runtime.cache import enable_compilation_cache
-from .runtime.deprecation import make_callable as _make_callable
-from .runtime.deprecation import moved as _moved
 from .runtime.xla_flags import configure_cpu
 from .scene import (
     Scene,
@@ -83,7 +82,6 @@ from .solve.solvers import (
     Diffrax,
     UniformDopri8,
 )
-from .solve.solvers import solve as _solve
 from .solve.trajectory import Trajectory
 from .sweep.run import (
     SweepResult,
@@ -147,52 +145,13 @@ __all__ = [
     "configure_cpu", "enable_compilation_cache",
 ]
 
-#: Names that left the front door, kept one release: old name -> "namespace:new name", or
-#: "module:name|what to use" for a name that goes from the public API. Reading one warns
-#: (`DeprecationWarning`) and gives the very object the old name gave. `cj.solve(...)` and
-#: `cj.sweep(...)` are not here: those attributes are the subpackages now, whose calls
-#: still run the functions, warning (`runtime.deprecation.make_callable`).
-_DEPRECATED = {
-    **{n: f"crank_jax.model:{n}" for n in (
-        "FIELDS", "SIGNED_FIELDS", "INTERPOLATIONS", "LOAD_PARAMS", "Geometry",
-        "coupler_angle", "CouplerAngle", "kinematics", "Kinematics", "CrankField", "mass",
-        "coriolis", "generalized_force", "acceleration", "energy", "kinetic_energy",
-        "potential_energy", "distribution_matrix", "reactions", "Reactions", "equilibrium")},
-    "geometry": "crank_jax.model:geometry_at",
-    "Structure": "crank_jax.model:ModelTerms",
-    "power_in": "crank_jax.model:nonconservative_power",
-    "global_form": "crank_jax.model:newton_euler_form",
-    "GlobalForm": "crank_jax.model:NewtonEulerForm",
-    "coulomb_note": "crank_jax.model:coulomb_friction_note",
-    **{n: f"crank_jax.solve:{n}" for n in (
-        "Solution", "SOLVERS", "solver_named", "resolve_solver", "choose_solver", "OUTPUTS",
-        "output_columns")},
-    "fastest_mode": "crank_jax.solve:fastest_mode_rates",
-    **{n: f"crank_jax.identify:{n}" for n in (
-        "FREE_NAMES", "regressor_start", "Profile", "residual_diagnostics", "Diagnostics",
-        "hac_covariance", "robust_uncertainty", "RobustUncertainty")},
-    "widen": "crank_jax.identify:widen_covariance",
-    **{n: f"crank_jax.sweep:{n}" for n in (
-        "REDUCTIONS", "STATUS", "VARIABLES", "initialize_distributed")},
-    "distributions": "crank_jax:sweep|crank_jax.sweep (Normal, Uniform, ... are there)",
-    # Going from the public API (internal modules: these paths follow the files).
-    "PRESETS": "crank_jax.scene:PRESETS|crank_jax.presets() (its keys)",
-    "with_cpu_flags": "crank_jax.runtime.xla_flags:with_cpu_flags|"
-                      "crank_jax.configure_cpu(devices=1)",
-    "default_cache_dir": "crank_jax.runtime.cache:default_cache_dir|the directory that "
-                         "crank_jax.enable_compilation_cache() returns",
-    "atomic_write": "crank_jax.runtime.io:atomic_write|a file utility of your own",
-}
-
-
 def __getattr__(name: str):
-    # Called only for names not found in the module: a namespace not yet imported, or an
-    # old spelling.
+    # Called only for names not found in the module: a namespace not yet imported.
     if name in _NAMESPACES:
         import importlib
 
         return importlib.import_module(f"{__name__}.{name}")
-    return _moved(__name__, name, _DEPRECATED)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
@@ -207,8 +166,5 @@ def _unbind_internal_modules() -> None:
 
 # From here on, importing an internal module does not bind it; those imported above are
 # unbound now.
-# The core package `crank_jax.solve` imports nothing of the runtime, so its deprecated call
-# (the old `cj.solve(...)`) is set up here, at the front door.
-_make_callable(f"{__name__}.solve", _solve, "crank_jax.solve.solve")
 _sys.modules[__name__].__class__ = _FrontDoor
 _unbind_internal_modules()

@@ -8,11 +8,9 @@ load parameters it can vary; `REDUCTIONS`: its outputs; `STATUS`: each sample's 
 and `initialize_distributed` (a sweep over several hosts).
 
 `crank_jax.sweep` is this package, never a function: `import crank_jax.sweep` and the
-attribute `crank_jax.sweep` are the same module. Calling it (the old `cj.sweep(...)`)
-still runs `run_sweep` for one release, with a `DeprecationWarning`.
+attribute `crank_jax.sweep` are the same module.
 """
 
-from ..runtime.deprecation import make_callable
 from .distributions import AbstractDistribution, Const, LogNormal, LogUniform, Normal, Uniform
 from .run import REDUCTIONS, STATUS, VARIABLES, SweepResult, initialize_distributed, sweep_cost
 from .run import sweep as run_sweep
@@ -22,4 +20,3 @@ __all__ = ["run_sweep", "SweepResult", "sweep_cost", "load_trajectories", "Traje
            "Normal", "Uniform", "LogNormal", "LogUniform", "Const", "AbstractDistribution",
            "VARIABLES", "REDUCTIONS", "STATUS", "initialize_distributed"]
 
-make_callable(__name__, run_sweep, "crank_jax.run_sweep")

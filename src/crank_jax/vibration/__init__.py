@@ -10,13 +10,9 @@ Modules, one job each: `flow` (the flow map over a span, the library's solver), 
 
 The function `backbone` is `crank_jax.backbone` (the front door): here `backbone` is the
 module of that name, never the function, so that `import crank_jax.vibration.backbone` and
-the attribute mean the same. Calling the module (the old
-`crank_jax.vibration.backbone(...)`) still runs the function for one release, with a
-`DeprecationWarning`.
+the attribute mean the same.
 """
 
-from ..runtime.deprecation import make_callable
-from . import backbone as _backbone_module
 from .backbone import Backbone
 from .chart import Chart, mathieu_tongue, stability_chart
 from .drive import VibrationError
@@ -27,4 +23,3 @@ __all__ = ["Backbone", "Chart", "stability_chart", "mathieu_tongue",
            "VibrationError", "Orbit", "periodic_orbit", "Branch", "ForcedResponse",
            "forced_response"]
 
-make_callable(_backbone_module.__name__, _backbone_module.backbone, "crank_jax.backbone")
