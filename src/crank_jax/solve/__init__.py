@@ -16,9 +16,8 @@
 To choose a solver, pass `solver=` a name from `SOLVERS` or a solver object to
 `crank_jax.simulate`; the rest of this list explains or reuses that choice.
 
-`crank_jax.solve` is this package, never a function: calling it (the old `cj.solve(...)`)
-still runs `solve` for one release, with a `DeprecationWarning` (set up by the front
-door, `crank_jax/__init__.py`, so that this core package imports nothing of the runtime).
+`crank_jax.solve` is this package, never a function: the function is
+`crank_jax.solve.solve`.
 """
 
 from .adjoints import AbstractAdjoint, DirectAdjoint, DiscreteAdjoint, ForwardSensitivities
