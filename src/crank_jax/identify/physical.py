@@ -83,10 +83,24 @@ class Ranges:
         return None
 
 
-def _derivatives(ts, angle, period):
-    ts, angle = np.asarray(ts, dtype=float), np.asarray(angle, dtype=float)
-    _, dphi, ddphi = smooth_derivatives(ts, angle, half_window(ts, period))
-    return dphi, ddphi
+def _motion(records, angles, periods) -> list[tuple[float, float]]:
+    """Per record: its fastest speed (rad/s) and rms angular acceleration (rad/s^2), from
+    one smoothing of its angle (0 for a record too short to smooth)."""
+    out = []
+    for d, a, p in zip(records, angles, periods):
+        if len(d.ts) < 7:
+            out.append((0.0, 0.0))
+            continue
+        ts = np.asarray(d.ts, dtype=float)
+        _, dphi, ddphi = smooth_derivatives(ts, np.asarray(a, dtype=float),
+                                            half_window(ts, p))
+        out.append((float(np.max(np.abs(dphi))), float(np.sqrt(np.mean(ddphi**2)))))
+    return out
+
+
+def _scale(mu: float, motion) -> float | None:
+    scale = mu * max((acc for _, acc in motion), default=0.0)
+    return scale if math.isfinite(scale) and scale > 0 else None
 
 
 def load_scale(mech: SliderCrank, records, angles, periods) -> float | None:
@@ -96,23 +110,18 @@ def load_scale(mech: SliderCrank, records, angles, periods) -> float | None:
     takes it for its unit (a slider force that divided by the crank radius), so that the
     optimiser's first steps are of the size the data need: at 10^-3 N*m, a drag torque of
     0.6 N*m was a column so small that the fit held it fixed as a flat direction."""
-    mu = float(np.asarray(linearize(mech).mu))
-    acc = [float(np.sqrt(np.mean(_derivatives(d.ts, a, p)[1] ** 2)))
-           for d, a, p in zip(records, angles, periods) if len(d.ts) >= 7]
-    scale = mu * max(acc, default=0.0)
-    return scale if math.isfinite(scale) and scale > 0 else None
+    return _scale(float(np.asarray(linearize(mech).mu)), _motion(records, angles, periods))
 
 
 def ranges(mech: SliderCrank, records, angles, periods, start: dict) -> Ranges:
     """The [`Ranges`][] of a fit's records (their `angles` as the channels tell them,
     rad, and `periods`, s or None) at the start mechanism `mech` and start values."""
-    speeds = tuple(float(np.max(np.abs(_derivatives(d.ts, a, p)[0]))) if len(d.ts) >= 7
-                   else 0.0 for d, a, p in zip(records, angles, periods))
+    motion = _motion(records, angles, periods)  # one smoothing a record serves both
+    speeds = tuple(v for v, _ in motion)
     # A load's range: what the records' accelerations need, or a torque that would change
     # the fastest speed by its own size within a radian (a steady rotation's drive balances
     # a drag the accelerations do not show).
     mu = float(np.asarray(linearize(mech).mu))
-    torque = max(load_scale(mech, records, angles, periods) or 0.0,
-                 mu * max(speeds, default=0.0) ** 2)
+    torque = max(_scale(mu, motion) or 0.0, mu * max(speeds, default=0.0) ** 2)
     ok = math.isfinite(torque) and torque > 0
     return Ranges(dict(start), speeds, torque if ok else None, float(mech.r))

@@ -55,19 +55,20 @@ def _check_free(free: Sequence[str]) -> tuple[str, ...]:
     return free
 
 
-def _check_options(start, start_seconds, false_alarm_rate, change_ratio, settle, every):
+def _positive(name: str, v) -> None:
+    if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+        raise ValueError(f"{name}= must be a finite number > 0, got {v!r}")
+
+
+def _check_options(start, start_seconds, false_alarm_rate, change_ratio):
     if start not in STARTS:
         raise ValueError(f"start= must be one of {STARTS}, got {start!r}")
-    for name, v in (("start_seconds", start_seconds), ("false_alarm_rate", false_alarm_rate),
-                    ("settle", settle)):
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-            raise ValueError(f"{name}= must be a finite number > 0, got {v!r}")
+    _positive("start_seconds", start_seconds)
+    _positive("false_alarm_rate", false_alarm_rate)
     if not (isinstance(change_ratio, (int, float)) and math.isfinite(change_ratio)
             and change_ratio > 1):
         raise ValueError(f"change_ratio= must be a finite variance ratio > 1, got "
                          f"{change_ratio!r}")
-    if not (isinstance(every, int) and every >= 1):
-        raise ValueError(f"every= must be an integer >= 1, got {every!r}")
 
 
 class TrackProblem(NamedTuple):
@@ -96,7 +97,7 @@ def prepare(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
             progress: bool = True) -> TrackProblem:
     """The [`TrackProblem`][] of `data` (arguments as [`track`][]'s)."""
     free = _check_free(free)
-    _check_options(start, start_seconds, false_alarm_rate, change_ratio, 1.0, 1)
+    _check_options(start, start_seconds, false_alarm_rate, change_ratio)
     req = ch.with_channels(normalize(
         scene, data, free + ("phi0", "dphi0"), init="scene", method="lm", shooting="auto",
         segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8, sigma=None,
@@ -170,7 +171,10 @@ def track(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
     **Returns:** a [`TrackResult`][crank_jax.online.tracked.TrackResult].
     **Raises:** `ValueError` naming the argument for a request it cannot serve.
     """
-    _check_options(start, start_seconds, false_alarm_rate, change_ratio, settle, every)
+    # (prepare checks its own options; these two are the result's.)
+    _positive("settle", settle)
+    if not (isinstance(every, int) and every >= 1):
+        raise ValueError(f"every= must be an integer >= 1, got {every!r}")
     p = prepare(scene, data, free, start=start, start_seconds=start_seconds,
                 false_alarm_rate=false_alarm_rate, change_ratio=change_ratio,
                 q_param=q_param, load_by=load_by, progress=progress)
