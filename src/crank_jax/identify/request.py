@@ -9,6 +9,8 @@ one `ValueError` naming the field and the fix, before a single ODE is solved.
 from __future__ import annotations
 
 import dataclasses
+import enum
+import functools
 import hashlib
 import math
 from collections.abc import Sequence
@@ -16,6 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..model.loads import LOAD_PARAMS, AbstractLoad, get_param, load_kind
+from ..model.outputs import SI_UNITS
 from ..model.params import FIELDS, SliderCrank
 from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
 from ..model.sampled import bind_input
@@ -28,7 +31,8 @@ from .userforce import force_names, force_starts
 
 __all__ = ["FitRequest", "normalize", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
            "SIGNED_FIELDS", "FRICTION_SCALED", "MAX_ITERATIONS", "SIGMA_RANGE", "free_names",
-           "load_param", "reported_names", "window_data", "record_mech", "record_loads"]
+           "load_param", "reported_names", "window_data", "record_mech", "record_loads",
+           "Method", "ShootingMode"]
 
 STATE_NAMES = ("phi0", "dphi0")
 #: Load parameters that can be free, name -> (side, role), from the one load table
@@ -51,8 +55,25 @@ MAX_ITERATIONS = 1_000_000
 #: Range of a given noise level `sigma`, rad: outside it, its square (the variance of the
 #: Laplace covariance) under- or overflows, and no angle record has such a noise.
 SIGMA_RANGE = (1e-12, 1e6)
-_METHODS = ("lm", "optax")
-_SHOOTING = ("auto", "single", "multiple")
+
+
+class Method(enum.StrEnum):
+    """`fit(method=)`: the optimiser (see [`fit`][crank_jax.identify.fit]'s notes)."""
+
+    LM = "lm"  # Levenberg-Marquardt over the residuals and their Jacobian
+    OPTAX = "optax"  # Adam, then L-BFGS, on reverse-mode gradients
+
+
+class ShootingMode(enum.StrEnum):
+    """`fit(shooting=)`: judged from the record (`AUTO`, which may escalate), or as asked."""
+
+    AUTO = "auto"
+    SINGLE = "single"
+    MULTIPLE = "multiple"
+
+
+_METHODS = tuple(m.value for m in Method)
+_SHOOTING = tuple(m.value for m in ShootingMode)
 
 
 def free_names() -> tuple[str, ...]:
@@ -99,8 +120,8 @@ class FitRequest:
     names: tuple[str, ...]
     start: dict
     init: str
-    method: str
-    shooting: str
+    method: Method
+    shooting: ShootingMode
     segments: int | None
     multistart: int
     seed: int
@@ -119,6 +140,28 @@ class FitRequest:
     per_record: tuple = ()
     #: A user's force term (`fit(force=...)`), its free fields named `force.<field>`.
     force: object = None
+
+    # What follows from the fields, worked out once per request (a frozen request's
+    # values never change; a new weighting is a new request).
+
+    @functools.cached_property
+    def first_channel(self) -> str:
+        """The first record's first channel: the fit's residuals are in its unit."""
+        return self.records[0].outputs()[0][0].name
+
+    @functools.cached_property
+    def unit(self) -> str:
+        """The SI unit of the first channel, the unit of the fit's residuals."""
+        return SI_UNITS[self.first_channel]
+
+    @functools.cached_property
+    def known_sigma(self) -> float | None:
+        """The noise level of the weighted residuals (the first channel's unit) when every
+        channel's is given, else None (estimated from the residuals)."""
+        names = {s.name for d in self.records for s, _ in d.outputs()}
+        if isinstance(self.sigma, dict):
+            return self.sigmas[self.first_channel] if names <= set(self.sigma) else None
+        return float(self.sigma) if self.sigma is not None and len(names) == 1 else None
 
 
 def record_mech(mech: SliderCrank, own: dict) -> SliderCrank:
@@ -172,9 +215,9 @@ def _check_scenes(scenes: list[Scene]) -> None:
 
 
 def _check_options(method, shooting, segments, multistart, max_steps, tol, sigma) -> None:
-    if method not in _METHODS:
+    if not isinstance(method, str) or method not in _METHODS:
         raise ValueError(f"method must be 'lm' or 'optax', got {method!r}")
-    if shooting not in _SHOOTING:
+    if not isinstance(shooting, str) or shooting not in _SHOOTING:
         raise ValueError(f"shooting must be 'auto', 'single' or 'multiple', got {shooting!r}")
     if segments is not None and (segments < 1 or shooting == "single" and segments > 1):
         raise ValueError(f"segments = {segments} is not valid with shooting={shooting!r}")
@@ -371,9 +414,10 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
     return FitRequest(
         scene=scenes[0], records=tuple(records), loads=loads,
         states=tuple((float(sc.phi0), float(sc.dphi0)) for sc in scenes), free=free,
-        names=names, start=start, init=init_kind, method=method, shooting=shooting,
+        names=names, start=start, init=init_kind, method=Method(method),
+        shooting=ShootingMode(shooting),
         segments=segments, multistart=int(multistart), seed=int(seed),
         max_steps=int(max_steps if max_steps is not None else
-                      (100 if method == "lm" else 2000)),
+                      (100 if method == Method.LM else 2000)),
         tol=float(tol), sigma=sigma, profile=profile, window=window, progress=bool(progress),
         warn=bool(warn), per_record=per_record, force=force)
