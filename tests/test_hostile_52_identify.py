@@ -55,7 +55,8 @@ def test_a_horizon_under_two_sample_intervals_is_refused_at_once(horizon):
     out = _cut_within(5.0, ts, 1.5, horizon)
     e = out.get("error")
     assert isinstance(e, ValueError), out
-    assert "horizon (--horizon)" in str(e) and "shorter than two sample intervals" in str(e)
+    assert "`horizon=`" in str(e) and "--" not in str(e)
+    assert "shorter than two sample intervals" in str(e)
     assert "at least 0.06 s" in str(e)
 
 
@@ -124,7 +125,7 @@ def test_per_record_with_one_record_is_refused(tmp_path, capsys):
     rc = main(["fit", str(rec), "lab-rig", "--free", "k,c", "--per-record", "k", "--quiet"])
     assert rc == 2
     _one_line(capsys, "--per-record k needs several records (--more-data)")
-    with pytest.raises(ValueError, match="per_record names k, but there is one record"):
+    with pytest.raises(ValueError, match="`per_record=` names k, but there is one record"):
         cj.fit(cj.load_scene("lab-rig"), cj.Data(np.arange(0.0, 2.0, 0.02),
                                                  np.zeros(100)), free=("k", "c"),
                per_record=("k",), progress=False)

@@ -19,6 +19,7 @@ from .channel_options import (
 from .errors import UserError
 from .load_by_option import add_load_by_option, load_by_words
 from .options import free_list, seed
+from .wording import cli_message
 
 
 def _warn(msg: str) -> None:
@@ -125,6 +126,7 @@ _CLI_WORDS = (
 
 def cli_words(text: str) -> str:
     """A fit message with the library's option names replaced by the command's."""
+    text = cli_message(text)
     for pattern, repl in _CLI_WORDS:
         text = pattern.sub(repl, text)
     return text

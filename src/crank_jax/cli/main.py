@@ -45,6 +45,7 @@ from . import (
     validate_command as validate,
 )
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
+from .wording import cli_message
 
 __all__ = ["main", "entry", "build_parser", "Terminated", "ENV_DEBUG"]
 
@@ -135,7 +136,7 @@ def _warnings_one_line() -> Iterator[None]:
     old = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
-        print(f"crank-jax: warning: {_one_line(message)}", file=sys.stderr)
+        print(f"crank-jax: warning: {cli_message(_one_line(message))}", file=sys.stderr)
 
     warnings.showwarning = show
     try:
@@ -178,7 +179,8 @@ def _debug(argv: list[str]) -> bool:
 def _fail(code: int, msg: str, debug: bool) -> int:
     if debug:
         traceback.print_exc()
-    print(f"crank-jax: error: {msg}", file=sys.stderr)
+    # The library names its arguments (`warmup=`); the user typed options (--warmup).
+    print(f"crank-jax: error: {cli_message(msg)}", file=sys.stderr)
     return code
 
 

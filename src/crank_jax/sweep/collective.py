@@ -208,4 +208,4 @@ def same_everywhere(fields: dict, what: str) -> None:
     raise ValueError(f"the processes of this distributed run were given different "
                      f"{what}s: process(es) {', '.join(map(str, bad))} differ from process "
                      f"0 in {', '.join(differ) or 'their fields'}; give every process the "
-                     "same command and files (--vary, --n, --seed, scene, ...)")
+                     "same arguments and files (`samples=`, `n=`, `seed=`, the scene, ...)")
