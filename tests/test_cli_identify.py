@@ -94,7 +94,7 @@ def test_unidentifiable_request_exits_zero_with_warning(pendulum_csv, tmp_path, 
 @pytest.mark.parametrize(
     "args, match",
     [
-        (["fit", "{data}", "pendulum", "--free", "k,wat"], "--free names unknown parameter"),
+        (["fit", "{data}", "pendulum", "--free", "k,wat"], "unknown free parameter"),
         (["fit", "{data}", "pendulum", "--phi-col", "angle"], "missing column 'angle'"),
         (["fit", "{data}", "pendulum", "--out", "{data}"], "is an input file"),
         (["fit", "{data}"], "give both DATA and SCENE"),

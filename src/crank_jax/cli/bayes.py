@@ -64,7 +64,7 @@ def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
     check_output(a.out, inputs, "--out")
     if a.plot:
         check_output(a.plot, inputs, "--plot")
-        check_figure_format(a.plot)
+        check_figure_format(a.plot, "--plot")
     check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot")])
     return free
 
@@ -165,7 +165,7 @@ def _design_outputs(a: argparse.Namespace) -> None:
         check_output(path, [a.scene], option)
     check_distinct_outputs(outs)
     if a.plot:
-        check_figure_format(a.plot)
+        check_figure_format(a.plot, "--plot")
 
 
 def _design_run(a: argparse.Namespace) -> int:

@@ -108,7 +108,7 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
     if getattr(a, "scene_out_anyway", False) and not getattr(a, "scene_out", None):
         raise UserError("--scene-out-anyway needs --scene-out FITTED.toml (the file to write)")
     if a.plot:
-        check_figure_format(a.plot)
+        check_figure_format(a.plot, "--plot")
     # Every output its own file (./fit.json is fit.json, a link its target), so none is
     # written over another, whatever order they are written in.
     check_distinct_outputs(outs)

@@ -130,7 +130,7 @@ def _validate_run(a: argparse.Namespace) -> int:
         if path:
             check_output(path, [a.data, a.scene], option)
     if a.plot:
-        check_figure_format(a.plot)
+        check_figure_format(a.plot, "--plot")
     if a.report:
         check_output(a.report, [a.data, a.scene], "--report")
     check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot"), (a.report, "--report"),

@@ -209,7 +209,8 @@ def select_sensors(channels: Sequence[str] | None, scene_sensors: Sequence[Senso
         for text in channels:
             name, column, unit = parse_channel(text)
             if name in out:
-                raise SensorError(f"`channels=` names {name} twice; give each channel once")
+                raise SensorError(f"`channels=`: channel {name} is given twice; give each "
+                                  "channel once")
             base = scene.get(name, Sensor(name))
             out[name] = Sensor(name, column or base.column, unit or base.unit, base.scale,
                                base.offset)
