@@ -280,8 +280,9 @@ def entry() -> None:
     """The `crank-jax` program (console script and `python -m crank_jax`): [`main`][],
     then leave without the interpreter's teardown.
 
-    Tearing down JAX's runtime and the imported modules takes about 0.5 s, a fifth of a
-    warm fit, and does nothing a finished command needs: every output is written
+    Tearing down JAX's runtime and the imported modules takes a noticeable part of a warm
+    fit (docs/benchmarks/design-figures.md, Start-up), and does nothing a finished command
+    needs: every output is written
     atomically and closed before `main` returns, so only the standard streams are flushed.
     (`main` itself returns, for callers in a running interpreter.)
 
