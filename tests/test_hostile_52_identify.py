@@ -141,7 +141,7 @@ def test_the_words_of_a_budget_spent_over_several_tries_give_every_tries_count()
     words = budget_spent(1)
     assert "after 1 iteration without" in words
     msg, term = _all_tries(words, termination("budget", words), 1, 8, 1)
-    assert "8 iterations in all over the fit's tries (max_steps = 1 per try)" in msg
+    assert "8 iterations in all over the fit's tries (`max_steps=` 1 per try)" in msg
     assert term["words"] == msg
     # One try: its count is every try's, nothing to add.
     assert _all_tries(words, termination("budget", words), 1, 1, 1)[0] == words
@@ -157,6 +157,9 @@ def test_cli_max_steps_1_words_and_fit_json_count_alike(tmp_path, capsys):
     assert n > 1 and not doc["converged"]
     assert f"{n} iterations in all" in doc["termination"]["words"]
     assert f"{n} iterations in all" in text and f"after {n} iterations in" in text
+    # The library's words name the argument; the command prints its option.
+    assert "(`max_steps=` 1 per try)" in doc["termination"]["words"]
+    assert "(--max-steps 1 per try)" in text and "max_steps" not in text
 
 
 # --- a fit that did not converge writes no fitted scene unless asked, and marks it ----------

@@ -73,7 +73,7 @@ def _track_run(a: argparse.Namespace) -> int:
                         load_by=a.load_by, progress=not a.quiet)
     except ValueError as e:  # its checks (before any work) are the command's: its words
         raise UserError(cli_message(str(e))) from None
-    print(res.summary())
+    print(cli_message(res.summary()))
     with atomic_write(a.out) as f:
         json.dump(res.to_json(), f, indent=1)
         f.write("\n")

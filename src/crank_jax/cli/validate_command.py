@@ -144,7 +144,7 @@ def _validate_run(a: argparse.Namespace) -> int:
                        init_free=_init_free(a), load_by=a.load_by)
     if unconverged:
         val.warnings.insert(0, unconverged)
-    print(val.summary())
+    print(cli_message(val.summary()))
     for w in val.warnings:
         print(f"crank-jax: warning: {cli_message(w)}", file=sys.stderr)
     with atomic_write(a.out) as f:
