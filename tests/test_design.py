@@ -67,7 +67,7 @@ def test_force_design_refuses_a_scene_with_its_own_slider_load():
     from crank_jax.model.loads import ConstantLoad
 
     scene = dataclasses.replace(cj.load_scene("lab-rig"), load=ConstantLoad(1.0))
-    with pytest.raises(ValueError, match="force_amplitude: the scene has its own slider"):
+    with pytest.raises(ValueError, match="`force_amplitude=`: the scene has its own slider"):
         cj.design(scene, ("k",), 1.0, 100.0, force_amplitude=1.0, progress=False)
 
 

@@ -55,7 +55,8 @@ def test_a_horizon_under_two_sample_intervals_is_refused_at_once(horizon):
     out = _cut_within(5.0, ts, 1.5, horizon)
     e = out.get("error")
     assert isinstance(e, ValueError), out
-    assert "horizon (--horizon)" in str(e) and "shorter than two sample intervals" in str(e)
+    assert "`horizon=`" in str(e) and "--" not in str(e)
+    assert "shorter than two sample intervals" in str(e)
     assert "at least 0.06 s" in str(e)
 
 
@@ -124,7 +125,7 @@ def test_per_record_with_one_record_is_refused(tmp_path, capsys):
     rc = main(["fit", str(rec), "lab-rig", "--free", "k,c", "--per-record", "k", "--quiet"])
     assert rc == 2
     _one_line(capsys, "--per-record k needs several records (--more-data)")
-    with pytest.raises(ValueError, match="per_record names k, but there is one record"):
+    with pytest.raises(ValueError, match="`per_record=` names k, but there is one record"):
         cj.fit(cj.load_scene("lab-rig"), cj.Data(np.arange(0.0, 2.0, 0.02),
                                                  np.zeros(100)), free=("k", "c"),
                per_record=("k",), progress=False)
@@ -140,7 +141,7 @@ def test_the_words_of_a_budget_spent_over_several_tries_give_every_tries_count()
     words = budget_spent(1)
     assert "after 1 iteration without" in words
     msg, term = _all_tries(words, termination("budget", words), 1, 8, 1)
-    assert "8 iterations in all over the fit's tries (max_steps = 1 per try)" in msg
+    assert "8 iterations in all over the fit's tries (`max_steps=` 1 per try)" in msg
     assert term["words"] == msg
     # One try: its count is every try's, nothing to add.
     assert _all_tries(words, termination("budget", words), 1, 1, 1)[0] == words
@@ -156,6 +157,9 @@ def test_cli_max_steps_1_words_and_fit_json_count_alike(tmp_path, capsys):
     assert n > 1 and not doc["converged"]
     assert f"{n} iterations in all" in doc["termination"]["words"]
     assert f"{n} iterations in all" in text and f"after {n} iterations in" in text
+    # The library's words name the argument; the command prints its option.
+    assert "(`max_steps=` 1 per try)" in doc["termination"]["words"]
+    assert "(--max-steps 1 per try)" in text and "max_steps" not in text
 
 
 # --- a fit that did not converge writes no fitted scene unless asked, and marks it ----------

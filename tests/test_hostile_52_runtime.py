@@ -205,8 +205,10 @@ def test_a_read_only_output_is_never_replaced_even_by_root(tmp_path, mode):
     ro = tmp_path / "ro.csv"
     ro.write_text("keep\n")
     ro.chmod(mode)
-    with pytest.raises(ValueError, match=r"--out .* exists and is read-only"):
+    with pytest.raises(ValueError, match=r"^output path .* exists and is read-only"):
         check_output(ro)
+    with pytest.raises(ValueError, match=r"^--out .* exists and is read-only"):
+        check_output(ro, option="--out")
     with pytest.raises(PermissionError, match="exists and is read-only"):
         with atomic_write(ro) as f:
             f.write("lost")

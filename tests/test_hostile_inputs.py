@@ -125,12 +125,12 @@ def test_messages_name_the_option(tmp_path, capsys, argv, option):
 
 
 @pytest.mark.parametrize("kwargs,match", [
-    (dict(seed=-1), r"seed \(--seed\) must be an integer >= 0"),
-    (dict(transient=1e308), r"transient \(--transient\) = 1e\+308 is out of range: use a finite "
+    (dict(seed=-1), r"`seed=` must be an integer >= 0"),
+    (dict(transient=1e308), r"`transient=` 1e\+308 is out of range: use a finite "
                             r"value from -1e\+06 to 1e\+06 rad"),
-    (dict(noise_std=1e308), r"noise_std \(--noise-std\) = 1e\+308 is out of range"),
-    (dict(drop=0.999999), r"drop \(--drop\) = 0.999999 left 1 of the 2001 samples"),
-    (dict(rate=1e9, t_start=1e8, t1=1e8 + 1e-3), r"rate \(--rate\) = 1e\+09 Hz .* near t1 = "
+    (dict(noise_std=1e308), r"`noise_std=` 1e\+308 is out of range"),
+    (dict(drop=0.999999), r"`drop=` 0.999999 left 1 of the 2001 samples"),
+    (dict(rate=1e9, t_start=1e8, t1=1e8 + 1e-3), r"`rate=` 1e\+09 Hz .* near t1 = "
                                                  r"1e\+08 s one spacing is 1.49e-08 s"),
 ])
 def test_synthesize_names_the_argument(kwargs, match):
@@ -147,7 +147,7 @@ def test_synthesize_rate_bound_gives_times_data_accepts():
         t1 = t_start + 1e-2
         ulp = float(np.spacing(t1))
         rate = 1 / (max(MIN_TIME_STEP, MIN_STEP_ULPS * ulp) + 2 * ulp)
-        with pytest.raises(ValueError, match="--rate"):  # just above the bound: refused
+        with pytest.raises(ValueError, match="`rate=`"):  # just above the bound: refused
             cj.synthesize(cj.load_scene("lab-rig"), t_start=t_start, t1=t1,
                           rate=rate * (1 + 1e-6))
         ts = t_start + np.arange(int((t1 - t_start) * rate)) / rate

@@ -416,3 +416,29 @@ def test_docstrings_name_no_issue_and_no_date(tmp_path):
     bad.write_text('"""Fixed in issue 39."""\n\ndef f():\n    """Measured 2026-11-27."""\n'
                    '\n\ndef g():\n    """A CPython issue 114763 workaround."""\n')
     assert len(_stale_docstrings([bad])) == 2
+
+
+#: A timing with a sub-second unit (`1.56 ms`, `~40 ns`, `241 us`) in a docstring is a
+#: measurement, never a definition: it belongs on docs/benchmarks/design-figures.md or a
+#: benchmark page, beside the script that measures it.
+_TIMING = re.compile(r"\d(\.\d+)?\s?(ms|us|µs|ns)\b")
+
+
+def _timed_docstrings(paths) -> list[str]:
+    out = []
+    for path in paths:
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef,
+                                 ast.ClassDef)):
+                for m in _TIMING.finditer(ast.get_docstring(node, clean=False) or ""):
+                    out.append(f"{path.name}:{getattr(node, 'name', '<module>')}: "
+                               f"{m.group(0)!r}")
+    return out
+
+
+def test_docstrings_hold_no_measured_timings(tmp_path):
+    assert not _timed_docstrings(MODULES), _timed_docstrings(MODULES)
+    bad = tmp_path / "bad.py"
+    bad.write_text('"""A step costs ~8 us."""\n\ndef f():\n    """1.56 ms against 0.40ms."""\n'
+                   '\n\ndef g():\n    """5 s at 200 Hz (0.01 s apart), (ns,) in ms_per."""\n')
+    assert len(_timed_docstrings([bad])) == 3  # g's times and names are no measurement

@@ -100,17 +100,20 @@ def test_bad_environment_variables_are_named(tmp_path, capsys, monkeypatch, env,
 def test_posterior_refuses_draws_beyond_memory(tmp_path, capsys, record):
     err = _error(["posterior", record, "lab-rig", "--draws", "1000000000", "--out",
                   tmp_path / "p.json"], capsys)
-    assert "--draws" in err and "GiB" in err and "use --draws <= " in err, err
-    limit = int(err.split("use --draws <= ")[1].split()[0])
+    assert "--draws" in err and "GiB" in err and "give --draws <= " in err, err
+    assert "draws=" not in err and "`" not in err, err
+    limit = int(err.split("give --draws <= ")[1].split()[0])
     from crank_jax.identify.posterior import check_posterior_memory, posterior_bytes
 
     check_posterior_memory(limit, 4, 500, 4)  # the count it names fits
-    with pytest.raises(ValueError, match=r"draws \(--draws\)"):
+    with pytest.raises(ValueError,
+                       match=r"^`draws=` 1000 x `chains=` 4 .* give `draws=` <= 999 ") as e:
         check_posterior_memory(1000, 4, 500, 4, max_memory=posterior_bytes(999, 4, 500, 4))
     check_posterior_memory(1000, 4, 500, 4, max_memory=posterior_bytes(1000, 4, 500, 4))
     err = _error(["posterior", record, "lab-rig", "--warmup", "10000000000", "--out",
                   tmp_path / "p.json"], capsys)
-    assert "--warmup" in err and "use --warmup <= " in err, err
+    assert "--" not in str(e.value)
+    assert "--warmup" in err and "give --warmup <= " in err and "warmup=" not in err, err
 
 
 # --- 18: unclear messages -------------------------------------------------------------

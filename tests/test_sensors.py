@@ -160,7 +160,8 @@ def test_synthesised_channels_follow_the_calibration(tmp_path):
 def test_missing_sensor_column_and_nan_are_named(tmp_path):
     path = tmp_path / "rec.csv"
     path.write_text("t,slide_mm\n0,1\n0.1,2\n0.2,nan\n0.3,4\n0.4,5\n0.5,6\n")
-    with pytest.raises(cj.DataError, match=r"missing column 'wheel_deg'.*--channel phi"):
+    with pytest.raises(cj.DataError,
+                       match=r"missing column 'wheel_deg'.*`sensors=` \(sensor phi's"):
         cj.load_data(path, sensors=(WHEEL,))
     with pytest.raises(cj.DataError, match=r"line 4: column 'slide_mm' is nan"):
         cj.load_data(path, sensors=(SLIDE,))
@@ -310,7 +311,7 @@ def test_motor_gain_fitted_from_the_voltage_column(tmp_path):
     assert res.converged
     lo, hi = res.ci95["tau_gain"]
     assert lo <= 0.01 <= hi and hi - lo < 1e-3
-    with pytest.raises(ValueError, match="per_record names 'c', which is not free"):
+    with pytest.raises(ValueError, match="`per_record=` names 'c', which is not free"):
         cj.fit(_motor_rig(0.015, None, ts), [back, back], free=("tau_gain", "phi0"),
                per_record=("c",), progress=False)
 
@@ -335,7 +336,7 @@ def test_a_users_force_term_is_fitted():
     for name, want in (("force.a", float(truth.a)), ("force.b", float(truth.b))):
         lo, hi = res.ci95[name]
         assert lo <= want <= hi, (name, res.values[name], res.ci95[name])
-    with pytest.raises(ValueError, match=r"unknown free parameter\(s\) \['force.q'\]"):
+    with pytest.raises(ValueError, match=r"`free=` names unknown parameter\(s\) \['force.q'\]"):
         cj.fit(unbalance_force.rig(), cj.synthesize(unbalance_force.rig(), rate=50),
                free=("force.q",), force=truth, progress=False)
 

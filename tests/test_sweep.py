@@ -159,7 +159,7 @@ def test_bad_arguments(lab_rig):
 
 
 def test_a_result_too_large_is_refused_before_any_work(lab_rig, tmp_path, capsys):
-    with pytest.raises(ValueError, match=r"n = 100000000000 samples need .* GiB .* use n <="):
+    with pytest.raises(ValueError, match=r"n = 100000000000 samples need .* GiB .* give `n=` <="):
         cj.run_sweep(lab_rig, {"k": "normal(2,0.1)"}, n=10**11, chunk_size=8)
     with pytest.raises(ValueError, match="limit is 0.0 GiB"):
         cj.run_sweep(lab_rig, {"k": "normal(2,0.1)"}, ("phi",), n=1000, max_memory=10_000)
@@ -310,7 +310,7 @@ def test_the_working_memory_bound_is_the_chunk_not_n(lab_rig):
     assert chunk_bytes(4, ("peak_phi",), 10) == 40 * per_save
     assert chunk_bytes(1, ("peak_O",), 1) > per_save
     with pytest.raises(ValueError,
-                       match=r"limit is .* \(max_memory\); use num_saves \(--samples\) <= 1000,"):
+                       match=r"limit is .* \(max_memory\); give `num_saves=` <= 1000,"):
         cj.run_sweep(lab_rig, {"k": "normal(2,0.1)"}, ("peak_phi",), n=100, chunk_size=10,
                  num_saves=1001, max_memory=per_save * 10 * 1000 + per_save)
     # a smaller chunk fits the same save times

@@ -109,11 +109,11 @@ def test_a_fleet_is_one_vmap_and_equals_its_members():
 
 def test_requests_it_cannot_serve_name_the_argument():
     data = driven_record(2.0)
-    for kw, word in ((dict(free=("tau0",)), "free="), (dict(free=()), "free="),
-                     (dict(start="middle"), "start="), (dict(settle=0.0), "settle="),
-                     (dict(change_ratio=1.0), "change_ratio="), (dict(every=0), "every="),
-                     (dict(false_alarm_rate=float("nan")), "false_alarm_rate="),
-                     (dict(load_by="angle"), "load_by='angle' needs a crank turning one way"),
+    for kw, word in ((dict(free=("tau0",)), "`free=`"), (dict(free=()), "`free=`"),
+                     (dict(start="middle"), "`start=`"), (dict(settle=0.0), "`settle=`"),
+                     (dict(change_ratio=1.0), "`change_ratio=`"), (dict(every=0), "`every=`"),
+                     (dict(false_alarm_rate=float("nan")), "`false_alarm_rate=`"),
+                     (dict(load_by="angle"), "`load_by='angle'` needs a crank turning one way"),
                      (dict(load_by="sideways"), "load_by")):
         with pytest.raises(ValueError, match=word):
             track(LAB, data, progress=False, **{"free": ("k",), **kw})

@@ -148,7 +148,7 @@ def test_cut_tiles_the_record_and_refuses_a_horizon_with_nothing_to_predict():
     assert ws[-1].stop == ts.size and all(w.head == 5 for w in ws)
     (w,) = cut(ts, 1.0, 2.0)  # the rest of the record: one window, a tenth is 10 samples
     assert (w.start, w.stop, w.head) == (51, ts.size, 10)
-    with pytest.raises(ValueError, match=r"horizon \(--horizon\) = 0.09 s holds"):
+    with pytest.raises(ValueError, match=r"`horizon=` 0.09 s holds"):
         cut(ts, 1.0, 0.09)
     # A gap longer than the horizon right after the initial-state window: the first
     # window with samples starts after it, with its own head.
@@ -158,9 +158,9 @@ def test_cut_tiles_the_record_and_refuses_a_horizon_with_nothing_to_predict():
 
 
 @pytest.mark.parametrize("kw, needle", [
-    (dict(horizon=0.0), r"horizon \(--horizon\) must be a time > 0"),
-    (dict(horizon=float("nan")), r"horizon \(--horizon\) must be a time > 0"),
-    (dict(init_free=("bogus",)), r"init_free \(--init-free\) names 'bogus'"),
+    (dict(horizon=0.0), r"`horizon=` must be a time > 0"),
+    (dict(horizon=float("nan")), r"`horizon=` must be a time > 0"),
+    (dict(init_free=("bogus",)), r"`init_free=` names 'bogus'"),
     (dict(init_free=("phi0",)), "always estimated"),
     (dict(init_free=("tau0",)), "supplies its torque as its 'tau' column"),
 ])

@@ -12,6 +12,7 @@ from .errors import UserError
 from .load_by_option import add_load_by_option, load_by_words
 from .options import free_list, seed
 from .scene_inputs import refuse_input_loads
+from .wording import cli_message
 
 # --- posterior --------------------------------------------------------------------------
 
@@ -63,7 +64,7 @@ def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
     check_output(a.out, inputs, "--out")
     if a.plot:
         check_output(a.plot, inputs, "--plot")
-        check_figure_format(a.plot)
+        check_figure_format(a.plot, "--plot")
     check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot")])
     return free
 
@@ -94,7 +95,7 @@ def _posterior_run(a: argparse.Namespace) -> int:
           f"after {post.warmup} warm-up steps in {post.seconds:.1f} s; {post.divergences} "
           "divergences" + ("" if post.reliable else "; UNRELIABLE: a chain never moved"))
     for w in post.warnings:
-        print(f"crank-jax: warning: {w}", file=sys.stderr)
+        print(f"crank-jax: warning: {cli_message(w)}", file=sys.stderr)
     if post.divergences:
         print(f"crank-jax: warning: {post.divergences} divergent transitions: the posterior "
               "may be under-explored; try a longer --warmup or priors", file=sys.stderr)
@@ -164,7 +165,7 @@ def _design_outputs(a: argparse.Namespace) -> None:
         check_output(path, [a.scene], option)
     check_distinct_outputs(outs)
     if a.plot:
-        check_figure_format(a.plot)
+        check_figure_format(a.plot, "--plot")
 
 
 def _design_run(a: argparse.Namespace) -> int:
@@ -193,15 +194,7 @@ def _design_run(a: argparse.Namespace) -> int:
                    force_amplitude=a.force_amplitude, release=a.release,
                    release_speed=a.release_speed)
     except ValueError as e:  # name the CLI's option, not the function's argument
-        msg = str(e)
-        for arg, opt in (("tones", "--tones"), ("t1", "--t1"), ("rate", "--rate"),
-                         ("noise_std", "--noise-std"), ("iterations", "--iterations"),
-                         ("free", "--free"), ("force_amplitude", "--force-amplitude"),
-                         ("release_speed", "--release-speed")):
-            if msg.startswith(arg + " ") or msg.startswith(arg + ":"):
-                msg = opt + msg[len(arg):]
-                break
-        raise UserError(msg) from None
+        raise UserError(cli_message(str(e))) from None
     print(f"log det Fisher: designed {d.log_det_fisher:.4g}, baseline "
           f"{d.baseline_log_det_fisher:.4g}")
     for n, se in d.predicted_stderr.items():

@@ -19,6 +19,7 @@ from .channel_options import (
 from .errors import UserError
 from .load_by_option import add_load_by_option, load_by_words
 from .options import free_list, seed
+from .wording import cli_message
 
 
 def _warn(msg: str) -> None:
@@ -107,27 +108,22 @@ def _outputs_ok(a: argparse.Namespace, inputs: list) -> None:
     if getattr(a, "scene_out_anyway", False) and not getattr(a, "scene_out", None):
         raise UserError("--scene-out-anyway needs --scene-out FITTED.toml (the file to write)")
     if a.plot:
-        check_figure_format(a.plot)
+        check_figure_format(a.plot, "--plot")
     # Every output its own file (./fit.json is fit.json, a link its target), so none is
     # written over another, whatever order they are written in.
     check_distinct_outputs(outs)
 
 
-#: The library's words for its options -> the command's (each message the command prints
-#: names an option the command has).
-_CLI_WORDS = (
-    (re.compile(r"init='regressor'"), "--init regressor"),
-    (re.compile(r"max_steps = (\d+)"), r"--max-steps \1"),
-    (re.compile(r"choose other start values\b(?! \()"),
-     "choose other start values (in the scene file, or --init regressor)"),
-)
+#: Where a fit message's advice has a form of its own on the command line.
+_START_VALUES = re.compile(r"choose other start values\b(?! \()")
 
 
 def cli_words(text: str) -> str:
-    """A fit message with the library's option names replaced by the command's."""
-    for pattern, repl in _CLI_WORDS:
-        text = pattern.sub(repl, text)
-    return text
+    """A fit message with the library's argument names replaced by the command's options
+    (`cli_message`), and its "choose other start values" saying where the command takes
+    them."""
+    return _START_VALUES.sub("choose other start values (in the scene file, or --init "
+                             "regressor)", cli_message(text))
 
 
 def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = "") -> int:
@@ -135,7 +131,7 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
 
     res = res._replace(message=cli_words(res.message),
                        warnings=[cli_words(w) for w in res.warnings])
-    print(res.summary())
+    print(cli_words(res.summary()))  # its termination's words too
     if truth:
         print("truth: " + ", ".join(f"{k} = {v:g}" for k, v in truth.items()))
     if res.profile is not None:

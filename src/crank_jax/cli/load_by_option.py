@@ -9,12 +9,9 @@ from collections.abc import Iterator
 
 from ..records.load_by import LOAD_BY
 from .errors import UserError
+from .wording import cli_message
 
 __all__ = ["add_load_by_option", "load_by_words"]
-
-_WORDS = (("load_by='angle'", "--load-by angle"), ("load_by='time'", "--load-by time"),
-          ("(t_start/t_end)", "(--t-start/--t-end)"))
-
 
 def add_load_by_option(p: argparse.ArgumentParser) -> None:
     p.add_argument("--load-by", default="time", choices=LOAD_BY,
@@ -33,8 +30,6 @@ def load_by_words() -> Iterator[None]:
         yield
     except ValueError as e:
         text = str(e)
-        if "load_by=" not in text:
+        if "`load_by=" not in text:
             raise
-        for lib, cli in _WORDS:
-            text = text.replace(lib, cli)
-        raise UserError(text) from None
+        raise UserError(cli_message(text)) from None

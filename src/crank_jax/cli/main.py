@@ -45,6 +45,7 @@ from . import (
     validate_command as validate,
 )
 from .errors import EXIT_FAILURE, EXIT_USAGE, UserError
+from .wording import cli_message
 
 __all__ = ["main", "entry", "build_parser", "Terminated", "ENV_DEBUG"]
 
@@ -135,7 +136,7 @@ def _warnings_one_line() -> Iterator[None]:
     old = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
-        print(f"crank-jax: warning: {_one_line(message)}", file=sys.stderr)
+        print(f"crank-jax: warning: {cli_message(_one_line(message))}", file=sys.stderr)
 
     warnings.showwarning = show
     try:
@@ -178,7 +179,8 @@ def _debug(argv: list[str]) -> bool:
 def _fail(code: int, msg: str, debug: bool) -> int:
     if debug:
         traceback.print_exc()
-    print(f"crank-jax: error: {msg}", file=sys.stderr)
+    # The library names its arguments (`warmup=`); the user typed options (--warmup).
+    print(f"crank-jax: error: {cli_message(msg)}", file=sys.stderr)
     return code
 
 
@@ -278,8 +280,9 @@ def entry() -> None:
     """The `crank-jax` program (console script and `python -m crank_jax`): [`main`][],
     then leave without the interpreter's teardown.
 
-    Tearing down JAX's runtime and the imported modules takes about 0.5 s, a fifth of a
-    warm fit, and does nothing a finished command needs: every output is written
+    Tearing down JAX's runtime and the imported modules takes a noticeable part of a warm
+    fit (docs/benchmarks/design-figures.md, Start-up), and does nothing a finished command
+    needs: every output is written
     atomically and closed before `main` returns, so only the standard streams are flushed.
     (`main` itself returns, for callers in a running interpreter.)
 

@@ -1,7 +1,7 @@
 """Commands that take no record (`synth`, `simulate`, `sweep`, `design`) refuse a scene
 whose load is driven by a record's column (`[torque] input = "volts"`), in the CLI's
-words and before any work: the library's "give InputLoad a signal" came after the work
-(10 s of it in `design`)."""
+words and before any work: the library's "give InputLoad a signal" came only after the
+work (a long one in `design`)."""
 
 from __future__ import annotations
 

@@ -109,7 +109,7 @@ def _check_options(a: argparse.Namespace) -> dict:
     check_output(a.out, [a.scene], "--out")
     if a.plot:
         check_output(a.plot, [a.scene], "--plot")
-        check_figure_format(a.plot)
+        check_figure_format(a.plot, "--plot")
         check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot")])
     return kw
 

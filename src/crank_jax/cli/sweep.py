@@ -182,7 +182,7 @@ def _sweep_run(a: argparse.Namespace) -> int:
     if not a.out.endswith(".npz"):
         # np.savez would silently append ".npz" to another name; say so instead.
         raise UserError(f"--out must end in .npz, got {a.out!r}")
-    check_output(a.out, [a.scene])
+    check_output(a.out, [a.scene], "--out")
     scene = load_scene(a.scene)
     refuse_input_loads(scene, a.scene, "sweep")
     result = sweep(scene, spec, outputs, n=a.n, seed=a.seed, t1=a.t1, num_saves=a.samples,

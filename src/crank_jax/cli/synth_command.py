@@ -58,7 +58,7 @@ def _synth_run(a: argparse.Namespace) -> int:
     from ..runtime.io import check_output
     from ..scene import load_scene
 
-    check_output(a.out, [a.scene])
+    check_output(a.out, [a.scene], "--out")
     scene = load_scene(a.scene)
     refuse_input_loads(scene, a.scene, "synth")
     _check_record_size(a, scene)

@@ -10,6 +10,7 @@ import sys
 from .channel_options import add_angle_options, add_channel_options, read_records
 from .errors import UserError
 from .load_by_option import add_load_by_option, load_by_words
+from .wording import cli_message
 
 __all__ = ["COMMANDS"]
 
@@ -51,13 +52,6 @@ def _free(a: argparse.Namespace) -> tuple[str, ...]:
     return tuple(x.strip() for x in a.free.split(",") if x.strip())
 
 
-#: The library's argument names as this command spells them: its checks (before any
-#: work) are the command's, in the command's words.
-_FLAGS = {"free=": "--free", "start_seconds=": "--start-seconds",
-          "false_alarm_rate=": "--false-alarm-rate", "change_ratio=": "--change-ratio",
-          "settle=": "--settle", "every=": "--every", "start=": "--start"}
-
-
 def _track_run(a: argparse.Namespace) -> int:
     from ..online.tracking import track
     from ..runtime.io import atomic_write, check_distinct_outputs, check_input, check_output
@@ -77,12 +71,9 @@ def _track_run(a: argparse.Namespace) -> int:
                         start_seconds=a.start_seconds, false_alarm_rate=a.false_alarm_rate,
                         change_ratio=a.change_ratio, settle=a.settle, every=a.every,
                         load_by=a.load_by, progress=not a.quiet)
-    except ValueError as e:
-        msg = str(e)
-        for arg, flag in _FLAGS.items():
-            msg = msg.replace(arg, flag)
-        raise UserError(msg) from None
-    print(res.summary())
+    except ValueError as e:  # its checks (before any work) are the command's: its words
+        raise UserError(cli_message(str(e))) from None
+    print(cli_message(res.summary()))
     with atomic_write(a.out) as f:
         json.dump(res.to_json(), f, indent=1)
         f.write("\n")

@@ -11,6 +11,7 @@ import sys
 from .channel_options import add_angle_options, add_channel_options, read_records
 from .errors import UserError
 from .load_by_option import add_load_by_option, load_by_words
+from .wording import cli_message
 
 __all__ = ["COMMANDS", "LOAD_INTERP"]
 
@@ -86,7 +87,7 @@ def _init_free(a: argparse.Namespace) -> tuple[str, ...]:
     try:
         return init_free_names(tuple(x.strip() for x in a.init_free.split(",") if x.strip()))
     except ValueError as e:  # the library's words name the option as the CLI spells it
-        raise UserError(str(e).replace("init_free (--init-free)", "--init-free")) from None
+        raise UserError(cli_message(str(e))) from None
 
 
 def _unconverged(a: argparse.Namespace) -> str | None:
@@ -129,7 +130,7 @@ def _validate_run(a: argparse.Namespace) -> int:
         if path:
             check_output(path, [a.data, a.scene], option)
     if a.plot:
-        check_figure_format(a.plot)
+        check_figure_format(a.plot, "--plot")
     if a.report:
         check_output(a.report, [a.data, a.scene], "--report")
     check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot"), (a.report, "--report"),
@@ -143,9 +144,9 @@ def _validate_run(a: argparse.Namespace) -> int:
                        init_free=_init_free(a), load_by=a.load_by)
     if unconverged:
         val.warnings.insert(0, unconverged)
-    print(val.summary())
+    print(cli_message(val.summary()))
     for w in val.warnings:
-        print(f"crank-jax: warning: {w}", file=sys.stderr)
+        print(f"crank-jax: warning: {cli_message(w)}", file=sys.stderr)
     with atomic_write(a.out) as f:
         json.dump(val.to_json(), f, indent=2)
         f.write("\n")

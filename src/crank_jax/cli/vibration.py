@@ -47,7 +47,7 @@ def _outputs(a, *inputs) -> None:
         check_output(a.out, inputs, "--out")
         if getattr(a, "plot", None):
             check_output(a.plot, inputs, "--plot")
-            check_figure_format(a.plot)
+            check_figure_format(a.plot, "--plot")
             check_distinct_outputs([(a.out, "--out"), (a.plot, "--plot")])
     except ValueError as e:
         raise UserError(str(e)) from None

@@ -111,45 +111,45 @@ def _check_extra(scene, force_amplitude, release_speed) -> None:
     speed's bound (rad/s)."""
     if force_amplitude is not None:
         if not (math.isfinite(force_amplitude) and force_amplitude > 0):
-            raise ValueError(f"force_amplitude must be > 0 N, got {force_amplitude:g}")
+            raise ValueError(f"`force_amplitude=` must be > 0 N, got {force_amplitude:g}")
         if not isinstance(scene.load, NoLoad):
-            raise ValueError("force_amplitude: the scene has its own slider load "
+            raise ValueError("`force_amplitude=`: the scene has its own slider load "
                              f"({type(scene.load).__name__}); remove its [load] to design "
                              "the slider force")
     if release_speed is not None and not (math.isfinite(release_speed) and release_speed > 0):
-        raise ValueError(f"release_speed must be > 0 rad/s, got {release_speed:g}")
+        raise ValueError(f"`release_speed=` must be > 0 rad/s, got {release_speed:g}")
 
 
 def _check(scene, free, t1, rate, amplitude, tones, criterion, target, noise_std, iterations):
     if not (math.isfinite(t1) and t1 > 0):
-        raise ValueError(f"t1 must be a duration > 0 s, got {t1}")
+        raise ValueError(f"`t1=` must be a duration > 0 s, got {t1}")
     if not (math.isfinite(rate) and rate > 0):
-        raise ValueError(f"rate must be a sample rate > 0 Hz, got {rate}")
+        raise ValueError(f"`rate=` must be a sample rate > 0 Hz, got {rate}")
     if not (math.isfinite(amplitude) and amplitude > 0):
-        raise ValueError(f"torque amplitude must be > 0 N*m, got {amplitude}")
+        raise ValueError(f"`amplitude=` (the torque amplitude) must be > 0 N*m, got {amplitude}")
     if not (math.isfinite(noise_std) and noise_std > 0):
-        raise ValueError(f"noise_std must be > 0 rad, got {noise_std}")
+        raise ValueError(f"`noise_std=` must be > 0 rad, got {noise_std}")
     if not isinstance(tones, int) or tones < 1:
-        raise ValueError(f"tones must be an integer >= 1, got {tones!r}")
+        raise ValueError(f"`tones=` must be an integer >= 1, got {tones!r}")
     if tones > max_tones(t1, rate):
-        raise ValueError(f"tones: {tones} tones do not fit at rate {rate:g} Hz over t1 {t1:g} "
+        raise ValueError(f"`tones=`: {tones} tones do not fit at rate {rate:g} Hz over t1 {t1:g} "
                          f"s (at most {max_tones(t1, rate)}, spaced 1/t1 apart below rate/4)")
     if not isinstance(iterations, int) or iterations < 0:
-        raise ValueError(f"iterations must be an integer >= 0, got {iterations!r}")
+        raise ValueError(f"`iterations=` must be an integer >= 0, got {iterations!r}")
     free = tuple(dict.fromkeys(free))
     ok = tuple(FIELDS) + ("phi0", "dphi0")
     bad = [n for n in free if n not in ok]
     if bad or not free:
-        raise ValueError(f"free: {bad or 'nothing'} cannot be designed for; choose from {ok}")
+        raise ValueError(f"`free=`: {bad or 'nothing'} cannot be designed for; choose from {ok}")
     mech = scene.mech.as_dict()
     zero = [n for n in free if n in FIELDS and (mech[n] <= 0 or n in SIGNED_FIELDS)]
     if zero:
-        raise ValueError(f"free: {zero} must be positive mechanism fields (the design is in "
+        raise ValueError(f"`free=`: {zero} must be positive mechanism fields (the design is in "
                          "relative terms)")
     if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+        raise ValueError(f"`criterion=` must be one of {CRITERIA}, got {criterion!r}")
     if criterion == "c" and target not in free:
-        raise ValueError(f"target {target!r} is not free; the c criterion needs one of "
+        raise ValueError(f"`target=` {target!r} is not free; the c criterion needs one of "
                          f"{list(free)}")
     return free
 

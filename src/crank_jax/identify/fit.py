@@ -73,8 +73,8 @@ def _all_tries(message: str, term: dict, own: int, total: int, max_steps: int):
     words), so the two never seem to disagree."""
     if total == own or term["verdict"] != "budget":
         return message, term
-    extra = (f"; {total} iterations in all over the fit's tries (max_steps = {max_steps} "
-             "per try)")
+    extra = (f"; {total} iterations in all over the fit's tries (`max_steps=` "
+             f"{max_steps} per try)")
     return message + extra, {**term, "words": term["words"] + extra}
 
 

@@ -144,7 +144,7 @@ def constant_channel(d) -> str | None:
             return (f"channel {sensor.name} (column {sensor.column!r}) is constant "
                     f"({float(y.mean()):.6g} {SI_UNITS[sensor.name]} in all {y.size} "
                     "samples): it shows no motion; check the column and its unit, or leave "
-                    "the channel out (--channel)")
+                    "the channel out (`channels=`)")
     return None
 
 

@@ -64,8 +64,8 @@ def cut(ts: np.ndarray, t_init: float, horizon: float) -> list[Window]:
         if a >= ts[-1]:
             break
         if not a > last:  # never true after _check_horizon; a guard against a hang
-            raise ValueError(f"horizon (--horizon) = {horizon:g} s is below the float "
-                             f"spacing of the record's times near t = {a:g} s; lengthen it")
+            raise ValueError(f"`horizon=` {horizon:g} s is below the float spacing of the "
+                             f"record's times near t = {a:g} s; lengthen `horizon=`")
         last = a
         lo = int(np.searchsorted(ts, a, side="right"))
         # Both ends from the same products, so that consecutive windows share a boundary.
@@ -83,10 +83,10 @@ def cut(ts: np.ndarray, t_init: float, horizon: float) -> list[Window]:
         if hi - lo <= head:
             if a + horizon < ts[-1]:
                 raise ValueError(
-                    f"horizon (--horizon) = {horizon:g} s holds {hi - lo} samples from t = "
+                    f"`horizon=` {horizon:g} s holds {hi - lo} samples from t = "
                     f"{a:g} s, and the state is estimated from the first {head} of a window "
-                    f"(at least {MIN_SAMPLES}): none is left to predict; lengthen the "
-                    "horizon")
+                    f"(at least {MIN_SAMPLES}): none is left to predict; lengthen "
+                    "`horizon=`")
             continue
         out.append(Window(lo, hi, head, float(a)))
     return out
@@ -101,9 +101,9 @@ def _check_horizon(ts: np.ndarray, horizon: float) -> None:
     shortest = float(np.min(steps)) if steps.size else math.inf
     if not horizon >= 2 * shortest:
         raise ValueError(
-            f"horizon (--horizon) = {horizon:g} s is shorter than two sample intervals of "
+            f"`horizon=` {horizon:g} s is shorter than two sample intervals of "
             f"the record (its shortest is {shortest:g} s); a window needs at least "
-            f"{MIN_SAMPLES + 1} samples: give a horizon of at least "
+            f"{MIN_SAMPLES + 1} samples: give `horizon=` at least "
             f"{(MIN_SAMPLES + 1) * shortest:g} s")
 
 
@@ -202,9 +202,9 @@ def scored_windows(ts: np.ndarray, t_init: float, horizon: float
     for w in windows:
         scored[w.start + w.head:w.stop] = True
     if int(scored.sum()) < MIN_SAMPLES:
-        raise ValueError(f"horizon (--horizon) = {horizon:g} s leaves {int(scored.sum())} "
+        raise ValueError(f"`horizon=` {horizon:g} s leaves {int(scored.sum())} "
                          f"samples to predict; at least {MIN_SAMPLES} are needed: "
-                         "lengthen the horizon or the record")
+                         "lengthen `horizon=` or the record")
     return windows, scored
 
 

@@ -143,10 +143,9 @@ def _batched() -> bool:
     in the program (the CPU). On the CPU a vmapped `while` loop selects between the old and
     new value of its whole carry at every iteration, the ODE's buffer of saved samples
     included, and it stops XLA compiling the step loop into one function (xla_flags.py):
-    measured on the lab rig (5 s at 200 Hz, 4 parameters, dopri8, 2-core AMD EPYC, with
-    `configure_cpu`), the log density's gradient took 1.6 ms for one chain and 32 ms for
-    four vmapped (four one after another: 6.6 ms). A vmapped NUTS step also costs its
-    slowest chain's tree for every chain."""
+    four vmapped chains' gradients cost several times four one after another
+    (docs/benchmarks/design-figures.md). A vmapped NUTS step also costs its slowest
+    chain's tree for every chain."""
     return jax.default_backend() != "cpu"
 
 
@@ -197,7 +196,7 @@ def _put(tree, device):
 def _strong(tree):
     """`tree`'s arrays without JAX's weak types: the carry a chunk returns, and the one
     the warm-up's end or `initial_carry` builds, then key the same compiled program (a
-    weak-typed leaf in one of them recompiled it, ~10 s, at every hand-over)."""
+    weak-typed leaf in one of them recompiled it at every hand-over)."""
     return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.asarray(x).dtype), tree)
 
 

@@ -338,8 +338,9 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     call of the compiled residuals-and-sensitivities program, which the fit needs at its
     start and at its estimate anyway. A compiled optimistix LM loop was tried first: its
     program holds the residual solve and its linearisation inside optimistix's loop and
-    compiled in 3-5 s per problem shape, more than half of a cold `crank-jax fit`
-    (experiments/bench_end_to_end.py); each iteration costs the same solves either way.
+    compiled slowly per problem shape, more than half of a cold `crank-jax fit`
+    (experiments/bench_end_to_end.py; docs/benchmarks/design-figures.md, Start-up); each
+    iteration costs the same solves either way.
 
     The point reported is the best one seen: the lowest cost among points whose solves
     all succeed (a failed solve's samples count as residuals of 10 rad, a stand-in, not a

@@ -56,7 +56,7 @@ def budget_spent(max_steps: int, falling: float | None = None,
     still = ("" if falling is None or not math.isfinite(falling)
              else f", the cost still falling by {falling:.3g} {unit} per iteration")
     return (f"stopped after {max_steps} iteration{'s' if max_steps != 1 else ''} without "
-            f"converging{still} (max_steps = {max_steps}: raise it to go on)")
+            f"converging{still} (`max_steps=` {max_steps}: raise it to go on)")
 
 
 def failed_message(failed: int) -> str:

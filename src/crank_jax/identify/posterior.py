@@ -148,9 +148,9 @@ def posterior_bytes(draws: int, chains: int, warmup: int, p: int) -> int:
 
 def check_posterior_memory(draws: int, chains: int, warmup: int, p: int,
                            max_memory: int | None = None) -> None:
-    """Raise `ValueError` naming `draws` (`--draws`) and the largest count that fits when
-    [`posterior_bytes`][] exceeds `max_memory` (default: half this host's memory), before
-    any work: `--draws 1000000000` grew past 8 GB before it failed."""
+    """Raise `ValueError` naming `draws` (the CLI's `--draws`) and the largest count that
+    fits when [`posterior_bytes`][] exceeds `max_memory` (default: half this host's memory),
+    before any work: a billion draws would otherwise grow past 8 GB before failing."""
     from ..sweep.plan import host_memory
 
     limit = host_memory() // 2 if max_memory is None else int(max_memory)
@@ -160,16 +160,16 @@ def check_posterior_memory(draws: int, chains: int, warmup: int, p: int,
     why = "half this host's memory" if max_memory is None else "max_memory"
     if posterior_bytes(0, chains, warmup, p) > limit:  # the warm-up alone is too long
         per = posterior_bytes(0, chains, 1, p)
-        raise ValueError(f"warmup (--warmup) = {warmup} steps x chains (--chains) = {chains} "
-                         f"need about {need / 2**30:.3g} GiB of memory, over the limit of "
-                         f"{limit / 2**30:.3g} GiB ({why}); use --warmup <= "
+        raise ValueError(f"`warmup=` {warmup} steps x `chains=` {chains} need about "
+                         f"{need / 2**30:.3g} GiB of memory, over the limit of "
+                         f"{limit / 2**30:.3g} GiB ({why}); give `warmup=` <= "
                          f"{max(limit - posterior_bytes(draws, chains, 0, p), 0) // per}")
     fit_draws = ((limit - posterior_bytes(0, chains, warmup, p))
                  // max(posterior_bytes(1, chains, 0, p), 1))
-    raise ValueError(f"draws (--draws) = {draws} x chains (--chains) = {chains} of {p} "
-                     f"parameters need about {need / 2**30:.3g} GiB of memory, over the "
-                     f"limit of {limit / 2**30:.3g} GiB ({why}); use --draws <= {fit_draws} "
-                     "(or fewer --chains or --warmup steps)")
+    raise ValueError(f"`draws=` {draws} x `chains=` {chains} of {p} parameters need about "
+                     f"{need / 2**30:.3g} GiB of memory, over the limit of "
+                     f"{limit / 2**30:.3g} GiB ({why}); give `draws=` <= {fit_draws} (or "
+                     "fewer `chains=` or `warmup=` steps)")
 
 
 def _check_counts(draws, chains, warmup) -> None:
@@ -381,12 +381,12 @@ def sampler_warnings(moved: np.ndarray, eps: np.ndarray, chains: int, draws: int
                    f"{100 * float(np.min(moved[stuck])):.0f}% of their {draws} draws (step "
                    f"size {float(np.max(np.asarray(eps)[stuck])):.3g} even after "
                    f"{STUCK_RETRIES} cuts): their draws repeat their start, so the spread "
-                   "(sd, quantiles) is not the posterior's; run a longer warmup (--warmup) or "
-                   "give priors")
+                   "(sd, quantiles) is not the posterior's; run a longer warm-up (`warmup=`) "
+                   "or give priors")
     if chains == 1:
         out.append("one chain: R-hat cannot be computed (it compares chains), so nothing "
                    "checks that the chain found the whole posterior; run 2 or more chains "
-                   "(--chains)")
+                   "(`chains=`)")
     return out
 
 

@@ -112,7 +112,7 @@ class Problem(eqx.Module):
     def host_values(self, z) -> np.ndarray:
         """[`values`][] of host coordinates `z` (p,) or longer, as numpy: one compiled
         program of the same arithmetic, where the eager operations compiled five small
-        programs (~0.3 s of a cold fit)."""
+        programs (a noticeable part of a cold fit: docs/benchmarks/design-figures.md)."""
         # The whole `z` goes in: `values_of` reads its first p entries (a slice here would
         # be one more small program).
         return np.asarray(values_program(device_array(z), self.ref, self.log[:self.p],

@@ -191,7 +191,7 @@ def window_data(d: Data, window: tuple[float, float] | None) -> Data:
     if int(keep.sum()) < 8:
         raise ValueError(f"window [{lo:g}, {hi:g}] s keeps {int(keep.sum())} samples of "
                          f"{d.source} (which spans [{d.ts[0]:g}, {d.ts[-1]:g}] s); widen "
-                         "--t-start/--t-end")
+                         "`window=`")
     return d.select(keep)
 
 
@@ -312,10 +312,10 @@ def _check_per_record(per_record, free) -> tuple[str, ...]:
     per_record = tuple(dict.fromkeys(per_record or ()))
     for n in per_record:
         if n in STATE_NAMES:
-            raise ValueError(f"per_record names {n}, which is already one per record")
+            raise ValueError(f"`per_record=` names {n}, which is already one per record")
         if n not in free:
-            raise ValueError(f"per_record names {n!r}, which is not free; free it (--free) "
-                             "or leave it out of per_record (--per-record)")
+            raise ValueError(f"`per_record=` names {n!r}, which is not free; free it "
+                             "(`free=`) or leave it out of `per_record=`")
     return per_record
 
 
@@ -376,24 +376,25 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
     known = free_names() + tuple(force_names(force))
     unknown = [n for n in free if n not in known]
     if unknown or not free:
-        raise ValueError(f"unknown free parameter(s) {unknown}; choose from {list(known)}"
-                         if unknown else "free must name at least one parameter")
+        raise ValueError(f"`free=` names unknown parameter(s) {unknown}; choose from "
+                         f"{list(known)}" if unknown
+                         else "`free=` must name at least one parameter")
     _check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
     if (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
             or not 0 <= seed <= MAX_SEED):
-        raise ValueError(f"seed must be an integer from 0 to {MAX_SEED}, got {seed!r}")
+        raise ValueError(f"`seed=` must be an integer from 0 to {MAX_SEED}, got {seed!r}")
     per_record = _check_per_record(per_record, free)
     if per_record and len(records) == 1:
-        raise ValueError(f"per_record names {', '.join(per_record)}, but there is one record: "
-                         "each free parameter is already its own; give several records, or "
-                         "leave per_record (--per-record) out")
+        raise ValueError(f"`per_record=` names {', '.join(per_record)}, but there is one "
+                         "record: each free parameter is already its own; give several "
+                         "records, or leave `per_record=` out")
     _check_distinct(records)
     window = _check_window(window)
     records = [loads_by(window_data(d, window), load_by) for d in records]
     if load_by == "angle" and "phi_offset" in free:
-        raise ValueError("phi_offset cannot be free with load_by='angle': the loads are "
+        raise ValueError("phi_offset cannot be free with `load_by='angle'`: the loads are "
                          "tabled by the angle channel through its given calibration; fix "
-                         "phi_offset (the sensor's offset), or load_by='time'")
+                         "phi_offset (the sensor's offset), or `load_by='time'`")
     loads = tuple(record_loads(sc, d) for d, sc in zip(records, scenes))
     mech = scenes[0].mech
     start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}

@@ -67,19 +67,18 @@ def record_init_window(scene: Scene, win: Data, load: AbstractLoad | None = None
 
 def init_window(scene: Scene, win: Data, load, init_window: float | None) -> float:
     """The initial-state window's length, s: `init_window`, or
-    [`record_init_window`][] when None. `ValueError` naming `init_window
-    (--init-window)` where it takes or leaves fewer than
+    [`record_init_window`][] when None. `ValueError` naming `init_window`
+    (the CLI's `--init-window`) where it takes or leaves fewer than
     [`MIN_SAMPLES`][crank_jax.records.data.MIN_SAMPLES] samples."""
     if init_window is None:
         init_window = record_init_window(scene, win, load)
     elif not (math.isfinite(init_window) and init_window > 0):
-        raise ValueError(f"init_window (--init-window) must be a time > 0 s, got {init_window}")
+        raise ValueError(f"`init_window=` must be a time > 0 s, got {init_window}")
     t_init = float(win.ts[0]) + float(init_window)
     n_init = int(np.sum(win.ts <= t_init))
     n_scored = int(np.sum(win.ts > t_init))
     if n_init < MIN_SAMPLES or n_scored < MIN_SAMPLES:
-        raise ValueError(f"init_window (--init-window) = {init_window:g} s takes {n_init} of "
-                         f"the window's {win.n} samples and leaves {n_scored} to "
-                         f"score; both need at least {MIN_SAMPLES}: change the window or "
-                         "--init-window")
+        raise ValueError(f"`init_window=` {init_window:g} s takes {n_init} of the window's "
+                         f"{win.n} samples and leaves {n_scored} to score; both need at "
+                         f"least {MIN_SAMPLES}: change the window or `init_window=`")
     return float(init_window)

@@ -182,7 +182,7 @@ def absurd_start(steps0: int, span: float, period_data: float | None,
         shows += f" and {turns:.3g} turns"
     return (f"the start values make the model far faster or stiffer than the record: its "
             f"solve takes {took} steps for a record of {shows}; choose start values nearer "
-            "the truth (e.g. init='regressor', or the stiffness from the observed period)")
+            "the truth (e.g. `init='regressor'`, or the stiffness from the observed period)")
 
 
 def absurd_frequency(omega_start: float | None, period_data: float | None) -> str | None:
@@ -199,7 +199,7 @@ def absurd_frequency(omega_start: float | None, period_data: float | None) -> st
     return (f"the start values put the model's natural frequency at "
             f"{omega_start / (2 * math.pi):.3g} Hz, {ratio:.3g} times the record's "
             f"{1 / period_data:.3g} Hz: choose start values nearer the truth (e.g. "
-            "init='regressor', or a stiffness from the observed period)")
+            "`init='regressor'`, or a stiffness from the observed period)")
 
 
 def _pure_noise_ratio(n: int) -> float:

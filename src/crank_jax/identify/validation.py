@@ -255,7 +255,7 @@ def validate(
         raise TypeError("validate(scene, data): expected a Scene and a Data record")
     if horizon is not None and not (isinstance(horizon, (int, float))
                                     and math.isfinite(horizon) and horizon > 0):
-        raise ValueError(f"horizon (--horizon) must be a time > 0 s, got {horizon!r}")
+        raise ValueError(f"`horizon=` must be a time > 0 s, got {horizon!r}")
     win = loads_by(data.window(t_start, t_end), load_by)
     init_free = _check_init_free(init_free, win)
     load, torque = _loads(scene, win, scene_loads)
@@ -328,7 +328,7 @@ def _open_loop(model: Scene, load, torque, sensors, ts: np.ndarray, state, predi
 
 def init_free_names(names) -> tuple[str, ...]:
     """`init_free` (a name or names) as a tuple, each a name a fit can free besides the
-    state; `ValueError` naming `init_free (--init-free)` otherwise (the CLI asks this
+    state; `ValueError` naming `init_free` (the CLI's `--init-free`) otherwise (the CLI asks this
     before it reads a record)."""
     if isinstance(names, str):
         names = (names,)
@@ -336,10 +336,10 @@ def init_free_names(names) -> tuple[str, ...]:
     allowed = [n for n in free_names() if n not in STATE_NAMES]
     for n in names:
         if n in STATE_NAMES:
-            raise ValueError(f"init_free (--init-free) names {n}, which is always estimated "
-                             "on the initial-state window; leave it out")
+            raise ValueError(f"`init_free=` names {n}, which is always estimated on the "
+                             "initial-state window; leave it out")
         if n not in allowed:
-            raise ValueError(f"init_free (--init-free) names {n!r}, which is not a parameter; "
+            raise ValueError(f"`init_free=` names {n!r}, which is not a parameter; "
                              f"choose from {', '.join(allowed)}")
     return names
 
@@ -352,7 +352,7 @@ def _check_init_free(names, win: Data) -> tuple[str, ...]:
             side = LOAD_NAMES[n][0]
             if (win.load if side == "load" else win.torque) is not None:
                 col = "P" if side == "load" else "tau"
-                raise ValueError(f"init_free (--init-free) names {n}, but the record "
+                raise ValueError(f"`init_free=` names {n}, but the record "
                                  f"{win.source} supplies its {side} as its {col!r} column; "
                                  f"free it only for a record without that column")
     return names

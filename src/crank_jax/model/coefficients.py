@@ -11,10 +11,9 @@ not recompile) XLA hoists each one out of the loop as a scalar of its own, and e
 kernel of the loop body that reads one takes it as a separate operand. Packed in one array
 behind an `optimization_barrier`, the coefficients are one loop-carried buffer that the
 kernels slice (XLA does not hoist a bare slice), and a traced solve compiles to the same
-loop as one with the parameters as constants. Measured on the lab rig
-(experiments/bench_fusion.py, `solve_adaptive` inside `jit`): 145 loop-carried values and
-368 kernel operands per step with the parameter parts formed inside the loop, 24 and 199
-packed, 20 and 173 with the parameters as constants (29 kernels each).
+loop as one with the parameters as constants (experiments/bench_fusion.py counts the
+loop-carried values and kernel operands per step: the fusion table of
+docs/benchmarks/performance.md).
 """
 
 from __future__ import annotations
@@ -130,9 +129,8 @@ def _slices(packed):
     """The coefficients as slices of `packed`. Its tangent is one `unstack`, so a reverse
     pass gathers their cotangents with one `stack`: the slices' own transpose pads each
     cotangent to the full array and adds the pads (one per coefficient, 25 then), which
-    cost ~40% more per reverse pass of the field (measured on the lab rig: 137 -> 96 ns
-    per evaluation, with the chain rule of `solve/variational.py`). The primal stays
-    slices (see `unpack`)."""
+    made a reverse pass of the field dearer (docs/benchmarks/design-figures.md). The
+    primal stays slices (see `unpack`)."""
     # `lax.slice` and `lax.squeeze`, the primitives `packed[i]` binds, called directly:
     # jnp's indexing costs ~0.6 ms of tracing per slice, ~0.1 s per field traced.
     rest = packed.shape[1:]

@@ -293,7 +293,7 @@ def load_from_table(table: dict, side: str) -> AbstractLoad:
         ok = [k.name for k in LOAD_KINDS if k.toml]
         why = {"sampled": " (sampled loads come from a data file's P/tau columns)",
                "angle": " (angle tables come from a record's P/tau columns with "
-                        "load_by='angle')"}.get(name, "")
+                        "`load_by='angle'`)"}.get(name, "")
         raise ValueError(f"[{side}] kind {name!r} cannot be used in a scene{why}; choose "
                          f"from {ok}")
     allowed = ({toml_key(side, r) for r in kind.fields} | set(kind.arrays) | {"kind"}

@@ -1,19 +1,19 @@
 """sin, cos and 1/sqrt as plain arithmetic, so that XLA:CPU vectorises a batch's step.
 
 Why not `jnp.sin` and `jnp.cos` in a batch: on XLA:CPU a float64 `sin` or `cos` is a
-scalar call into the math library per element, ~7-20 ns each on the 2-core CI machine,
-while a multiply or an add over a batch costs ~0.3 ns an element (SIMD), and one such
-call in a fused kernel keeps LLVM from vectorising the whole kernel. Every field
+scalar call into the math library per element, many times the cost of a multiply or an
+add over a batch (SIMD), and one such call in a fused kernel keeps LLVM from vectorising
+the whole kernel. Every field
 evaluation needs both, a Dormand-Prince 8 step has 12 of them. [`sincos`][] computes the
 pair from one range reduction and two short polynomials (fdlibm's `__kernel_sin` /
 `__kernel_cos` coefficients, as in glibc and musl), all multiplies, adds and selects that
-XLA fuses into the step's kernels: ~1.5-2.3 ns for the pair (experiments/bench_fusion.py
-times both forms).
+XLA fuses into the step's kernels (experiments/bench_fusion.py times both forms; the
+figures on docs/benchmarks/design-figures.md).
 
 [`rsqrt`][] is the same story for `1/sqrt(u)` (the geometry's `1/cos(delta)`): XLA:CPU's
-float64 `rsqrt`, which is also what it makes of `1/sqrt`, is a scalar call (~4.7 ns an
-element), and with it in a kernel of ten cheap ops the kernel costs 6.6 ns an element
-against 1.2 ns with this one. `sqrt` and a division vectorise but are two "expensive"
+float64 `rsqrt`, which is also what it makes of `1/sqrt`, is a scalar call, and with it
+in a kernel of ten cheap ops the kernel costs several times what it does with this one.
+`sqrt` and a division vectorise but are two "expensive"
 ops that XLA will not duplicate into consumers, so each became a kernel of its own per
 stage (68 kernels per step instead of 29). The seed is the bit-level estimate of
 `1/sqrt` (the "fast inverse square root" with the float64 constant; relative error
@@ -26,10 +26,10 @@ traces them (the crank's fields, the harmonic loads) holds it in a static field 
 [`form_field`][], default `"library"`. A solver that wants the arithmetic form asks for
 the field in it with [`traced_as`][]: the lockstep batch (solve/lockstep.py) and the
 discrete adjoint's vectorised blocks (solve/adjoint.py) do. A user's own field offers no
-choice and is stepped as it is. A single trajectory has nothing to vectorise (measured:
-the same run time either way), and the polynomials made its programs ~20-28% slower to
-compile (the lab rig's solve 2.0 -> 2.6 s, its forward Jacobian 8.0 -> 9.7 s), which every
-command-line fit and the test suite pay. The two forms agree to 1-2 ulp; the form is part
+choice and is stepped as it is. A single trajectory has nothing to vectorise (the same
+run time either way), and the polynomials made its programs slower to compile, which
+every command-line fit and the test suite would pay (docs/benchmarks/design-figures.md).
+The two forms agree to 1-2 ulp; the form is part
 of the field's static structure, so a compiled program's key says which one it holds.
 
 Accuracy of [`sincos`][] (tests/test_trig.py checks it against NumPy): within 1 ulp of
@@ -156,8 +156,9 @@ def sincos(x: ArrayLike, form: str = LIBRARY) -> tuple[Array, Array]:
     """`(sin(x), cos(x))` of an angle `x` in rad, any shape.
 
     With `form="arithmetic"` and for float64 the polynomial form: within 1 ulp of
-    `jnp.sin`/`jnp.cos` for |x| <= 1e3 (see the module docstring) and ~10x cheaper per
-    element in a batch on XLA:CPU. Otherwise `jnp.sin`/`jnp.cos`.
+    `jnp.sin`/`jnp.cos` for |x| <= 1e3 (see the module docstring) and much cheaper per
+    element in a batch on XLA:CPU (docs/benchmarks/design-figures.md). Otherwise
+    `jnp.sin`/`jnp.cos`.
     """
     x = jnp.asarray(x)
     if not _use_arithmetic(x, form):

@@ -50,24 +50,24 @@ def _check_free(free: Sequence[str]) -> tuple[str, ...]:
     bad = [n for n in free if n not in FIELDS or n in WIDTH_FIELDS]
     if not free or bad:
         ok = [n for n in FIELDS if n not in WIDTH_FIELDS]
-        raise ValueError(f"free= must name mechanism fields to follow, got {list(free)}; "
+        raise ValueError(f"`free=` must name mechanism fields to follow, got {list(free)}; "
                          f"choose from {ok}")
     return free
 
 
 def _positive(name: str, v) -> None:
     if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-        raise ValueError(f"{name}= must be a finite number > 0, got {v!r}")
+        raise ValueError(f"`{name}=` must be a finite number > 0, got {v!r}")
 
 
 def _check_options(start, start_seconds, false_alarm_rate, change_ratio):
     if start not in STARTS:
-        raise ValueError(f"start= must be one of {STARTS}, got {start!r}")
+        raise ValueError(f"`start=` must be one of {STARTS}, got {start!r}")
     _positive("start_seconds", start_seconds)
     _positive("false_alarm_rate", false_alarm_rate)
     if not (isinstance(change_ratio, (int, float)) and math.isfinite(change_ratio)
             and change_ratio > 1):
-        raise ValueError(f"change_ratio= must be a finite variance ratio > 1, got "
+        raise ValueError(f"`change_ratio=` must be a finite variance ratio > 1, got "
                          f"{change_ratio!r}")
 
 
@@ -174,7 +174,7 @@ def track(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
     # (prepare checks its own options; these two are the result's.)
     _positive("settle", settle)
     if not (isinstance(every, int) and every >= 1):
-        raise ValueError(f"every= must be an integer >= 1, got {every!r}")
+        raise ValueError(f"`every=` must be an integer >= 1, got {every!r}")
     p = prepare(scene, data, free, start=start, start_seconds=start_seconds,
                 false_alarm_rate=false_alarm_rate, change_ratio=change_ratio,
                 q_param=q_param, load_by=load_by, progress=progress)

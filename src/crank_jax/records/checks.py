@@ -36,7 +36,7 @@ def time_scale_problem(ts: np.ndarray, d: np.ndarray, where: str, label) -> str 
         return (f"{where}: column 't' runs from {float(ts[0]):g} s ({label(0)}) to "
                         f"{float(ts[-1]):g} s ({label(len(ts) - 1)}); a record may span at "
                         f"most {MAX_TIME_SPAN:g} s: is the time column in seconds? (choose it "
-                        "with --t-col)")
+                        "with `t_col=`)")
     ulp = float(np.spacing(max(abs(float(ts[0])), abs(float(ts[-1])))))
     # (1 - 1e-9): a 1 GHz grid computed in float64 has spacings a few ulps under 1e-9 s.
     close = d < max(MIN_TIME_STEP * (1 - 1e-9), MIN_STEP_ULPS * ulp)
@@ -62,8 +62,8 @@ MAX_SYNTH_ANGLE = 1e6
 
 def check_synth_options(t1, rate, noise_std, jitter_std, drop, t_start, seed, transient,
                          transient_time, transient_hz, quantization) -> None:
-    """Raise `ValueError` naming the argument (and its `crank-jax synth` option) and its
-    valid range for any value [`synthesize`][] cannot turn into a valid record."""
+    """Raise `ValueError` naming the argument (as `` `name=` ``) and its valid range for
+    any value [`synthesize`][] cannot turn into a valid record."""
     for name, v, ok, valid in (
             ("rate", rate, rate > 0, "> 0 Hz"),
             ("noise_std", noise_std, 0 <= noise_std <= MAX_SYNTH_ANGLE,
@@ -77,13 +77,13 @@ def check_synth_options(t1, rate, noise_std, jitter_std, drop, t_start, seed, tr
             ("transient_time", transient_time, transient_time > 0, "> 0 s"),
             ("transient_hz", transient_hz, transient_hz >= 0, ">= 0 Hz")):
         if not (math.isfinite(v) and ok):
-            raise ValueError(f"synthesize: {name} (--{name.replace('_', '-')}) = {v!r} is out "
-                             f"of range: use a finite value {valid}")
+            raise ValueError(f"synthesize: `{name}=` {v!r} is out of range: use a "
+                             f"finite value {valid}")
     if quantization is not None and not (int(quantization) == quantization and quantization > 0):
-        raise ValueError(f"synthesize: quantization (--quantization) must be a positive "
+        raise ValueError(f"synthesize: `quantization=` must be a positive "
                          f"integer count per revolution, got {quantization!r}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"synthesize: seed (--seed) must be an integer >= 0, got {seed!r}")
+        raise ValueError(f"synthesize: `seed=` must be an integer >= 0, got {seed!r}")
     # The samples' spacing must be one that a record may have (see Data): float64 resolves
     # times near t1 only to spacing(t1), so a high rate far from t = 0 collapses samples.
     # Each sample time t_start + i / rate is off by up to one spacing: two in hand.
@@ -91,11 +91,11 @@ def check_synth_options(t1, rate, noise_std, jitter_std, drop, t_start, seed, tr
     need = max(MIN_TIME_STEP, MIN_STEP_ULPS * ulp) + 2 * ulp
     if dt < need:
         raise ValueError(
-            f"synthesize: rate (--rate) = {rate:g} Hz samples every {dt:.3g} s, but a record's "
+            f"synthesize: `rate=` {rate:g} Hz samples every {dt:.3g} s, but a record's "
             f"samples must be at least {MIN_TIME_STEP:g} s and {MIN_STEP_ULPS} float64 "
-            f"spacings apart, and near t1 = {t1:g} s one spacing is {ulp:.3g} s: lower the rate"
+            f"spacings apart, and near t1 = {t1:g} s one spacing is {ulp:.3g} s: lower `rate=`"
             f" to at most {1 / need:.3g} Hz or start"
-            " nearer t = 0 (--t-start, --t1)")
+            " nearer t = 0 (`t_start=`, `t1=`)")
 
 
 def series_problem(ts: np.ndarray, phi: np.ndarray, where: str, rows, name: str,

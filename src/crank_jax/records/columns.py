@@ -45,7 +45,7 @@ def column_problem(name) -> str | None:
 def role_conflict(claims: Iterable[tuple[str, str]]) -> str | None:
     """The first column claimed for two roles, as a message naming both, or None.
 
-    `claims`: (column, role) pairs, the role in words (e.g. `"channel phi (--channel)"`);
+    `claims`: (column, role) pairs, the role in words (e.g. ``"channel phi (`sensors=`)"``);
     the same (column, role) twice is one claim."""
     seen: dict[str, str] = {}
     for column, role in claims:
@@ -57,7 +57,7 @@ def role_conflict(claims: Iterable[tuple[str, str]]) -> str | None:
 
 
 #: The role of a file's time column (`t_col`, the CLI's `--t-col`).
-TIME_ROLE = "the time (t_col, --t-col)"
+TIME_ROLE = "the time (`t_col=`)"
 
 
 def load_roles(P_col: str, tau_col: str) -> list[tuple[str, str]]:

@@ -157,7 +157,7 @@ class Data(eqx.Module):
             raise DataError(f"{self.source}: the window [{t_start}, {t_end}] s holds "
                             f"{int(keep.sum())} samples of the record's {self.n} (t from "
                             f"{self.ts[0]:g} to {self.ts[-1]:g} s); a record needs at least "
-                            f"{MIN_SAMPLES}: widen the window (t_start/t_end)")
+                            f"{MIN_SAMPLES}: widen the window (`t_start=`, `t_end=`)")
         return self.select(keep)
 
     def select(self, keep: np.ndarray) -> Data:
@@ -244,7 +244,7 @@ def load_data(
         return _load_channels(path, t_col, P_col, tau_col, interp, sensors, tuple(inputs))
     names, col, numbers = read_table(
         path, t_col, phi_col, (t_col, phi_col, P_col, tau_col),
-        roles=[(t_col, TIME_ROLE), (phi_col, "the angle (phi_col, --phi-col)")],
+        roles=[(t_col, TIME_ROLE), (phi_col, "the angle (`phi_col=`)")],
         optional=load_roles(P_col, tau_col))
     labels = LineLabels(numbers)
     ts = col[t_col]
@@ -274,14 +274,15 @@ def _load_channels(path, t_col, P_col, tau_col, interp, sensors: tuple[Sensor, .
     dup = sorted({s.name for s in sensors if [x.name for x in sensors].count(s.name) > 1})
     if dup:
         raise DataError(f"channel {dup[0]!r} is given twice; give each channel once")
-    required = [(t_col, "--t-col")] + [
-        (s.column, f"--channel {s.name}=COLUMN (or the scene's [sensors] {s.name} column)")
+    required = [(t_col, "`t_col=`")] + [
+        (s.column, f"`sensors=` (sensor {s.name}'s column, or the scene's [sensors] "
+                   f"{s.name} column)")
         for s in sensors] + [(c, f"the scene's input = {c!r} (a load's input column)")
                              for c in inputs]
     used = tuple(dict.fromkeys([t_col, P_col, tau_col] + [s.column for s in sensors]
                                + list(inputs)))
     roles = [(t_col, TIME_ROLE)] + [
-        (s.column, f"channel {s.name} (--channel, or the scene's [sensors])")
+        (s.column, f"channel {s.name} (`sensors=`, or the scene's [sensors])")
         for s in sensors] + [(c, f"the input of a load (the scene's input = {c!r})")
                              for c in inputs]
     names, col, numbers = read_table(path, t_col, "", used, required, roles,

@@ -37,9 +37,9 @@ def record_angle(data: Data) -> np.ndarray:
         if sensor.name == "phi":
             return np.asarray(sensor.model(np.asarray(y)), dtype=float)
     have = [s.name for s, _ in data.outputs()]
-    raise ValueError(f"{data.source}: load_by='angle' tables the loads by the record's angle "
+    raise ValueError(f"{data.source}: `load_by='angle'` tables the loads by the record's angle "
                      f"channel phi, which it lacks (its channels are {have}); give the "
-                     "record its angle column, or load_by='time'")
+                     "record its angle column, or `load_by='time'`")
 
 
 def _tabled(load: SampledLoad | None, data: Data, angle: np.ndarray,
@@ -47,7 +47,7 @@ def _tabled(load: SampledLoad | None, data: Data, angle: np.ndarray,
     if load is None or isinstance(load, AngleLoad):
         return load
     if not isinstance(load, SampledLoad):
-        raise ValueError(f"{data.source}: load_by='angle' tables a measured load (a P/tau "
+        raise ValueError(f"{data.source}: `load_by='angle'` tables a measured load (a P/tau "
                          f"column); this record's is a {type(load).__name__}")
     values = np.asarray(load(data.ts), dtype=float)
     return AngleLoad.from_samples(angle, values, data.ts, load.interp, period)
@@ -68,16 +68,16 @@ def loads_by(data: Data, load_by: str = "time", period: float | None = None) -> 
         return data
     angle = record_angle(data)
     if data.load is None and data.torque is None:
-        raise ValueError(f"{data.source}: load_by='angle' tables a record's P or tau column by "
+        raise ValueError(f"{data.source}: `load_by='angle'` tables a record's P or tau column by "
                          "its angle, and this record has neither; add the measured load's "
-                         "column, or load_by='time'")
+                         "column, or `load_by='time'`")
     problem = angle_problem(angle)
     if problem:
         i, why = problem
-        raise ValueError(f"{data.source}: load_by='angle' needs a crank turning one way over "
-                         f"the record, but {why} at t = {data.ts[i]:.6g} s; window the "
-                         "record to where it turns one way (t_start/t_end), or "
-                         "load_by='time'")
+        raise ValueError(f"{data.source}: `load_by='angle'` needs a crank turning one way "
+                         f"over the record, but {why} at t = {data.ts[i]:.6g} s; window the "
+                         "record to where it turns one way (`t_start=`, `t_end=`), or give "
+                         "`load_by='time'`")
     return Data(data.ts, data.phi, _tabled(data.load, data, angle, period),
                 _tabled(data.torque, data, angle, period), source=data.source,
                 channels=data.channels, sensors=data.sensors, inputs=data.inputs)

@@ -183,10 +183,11 @@ def parse_channel(text: str) -> tuple[str, str | None, str | None]:
     column, _, unit = rest.partition(":")
     column, unit = column.strip() or None, unit.strip() or None
     if name not in CHANNELS:
-        raise SensorError(f"--channel {text!r}: channel {name!r} is unknown; choose from "
+        raise SensorError(f"`channels=` entry {text!r}: channel {name!r} is unknown; choose "
+                          "from "
                           f"{list(CHANNELS)}")
     if unit is not None and unit not in UNITS[name]:
-        raise SensorError(f"--channel {text!r}: unit {unit!r} is unknown for {name}; "
+        raise SensorError(f"`channels=` entry {text!r}: unit {unit!r} is unknown for {name}; "
                           f"choose from {list(UNITS[name])}")
     return name, column, unit
 
@@ -208,7 +209,8 @@ def select_sensors(channels: Sequence[str] | None, scene_sensors: Sequence[Senso
         for text in channels:
             name, column, unit = parse_channel(text)
             if name in out:
-                raise SensorError(f"--channel {name} is given twice; give each channel once")
+                raise SensorError(f"`channels=`: channel {name} is given twice; give each "
+                                  "channel once")
             base = scene.get(name, Sensor(name))
             out[name] = Sensor(name, column or base.column, unit or base.unit, base.scale,
                                base.offset)

@@ -95,16 +95,16 @@ def synthesize(
     n = int(math.floor((t1 - t_start) * rate + 1e-9)) + 1
     if n < MIN_SAMPLES:
         raise ValueError(f"synthesize: only {n} samples in [{t_start}, {t1}] s at {rate} Hz; "
-                         f"need at least {MIN_SAMPLES}: raise rate (--rate) or t1 (--t1)")
+                         f"need at least {MIN_SAMPLES}: raise `rate=` or `t1=`")
     nominal = t_start + np.arange(n) / rate
     jitter = np.clip(rng.normal(0.0, jitter_std, n), -0.45 / rate, 0.45 / rate)
     actual = np.maximum(nominal + jitter, 0.0)
     keep = np.ones(n, dtype=bool)
     keep[1:] = rng.random(n - 1) >= drop
     if int(keep.sum()) < MIN_SAMPLES:
-        raise ValueError(f"synthesize: drop (--drop) = {drop!r} left {int(keep.sum())} of the "
-                         f"{n} samples, but a record needs at least {MIN_SAMPLES}: lower drop "
-                         "or sample more (--rate, --t1)")
+        raise ValueError(f"synthesize: `drop=` {drop!r} left {int(keep.sum())} of the {n} "
+                         f"samples, but a record needs at least {MIN_SAMPLES}: lower "
+                         "`drop=` or sample more (`rate=`, `t1=`)")
     nominal, actual = nominal[keep], actual[keep]
     if timestamps not in ("nominal", "actual"):
         raise ValueError(f"synthesize: timestamps must be 'nominal' or 'actual', got "

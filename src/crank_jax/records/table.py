@@ -47,10 +47,10 @@ def _open_text(path: str | os.PathLike):
 def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
             required: Sequence[tuple[str, str]] | None = None):
     """Find the header line; return (its line number, delimiter, column names).
-    `required`: (column, the option that names it) of every column that must be there
+    `required`: (column, the argument that names it) of every column that must be there
     (default: `t_col` and `phi_col`)."""
     if required is None:
-        required = ((t_col, "--t-col"), (phi_col, "--phi-col"))
+        required = ((t_col, "`t_col=`"), (phi_col, "`phi_col=`"))
     for lineno, text in lines:
         delim = "," if "," in text else (";" if ";" in text else None)
         names = split_fields(text, delim)

@@ -1,11 +1,11 @@
 """Host data onto the device without a compiled program.
 
 In jax 0.10, `jnp.asarray` of a numpy array (or a list of numbers) runs a small compiled
-program (`stage`), one per shape and dtype: ~25 ms to compile in a fresh process, and
-~10 ms to look up in the persistent compilation cache in a warm one. A fit builds its
-problems from host data of about fifteen shapes (segments, weights, scales, start
-coordinates), so those were ~0.4 s of a cold fit. `jax.device_put` copies the same
-numbers with no program.
+program (`stage`), one per shape and dtype, compiled in a fresh process or looked up in
+the persistent compilation cache in a warm one. A fit builds its problems from host data
+of about fifteen shapes (segments, weights, scales, start coordinates), so those were a
+noticeable part of a cold fit (docs/benchmarks/design-figures.md). `jax.device_put`
+copies the same numbers with no program.
 """
 
 from __future__ import annotations

@@ -57,7 +57,7 @@ def initialize_lapack() -> None:
     does (needed before a deserialised program that calls them runs).
 
     Why private: JAX registers them lazily, on the first lowering of a linear-algebra
-    primitive; `jax._src.lax.linalg.initialize_lapack` does just that, 0.1 s cheaper than
+    primitive; `jax._src.lax.linalg.initialize_lapack` does just that, cheaper than
     lowering a QR, which is the public fallback used when it is missing. jax 0.7-0.10
     (0.10.2 tested)."""
     try:

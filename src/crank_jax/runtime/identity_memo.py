@@ -4,7 +4,8 @@ plans here (`crank_jax/simulation.py`), so that a repeated concrete call skips i
 and the linearisation.
 
 Why identity and not value: hashing the arrays' values would cost what the memo saves
-(a plan costs ~0.5 ms of a ~2 ms lab-rig solve; measured on a 2-core VM). A JAX array is
+(a plan is a sizeable part of a fast lab-rig solve: docs/benchmarks/design-figures.md). A
+JAX array is
 immutable, and the key holds it, so its `id` cannot be reused while the entry lives; a
 NumPy array (mutable) or a tracer gives no key, and such calls are not memoised. Thread-
 safe (a lock around each change); the solver core knows nothing of it.

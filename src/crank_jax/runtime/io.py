@@ -256,8 +256,9 @@ def disk_full(path: str | os.PathLike | None, e: OSError) -> OSError:
 
 
 def check_not_input(out: str | os.PathLike, inputs: Sequence[str | os.PathLike | None],
-                    option: str = "--out") -> None:
-    """Raise `ValueError` if the output path is one of the input files."""
+                    option: str = "output path") -> None:
+    """Raise `ValueError` if the output path is one of the input files (`option`: what
+    names the path to the user, e.g. the CLI's `--out`)."""
     o = Path(out).resolve()
     for i in inputs:
         if i is not None and Path(i).exists() and Path(i).resolve() == o:
@@ -268,7 +269,7 @@ def check_not_input(out: str | os.PathLike, inputs: Sequence[str | os.PathLike |
 
 
 def check_output(out: str | os.PathLike, inputs: Sequence[str | os.PathLike | None] = (),
-                 option: str = "--out") -> None:
+                 option: str = "output path") -> None:
     """Check an output path before any work: not an input, not a directory, in an existing
     writable directory. Raises `ValueError` naming `option` and the fix."""
     text = str(out)
@@ -318,7 +319,7 @@ def check_distinct_outputs(outputs: Sequence[tuple[str | os.PathLike | None, str
                                  "give each output its own file")
 
 
-def check_figure_format(path: str | os.PathLike, option: str = "--plot") -> None:
+def check_figure_format(path: str | os.PathLike, option: str = "figure") -> None:
     """Raise `ValueError` unless matplotlib can write `path`'s format (from its suffix)."""
     from matplotlib.figure import Figure
 

@@ -1,9 +1,9 @@
 """Third-party modules imported on first use.
 
-diffrax (with optimistix and lineax, which it imports) and optax take about 0.35 s to
-import, a sixth of a warm `crank-jax fit`, which runs stored programs (see
-`persistent.py`) and never calls them. A module made by [`lazy_import`][] is imported at
-its first attribute access.
+diffrax (with optimistix and lineax, which it imports) and optax take a noticeable part
+of a warm `crank-jax fit` to import (docs/benchmarks/design-figures.md, Start-up), and
+that fit runs stored programs (see `persistent.py`) and never calls them. A module made
+by [`lazy_import`][] is imported at its first attribute access.
 
 Why not the standard library's `importlib.util.LazyLoader`: before Python 3.12 it is not
 thread-safe (CPython issue 114763). Two threads touching a lazy module at once (a host

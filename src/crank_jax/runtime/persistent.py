@@ -3,8 +3,8 @@ compiles them.
 
 JAX's persistent compilation cache keeps compiled executables, but a fresh process must
 still trace and lower a program to find its cache key, and tracing diffrax and optimistix
-was most of a warm `crank-jax fit` (about 3 s of 5 s). A [`PersistentProgram`][] skips
-that: the first call compiles the program and stores the executable
+was most of a warm `crank-jax fit` (docs/benchmarks/design-figures.md, Start-up). A
+[`PersistentProgram`][] skips that: the first call compiles the program and stores the executable
 (`jax.experimental.serialize_executable`) under a key made of everything that decides it:
 the static part of the arguments, their shapes and dtypes, this package's source, the
 versions of JAX and of the libraries that trace into it, x64, the backend and the CPU's
@@ -225,8 +225,8 @@ class PersistentProgram:
         """`fn(*args)` in memory: the array leaves dynamic, the others static, as
         `eqx.filter_jit`, through one `jax.jit` of the array leaves per static structure.
         Why not `eqx.filter_jit` itself: its partition and hashing of the arguments cost
-        ~0.3 ms a call on a 2-core VM, a sixth of a fast concrete solve; one flatten and
-        `jax.jit`'s C++ dispatch cost ~0.05 ms."""
+        a sizeable part of a fast concrete solve, several times one flatten and `jax.jit`'s
+        C++ dispatch (docs/benchmarks/design-figures.md)."""
         leaves, treedef = jax.tree_util.tree_flatten(args)
         mask = tuple(isinstance(x, _ARRAYS) for x in leaves)
         static = tuple(x for x, a in zip(leaves, mask) if not a)
@@ -338,7 +338,7 @@ def _custom_calls(text: str) -> set[str]:
 
 def _ready_custom_calls() -> None:
     """Register LAPACK's custom-call targets, as lowering any linear algebra does (once
-    per process; ~0.13 s, mostly importing SciPy's LAPACK)."""
+    per process; mostly importing SciPy's LAPACK)."""
     global _READY
     if _READY:
         return

@@ -10,14 +10,17 @@ environment variable when JAX starts its CPU backend:
   instead (its `SmallWhileLoopHoistingPass`) when one iteration touches fewer bytes than
   `xla_cpu_small_while_loop_byte_threshold`, 1024 by default: too few for an eighth-order
   step (13 stages, each reading the packed coefficients) or for the loop that writes the
-  saved samples. [`SMALL_LOOP_BYTES`][] hoists them. Measured on the lab rig (2-core AMD
-  EPYC, jax 0.10.2): one trajectory 1.35 -> 0.57 ms, a 10-parameter forward Jacobian
-  15.4 -> 6.4 ms, the LM iterations of `crank-jax demo` 3x faster and its first compile
-  7.9 -> 5.8 s. It does not change a 10^4 batch (its kernels are large).
+  saved samples. [`SMALL_LOOP_BYTES`][] hoists them: single trajectories, forward
+  Jacobians and a fit's iterations run faster and compile sooner; a large batch does not
+  change (its kernels are large).
 - **512-bit vectors** (`xla_cpu_prefer_vector_width`, 256 by default), only on a CPU with
   AVX-512: a lockstep batch is SIMD arithmetic over its members, and twice the lanes per
-  instruction made a 10^4 batch 247 -> 201 us per trajectory there (single trajectories:
-  no change, they are scalar code).
+  instruction make a large batch faster there (single trajectories: no change, they are
+  scalar code).
+
+The figures: the "With the CPU flags" table of docs/benchmarks/performance.md (the
+benchmark scripts run with the flags set, their results tagged `_cpu_flags`) and
+docs/benchmarks/design-figures.md.
 
 Results are the same up to rounding (tests/test_xla_flags.py). `jax.jit`'s
 `compiler_options` cannot set the threshold (it lives in a map field of XLA's options),
@@ -32,9 +35,10 @@ or calls [`configure_cpu`][] without `devices`, which also asks JAX for one CPU 
 core: JAX makes
 one CPU device by default, and one device's program runs its loops on one core. With a
 device per core, a `vmap`-ed lockstep batch spreads its groups over them
-(`solve/lockstep.py`) and a sweep its chunks (`sweep/run.py`): measured on the 2-core
-machine, a 10^4 batch 208 -> 122 us per trajectory and a warm sweep of 2*10^4 lab rigs
-9.3-9.8 -> 4.3 s. A program's single solves and fits stay on the first device.
+(`solve/lockstep.py`) and a sweep its chunks (`sweep/run.py`), about twice as fast on two
+cores (experiments/bench_sweep_devices.py and the batch rows of the "With the CPU flags"
+table, docs/benchmarks/performance.md). A program's single solves and fits stay on the
+first device.
 """
 
 from __future__ import annotations
@@ -96,11 +100,11 @@ def backward_program() -> str:
     step loop into one function (its small-loop threshold raised to
     [`SMALL_LOOP_BYTES`][], as the `crank-jax` program and `configure_cpu` set it), else
     `"blocks"`. Read at the edges (`simulate`'s front door, the fit, sweeps), so that the
-    core reads no flags. With the flags one VJP per step, in a loop, is cheapest: lab
-    rig, grad 5.7x one forward solve against 16x for the vectorised blocks (a loaded
-    machine, so both high; `experiments/bench_reverse.py`). Without them every one of the
-    ~600 kernels of a step's VJP is dispatched per step (90x; also with a loop over 4 or
-    8 steps at a time, 23x: XLA did not hoist it either), and the vectorised blocks win."""
+    core reads no flags. With the flags one VJP per step, in a loop, is cheapest; without
+    them every one of the kernels of a step's VJP is dispatched per step (also with a loop
+    over a few steps at a time: XLA did not hoist it either), and the vectorised blocks
+    win (measured by `experiments/bench_reverse.py`: the Reverse mode table of
+    docs/benchmarks/performance.md, and docs/benchmarks/design-figures.md)."""
     import jax
 
     threshold = small_loop_bytes()

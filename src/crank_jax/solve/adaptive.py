@@ -5,10 +5,10 @@ Why not `diffrax.diffeqsolve`? The method and its tolerance semantics are diffra
 Dopri8 tableau, its 7th-order embedded estimate in diffrax's RMS norm, an integral
 controller like scipy's DOP853 and diffrax's `PIDController` default, diffrax's Dopri8
 dense output), but for a state of two scalars a step on the CPU is bound by per-kernel
-overhead, not arithmetic (measured with XLA's CPU runtime in jax 0.10: ~40 ns per
-kernel, about two kernels per stage; and ~0.8 us more per loop iteration once the loop
-carries more than 512 bytes, when the runtime stops running the body's kernels one after
-the other in the calling thread). So:
+overhead, not arithmetic (about two kernels per stage, and more per loop iteration once
+the loop carries more than 512 bytes, when XLA's CPU runtime stops running the body's
+kernels one after the other in the calling thread; docs/benchmarks/design-figures.md).
+So:
 
 - the stages are unrolled ([`FusedERK`][]) and the first stage is the previous step's last
   (first same as last);
@@ -21,8 +21,7 @@ the other in the calling thread). So:
   time; this binds only where the saves are denser than the steps;
 - the step loop writes to a buffer of `chunk + window` save times (512 bytes for the
   crank), and an outer loop copies each chunk to the n outputs: a step loop that carried
-  the outputs themselves cost 1.6x more per step (lab rig, 1001 saves: 3.2 ms -> 2.0 ms
-  inside `jit`).
+  the outputs themselves cost more per step (docs/benchmarks/design-figures.md).
 
 Unlike `"dopri8-uniform"` the step count follows the motion, not the save grid: the error
 is controlled per step (`rtol`, `atol` mean what they mean for diffrax's `PIDController`).
@@ -123,8 +122,8 @@ class Recorder(NamedTuple):
     `pending` buffer, and the loop around it (once per chunk of save times) moves what is
     pending to the full `log`. Why two parts: under XLA's defaults the runtime runs a loop
     body's kernels one after the other in the calling thread only while every buffer they
-    touch is <= 512 bytes; a step loop that carried the full log cost the forward pass
-    1.7x (lab rig, 10 s, 1001 saves: 1.2 -> 2.0 ms; 1.4 ms with the buffer).
+    touch is <= 512 bytes; a step loop that carried the full log slowed the forward pass
+    (docs/benchmarks/design-figures.md).
 
     - `log0`, `pending0`: the log at the start, and an empty pending buffer;
     - `write(pending, rec) -> pending`: log one step attempt `rec` (an `_Attempt`);

@@ -18,7 +18,8 @@ parameter cotangents, by one of two programs (`program`, the static field
   with respect to its parameters over all the block's 14 x 256 evaluation points, with
   sin, cos and 1/sqrt as arithmetic that XLA:CPU vectorises (`trig.traced_as`): no JAX
   transformation of the whole step (whose vectorised Jacobian and VJP compiled to kernels
-  10x and 6x dearer than the field's own, and 60 s of compile time).
+  many times dearer than the field's own, after a long compile;
+  docs/benchmarks/design-figures.md).
 
 The step sizes and the accept/reject decisions are constants (the forward pass chose them
 on values, `stop_gradient`), so the result is the exact gradient of the computed discrete
@@ -28,8 +29,8 @@ computes, equal to it to rounding (tests/test_adjoint.py).
 Why not differentiate the solve's loops? A `while_loop` has no reverse mode, and the
 batched solve is a `custom_vmap` (lockstep.py), which has none either; before this module
 the backward pass re-solved the problem with diffrax's Dopri8 and its checkpointed
-reverse mode: 12x one forward solve with the CPU flags, 68x under XLA's defaults (lab
-rig).
+reverse mode, many forward solves' worth (the Reverse mode table of
+docs/benchmarks/performance.md, experiments/bench_reverse.py).
 
 **Memory.** The log holds [`LOG_ROWS`][] steps (at most the step budget), as a ring: a
 solve of more steps keeps the last `LOG_ROWS`, and the backward pass, after those, runs
@@ -273,8 +274,8 @@ def _deferred(full, arithmetic, dd, pack, unpack, window, B, n_state):
     over every stage of every step of `K_i^T df/dtheta(T_i, Y_i)`, `K_i` the stage's
     cotangent, `(T_i, Y_i)` its point: after the loop, VJPs of the field over `_CHUNK`
     of the block's points at a time form it (one loop), instead of one small VJP per stage in the
-    loop (it took 1.51 of the backward pass's 2.35 ms;
-    `experiments/reverse_split.py`). The same sum in
+    loop (those took most of the backward pass: `experiments/reverse_split.py`, the
+    Reverse mode section of docs/benchmarks/performance.md). The same sum in
     another order: equal to rounding."""
 
     def step(row, tw, e):

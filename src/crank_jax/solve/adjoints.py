@@ -77,9 +77,9 @@ class DiscreteAdjoint(AbstractAdjoint):
       stages, for XLA's defaults, which dispatch each kernel of a loop body on its own;
     - `"loop"`: one VJP of a step after another, for XLA:CPU with its small-loop
       threshold raised (the `crank-jax` program, `configure_cpu`), which compiles the
-      loop into one function. Lab rig, grad against one forward solve: 5.7x by the loop
-      with the flags, 16x by the blocks; without them the loop is 90x
-      (`experiments/bench_reverse.py`).
+      loop into one function; without them the loop is the slowest
+      (`experiments/bench_reverse.py`: docs/benchmarks/performance.md, Reverse mode, and
+      docs/benchmarks/design-figures.md).
 
     The two give the same gradient to rounding (the same sum in another order). The
     choice reads the machine, so it is made at the edge: `simulate`, the fit and sweeps

@@ -3,9 +3,9 @@ floats (the fields of a [`Tableau`][crank_jax.solve.erk.Tableau], which `erk.dop
 of them).
 
 Why a copy: reading `diffrax.Dopri8.tableau` imports diffrax, and with it lineax and
-optimistix: 0.6-1.0 s of every process that solves with the default solver, a quarter of a
-warm `crank-jax fit` (4.1-4.6 s on a 2-core VM), where nothing else of
-diffrax runs (the compiled programs come from the store). The numbers are diffrax's,
+optimistix, a sizeable part of every process that solves with the default solver and of
+a warm `crank-jax fit` (docs/benchmarks/design-figures.md, Start-up), where nothing else
+of diffrax runs (the compiled programs come from the store). The numbers are diffrax's,
 bit for bit: `tests/test_solvers.py::test_the_dopri8_tableau_is_diffraxs` compares them
 with diffrax's own tableau in every test run.
 """

@@ -3,10 +3,11 @@
 Why not diffrax's own `AbstractERK.step`? For a state of a few scalars (the crank's
 `(phi, phi')`), a diffrax step on the CPU is bound by per-kernel overhead, not arithmetic:
 diffrax runs the stages in a `while_loop` over a stacked `k` array, so every stage is
-several small XLA kernels (~8 us per Dopri8 step, measured in
-experiments/bench_work_precision.py). Here the stages of the same tableau are unrolled into
+several small XLA kernels. Here the stages of the same tableau are unrolled into
 straight-line code on the leaves of `y`, so XLA fuses each stage with the vector field's
-arithmetic (~3 kernels per stage for the crank): a step is ~2.5x cheaper. The tableau
+arithmetic (a few kernels per stage for the crank), and a step is cheaper (the
+work-precision table of docs/benchmarks/performance.md,
+experiments/bench_work_precision.py). The tableau
 itself is diffrax's, so the method is exactly diffrax's.
 
 `FusedERK` knows nothing of the equation: it steps any `f(t, y, args) -> dy/dt`, with `y`
@@ -132,8 +133,8 @@ class FusedERK(eqx.Module):
 
         Why: the multiple-shooting fit's Jacobian steps the variational equation, whose
         field takes a reverse pass per state component; unrolled over Dopri8's 13 stages
-        and batched over the segments it took 2.8 s to trace and most of the fit's 4.4 s
-        XLA compile (lab record, 5 s at 200 Hz; experiments/fit_solver_tradeoff.py)."""
+        and batched over the segments it took long to trace and most of the fit's XLA
+        compile (experiments/fit_solver_tradeoff.py; docs/benchmarks/design-figures.md)."""
         tab, n = self.tableau, self.num_stages
         dtype = jnp.result_type(*jax.tree_util.tree_leaves(k0))
         A = np.zeros((n, n))
@@ -194,7 +195,7 @@ class FusedERK(eqx.Module):
 def packer(y0, batch_dims: int = 0):
     """`(pack, unpack)`: a state pytree to one flat (N,) array and back, the latter for any
     leading axes. The solvers record one array per save time: one XLA update instead of
-    one per leaf (measured ~6% of a `vmap`-ed batch's time). With `batch_dims`, the leaves
+    one per leaf (a few percent of a `vmap`-ed batch's time). With `batch_dims`, the leaves
     of `y0` carry that many leading batch axes, which `pack` keeps: (B..., N)."""
     leaves, treedef = jax.tree_util.tree_flatten(y0)
     shapes = [jnp.shape(x)[batch_dims:] for x in leaves]

@@ -2,17 +2,17 @@
 
 A `vmap` of an adaptive solve already runs in lockstep (the loop runs until its slowest
 member is done), but each member keeps its own save position, so every output update
-becomes a batched scatter and every carry a select. Measured while building this on 10^4
-lab rigs (rtol 1e-8, 10 s, 1001 saves, 2-core CPU): 1.56 ms per trajectory for a plain
-`vmap` of the solver against 0.40 ms for the batched solver of `solve_adaptive`, whose
-members share the loop and the window of save times being written.
+becomes a batched scatter and every carry a select: several times slower per trajectory
+than the batched solver of `solve_adaptive`, whose members share the loop and the window
+of save times being written (docs/benchmarks/design-figures.md; the batch throughput
+table of docs/benchmarks/performance.md, experiments/bench_throughput.py).
 `jax.custom_batching.custom_vmap` gives that rule to `jax.vmap`: mapped over parameters,
 initial states, tolerances or save times, the members' fields are evaluated side by side.
 Members with their own save times (a fit's multiple-shooting segments, records sampled
 at other instants) write their own samples at a shared index of save time: the window
 moves on when every member has passed its own. Before, they fell back to a plain `vmap`
-of one member's solve, whose batching JAX traced through the whole solver: 2 s of a
-cold fit's 3 s trace of its multiple-shooting Jacobian.
+of one member's solve, whose batching JAX traced through the whole solver: most of a
+cold fit's trace of its multiple-shooting Jacobian (docs/benchmarks/design-figures.md).
 
 Every member gets its own answer: each has its own time, step size, accept/reject
 decisions, step budget and outcome (`solve_adaptive`, `batched=True`), so a member that
@@ -33,8 +33,8 @@ the solve carries a `custom_vjp` whose forward pass is one member's solve with a
 its steps and whose backward pass is the discrete adjoint of those steps (adjoint.py):
 the exact gradient of the computed solution, as forward mode's Jacobian is. Under
 `jax.vmap` both are a plain `vmap` of one member's (each member its own steps). Before this
-solver the backward pass differentiated a diffrax Dopri8 re-solve (12x one forward
-solve with the CPU flags, 68x under XLA's defaults, lab rig).
+solver the backward pass differentiated a diffrax Dopri8 re-solve (many forward solves'
+worth: the Reverse mode table of docs/benchmarks/performance.md).
 """
 
 from __future__ import annotations
@@ -162,9 +162,9 @@ def _spread(run_groups, devices):
     devices exist only where the program asked for them before JAX started
     (`jax.config.update("jax_num_cpu_devices", n)`, or `crank_jax.configure_cpu()`, which
     the `crank-jax` program calls), so JAX's default of one CPU device keeps this path off.
-    Measured on 10^4 lab rigs (rtol 1e-9, 2-core AMD EPYC): 241 -> 133 us per trajectory
-    with two CPU devices. The groups are independent, so nothing crosses devices until the
-    results are gathered."""
+    Two CPU devices nearly halve a large batch's time per trajectory
+    (docs/benchmarks/design-figures.md). The groups are independent, so nothing crosses
+    devices until the results are gathered."""
     from jax.sharding import Mesh, NamedSharding
     from jax.sharding import PartitionSpec as P
 

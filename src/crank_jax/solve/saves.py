@@ -15,7 +15,8 @@ and the solve saves that state at its end (`SaveAt(t1=True, solver_state=True)`)
 buffer holds what `SaveAt(ts)` would (inf where a failed solve never reached: diffrax's
 fill too); the same numbers, bitwise on the fit's programs (tests/test_diffrax_saves.py).
 The other public form, dense output (`SaveAt(dense=True)`), holds buffers of `max_steps`
-steps: a multiple-shooting fit's programs ran 24-240x slower (experiments/diffrax_callbacks.py).
+steps: a multiple-shooting fit's programs ran many times slower
+(experiments/diffrax_callbacks.py; its figures on docs/benchmarks/design-figures.md).
 
 Limits, where `Diffrax.run` keeps `SaveAt(ts)`:
 

@@ -112,12 +112,11 @@ class AdaptiveDopri8(AdaptiveERK, AbstractSolver):
 
     **Field:** `loop_stages` (static, default False): forward mode's variational solve
     evaluates its stages in a loop (`FusedERK.rolled`) instead of unrolled. Its field, a
-    reverse pass per state component, is costly to trace and compile unrolled. Measured
-    (lab rig, 10 parameters, 1001 samples; fit_speed.py): `jax.jacfwd` compiles in 1.9 s
-    instead of 4.4 s (XLA's defaults) or 3.4 s (CPU flags), and runs 1.2x longer (17.1
-    against 14.3 ms; 2.1 against 1.8 ms). The fit uses it (`identify.problem.pick_solver`):
-    its first fit in a process took 5.5 s instead of 12.1 s (multiple shooting; 8.2 s
-    with only the segments' batch in a loop), its later fits no longer.
+    reverse pass per state component, is costly to trace and compile unrolled: in a loop
+    `jax.jacfwd` compiles in about half the time and runs a little longer. The fit uses
+    it (`identify.problem.pick_solver`): its first fit in a process takes about half as
+    long, its later fits no longer (experiments/fit_speed.py,
+    experiments/fit_solver_tradeoff.py; docs/benchmarks/design-figures.md).
 
     **Fields:** `erk`, the method, a [`FusedERK`][crank_jax.solve.erk.FusedERK]: Dopri8,
     `erk.dopri8()` (its dense output and adjoint are Dopri8's); `controller`, the
@@ -171,12 +170,9 @@ class UniformDopri8(UniformERK, AbstractSolver):
     JAX differentiates its loops itself, the while-loop kind chosen as the matching
     diffrax adjoint. Its own derivative rules (a variational equation in forward mode, a
     plain-field backward pass in reverse mode) were removed: sweeps, its reason
-    to exist, never differentiate, and diffrax's Dopri8 was faster than them. Measured on
-    the lab rig (10 s, 1001 saves, rtol 1e-8, 10 parameters; one process, medians, a
-    loaded 2-core machine, XLA's defaults): jacfwd 209 ms with its rule,
-    436 ms without, 177 ms through diffrax's Dopri8 (`ForwardMode`); `jax.grad` of a sum
-    of squares 237 ms, 498 ms, 113 ms (`RecursiveCheckpointAdjoint`). To differentiate,
-    use `"dopri8-adaptive"` or `"dopri8"`.
+    to exist, never differentiate, and diffrax's Dopri8 was faster than them
+    (docs/benchmarks/design-figures.md). To differentiate, use `"dopri8-adaptive"` or
+    `"dopri8"`.
 
     **Field:** `erk`, the method, a [`FusedERK`][crank_jax.solve.erk.FusedERK] (default
     Dopri8, `erk.dopri8()`). Its step is [`UniformERK`][crank_jax.solve.uniform.UniformERK]'s

@@ -7,8 +7,8 @@ follow by the reverse of the stage recursion ([`stage_cotangents`][]), the steps
 cotangents by a parallel scan of their affine maps ([`reverse_affine`][]), and the
 parameters' by one VJP of the field over the block's evaluation points
 ([`field_vjp`][], which the `"loop"` program uses too). Why by hand: JAX's transformation of
-the whole step vectorised compiled to kernels 10x (Jacobian) and 6x (VJP) dearer than the
-field's own, and 60 s of compile time.
+the whole step vectorised compiled to kernels many times dearer than the field's own,
+after a long compile (docs/benchmarks/design-figures.md).
 """
 
 from __future__ import annotations

@@ -11,8 +11,8 @@ around it (once per chunk of save times) moves the buffer to the ring ([`flush`]
 
 Why the buffer: under XLA's defaults the CPU runtime runs a loop body's kernels one after
 the other in the calling thread (inline, no dispatch per kernel) only while every buffer
-they touch is <= 512 bytes. A step loop that carried the whole log cost the
-forward pass 1.7x (lab rig, 10 s, 1001 saves: 1.2 -> 2.0 ms; 1.4 ms with the buffer).
+they touch is <= 512 bytes. A step loop that carried the whole log slowed the forward
+pass (docs/benchmarks/design-figures.md).
 The buffer is small enough for the step loop to stay inline; the ring, written once per
 chunk by the outer loop, may be as large as the log needs (adjoint.py's `LOG_ROWS`).
 """

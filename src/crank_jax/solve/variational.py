@@ -3,10 +3,9 @@ solution, with the solution's steps, generic over the vector field.
 
 Why not let `jax.jvp` carry tangents through the solve? Forward mode through an explicit
 Runge-Kutta step *is* that step applied to the variational equation, so the arithmetic is
-the same; but XLA's CPU code for `jvp`'s tangents through the fused field is poor. Measured
-on the lab rig (10 s, 1001 saves, 10 parameters, `"dopri8-adaptive"`, with the CPU flags,
-2-core AMD EPYC): the tangents cost 2.5x a forward solve for one direction and 11x for a
-full Jacobian. Here the sensitivity matrix `S = dy/dtheta` is part of the state,
+the same; but XLA's CPU code for `jvp`'s tangents through the fused field is poor (the
+Gradients table of docs/benchmarks/performance.md, experiments/bench_gradients.py). Here
+the sensitivity matrix `S = dy/dtheta` is part of the state,
 
     S' = f_y S + f_C dC/dtheta,
 
@@ -14,12 +13,12 @@ with one reverse pass of each (scalar) component of the field per stage, taken w
 to the state and to the *prepared* field's parameters `C` (the crank's packed coefficients,
 whose slices pass their cotangents back as one array: `coefficients.unpack`), and the chain
 rule to the parameters being differentiated, `theta`, as a constant matrix `dC/dtheta`
-formed once, outside the loop. One reverse pass costs ~1.9x a field evaluation however many
-parameters there are, and the chain rule is a few scalar-times-row products, so the whole
-Jacobian costs a few forward solves: 2.9-3.8x on the lab rig with the CPU flags
-(`xla_flags.py`; tangents through the solve 7-12x). With XLA's defaults, which dispatch the
-loop body's kernels one by one, it costs ~13x (the tangents ~12x): the reverse passes split
-into more kernels (experiments/bench_gradients.py).
+formed once, outside the loop. One reverse pass costs a small multiple of a field
+evaluation however many parameters there are, and the chain rule is a few
+scalar-times-row products, so the whole Jacobian costs a few forward solves with the CPU
+flags (`xla_flags.py`); with XLA's defaults, which dispatch the loop body's kernels one by
+one, the reverse passes split into more kernels and it costs as much as the tangents
+(experiments/bench_gradients.py: the Gradients table of docs/benchmarks/performance.md).
 
 The step control sees the sensitivities as well as the solution, as CVODES's does with
 `errconS`: a step must meet the tolerance on the state and on each column of `S`, the
@@ -28,10 +27,10 @@ state's for a relative change of theta_q. Why: forward mode through the solve (t
 chosen on the solution's values alone) differentiates a discrete solution whose steps need
 not resolve what the sensitivities see. Smoothed Coulomb friction (tanh of width w) puts a
 spike of height ~F/w into f_y as the velocity crosses zero; the state's error barely sees
-it, the sensitivities jump by O(1) across it. Measured (lab rig with friction, 2 s, 101
-saves, rtol 1e-9, 8 parameters): the Jacobian was 2.2e-5 off a tight reference with the
-solution's steps, 2.4e-8 with these; the steps, 748 -> 1099 (friction) and 242 -> 321
-(no friction), rtol 1e-8. The primal `ys` of a JVP is then the augmented solve's, which
+it, the sensitivities jump by O(1) across it: with the solution's steps the Jacobian is
+far off a tight reference, with these it meets the tolerance, for some more steps
+(docs/benchmarks/design-figures.md). The primal `ys` of a JVP is then the augmented
+solve's, which
 differs from a plain solve's within the tolerance. `CONTROL_SENSITIVITIES` off restores
 the solution's steps (the tests check the arithmetic against `jax.jvp` so).
 """

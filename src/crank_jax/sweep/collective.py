@@ -4,9 +4,9 @@ send process 0's checkpointed chunk to the others. A collective whose peer died 
 as one `RuntimeError` that says what happened and what to do.
 
 Gloo's collectives give up after 30 s, but a peer may be busy far longer: compiling the
-chunk (hosts compile at their own pace; a loaded 2-core machine took more than 30 s
-longer on one process than the other, and two of two 4000-sample two-process sweeps
-failed), or solving a stiffer part. So every collective first waits at
+chunk (hosts compile at their own pace: on a loaded machine one process can take longer
+than that timeout more than the other; docs/benchmarks/design-figures.md), or solving a
+stiffer part. So every collective first waits at
 a barrier of JAX's coordination service ([`sync`][]), whose timeout is ours
 ([`SYNC_TIMEOUT_S`][]); a dead peer still ends the wait, by the service's heartbeat.
 Every process then enters the collective within milliseconds of the others.
@@ -208,4 +208,4 @@ def same_everywhere(fields: dict, what: str) -> None:
     raise ValueError(f"the processes of this distributed run were given different "
                      f"{what}s: process(es) {', '.join(map(str, bad))} differ from process "
                      f"0 in {', '.join(differ) or 'their fields'}; give every process the "
-                     "same command and files (--vary, --n, --seed, scene, ...)")
+                     "same arguments and files (`samples=`, `n=`, `seed=`, the scene, ...)")

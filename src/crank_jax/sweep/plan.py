@@ -296,7 +296,7 @@ def make_plan(scene, samples, outputs, *, n=None, seed=0, t1=None, num_saves=Non
         per = need // spec.n
         raise ValueError(f"n = {spec.n} samples need {need / 2**30:.1f} GiB for the result "
                          f"({per} bytes per sample) but the limit is {limit / 2**30:.1f} GiB "
-                         f"({why}); use n <= {limit // per}, or run "
+                         f"({why}); give `n=` <= {limit // per}, or run "
                          "several sweeps with different seeds")
     chunk = min(chunk_size, spec.n)
     work = chunk_bytes(chunk, reductions, n_t)
@@ -304,9 +304,8 @@ def make_plan(scene, samples, outputs, *, n=None, seed=0, t1=None, num_saves=Non
         per = work // n_t
         raise ValueError(f"{n_t} save times need {work / 2**30:.1f} GiB of working memory "
                          f"for a chunk of {chunk} samples but the limit is "
-                         f"{limit / 2**30:.1f} GiB ({why}); use num_saves "
-                         f"(--samples) <= {max(limit // per, 2)}, or a smaller chunk_size "
-                         "(--chunk-size)")
+                         f"{limit / 2**30:.1f} GiB ({why}); give `num_saves=` "
+                         f"<= {max(limit // per, 2)}, or a smaller `chunk_size=`")
     ts = np.linspace(0.0, t_end, n_t)
     loads = {side: _load_plan(scene, spec, side) for side in SIDES}
     _check_effect(scene, spec)

@@ -149,7 +149,7 @@ def forced_response(scene, freq_hz: tuple[float, float], *, max_points: int = 40
     if not start.ok:
         raise VibrationError(f"no periodic orbit found at the start frequency {f0:g} Hz "
                              "from the linearized response; start the range farther from "
-                             "resonance (--freq F0:F1 with a lower F0)")
+                             "resonance (a lower f0 in `freq_hz=`)")
     curve = continue_curve(correct, start, direction=1.0, lo=f0 / float(f_ref),
                            hi=f1 / float(f_ref), ds=ds_max / 2, ds_max=ds_max,
                            ds_min=ds_max * 1e-4, max_points=max_points)
