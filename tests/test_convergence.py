@@ -15,9 +15,9 @@ from crank_jax.identify import attempt as attempt_module
 from crank_jax.identify import escalation as esc_module
 from crank_jax.identify import fit as fit_module
 from crank_jax.identify import optimize
+from crank_jax.identify.fit_options import Method, ShootingMode
 from crank_jax.identify.optimize import DECREASE_FRACTION, STEP_FRACTION, least_squares
 from crank_jax.identify.outcome import Run
-from crank_jax.identify.request import Method, ShootingMode
 from crank_jax.identify.stages import FitState, Shooting
 
 

@@ -15,13 +15,15 @@ import numpy as np
 from ..runtime.arrays import device_array
 from ..runtime.xla_flags import backward_program
 from ..solve.adjoints import DiscreteAdjoint
-from .fit_plan import Plan, basis, recoordinate, recoordinate_basis
+from .fit_options import Method
+from .fit_plan import basis, recoordinate, recoordinate_basis
 from .optax_fit import minimize_optax
 from .optimize import least_squares
 from .outcome import Run, termination
 from .problem import Problem
 from .programs import InValues, Subspace, jacobian_at
-from .request import FitRequest, Method
+from .request import FitRequest
+from .stages import Plan
 from .strategy import AT_ZERO, noise_unit, perturb, stall_rms
 
 __all__ = ["attempt", "guarded", "multistart", "best_run", "run_rms", "in_range"]

@@ -11,13 +11,14 @@ import numpy as np
 
 from ..runtime.arrays import device_array
 from . import attempt as at
-from .fit_plan import Plan, recoordinate, shooting
+from .fit_options import Method, ShootingMode
+from .fit_plan import recoordinate, shooting
 from .motion_start import motion_start
 from .outcome import Run
 from .problem import Problem
 from .programs import jacobian_at
-from .request import FitRequest, Method, ShootingMode
-from .stages import FitState, Shooting
+from .request import FitRequest
+from .stages import FitState, Plan, Shooting
 from .strategy import far_from_noise, noise_unit, record_segments
 
 __all__ = ["optimize_fit", "ESCALATION_STARTS", "ESCALATION_ITERATIONS", "REPRODUCED",

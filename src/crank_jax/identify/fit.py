@@ -190,10 +190,10 @@ def fit(
       log-parameters by a factor `exp(N(0, 0.5^2))`); the lowest-cost converged start
       wins (if none converged, the lowest-cost one, and the warnings say so).
     - `seed`: seed of the multistart perturbations.
-    - `max_steps`: iteration budget per start, 1 to `request.MAX_ITERATIONS` (default
+    - `max_steps`: iteration budget per start, 1 to `fit_options.MAX_ITERATIONS` (default
       100 for LM, 2000 for optax).
     - `tol`: relative and absolute tolerance of the optimiser's termination test.
-    - `sigma`: the noise standard deviation (rad) if known, within `request.SIGMA_RANGE`;
+    - `sigma`: the noise standard deviation (rad) if known, within `fit_options.SIGMA_RANGE`;
       default: from the residuals.
     - `profile`: a reported name whose profile likelihood to compute.
     - `window`: `(t_start, t_end)`, s: fit only the samples in it (either end None: open),

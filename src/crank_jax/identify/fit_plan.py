@@ -17,14 +17,14 @@ import numpy as np
 from ..model.outputs import SI_UNITS
 from ..runtime.arrays import device_array
 from ..solve.adjoints import ForwardSensitivities
-from ..solve.solvers import AbstractSolver
 from . import channel_noise as ch
 from .angle import motion_period
-from .physical import Ranges, load_scale, ranges
+from .fit_options import ShootingMode
+from .physical import load_scale, ranges
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at
-from .request import LOAD_NAMES, STATE_NAMES, FitRequest, ShootingMode
-from .stages import Shooting
+from .request import LOAD_NAMES, STATE_NAMES, FitRequest
+from .stages import Plan, Shooting
 from .start import half_window, noise_level, observed_period, regressor_start, smooth_derivatives
 from .strategy import (
     MAX_ODE_STEPS,
@@ -38,30 +38,8 @@ from .strategy import (
 )
 from .uncertainty import RANK_TOL
 
-__all__ = ["Plan", "make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
+__all__ = ["make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
            "recoordinate", "recoordinate_basis", "single_problem"]
-
-
-@dataclasses.dataclass(frozen=True)
-class Plan:
-    """What the fit works with, once the start solve has been looked at (frozen: a later
-    stage that changes the weights makes a new plan, see `dataclasses.replace`)."""
-
-    single: Problem  # single shooting, with the fit's step budget
-    shoot: Problem  # the problem optimised (multiple shooting, or `single`)
-    z0: np.ndarray  # start coordinates of `shoot`
-    Bg: np.ndarray  # (p, q) basis of the global directions optimised (flat ones held)
-    start: dict  # start value of every reported name
-    noise: float  # the records' noise level, rad
-    periods: list  # each record's cycle, s: its observed period, or the time of a turn
-    # for a crank that turns (None: neither), once planned
-    notes: tuple[str, ...]
-    shooting: Shooting  # as planned (the escalation may win with another)
-    start_g: dict  # start values of the global names
-    states: list  # start state of each record
-    solver: AbstractSolver  # the ODE solver of every solve (`pick_solver`'s)
-    abort: str | None = None
-    ranges: Ranges | None = None  # the estimates' physical range (None: not judged)
 
 
 def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:

@@ -9,7 +9,6 @@ one `ValueError` naming the field and the fix, before a single ODE is solved.
 from __future__ import annotations
 
 import dataclasses
-import enum
 import functools
 import hashlib
 import math
@@ -27,12 +26,12 @@ from ..records.load_by import loads_by
 from ..records.sensors import OFFSET_NAMES
 from ..scene import Scene
 from ..sweep.distributions import MAX_SEED
+from .fit_options import Method, ShootingMode, check_options
 from .userforce import force_names, force_starts
 
 __all__ = ["FitRequest", "normalize", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
-           "SIGNED_FIELDS", "FRICTION_SCALED", "MAX_ITERATIONS", "SIGMA_RANGE", "free_names",
-           "load_param", "reported_names", "window_data", "record_mech", "record_loads",
-           "Method", "ShootingMode"]
+           "SIGNED_FIELDS", "FRICTION_SCALED", "free_names",
+           "load_param", "reported_names", "window_data", "record_mech", "record_loads"]
 
 STATE_NAMES = ("phi0", "dphi0")
 #: Load parameters that can be free, name -> (side, role), from the one load table
@@ -49,33 +48,6 @@ FRICTION_SCALED = ("c_s", "T_c", "F_s")
 #: every other field is >= 0, and r, L strictly positive.
 SIGNED_FIELDS = frozenset(PARAM_SIGNED_FIELDS)
 _STRICTLY_POSITIVE = frozenset({"r", "L"})
-#: Largest iteration budget per start (`max_steps`): far beyond any fit that converges
-#: (tens to hundreds of iterations), and small enough for every integer type it meets.
-MAX_ITERATIONS = 1_000_000
-#: Range of a given noise level `sigma`, rad: outside it, its square (the variance of the
-#: Laplace covariance) under- or overflows, and no angle record has such a noise.
-SIGMA_RANGE = (1e-12, 1e6)
-
-
-class Method(enum.StrEnum):
-    """`fit(method=)`: the optimiser (see [`fit`][crank_jax.identify.fit]'s notes)."""
-
-    LM = "lm"  # Levenberg-Marquardt over the residuals and their Jacobian
-    OPTAX = "optax"  # Adam, then L-BFGS, on reverse-mode gradients
-
-
-class ShootingMode(enum.StrEnum):
-    """`fit(shooting=)`: judged from the record (`AUTO`, which may escalate), or as asked."""
-
-    AUTO = "auto"
-    SINGLE = "single"
-    MULTIPLE = "multiple"
-
-
-_METHODS = tuple(m.value for m in Method)
-_SHOOTING = tuple(m.value for m in ShootingMode)
-
-
 def free_names() -> tuple[str, ...]:
     """Every name that can be free: the mechanism fields (read from `FIELDS`, so new
     fields can be free as soon as the model has them), the load amplitudes, the channels'
@@ -212,28 +184,6 @@ def _check_scenes(scenes: list[Scene]) -> None:
             if not np.array_equal(np.asarray(a), np.asarray(b)):
                 raise ValueError(f"scene {i} has {n} = {a}, scene 0 has {b}: the scenes of a "
                                  "multi-record fit must share the solver settings")
-
-
-def _check_options(method, shooting, segments, multistart, max_steps, tol, sigma) -> None:
-    if not isinstance(method, str) or method not in _METHODS:
-        raise ValueError(f"method must be 'lm' or 'optax', got {method!r}")
-    if not isinstance(shooting, str) or shooting not in _SHOOTING:
-        raise ValueError(f"shooting must be 'auto', 'single' or 'multiple', got {shooting!r}")
-    if segments is not None and (segments < 1 or shooting == "single" and segments > 1):
-        raise ValueError(f"segments = {segments} is not valid with shooting={shooting!r}")
-    if multistart < 1:
-        raise ValueError(f"multistart must be >= 1, got {multistart}")
-    if max_steps is not None and not 1 <= max_steps <= MAX_ITERATIONS:
-        raise ValueError(f"max_steps must be an integer from 1 to {MAX_ITERATIONS}, got "
-                         f"{max_steps}")
-    if not (math.isfinite(tol) and tol > 0):
-        raise ValueError(f"tol must be a positive number, got {tol}")
-    for name, v in (sigma.items() if isinstance(sigma, dict) else [("", sigma)]):
-        if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool)
-                                  and SIGMA_RANGE[0] <= v <= SIGMA_RANGE[1]):
-            raise ValueError(f"sigma{' of ' + name if name else ''} must be a noise level "
-                             f"from {SIGMA_RANGE[0]:g} to {SIGMA_RANGE[1]:g} (the channel's "
-                             f"SI unit{'' if name else ', rad for an angle'}), got {v}")
 
 
 def _check_window(window) -> tuple[float, float] | None:
@@ -379,7 +329,7 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
         raise ValueError(f"`free=` names unknown parameter(s) {unknown}; choose from "
                          f"{list(known)}" if unknown
                          else "`free=` must name at least one parameter")
-    _check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
+    check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
     if (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
             or not 0 <= seed <= MAX_SEED):
         raise ValueError(f"`seed=` must be an integer from 0 to {MAX_SEED}, got {seed!r}")

@@ -1,7 +1,8 @@
 """The fit as immutable stages: what each stage of [`fit`][crank_jax.identify.fit.fit]
 hands the next.
 
-    request -> plan -> FitState -> optimise (escalate) -> reweight -> result
+    request -> Plan (fit_plan.make_plan) -> FitState -> optimise (escalate) -> reweight
+    -> result
 
 Each stage takes a frozen value and returns a new one; none changes what it was given.
 [`Shooting`][] is how the optimised problem is shot and which start won: the result's
@@ -11,14 +12,16 @@ Each stage takes a frozen value and returns a new one; none changes what it was 
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:  # (annotations only: the plan and the request sit above this module)
-    from .fit_plan import Plan
-    from .outcome import Run
-    from .request import FitRequest
+import numpy as np
 
-__all__ = ["Shooting", "FitState"]
+from ..solve.solvers import AbstractSolver
+from .outcome import Run
+from .physical import Ranges
+from .problem import Problem
+from .request import FitRequest
+
+__all__ = ["Shooting", "Plan", "FitState"]
 
 #: `Shooting.kind`: refused before any solve, one shot per record, or segments.
 KINDS = ("none", "single", "multiple")
@@ -64,6 +67,28 @@ class Shooting:
     def won_by(self, start: str) -> Shooting:
         """This shooting, with `start` (words) the start that won."""
         return dataclasses.replace(self, starts=(*self.starts, start))
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """What the fit works with, once the start solve has been looked at (frozen: a later
+    stage that changes the weights makes a new plan, see `dataclasses.replace`)."""
+
+    single: Problem  # single shooting, with the fit's step budget
+    shoot: Problem  # the problem optimised (multiple shooting, or `single`)
+    z0: np.ndarray  # start coordinates of `shoot`
+    Bg: np.ndarray  # (p, q) basis of the global directions optimised (flat ones held)
+    start: dict  # start value of every reported name
+    noise: float  # the records' noise level, rad
+    periods: list  # each record's cycle, s: its observed period, or the time of a turn
+    # for a crank that turns (None: neither), once planned
+    notes: tuple[str, ...]
+    shooting: Shooting  # as planned (the escalation may win with another)
+    start_g: dict  # start values of the global names
+    states: list  # start state of each record
+    solver: AbstractSolver  # the ODE solver of every solve (`pick_solver`'s)
+    abort: str | None = None
+    ranges: Ranges | None = None  # the estimates' physical range (None: not judged)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from .request import ShootingMode
+from .fit_options import ShootingMode
 
 __all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "BLIND_DRIFT", "MAX_ODE_STEPS",
            "SMALL_ODE_BUDGET",
