@@ -15,8 +15,10 @@ from crank_jax.identify import attempt as attempt_module
 from crank_jax.identify import escalation as esc_module
 from crank_jax.identify import fit as fit_module
 from crank_jax.identify import optimize
+from crank_jax.identify.fit_options import Method, ShootingMode
 from crank_jax.identify.optimize import DECREASE_FRACTION, STEP_FRACTION, least_squares
 from crank_jax.identify.outcome import Run
+from crank_jax.identify.stages import FitState, Shooting
 
 
 class _View:
@@ -109,17 +111,17 @@ def _plan_and_request(noise):
     single = types.SimpleNamespace(n_residuals=100)
     shoot = types.SimpleNamespace(names=("a",), log=(True,), folded=(False,))
     plan = types.SimpleNamespace(single=single, shoot=shoot, z0=np.zeros(1),
-                                 periods=[1.0], noise=noise, strategy="multiple shooting",
-                                 ranges=None)
-    req = types.SimpleNamespace(shooting="auto", segments=None, method="lm", multistart=1,
-                                seed=0, sigma=None, records=[])
-    return plan, req
+                                 periods=[1.0], noise=noise,
+                                 shooting=Shooting("multiple", (2,)), ranges=None)
+    req = types.SimpleNamespace(shooting=ShootingMode.AUTO, segments=None, method=Method.LM,
+                                multistart=1,
+                                seed=0, sigma=None, records=[], known_sigma=None,
+                                unit="rad")
+    return FitState(req, plan, None, 0, (), plan.shooting)
 
 
 @pytest.fixture
 def stubbed(monkeypatch):
-    monkeypatch.setattr(fit_module.ch, "known_sigma", lambda req: None)
-    monkeypatch.setattr(fit_module.ch, "first_unit", lambda req: "rad")
     monkeypatch.setattr(esc_module, "_motion_point", lambda req, plan: None)
     monkeypatch.setattr(attempt_module, "perturb", lambda z, names, log, rng, folded=None: z)
     monkeypatch.setattr(esc_module, "_in_shoot", lambda plan, z: z)
@@ -136,8 +138,8 @@ def test_escalation_ends_once_a_second_start_reaches_the_same_minimum(stubbed):
     cost = 0.5 * 100 * (20 * noise) ** 2
     stubbed.setattr(attempt_module, "attempt", _stub([cost, cost + 0.1 * noise**2, cost,
                                                   cost, cost], calls))
-    plan, req = _plan_and_request(noise)
-    best, iterations, notes = esc_module.optimize_fit(req, plan)
+    out = esc_module.optimize_fit(_plan_and_request(noise))
+    best, iterations, notes = out.best, out.iterations, out.notes
     assert len(calls) == 2 and iterations == 20
     assert best.cost == cost
     assert any("reached from more than one start" in n for n in notes), notes
@@ -148,8 +150,8 @@ def test_escalation_goes_on_while_each_start_finds_a_new_minimum(stubbed):
     noise = 0.01
     costs = [0.5 * 100 * (k * noise) ** 2 for k in (20, 18, 16, 14, 12)]
     stubbed.setattr(attempt_module, "attempt", _stub(costs, calls))
-    plan, req = _plan_and_request(noise)
-    best, _, notes = esc_module.optimize_fit(req, plan)
+    out = esc_module.optimize_fit(_plan_and_request(noise))
+    best, notes = out.best, out.notes
     assert len(calls) == 5 and best.cost == costs[-1]
     assert not any("more than one start" in n for n in notes)
 
@@ -201,7 +203,8 @@ def test_a_polished_run_takes_the_polish_verdict(stubbed):
     stubbed.setattr(attempt_module, "recoordinate_basis", lambda *args: np.eye(2))
     stubbed.setattr(attempt_module, "Subspace", lambda *args: None)
     stubbed.setattr(attempt_module, "InValues", _Shifted)
-    plan, req = _plan_and_request(0.01)
+    state = _plan_and_request(0.01)
+    plan, req = state.plan, state.req
     plan.Bg, req.tol, req.max_steps, req.progress = np.eye(2), 1e-8, 100, False
     run = attempt_module.attempt(req, plan, plan.shoot, np.zeros(2), np.zeros(2), "fit")
     assert run.converged and run.message == "converged" and run.iterations == 37
@@ -239,7 +242,8 @@ def _at_the_bound(stubbed, grad_sign):
     stubbed.setattr(attempt_module, "guarded", guarded)
     stubbed.setattr(attempt_module, "jacobian_at", jacobian_at)
     stubbed.setattr(attempt_module, "InValues", _Shifted)
-    plan, req = _plan_and_request(0.01)
+    state = _plan_and_request(0.01)
+    plan, req = state.plan, state.req
     plan.single = types.SimpleNamespace(p=2, n_global=2, folded=(True, False))
     plan.Bg, req.tol, req.max_steps, req.progress = np.eye(2), 1e-8, 100, False
     stalled = Run(np.array([1e-7, 0.3]), 5.0, 60, False, "stalled: ...")

@@ -333,12 +333,12 @@ def test_no_motion_words_agree_with_the_numbers_on_a_short_record():
 
 
 def test_superseded_notes_no_longer_say_none_converged_alone():
-    from crank_jax.identify.channel_noise import _superseded
+    from crank_jax.identify.reweight import superseded
 
     notes = ["the single shooting fit did not converge; tried x; the result is y (rms 1 rad, "
              "the lowest-cost try: none converged)", "none of the 3 starts converged; z",
              "other"]
-    _superseded(notes)
+    notes = list(superseded(tuple(notes)))
     assert all("the refit from that try converged" in n for n in notes[:2])
     assert notes[2] == "other"
 
@@ -348,10 +348,10 @@ def test_a_converged_fit_reports_each_channels_residual_level(monkeypatch):
     # record is the noise's, its residuals' is the misfit's. With the refits stopped
     # before the levels settled (none here), the report gave the stale level and the
     # uncertainty weighted by it.
-    import crank_jax.identify.channel_noise as ch
+    import crank_jax.identify.reweight as rw
     from crank_jax.records.sensors import Sensor
 
-    monkeypatch.setattr(ch, "REWEIGHT_ROUNDS", 0)
+    monkeypatch.setattr(rw, "REWEIGHT_ROUNDS", 0)
     scene = dataclasses.replace(cj.load_scene("lab-rig"),
                                 sensors=(Sensor("phi"), Sensor("x_s")), t1=1.5)
     rec = cj.synthesize(scene, rate=100, noise_std={"phi": 1e-3, "x_s": 2e-5}, seed=2)

@@ -37,7 +37,7 @@ def parse_sigma(values: list[str] | None, option: str = "--sigma", zero: bool = 
     """`--sigma` texts -> the fit's `sigma`: one bare VALUE is the first channel's (rad for
     an angle); NAME=VALUE gives a channel's, in its SI unit. `zero`: 0 is allowed (a
     noise level to synthesise)."""
-    from ..identify.request import SIGMA_RANGE
+    from ..identify.fit_options import SIGMA_RANGE
     from ..records.sensors import CHANNELS
 
     if not values:

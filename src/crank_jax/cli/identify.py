@@ -220,7 +220,7 @@ def _per_record(a: argparse.Namespace) -> tuple[str, ...]:
 def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
     """The keyword arguments of `fit` from the options, every one checked (with `scene`,
     the free names against it too)."""
-    from ..identify.request import MAX_ITERATIONS
+    from ..identify.fit_options import MAX_ITERATIONS
 
     free = free_list(a.free)
     if scene is not None:

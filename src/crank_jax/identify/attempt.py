@@ -15,14 +15,15 @@ import numpy as np
 from ..runtime.arrays import device_array
 from ..runtime.xla_flags import backward_program
 from ..solve.adjoints import DiscreteAdjoint
-from . import channel_noise as ch
-from .fit_plan import Plan, basis, recoordinate, recoordinate_basis
+from .fit_options import Method
+from .fit_plan import basis, recoordinate, recoordinate_basis
 from .optax_fit import minimize_optax
 from .optimize import least_squares
 from .outcome import Run, termination
 from .problem import Problem
 from .programs import InValues, Subspace, jacobian_at
 from .request import FitRequest
+from .stages import Plan
 from .strategy import AT_ZERO, noise_unit, perturb, stall_rms
 
 __all__ = ["attempt", "guarded", "multistart", "best_run", "run_rms", "in_range"]
@@ -39,7 +40,7 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
                                                         recoordinate(shoot, ss, z0))
     B = basis(Bg, z0.shape[0])
     # Gradient methods: reverse mode, its backward program chosen here, at the edge.
-    problem = shoot if req.method == "lm" else dataclasses.replace(
+    problem = shoot if req.method is Method.LM else dataclasses.replace(
         shoot, adjoint=DiscreteAdjoint(backward=backward_program()))
     run_fn = _optimizer(req, plan)
     run = guarded(run_fn, Subspace(problem, device_array(z0), device_array(B)),
@@ -50,7 +51,7 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
     zp = recoordinate(shoot, ss, run.z)
     if not np.isfinite(run.cost):
         return run._replace(z=zp)
-    pol = _single_from(run_fn if req.method == "lm" else least_squares, req, ss, zp,
+    pol = _single_from(run_fn if req.method is Method.LM else least_squares, req, ss, zp,
                        np.asarray(plan.Bg), desc + " (polish)")
     # The estimate is the polish's, on the single-shooting cost: whether it converged is
     # the polish's verdict (multiple shooting only brought it near; its own stall on the
@@ -90,9 +91,9 @@ def _optimizer(req: FitRequest, plan: Plan):
     """The optimiser of `req`: LM with its tests judged in the data's units (the
     residuals' noise level; a stall counts as convergence only near that level), or
     optax's."""
-    if req.method != "lm":
+    if req.method is not Method.LM:
         return minimize_optax
-    sigma = ch.known_sigma(req)
+    sigma = req.known_sigma
     return functools.partial(least_squares, stall_rms=stall_rms(plan.noise, sigma),
                              noise=noise_unit(plan.noise, sigma), at_bounds=True)
 
@@ -114,7 +115,7 @@ def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
     all of them. Otherwise the point on the bound is a constrained minimum (its verdict
     the held run's). The run reported is the best of these (converged first, then
     cost); its iterations are all of them."""
-    if run.converged or req.method != "lm" or not np.isfinite(run.cost):
+    if run.converged or req.method is not Method.LM or not np.isfinite(run.cost):
         return run
     ss = plan.single
     z = np.asarray(run.z[:ss.p], dtype=float)

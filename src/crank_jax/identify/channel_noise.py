@@ -1,5 +1,6 @@
-"""A fit's channels: the crank angle they tell, their noise levels, the reweighting of
-their residuals by the levels found, and the per-channel report.
+"""A fit's channels: the crank angle they tell, their noise levels, their residuals'
+weights by the levels found (the refits that find them are
+[`reweight`][crank_jax.identify.reweight]'s), and the per-channel report.
 
 Residuals are in the first channel's unit: a channel's are weighted by the first
 channel's noise level over its own, so every channel counts by its noise. Unknown levels
@@ -28,15 +29,13 @@ from .request import FitRequest
 from .start import half_window, noise_level, smooth_derivatives
 from .uncertainty import channel_rows
 
-__all__ = ["channel_angles", "channel_sigmas", "model_angles", "known_sigma", "first_channel",
-           "reweighted", "reweight", "unknown_levels", "new_levels", "channel_report",
-           "residual_levels", "with_channels", "first_unit", "angle_records", "segment_states",
-           "REWEIGHT_TOLERANCE", "REWEIGHT_ROUNDS"]
+__all__ = ["channel_angles", "channel_sigmas", "model_angles",
+           "reweighted", "unknown_levels", "new_levels", "channel_report",
+           "residual_levels", "with_channels", "angle_records", "segment_states",
+           "REWEIGHT_TOLERANCE"]
 
 #: Refit while a channel's estimated noise level moves by more than this factor.
 REWEIGHT_TOLERANCE = 1.25
-#: At most this many refits.
-REWEIGHT_ROUNDS = 3
 
 
 def model_angles(req: FitRequest, ss: Problem, r) -> list[np.ndarray]:
@@ -49,13 +48,6 @@ def model_angles(req: FitRequest, ss: Problem, r) -> list[np.ndarray]:
         est = angle_estimate(model, req.scene.mech, _direction(st), float(a[0]))
         out.append(a if est is None or not np.all(np.isfinite(est)) else est)
     return out
-
-
-def first_unit(req: FitRequest) -> str:
-    """The SI unit of the first channel, the unit of the fit's residuals."""
-    from ..model.outputs import SI_UNITS
-
-    return SI_UNITS[first_channel(req)]
 
 
 def with_channels(req: FitRequest) -> FitRequest:
@@ -94,7 +86,7 @@ def channel_sigmas(req: FitRequest) -> dict[str, float]:
     records)."""
     given = dict(req.sigma) if isinstance(req.sigma, dict) else {}
     if req.sigma is not None and not isinstance(req.sigma, dict):
-        given[first_channel(req)] = float(req.sigma)
+        given[req.first_channel] = float(req.sigma)
     out: dict[str, float] = {}
     for d in req.records:
         for s, y in d.outputs():
@@ -105,19 +97,6 @@ def channel_sigmas(req: FitRequest) -> dict[str, float]:
     return out
 
 
-
-
-def known_sigma(req: FitRequest) -> float | None:
-    """The noise level of the weighted residuals (the first channel's unit) when every
-    channel's is given, else None (estimated from the residuals)."""
-    names = {s.name for d in req.records for s, _ in d.outputs()}
-    if isinstance(req.sigma, dict):
-        return req.sigmas[first_channel(req)] if names <= set(req.sigma) else None
-    return float(req.sigma) if req.sigma is not None and len(names) == 1 else None
-
-
-def first_channel(req: FitRequest) -> str:
-    return req.records[0].outputs()[0][0].name
 
 
 def residual_levels(ss: Problem, r: np.ndarray) -> dict[str, float]:
@@ -140,7 +119,7 @@ def unknown_levels(req: FitRequest) -> list[str]:
     """The channels whose noise level the fit estimates (not given)."""
     names = list(dict.fromkeys(s.name for d in req.records for s, _ in d.outputs()))
     given = set(req.sigma) if isinstance(req.sigma, dict) else (
-        {first_channel(req)} if req.sigma is not None else set())
+        {req.first_channel} if req.sigma is not None else set())
     return [n for n in names if n not in given]
 
 
@@ -180,65 +159,6 @@ def channel_report(ss: Problem, r: np.ndarray, sigmas: dict[str, float], converg
                      "sigma": float(sigmas[name]), "n_samples": int(rows.shape[0]),
                      "ljung_box_p": p, "unit": SI_UNITS[name]}
     return out
-
-
-def reweight(req: FitRequest, plan, best, iterations: int, notes: list, attempt):
-    """Refit by single shooting from the estimate `best` (a `Run`) while the channels'
-    noise levels, from the residuals, move (see the module); `attempt(req, plan, problem,
-    z0, zk, label)` is the fit's one optimisation, and `plan` takes the last weights.
-    **Returns:** `(req, best, iterations)`."""
-    converged_before = best.converged
-    for _ in range(REWEIGHT_ROUNDS):
-        if not (np.isfinite(best.cost) and np.all(np.isfinite(best.z))):
-            break
-        z = best.z[:plan.single.p]
-        levels = new_levels(req, plan.single, z)
-        if levels is None:
-            break
-        req = dataclasses.replace(req, sigmas=levels)
-        plan.single = reweighted(plan.single, levels)
-        plan.noise = levels[first_channel(req)]
-        run = attempt(req, plan, plan.single, z, z, "fit (channels reweighted)")
-        iterations += run.iterations
-        if np.isfinite(run.cost):
-            best = run
-    if best.converged and not converged_before:
-        _superseded(notes)
-    if best.converged and np.all(np.isfinite(best.z)):
-        req = _settle(req, plan, best, notes)
-    if len(req.sigmas) > 1:
-        notes.append("channel noise levels: " + ", ".join(
-            f"{n} {v:.3g}" for n, v in req.sigmas.items()) + " (SI; "
-            + ("given" if not unknown_levels(req) else "estimated from the residuals")
-            + "); each channel's residuals are weighted by them")
-    return req, best, iterations
-
-
-def _settle(req: FitRequest, plan, best, notes: list) -> FitRequest:
-    """A converged fit's channels weighted, for its uncertainty and report, by the levels
-    of its own final residuals where the refits stopped before those settled: the level a
-    channel reports is then its residuals' (a stale level 35x its residuals' made k's
-    standard error 35x too wide). **Returns:** `req` with those levels; `plan` takes them."""
-    levels = new_levels(req, plan.single, best.z[:plan.single.p])
-    if levels is None:
-        return req
-    moved = [f"{n} {req.sigmas[n]:.3g} -> {levels[n]:.3g}" for n in levels
-             if levels[n] != req.sigmas[n]]
-    notes.append(f"the channels' noise levels had not settled after {REWEIGHT_ROUNDS} refits "
-                 f"({', '.join(moved)}, SI): the uncertainty weights each channel by its "
-                 "final residuals' level")
-    plan.single = reweighted(plan.single, levels)
-    plan.noise = levels[first_channel(req)]
-    return dataclasses.replace(req, sigmas=levels)
-
-
-def _superseded(notes: list) -> None:
-    """Qualify, in place, the notes saying that no try converged, once a refit with the
-    channels reweighted did: one run never says both "converged" and "none converged"."""
-    for i, note in enumerate(notes):
-        if "none converged" in note or note.startswith("none of the"):
-            notes[i] = (f"{note}; with the channels then reweighted by their residuals' "
-                        "levels, the refit from that try converged: the result is that refit")
 
 
 def angle_records(req: FitRequest) -> list[tuple[Data, object, object]]:

@@ -11,13 +11,14 @@ import numpy as np
 
 from ..runtime.arrays import device_array
 from . import attempt as at
-from . import channel_noise as ch
-from .fit_plan import Plan, recoordinate, shooting
+from .fit_options import Method, ShootingMode
+from .fit_plan import recoordinate, shooting
 from .motion_start import motion_start
 from .outcome import Run
 from .problem import Problem
 from .programs import jacobian_at
 from .request import FitRequest
+from .stages import FitState, Plan, Shooting
 from .strategy import far_from_noise, noise_unit, record_segments
 
 __all__ = ["optimize_fit", "ESCALATION_STARTS", "ESCALATION_ITERATIONS", "REPRODUCED",
@@ -41,7 +42,7 @@ PROGRESS = 1.0
 
 
 
-def optimize_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
+def optimize_fit(state: FitState) -> FitState:
     """The planned optimisation(s), escalated when they stall far from the noise level:
     multiple shooting (one segment per two observed periods), then a second start (the
     motion's, or the scene's when the first was the motion's), then more starts.
@@ -63,9 +64,12 @@ def optimize_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
     [`ESCALATION_ITERATIONS`][]). Iterations and costs, never wall time, decide, so the
     same fit does the same tries, and reports the same result, on any machine.
 
-    **Returns:** the best run, the total iterations, notes."""
+    **Returns:** `state` with the best run, the iterations of every try, the notes and the
+    shooting that won."""
+    req, plan = state.req, state.plan
     n = plan.single.n_residuals
-    escalate = (req.shooting == "auto" and req.segments is None and req.method == "lm"
+    escalate = (req.shooting is ShootingMode.AUTO and req.segments is None
+                and req.method is Method.LM
                 and any(p is not None for p in plan.periods))
     # (Solved only where it is used: it compiles the equation of motion's program.)
     early = escalate and req.multistart == 1 and plan.shoot is not plan.single
@@ -87,8 +91,8 @@ def optimize_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
         notes.append(f"multistart: {sum(r.converged for r, _ in runs)} of {req.multistart} "
                      f"starts converged; {distinct} ended at a higher cost than the best")
     first = at.best_run(runs)[0]
-    tried = []
-    unit2 = noise_unit(plan.noise, ch.known_sigma(req)) ** 2
+    tried, escalated = [], None
+    unit2 = noise_unit(plan.noise, req.known_sigma) ** 2
 
     def go_on():
         best = at.best_run(runs)[0]
@@ -99,7 +103,8 @@ def optimize_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
         nseg = [record_segments(float(d.ts[-1] - d.ts[0]), p)
                 for d, p in zip(req.records, plan.periods)]
         ms, z0 = shooting(req, plan, nseg)
-        label = f"multiple shooting ({'+'.join(map(str, nseg))} segments)"
+        escalated = Shooting("multiple", tuple(nseg))
+        label = escalated.label
         runs += [(r, lab) for r, lab in at.multistart(req, plan, ms, z0, 1, req.seed, label)]
         tried.append(label)
     if escalate and req.multistart == 1 and not moved_first and go_on():
@@ -113,8 +118,9 @@ def optimize_fit(req: FitRequest, plan: Plan) -> tuple[Run, int, list[str]]:
             tried.append(runs[-1][1])
     if escalate and req.multistart == 1 and go_on():
         tried.append(_hop(req, plan, runs))
-    best = _conclude(req, plan, runs, first, tried, moved_first, notes)
-    return best, sum(r.iterations for r, _ in runs), notes
+    best, won = _conclude(req, plan, runs, first, tried, moved_first, notes, escalated)
+    return state.but(best=best, iterations=sum(r.iterations for r, _ in runs),
+                     notes=(*state.notes, *notes), shooting=won)
 
 
 def _hop(req: FitRequest, plan: Plan, runs: list) -> str:
@@ -124,7 +130,7 @@ def _hop(req: FitRequest, plan: Plan, runs: list) -> str:
     minimum, or once they have spent the iterations of the runs before them (at least
     [`ESCALATION_ITERATIONS`][]). **Returns:** what was tried, in words."""
     n = plan.single.n_residuals
-    unit2 = noise_unit(plan.noise, ch.known_sigma(req)) ** 2
+    unit2 = noise_unit(plan.noise, req.known_sigma) ** 2
     budget = max(ESCALATION_ITERATIONS, sum(r.iterations for r, _ in runs))
 
     def enough(done):
@@ -142,13 +148,16 @@ def _hop(req: FitRequest, plan: Plan, runs: list) -> str:
 
 
 def _conclude(req: FitRequest, plan: Plan, runs, first: Run, tried: list[str],
-              moved_first: bool, notes: list[str]) -> Run:
-    """The run to report among `runs`; says in `notes` what the escalation tried and why,
-    and names the winning start in `plan.strategy`."""
+              moved_first: bool, notes: list[str], escalated: Shooting | None
+              ) -> tuple[Run, Shooting]:
+    """The run to report among `runs`, and the shooting that won (`escalated`: that of the
+    escalation to multiple shooting, if tried); says in `notes` what the escalation tried
+    and why."""
+    shot = plan.shooting
     n = plan.single.n_residuals
-    unit2 = noise_unit(plan.noise, ch.known_sigma(req)) ** 2
+    unit2 = noise_unit(plan.noise, req.known_sigma) ** 2
     best, label = at.best_run(runs)
-    unit = ch.first_unit(req)  # the residuals are in the first channel's unit
+    unit = req.unit  # the residuals are in the first channel's unit
     if tried:
         won = "the first attempt" if best is first else label
         why = "did not converge" if not first.converged else (
@@ -156,7 +165,7 @@ def _conclude(req: FitRequest, plan: Plan, runs, first: Run, tried: list[str],
             f"level ({plan.noise:.3g} {unit})" if _stalled(first, n, plan, req) else
             f"converged at rms {at.run_rms(first, n):.3g} {unit}, far above the record's noise "
             f"level ({plan.noise:.3g} {unit})")
-        notes.append(f"the {plan.strategy} fit {why}; tried {' and '.join(tried)}; the "
+        notes.append(f"the {plan.shooting.label} fit {why}; tried {' and '.join(tried)}; the "
                      f"result is {won} (rms {at.run_rms(best, n):.3g} {unit}"
                      + (", the lowest-cost converged try)" if best.converged
                         else ", the lowest-cost try: none converged)"))
@@ -166,14 +175,14 @@ def _conclude(req: FitRequest, plan: Plan, runs, first: Run, tried: list[str],
                          "minimum of one start; the misfit above the noise level is the "
                          "model's (see the residuals' whiteness)")
         if best is not first:
-            plan.strategy = (label if label.startswith("multiple")
-                             else f"{plan.strategy}, {label}")
+            shot = (escalated if escalated is not None and label == escalated.label
+                    else shot.won_by(label))
     elif len(runs) > 1 and not best.converged:
         notes.append(f"none of the {len(runs)} starts converged; the result is the "
                      f"lowest-cost one ({label}, rms {at.run_rms(best, n):.3g} {unit})")
     if moved_first and best is first:
-        plan.strategy = f"{plan.strategy}, a start from the motion"
-    return best
+        shot = shot.won_by("a start from the motion")
+    return best, shot
 
 
 def _reproduced(runs, unit2: float) -> bool:
@@ -238,4 +247,4 @@ def _from_point(req: FitRequest, plan: Plan, zk: np.ndarray, label: str
 
 
 def _stalled(run: Run, n: int, plan: Plan, req: FitRequest) -> bool:
-    return not run.converged or far_from_noise(at.run_rms(run, n), plan.noise, ch.known_sigma(req))
+    return not run.converged or far_from_noise(at.run_rms(run, n), plan.noise, req.known_sigma)

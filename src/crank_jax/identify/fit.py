@@ -38,7 +38,6 @@ from ..records.data import Data
 from ..runtime.blas import one_blas_thread
 from ..scene import Scene
 from . import channel_noise as ch
-from .attempt import attempt
 from .escalation import optimize_fit
 from .fit_plan import make_plan
 from .fit_result import (
@@ -52,6 +51,8 @@ from .measurement import fitted_channels
 from .outcome import Run, termination
 from .profile import hessian_disagreement, profile_likelihood
 from .request import free_names, normalize
+from .reweight import reweight
+from .stages import FitState
 from .start import regressor_start
 from .strategy import (
     AUTO_PERIODS,
@@ -77,7 +78,9 @@ def _all_tries(message: str, term: dict, own: int, total: int, max_steps: int):
     return message + extra, {**term, "words": term["words"] + extra}
 
 
-def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
+def _result(state: FitState, t_begin: float) -> FitResult:
+    """The result stage: the estimate's uncertainty, verdicts, profile and report."""
+    req, plan, best, iterations = state.req, state.plan, state.best, state.iterations
     ss = plan.single
     # (`plan.z0` may be multiple shooting's coordinates; the start values are not.)
     z_hat = (best.z[:ss.p] if np.all(np.isfinite(best.z))
@@ -87,7 +90,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         r_hat, values = ss.no_residuals(), ss.host_values(z_hat)
         rms, unc, more, diag = float("nan"), undefined(ss.p, "did not converge"), [], None
     else:
-        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, ch.known_sigma(req))
+        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, req.known_sigma)
     term = best.termination
     if converged and not math.isfinite(rms):
         converged, message = False, "the ODE solve fails at the final estimate"
@@ -97,7 +100,7 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
     elif term is None:  # the optax method, or a failure outside LM's loop
         term = termination("converged" if converged else "failed", message)
     message, term = _all_tries(message, term, best.iterations, iterations, req.max_steps)
-    notes = more + notes + plan.notes
+    notes = more + list(state.notes) + list(plan.notes)
     if not converged:
         notes.insert(0, f"fit did not converge: {message}; no standard errors are given")
     prof = None
@@ -128,11 +131,10 @@ def _result(req, plan, best: Run, iterations, notes, t_begin) -> FitResult:
         unidentifiable_directions=list(unc.directions) if converged else [],
         rms_residual=rms, n_samples=int(ss.n_residuals), converged=bool(converged),
         iterations=int(iterations), seconds=time.perf_counter() - t_begin, warnings=notes,
-        message=message, method=req.method,
-        shooting=("multiple" + plan.strategy.split("multiple shooting", 1)[1].split(",")[0]
-                  if plan.strategy.startswith("multiple") else "single"),
+        message=message, method=req.method.value,
+        shooting=state.shooting.mode,
         mech=ss.host_mech(z_hat), data=list(req.records),
-        fitted=ss.fitted(r_hat), profile=prof, strategy=plan.strategy, diagnostics=diag,
+        fitted=ss.fitted(r_hat), profile=prof, strategy=state.shooting.label, diagnostics=diag,
         channels=ch.channel_report(ss, r_hat, req.sigmas, converged),
         fitted_channels=fitted_channels(ss, r_hat), termination=term)
 
@@ -188,10 +190,10 @@ def fit(
       log-parameters by a factor `exp(N(0, 0.5^2))`); the lowest-cost converged start
       wins (if none converged, the lowest-cost one, and the warnings say so).
     - `seed`: seed of the multistart perturbations.
-    - `max_steps`: iteration budget per start, 1 to `request.MAX_ITERATIONS` (default
+    - `max_steps`: iteration budget per start, 1 to `fit_options.MAX_ITERATIONS` (default
       100 for LM, 2000 for optax).
     - `tol`: relative and absolute tolerance of the optimiser's termination test.
-    - `sigma`: the noise standard deviation (rad) if known, within `request.SIGMA_RANGE`;
+    - `sigma`: the noise standard deviation (rad) if known, within `fit_options.SIGMA_RANGE`;
       default: from the residuals.
     - `profile`: a reported name whose profile likelihood to compute.
     - `window`: `(t_start, t_end)`, s: fit only the samples in it (either end None: open),
@@ -231,12 +233,11 @@ def fit(
                     warn=warn, per_record=per_record, force=force, load_by=load_by)
     req = ch.with_channels(req)
     plan = make_plan(req)
-    if plan.abort:
-        best, iterations, notes = Run(plan.z0, float("nan"), 0, False, plan.abort), 0, []
-    else:
-        best, iterations, notes = optimize_fit(req, plan)
-        req, best, iterations = ch.reweight(req, plan, best, iterations, notes, attempt)
-    res = with_wrapped_angles(_result(req, plan, best, iterations, notes, t_begin))
+    state = FitState(req, plan, Run(plan.z0, float("nan"), 0, False, plan.abort or ""), 0,
+                     (), plan.shooting)
+    if not plan.abort:
+        state = reweight(optimize_fit(state))
+    res = with_wrapped_angles(_result(state, t_begin))
     if req.warn:
         if res.identifiable is False:
             warnings.warn("; ".join(res.unidentifiable_directions), IdentifiabilityWarning,

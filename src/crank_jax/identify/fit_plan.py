@@ -17,13 +17,14 @@ import numpy as np
 from ..model.outputs import SI_UNITS
 from ..runtime.arrays import device_array
 from ..solve.adjoints import ForwardSensitivities
-from ..solve.solvers import AbstractSolver
 from . import channel_noise as ch
 from .angle import motion_period
-from .physical import Ranges, load_scale, ranges
+from .fit_options import ShootingMode
+from .physical import load_scale, ranges
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at
 from .request import LOAD_NAMES, STATE_NAMES, FitRequest
+from .stages import Plan, Shooting
 from .start import half_window, noise_level, observed_period, regressor_start, smooth_derivatives
 from .strategy import (
     MAX_ODE_STEPS,
@@ -37,29 +38,8 @@ from .strategy import (
 )
 from .uncertainty import RANK_TOL
 
-__all__ = ["Plan", "make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
+__all__ = ["make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
            "recoordinate", "recoordinate_basis", "single_problem"]
-
-
-@dataclasses.dataclass
-class Plan:
-    """What the fit works with, once the start solve has been looked at."""
-
-    single: Problem  # single shooting, with the fit's step budget
-    shoot: Problem  # the problem optimised (multiple shooting, or `single`)
-    z0: np.ndarray  # start coordinates of `shoot`
-    Bg: np.ndarray  # (p, q) basis of the global directions optimised (flat ones held)
-    start: dict  # start value of every reported name
-    noise: float  # the records' noise level, rad
-    periods: list  # each record's cycle, s: its observed period, or the time of a turn
-    # for a crank that turns (None: neither), once planned
-    notes: list
-    strategy: str
-    start_g: dict  # start values of the global names
-    states: list  # start state of each record
-    solver: AbstractSolver  # the ODE solver of every solve (`pick_solver`'s)
-    abort: str | None = None
-    ranges: Ranges | None = None  # the estimates' physical range (None: not judged)
 
 
 def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
@@ -187,7 +167,7 @@ def make_plan(req: FitRequest) -> Plan:
     # Motion is judged on the angle the channels tell; the fit's residuals and their
     # noise level are in the first channel's unit.
     noises = [noise_level(d.ts, a) for d, a in zip(req.records, req.angles)]
-    noise = req.sigmas[ch.first_channel(req)]
+    noise = req.sigmas[req.first_channel]
     multi = len(req.records) > 1
     quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in
                   ((no_motion(ang, n) or constant_channel(d) or aliased(ang), d)
@@ -203,28 +183,25 @@ def make_plan(req: FitRequest) -> Plan:
         return _aborted(req, start, states, solver, too_far, notes)
     ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
     full_start = {n: float(v) for n, v in zip(ss.names, ss.host_values(z_start))}
-    plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, notes,
-                 "single shooting", start, states, solver,
-                 ranges=ranges(mech_start, req.records, req.angles, periods, start))
+    plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, tuple(notes),
+                Shooting("single"), start, states, solver,
+                ranges=ranges(mech_start, req.records, req.angles, periods, start))
     spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
     # Each record judged by its own solve: one absurd record among good ones is as
     # absurd as alone (the steps of the slowest record against the periods of another
     # let a record of 10^4 turns through).
-    plan.abort = next(((f"record {d.source}: {a}" if multi else a)
-                       for a, d in ((absurd_start(int(n), sp, p, ss.max_steps, _turns(ang)), d)
-                                    for n, sp, p, d, ang in zip(steps0, spans, periods,
-                                                                req.records, req.angles))
-                       if a), None)
-    if plan.abort:
-        return plan
-    if failed0 > 0:
-        plan.abort = "the ODE solve fails at the start values; choose other start values"
-        return plan
-    plan.Bg = _flat_basis(J0)
+    abort = next(((f"record {d.source}: {a}" if multi else a)
+                  for a, d in ((absurd_start(int(n), sp, p, ss.max_steps, _turns(ang)), d)
+                               for n, sp, p, d, ang in zip(steps0, spans, periods,
+                                                           req.records, req.angles))
+                  if a), None)
+    if abort is None and failed0 > 0:
+        abort = "the ODE solve fails at the start values; choose other start values"
+    if abort:
+        return dataclasses.replace(plan, abort=abort)
     budget = ode_budget(int(np.max(steps0)))
     if budget != ss.max_steps:
-        ss = plan.single = _problem(req, start, states, [1] * len(req.records), budget,
-                                    solver)
+        ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
     model = ch.model_angles(req, ss, r0)
     segs = [n_segments(sp, p, observed_period(d.ts, m), req.shooting, req.segments,
                        _turns(a), _turns(m), blind=not any(s.name == "phi"
@@ -232,13 +209,17 @@ def make_plan(req: FitRequest) -> Plan:
             for d, a, sp, p, m in zip(req.records, req.angles, spans, periods, model)]
     # A crank that turns has the time of a turn for its cycle: escalation cuts its
     # record per two turns, as an oscillation's per two periods.
-    plan.periods = [p if p else (sp / t if t >= 1 else None) for p, sp, t in
-                    zip(periods, spans, (_turns(a) for a in req.angles))]
+    plan = dataclasses.replace(
+        plan, single=ss, Bg=_flat_basis(J0),
+        periods=[p if p else (sp / t if t >= 1 else None) for p, sp, t in
+                 zip(periods, spans, (_turns(a) for a in req.angles))])
     if max(s for s, _ in segs) > 1:
-        plan.shoot, plan.z0 = shooting(req, plan, [s for s, _ in segs])
-        plan.strategy = f"multiple shooting ({'+'.join(str(s) for s, _ in segs)} segments)"
-    if req.shooting == "auto" and req.segments is None:
-        plan.notes.append(f"{plan.strategy}: {segs[0][1]}")
+        shoot, z0 = shooting(req, plan, [s for s, _ in segs])
+        plan = dataclasses.replace(plan, shoot=shoot, z0=z0,
+                                   shooting=Shooting("multiple", tuple(s for s, _ in segs)))
+    if req.shooting is ShootingMode.AUTO and req.segments is None:
+        plan = dataclasses.replace(
+            plan, notes=(*plan.notes, f"{plan.shooting.label}: {segs[0][1]}"))
     return plan
 
 
@@ -247,8 +228,8 @@ def _aborted(req, start, states, solver, why: str, notes) -> Plan:
     ss = _problem(req, start, states, [1] * len(req.records), SMALL_ODE_BUDGET, solver)
     z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
     full = {n: float(v) for n, v in zip(ss.names, ss.host_values(z))}
-    return Plan(ss, ss, z, np.eye(ss.p), full, float("nan"), [], notes, "none", start,
-                 states, solver, abort=why)
+    return Plan(ss, ss, z, np.eye(ss.p), full, float("nan"), [], tuple(notes),
+                Shooting("none"), start, states, solver, abort=why)
 
 
 def shooting(req: FitRequest, plan: Plan, nseg) -> tuple[Problem, np.ndarray]:

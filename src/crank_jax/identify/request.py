@@ -9,6 +9,7 @@ one `ValueError` naming the field and the fix, before a single ODE is solved.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import math
 from collections.abc import Sequence
@@ -16,6 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..model.loads import LOAD_PARAMS, AbstractLoad, get_param, load_kind
+from ..model.outputs import SI_UNITS
 from ..model.params import FIELDS, SliderCrank
 from ..model.params import SIGNED_FIELDS as PARAM_SIGNED_FIELDS
 from ..model.sampled import bind_input
@@ -24,10 +26,11 @@ from ..records.load_by import loads_by
 from ..records.sensors import OFFSET_NAMES
 from ..scene import Scene
 from ..sweep.distributions import MAX_SEED
+from .fit_options import Method, ShootingMode, check_options
 from .userforce import force_names, force_starts
 
 __all__ = ["FitRequest", "normalize", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
-           "SIGNED_FIELDS", "FRICTION_SCALED", "MAX_ITERATIONS", "SIGMA_RANGE", "free_names",
+           "SIGNED_FIELDS", "FRICTION_SCALED", "free_names",
            "load_param", "reported_names", "window_data", "record_mech", "record_loads"]
 
 STATE_NAMES = ("phi0", "dphi0")
@@ -45,16 +48,6 @@ FRICTION_SCALED = ("c_s", "T_c", "F_s")
 #: every other field is >= 0, and r, L strictly positive.
 SIGNED_FIELDS = frozenset(PARAM_SIGNED_FIELDS)
 _STRICTLY_POSITIVE = frozenset({"r", "L"})
-#: Largest iteration budget per start (`max_steps`): far beyond any fit that converges
-#: (tens to hundreds of iterations), and small enough for every integer type it meets.
-MAX_ITERATIONS = 1_000_000
-#: Range of a given noise level `sigma`, rad: outside it, its square (the variance of the
-#: Laplace covariance) under- or overflows, and no angle record has such a noise.
-SIGMA_RANGE = (1e-12, 1e6)
-_METHODS = ("lm", "optax")
-_SHOOTING = ("auto", "single", "multiple")
-
-
 def free_names() -> tuple[str, ...]:
     """Every name that can be free: the mechanism fields (read from `FIELDS`, so new
     fields can be free as soon as the model has them), the load amplitudes, the channels'
@@ -99,8 +92,8 @@ class FitRequest:
     names: tuple[str, ...]
     start: dict
     init: str
-    method: str
-    shooting: str
+    method: Method
+    shooting: ShootingMode
     segments: int | None
     multistart: int
     seed: int
@@ -119,6 +112,28 @@ class FitRequest:
     per_record: tuple = ()
     #: A user's force term (`fit(force=...)`), its free fields named `force.<field>`.
     force: object = None
+
+    # What follows from the fields, worked out once per request (a frozen request's
+    # values never change; a new weighting is a new request).
+
+    @functools.cached_property
+    def first_channel(self) -> str:
+        """The first record's first channel: the fit's residuals are in its unit."""
+        return self.records[0].outputs()[0][0].name
+
+    @functools.cached_property
+    def unit(self) -> str:
+        """The SI unit of the first channel, the unit of the fit's residuals."""
+        return SI_UNITS[self.first_channel]
+
+    @functools.cached_property
+    def known_sigma(self) -> float | None:
+        """The noise level of the weighted residuals (the first channel's unit) when every
+        channel's is given, else None (estimated from the residuals)."""
+        names = {s.name for d in self.records for s, _ in d.outputs()}
+        if isinstance(self.sigma, dict):
+            return self.sigmas[self.first_channel] if names <= set(self.sigma) else None
+        return float(self.sigma) if self.sigma is not None and len(names) == 1 else None
 
 
 def record_mech(mech: SliderCrank, own: dict) -> SliderCrank:
@@ -169,28 +184,6 @@ def _check_scenes(scenes: list[Scene]) -> None:
             if not np.array_equal(np.asarray(a), np.asarray(b)):
                 raise ValueError(f"scene {i} has {n} = {a}, scene 0 has {b}: the scenes of a "
                                  "multi-record fit must share the solver settings")
-
-
-def _check_options(method, shooting, segments, multistart, max_steps, tol, sigma) -> None:
-    if method not in _METHODS:
-        raise ValueError(f"method must be 'lm' or 'optax', got {method!r}")
-    if shooting not in _SHOOTING:
-        raise ValueError(f"shooting must be 'auto', 'single' or 'multiple', got {shooting!r}")
-    if segments is not None and (segments < 1 or shooting == "single" and segments > 1):
-        raise ValueError(f"segments = {segments} is not valid with shooting={shooting!r}")
-    if multistart < 1:
-        raise ValueError(f"multistart must be >= 1, got {multistart}")
-    if max_steps is not None and not 1 <= max_steps <= MAX_ITERATIONS:
-        raise ValueError(f"max_steps must be an integer from 1 to {MAX_ITERATIONS}, got "
-                         f"{max_steps}")
-    if not (math.isfinite(tol) and tol > 0):
-        raise ValueError(f"tol must be a positive number, got {tol}")
-    for name, v in (sigma.items() if isinstance(sigma, dict) else [("", sigma)]):
-        if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool)
-                                  and SIGMA_RANGE[0] <= v <= SIGMA_RANGE[1]):
-            raise ValueError(f"sigma{' of ' + name if name else ''} must be a noise level "
-                             f"from {SIGMA_RANGE[0]:g} to {SIGMA_RANGE[1]:g} (the channel's "
-                             f"SI unit{'' if name else ', rad for an angle'}), got {v}")
 
 
 def _check_window(window) -> tuple[float, float] | None:
@@ -336,7 +329,7 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
         raise ValueError(f"`free=` names unknown parameter(s) {unknown}; choose from "
                          f"{list(known)}" if unknown
                          else "`free=` must name at least one parameter")
-    _check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
+    check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
     if (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
             or not 0 <= seed <= MAX_SEED):
         raise ValueError(f"`seed=` must be an integer from 0 to {MAX_SEED}, got {seed!r}")
@@ -372,9 +365,10 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
     return FitRequest(
         scene=scenes[0], records=tuple(records), loads=loads,
         states=tuple((float(sc.phi0), float(sc.dphi0)) for sc in scenes), free=free,
-        names=names, start=start, init=init_kind, method=method, shooting=shooting,
+        names=names, start=start, init=init_kind, method=Method(method),
+        shooting=ShootingMode(shooting),
         segments=segments, multistart=int(multistart), seed=int(seed),
         max_steps=int(max_steps if max_steps is not None else
-                      (100 if method == "lm" else 2000)),
+                      (100 if method == Method.LM else 2000)),
         tol=float(tol), sigma=sigma, profile=profile, window=window, progress=bool(progress),
         warn=bool(warn), per_record=per_record, force=force)

@@ -15,6 +15,8 @@ import math
 
 import numpy as np
 
+from .fit_options import ShootingMode
+
 __all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "BLIND_DRIFT", "MAX_ODE_STEPS",
            "SMALL_ODE_BUDGET",
            "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
@@ -85,7 +87,8 @@ def n_segments(span: float, period_data: float | None, period_model: float | Non
     or half-turn, where its continuity defect cannot close: such a record gets at least
     one segment per `BLIND_DRIFT` of predicted drift (at most [`MAX_SEGMENTS`][]).
     """
-    if shooting == "single":
+    shooting = ShootingMode(shooting)
+    if shooting is ShootingMode.SINGLE:
         return 1, "single shooting (requested)"
     if segments is not None:
         return int(segments), f"{segments} segments (requested)"
@@ -94,11 +97,11 @@ def n_segments(span: float, period_data: float | None, period_model: float | Non
         why = (f"the crank turns {turns_data:.3g} times in the record (mean speed "
                f"{2 * math.pi * turns_data / span:.3g} rad/s), the start model "
                f"{turns_model:.3g} times (predicted drift {drift:.1f} rad)")
-        if shooting == "auto" and drift <= MAX_DRIFT and turns_data <= AUTO_PERIODS:
+        if shooting is ShootingMode.AUTO and drift <= MAX_DRIFT and turns_data <= AUTO_PERIODS:
             return 1, why
         return _blind(record_segments(span, span / turns_data), drift, blind), why
     if period_data is None:
-        n = 1 if shooting == "auto" else 2
+        n = 1 if shooting is ShootingMode.AUTO else 2
         return n, "the record holds less than one period and less than one turn"
     periods = span / period_data
     if period_model is None:
@@ -109,7 +112,7 @@ def n_segments(span: float, period_data: float | None, period_model: float | Non
     why = (f"{periods:.1f} periods in the record, start period "
            + (f"{100 * err:.0f}% off" if period_model is not None else "not observed")
            + f" (predicted drift {drift:.1f} rad)")
-    if shooting == "auto" and drift <= MAX_DRIFT and periods <= AUTO_PERIODS:
+    if shooting is ShootingMode.AUTO and drift <= MAX_DRIFT and periods <= AUTO_PERIODS:
         return 1, why
     return _blind(record_segments(span, period_data), drift, blind), why
 
