@@ -33,8 +33,7 @@ from ..runtime.arrays import device_array
 from .physical import RUNAWAY
 from .problem import Problem
 from .request import record_mech
-from .segments import bucket
-from .start import regressor_samples
+from .start import padded_rows, regressor_samples
 from .userforce import PREFIX
 
 __all__ = ["motion_start", "LINEARITY_TOLERANCE"]
@@ -76,7 +75,7 @@ def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
     do not. The least squares is bounded: each value stays in its physical range (see
     `_bounds`), a damping at 0 rather than the whole start discarded.
     """
-    rows, keep = _padded(regressor_samples(d.ts, np.asarray(a, float), per)
+    rows, keep = padded_rows(regressor_samples(d.ts, np.asarray(a, float), per)
                          for d, a, per in zip(records, angles, periods))
 
     def eom(zz):
@@ -122,19 +121,6 @@ def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
     v[idx] += sol / scale
     v[idx] = np.clip(v[idx], lo, hi)  # (bvls meets its bounds to rounding)
     return problem.to_z(v)
-
-
-def _padded(rows) -> tuple[tuple, np.ndarray]:
-    """Each record's rows `(phi, dphi, ddphi, t)` padded to a [`bucket`][] length by
-    repeating their last sample (so that records of other lengths reuse `_eom`'s program),
-    and the mask (sum of the padded lengths,) of the rows that are the records' own."""
-    out, keep = [], []
-    for row in rows:
-        n = len(row[0])
-        extra = bucket(n) - n
-        out.append(tuple(np.pad(np.asarray(x, float), (0, extra), mode="edge") for x in row))
-        keep.append(np.arange(n + extra) < n)
-    return tuple(out), np.concatenate(keep)
 
 
 def _bounds(problem: Problem, v0: np.ndarray, idx) -> tuple[np.ndarray, np.ndarray]:
