@@ -2,7 +2,8 @@
 free set before: does it reuse the compiled programs?
 
 In ONE process, lab-rig records (200 Hz, noise 1e-3 rad, free k, c, phi0, dphi0, from
-k = 2.4, c = 0.004) of 5 s, 6 s, 5.5 s and 7 s (other noise seeds), each fitted once
+k = 2.4, c = 0.004) of 5 s, 6 s, 5.5 s, 7 s, then 4.8, 5.75, 6.5 and 8 s (other noise
+seeds), each fitted once
 (its first fit) and then `--repeats` times more (its warm fit: their median by CPU time).
 Per fit: wall and process CPU time, and how many programs JAX traced and compiled
 (`jax.monitoring`'s compile events). The figure of merit is the ratio of a record's first
@@ -11,7 +12,8 @@ fit to its own warm fit (target: at most 1.3).
 Record lengths are padded to buckets (`identify/segments.py`): 1001 and 1101 samples
 (5 s, 5.5 s) share one, 1201 and 1401 (6 s, 7 s) the next, so the 6 s record is the first
 of its bucket and compiles, and the 5.5 s and 7 s records are new lengths in fitted
-buckets.
+buckets (as are 4.8, 5.75 and 6.5 s: 961, 1151 and 1301 samples). The 8 s record (1601
+samples, the 1728 bucket) has 24 multiple-shooting segments, a new class: it compiles.
 
 Run: `python experiments/first_fit_warm.py [--label NAME] [--out FILE]` (run it under
 another checkout's `src` on `PYTHONPATH` for that checkout's figures; results are merged
@@ -24,7 +26,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
+import resource
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -35,7 +42,7 @@ jax = setup_jax()
 import crank_jax as cj  # noqa: E402
 
 #: (record length s, noise seed), in the order they are fitted.
-RECORDS = ((5.0, 1), (6.0, 2), (5.5, 3), (7.0, 4))
+RECORDS = ((5.0, 1), (6.0, 2), (5.5, 3), (7.0, 4), (4.8, 5), (5.75, 6), (6.5, 7), (8.0, 8))
 
 _EVENTS = {"/jax/core/compile/jaxpr_trace_duration": "traces",
            "/jax/core/compile/backend_compile_duration": "compiles"}
@@ -58,6 +65,39 @@ def one_fit(start, data) -> dict:
             **{k: _COUNTS[k] - before[k] for k in _COUNTS},
             "converged": bool(res.converged), "strategy": res.strategy,
             "values": {k: float(v) for k, v in res.values.items()}}
+
+
+#: The CLI runs: (record length s, noise seed), fresh processes sharing one program store.
+CLI_RUNS = ((5.0, 1), (5.0, 1), (5.5, 3), (5.5, 3))
+
+
+def cli_runs(start) -> list[dict]:
+    """`crank-jax fit` in fresh processes with one program store: the 5 s record cold,
+    warm, then the 5.5 s record (a new length, the same bucket) first and again. Wall and
+    CPU time (the child's user + system) per run."""
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        scene = tmp / "start.toml"
+        scene.write_text(cj.scene_to_toml(start))
+        env = dict(os.environ, CRANK_JAX_CACHE_DIR=str(tmp / "cache"))
+        env.pop("CRANK_JAX_NO_CACHE", None)
+        for t1, seed in CLI_RUNS:
+            rec = tmp / f"rec{t1}.csv"
+            if not rec.exists():
+                cj.save_data(cj.synthesize(cj.load_scene("lab-rig"), t1=t1, rate=200.0,
+                                           noise_std=1e-3, seed=seed), rec)
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            w = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "crank_jax", "fit", str(rec), str(scene),
+                            "--quiet", "--out", str(tmp / "fit.json")], env=env, check=True,
+                           capture_output=True)
+            w = time.perf_counter() - w
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+            out.append({"t1_s": t1, "wall_s": round(w, 3), "cpu_s": round(cpu, 3)})
+            print(f"CLI {t1} s: {w:.2f} s wall, {cpu:.2f} s CPU", flush=True)
+    return out
 
 
 def _cell(row: dict, fit: str) -> str:
@@ -117,25 +157,15 @@ def write_docs(results: dict) -> None:
     page.write_text(text)
 
 
-def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--label", default="after")
-    ap.add_argument("--out", type=Path, default=RESULTS / "first_fit_warm.json")
-    ap.add_argument("--docs", action="store_true", help="write the docs table and stop")
-    ap.add_argument("--repeats", type=int, default=5, help="warm fits a record (median)")
-    args = ap.parse_args(argv)
-    if args.docs:
-        results = json.loads(args.out.read_text())
-        write_docs(results)
-        return results
+def in_process(start, repeats: int) -> list[dict]:
+    """The records of [`RECORDS`][] fitted in this process, first and warm."""
     jax.monitoring.register_event_duration_secs_listener(_listen)
     lab = cj.load_scene("lab-rig")
-    start = cj.Scene(lab.mech.replace(k=2.4, c=0.004), phi0=1.0, name="lab-rig-start")
     rows = []
     for t1, seed in RECORDS:
         data = cj.synthesize(lab, t1=t1, rate=200.0, noise_std=1e-3, seed=seed)
         first = one_fit(start, data)
-        warms = [one_fit(start, data) for _ in range(args.repeats)]
+        warms = [one_fit(start, data) for _ in range(repeats)]
         warm = dict(sorted(warms, key=lambda f: f["cpu_s"])[len(warms) // 2],
                     cpu_all_s=[f["cpu_s"] for f in warms])
         rows.append({"t1_s": t1, "samples": int(data.n), "first": first, "warm": warm,
@@ -146,8 +176,30 @@ def main(argv=None) -> dict:
               f"{warm['wall_s']:5.2f} s wall {warm['cpu_s']:5.2f} s CPU "
               f"({warm['compiles']} compiles); ratio CPU {rows[-1]['ratio_cpu']}",
               flush=True)
+    return rows
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--label", default="after")
+    ap.add_argument("--out", type=Path, default=RESULTS / "first_fit_warm.json")
+    ap.add_argument("--docs", action="store_true", help="write the docs table and stop")
+    ap.add_argument("--repeats", type=int, default=5, help="warm fits a record (median)")
+    ap.add_argument("--cli", action="store_true",
+                    help="time `crank-jax fit` runs instead (kept beside the label's records)")
+    args = ap.parse_args(argv)
     out = json.loads(args.out.read_text()) if args.out.exists() else {}
-    out[args.label] = {"machine": machine(), "crank_jax": cj.__file__, "records": rows}
+    if args.docs:
+        write_docs(out)
+        return out
+    lab = cj.load_scene("lab-rig")
+    start = cj.Scene(lab.mech.replace(k=2.4, c=0.004), phi0=1.0, name="lab-rig-start")
+    entry = out.setdefault(args.label, {})
+    if args.cli:
+        entry["cli"] = {"machine": machine(), "runs": cli_runs(start)}
+    else:
+        entry.update(machine=machine(), crank_jax=cj.__file__,
+                     records=in_process(start, args.repeats))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_suffix(".tmp")
     tmp.write_text(json.dumps(out, indent=1) + "\n")
