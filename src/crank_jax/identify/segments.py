@@ -31,7 +31,8 @@ def bucket(m: int) -> int:
 
 
 class Segments(eqx.Module):
-    """One record cut into `S` shooting segments of `m` save times each (padded).
+    """One record cut into shooting segments, in `S` rows of `m` save times each (padded;
+    the rows after the record's segments inactive, see [`segment_layout`][]).
 
     Segment `s` covers samples `starts[s] .. starts[s+1]` inclusive: the shared sample is
     fitted by segment `s+1` (weight 0 in segment `s`) and is where continuity is imposed.
