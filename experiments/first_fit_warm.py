@@ -106,7 +106,8 @@ def _cell(row: dict, fit: str) -> str:
 
 
 def table(results: dict) -> str:
-    """The docs section: per record, the first and warm fit before and after."""
+    """The docs section: per record, the first and warm fit before and after, the CLI
+    runs, and how far the estimates moved."""
     m = results["after"]["machine"]
     lines = [
         "## Records of other lengths", "",
@@ -114,34 +115,65 @@ def table(results: dict) -> str:
         "a shared machine, other jobs running: wall times are rough, process CPU times "
         "steadier; results in `experiments/results/first_fit_warm.json`). In one process, "
         "lab-rig records at 200 Hz (free k, c, phi0, dphi0, from k = 2.4, c = 0.004), in "
-        "this order, each fitted once and then 5 times more, warm (their median). Cells: process "
-        "CPU time (wall time), programs compiled. `before`: the code before padding the "
-        "segment count and the motion start's rows (the main branch at the time).", "",
+        "this order, each fitted once and then 5 times more, warm (their median by CPU "
+        "time). Cells: process CPU time (wall time), programs compiled. `before`: the code "
+        "before the segments' rows and the motion start's rows were padded (the main "
+        "branch at the time), run just before `after`.", "",
         "| record | before: first fit | before: warm | before: ratio | after: first fit "
         "| after: warm | after: ratio (target <= 1.3) |",
         "|---|---|---|---|---|---|---|"]
     for b, a in zip(results["before"]["records"], results["after"]["records"]):
-        lines.append(f"| {a['t1_s']} s ({a['samples']} samples) | {_cell(b, 'first')} | "
-                     f"{_cell(b, 'warm')} | {b['ratio_cpu']} | {_cell(a, 'first')} | "
-                     f"{_cell(a, 'warm')} | {a['ratio_cpu']} |")
-    return "\n".join(lines + ["", NOTE])
+        lines.append(f"| {a['t1_s']} s ({a['samples']} samples, {_segments(a)}) | "
+                     f"{_cell(b, 'first')} | {_cell(b, 'warm')} | {b['ratio_cpu']} | "
+                     f"{_cell(a, 'first')} | {_cell(a, 'warm')} | {a['ratio_cpu']} |")
+    lines += ["", NOTE, "", _moved(results)]
+    if results["before"].get("cli") and results["after"].get("cli"):
+        lines += ["", CLI_NOTE, "", "| `crank-jax fit` | before | after |", "|---|---|---|"]
+        names = ("5 s record, empty store", "5 s record, warm",
+                 "5.5 s record (a new length), first", "5.5 s record, warm")
+        for name, b, a in zip(names, results["before"]["cli"]["runs"],
+                              results["after"]["cli"]["runs"]):
+            lines.append(f"| {name} | {b['cpu_s']:.2f} s ({b['wall_s']:.2f} s) | "
+                         f"{a['cpu_s']:.2f} s ({a['wall_s']:.2f} s) |")
+    return "\n".join(lines)
+
+
+def _segments(row: dict) -> str:
+    strategy = row["first"]["strategy"]
+    return strategy[strategy.find("(") + 1:strategy.find(")")] if "(" in strategy else "1"
+
+
+def _moved(results: dict) -> str:
+    """How far each estimate moved from before to after, relative, over the records."""
+    worst = {}
+    for b, a in zip(results["before"]["records"], results["after"]["records"]):
+        for k, v in a["first"]["values"].items():
+            u = b["first"]["values"][k]
+            worst[k] = max(worst.get(k, 0.0), abs(v - u) / max(abs(u), 1e-300))
+    return ("The estimates after against before, largest relative difference over the "
+            "records: " + ", ".join(f"{k} {v:.1e}" for k, v in worst.items()) + ".")
 
 
 NOTE = (
-    "The ratio is CPU time, first fit over warm fit of the same record. The first 5 s "
-    "record compiles everything; the 6 s record is the first of the next bucket (1201 "
-    "samples pad to 1728, 1001 and 1101 to 1152) and compiles its programs once, before "
-    "and after: a static shape has edges, and a record across one compiles. Within a "
-    "fitted bucket every length is now warm: before, the 5.5 s record (16 segments where the "
-    "5 s one has 12, in rows of 72 samples) compiled its multiple-shooting Jacobian, and "
-    "every new length (the 7 s record too) the motion start's equation-of-motion "
-    "program. Now a record's segments fill the rows of their "
-    "class (the next power of two: 12 and 16 segments both take 16 rows, the rows beyond "
-    "the record's segments inactive, weight 0, their states held), each row as long as "
-    "the bucket needs (`identify/segments.py`, `segment_layout`), and the "
-    "equation-of-motion rows are padded to a bucket. The estimates equal the code "
-    "before's to rounding (largest difference 1.2e-12 relative in c, 7.6e-9 relative in "
-    "dphi0, 1e-11 rad/s absolute; the 6 s record bit for bit).")
+    "The ratio is CPU time, a record's first fit over its warm fit. The first 5 s record "
+    "compiles everything. The 6 s record is the first of the next bucket (1201 samples pad "
+    "to 1728; 961 to 1151 samples to 1152) and compiles its programs once, before and "
+    "after: a static shape has edges, and a record across one compiles; so does the 8 s "
+    "record, whose 24 segments are a new class. Within a fitted bucket and class every "
+    "length is now warm. Before, the 5.5 s record (16 segments where the 5 s one has 12, "
+    "in rows of 72 samples) compiled its multiple-shooting Jacobian, and every new length "
+    "the motion start's equation-of-motion program. Now a record's segments fill the rows "
+    "of their class (the next power of two: 12 and 16 segments both take 16 rows, the "
+    "rows beyond the record's segments inactive, weight 0, their states held), each row "
+    "as long as the bucket needs (`identify/segments.py`, `segment_layout`), and the "
+    "equation-of-motion rows are padded to a bucket. The cost: a record of 12 segments "
+    "solves 16 rows in its multiple-shooting phase, and rows are longer than the record "
+    "alone would need (the 5 s record's warm fit in the table, before and after).")
+
+CLI_NOTE = (
+    "The same in fresh processes (`crank-jax fit`, one program store shared by the runs; "
+    "CPU time of the process (wall time)): the stored programs' key holds the shapes, so "
+    "a new length of a fitted bucket loads them.")
 
 
 def write_docs(results: dict) -> None:
