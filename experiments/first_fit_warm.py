@@ -145,19 +145,22 @@ def _segments(row: dict) -> str:
 
 def _moved(results: dict) -> str:
     """How far each estimate moved from before to after, relative, over the records."""
-    worst = {}
+    worst, absolute = {}, {}
     for b, a in zip(results["before"]["records"], results["after"]["records"]):
         for k, v in a["first"]["values"].items():
             u = b["first"]["values"][k]
             worst[k] = max(worst.get(k, 0.0), abs(v - u) / max(abs(u), 1e-300))
-    return ("The estimates after against before, largest relative difference over the "
-            "records: " + ", ".join(f"{k} {v:.1e}" for k, v in worst.items()) + ".")
+            absolute[k] = max(absolute.get(k, 0.0), abs(v - u))
+    return ("The estimates after against before, largest difference over the records, "
+            "relative (absolute, SI): " + ", ".join(
+                f"{k} {v:.1e} ({absolute[k]:.1e})" for k, v in worst.items())
+            + "; the noise's standard errors are orders of magnitude larger.")
 
 
 NOTE = (
     "The ratio is CPU time, a record's first fit over its warm fit. The first 5 s record "
     "compiles everything. The 6 s record is the first of the next bucket (1201 samples pad "
-    "to 1728; 961 to 1151 samples to 1152) and compiles its programs once, before and "
+    "to 1728, 961 to 1151 samples to 1152) and compiles its programs once, before and "
     "after: a static shape has edges, and a record across one compiles; so does the 8 s "
     "record, whose 24 segments are a new class. Within a fitted bucket and class every "
     "length is now warm. Before, the 5.5 s record (16 segments where the 5 s one has 12, "
