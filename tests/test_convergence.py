@@ -109,7 +109,9 @@ def _stub(costs, calls):
 
 def _plan_and_request(noise):
     single = types.SimpleNamespace(n_residuals=100)
-    shoot = types.SimpleNamespace(names=("a",), log=(True,), folded=(False,))
+    # (no segment state: the stubbed basis is over the globals alone)
+    shoot = types.SimpleNamespace(names=("a",), log=(True,), folded=(False,),
+                                  state_on=np.zeros(0, dtype=bool))
     plan = types.SimpleNamespace(single=single, shoot=shoot, z0=np.zeros(1),
                                  periods=[1.0], noise=noise,
                                  shooting=Shooting("multiple", (2,)), ranges=None)

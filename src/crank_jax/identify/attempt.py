@@ -38,7 +38,7 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
     # directions held fixed, and the estimate handed to the polish, are mapped across.
     Bg = plan.Bg if shoot is ss else recoordinate_basis(ss, shoot, plan.Bg,
                                                         recoordinate(shoot, ss, z0))
-    B = basis(Bg, z0.shape[0])
+    B = basis(Bg, z0.shape[0], shoot.state_on)
     # Gradient methods: reverse mode, its backward program chosen here, at the edge.
     problem = shoot if req.method is Method.LM else dataclasses.replace(
         shoot, adjoint=DiscreteAdjoint(backward=backward_program()))

@@ -153,12 +153,16 @@ def _flat_basis(J0: np.ndarray) -> np.ndarray:
     return np.eye(p) if np.all(keep) else Vt0[keep].T
 
 
-def basis(Bg: np.ndarray, n_coords: int) -> np.ndarray:
-    """The global basis, with every segment state (after the p globals) free."""
+def basis(Bg: np.ndarray, n_coords: int, on: np.ndarray | None = None) -> np.ndarray:
+    """The global basis, with every segment state (after the p globals) free, or those
+    where `on` (n_coords - p,) bool is (an inactive row's state is held)."""
     p, q = Bg.shape
-    B = np.zeros((n_coords, q + n_coords - p))
+    free = np.eye(n_coords - p)
+    if on is not None:
+        free = free[:, np.asarray(on, dtype=bool)]
+    B = np.zeros((n_coords, q + free.shape[1]))
     B[:p, :q] = Bg
-    B[p:, q:] = np.eye(n_coords - p)
+    B[p:, q:] = free
     return B
 
 

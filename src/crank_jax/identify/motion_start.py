@@ -33,7 +33,7 @@ from ..runtime.arrays import device_array
 from .physical import RUNAWAY
 from .problem import Problem
 from .request import record_mech
-from .start import regressor_samples
+from .start import padded_rows, regressor_samples
 from .userforce import PREFIX
 
 __all__ = ["motion_start", "LINEARITY_TOLERANCE"]
@@ -75,11 +75,15 @@ def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
     do not. The least squares is bounded: each value stays in its physical range (see
     `_bounds`), a damping at 0 rather than the whole start discarded.
     """
-    rows = tuple(regressor_samples(d.ts, np.asarray(a, float), per)
-                 for d, a, per in zip(records, angles, periods))
+    rows, keep = padded_rows(regressor_samples(d.ts, np.asarray(a, float), per)
+                         for d, a, per in zip(records, angles, periods))
+
+    def eom(zz):
+        return np.asarray(_eom(problem, device_array(zz), rows))[keep]
+
     z = np.asarray(z[:problem.p], dtype=float)
     v0 = np.asarray(problem.host_values(z), dtype=float)
-    base = np.asarray(_eom(problem, device_array(z), rows))
+    base = eom(z)
     cols, idx = [], []
     for i in range(problem.n_global):
         h = max(abs(v0[i]), 1e-3 * max(np.abs(v0[:problem.n_global]).max(), 1e-12))
@@ -89,7 +93,7 @@ def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
             v[i] += step * h
             if problem.log[i] and v[i] <= 0:
                 return None
-            return np.asarray(_eom(problem, device_array(problem.to_z(v)), rows)) - base
+            return eom(problem.to_z(v)) - base
 
         one, two = at(1.0), at(2.0)
         if one is None or two is None or not np.any(one):

@@ -84,17 +84,20 @@ class Problem(eqx.Module):
     per_record: tuple[str, ...] = eqx.field(static=True, default=())
     force: object = None  # a user's force term (`userforce.py`), its free fields set by z
 
-    # --- coordinates ------------------------------------------------------------------
-
     @property
     def p(self) -> int:
-        """Number of reported parameters (excludes multiple-shooting segment states)."""
+        """Reported parameters (excludes multiple-shooting segment states)."""
         return len(self.names)
 
     @property
     def n_extra(self) -> int:
         """Segment states of multiple shooting, appended after the reported parameters."""
         return sum(2 * (e.seg.ts.shape[0] - 1) for e in self.exps)
+
+    @property
+    def state_on(self) -> np.ndarray:
+        """(n_extra,) bool: False for an inactive row's state (see `segment_layout`)."""
+        return np.concatenate([np.repeat(np.asarray(e.seg.on)[1:] > 0, 2) for e in self.exps])
 
     @property
     def n_residuals(self) -> int:
@@ -252,7 +255,7 @@ class Problem(eqx.Module):
                 # worth of data so that the defects end up well below the noise.
                 # In the first channel's unit (its reading's change per radian), so the
                 # defects weigh against the data alike whatever the sensor.
-                wgt = math.sqrt(e.seg.ts.shape[1]) * e.per_radian
+                wgt = jnp.sqrt(e.seg.size) * e.per_radian * e.seg.on[1:]
                 dphi_end = jnp.where(ok[rows, idx], dphi[rows, idx], _FAILED_RESIDUAL)
                 phi_end = jnp.where(ok[rows, idx], phi[rows, idx], _FAILED_RESIDUAL)
                 cont.append(wgt * (phi_end - y0s[1:, 0]))

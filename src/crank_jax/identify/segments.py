@@ -11,7 +11,7 @@ from jaxtyping import Array
 from ..model.loads import AbstractLoad, AngleLoad, InputLoad, SampledLoad
 from ..runtime.arrays import device_array
 
-__all__ = ["bucket", "Segments", "Experiment", "make_segments", "padded_load"]
+__all__ = ["bucket", "Segments", "Experiment", "segment_layout", "make_segments", "padded_load"]
 
 
 def bucket(m: int) -> int:
@@ -31,7 +31,8 @@ def bucket(m: int) -> int:
 
 
 class Segments(eqx.Module):
-    """One record cut into `S` shooting segments of `m` save times each (padded).
+    """One record cut into shooting segments, in `S` rows of `m` save times each (padded;
+    the rows after the record's segments inactive, see [`segment_layout`][]).
 
     Segment `s` covers samples `starts[s] .. starts[s+1]` inclusive: the shared sample is
     fitted by segment `s+1` (weight 0 in segment `s`) and is where continuity is imposed.
@@ -42,6 +43,12 @@ class Segments(eqx.Module):
     w: Array  # (S, m) 1 for a fitted sample, 0 for padding and the shared end sample
     end: Array  # (S,) int: index of the continuity sample in each row
     first: Array  # (S,) int: index in the record of each row's first sample
+    # (S,) 1 for a segment of the record, 0 for an inactive row (padding: see
+    # `segment_layout`); its state is held, its samples and continuity weigh nothing.
+    on: Array
+    # () the row length that weighs a continuity defect as a segment's worth of data
+    # (`Problem.residuals`): the length a row of these segments alone would be padded to
+    size: Array
 
 
 class Experiment(eqx.Module):
@@ -73,33 +80,59 @@ class Experiment(eqx.Module):
 
 
 
+def segment_layout(n: int, S: int, pad: bool = True) -> tuple[int, int]:
+    """The shape `(rows, m)` that holds a record of `n` samples cut into `S` segments:
+    with `pad`, a function of `bucket(n)` and of `S`'s class alone, so that records of one
+    bucket share their programs whatever their segment count within a class.
+
+    The classes are the powers of two: `S` segments take `rows` = the next power of two
+    (the rows beyond `S` inactive, weight 0), so the ladder's 12 and 16 segments (or 3 and
+    4, 6 and 8, 24 and 32) give one shape. A row holds the longest segment of any record
+    of the bucket cut into the class's smallest ladder count (3/4 of `rows`; an
+    off-ladder `S` below that, a requested count, sizes its own rows)."""
+    if S == 1:
+        return 1, bucket(n) if pad else n
+    if not pad:
+        bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
+        return S, int(np.max(np.diff(bounds))) + 1
+    rows = 1 << (S - 1).bit_length()
+    low = min(S, -(-3 * rows // 4))
+    return rows, -(-(bucket(n) - 1) // low) + 1
+
+
 def make_segments(ts: np.ndarray, ys: np.ndarray, n_segments: int, pad: bool = True
                   ) -> Segments:
-    """Split a record into `n_segments` segments of nearly equal sample counts, each row
-    padded to [`bucket`][] length (when `pad`). `ys`: (n,) or (C, n), the channels' data
-    at `ts` (n,)."""
+    """Split a record into `n_segments` segments of nearly equal sample counts, in the
+    rows of [`segment_layout`][] (padded when `pad`: each row to its length, and inactive
+    rows after the segments). `ys`: (n,) or (C, n), the channels' data at `ts` (n,)."""
     ys = np.atleast_2d(np.asarray(ys, dtype=float))
     n = ts.shape[0]
     S = max(1, min(int(n_segments), n // 4))
     bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
-    m = int(np.max(np.diff(bounds))) + 1 if S > 1 else n
-    m = bucket(m) if pad else m
-    T, P, W = np.zeros((S, m)), np.zeros((ys.shape[0], S, m)), np.zeros((S, m))
-    E, F = np.zeros(S, dtype=np.int32), np.zeros(S, dtype=np.int32)
-    for s in range(S):
-        a, b = bounds[s], bounds[s + 1]
+    rows, m = segment_layout(n, S, pad)
+    own = int(np.max(np.diff(bounds))) + 1 if S > 1 else n
+    T, P, W = np.zeros((rows, m)), np.zeros((ys.shape[0], rows, m)), np.zeros((rows, m))
+    E, F = np.zeros(rows, dtype=np.int32), np.full(rows, n - 1, dtype=np.int32)
+    on = np.zeros(rows)
+    for s in range(rows):
+        a, b = (bounds[s], bounds[s + 1]) if s < S else (n - 1, n - 1)
         k = b - a + 1 if S > 1 else n
         seg_t = ts[a:a + k]
         # Padding times continue just past the end, so each row stays strictly increasing
-        # without extending the integration by more than a few nanoseconds.
+        # without extending the integration by more than a few nanoseconds. An inactive
+        # row is such padding after the record's last sample: a solve of a few steps from
+        # the state there (its start, see `channel_noise.segment_states`).
         pad_t = seg_t[-1] + 1e-9 * np.arange(1, m - k + 1) * max(1.0, abs(seg_t[-1]))
         T[s] = np.concatenate([seg_t, pad_t])
+        if s >= S:
+            continue
         P[:, s, :k] = ys[:, a:a + k]
         W[s, :k] = 1.0
         if S > 1 and s < S - 1:
             W[s, k - 1] = 0.0  # the shared sample belongs to the next segment
-        E[s], F[s] = k - 1, a
-    return Segments(*(device_array(x) for x in (T, P, W, E, F)))
+        E[s], F[s], on[s] = k - 1, a, 1.0
+    size = float(bucket(own) if pad else own)
+    return Segments(*(device_array(x) for x in (T, P, W, E, F, on, size)))
 
 
 def padded_load(load: AbstractLoad) -> AbstractLoad:

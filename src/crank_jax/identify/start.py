@@ -20,9 +20,10 @@ from ..model.params import SliderCrank
 from ..records.data import Data
 from ..runtime.arrays import device_array
 from .request import SCALE_GROUP
+from .segments import bucket
 
 __all__ = ["smooth_derivatives", "half_window", "regressor_start", "regressor_samples",
-           "observed_period", "noise_level", "MAX_WINDOW", "MAX_REGRESSOR_ROWS"]
+           "padded_rows", "observed_period", "noise_level", "MAX_WINDOW", "MAX_REGRESSOR_ROWS"]
 
 #: At most this many samples enter one local fit: a wider window is thinned evenly
 #: (enough to average the noise out of a start value, and bounded work per sample).
@@ -189,9 +190,24 @@ def regressor_samples(ts: np.ndarray, phi: np.ndarray, period: float | None):
     return tuple(device_array(x) for x in (p, dp, ddp, ts[at]))
 
 
+def padded_rows(rows) -> tuple[tuple, np.ndarray]:
+    """Each record's [`regressor_samples`][] `(phi, dphi, ddphi, t)` padded to a
+    [`bucket`][crank_jax.identify.segments.bucket] length by repeating their last sample
+    (so that records of other lengths reuse the programs that take them), and the mask
+    (sum of the padded lengths,) of the rows that are the records' own."""
+    out, keep = [], []
+    for row in rows:
+        n = len(row[0])
+        extra = bucket(n) - n
+        out.append(tuple(np.pad(np.asarray(x, float), (0, extra), mode="edge") for x in row))
+        keep.append(np.arange(n + extra) < n)
+    return tuple(out), np.concatenate(keep)
+
+
 def _rows(data: Data, load, torque, mech, period):
-    Y, e0 = _regressor(mech, *regressor_samples(data.ts, data.phi, period), load, torque)
-    return np.asarray(Y), np.asarray(e0)
+    (rows,), keep = padded_rows([regressor_samples(data.ts, data.phi, period)])
+    Y, e0 = _regressor(mech, *rows, load, torque)
+    return np.asarray(Y)[keep], np.asarray(e0)[keep]
 
 
 def regressor_start(
