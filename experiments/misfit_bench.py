@@ -324,6 +324,7 @@ def run_real(effect: str, seed: int, n_starts: int, t1: float | None = None) -> 
     m0 = start_scene.mech
     th_start = real.theta_of(effect, {"I_c": float(m0.I_c), "c": float(m0.c),
                                       "tau0": float(start_scene.torque.value),
+                                      "P0": float(getattr(start_scene.load, "value", 0.0)),
                                       "phi0": float(start_scene.phi0),
                                       "dphi0": float(start_scene.dphi0)})
     res_fn, jac_fn = real.program(effect)
