@@ -421,7 +421,7 @@ def real_table(doc: dict, befores: list[dict]) -> str:
              "misfit_bench.py --real`, results in `experiments/results/misfit_bench.real"
              "[.before-*].json`; the cases in `experiments/_misfit_real.py`). The reference: "
              "scipy's TRF from the fit's estimate, its start (where finite), the truth and "
-             f"{doc['starts']} random starts, on the same residuals (the slide in m, the "
+             f"{doc['starts']} random start(s), on the same residuals (the slide in m, the "
              "angle in rad at the tooth edges). Older code fits the coast-down's force "
              "interpolated in time (it has no `load_by`) and is judged against the TRF "
              "reference of that problem.", "",
