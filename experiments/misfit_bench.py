@@ -425,8 +425,9 @@ def real_table(doc: dict, befores: list[dict]) -> str:
              "angle in rad at the tooth edges). Older code fits the coast-down's force "
              "interpolated in time (it has no `load_by`) and is judged against the TRF "
              "reference of that problem.", "",
-             "| case | code | converged | rms / reference | reference rms | LM iterations "
-             "| wall time (s) | strategy |", "|---|---|---|---|---|---|---|---|"]
+             "| case | code | converged | fit rms | rms / reference | reference rms "
+             "| LM iterations | wall time (s) | strategy |",
+             "|---|---|---|---|---|---|---|---|---|"]
     unit = {"slide_only": "mm", "coast_down": "mrad"}
     # A record fitted by several codes (the same samples) is judged by the best reference.
     best = {}
@@ -441,6 +442,7 @@ def real_table(doc: dict, befores: list[dict]) -> str:
             lines.append(
                 f"| {r['rig']}: {r['effect'].replace('_', ' ')} | {d.get('code') or '?'} | "
                 f"{'yes' if r['converged'] else '**no**'} | "
+                f"{1e3 * r['rms_fit']:.4g} {unit[r['effect']]} | "
                 f"{ratio:.3f}{'' if ratio <= 1.1 else ' (**off**)'} | "
                 f"{1e3 * r['rms_reference']:.3g} {unit[r['effect']]} | {r['iterations']} | "
                 f"{r['seconds']:.1f} | {r['strategy']} |")
