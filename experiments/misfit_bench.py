@@ -22,6 +22,12 @@ The truth adds one effect per case (the fitted model has none of them):
 - `eccentricity`: a once-per-revolution encoder error `eps sin(phi + 0.7)`;
 - `startup`: a start-up transient in the record (`synthesize(transient=...)`).
 
+Two records like the real ones (`--real`, `_misfit_real.py`; misfit_bench.real.json):
+`rot:slide_only`, the rotating rig seen only by its slide position, with a drive that
+droops with speed, a start-up and a slider force started at 0; `tooth:coast_down`, a
+coast-down above 1,000 rpm by a 36-1 tooth wheel, the force by crank angle and the drag
+torque started at 0. Each is judged against scipy's TRF on its own residuals.
+
 One case more changes the start, not the truth (`--extra`, not in the default run):
 
 - `zero_start`: the plain record, the fit started with its drive (`tau0`, rot) or its
@@ -38,6 +44,7 @@ same footing), its iterations and its wall time (compilation included: each case
 new problem).
 
     python experiments/misfit_bench.py [--starts 4] [--cases osc:geometry,...]
+    python experiments/misfit_bench.py --real [--starts 1]   # records like the real ones
     python experiments/misfit_bench.py --smoke    # one tiny case; misfit_bench.smoke.json
     python experiments/misfit_bench.py --table    # rewrite the table on the docs page
 
