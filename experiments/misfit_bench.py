@@ -22,6 +22,12 @@ The truth adds one effect per case (the fitted model has none of them):
 - `eccentricity`: a once-per-revolution encoder error `eps sin(phi + 0.7)`;
 - `startup`: a start-up transient in the record (`synthesize(transient=...)`).
 
+Two records like the real ones (`--real`, `_misfit_real.py`; misfit_bench.real.json):
+`rot:slide_only`, the rotating rig seen only by its slide position, with a drive that
+droops with speed, a start-up and a slider force started at 0; `tooth:coast_down`, a
+coast-down above 1,000 rpm by a 36-1 tooth wheel, the force by crank angle and the drag
+torque started at 0. Each is judged against scipy's TRF on its own residuals.
+
 One case more changes the start, not the truth (`--extra`, not in the default run):
 
 - `zero_start`: the plain record, the fit started with its drive (`tau0`, rot) or its
@@ -38,6 +44,7 @@ same footing), its iterations and its wall time (compilation included: each case
 new problem).
 
     python experiments/misfit_bench.py [--starts 4] [--cases osc:geometry,...]
+    python experiments/misfit_bench.py --real [--starts 1]   # records like the real ones
     python experiments/misfit_bench.py --smoke    # one tiny case; misfit_bench.smoke.json
     python experiments/misfit_bench.py --table    # rewrite the table on the docs page
 
@@ -50,6 +57,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import hashlib
 import json
 import re
 import time
@@ -58,6 +66,7 @@ from _bench import RESULTS, ROOT, machine, setup_jax
 
 jax = setup_jax()
 
+import _misfit_real as real  # noqa: E402
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -308,6 +317,60 @@ def run_case(rig: str, effect: str, seed: int, n_starts: int, t1: float | None =
     }
 
 
+def run_real(effect: str, seed: int, n_starts: int, t1: float | None = None) -> dict:
+    """One case of `--real` (see `_misfit_real.py`): the fit under defaults, then the
+    reference from the fit's estimate, its start (where finite) and random starts."""
+    data, start_scene, free, kw = real.case(effect, seed, t1, keep=True)
+    t = time.perf_counter()
+    res = cj.fit(start_scene, data, free=free, progress=False, warn=False, **kw)
+    wall = time.perf_counter() - t
+    values = {n: float(res.values[n]) for n in free}
+    print(f"  fit: converged={res.converged} it={res.iterations} {wall:.1f} s {values}",
+          flush=True)
+    th_fit = real.theta_of(effect, values)
+    m0 = start_scene.mech
+    th_start = real.theta_of(effect, {"I_c": float(m0.I_c), "c": float(m0.c),
+                                      "tau0": float(start_scene.torque.value),
+                                      "P0": float(getattr(start_scene.load, "value", 0.0)),
+                                      "phi0": float(start_scene.phi0),
+                                      "dphi0": float(start_scene.dphi0)})
+    res_fn, jac_fn = real.program(effect)
+    ts, y, load = real.observed(effect, data)
+    # The truth too: a slide's TRF from a generic start can land on the other branch.
+    starts = [th for th in (th_fit, th_start, real.truth_theta(effect))
+              if np.all(np.isfinite(th))]
+    starts += real.random_starts(effect, n_starts, np.random.default_rng(seed + 1))
+    t = time.perf_counter()
+    rows, best = [], None
+    for th0 in starts:
+        sol = least_squares(res_fn, th0, jac=jac_fn, args=(ts, y, load), method="trf",
+                            x_scale="jac", ftol=1e-14, xtol=1e-14, gtol=1e-14, max_nfev=200)
+        rms = float(np.sqrt(np.mean(sol.fun**2)))
+        rows.append(rms)
+        if np.isfinite(rms) and (best is None or rms < best[0]):
+            best = (rms, sol.x)
+    ref_wall = time.perf_counter() - t
+
+    def rms_of(th):
+        return float(np.sqrt(np.mean(res_fn(np.asarray(th), ts, y, load) ** 2)))
+
+    rms_fit = rms_of(th_fit) if np.all(np.isfinite(th_fit)) else float("nan")
+    hits = sum(abs(r / best[0] - 1) <= SAME for r in rows if np.isfinite(r))
+    return {
+        "rig": real.RIG_OF[effect], "effect": effect, "seed": seed, "samples": int(data.n),
+        "converged": bool(res.converged), "message": res.message,
+        "strategy": res.strategy, "iterations": int(res.iterations), "seconds": wall,
+        "rms_fit": rms_fit, "rms_fit_reported": res.rms_residual,
+        "rms_reference": best[0], "rms_ratio": rms_fit / best[0],
+        "values": values, "load_by": kw.get("load_by", "time"),
+        "record_sha1": hashlib.sha1(np.asarray(ts).tobytes() + np.asarray(y).tobytes())
+        .hexdigest(),
+        "reference": {"rms": best[0], "theta": best[1].tolist(), "starts": len(starts),
+                      "starts_reaching_best": hits, "rms_per_start": rows},
+        "reference_seconds": ref_wall,
+    }
+
+
 def table(doc: dict) -> str:
     """The markdown section for the docs page."""
     m = doc["machine"]
@@ -356,6 +419,53 @@ def extra_table(doc: dict, before: dict | None) -> str:
     return "\n".join(lines)
 
 
+REAL_BEGIN, REAL_END = "<!-- BEGIN misfit-real -->", "<!-- END misfit-real -->"
+
+
+def real_table(doc: dict, befores: list[dict]) -> str:
+    """The docs section of the `--real` cases, with runs of older code beside."""
+    lines = [f"**Records like the real ones** ({doc['machine']['date']}, `experiments/"
+             "misfit_bench.py --real`, results in `experiments/results/misfit_bench.real"
+             "[.before-*].json`; the cases in `experiments/_misfit_real.py`). The reference: "
+             "scipy's TRF from the fit's estimate, its start (where finite), the truth and "
+             f"{doc['starts']} random start(s), on the same residuals (the slide in m, the "
+             "angle in rad at the tooth edges). Older code fits the coast-down's force "
+             "interpolated in time (it has no `load_by`) and is judged against the TRF "
+             "reference of that problem.", "",
+             "| case | code | converged | fit rms | rms / reference | reference rms "
+             "| LM iterations | wall time (s) | strategy |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    unit = {"slide_only": "mm", "coast_down": "mrad"}
+    # A record fitted by several codes (the same samples) is judged by the best reference.
+    best = {}
+    for d in [doc] + befores:
+        for r in d["cases"]:
+            k = (r.get("record_sha1"), r.get("load_by"))
+            best[k] = min(best.get(k, np.inf), r["rms_reference"])
+    for d in [doc] + befores:
+        for r in d["cases"]:
+            r["rms_reference"] = best[(r.get("record_sha1"), r.get("load_by"))]
+            ratio = r["rms_fit"] / r["rms_reference"]
+            lines.append(
+                f"| {r['rig']}: {r['effect'].replace('_', ' ')} | {d.get('code') or '?'} | "
+                f"{'yes' if r['converged'] else '**no**'} | "
+                f"{1e3 * r['rms_fit']:.4g} {unit[r['effect']]} | "
+                f"{ratio:.3f}{'' if ratio <= 1.1 else ' (**off**)'} | "
+                f"{1e3 * r['rms_reference']:.3g} {unit[r['effect']]} | {r['iterations']} | "
+                f"{r['seconds']:.1f} | {r['strategy']} |")
+    return "\n".join(lines)
+
+
+def write_section(begin: str, end: str, block: str) -> None:
+    """Replace the section between `begin` and `end` on the page (or add it at its end)."""
+    src = PAGE.read_text()
+    pat = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
+    text = (pat.sub(lambda _: f"{begin}\n{block}\n{end}", src) if pat.search(src)
+            else src.replace(EXTRA_END, f"{EXTRA_END}\n\n{begin}\n{block}\n{end}", 1))
+    with atomic_write(PAGE) as f:
+        f.write(text)
+
+
 def write_table(doc: dict) -> None:
     src = PAGE.read_text()
     pat = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
@@ -377,8 +487,11 @@ def main() -> None:
     ap.add_argument("--extra", action="store_true",
                     help=f"the cases that change the start instead ({', '.join(START_CASES)}), "
                          "written to misfit_bench.extra.json (or --out)")
-    ap.add_argument("--before", help="with --extra --table: a results file of the code "
-                                     "before, shown beside")
+    ap.add_argument("--real", action="store_true",
+                    help=f"records like the real ones instead ({', '.join(real.REAL)}), "
+                         "written to misfit_bench.real.json (or --out)")
+    ap.add_argument("--before", help="with --extra/--real --table: results files of the "
+                                     "code before (comma-separated), shown beside")
     ap.add_argument("--out", help="results file (default: experiments/results/misfit_bench"
                                   "[.smoke|.extra].json)")
     ap.add_argument("--smoke", action="store_true",
@@ -387,9 +500,15 @@ def main() -> None:
                     help="rewrite the docs table from misfit_bench.json and stop")
     a = ap.parse_args()
     out = RESULTS / ("misfit_bench.smoke.json" if a.smoke else "misfit_bench.extra.json"
-                     if a.extra else "misfit_bench.json")
+                     if a.extra else "misfit_bench.real.json" if a.real
+                     else "misfit_bench.json")
     if a.out:
         out = ROOT / a.out if not a.out.startswith("/") else type(ROOT)(a.out)
+    if a.table and a.real:
+        befores = [json.loads(open(f).read()) for f in (a.before or "").split(",") if f]
+        doc = json.loads((RESULTS / "misfit_bench.real.json").read_text())
+        write_section(REAL_BEGIN, REAL_END, real_table(doc, befores))
+        return
     if a.table and a.extra:
         before = json.loads(open(a.before).read()) if a.before else None
         doc = json.loads((RESULTS / "misfit_bench.extra.json").read_text())
@@ -407,9 +526,12 @@ def main() -> None:
     if a.starts < 0:
         raise SystemExit("--starts must be >= 0")
     kinds = START_CASES if a.extra else EFFECTS
-    cases = [c.split(":") for c in a.cases.split(",") if c] or [
-        (r, e) for r in RIGS for e in kinds]
+    cases = [c.split(":") for c in a.cases.split(",") if c] or (
+        [(real.RIG_OF[e], e) for e in real.REAL] if a.real else
+        [(r, e) for r in RIGS for e in kinds])
     for c in cases:
+        if len(c) == 2 and c[1] in real.REAL and c[0] == real.RIG_OF[c[1]]:
+            continue
         if len(c) != 2 or c[0] not in RIGS or c[1] not in EFFECTS + START_CASES:
             raise SystemExit(f"--cases: {':'.join(c)} is not RIG:EFFECT with RIG in "
                              f"{', '.join(RIGS)} and EFFECT in {', '.join(EFFECTS)}")
@@ -421,7 +543,8 @@ def main() -> None:
                                             for k, v in RIG.items()}, "cases": []}
     t0 = time.perf_counter()
     for rig, effect in cases:
-        row = run_case(rig, effect, a.seed, starts, t1, a.smoke)
+        row = (run_real(effect, a.seed, starts, t1) if effect in real.REAL
+               else run_case(rig, effect, a.seed, starts, t1, a.smoke))
         doc["cases"].append(row)
         print(f"{rig:>3} {effect:<15} converged={row['converged']!s:<5} "
               f"rms/ref={row['rms_ratio']:.4f} ref={row['rms_reference']:.4g} "
