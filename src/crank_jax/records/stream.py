@@ -128,10 +128,10 @@ def _check_block(path: str, where: np.ndarray, block: np.ndarray, names, last: f
     if bad.any():
         r, c = np.argwhere(bad)[0]
         raise DataError(f"{path}: {label} {int(where[r])}: column {names[c]!r} is not "
-                        f"finite ({block[r, c]})")
+                        f"finite ({float(block[r, c])})")
     t = np.concatenate([[last], block[:, 0]])
     step = np.diff(t)
     if (step <= 0).any():
         r = int(np.flatnonzero(step <= 0)[0])
-        raise DataError(f"{path}: {label} {int(where[r])}: time {block[r, 0]!r} does not "
-                        f"increase (the sample before: {t[r]!r}); sort the record")
+        raise DataError(f"{path}: {label} {int(where[r])}: time {float(block[r, 0])!r} does "
+                        f"not increase (the sample before: {float(t[r])!r}); sort the record")
