@@ -68,8 +68,9 @@ def run_chunks(model: TrackModel, settings: FilterSettings, state: FilterState,
             state, out = run_filter(model, settings, state, *_padded(t, y))
             host = Steps(*(np.asarray(a)[:k] for a in out))
             first = (-lo) % every  # the kept samples' indices are multiples of `every`
-            kept.append(Steps(*(a[first::every] for a in host)))
-            kept_t.append(t[first::every])
+            # (Copies: a slice would keep the whole chunk's buffers alive.)
+            kept.append(Steps(*(a[first::every].copy() for a in host)))
+            kept_t.append(t[first::every].copy())
             for i in np.flatnonzero(host.alarm):
                 change = lo + int(i) - int(host.run[i])
                 events.append((lo + int(i), max(change, 0), float(t[i]),
