@@ -143,7 +143,10 @@ def judge(res, name, change, free):
     early = [a for a in alarms if a["t"] < T_CHANGE] if name else alarms
     hit = [a for a in alarms if name and T_CHANGE <= a["t"] <= T_CHANGE + 3.0
            and a["parameters"][0] == name]
+    # The band's honesty: the rms of the error over its standard error (1 when honest).
+    z = (res.values[watch] - true_path) / res.stderr[watch]
     return {"watch": watch, "alarms": alarms, "false_alarms": len(early),
+            "z_rms_pre": float(np.sqrt(np.mean(z[pre] ** 2))),
             "detected": bool(hit), "delay_s": hit[0]["t"] - T_CHANGE if hit else None,
             "coverage_pre": float(np.mean(cover[pre])),
             "coverage_after_5s": float(np.mean(cover[settled])), "at": at,
@@ -185,9 +188,12 @@ def table(doc: dict) -> str:
              "model; the tracker starts from its batch fit of the first 5 s). The error "
              "and cover columns are the watched parameter's (the changed one, else `k`) "
              "at 29 s and 59 s; coverage is of its 95% band over the samples after 5 s "
-             "(before the change, for a change case).", "",
+             "(before the change, for a change case); z rms is the rms of the error over "
+             "its standard error over the same samples (1 for an honest band; below 1, "
+             "a band wider than the errors).", "",
              "| case | seed | alarms (t s: named) | delay | at 29 s: error, covered | "
-             "at 59 s | coverage | criteria |", "|---|---|---|---|---|---|---|---|"]
+             "at 59 s | coverage | z rms | criteria |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in doc["rows"]:
         al = "; ".join(f"{a['t']:.2f}: {','.join(a['parameters'])}" for a in r["alarms"])
         d = f"{r['delay_s']:.2f} s" if r["delay_s"] is not None else "-"
@@ -195,7 +201,8 @@ def table(doc: dict) -> str:
         lines.append(f"| {r['case']} | {r['seed']} | {al or 'none'} | {d} | "
                      f"{cell(r['at'][29.0] if 29.0 in r['at'] else r['at']['29.0'])} | "
                      f"{cell(r['at'][59.0] if 59.0 in r['at'] else r['at']['59.0'])} | "
-                     f"{100 * cov:.0f}% | {'pass' if r['pass'] else 'FAIL'} |")
+                     f"{100 * cov:.1f}% | {r.get('z_rms_pre', float('nan')):.2f} | "
+                     f"{'pass' if r['pass'] else 'FAIL'} |")
     n = sum(r["pass"] for r in doc["rows"])
     lines += ["", f"{n} of {len(doc['rows'])} tracked records meet the criteria."]
     return "\n".join(lines)
