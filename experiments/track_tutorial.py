@@ -33,8 +33,13 @@ from scipy.integrate import solve_ivp  # noqa: E402
 from track_independent import accel  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.online import init_state, prepare, run_filter, track_stream  # noqa: E402
-from crank_jax.online.alarms import name_alarms  # noqa: E402
+from crank_jax.online import (  # noqa: E402
+    init_state,
+    name_alarms,
+    prepare,
+    run_filter,
+    track_stream,
+)
 
 #: The rig: the lab rig with a lubricated slider guide (viscous friction c_s, N*s/m),
 #: driven by a programmed two-tone torque (N*m) that is part of the scene.

@@ -14,7 +14,7 @@ import pytest
 import crank_jax as cj
 from crank_jax.online import runner as runner_module
 from crank_jax.online import track, track_stream
-from crank_jax.records.stream import RecordChunks
+from crank_jax.records.chunked import RecordChunks
 from crank_jax.records.table import DataError
 
 jax.config.update("jax_enable_x64", True)

@@ -1,6 +1,6 @@
 """`track_stream`: follow a long record straight from its file, chunk by chunk, in bounded
 memory: the file is read `CHUNK` rows at a time
-([`RecordChunks`][crank_jax.records.stream.RecordChunks]), the filter runs on each chunk
+([`RecordChunks`][crank_jax.records.chunked.RecordChunks]), the filter runs on each chunk
 as it comes, the result keeps every `every`-th sample (the change test still sees every
 sample), and the full-resolution path can be written to a CSV file as it goes (atomically:
 the file appears, whole, when the record is done)."""
@@ -15,9 +15,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..records.chunked import RecordChunks
 from ..records.data import Data
 from ..records.sensors import select_sensors
-from ..records.stream import RecordChunks
 from ..records.table import DataError, header_columns
 from ..runtime.io import atomic_write
 from ..scene import Scene

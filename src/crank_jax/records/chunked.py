@@ -14,7 +14,7 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 
 from .fields import split_fields, to_float
-from .table import DataError, _header, _numbered_lines, _open_text
+from .table import DataError, find_header, numbered_lines, open_text
 
 __all__ = ["RecordChunks"]
 
@@ -42,8 +42,8 @@ class RecordChunks:
                                 f"array (columns {[t_col, *self.columns]}), got shape "
                                 f"{arr.shape}")
         else:
-            with _open_text(self.path) as f:
-                self._layout(_body(_numbered_lines(f, self.path)))
+            with open_text(self.path) as f:
+                self._layout(_body(numbered_lines(f, self.path)))
 
     def _memmap(self) -> np.ndarray:
         try:
@@ -52,7 +52,7 @@ class RecordChunks:
             raise DataError(f"{self.path}: not a readable .npy array ({e})") from None
 
     def _layout(self, body) -> None:
-        _, self.delim, names = _header(self.path, body, self.t_col, self.columns[0],
+        _, self.delim, names = find_header(self.path, body, self.t_col, self.columns[0],
                                        (self.t_col, *self.columns),
                                        [(self.t_col, "t_col="),
                                         *((c, "channels=") for c in self.columns)])
@@ -73,8 +73,8 @@ class RecordChunks:
             yield rows, np.asarray(arr[lo:lo + self.rows], dtype=np.float64)
 
     def _text_blocks(self):
-        with _open_text(self.path) as f:
-            body = _body(_numbered_lines(f, self.path))
+        with open_text(self.path) as f:
+            body = _body(numbered_lines(f, self.path))
             self._layout(body)
             while True:
                 lines = list(itertools.islice(body, self.rows))
