@@ -109,16 +109,17 @@ def stream(n: int, every: int, smoke: bool) -> None:
         short, long_ = Path(tmp) / "short.npy", Path(tmp) / "long.npy"
         rng = np.random.default_rng(0)
         np.save(short, np.stack([ts, phi + rng.normal(0, 1e-3, head)], 1))
-        # The long file is written a block at a time (it is never whole in memory here).
-        mm = np.lib.format.open_memmap(long_, mode="w+", dtype=np.float64, shape=(n, 2))
-        for lo in range(0, n, 1_000_000):
-            hi = min(lo + 1_000_000, n)
-            t = np.arange(lo, hi) / rate
-            y = np.zeros(hi - lo)
-            y[:max(0, min(hi, head) - lo)] = phi[lo:min(hi, head)]
-            mm[lo:hi] = np.stack([t, y + rng.normal(0, 1e-3, hi - lo)], 1)
-        mm.flush()
-        del mm
+        # The long file is written a block at a time by plain writes (never whole in
+        # memory here, and no memory map whose pages would count in this process's peak).
+        with open(long_, "wb") as f:
+            np.lib.format.write_array_header_1_0(
+                f, {"descr": "<f8", "fortran_order": False, "shape": (n, 2)})
+            for lo in range(0, n, 1_000_000):
+                hi = min(lo + 1_000_000, n)
+                t = np.arange(lo, hi) / rate
+                y = np.zeros(hi - lo)
+                y[:max(0, min(hi, head) - lo)] = phi[lo:min(hi, head)]
+                np.stack([t, y + rng.normal(0, 1e-3, hi - lo)], 1).tofile(f)
         track_stream(LAB, short, **kw)
         before = peak_mb()
         t0 = time.perf_counter()

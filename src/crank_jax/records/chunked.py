@@ -1,6 +1,6 @@
 """Read a long record a chunk of rows at a time: a plain text table (a header naming the
 columns, then numbers; comma-, semicolon- or whitespace-separated; `#`/`%` comment and
-blank lines skipped) or a `.npy` array (memory-mapped), so that a record of 10^7 samples
+blank lines skipped) or a `.npy` array (read a block at a time), so that a record of 10^7 samples
 never sits in memory whole. Each chunk is checked as [`load_data`][crank_jax.load_data]
 checks a record: numbers, finite, times strictly increasing (across chunks too)."""
 
@@ -24,7 +24,7 @@ class RecordChunks:
 
     Iterating yields `(t (k,), values (k, C))`, float64, k <= `rows`; a new iteration
     reads the file again from its start. A `.npy` file holds a (n, 1 + C) array whose
-    columns are `t` and `columns` in that order (memory-mapped: read as it is used).
+    columns are `t` and `columns` in that order (read a block of rows at a time).
     Raises [`DataError`][crank_jax.records.table.DataError] naming the line (or row) and
     column of a bad value, and the column missing from the header."""
 
@@ -36,20 +36,30 @@ class RecordChunks:
             raise DataError(f"{self.path}: name at least one channel column to read")
         self.npy = self.path.endswith(".npy")
         if self.npy:
-            arr = self._memmap()
-            if arr.ndim != 2 or arr.shape[1] != 1 + len(self.columns):
+            shape = self._npy_layout()[0]
+            if len(shape) != 2 or shape[1] != 1 + len(self.columns):
                 raise DataError(f"{self.path}: a .npy record is an (n, {1 + len(columns)}) "
                                 f"array (columns {[t_col, *self.columns]}), got shape "
-                                f"{arr.shape}")
+                                f"{shape}")
         else:
             with open_text(self.path) as f:
                 self._layout(_body(numbered_lines(f, self.path)))
 
-    def _memmap(self) -> np.ndarray:
+    def _npy_layout(self):
+        """The .npy file's shape, dtype and the offset of its data."""
         try:
-            return np.load(self.path, mmap_mode="r", allow_pickle=False)
+            with open(self.path, "rb") as f:
+                fmt = np.lib.format
+                read = (fmt.read_array_header_1_0 if fmt.read_magic(f) == (1, 0)
+                        else fmt.read_array_header_2_0)
+                shape, fortran, dtype = read(f)
+                offset = f.tell()
         except (ValueError, OSError) as e:
             raise DataError(f"{self.path}: not a readable .npy array ({e})") from None
+        if fortran or dtype.kind not in "fi" or dtype.hasobject:
+            raise DataError(f"{self.path}: a .npy record is a C-ordered array of numbers, "
+                            f"got dtype {dtype} ({'Fortran' if fortran else 'C'} order)")
+        return shape, dtype, offset
 
     def _layout(self, body) -> None:
         _, self.delim, names = find_header(self.path, body, self.t_col, self.columns[0],
@@ -67,10 +77,19 @@ class RecordChunks:
             yield np.ascontiguousarray(block[:, 0]), np.ascontiguousarray(block[:, 1:])
 
     def _npy_blocks(self):
-        arr = self._memmap()
-        for lo in range(0, arr.shape[0], self.rows):
-            rows = np.arange(lo, min(lo + self.rows, arr.shape[0]))
-            yield rows, np.asarray(arr[lo:lo + self.rows], dtype=np.float64)
+        # Read with plain reads, not a memory map: a map's pages count in the process's
+        # resident memory as they are touched, the whole file by the end.
+        shape, dtype, offset = self._npy_layout()
+        n, width = shape
+        with open(self.path, "rb") as f:
+            f.seek(offset)
+            for lo in range(0, n, self.rows):
+                k = min(self.rows, n - lo)
+                block = np.fromfile(f, dtype=dtype, count=k * width)
+                if block.size != k * width:
+                    raise DataError(f"{self.path}: the file ends at row {lo + block.size // width}"
+                                    f" of the {n} its header promises")
+                yield np.arange(lo, lo + k), block.reshape(k, width).astype(np.float64)
 
     def _text_blocks(self):
         with open_text(self.path) as f:
