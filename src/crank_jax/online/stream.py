@@ -67,7 +67,7 @@ def track_stream(scene: Scene, path: str | os.PathLike, free: Sequence[str] = ("
     sensors = select_sensors(channels, scene.sensors, header)
     reader = RecordChunks(path, [s.column for s in sensors], t_col, rows=runner.CHUNK)
     chunks = iter(reader)
-    head = _head(chunks, start_seconds)
+    head = _head(chunks, start_seconds, str(path))
     t_head = np.concatenate([t for t, _ in head])
     y_head = np.concatenate([y for _, y in head])
     data = Data(t_head, channels={s.name: s.to_si(y_head[:, j]) for j, s in enumerate(sensors)},
@@ -87,7 +87,7 @@ def track_stream(scene: Scene, path: str | os.PathLike, free: Sequence[str] = ("
         "path_out": None if path_out is None else str(path_out), "path_every": path_every})
 
 
-def _head(chunks, seconds: float) -> list:
+def _head(chunks, seconds: float, where: str) -> list:
     """The first chunks of `chunks`, until they span `seconds` s (or the record ends)."""
     head = []
     for t, y in chunks:
@@ -95,7 +95,7 @@ def _head(chunks, seconds: float) -> list:
         if t[-1] - head[0][0][0] >= seconds:
             break
     if not head:
-        raise DataError("the record has no samples")
+        raise DataError(f"{where}: the record has no samples (a header and no data)")
     return head
 
 
