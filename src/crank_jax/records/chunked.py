@@ -25,7 +25,7 @@ class RecordChunks:
     Iterating yields `(t (k,), values (k, C))`, float64, k <= `rows`; a new iteration
     reads the file again from its start. A `.npy` file holds a (n, 1 + C) array whose
     columns are `t` and `columns` in that order (read a block of rows at a time).
-    Raises [`DataError`][crank_jax.records.table.DataError] naming the line (or row) and
+    Raises `DataError` (a `ValueError`) naming the line (or row) and
     column of a bad value, and the column missing from the header."""
 
     def __init__(self, path: str | os.PathLike, columns: Sequence[str], t_col: str = "t",
