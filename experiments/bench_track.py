@@ -170,7 +170,10 @@ def _stream_rows() -> list[str]:
     s = json.loads(path.read_text())
     return ["", f"A long record streamed from its `.npy` file (`--stream`, "
             f"{s['machine']['date']}): `track_stream` on {s['samples']:.3g} samples at "
-            f"{s['rate_hz']:g} Hz keeping every {s['every']}-th.", "",
+            f"{s['rate_hz']:g} Hz keeping every {s['every']}-th (the lab rig's free decay, "
+            "then the rig at rest, 1 mrad noise; free `k` and `c`). The machine was shared "
+            "with a load of about 10 on its 2 cores: the time a sample is not comparable "
+            "with the in-memory row above; the memory is the point.", "",
             "| what | figure |", "|---|---|",
             f"| time | {s['seconds']:.0f} s ({s['per_sample_us']:.3g} µs a sample) |",
             f"| peak memory, growth over a warm short call | {s['peak_growth_mb']:.0f} MB "
