@@ -120,3 +120,4 @@ def test_memory_is_bounded_on_a_long_streamed_record(tmp_path):
     # are 12 float64 a sample, 192 MB; the record's two columns another 32 MB. The peak
     # grows by far less: the chunk, the kept path.
     assert got["after"] - got["before"] < 40.0, got
+    print(f"peak growth {got['after'] - got['before']:.1f} MB")
