@@ -14,7 +14,7 @@ import pytest
 import crank_jax as cj
 from crank_jax.model.sampled import SampledLoad
 from crank_jax.online import prepare, run_filter, track
-from crank_jax.online import tracking as tracking_module
+from crank_jax.online import runner as runner_module
 
 jax.config.update("jax_enable_x64", True)
 
@@ -82,7 +82,7 @@ def test_a_stiffness_drop_is_alarmed_and_followed_and_no_change_is_quiet():
 def test_chunks_and_thinning_give_the_plain_path(monkeypatch):
     data = driven_record(6.0, seed=3)
     whole = track(LAB, data, free=("k",), start="scene", progress=False)
-    monkeypatch.setattr(tracking_module, "CHUNK", 500)
+    monkeypatch.setattr(runner_module, "CHUNK", 500)
     chunked = track(LAB, data, free=("k",), start="scene", progress=False, every=3)
     np.testing.assert_allclose(chunked.values["k"], whole.values["k"][::3], rtol=1e-12)
     np.testing.assert_allclose(chunked.stderr["k"], whole.stderr["k"][::3], rtol=1e-9)

@@ -25,25 +25,26 @@ def _value(z: float, log: bool) -> float:
     return math.exp(z) if log else z
 
 
-def name_alarms(steps, ts, events, free, log, settle: float, every: int) -> list[dict]:
-    """Each alarm of `events` (`(sample index, run, statistic)`, full resolution) as a
-    dict: `t` (s), `t_change` (the change point's time, s), `parameters` (the names that
-    moved, largest change first), `before` and `after` ({name: value}), `z` ({name:
-    change over its combined standard error}), `statistic` (the CUSUM's largest value)
-    and `tests` (the test's alarms merged into this one: those within `settle` s of the
-    one before).
-    `steps` holds every `every`-th sample of the filter's output; `ts` (n,) every time."""
+def name_alarms(steps, events, free, log, settle: float, every: int, dt: float,
+                n: int) -> list[dict]:
+    """Each alarm of `events` (`(sample index, change point's index, time s, change
+    point's time s, statistic)`, full resolution, from
+    [`run_chunks`][crank_jax.online.runner.run_chunks]) as a dict: `t` (s), `t_change`
+    (the change point's time, s), `parameters` (the names that moved, largest change
+    first), `before` and `after` ({name: value}), `z` ({name: change over its combined
+    standard error}), `statistic` (the CUSUM's largest value) and `tests` (the test's
+    alarms merged into this one: those within `settle` s of the one before).
+    `steps` holds every `every`-th sample of the filter's output; `dt` is the sample
+    interval (s) and `n` the record's samples."""
     n_kept = steps.x.shape[0]
-    dt = float(np.median(np.diff(ts))) if ts.size > 1 else 0.0
     wait = int(round(settle / dt)) if dt > 0 else 0
     groups = _grouped(events, wait)
     out = []
     for k, group in enumerate(groups):
-        i, run, _ = group[0]
+        i, change, t, t_change, _ = group[0]
         last = group[-1][0]
-        stat = max(g for _, _, g in group)
-        change = max(i - run, 0)
-        nxt = groups[k + 1][0][0] - 1 if k + 1 < len(groups) else ts.size - 1
+        stat = max(e[-1] for e in group)
+        nxt = groups[k + 1][0][0] - 1 if k + 1 < len(groups) else n - 1
         b = min(max(change - 1, 0) // every, n_kept - 1)
         a = min(min(last + wait, nxt) // every, n_kept - 1)
         zb, za = steps.x[b, 2:], steps.x[a, 2:]
@@ -52,10 +53,10 @@ def name_alarms(steps, ts, events, free, log, settle: float, every: int) -> list
         order = np.argsort(-score)
         moved = [free[j] for j in order if score[j] > MOVED] or [free[order[0]]]
         out.append({
-            "t": float(ts[i]), "t_change": float(ts[change]), "parameters": moved,
-            "before": {n: _value(float(zb[j]), log[j]) for j, n in enumerate(free)},
-            "after": {n: _value(float(za[j]), log[j]) for j, n in enumerate(free)},
-            "z": {n: float(score[j]) for j, n in enumerate(free)},
+            "t": t, "t_change": t_change, "parameters": moved,
+            "before": {m: _value(float(zb[j]), log[j]) for j, m in enumerate(free)},
+            "after": {m: _value(float(za[j]), log[j]) for j, m in enumerate(free)},
+            "z": {m: float(score[j]) for j, m in enumerate(free)},
             "statistic": float(stat), "tests": len(group)})
     return out
 

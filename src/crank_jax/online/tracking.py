@@ -24,19 +24,17 @@ from ..identify.request import normalize
 from ..identify.start import half_window, smooth_derivatives
 from ..model.params import FIELDS, SIGNED_FIELDS, WIDTH_FIELDS
 from ..records.data import Data
-from ..runtime.progress import progress_bar
 from ..scene import Scene
 from ..simulation import linearize
 from .alarms import name_alarms
-from .ekf import FilterSettings, FilterState, TrackModel, init_state, run_filter
+from .ekf import FilterSettings, FilterState, TrackModel, init_state
+from .runner import CHUNK, array_chunks, run_chunks
 from .tracked import TrackResult
 
-__all__ = ["track", "prepare", "TrackProblem", "STARTS", "CHUNK"]
+__all__ = ["track", "prepare", "finish", "TrackProblem", "STARTS", "CHUNK"]
 
 #: How the filter starts: a batch fit of the record's first seconds, or the scene.
 STARTS = ("batch", "scene")
-#: Samples per compiled chunk: the filter's program has this shape whatever the record.
-CHUNK = 4096
 #: A Runge-Kutta step covers at most this fraction of the linearised period, and at most
 #: `_MAX_TURN` rad of the fastest speed the record shows.
 _PERIOD_FRACTION, _MAX_TURN = 1 / 40, 0.05
@@ -178,10 +176,19 @@ def track(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
     p = prepare(scene, data, free, start=start, start_seconds=start_seconds,
                 false_alarm_rate=false_alarm_rate, change_ratio=change_ratio,
                 q_param=q_param, load_by=load_by, progress=progress)
-    steps, events = _run_chunks(p.model, p.settings, p.state, p.ts, p.ys, every, progress)
-    alarms = name_alarms(steps, p.ts, events, p.free, p.log, settle, every)
-    return TrackResult.build(p.ts[::every], steps, p.free, p.log, alarms,
-                             p.info | {"settle": settle, "every": every}, source=p.source)
+    run = run_chunks(p.model, p.settings, p.state, array_chunks(p.ts, p.ys), every,
+                     progress, total=p.ts.shape[0])
+    return finish(p, run, settle, every)
+
+
+def finish(p: TrackProblem, run, settle: float, every: int, **info) -> TrackResult:
+    """The [`TrackResult`][crank_jax.online.tracked.TrackResult] of a filtered record
+    (`run`, a [`Run`][crank_jax.online.runner.Run] of the problem `p`); `info` adds to its
+    settings."""
+    alarms = name_alarms(run.steps, run.events, p.free, p.log, settle, every, run.dt, run.n)
+    return TrackResult.build(run.t, run.steps, p.free, p.log, alarms,
+                             p.info | {"settle": settle, "every": every} | info,
+                             source=p.source)
 
 
 def _start(req, scene, data, free, start, seconds, progress, load_by):
@@ -230,29 +237,3 @@ def _substeps(req, values, ts, dphi) -> int:
     h = min(_PERIOD_FRACTION * 2 * math.pi / w if w > 0 else math.inf,
             _MAX_TURN / max(float(np.max(np.abs(dphi))), 1e-9))
     return int(min(max(1, math.ceil(dt / h)), 64))
-
-
-def _run_chunks(model, settings, state, ts, ys, every, progress):
-    """The filter over the record in chunks of `CHUNK` samples (the last one padded),
-    keeping every `every`-th sample. **Returns:** the kept [`Steps`][] on the host, and
-    each alarm at full resolution: `(sample index, samples since the statistic left 0,
-    statistic)`."""
-    n = ts.shape[0]
-    kept, events = [], []
-    with progress_bar(n, "track", progress, unit="sample") as bar:
-        for lo in range(0, n, CHUNK):
-            hi = min(lo + CHUNK, n)
-            pad = CHUNK - (hi - lo)
-            t = np.concatenate([ts[lo:hi], np.full(pad, ts[hi - 1])])
-            y = np.concatenate([ys[lo:hi], np.repeat(ys[hi - 1:hi], pad, axis=0)])
-            ok = np.arange(CHUNK) < hi - lo
-            state, out = run_filter(model, settings, state, jnp.asarray(t), jnp.asarray(y),
-                                    jnp.asarray(ok))
-            first = (-lo) % every  # the kept samples' indices are multiples of `every`
-            kept.append([np.asarray(a)[:hi - lo][first::every] for a in out])
-            alarm = np.asarray(out.alarm)[:hi - lo]
-            events += [(lo + int(i), int(out.run[i]), float(out.g[i]))
-                       for i in np.flatnonzero(alarm)]
-            bar.update(hi - lo)
-    steps = type(out)(*(np.concatenate([k[i] for k in kept]) for i in range(len(out))))
-    return steps, events

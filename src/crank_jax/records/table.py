@@ -18,7 +18,8 @@ from ..runtime.io import check_input
 from .columns import role_conflict
 from .fields import cut_names, split_fields, to_float
 
-__all__ = ["read_table", "header_columns", "DataError", "MAX_RECORD_SAMPLES", "MAX_LINE_CHARS"]
+__all__ = ["read_table", "header_columns", "open_text", "numbered_lines", "find_header",
+           "DataError", "MAX_RECORD_SAMPLES", "MAX_LINE_CHARS"]
 
 
 class DataError(ValueError):
@@ -30,7 +31,7 @@ class DataError(ValueError):
 MAX_RECORD_SAMPLES = 10**7
 
 
-def _open_text(path: str | os.PathLike):
+def open_text(path: str | os.PathLike):
     """Open a text file as pandas would read it: a UTF-8 byte-order mark (as Excel writes)
     is dropped, a UTF-16 one selects UTF-16, and CRLF or CR line ends read as LF. Anything
     but a regular file (a FIFO would wait for a writer forever) is refused unopened."""
@@ -44,7 +45,7 @@ def _open_text(path: str | os.PathLike):
     return open(path, encoding=enc, errors="replace", newline=None)
 
 
-def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
+def find_header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
             required: Sequence[tuple[str, str]] | None = None):
     """Find the header line; return (its line number, delimiter, column names).
     `required`: (column, the argument that names it) of every column that must be there
@@ -79,7 +80,7 @@ def _header(where: str, lines, t_col: str, phi_col: str, used: tuple[str, ...],
 MAX_LINE_CHARS = 1 << 16
 
 
-def _numbered_lines(f, where: str):
+def numbered_lines(f, where: str):
     """(line number, line without its end) for each line, refusing overlong lines."""
     for i, ln in enumerate(iter(lambda: f.readline(MAX_LINE_CHARS + 1), ""), start=1):
         if len(ln) > MAX_LINE_CHARS:
@@ -98,11 +99,11 @@ def read_table(path, t_col: str, phi_col: str, used: tuple[str, ...],
     header has them (the load columns). A column with two roles is refused once the header
     is read (see [`role_conflict`][crank_jax.records.columns.role_conflict])."""
     where = str(path)
-    with _open_text(path) as f:
-        lines = _numbered_lines(f, where)
+    with open_text(path) as f:
+        lines = numbered_lines(f, where)
         body = ((i, ln) for i, ln in lines
                 if ln.strip() and not ln.lstrip().startswith(("#", "%")))
-        lineno, delim, names = _header(where, body, t_col, phi_col, used, required)
+        lineno, delim, names = find_header(where, body, t_col, phi_col, used, required)
         problem = role_conflict(list(roles) + [(c, r) for c, r in optional if c in names])
         if problem:
             raise DataError(f"{where}: {problem}")
@@ -134,8 +135,8 @@ def header_columns(path: str | os.PathLike) -> list[str]:
     """The column names in a record's header line (the first line that is not blank or a
     comment); [`DataError`][] when there is none."""
     where = str(path)
-    with _open_text(path) as f:
-        for _, text in _numbered_lines(f, where):
+    with open_text(path) as f:
+        for _, text in numbered_lines(f, where):
             if text.strip() and not text.lstrip().startswith(("#", "%")):
                 return split_fields(text, "," if "," in text else (";" if ";" in text else None))
     raise DataError(f"{where}: no header line (the file is empty or all comments)")
