@@ -59,7 +59,7 @@ from .strategy import (
 )
 from .uncertainty import assess, undefined
 
-__all__ = ["fit", "FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning",
+__all__ = ["fit", "finish", "FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning",
            "FREE_NAMES", "AUTO_PERIODS", "SEGMENT_PERIODS", "regressor_start"]
 
 #: Names that can be free (the mechanism fields, load amplitudes and initial state).
@@ -235,13 +235,22 @@ def fit(
         best, iterations, notes = Run(plan.z0, float("nan"), 0, False, plan.abort), 0, []
     else:
         best, iterations, notes = optimize_fit(req, plan)
+    return finish(req, plan, best, iterations, notes, t_begin)
+
+
+def finish(req, plan, best: Run, iterations: int, notes: list, t_begin: float,
+           stacklevel: int = 3) -> FitResult:
+    """A fit's result from its best run: the channels reweighted (a refit while their
+    noise levels move), the uncertainty at the estimate, and the warnings (`req.warn`,
+    attributed `stacklevel` frames up: the caller of `fit` or `fit_many`)."""
+    if not plan.abort:
         req, best, iterations = ch.reweight(req, plan, best, iterations, notes, attempt)
     res = with_wrapped_angles(_result(req, plan, best, iterations, notes, t_begin))
     if req.warn:
         if res.identifiable is False:
             warnings.warn("; ".join(res.unidentifiable_directions), IdentifiabilityWarning,
-                          stacklevel=2)
+                          stacklevel=stacklevel)
         if not res.converged:
             warnings.warn(f"fit did not converge: {res.message}", ConvergenceWarning,
-                          stacklevel=2)
+                          stacklevel=stacklevel)
     return res
