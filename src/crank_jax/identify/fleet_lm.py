@@ -141,7 +141,8 @@ def shape_key(problem) -> tuple:
     """What must agree for problems to share a batch: the tree (scene structure, free
     names, solver, all static) and every leaf's shape and dtype."""
     leaves, treedef = jax.tree.flatten(problem)
-    return treedef, tuple((np.shape(x), np.result_type(x).str) for x in leaves)
+    return treedef, tuple((np.shape(x), str(getattr(x, "dtype", np.asarray(x).dtype)))
+                          for x in leaves)
 
 
 def stack(problems) -> object:
