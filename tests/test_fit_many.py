@@ -10,7 +10,7 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.cli import main
-from crank_jax.identify import fit_many as fm
+from crank_jax.identify import fleet as fm
 
 # Three lab-rig records of slightly different lengths (one bucket: 432 samples) and noise.
 SPECS = ((1, 2.9, 1e-3), (2, 3.0, 2e-3), (3, 3.3, 1e-3))
@@ -100,7 +100,8 @@ def test_each_writes_a_fit_json_per_record_and_a_summary(tmp_path, records, flee
     doc = json.loads((out / "rec1.json").read_text())
     assert doc.keys() == fleet[1].to_json().keys()
     assert doc["estimates"]["k"]["value"] == pytest.approx(fleet[1].values["k"], rel=1e-12)
-    rows = list(csv.DictReader((out / "summary.csv").open()))
+    with (out / "summary.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
     assert [r["record"] for r in rows] == ["rec0.csv", "rec1.csv", "rec2.csv"]
     assert list(rows[0])[:5] == list(fm.SUMMARY_COLUMNS)
     assert float(rows[2]["c"]) == pytest.approx(fleet[2].values["c"], rel=1e-12)

@@ -1,5 +1,5 @@
 """`crank-jax fit REC1.csv REC2.csv ... SCENE --each --out DIR`: each record fitted by
-itself, side by side ([`fit_many`][crank_jax.identify.fit_many.fit_many]); DIR gets
+itself, side by side ([`fit_many`][crank_jax.identify.fleet.fit_many]); DIR gets
 `<record stem>.json` per record (a single fit's `fit.json`) and `summary.csv`."""
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def fit_each(a: argparse.Namespace, files: list[str], write_json) -> int:
     """Run `fit --each`: `files` the records, `a.scene` the scene; `write_json(res, path)`
     writes a record's `fit.json`. Exit 0 when every record was fitted (a fit that did not
     converge is a result, as for one record)."""
-    from ..identify.fit_many import fit_many
+    from ..identify import fit_many
     from ..runtime.io import atomic_write, check_input
     from ..scene import load_scene
     from .channel_options import read_records

@@ -14,7 +14,7 @@ The fleet makes one try from the start the fit would use, by single shooting. A 
 it cannot settle (its plan shoots multiply or holds a flat direction, its fleet run did
 not converge, ran off the physical range or ended far above the noise, where the fit
 would escalate) is fitted by [`fit`][] itself, and its result says so in its warnings
-and in [`FleetResult.alone`][]. A record whose fleet run fails is taken out and its batch
+and in `FleetResult.alone`. A record whose fleet run fails is taken out and its batch
 run again without it, so that no failing record changes another's result.
 """
 
