@@ -10,12 +10,14 @@ stop test. A fleet estimate is reported through the fit's own result
 ([`fit.finish`][crank_jax.identify.fit.finish]: the uncertainty, the channels, the
 warnings), so it reads exactly as a single fit's.
 
-The fleet makes one try from the start the fit would use, by single shooting. A record
-it cannot settle (its plan shoots multiply or holds a flat direction, its fleet run did
-not converge, ran off the physical range or ended far above the noise, where the fit
-would escalate) is fitted by [`fit`][] itself, and its result says so in its warnings
-and in `FleetResult.alone`. A record whose fleet run fails is taken out and its batch
-run again without it, so that no failing record changes another's result.
+The fleet makes one try from the start the fit plans, with the fit's shooting (a
+multiple-shooting run, then a single-shooting polish from its estimate, both side by
+side), but without the fit's escalation and its start from the motion. A record it
+cannot settle (its plan holds a flat direction, its fleet run did not converge, ran off
+the physical range or ended far above the noise, where the fit would escalate) is fitted
+by [`fit`][] itself, and its result says so in its warnings and in `FleetResult.alone`.
+A record whose fleet run fails is taken out and its batch run again without it, so that
+no failing record changes another's result.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from ..runtime.progress import progress_bar
 from . import channel_noise as ch
 from .attempt import in_range
 from .fit import finish, fit
-from .fit_plan import make_plan
+from .fit_plan import make_plan, recoordinate
 from .fit_result import FitResult
 from .fleet_lm import BATCHES, STATUS, run_batch, shape_key
 from .outcome import Run, termination
@@ -80,7 +82,6 @@ class FleetResult(NamedTuple):
 class _Member(NamedTuple):
     req: object
     plan: object
-    z0: np.ndarray
     noise: float
     t_begin: float
 
@@ -91,32 +92,23 @@ def _plan(scene, data, free, kw) -> _Member | str:
     t_begin = time.perf_counter()
     req = ch.with_channels(normalize(scene, data, free, **kw))
     plan = make_plan(req)
-    ss = plan.single
     if plan.abort:
         return "refused before any optimisation"
-    if plan.shoot is not ss:
-        return f"the fit plans {plan.strategy}"
-    if plan.Bg.shape[1] != ss.p:
+    if plan.Bg.shape[1] != plan.single.p:
         return "a flat direction is held fixed"
-    z0 = ss.to_z([plan.start[n] for n in ss.names])
-    return _Member(req, plan, z0, noise_unit(plan.noise, ch.known_sigma(req)), t_begin)
+    return _Member(req, plan, noise_unit(plan.noise, ch.known_sigma(req)), t_begin)
 
 
 def _run(m: _Member, z, cost, iterations, status, dec, big) -> Run:
     """The fleet's outcome of one member as the fit's `Run` (single-shooting coordinates),
     judged as the fit judges its try: in range, and near the noise level."""
-    verdict = STATUS[int(status)]
-    ok = verdict == "converged" and math.isfinite(float(cost))
-    if ok:
-        words = (f"converged: the Gauss-Newton step predicts a cost decrease of {dec:.2g} "
-                 f"sigma^2 and moves no coordinate by more than {big:.2g} of its standard "
-                 "error")
-    else:
-        words = f"the fleet's run ended {verdict}"
+    ok = STATUS[int(status)] == "converged" and math.isfinite(float(cost))
+    words = (f"converged: the Gauss-Newton step predicts a cost decrease of {dec:.2g} "
+             f"sigma^2 and moves no coordinate by more than {big:.2g} of its standard error")
     run = Run(np.asarray(z, float), float(cost), int(iterations), ok, "converged" if ok
-              else words, termination("converged" if ok else "failed", words,
-                                      predicted_decrease=float(dec),
-                                      largest_step=float(big), noise=m.noise))
+              else f"ended {STATUS[int(status)]}", termination(
+                  "converged" if ok else "failed", words, predicted_decrease=float(dec),
+                  largest_step=float(big), noise=m.noise))
     run = in_range(m.plan, run)
     rms = math.sqrt(2 * run.cost / max(m.plan.single.n_residuals, 1))
     if run.converged and far_from_noise(rms, m.plan.noise, ch.known_sigma(m.req)):
@@ -124,32 +116,58 @@ def _run(m: _Member, z, cost, iterations, status, dec, big) -> Run:
     return run
 
 
-def _fleet(members: dict, tol: float, max_steps: int, bar) -> tuple[dict, dict]:
-    """Fleet runs of `members` (index -> `_Member`), by shape, in batches; a batch with a
-    member that did not converge runs again without it. **Returns:** (index -> Run of the
-    converged, index -> why each other one is left to `fit`)."""
+def _fleet(items: dict, tol: float, max_steps: int, bar) -> tuple[dict, dict]:
+    """Fleet runs of `items` (index -> (problem, z0, noise)), by shape, in batches; a batch
+    with a member that did not converge runs again without it. **Returns:** (index -> its
+    row of [`FleetRun`][crank_jax.identify.fleet_lm.FleetRun] for the converged, index ->
+    the status of each other one)."""
     groups: dict = {}
-    for i, m in members.items():
-        groups.setdefault(shape_key(m.plan.single), []).append(i)
+    for i, (problem, _, _) in items.items():
+        groups.setdefault(shape_key(problem), []).append(i)
     done, left = {}, {}
     for idx in groups.values():
         while idx:
-            runs = {}
+            rows = {}
             for k in range(0, len(idx), BATCHES[-1]):
                 part = idx[k:k + BATCHES[-1]]
-                out = run_batch([members[i].plan.single for i in part],
-                                [members[i].z0 for i in part], [members[i].noise for i in part],
-                                tol, max_steps)
-                runs.update({i: _run(members[i], *row) for i, row in zip(part, zip(*out))})
+                out = run_batch(*zip(*(items[i] for i in part)), tol, max_steps)
+                rows.update({i: row for i, row in zip(part, zip(*out))})
                 bar.update(len(part))
-            bad = [i for i in idx if not runs[i].converged]
-            left.update({i: f"its fleet run {runs[i].message}" for i in bad})
+            bad = [i for i in idx if STATUS[int(rows[i][3])] != "converged"
+                   or not math.isfinite(float(rows[i][1]))]
+            left.update({i: STATUS[int(rows[i][3])] for i in bad})
             if not bad:
-                done.update(runs)
+                done.update(rows)
             # Again without the failing members (their neighbours' solves step in lockstep
             # with theirs): each result is then that of a batch of converging records.
             idx = [i for i in idx if i not in bad] if bad else []
     return done, left
+
+
+def _fit_fleet(members: dict, tol: float, max_steps: int, bar) -> tuple[dict, dict]:
+    """The fleet's tries: each member's planned problem from its planned start (multiple
+    shooting where the fit plans it), then, for those, a single-shooting polish from that
+    estimate (as `fit`'s). **Returns:** (index -> Run, index -> why left to `fit`)."""
+    first, left = _fleet({i: (m.plan.shoot, m.plan.z0, m.noise) for i, m in members.items()},
+                         tol, max_steps, bar)
+    left = {i: f"its fleet run ended {v}" for i, v in left.items()}
+    multi = [i for i in first if members[i].plan.shoot is not members[i].plan.single]
+    polish, more = _fleet({i: (members[i].plan.single, recoordinate(
+        members[i].plan.shoot, members[i].plan.single, first[i][0]), members[i].noise)
+        for i in multi}, tol, max_steps, bar)
+    left.update({i: f"its fleet polish ended {v}" for i, v in more.items()})
+    runs = {}
+    for i, row in first.items():
+        if i in more:
+            continue
+        if i in polish:
+            row = polish[i][:2] + (polish[i][2] + row[2],) + polish[i][3:]
+        run = _run(members[i], *row)
+        if run.converged:
+            runs[i] = run
+        else:
+            left[i] = f"its fleet run {run.message}"
+    return runs, left
 
 
 @one_blas_thread
@@ -191,7 +209,7 @@ def fit_many(
               max_steps=max_steps, tol=tol, sigma=sigma, profile=None, window=window,
               progress=False, warn=warn, force=force, load_by=load_by)
     members, alone = {}, {}
-    with progress_bar(2 * len(records), "fit_many", progress, unit="record") as bar:
+    with progress_bar(None, "fit_many", progress, unit="record") as bar:
         for i, (sc, d) in enumerate(zip(scenes, records)):
             try:
                 m = _plan(sc, d, free, kw)
@@ -203,7 +221,7 @@ def fit_many(
                 members[i] = m
             bar.update(1)
         steps = 100 if max_steps is None else int(max_steps)
-        runs, left = _fleet(members, tol, steps, bar)
+        runs, left = _fit_fleet(members, tol, steps, bar)
     alone.update(left)
     results = []
     for i, (sc, d) in enumerate(zip(scenes, records)):
