@@ -18,11 +18,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import time
 
 import numpy as np
-from _bench import RESULTS, ROOT, machine, setup_jax
+from _bench import RESULTS, ROOT, machine, setup_jax, write_section
 
 jax = setup_jax()
 
@@ -143,16 +142,6 @@ def table(doc: dict) -> str:
         f"{doc['first_call_s']:.3g} s | |"])
 
 
-def write_table(doc: dict) -> None:
-    src = PAGE.read_text()
-    block = f"{BEGIN}\n{table(doc)}\n{END}"
-    pat = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
-    text = pat.sub(lambda _: block, src) if pat.search(src) else (
-        src.rstrip() + "\n\n" + block + "\n")
-    PAGE.write_text(text)
-    print(f"rewrote the fleet table in {PAGE.relative_to(ROOT)}")
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=100, help="records (100)")
@@ -163,7 +152,7 @@ def main() -> None:
     a = ap.parse_args()
     name = RESULTS / "bench_fit_many.json"
     if a.table:
-        write_table(json.loads(name.read_text()))
+        write_section(PAGE, BEGIN, END, table(json.loads(name.read_text())), "fleet")
         return
     if a.smoke:
         a.n, a.peer_n = 4, 2

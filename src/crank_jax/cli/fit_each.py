@@ -60,20 +60,20 @@ def _check_options(a: argparse.Namespace) -> None:
                             "itself); leave it out, or fit that record alone")
 
 
-def fit_each(a: argparse.Namespace, files: list[str], write_json) -> int:
+def fit_each(a: argparse.Namespace, files: list[str], write_json, fit_kwargs) -> int:
     """Run `fit --each`: `files` the records, `a.scene` the scene; `write_json(res, path)`
-    writes a record's `fit.json`. Exit 0 when every record was fitted (a fit that did not
+    writes a record's `fit.json`, `fit_kwargs(a, scene, n_records)` gives `fit`'s options
+    (the fit command's own). Exit 0 when every record was fitted (a fit that did not
     converge is a result, as for one record)."""
     from ..identify import fit_many
     from ..runtime.io import atomic_write, check_input
     from ..scene import load_scene
     from .channel_options import read_records
-    from .identify import _fit_kwargs
     from .load_by_option import load_by_words
 
     _check_options(a)
     scene = load_scene(a.scene)
-    kw = _fit_kwargs(a, scene, 1)
+    kw = fit_kwargs(a, scene, 1)
     for path in files:
         check_input(path, "DATA")
     out, paths = _outputs(a, files)

@@ -283,7 +283,7 @@ def _fit_run(a: argparse.Namespace) -> int:
         if len(files) < 2:
             raise UserError("--each needs records and a scene: REC1.csv [REC2.csv ...] SCENE")
         a.scene = files[-1]
-        return fit_each(a, files[:-1], _write_json)
+        return fit_each(a, files[:-1], _write_json, _fit_kwargs)
     if records:
         raise UserError(f"fit takes one DATA and one SCENE, got {2 + len(records)} paths; "
                         "--each fits each record by itself, --more-data fits them jointly")
