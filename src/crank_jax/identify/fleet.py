@@ -190,9 +190,9 @@ def fit_many(
     records of one shape side by side in one compiled Levenberg-Marquardt program.
 
     **Arguments:** `scene`, a [`Scene`][] (or one per record); `records`, a sequence of
-    [`Data`][]; the other options are [`fit`][]'s, applied to every record (a fit by
-    single shooting from one start: `fit`'s escalation, multistart and profile are for
-    the records the fleet leaves to `fit`).
+    [`Data`][]; the other options are [`fit`][]'s, applied to every record (one try from
+    the planned start, with the planned shooting: `fit`'s escalation is for the records
+    the fleet leaves to `fit`; no multistart, profile or joint records).
 
     **Returns:** a [`FleetResult`][]: per record, in order, the [`FitResult`][] a single
     `fit` gives (each estimate within a small fraction of its standard error of it: both
