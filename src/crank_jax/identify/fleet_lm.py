@@ -1,7 +1,8 @@
 """Levenberg-Marquardt as one JAX program, for many independent fits side by side.
 
-[`fit_many`][crank_jax.identify.fleet.fit_many] stacks the single-shooting problems of
-records of one shape (the same scene structure, free set and bucket length) and runs
+[`fit_many`][crank_jax.identify.fleet.fit_many] stacks the problems (single or multiple
+shooting) of records of one shape (the same scene structure, free set, bucket length and
+segment count) and runs
 [`fleet_program`][] on them: `jax.vmap` of a `jax.lax.while_loop` LM, so the records'
 ODE solves step side by side in one program (the lockstep solver's batch) and no host
 round trip is paid per iteration.
