@@ -64,7 +64,8 @@ def fit_each(a: argparse.Namespace, files: list[str], write_json, fit_kwargs) ->
     """Run `fit --each`: `files` the records, `a.scene` the scene; `write_json(res, path)`
     writes a record's `fit.json`, `fit_kwargs(a, scene, n_records)` gives `fit`'s options
     (the fit command's own). Exit 0 when every record was fitted (a fit that did not
-    converge is a result, as for one record)."""
+    converge is a result, as for one record); a record refused before any fit (no motion,
+    an absurd start) is the input's to fix: exit 2, after every output is written."""
     from ..identify import fit_many
     from ..runtime.io import atomic_write, check_input
     from ..scene import load_scene
@@ -94,4 +95,10 @@ def fit_each(a: argparse.Namespace, files: list[str], write_json, fit_kwargs) ->
     print(f"fitted {len(files)} records ({len(files) - alone} side by side, {alone} by "
           f"themselves), {ok} converged, in {fleet.seconds:.1f} s; wrote {len(files)} JSON "
           f"files and {SUMMARY} in {out}", file=sys.stderr)
+    refused = [f for f, res in zip(files, fleet)
+               if (res.termination or {}).get("verdict") == "refused"]
+    if refused:
+        # As for one record: nothing fitted is the input's to fix (exit 2), after the
+        # outputs are written (they say why).
+        raise UserError(f"nothing was fitted for {', '.join(refused)}: see their JSON files")
     return 0
