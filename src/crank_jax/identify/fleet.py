@@ -22,6 +22,7 @@ no failing record changes another's result.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -47,7 +48,8 @@ __all__ = ["fit_many", "FleetResult", "SUMMARY_COLUMNS"]
 SUMMARY_COLUMNS = ("record", "converged", "fleet", "iterations", "rms")
 
 
-class FleetResult(NamedTuple):
+@dataclasses.dataclass(frozen=True)
+class FleetResult:
     """The outcome of [`fit_many`][]: one [`FitResult`][] per record, in order, and how
     each was fitted (`alone[i]`: None when by the fleet, else why it was fitted by `fit`)."""
 
