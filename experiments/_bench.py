@@ -118,3 +118,16 @@ def interp_time(errors, times, target: float) -> float | None:
     if not (e[0] <= lt <= e[-1]):
         return None
     return float(np.exp(np.interp(lt, e, t)))
+
+
+def write_section(page: Path, begin: str, end: str, text: str, what: str) -> None:
+    """Replace the text between the markers `begin` and `end` on the docs page `page` with
+    `text` (appended with its markers when the page has none)."""
+    import re
+
+    src = page.read_text()
+    block = f"{begin}\n{text}\n{end}"
+    pat = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
+    page.write_text(pat.sub(lambda _: block, src) if pat.search(src)
+                    else src.rstrip() + "\n\n" + block + "\n")
+    print(f"rewrote the {what} table in {page.relative_to(ROOT)}")

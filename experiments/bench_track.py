@@ -19,10 +19,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import time
 
-from _bench import RESULTS, ROOT, median_time, save, setup_jax, use_clock
+from _bench import RESULTS, ROOT, median_time, save, setup_jax, use_clock, write_section
 
 jax = setup_jax()
 
@@ -183,15 +182,7 @@ def _stream_rows() -> list[str]:
 
 
 def write_table(doc: dict) -> None:
-    src = PAGE.read_text()
-    block = f"{BEGIN}\n{table(doc)}\n{END}"
-    pat = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
-    if pat.search(src):
-        text = pat.sub(lambda _: block, src)
-    else:
-        text = src.rstrip() + "\n\n" + block + "\n"
-    PAGE.write_text(text)
-    print(f"rewrote the tracking table in {PAGE.relative_to(ROOT)}")
+    write_section(PAGE, BEGIN, END, table(doc), "tracking")
 
 
 def main() -> None:

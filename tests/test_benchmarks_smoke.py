@@ -23,6 +23,7 @@ EXP = Path(__file__).resolve().parent.parent / "experiments"
     ("bench_sweep_devices.py", "sweep_devices"),
     ("misfit_bench.py", "misfit_bench"),
     ("bench_track.py", "bench_track"),
+    ("bench_fit_many.py", "bench_fit_many"),
     # Both settings, and with the flags the backward program of before 2026-11-28 from
     # `_reverse_programs.py`, whose signature had drifted from `adjoint._deferred`'s: the
     # script failed and nothing ran it (found 2026-11-28). About 100 s.

@@ -79,6 +79,11 @@ def _fit_args(p: argparse.ArgumentParser) -> None:
                    help="CSV record (t,phi[,P][,tau]); omit both DATA and SCENE to run the "
                         "built-in demo")
     p.add_argument("scene", nargs="?", help="preset name or TOML scene file")
+    p.add_argument("records", nargs="*", metavar="...",
+                   help="with --each: more records, then the scene (REC1 REC2 ... SCENE)")
+    p.add_argument("--each", action="store_true",
+                   help="fit each record by itself, side by side in one program; --out DIR "
+                        "gets <record stem>.json per record and summary.csv")
     p.add_argument("--more-data", action="append", default=[], metavar="CSV",
                    help="another record of the same mechanism (repeatable): a multi-"
                         "experiment fit, each record with its own initial state and loads")
@@ -126,11 +131,22 @@ def cli_words(text: str) -> str:
                              "regressor)", cli_message(text))
 
 
-def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = "") -> int:
+def _in_cli_words(res):
+    return res._replace(message=cli_words(res.message),
+                        warnings=[cli_words(w) for w in res.warnings])
+
+
+def _write_json(res, path) -> None:
+    """A fit's `fit.json` (the CLI's words in its messages), written atomically."""
     from ..runtime.io import atomic_write
 
-    res = res._replace(message=cli_words(res.message),
-                       warnings=[cli_words(w) for w in res.warnings])
+    with atomic_write(path) as f:
+        json.dump(_in_cli_words(res).to_json(), f, indent=2)
+        f.write("\n")
+
+
+def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = "") -> int:
+    res = _in_cli_words(res)
     print(cli_words(res.summary()))  # its termination's words too
     if truth:
         print("truth: " + ", ".join(f"{k} = {v:g}" for k, v in truth.items()))
@@ -141,9 +157,7 @@ def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = 
     for w in res.warnings:
         _warn(w)
     if a.out:
-        with atomic_write(a.out) as f:
-            json.dump(res.to_json(), f, indent=2)
-            f.write("\n")
+        _write_json(res, a.out)
         print(f"wrote {a.out}", file=sys.stderr)
     if getattr(a, "predictions", None):
         from ..identify.predictions import write_predictions_csv
@@ -257,6 +271,18 @@ def _fit_kwargs(a: argparse.Namespace, scene=None, n_records: int = 1) -> dict:
 
 
 def _fit_run(a: argparse.Namespace) -> int:
+    records = getattr(a, "records", [])
+    if getattr(a, "each", False):
+        from .fit_each import fit_each
+
+        files = [x for x in (a.data, a.scene, *records) if x is not None]
+        if len(files) < 2:
+            raise UserError("--each needs records and a scene: REC1.csv [REC2.csv ...] SCENE")
+        a.scene = files[-1]
+        return fit_each(a, files[:-1], _write_json, _fit_kwargs)
+    if records:
+        raise UserError(f"fit takes one DATA and one SCENE, got {2 + len(records)} paths; "
+                        "--each fits each record by itself, --more-data fits them jointly")
     if a.data is None and a.scene is None:
         if a.more_data:
             raise UserError("--more-data needs DATA and SCENE")

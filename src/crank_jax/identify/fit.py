@@ -60,7 +60,7 @@ from .strategy import (
 )
 from .uncertainty import assess, undefined
 
-__all__ = ["fit", "FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning",
+__all__ = ["fit", "finish", "FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning",
            "FREE_NAMES", "AUTO_PERIODS", "SEGMENT_PERIODS", "regressor_start"]
 
 #: Names that can be free (the mechanism fields, load amplitudes and initial state).
@@ -236,13 +236,23 @@ def fit(
     state = FitState(req, plan, Run(plan.z0, float("nan"), 0, False, plan.abort or ""), 0,
                      (), plan.shooting)
     if not plan.abort:
-        state = reweight(optimize_fit(state))
+        state = optimize_fit(state)
+    return finish(state, t_begin)
+
+
+def finish(state: FitState, t_begin: float, stacklevel: int = 3) -> FitResult:
+    """A fit's last stages from its best run (`state`): the channels reweighted (a refit
+    while their noise levels move), the uncertainty at the estimate, and the warnings
+    (`req.warn`, attributed `stacklevel` frames up: the caller of `fit` or `fit_many`)."""
+    if not state.plan.abort:
+        state = reweight(state)
+    req = state.req
     res = with_wrapped_angles(_result(state, t_begin))
     if req.warn:
         if res.identifiable is False:
             warnings.warn("; ".join(res.unidentifiable_directions), IdentifiabilityWarning,
-                          stacklevel=2)
+                          stacklevel=stacklevel)
         if not res.converged:
             warnings.warn(f"fit did not converge: {res.message}", ConvergenceWarning,
-                          stacklevel=2)
+                          stacklevel=stacklevel)
     return res

@@ -1,0 +1,185 @@
+"""Many independent fits: `fit_many` (one vmap-ed Levenberg-Marquardt program per bucket)
+against the peer a user would write, scipy `least_squares` over `solve_ivp` DOP853 with a
+numba-compiled right-hand side, looped over the records in one process.
+
+    python experiments/bench_fit_many.py              # 100 lab-rig records
+    python experiments/bench_fit_many.py --n 1000     # the issue's size
+    python experiments/bench_fit_many.py --table      # rewrite the docs table and stop
+
+Each record: the lab rig with its own k, c (+-10%) and release angle (+-0.2 rad), 5 s at
+200 Hz, noise 1e-3 rad; free k, c, phi0, dphi0, started from the nominal scene. Writes
+experiments/results/bench_fit_many.json (`--smoke`: .smoke.json); `--table` rewrites the
+section between `<!-- BEGIN fleet -->` and `<!-- END fleet -->` in
+docs/benchmarks/performance.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+
+import numpy as np
+from _bench import RESULTS, ROOT, machine, setup_jax, write_section
+
+jax = setup_jax()
+
+from peers import HAVE_NUMBA  # noqa: E402
+
+import crank_jax as cj  # noqa: E402
+from crank_jax.identify import fit_many  # noqa: E402
+from crank_jax.identify.fleet_lm import BATCHES  # noqa: E402
+
+PAGE = ROOT / "docs" / "benchmarks" / "performance.md"
+BEGIN, END = "<!-- BEGIN fleet -->", "<!-- END fleet -->"
+FREE = ("k", "c", "phi0", "dphi0")
+RTOL, ATOL = 1e-8, 1e-10
+
+
+def records(n: int, seed: int = 0, t1: float = 5.0, rate: float = 200.0):
+    """`n` lab-rig records, each its own unit: (Data, its true k, c, phi0)."""
+    scene = cj.load_scene("lab-rig")
+    rng = np.random.default_rng(seed)
+    ts = np.arange(int(round(t1 * rate)) + 1) / rate
+    out = []
+    for _ in range(n):
+        k, c = 2.0 * (1 + 0.1 * rng.uniform(-1, 1)), 0.002 * (1 + 0.1 * rng.uniform(-1, 1))
+        phi0 = 1.0 + 0.2 * rng.uniform(-1, 1)
+        tr = cj.simulate(scene.mech.replace(k=k, c=c), phi0, 0.0, ts, rtol=RTOL, atol=ATOL)
+        phi = np.asarray(tr.phi) + rng.normal(0.0, 1e-3, ts.shape)
+        out.append((cj.Data(ts=ts, phi=phi), (k, c, phi0)))
+    return scene, out
+
+
+def peer_fit(scene, data):
+    """The peer: scipy least_squares (LM, finite-difference Jacobian) over solve_ivp
+    DOP853 with a numba right-hand side. Returns the estimates (k, c, phi0, dphi0)."""
+    from peers import PARAM_ORDER, params_of
+    from scipy.integrate import solve_ivp
+    from scipy.optimize import least_squares
+
+    base = list(params_of(scene.mech))
+    ik, ic = PARAM_ORDER.index("k"), PARAM_ORDER.index("c")
+    ts, phi = np.asarray(data.ts), np.asarray(data.phi)
+
+    def residuals(x):
+        p = base.copy()
+        p[ik], p[ic] = x[0], x[1]
+        sol = solve_ivp(_RHS, (ts[0], ts[-1]), [x[2], x[3]], method="DOP853", t_eval=ts,
+                        rtol=RTOL, atol=ATOL, args=(tuple(p),))
+        return sol.y[0] - phi if sol.success else np.full(ts.shape, 10.0)
+
+    x0 = [float(scene.mech.k), float(scene.mech.c), float(phi[0]), 0.0]
+    return least_squares(residuals, x0, method="lm", x_scale="jac").x
+
+
+def _numba_rhs():
+    """The peer's right-hand side, compiled by numba (plain Python where numba is missing:
+    the results then say so)."""
+    from peers import HAVE_NUMBA, acceleration_scalar
+
+    if not HAVE_NUMBA:
+        return lambda t, y, p: np.array([y[1], acceleration_scalar(y[0], y[1], p)])
+    import numba
+
+    acc = numba.njit(cache=True)(acceleration_scalar)
+
+    @numba.njit(cache=True)
+    def rhs(t, y, p):
+        return np.array([y[1], acc(y[0], y[1], p)])
+
+    return rhs
+
+
+def run(n: int, peer_n: int, smoke: bool) -> dict:
+    scene, recs = records(n)
+    data = [d for d, _ in recs]
+    t = time.perf_counter()
+    # Compile (or load) the programs of every batch size the timed call uses: batches of
+    # BATCHES[-1] records and one of the rest, each padded to a size of BATCHES.
+    for part in {min(n, BATCHES[-1]), n % BATCHES[-1]} - {0}:
+        fit_many(scene, data[:part], FREE, progress=False, warn=False)
+    first = time.perf_counter() - t
+    t, c = time.perf_counter(), time.process_time()
+    fleet = fit_many(scene, data, FREE, progress=False, warn=False)
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    est = np.array([[r.values[k] for k in FREE] for r in fleet])
+    se = np.array([[r.stderr[k] or math.nan for k in FREE] for r in fleet])
+    truth = np.array([[k, c_, p0] for _, (k, c_, p0) in recs])
+    z = (est[:, :3] - truth) / se[:, :3]
+    global _RHS
+    _RHS = _numba_rhs()
+    peer_fit(scene, data[0])  # numba's compile
+    t, c = time.perf_counter(), time.process_time()
+    peer = np.array([peer_fit(scene, d) for d in data[:peer_n]])
+    peer_wall = (time.perf_counter() - t) / peer_n
+    peer_cpu = (time.process_time() - c) / peer_n
+    diff = np.abs(peer - est[:peer_n]) / se[:peer_n]
+    ours = wall / n
+    return {"smoke": smoke, "machine": machine(), "n": n, "samples": 1001,
+            "free": list(FREE), "first_call_s": first, "warm_s": wall, "warm_cpu_s": cpu,
+            "per_record_ms": 1e3 * ours, "fleet_records": int(sum(a is None for a in
+                                                                 fleet.alone)),
+            "converged": int(sum(r.converged for r in fleet)),
+            "iterations_median": float(np.median([r.iterations for r in fleet])),
+            "z_truth_rms": float(np.sqrt(np.nanmean(z**2))),
+            "peer": "scipy least_squares(lm) over solve_ivp DOP853, "
+                    + ("numba rhs" if HAVE_NUMBA else "plain Python rhs (numba missing)"),
+            "peer_records": peer_n, "peer_per_record_ms": 1e3 * peer_wall,
+            "throughput_ratio": peer_wall / ours,
+            "peer_per_record_cpu_ms": 1e3 * peer_cpu,
+            "throughput_ratio_cpu": peer_cpu / (cpu / n),
+            "peer_max_diff_over_stderr": float(np.nanmax(diff))}
+
+
+def table(doc: dict) -> str:
+    m = doc["machine"]
+    n = doc["n"]
+    return "\n".join([
+        "## Many fits at once", "",
+        f"`experiments/bench_fit_many.py --n {n}` ({m['date']}, {m['cores']} cores, "
+        f"{m['cpu']}; a shared machine, other jobs running: wall times are rough; results in "
+        "`experiments/results/bench_fit_many.json`). Lab-rig records, each its own unit "
+        "(k, c +-10%, release +-0.2 rad), 5 s at 200 Hz, noise 1e-3 rad, free k, c, phi0, "
+        "dphi0, fitted by `crank_jax.identify.fit_many` (one vmap-ed LM program) against "
+        f"the peer: {doc['peer']}, looped over {doc['peer_records']} of the records.", "",
+        "| what | figure | target |", "|---|---|---|",
+        f"| {n} records, warm (wall) | {doc['warm_s']:.3g} s ({doc['per_record_ms']:.3g} ms "
+        f"a record; {doc['warm_cpu_s']:.3g} s of CPU) | 1000 records <= 60 s |",
+        f"| the peer, per record | {doc['peer_per_record_ms']:.3g} ms "
+        f"({doc.get('peer_per_record_cpu_ms', math.nan):.3g} ms of CPU) | |",
+        f"| throughput, ours over the peer's | {doc['throughput_ratio']:.3g}x (wall), "
+        f"{doc.get('throughput_ratio_cpu', math.nan):.3g}x (CPU time) | >= 20x |",
+        f"| records fitted by the fleet / converged | {doc['fleet_records']} / "
+        f"{doc['converged']} of {n} | |",
+        f"| largest difference from the peer's estimate | "
+        f"{doc['peer_max_diff_over_stderr']:.2g} standard errors | <= 0.05 |",
+        f"| the warm-up calls before (compiling each batch size's programs) | "
+        f"{doc['first_call_s']:.3g} s | |"])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, default=100, help="records (100)")
+    ap.add_argument("--peer-n", type=int, default=10, help="records the peer fits (10)")
+    ap.add_argument("--smoke", action="store_true")
+    ap.add_argument("--table", action="store_true",
+                    help="rewrite the docs table from bench_fit_many.json and stop")
+    a = ap.parse_args()
+    name = RESULTS / "bench_fit_many.json"
+    if a.table:
+        write_section(PAGE, BEGIN, END, table(json.loads(name.read_text())), "fleet")
+        return
+    if a.smoke:
+        a.n, a.peer_n = 4, 1
+    doc = run(a.n, min(a.peer_n, a.n), a.smoke)
+    out = name.with_suffix(".smoke.json") if a.smoke else name
+    out.write_text(json.dumps(doc, indent=2) + "\n")
+    print(json.dumps({k: v for k, v in doc.items() if k != "machine"}, indent=2))
+
+
+_RHS = None
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,165 @@
+"""Levenberg-Marquardt as one JAX program, for many independent fits side by side.
+
+[`fit_many`][crank_jax.identify.fleet.fit_many] stacks the problems (single or multiple
+shooting) of records of one shape (the same scene structure, free set, bucket length and
+segment count) and runs
+[`fleet_program`][] on them: `jax.vmap` of a `jax.lax.while_loop` LM, so the records'
+ODE solves step side by side in one program (the lockstep solver's batch) and no host
+round trip is paid per iteration.
+
+Each member has its own damping, iteration count, stop test and status; one that is
+done (converged, out of budget, failed) is frozen by the loop's select while the others
+go on. The stop test is the host LM's ([`optimize`][crank_jax.identify.optimize]): the
+Gauss-Newton step predicts a decrease below `DECREASE_FRACTION sigma^2` and moves no
+coordinate by more than `STEP_FRACTION` of its standard error at the noise level (or,
+whatever the noise, a step below `tol + tol |z|` in every coordinate).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .optimize import DECREASE_FRACTION, STEP_FRACTION
+from .programs import Program, jacobian_at
+
+__all__ = ["STATUS", "FleetRun", "fleet_program", "stack", "shape_key", "BATCHES"]
+
+#: A member's status at the end of [`fleet_program`][] (index into this tuple).
+STATUS = ("converged", "budget", "failed", "stalled", "running")
+_CONVERGED, _BUDGET, _FAILED, _STALLED, _RUNNING = range(5)
+#: Damping beyond which a member that finds no lower cost has stalled.
+_MAX_DAMPING = 1e16
+#: Batch sizes of the compiled program: a group of records is cut into batches of at most
+#: the largest, each padded (with copies of its first member) to the next size here, so a
+#: few programs serve any count of records.
+BATCHES = (4, 16, 64)
+
+
+class FleetRun(NamedTuple):
+    """[`fleet_program`][]'s outcome, one row per member (host numpy arrays)."""
+
+    z: np.ndarray  # (B, p) the last accepted point
+    cost: np.ndarray  # (B,) 0.5 |r|^2 there
+    iterations: np.ndarray  # (B,) LM steps tried (each one residual-and-Jacobian solve)
+    status: np.ndarray  # (B,) index into STATUS
+    decrease: np.ndarray  # (B,) the Gauss-Newton step's predicted decrease, sigma^2
+    largest: np.ndarray  # (B,) its largest move over a standard error
+
+
+def _scaled_step(J, r, d, lam, noise):
+    """From one SVD of the column-scaled `J / d`: the Gauss-Newton step `dz`, each
+    coordinate's standard error at the noise level, the predicted decrease, and the LM
+    step with damping `lam` (Marquardt's scaling: `d` the columns' norms)."""
+    U, S, Vt = jnp.linalg.svd(J / d, full_matrices=False)
+    keep = S > S[0] * jnp.finfo(J.dtype).eps * max(J.shape)
+    inv = jnp.where(keep, 1.0 / jnp.where(keep, S, 1.0), 0.0)
+    ur = U.T @ r
+    V = Vt.T / d[:, None]  # back to the problem's coordinates
+    dz = -V @ (inv * ur)
+    se = noise * jnp.sqrt(jnp.sum((V * inv) ** 2, axis=1))
+    se = jnp.where(se > 0, se, jnp.inf)
+    step = -V @ (jnp.where(keep, S / (S**2 + lam), 0.0) * ur)
+    return dz, se, 0.5 * jnp.sum((ur * keep) ** 2), step
+
+
+class _State(NamedTuple):
+    z: jax.Array
+    r: jax.Array
+    J: jax.Array
+    cost: jax.Array
+    d: jax.Array
+    lam: jax.Array
+    nu: jax.Array
+    it: jax.Array
+    status: jax.Array
+    dec: jax.Array
+    big: jax.Array
+
+
+def _evaluate(problem, z):
+    """(r, J, cost, ok) at `z`: the fit's own residuals-and-Jacobian function."""
+    r, failed, _, J = jacobian_at.fn(problem, z)
+    cost = 0.5 * jnp.sum(r * r)
+    ok = (failed == 0) & jnp.isfinite(cost) & jnp.all(jnp.isfinite(J))
+    return r, J, cost, ok
+
+
+def _member(problem, z0, noise, tol, max_steps):
+    """One member's LM loop (vmapped by `_fleet`)."""
+    r, J, cost, ok = _evaluate(problem, z0)
+    d = jnp.maximum(jnp.linalg.norm(J, axis=0), 1e-300)
+    status = jnp.where(ok, _RUNNING, _FAILED)
+    zero = jnp.zeros((), z0.dtype)
+    s0 = _State(z0, r, J, cost, d, jnp.asarray(1e-3, z0.dtype), jnp.asarray(2.0, z0.dtype),
+                jnp.asarray(0), status, zero + jnp.inf, zero + jnp.inf)
+
+    def body(s: _State) -> _State:
+        dz, se, dec, step = _scaled_step(s.J, s.r, s.d, s.lam, noise)
+        unit = noise**2
+        big = jnp.max(jnp.abs(dz) / se)
+        conv = ((dec <= DECREASE_FRACTION * unit) & (big <= STEP_FRACTION)) | jnp.all(
+            jnp.abs(dz) <= tol + tol * jnp.abs(s.z))
+        out = conv | (s.it >= max_steps)
+        # A member at its end solves at its own point (a healthy solve, nothing to select).
+        zt = jnp.where(out, s.z, s.z + step)
+        rt, Jt, ct, okt = _evaluate(problem, zt)
+        lin = s.r + s.J @ step
+        pred = s.cost - 0.5 * jnp.sum(lin * lin)
+        rho = (s.cost - ct) / jnp.where(pred > 0, pred, jnp.inf)
+        take = okt & (ct < s.cost) & ~out
+        lam = jnp.where(take, s.lam * jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), s.lam * s.nu)
+        nu = jnp.where(take, 2.0, 2 * s.nu)
+        stalled = ~take & ~out & (lam > _MAX_DAMPING)
+        status = jnp.where(conv, _CONVERGED, jnp.where(
+            out, _BUDGET, jnp.where(stalled, _STALLED, _RUNNING)))
+
+        def pick(new, old):
+            return jnp.where(take, new, old)
+
+        return _State(pick(zt, s.z), pick(rt, s.r), pick(Jt, s.J), pick(ct, s.cost),
+                      jnp.maximum(s.d, pick(jnp.linalg.norm(Jt, axis=0), s.d)), lam, nu,
+                      s.it + jnp.where(out, 0, 1), status, dec / unit, big)
+
+    s = jax.lax.while_loop(lambda s: s.status == _RUNNING, body, s0)
+    return s.z, s.cost, s.it, s.status, s.dec, s.big
+
+
+def _fleet(problems, z0, noise, tol, max_steps):
+    return jax.vmap(_member, in_axes=(0, 0, 0, None, None))(problems, z0, noise, tol,
+                                                           max_steps)
+
+
+#: `fleet_program(problems, z0 (B, p), noise (B,), tol, max_steps)`, compiled and kept
+#: between processes (see [`Program`][crank_jax.identify.programs.Program]).
+fleet_program = Program(_fleet, "fleet_lm")
+
+
+def shape_key(problem) -> tuple:
+    """What must agree for problems to share a batch: the tree (scene structure, free
+    names, solver, all static) and every leaf's shape and dtype."""
+    leaves, treedef = jax.tree.flatten(problem)
+    return treedef, tuple((np.shape(x), str(getattr(x, "dtype", np.asarray(x).dtype)))
+                          for x in leaves)
+
+
+def stack(problems) -> object:
+    """Problems of one [`shape_key`][] as one batched problem (a leading axis)."""
+    return jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *problems)
+
+
+def run_batch(problems, z0s, noises, tol: float, max_steps: int) -> FleetRun:
+    """[`fleet_program`][] on a list of problems of one [`shape_key`][] (at most
+    `BATCHES[-1]`), padded to a size of [`BATCHES`][] with copies of the first member
+    (each member's result is its own: a copy steps exactly as its original)."""
+    n = len(problems)
+    size = next(b for b in BATCHES if b >= n)
+    pad = [0] * (size - n)
+    probs = stack([problems[i] for i in range(n)] + [problems[i] for i in pad])
+    z0 = jnp.asarray(np.stack([z0s[i] for i in list(range(n)) + pad]))
+    noise = jnp.asarray([noises[i] for i in list(range(n)) + pad], dtype=z0.dtype)
+    out = fleet_program(probs, z0, noise, jnp.asarray(tol, z0.dtype), jnp.asarray(max_steps))
+    return FleetRun(*(np.asarray(x)[:n] for x in out))

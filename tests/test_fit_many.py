@@ -1,0 +1,135 @@
+"""Many independent fits at once (`crank_jax.identify.fit_many`, `crank-jax fit --each`):
+the fleet's estimates are the single fits', a failing record changes no other's result,
+and the command writes one fit.json per record and a summary."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+import crank_jax as cj
+from crank_jax.cli import main
+from crank_jax.identify import fleet as fm
+
+# Three lab-rig records of slightly different lengths (one bucket: 432 samples) and noise.
+SPECS = ((1, 2.9, 1e-3), (2, 3.0, 2e-3), (3, 3.3, 1e-3))
+FREE = ("k", "c", "phi0", "dphi0")
+
+
+@pytest.fixture(scope="module")
+def records(lab_rig):
+    # One solve (one compile), then each record its own length and noise.
+    clean = cj.synthesize(lab_rig, t1=max(t1 for _, t1, _ in SPECS), rate=100.0)
+    out = []
+    for seed, t1, ns in SPECS:
+        d = clean.window(None, t1 + 1e-9)
+        noise = np.random.default_rng(seed).normal(0.0, ns, d.ts.shape)
+        out.append(cj.Data(ts=d.ts, phi=d.phi + noise))
+    return out
+
+
+@pytest.fixture(scope="module")
+def fleet(lab_rig, records):
+    return fm.fit_many(lab_rig, records, FREE, progress=False)
+
+
+@pytest.mark.full
+def test_fleet_equals_each_single_fit(lab_rig, records, fleet):
+    assert fleet.alone == [None, None, None]  # every record fitted side by side
+    assert len(fleet) == 3
+    for d, res in zip(records, fleet):
+        one = cj.fit(lab_rig, d, FREE, progress=False)
+        assert res.converged and one.converged
+        assert res.names == one.names and res.n_samples == one.n_samples
+        for n in FREE:
+            # Both stop at the same test (a step below 1/100 of a standard error).
+            assert abs(res.values[n] - one.values[n]) <= one.stderr[n] / 20, n
+            assert res.stderr[n] == pytest.approx(one.stderr[n], rel=1e-3)
+        assert res.to_json().keys() == one.to_json().keys()
+    rows = fleet.rows(["a", "b", "c"])
+    assert [r["record"] for r in rows] == ["a", "b", "c"]
+    assert rows[1]["k"] == fleet[1].values["k"] and rows[1]["k_stderr"] == fleet[1].stderr["k"]
+
+
+def _members(lab_rig, records):
+    kw = dict(init="scene", method="lm", shooting="auto", segments=None, multistart=1,
+              seed=0, max_steps=None, tol=1e-8, sigma=None, profile=None, window=None,
+              progress=False, warn=False, force=None, load_by="time")
+    return {i: fm._plan(lab_rig, d, FREE, kw) for i, d in enumerate(records)}
+
+
+@pytest.mark.full
+def test_a_poisoned_record_leaves_the_others_bit_for_bit(lab_rig, records, fleet):
+    import equinox as eqx
+
+    members = _members(lab_rig, records)
+    items = {i: (m.plan.shoot, m.plan.z0, m.noise) for i, m in members.items()}
+    bar = fm.progress_bar(None, "", False)
+    good, _ = fm._fleet(items, 1e-8, 100, bar)
+    assert sorted(good) == [0, 1, 2]
+    for i, res in enumerate(fleet):  # the fleet's own results are fit_many's
+        assert res.values["k"] == members[i].plan.single.host_values(good[i][0])[0]
+    # NaN in one record's data, and a start that diverges (k 10^6 times too stiff).
+    problem, z0, noise = items[1]
+    ys = np.asarray(problem.exps[0].seg.ys).copy()
+    ys[..., 40] = np.nan
+    nan = (eqx.tree_at(lambda p: p.exps[0].seg.ys, problem, ys), z0, noise)
+    far = (items[2][0], items[2][1] + np.array([np.log(1e6), 0, 0, 0]), items[2][2])
+    out, left = fm._fleet({0: items[0], 1: nan, 2: items[2], 3: far}, 1e-8, 100, bar)
+    assert sorted(left) == [1, 3] and sorted(out) == [0, 2]
+    clean, _ = fm._fleet({0: items[0], 2: items[2]}, 1e-8, 100, bar)
+    for i in (0, 2):
+        assert all(np.array_equal(a, b) for a, b in zip(out[i], clean[i]))
+
+
+@pytest.mark.full
+def test_each_writes_a_fit_json_per_record_and_a_summary(tmp_path, records, fleet):
+    paths = []
+    for i, d in enumerate(records):
+        paths.append(tmp_path / f"rec{i}.csv")
+        cj.save_data(d, paths[-1])
+    out = tmp_path / "fits"
+    rc = main(["fit", *map(str, paths), "lab-rig", "--each", "--out", str(out), "--quiet"])
+    assert rc == 0
+    assert sorted(p.name for p in out.iterdir()) == ["rec0.json", "rec1.json", "rec2.json",
+                                                     "summary.csv"]
+    doc = json.loads((out / "rec1.json").read_text())
+    assert doc.keys() == fleet[1].to_json().keys()
+    assert doc["estimates"]["k"]["value"] == pytest.approx(fleet[1].values["k"], rel=1e-12)
+    with (out / "summary.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["record"] for r in rows] == ["rec0.csv", "rec1.csv", "rec2.csv"]
+    assert list(rows[0])[:5] == list(fm.SUMMARY_COLUMNS)
+    assert float(rows[2]["c"]) == pytest.approx(fleet[2].values["c"], rel=1e-12)
+    assert "c_stderr" in rows[0] and rows[0]["converged"] == "True"
+
+
+def test_each_refuses_clashes_before_any_fit(tmp_path, capsys):
+    a, b = tmp_path / "x" / "rec.csv", tmp_path / "y" / "rec.csv"
+    for p in (a, b):
+        p.parent.mkdir()
+        p.write_text("t,phi\n0,0\n")
+    assert main(["fit", str(a), str(b), "lab-rig", "--each", "--out", str(tmp_path / "o")]) == 2
+    assert "both write rec.json" in capsys.readouterr().err
+    f = tmp_path / "file"
+    f.write_text("")
+    assert main(["fit", str(a), "lab-rig", "--each", "--out", str(f)]) == 2
+    assert "is a file" in capsys.readouterr().err
+    assert main(["fit", str(a), "lab-rig", "--each"]) == 2
+    assert "--each needs --out DIR" in capsys.readouterr().err
+    assert main(["fit", str(a), "lab-rig", "--each", "--out", str(tmp_path / "o"),
+                 "--multistart", "3"]) == 2
+    assert "--multistart is not taken with --each" in capsys.readouterr().err
+    assert main(["fit", str(a), str(b), "lab-rig", "--out", "x.json"]) == 2
+    err = capsys.readouterr().err
+    assert "--each fits each record by itself" in err and err.count("\n") == 1
+
+
+def test_fit_many_names_the_record_of_a_bad_request(lab_rig):
+    ts = np.linspace(0.0, 1.0, 101)
+    records = [cj.Data(ts=ts, phi=np.cos(2 * ts)), cj.Data(ts=ts, phi=np.cos(3 * ts))]
+    with pytest.raises(ValueError, match="record 0: unknown free parameter"):
+        fm.fit_many(lab_rig, records[:2], ("k", "nope"), progress=False)
+    with pytest.raises(ValueError, match="one scene per record"):
+        fm.fit_many([lab_rig], records[:2], progress=False)
