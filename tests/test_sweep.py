@@ -297,7 +297,7 @@ def test_cli_sweep_refuses_save_times_beyond_memory_at_once(tmp_path, capsys, sa
             "--quiet"]
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "GiB of working memory" in err and "--samples) <=" in err
+    assert err.count("\n") == 1 and "GiB of working memory" in err and "give --samples <=" in err
     assert not (tmp_path / "x.npz").exists()
 
 
