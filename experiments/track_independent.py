@@ -24,10 +24,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import time
 
-from _bench import RESULTS, ROOT, machine, setup_jax
+from _bench import RESULTS, ROOT, machine, setup_jax, write_section
 
 setup_jax()
 
@@ -209,12 +208,7 @@ def table(doc: dict) -> str:
 
 
 def write_table(doc: dict) -> None:
-    src = PAGE.read_text()
-    block = f"{BEGIN}\n{table(doc)}\n{END}"
-    pat = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
-    PAGE.write_text(pat.sub(lambda _: block, src) if pat.search(src)
-                    else src.rstrip() + "\n\n" + block + "\n")
-    print(f"rewrote the table in {PAGE.relative_to(ROOT)}")
+    write_section(PAGE, BEGIN, END, table(doc), "independent-check")
 
 
 def main() -> None:

@@ -23,10 +23,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import time
 
-from _bench import RESULTS, machine, setup_jax
+from _bench import RESULTS, machine, setup_jax, write_section
 
 setup_jax()
 
@@ -148,15 +147,7 @@ def table(doc: dict) -> str:
 
 
 def write_table(doc: dict) -> None:
-    text = PAGE.read_text()
-    block = f"{BEGIN}\n{table(doc)}\n{END}"
-    if BEGIN in text:
-        text = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), lambda _: block, text,
-                      flags=re.S)
-    else:
-        text = text.rstrip() + "\n\n## The filter against sliding windows\n\n" + block + "\n"
-    with atomic_write(PAGE) as f:
-        f.write(text)
+    write_section(PAGE, BEGIN, END, table(doc), "sliding-window")
 
 
 def main() -> None:
