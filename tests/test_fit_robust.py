@@ -315,3 +315,24 @@ def test_the_friction_stand_in_ends_at_its_best_minimum_not_at_the_friction_boun
     # 315 LM iterations before the polish stepped in values and a run sitting on the
     # bound stopped for the active-set hold (2026-11-28); 78-83 since.
     assert res.iterations <= 100, res.iterations
+
+
+def test_a_raised_step_budget_is_the_budget_of_the_problem_optimised(lab_rig):
+    # A record whose start solve takes more than SMALL_ODE_BUDGET / 20 steps gets the larger
+    # step budget. Single shooting optimised the start solve's problem, at the smaller
+    # budget, while the polish and the result used the larger one; and the escalation,
+    # seeing two problems, took the plan for a multiply shot one.
+    from crank_jax.identify import channel_noise as ch
+    from crank_jax.identify.fit_plan import make_plan
+    from crank_jax.identify.request import normalize
+    from crank_jax.identify.strategy import MAX_ODE_STEPS
+
+    data = cj.synthesize(lab_rig, t1=40.0, rate=25.0, noise_std=1e-3, seed=0)
+    req = ch.with_channels(normalize(
+        lab_rig, data, ("k", "c", "phi0", "dphi0"), init="scene", method="lm",
+        shooting="single", segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8,
+        sigma=None, profile=None, window=None, progress=False, warn=False, per_record=(),
+        force=None))
+    plan = make_plan(req)
+    assert plan.abort is None and plan.single.max_steps == MAX_ODE_STEPS
+    assert plan.shoot is plan.single

@@ -213,8 +213,10 @@ def make_plan(req: FitRequest) -> Plan:
             for d, a, sp, p, m in zip(req.records, req.angles, spans, periods, model)]
     # A crank that turns has the time of a turn for its cycle: escalation cuts its
     # record per two turns, as an oscillation's per two periods.
+    # (`shoot` too: the problem optimised is the one at the fit's budget, not the start
+    # solve's, whose budget may be the smaller.)
     plan = dataclasses.replace(
-        plan, single=ss, Bg=_flat_basis(J0),
+        plan, single=ss, shoot=ss, Bg=_flat_basis(J0),
         periods=[p if p else (sp / t if t >= 1 else None) for p, sp, t in
                  zip(periods, spans, (_turns(a) for a in req.angles))])
     if max(s for s, _ in segs) > 1:
