@@ -395,20 +395,20 @@ _UPSTREAM = {"CPython ", "jax ", "JAX ", "diffrax ", "equinox ", "NumPy ", "nump
              "XLA ", "scipy ", "SciPy "}
 
 
-def _stale_docstrings(paths) -> list[str]:
-    out = []
+def _docstrings(paths):
+    """`(where, docstring)` of every module, class and function in `paths`, `where` as
+    `file:name`."""
     for path in paths:
-        tree = ast.parse(path.read_text())
-        for node in ast.walk(tree):
-            if not isinstance(node, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef,
-                                     ast.ClassDef)):
-                continue
-            doc = ast.get_docstring(node, clean=False) or ""
-            for m in _STALE.finditer(doc):
-                if m.group(1) not in _UPSTREAM:
-                    out.append(f"{path.name}:{getattr(node, 'name', '<module>')}: "
-                               f"{m.group(0)!r}")
-    return out
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef,
+                                 ast.ClassDef)):
+                yield (f"{path.name}:{getattr(node, 'name', '<module>')}",
+                       ast.get_docstring(node, clean=False) or "")
+
+
+def _stale_docstrings(paths) -> list[str]:
+    return [f"{where}: {m.group(0)!r}" for where, doc in _docstrings(paths)
+            for m in _STALE.finditer(doc) if m.group(1) not in _UPSTREAM]
 
 
 def test_docstrings_name_no_issue_and_no_date(tmp_path):
@@ -427,15 +427,8 @@ _TIMING = re.compile(r"\d(\.\d+)?\s?(ms|us|µs|ns)\b")
 
 
 def _timed_docstrings(paths) -> list[str]:
-    out = []
-    for path in paths:
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef,
-                                 ast.ClassDef)):
-                for m in _TIMING.finditer(ast.get_docstring(node, clean=False) or ""):
-                    out.append(f"{path.name}:{getattr(node, 'name', '<module>')}: "
-                               f"{m.group(0)!r}")
-    return out
+    return [f"{where}: {m.group(0)!r}" for where, doc in _docstrings(paths)
+            for m in _TIMING.finditer(doc)]
 
 
 def test_docstrings_hold_no_measured_timings(tmp_path):
