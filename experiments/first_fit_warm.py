@@ -42,7 +42,8 @@ jax = setup_jax()
 import crank_jax as cj  # noqa: E402
 
 #: (record length s, noise seed), in the order they are fitted.
-RECORDS = ((5.0, 1), (6.0, 2), (5.5, 3), (7.0, 4), (4.8, 5), (5.75, 6), (6.5, 7), (8.0, 8))
+RECORDS = ((5.0, 1), (6.0, 2), (5.5, 3), (7.0, 4), (4.8, 5), (5.75, 6), (6.5, 7), (8.0, 8),
+           (10.0, 9), (12.0, 10), (16.0, 11))
 
 _EVENTS = {"/jax/core/compile/jaxpr_trace_duration": "traces",
            "/jax/core/compile/backend_compile_duration": "compiles"}

@@ -1,4 +1,4 @@
-"""Records as shooting segments, padded to a few bucket lengths (so that records of other
+"""Records as shooting segments, in rows padded to a few lengths (so that records of other
 lengths reuse the compiled programs; the padding has weight 0), and a record as the fit's
 problem holds it ([`Experiment`][])."""
 
@@ -11,18 +11,16 @@ from jaxtyping import Array
 from ..model.loads import AbstractLoad, AngleLoad, InputLoad, SampledLoad
 from ..runtime.arrays import device_array
 
-__all__ = ["bucket", "Segments", "Experiment", "segment_layout", "make_segments", "padded_load"]
+__all__ = ["bucket", "row_bucket", "Segments", "Experiment", "segment_layout", "make_segments",
+           "padded_load"]
 
 
 def bucket(m: int) -> int:
-    """The padded length of a row of `m` samples: the next of 72, 108, 144, 216, 288, ...,
-    1152, 1728, 2304, ... (9 * 2^k and 27 * 2^k: two sizes per doubling, so at most a
-    third of a row is padding).
-
-    Why not powers of two: records hold a round duration times a round rate, plus one
-    sample (5 s at 200 Hz: 1001), and 1024 lies 2% above 1001, so a record 3% longer
-    compiled new programs (experiments/bench_end_to_end.py). This ladder puts those counts
-    ~15% below its edges (1001 -> 1152, 2001 -> 2304, 501 -> 576)."""
+    """The next of 72, 108, 144, 216, 288, ..., 1152, 1728, 2304, ... at or above `m`
+    (9 * 2^k and 27 * 2^k: two sizes per doubling). A value, not a shape: the length that
+    weighs a segment's continuity defects (`Segments.size`; the ladder the rows were once
+    padded to, kept so that the weights, and the fits' results, stay as they were). The
+    shapes take [`row_bucket`][]'s coarser ladder."""
     size = 72
     while size < m:
         # 9 * 2^k -> 27 * 2^(k-1) (x 3/2) -> 9 * 2^(k+1) (x 4/3)
@@ -80,24 +78,41 @@ class Experiment(eqx.Module):
 
 
 
+def row_bucket(m: int) -> int:
+    """The padded length of a row that holds `m` samples: the next of 6, 12, 24, 48, 96,
+    ..., 1536, 3072, 6144, ... (3 * 2^k: one size per doubling, coarser than [`bucket`][]).
+
+    The rows of the fit's solves (a single-shooting record, a multiple-shooting segment)
+    and of the motion start's equation of motion take this ladder: a padded save time
+    lies a few nanoseconds past the row's end, so it costs a save interpolation and a
+    Jacobian row but no solver step, and a coarse ladder puts records of neighbouring
+    lengths in one program. At 200 Hz: 769-1536 samples (3.8-7.7 s) give one
+    single-shooting row, 1537-3072 (to 15.4 s) the next; a lab-rig segment (two periods,
+    62-93 samples whatever the record's length) one row of 96."""
+    size = 6
+    while size < m:
+        size *= 2
+    return size
+
+
 def segment_layout(n: int, S: int, pad: bool = True) -> tuple[int, int]:
     """The shape `(rows, m)` that holds a record of `n` samples cut into `S` segments:
-    with `pad`, a function of `bucket(n)` and of `S`'s class alone, so that records of one
-    bucket share their programs whatever their segment count within a class.
+    with `pad`, a function of `S`'s class and of the longest segment's [`row_bucket`][]
+    alone (for single shooting, of the record's), not of the record's length: the
+    segment count follows the motion (about two periods a segment), so records of one
+    scene and rate, short or long, have segments of about one length and share their
+    multiple-shooting programs within a class.
 
     The classes are the powers of two: `S` segments take `rows` = the next power of two
     (the rows beyond `S` inactive, weight 0), so the ladder's 12 and 16 segments (or 3 and
-    4, 6 and 8, 24 and 32) give one shape. A row holds the longest segment of any record
-    of the bucket cut into the class's smallest ladder count (3/4 of `rows`; an
-    off-ladder `S` below that, a requested count, sizes its own rows)."""
+    4, 6 and 8, 24 and 32) give one shape."""
     if S == 1:
-        return 1, bucket(n) if pad else n
+        return 1, row_bucket(n) if pad else n
+    bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
+    own = int(np.max(np.diff(bounds))) + 1
     if not pad:
-        bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
-        return S, int(np.max(np.diff(bounds))) + 1
-    rows = 1 << (S - 1).bit_length()
-    low = min(S, -(-3 * rows // 4))
-    return rows, -(-(bucket(n) - 1) // low) + 1
+        return S, own
+    return 1 << (S - 1).bit_length(), row_bucket(own)
 
 
 def make_segments(ts: np.ndarray, ys: np.ndarray, n_segments: int, pad: bool = True
@@ -145,7 +160,7 @@ def padded_load(load: AbstractLoad) -> AbstractLoad:
     if not isinstance(load, SampledLoad):
         return load
     ts, vs = np.asarray(load.ts), np.asarray(load.values)
-    m = bucket(ts.shape[0])
+    m = row_bucket(ts.shape[0])
     extra = ts[-1] + np.arange(1, m - ts.shape[0] + 1) * max(1.0, abs(ts[-1] - ts[0]))
     return SampledLoad(np.concatenate([ts, extra]),
                        np.concatenate([vs, np.full(extra.shape, vs[-1])]), interp=load.interp)

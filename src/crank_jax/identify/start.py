@@ -20,7 +20,7 @@ from ..model.params import SliderCrank
 from ..records.data import Data
 from ..runtime.arrays import device_array
 from .request import SCALE_GROUP
-from .segments import bucket
+from .segments import row_bucket
 
 __all__ = ["smooth_derivatives", "half_window", "regressor_start", "regressor_samples",
            "padded_rows", "observed_period", "noise_level", "MAX_WINDOW", "MAX_REGRESSOR_ROWS"]
@@ -192,13 +192,13 @@ def regressor_samples(ts: np.ndarray, phi: np.ndarray, period: float | None):
 
 def padded_rows(rows) -> tuple[tuple, np.ndarray]:
     """Each record's [`regressor_samples`][] `(phi, dphi, ddphi, t)` padded to a
-    [`bucket`][crank_jax.identify.segments.bucket] length by repeating their last sample
+    [`row_bucket`][crank_jax.identify.segments.row_bucket] length by repeating their last sample
     (so that records of other lengths reuse the programs that take them), and the mask
     (sum of the padded lengths,) of the rows that are the records' own."""
     out, keep = [], []
     for row in rows:
         n = len(row[0])
-        extra = bucket(n) - n
+        extra = row_bucket(n) - n
         out.append(tuple(np.pad(np.asarray(x, float), (0, extra), mode="edge") for x in row))
         keep.append(np.arange(n + extra) < n)
     return tuple(out), np.concatenate(keep)
