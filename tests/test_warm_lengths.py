@@ -1,6 +1,7 @@
-"""Records of other lengths reuse the fit's compiled programs: each record is padded to a
-bucket length and its multiple-shooting segments to a row count of their class, with
-weight-0 samples and inactive rows, and the padding changes no value."""
+"""Records of other lengths reuse the fit's compiled programs: each row (a single-shooting
+record, a multiple-shooting segment) is padded to a coarse ladder of its own length and the
+segments to a row count of their class, with weight-0 samples and inactive rows, and the
+padding changes no value."""
 
 from __future__ import annotations
 
@@ -13,11 +14,12 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
+from crank_jax.identify import segments, start
 from crank_jax.identify.fit_plan import basis
 from crank_jax.identify.motion_start import motion_start
 from crank_jax.identify.problem import build_problem
 from crank_jax.identify.programs import jacobian_at, residuals_at
-from crank_jax.identify.segments import bucket, make_segments, segment_layout
+from crank_jax.identify.segments import make_segments, row_bucket, segment_layout
 from crank_jax.identify.start import padded_rows
 
 FREE = ("k", "c", "phi0", "dphi0")
@@ -62,29 +64,40 @@ def _z(prob, data):
     return np.concatenate([prob.to_z([2.1, 0.0025, 1.0, 0.0]), states])
 
 
-@pytest.mark.parametrize("S", [2, 3, 4, 5, 6, 8, 12, 16, 24, 32, 48])
+@pytest.mark.parametrize("S", [1, 2, 3, 4, 5, 6, 8, 12, 16, 24, 32, 48])
 def test_segment_layout_holds_every_record_of_its_bucket(S):
-    # The rows hold every segment of every record in the bucket, and the ladder's two
-    # counts of a class (3 and 4, 6 and 8, 12 and 16, ...) share one shape.
+    # The rows hold every segment of every record, and their shape is a function of the
+    # segment count's class and of the longest segment's row ladder alone: not of the
+    # record's length.
     for n in (1001, 1101, 1152, 1153, 1201, 1401, 1728, 4001):
         rows, m = segment_layout(n, S)
         assert rows >= S and rows & (rows - 1) == 0
         bounds = np.linspace(0, n - 1, S + 1).round().astype(int)
-        assert m >= np.max(np.diff(bounds)) + 1, (n, S)
-        assert (rows, m) == segment_layout(bucket(n), S)  # a function of the bucket
+        own = np.max(np.diff(bounds)) + 1 if S > 1 else n
+        assert own <= m == row_bucket(own) < 2 * own, (n, S)
         seg = make_segments(np.arange(n) * 0.01, np.zeros(n), S)
         assert seg.ts.shape == (rows, m) and float(np.sum(seg.on)) == S
         assert np.all(np.diff(np.asarray(seg.ts), axis=1) > 0)
         rows_eom, keep = padded_rows([tuple(np.zeros(n - 12) for _ in range(4))])
-        assert rows_eom[0][0].shape == (bucket(n - 12),) and keep.sum() == n - 12
-    twins = {3: 4, 6: 8, 12: 16, 24: 32}
-    if S in twins:
-        assert segment_layout(1001, S) == segment_layout(1101, twins[S])
+        assert rows_eom[0][0].shape == (row_bucket(n - 12),) and keep.sum() == n - 12
+
+
+def test_records_of_one_scene_share_their_layout():
+    # Lab-rig records at 200 Hz (a period of 0.23 s, two to a segment, the counts of
+    # `strategy.record_segments`): 5, 6 and 7 s records share one shape (single and
+    # multiple shooting), 8, 10 and 12 s the next; the segments' rows have one length.
+    counts = {5.0: 12, 6.0: 16, 7.0: 16, 8.0: 24, 10.0: 24, 12.0: 32, 16.0: 48, 20.0: 48}
+    shapes = {t: (segment_layout(int(200 * t) + 1, S), segment_layout(int(200 * t) + 1, 1))
+              for t, S in counts.items()}
+    assert shapes[5.0] == shapes[6.0] == shapes[7.0] == ((16, 96), (1, 1536))
+    assert shapes[8.0] == shapes[10.0] == shapes[12.0] == ((32, 96), (1, 3072))
+    assert shapes[16.0] == shapes[20.0] == ((64, 96), (1, 6144))
+    assert (row_bucket(1001), row_bucket(3001), row_bucket(3073)) == (1536, 3072, 6144)
 
 
 def _counts_per_record(lab_rig, calls):
-    """For two records of other lengths (101 and 106 samples: one bucket) cut into 3 and
-    4 segments (one class): JAX's traces and compiles while `calls(prob, ss, data)` ran
+    """For two records of other lengths (101 and 106 samples: one row length) cut into 3
+    and 4 segments (one class): JAX's traces and compiles while `calls(prob, ss, data)` ran
     on each (`prob` multiple shooting, `ss` single)."""
     runs = []
     for t1, seed, S in ((1.0, 1, 3), (1.05, 2, 4)):
@@ -152,3 +165,39 @@ def test_padding_changes_no_value(lab_rig):
     a, b = _normal_equations(padded, zp), _normal_equations(plain, zq)
     for x, y in zip(a, b):
         np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12 * np.max(np.abs(y)))
+
+
+@contextlib.contextmanager
+def _rows_unpadded():
+    """Rows as long as their samples (a plain layout): the row ladder made the identity."""
+    mp = pytest.MonkeyPatch()
+    for module in (segments, start):
+        mp.setattr(module, "row_bucket", lambda m: m)
+    try:
+        yield
+    finally:
+        mp.undo()
+
+
+@pytest.mark.full
+def test_a_record_across_the_old_bucket_edge_is_warm():
+    # A 5 s lab record at 200 Hz (1001 samples, 12 segments), then a 6 s one (1201
+    # samples, 16 segments): the rows pad to one ladder size, so the second fit traces and
+    # compiles nothing; and its estimate is the fit's with rows as long as their samples.
+    lab = cj.load_scene("lab-rig")
+    begin = cj.Scene(lab.mech.replace(k=2.4, c=0.004), phi0=1.0, name="lab-rig-start")
+    rec5, rec6 = (cj.synthesize(lab, t1=t1, rate=200.0, noise_std=1e-3, seed=seed)
+                  for t1, seed in ((5.0, 1), (6.0, 2)))
+    cj.fit(begin, rec5, progress=False)
+    with counting() as counts:
+        warm = cj.fit(begin, rec6, progress=False)
+    assert counts == {_COMPILE: 0, _TRACE: 0}, counts
+    assert warm.strategy.startswith("multiple shooting (16 segments)")
+    with _rows_unpadded():
+        plain = cj.fit(begin, rec6, progress=False)
+    assert plain.converged and warm.converged
+    for name in FREE:
+        se = float(warm.stderr[name])
+        assert abs(float(warm.values[name]) - float(plain.values[name])) <= 1e-8 * se, name
+        np.testing.assert_allclose(float(warm.values[name]), float(plain.values[name]),
+                                   rtol=1e-9, atol=0.0)
