@@ -12,7 +12,7 @@ import crank_jax as cj
 from crank_jax.cli import main
 from crank_jax.identify import fleet as fm
 
-# Three lab-rig records of slightly different lengths (one bucket: 432 samples) and noise.
+# Three lab-rig records of slightly different lengths (one row length: 384 samples) and noise.
 SPECS = ((1, 2.9, 1e-3), (2, 3.0, 2e-3), (3, 3.3, 1e-3))
 FREE = ("k", "c", "phi0", "dphi0")
 
