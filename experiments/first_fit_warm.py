@@ -2,18 +2,18 @@
 free set before: does it reuse the compiled programs?
 
 In ONE process, lab-rig records (200 Hz, noise 1e-3 rad, free k, c, phi0, dphi0, from
-k = 2.4, c = 0.004) of 5 s, 6 s, 5.5 s, 7 s, then 4.8, 5.75, 6.5 and 8 s (other noise
-seeds), each fitted once
-(its first fit) and then `--repeats` times more (its warm fit: their median by CPU time).
-Per fit: wall and process CPU time, and how many programs JAX traced and compiled
-(`jax.monitoring`'s compile events). The figure of merit is the ratio of a record's first
-fit to its own warm fit (target: at most 1.3).
+k = 2.4, c = 0.004) of 5 s, 6 s, 5.5 s, 7 s, then 4.8, 5.75, 6.5, 8, 10, 12 and 16 s
+(other noise seeds), each fitted once (its first fit) and then `--repeats` times more
+(its warm fit: their median by CPU time). Per fit: wall and process CPU time, and how many
+programs JAX traced and compiled (`jax.monitoring`'s compile events). The figure of merit
+is the ratio of a record's first fit to its own warm fit (target: at most 1.3).
 
-Record lengths are padded to buckets (`identify/segments.py`): 1001 and 1101 samples
-(5 s, 5.5 s) share one, 1201 and 1401 (6 s, 7 s) the next, so the 6 s record is the first
-of its bucket and compiles, and the 5.5 s and 7 s records are new lengths in fitted
-buckets (as are 4.8, 5.75 and 6.5 s: 961, 1151 and 1301 samples). The 8 s record (1601
-samples, the 1728 bucket) has 24 multiple-shooting segments, a new class: it compiles.
+The rows are padded to a ladder of their own length (`identify/segments.py`,
+`row_bucket`: 96, ..., 1536, 3072, 6144 samples) and the segments to a row count of their
+class (the next power of two). A segment holds about two periods (62-93 samples here,
+whatever the record's length), so every record's segments take rows of 96; 4.8-7 s
+records (961-1401 samples, 12 or 16 segments) share one single-shooting row (1536) and 16
+rows, 8-12 s (24 or 32 segments) the next (3072, 32 rows), 16 s (48 segments) the next.
 
 Run: `python experiments/first_fit_warm.py [--label NAME] [--out FILE]` (run it under
 another checkout's `src` on `PYTHONPATH` for that checkout's figures; results are merged
