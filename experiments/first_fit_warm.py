@@ -119,8 +119,8 @@ def table(results: dict) -> str:
         "lab-rig records at 200 Hz (free k, c, phi0, dphi0, from k = 2.4, c = 0.004), in "
         "this order, each fitted once and then 5 times more, warm (their median by CPU "
         "time). Cells: process CPU time (wall time), programs compiled. `before`: the code "
-        "before the segments' rows and the motion start's rows were padded (the main "
-        "branch at the time), run just before `after`.", "",
+        "whose rows were padded to the record's bucket (the main branch at the time), run "
+        "just before `after`.", "",
         "| record | before: first fit | before: warm | before: ratio | after: first fit "
         "| after: warm | after: ratio (target <= 1.3) |",
         "|---|---|---|---|---|---|---|"]
@@ -128,7 +128,7 @@ def table(results: dict) -> str:
         lines.append(f"| {a['t1_s']} s ({a['samples']} samples, {_segments(a)}) | "
                      f"{_cell(b, 'first')} | {_cell(b, 'warm')} | {b['ratio_cpu']} | "
                      f"{_cell(a, 'first')} | {_cell(a, 'warm')} | {a['ratio_cpu']} |")
-    lines += ["", NOTE, "", _moved(results)]
+    lines += ["", NOTE, "", _warm_cost(), "", _moved(results)]
     if results["before"].get("cli") and results["after"].get("cli"):
         lines += ["", CLI_NOTE, "", "| `crank-jax fit` | before | after |", "|---|---|---|"]
         names = ("5 s record, empty store", "5 s record, warm",
@@ -161,26 +161,63 @@ def _moved(results: dict) -> str:
 
 NOTE = (
     "The ratio is CPU time, a record's first fit over its warm fit. The first 5 s record "
-    "compiles everything. The 6 s record is the first of the next bucket (1201 samples pad "
-    "to 1728, 961 to 1151 samples to 1152) and compiles its programs once, before and "
-    "after: a static shape has edges, and a record across one compiles; so does the 8 s "
-    "record, whose 24 segments are a new class. Within a fitted bucket and class every "
-    "length is now warm. Before, the 5.5 s record (16 segments where the 5 s one has 12, "
-    "in rows of 72 samples) compiled its multiple-shooting Jacobian, and every new length "
-    "the motion start's equation-of-motion program. Now a record's segments fill the rows "
-    "of their class (the next power of two: 12 and 16 segments both take 16 rows, the "
-    "rows beyond the record's segments inactive, weight 0, their states held), each row "
-    "as long as the bucket needs (`identify/segments.py`, `segment_layout`), and the "
-    "equation-of-motion rows are padded to a bucket. The cost: a record of 12 segments "
-    "solves 16 rows in its multiple-shooting phase, and rows are longer than the record "
-    "alone would need. Measured apart (the 5 s record's warm fit, 15 times in a process, "
-    "the code before and after alternated twice on the loaded machine): medians 0.245 and "
-    "0.256 s of CPU before, 0.247 and 0.278 s after, about 1.0-1.1x.")
+    "compiles everything. Before, the 6 s record was the first of the next bucket (1201 "
+    "samples padded to 1728 where 1001 pad to 1152) and compiled three programs: the "
+    "single-shooting Jacobian (one row of the bucket), the motion start's equation of "
+    "motion (its rows padded to a bucket, in the single-shooting problem) and the "
+    "multiple-shooting Jacobian (rows as long as the bucket over the class's smallest "
+    "segment count). Now a row's length comes from a ladder of its own length "
+    "(`identify/segments.py`, `row_bucket`: 3 * 2^k, one size per doubling), of the "
+    "longest segment for a multiple-shooting row, of the record for the single-shooting "
+    "row and the equation-of-motion rows, and the rows' count from the class of the segment "
+    "count (the next power of two). A segment holds about two periods (the segment count "
+    "follows the record's duration), 62-93 samples here whatever the record's length, so "
+    "every record's segments take rows of 96 samples; the 4.8-7 s records (961-1401 "
+    "samples, 12 or 16 segments) share one single-shooting row of 1536 and 16 segment rows, "
+    "and the 6 s record compiles nothing. What still compiles, and why: the 8 s record has "
+    "24 segments, a new class (32 rows), and 1601 samples, past the single-shooting row of "
+    "1536 (3 programs); the 10 and 12 s records then share all of them (24 and 32 "
+    "segments; 2001 and 2401 samples, in 3072). The 16 s record has 48 segments (64 rows) "
+    "and 3201 samples (past 3072), and its start solve takes more than 1638 steps, so its "
+    "solves take the larger step budget (200,000 steps, static in the programs: "
+    "`strategy.ode_budget`): its single-shooting Jacobian compiles at both budgets (4 "
+    "programs). At 200 Hz the single-shooting ladder's edges (7.7 s, 15.4 s) lie near the "
+    "lab rig's segment classes' (7.3 s, 14.7 s), so a record across one pays once for "
+    "both. Coarser classes were measured and not taken: the 5 s record's 12 segments in 32 "
+    "rows instead of 16 cost 1.45-1.8x per multiple-shooting Jacobian (median CPU 0.0124 "
+    "and 0.0126 s in 16 rows, 0.0225 and 0.0180 s in 32): the rows are solved side by side "
+    "under a `vmap`, and an inactive row steps along with the others.")
+
+
+def _warm_cost() -> str:
+    """The warm fit's cost of the padding, from experiments/results/warm_padding_cost.json."""
+    path = RESULTS / "warm_padding_cost.json"
+    if not path.exists():
+        return ""
+    res = json.loads(path.read_text())
+    cells = []
+    for t in res["records"]:
+        runs = {lab: [f"{r['median_cpu_s'][str(t)]:.3f}" for r in res["runs"]
+                      if r["label"] == lab] for lab in ("before", "after")}
+        cells.append(f"{t:g} s: {', '.join(runs['before'])} s before, "
+                     f"{', '.join(runs['after'])} s after")
+    return (
+        "The warm fit's cost of the padding (`experiments/warm_padding_cost.py`, "
+        f"{res['machine']['date']}, results in `experiments/results/warm_padding_cost.json`: "
+        "the warm fit's median CPU time over 11 fits in a fresh process, the code before and "
+        "after alternated twice): " + "; ".join(cells) + ". About 1.0x, except a record just "
+        "past a rung (8 s: 1601 samples in a single-shooting row of 3072, where the bucket "
+        "gave 1728) at 1.1-1.2x. A padded save time does cost solver steps: the "
+        "`dopri8-adaptive` solver writes save times in windows of 4 and shortens a step to "
+        "its window's end, so every 4 padded save times at a row's end cost one (tiny) step "
+        "attempt (the 5 s record's single-shooting solve: 559 steps in a row of 1152, 655 in "
+        "one of 1536).")
+
 
 CLI_NOTE = (
     "The same in fresh processes (`crank-jax fit`, one program store shared by the runs; "
     "CPU time of the process (wall time)): the stored programs' key holds the shapes, so "
-    "a new length of a fitted bucket loads them.")
+    "a record of a fitted shape loads them; before, the 6 s record compiled.")
 
 
 def write_docs(results: dict) -> None:

@@ -80,6 +80,9 @@ def test_segment_layout_holds_every_record_of_its_bucket(S):
         assert np.all(np.diff(np.asarray(seg.ts), axis=1) > 0)
         rows_eom, keep = padded_rows([tuple(np.zeros(n - 12) for _ in range(4))])
         assert rows_eom[0][0].shape == (row_bucket(n - 12),) and keep.sum() == n - 12
+        # given the record's length, the rows take its row (they cross an edge with it)
+        rows_eom, keep = padded_rows([tuple(np.zeros(n - 12) for _ in range(4))], [n])
+        assert rows_eom[0][0].shape == (row_bucket(n),) and keep.sum() == n - 12
 
 
 def test_records_of_one_scene_share_their_layout():

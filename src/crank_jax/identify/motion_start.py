@@ -75,8 +75,9 @@ def motion_start(problem: Problem, z: np.ndarray, records, angles, periods
     do not. The least squares is bounded: each value stays in its physical range (see
     `_bounds`), a damping at 0 rather than the whole start discarded.
     """
-    rows, keep = padded_rows(regressor_samples(d.ts, np.asarray(a, float), per)
-                         for d, a, per in zip(records, angles, periods))
+    rows, keep = padded_rows([regressor_samples(d.ts, np.asarray(a, float), per)
+                              for d, a, per in zip(records, angles, periods)],
+                             [len(d.ts) for d in records])
 
     def eom(zz):
         return np.asarray(_eom(problem, device_array(zz), rows))[keep]

@@ -5,14 +5,16 @@ problem holds it ([`Experiment`][])."""
 from __future__ import annotations
 
 import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
 from ..model.loads import AbstractLoad, AngleLoad, InputLoad, SampledLoad
 from ..runtime.arrays import device_array
+from ..solve.adaptive import WINDOW, AdaptiveERK
 
 __all__ = ["bucket", "row_bucket", "Segments", "Experiment", "segment_layout", "make_segments",
-           "padded_load"]
+           "padded_load", "motion_steps"]
 
 
 def bucket(m: int) -> int:
@@ -148,6 +150,22 @@ def make_segments(ts: np.ndarray, ys: np.ndarray, n_segments: int, pad: bool = T
         E[s], F[s], on[s] = k - 1, a, 1.0
     size = float(bucket(own) if pad else own)
     return Segments(*(device_array(x) for x in (T, P, W, E, F, on, size)))
+
+
+def motion_steps(seg: Segments, solver, n_steps: Array, max_steps: int) -> Array:
+    """(S,) each row's ODE steps `n_steps` (S,) less those its padded save times took.
+
+    The `"dopri8-adaptive"` solver writes save times in windows of `WINDOW` and ends a
+    step at its window's last one, so every `WINDOW` padded save times past a row's end
+    take one (tiny) step. The step counts a fit judges (its step budget, an absurd start)
+    leave them out, and so count the motion's steps as an unpadded solve would (to one),
+    whatever the ladder (else a record low in its rung could be judged to need the larger
+    step budget, a static of the programs, where the same record in a shorter row did
+    not). A solve stopped by its budget never reached its padding: its count stays."""
+    if not isinstance(solver, AdaptiveERK):
+        return n_steps
+    pad = (seg.ts.shape[1] - 1 - seg.end) // WINDOW
+    return jnp.where(n_steps >= max_steps, n_steps, jnp.maximum(n_steps - pad, 0))
 
 
 def padded_load(load: AbstractLoad) -> AbstractLoad:

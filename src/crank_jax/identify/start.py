@@ -190,22 +190,30 @@ def regressor_samples(ts: np.ndarray, phi: np.ndarray, period: float | None):
     return tuple(device_array(x) for x in (p, dp, ddp, ts[at]))
 
 
-def padded_rows(rows) -> tuple[tuple, np.ndarray]:
+def padded_rows(rows, lengths=None) -> tuple[tuple, np.ndarray]:
     """Each record's [`regressor_samples`][] `(phi, dphi, ddphi, t)` padded to a
-    [`row_bucket`][crank_jax.identify.segments.row_bucket] length by repeating their last sample
-    (so that records of other lengths reuse the programs that take them), and the mask
-    (sum of the padded lengths,) of the rows that are the records' own."""
+    [`row_bucket`][crank_jax.identify.segments.row_bucket] length by repeating their last
+    sample (so that records of other lengths reuse the programs that take them), and the
+    mask (sum of the padded lengths,) of the rows that are the records' own.
+
+    `lengths`: each record's sample count; the rows then take the ladder size of the
+    record's (at most [`MAX_REGRESSOR_ROWS`][]) rather than of their own count, so that
+    a record and its single-shooting row (the same ladder of its sample count) cross a
+    ladder edge together: the rows lack the record's ends and would cross it elsewhere."""
     out, keep = [], []
-    for row in rows:
+    lengths = [None] * len(rows) if lengths is None else list(lengths)
+    for row, length in zip(rows, lengths):
         n = len(row[0])
-        extra = row_bucket(n) - n
+        size = row_bucket(n if length is None else max(n, min(length, MAX_REGRESSOR_ROWS)))
+        extra = size - n
         out.append(tuple(np.pad(np.asarray(x, float), (0, extra), mode="edge") for x in row))
         keep.append(np.arange(n + extra) < n)
     return tuple(out), np.concatenate(keep)
 
 
 def _rows(data: Data, load, torque, mech, period):
-    (rows,), keep = padded_rows([regressor_samples(data.ts, data.phi, period)])
+    (rows,), keep = padded_rows([regressor_samples(data.ts, data.phi, period)],
+                                [len(data.ts)])
     Y, e0 = _regressor(mech, *rows, load, torque)
     return np.asarray(Y)[keep], np.asarray(e0)[keep]
 
