@@ -178,10 +178,13 @@ NOTE = (
     "24 segments, a new class (32 rows), and 1601 samples, past the single-shooting row of "
     "1536 (3 programs); the 10 and 12 s records then share all of them (24 and 32 "
     "segments; 2001 and 2401 samples, in 3072). The 16 s record has 48 segments (64 rows) "
-    "and 3201 samples (past 3072), and its start solve takes more than 1638 steps, so its "
-    "solves take the larger step budget (200,000 steps, static in the programs: "
-    "`strategy.ode_budget`): its single-shooting Jacobian compiles at both budgets (4 "
-    "programs). At 200 Hz the single-shooting ladder's edges (7.7 s, 15.4 s) lie near the "
+    "and 3201 samples (past 3072): 3 programs. (It compiled a fourth, its single-shooting "
+    "Jacobian at the larger step budget, until the step counts a fit judges left out the "
+    "steps that padded save times take, `segments.motion_steps`, below: its start solve "
+    "counted 1769 steps in a row of 6144 against 944 unpadded, past the 1638 that raise "
+    "the budget, a static of the programs.) Longer records raise it themselves (a start "
+    "solve of more than 1638 steps: roughly 25-30 s of this rig) and compile once at "
+    "that level. At 200 Hz the single-shooting ladder's edges (7.7 s, 15.4 s) lie near the "
     "lab rig's segment classes' (7.3 s, 14.7 s), so a record across one pays once for "
     "both. Coarser classes were measured and not taken: the 5 s record's 12 segments in 32 "
     "rows instead of 16 cost 1.45-1.8x per multiple-shooting Jacobian (median CPU 0.0124 "
@@ -211,7 +214,14 @@ def _warm_cost() -> str:
         "`dopri8-adaptive` solver writes save times in windows of 4 and shortens a step to "
         "its window's end, so every 4 padded save times at a row's end cost one (tiny) step "
         "attempt (the 5 s record's single-shooting solve: 559 steps in a row of 1152, 655 in "
-        "one of 1536).")
+        "one of 1536; the counts a fit judges leave them out, `segments.motion_steps`). The "
+        "table's warm column, with other jobs beside it, agrees for 5-7 s and shows the "
+        "worst case: a record low in its rung, whose single-shooting row is mostly "
+        "padding, 8 s (1601 samples in 3072) and 16 s (3201 in 6144, where the bucket gave "
+        "3456; its single-shooting Jacobian 0.028 s of CPU unpadded, 0.034 s in 3456, "
+        "0.061 s in 6144) about 1.4-1.5x. That is the price of the coarse ladder: a finer one "
+        "splits the 5 s and 6 s records again; a solver that passed padded save times "
+        "without a step would remove it (not done).")
 
 
 CLI_NOTE = (
