@@ -292,7 +292,7 @@ EXPERIMENT_INTERNALS = {
                                       "parameters, without a fit",
     "crank_jax.identify.attempt": "optimiser_variants swaps the optimiser under the fit's "
                                   "tries (attempt)",
-    "crank_jax.identify.corner": "design_end_to_end draws the Design figure that "
+    "crank_jax.bayes.corner": "design_end_to_end draws the Design figure that "
                                  "`crank-jax design --plot` draws (plot_design; no public "
                                  "plot API)",
     "crank_jax.vibration.drive": "bench_vibration's brute-force baseline steps the same "

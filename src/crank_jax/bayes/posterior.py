@@ -36,21 +36,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..identify import channel_noise as ch
+from ..identify.fit import fit
+from ..identify.fit_plan import single_problem
+from ..identify.fit_result import FitResult
+from ..identify.problem import Problem, pick_solver
+from ..identify.programs import jacobian_at
+from ..identify.request import STATE_NAMES, normalize, reported_names
+from ..identify.strategy import MAX_ODE_STEPS, ode_budget
 from ..records.data import Data
 from ..runtime.blas import one_blas_thread
 from ..runtime.lazy import lazy_import
 from ..scene import Scene
 from ..sweep.distributions import AbstractDistribution
-from . import channel_noise as ch
-from .fit import fit
-from .fit_plan import single_problem
-from .fit_result import FitResult
 from .nuts import adaptation, initial_carry, run_chains, schedule
 from .priors import base_name, in_support, parse_priors, prior_arrays, prior_precision
-from .problem import Problem, pick_solver
-from .programs import jacobian_at
-from .request import STATE_NAMES, normalize, reported_names
-from .strategy import MAX_ODE_STEPS, ode_budget
 
 blackjax = lazy_import("blackjax")  # imported on first use (see lazy.py)
 
