@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.dynamics import coriolis, generalized_force, mass
+from ..model.dynamics import equation_residual
 from ..model.loads import AbstractLoad
 from ..model.params import SliderCrank
 from ..records.data import Data
@@ -164,8 +164,7 @@ def _regressor(mech, phi, dphi, ddphi, ts, load, torque):
 
     def eom(theta, p, dp, ddp, t):
         m = mech.replace(**dict(zip(SCALE_GROUP, theta)))
-        return (mass(m, p) * ddp + coriolis(m, p) * dp**2
-                - generalized_force(m, p, dp, t, load, torque))
+        return equation_residual(m, p, dp, ddp, t, load, torque)
 
     def row(p, dp, ddp, t):
         e = eom(theta0, p, dp, ddp, t)

@@ -37,6 +37,7 @@ __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
     "kinetic_energy", "potential_energy", "power_in", "CrankField", "mass_terms",
     "coriolis_terms", "force_terms", "dissipative_terms", "PackedCrankField",
+    "equation_residual",
 ]
 
 _FULL = Structure()
@@ -165,6 +166,18 @@ def generalized_force(
     p = coefficients(mech, structure)
     return zero + force_terms(p, geometry(p, phi, structure), phi, dphi, t, load, torque,
                               structure)
+
+
+def equation_residual(mech: SliderCrank, phi, dphi, ddphi, t, load: AbstractLoad,
+                      torque: AbstractLoad, structure: Structure = _FULL) -> Array:
+    """`M phi'' + K phi'^2 - q`, N*m: zero on a motion of the model. `phi` (rad), `dphi`
+    (rad/s), `ddphi` (rad/s^2), `t` (s) of one shape; `load`, `torque` loads (not None).
+    The coefficients and the geometry are formed once for M, K and q (what a regressor
+    differentiates with respect to the parameters)."""
+    p = coefficients(mech, structure)
+    g = geometry(p, phi, structure)
+    return (mass_terms(p, g, structure) * ddphi + coriolis_terms(p, g, structure) * dphi**2
+            - force_terms(p, g, phi, dphi, t, load, torque, structure))
 
 
 def acceleration(
