@@ -108,6 +108,9 @@ def test_a_users_code_anywhere_takes_the_plain_path():
         "a callable in a static field": (InputLoad(gain=1.0, column=len), own, None),
         "a user's object in an array field": (eqx.tree_at(lambda x: x.X1, own, object()),
                                               own, None),
+        "an array of objects": (eqx.tree_at(lambda x: x.X1, own,
+                                            np.array([_Drag(jnp.asarray(1.0))], dtype=object)),
+                                own, None),
     }
     for what, (load, torque, force) in users.items():
         assert not dyn._own_code(load, torque, force), what

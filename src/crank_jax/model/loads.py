@@ -31,6 +31,7 @@ import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -219,8 +220,10 @@ def _own(x, depth: int) -> bool:
         return False
     if type(x) in _PLAIN:
         return True
-    if eqx.is_array(x):
-        return np.dtype(x.dtype) != np.dtype(object)  # an object array holds anything
+    if isinstance(x, np.ndarray):
+        return x.dtype != object  # an object array holds anything
+    if isinstance(x, (jax.Array, np.generic)):
+        return True
     if type(x) is tuple:
         return all(_own(v, depth + 1) for v in x)
     if type(x) in OWN_LOADS:
