@@ -21,14 +21,12 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .coefficients import Coefficients, coefficients, pack, unpack
-from .foreign_code import foreign_classes
 from .geometry import Geometry, geometry
-from .loads import AbstractLoad, NoLoad, as_load
+from .loads import AbstractLoad, NoLoad, as_load, only_own_loads
 from .params import SliderCrank
 from .structure import Structure
 from .trig import check_form, form_field
@@ -337,12 +335,10 @@ _traced_once = eqx.filter_jit(_acceleration)
 
 
 def _own_code(load, torque, force) -> bool:
-    """Whether the field's loads hold only crank-jax's own classes, at any depth, and it
-    has no user force: only then is the acceleration's cached trace used. A user's class
-    may read a module global or a closure cell that JAX's trace cache does not see (issue
-    37's stale programs), so the field is traced afresh wherever its caller's program is.
-    The same test as the program store's ([`foreign_classes`][])."""
-    if force is not None:
-        return False
-    leaves, treedef = jax.tree_util.tree_flatten((load, torque))
-    return not foreign_classes((treedef,), [x for x in leaves if not eqx.is_array(x)])
+    """Whether the field's loads are crank-jax's own code only, at any depth, and it has
+    no user force: only then is the acceleration's cached trace used. A user's class
+    may read a module global or a closure cell that JAX's trace cache does not see, so
+    such a field is traced afresh wherever its caller's program is (the same numbers,
+    traced more slowly). Decided on the objects alone ([`only_own_loads`][]: exact types
+    of the table of load kinds, plain static values), never on where code lies."""
+    return force is None and only_own_loads(load, torque)

@@ -27,9 +27,11 @@ Each kind declares which roles it has (a [`MultiSineLoad`][] has only `mean`; a
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -47,7 +49,7 @@ __all__ = ["AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineL
            "nonsmooth_times",
            "ROLES", "SIDES", "LoadKind", "LOAD_KINDS", "LOAD_PARAMS", "load_kind",
            "param_name", "toml_key", "get_param", "set_param", "promote", "toml_keys",
-           "load_from_table", "load_to_table"]
+           "load_from_table", "load_to_table", "OWN_LOADS", "only_own_loads"]
 
 
 
@@ -194,6 +196,39 @@ LOAD_KINDS: tuple[LoadKind, ...] = (
               "gain": "gain"}),
 )
 _PROMOTABLE = LOAD_KINDS[:3]
+
+#: The load classes whose code is crank-jax's own: every kind of the table, matched by
+#: exact type (a subclass, which may override any method, is a user's class).
+OWN_LOADS: frozenset[type] = frozenset(kind.cls for kind in LOAD_KINDS)
+
+# Static values equal exactly when their values are (what JAX's trace cache compares).
+_PLAIN = (type(None), bool, int, float, complex, str)
+_MAX_DEPTH = 8  # the table's kinds nest three deep (AngleLoad -> SampledLoad -> coeffs)
+
+
+def only_own_loads(*loads) -> bool:
+    """Whether `loads` hold crank-jax's own code only, at any depth: each is exactly one
+    of [`OWN_LOADS`][], and each of its fields is an array, a plain value (None, bool,
+    int, float, complex, str), a tuple of these or again such a load. A closed test on
+    the objects alone: a user's class or subclass anywhere, a function or any other
+    object in a field (static or not) makes it False."""
+    return all(_own(x, 0) for x in loads)
+
+
+def _own(x, depth: int) -> bool:
+    if depth > _MAX_DEPTH:
+        return False
+    if type(x) in _PLAIN:
+        return True
+    if isinstance(x, np.ndarray):
+        return x.dtype != object  # an object array holds anything
+    if isinstance(x, (jax.Array, np.generic)):
+        return True
+    if type(x) is tuple:
+        return all(_own(v, depth + 1) for v in x)
+    if type(x) in OWN_LOADS:
+        return all(_own(getattr(x, f.name), depth + 1) for f in dataclasses.fields(x))
+    return False
 
 
 def param_name(side: str, role: str) -> str:
