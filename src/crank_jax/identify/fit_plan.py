@@ -19,7 +19,7 @@ from ..runtime.arrays import device_array
 from ..solve.adjoints import ForwardSensitivities
 from . import channel_noise as ch
 from .angle import motion_period
-from .fit_options import ShootingMode
+from .fit_options import Init, ShootingMode
 from .physical import load_scale, ranges
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at
@@ -45,7 +45,7 @@ __all__ = ["make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
 def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
     """Start values of the global names, each record's start state, and notes."""
     start, notes = dict(req.start), []
-    if req.init == "regressor":
+    if req.init is Init.REGRESSOR:
         # On the angle the channels tell: the regressor form is written in phi.
         reg, notes = regressor_start(req.scene.mech, ch.angle_records(req), req.free, periods)
         start.update(reg)

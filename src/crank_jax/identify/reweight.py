@@ -58,7 +58,7 @@ def reweight(state: FitState) -> FitState:
     if len(sigmas) > 1:
         state = state.but(notes=(*state.notes, "channel noise levels: " + ", ".join(
             f"{n} {v:.3g}" for n, v in sigmas.items()) + " (SI; "
-            + ("given" if not ch.unknown_levels(state.req) else "estimated from the residuals")
+            + ("given" if not state.req.estimated else "estimated from the residuals")
             + "); each channel's residuals are weighted by them"))
     return state
 
