@@ -24,7 +24,7 @@ from .physical import load_scale, ranges
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at
 from .request import LOAD_NAMES, STATE_NAMES, FitRequest
-from .stages import Plan, Shooting
+from .stages import Plan, Shooting, Shot
 from .start import half_window, noise_level, observed_period, regressor_start, smooth_derivatives
 from .strategy import (
     MAX_ODE_STEPS,
@@ -188,7 +188,7 @@ def make_plan(req: FitRequest) -> Plan:
     ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
     full_start = {n: float(v) for n, v in zip(ss.names, ss.host_values(z_start))}
     plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, tuple(notes),
-                Shooting("single"), start, states, solver,
+                Shooting(Shot.SINGLE), start, states, solver,
                 ranges=ranges(mech_start, req.records, req.angles, periods, start))
     spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
     # Each record judged by its own solve: one absurd record among good ones is as
@@ -222,7 +222,7 @@ def make_plan(req: FitRequest) -> Plan:
     if max(s for s, _ in segs) > 1:
         shoot, z0 = shooting(req, plan, [s for s, _ in segs])
         plan = dataclasses.replace(plan, shoot=shoot, z0=z0,
-                                   shooting=Shooting("multiple", tuple(s for s, _ in segs)))
+                                   shooting=Shooting(Shot.MULTIPLE, tuple(s for s, _ in segs)))
     if req.shooting is ShootingMode.AUTO and req.segments is None:
         plan = dataclasses.replace(
             plan, notes=(*plan.notes, f"{plan.shooting.label}: {segs[0][1]}"))
@@ -235,7 +235,7 @@ def _aborted(req, start, states, solver, why: str, notes) -> Plan:
     z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
     full = {n: float(v) for n, v in zip(ss.names, ss.host_values(z))}
     return Plan(ss, ss, z, np.eye(ss.p), full, float("nan"), [], tuple(notes),
-                Shooting("none"), start, states, solver, abort=why)
+                Shooting(Shot.NONE), start, states, solver, abort=why)
 
 
 def shooting(req: FitRequest, plan: Plan, nseg) -> tuple[Problem, np.ndarray]:

@@ -1,4 +1,5 @@
-"""Normalise and check a fit request before any compute.
+"""Normalise and check a fit request before any compute, then make it complete: a frozen
+[`FitRequest`][] with each record's crank angle and each channel's noise level resolved.
 
 Every mistake a user can make in a call to [`fit`][] (an unknown name, a profile of a
 parameter that is not free, a start value outside a parameter's domain, scenes that
@@ -316,14 +317,8 @@ def _init(init, start: dict) -> Init:
     raise ValueError(f"init must be 'scene', 'regressor' or a dict, got {init!r}")
 
 
-def normalize(scene, data, free, *, init, method, shooting, segments, multistart, seed,
-              max_steps, tol, sigma, profile, window, progress, warn, per_record=(),
-              force=None, load_by="time") -> FitRequest:
-    """Check a fit request and bring it to one form (the arguments are those of [`fit`][]).
-
-    **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
-    """
-    scenes, records = _pairs(scene, data)
+def _check_free(free, force) -> tuple[str, ...]:
+    """`free` once each, every name one that can be free (`ValueError` otherwise)."""
     free = tuple(dict.fromkeys(free))
     known = free_names() + tuple(force_names(force))
     unknown = [n for n in free if n not in known]
@@ -331,7 +326,32 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
         raise ValueError(f"`free=` names unknown parameter(s) {unknown}; choose from "
                          f"{list(known)}" if unknown
                          else "`free=` must name at least one parameter")
+    return free
+
+
+def _starts(mech: SliderCrank, free, records, loads, force) -> dict[str, float]:
+    """The start value of every free global name: the mechanism's, the loads', the
+    channels' offsets and the force term's."""
+    start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}
+    start.update(_load_starts(free, records, loads))
+    start.update(_offset_starts(free, records))
+    start.update(force_starts(force, free))
+    return start
+
+
+def normalize(scene, data, free, *, init, method, shooting, segments, multistart, seed,
+              max_steps, tol, sigma, profile, window, progress, warn, per_record=(),
+              force=None, load_by="time") -> FitRequest:
+    """Check a fit request and bring it to one complete form (the arguments are those of
+    [`fit`][]): the options as enums, each record's crank angle and each channel's noise
+    level resolved ([`channels`][crank_jax.identify.channels]).
+
+    **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
+    """
+    scenes, records = _pairs(scene, data)
+    free = _check_free(free, force)
     check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
+    method, shooting = Method(method), ShootingMode(shooting)
     if (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
             or not 0 <= seed <= MAX_SEED):
         raise ValueError(f"`seed=` must be an integer from 0 to {MAX_SEED}, got {seed!r}")
@@ -348,11 +368,7 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
                          "tabled by the angle channel through its given calibration; fix "
                          "phi_offset (the sensor's offset), or `load_by='time'`")
     loads = tuple(record_loads(sc, d) for d, sc in zip(records, scenes))
-    mech = scenes[0].mech
-    start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}
-    start.update(_load_starts(free, records, loads))
-    start.update(_offset_starts(free, records))
-    start.update(force_starts(force, free))
+    start = _starts(scenes[0].mech, free, records, loads, force)
     _check_sigma_names(sigma, records)
     init_kind = _init(init, start)
     _check_start(start)
@@ -368,10 +384,10 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
     first = records[0].outputs()[0][0].name
     return FitRequest(
         scene=scene, records=tuple(records), loads=loads, states=states, free=free,
-        start=start, init=init_kind, method=Method(method), shooting=ShootingMode(shooting),
+        start=start, init=init_kind, method=method, shooting=shooting,
         segments=segments, multistart=int(multistart), seed=int(seed),
         max_steps=int(max_steps if max_steps is not None else
-                      (100 if method == Method.LM else 2000)),
+                      (100 if method is Method.LM else 2000)),
         tol=float(tol), sigma=sigma, profile=profile, progress=bool(progress),
         warn=bool(warn), angles=channel_angles(scene, records, states, loads),
         sigmas=channel_sigmas(records, given_levels(sigma, first)), per_record=per_record,
