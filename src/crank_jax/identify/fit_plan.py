@@ -171,7 +171,6 @@ def make_plan(req: FitRequest) -> Plan:
     # Motion is judged on the angle the channels tell; the fit's residuals and their
     # noise level are in the first channel's unit.
     noises = [noise_level(d.ts, a) for d, a in zip(req.records, req.angles)]
-    noise = req.sigmas[req.first_channel]
     multi = len(req.records) > 1
     quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in
                   ((no_motion(ang, n) or constant_channel(d) or aliased(ang), d)
@@ -187,7 +186,7 @@ def make_plan(req: FitRequest) -> Plan:
         return _aborted(req, start, states, solver, too_far, notes)
     ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
     full_start = {n: float(v) for n, v in zip(ss.names, ss.host_values(z_start))}
-    plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, tuple(notes),
+    plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, req.noise, periods, tuple(notes),
                 Shooting(Shot.SINGLE), start, states, solver,
                 ranges=ranges(mech_start, req.records, req.angles, periods, start))
     spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]

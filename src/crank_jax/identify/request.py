@@ -127,6 +127,11 @@ class FitRequest:
         return SI_UNITS[self.first_channel]
 
     @functools.cached_property
+    def noise(self) -> float:
+        """The first channel's noise level: the level of the fit's residuals, SI."""
+        return self.sigmas[self.first_channel]
+
+    @functools.cached_property
     def estimated(self) -> tuple[str, ...]:
         """The channels whose noise level the fit estimates (not given by `sigma`)."""
         given = given_levels(self.sigma, self.first_channel)
@@ -136,7 +141,7 @@ class FitRequest:
     def known_sigma(self) -> float | None:
         """The noise level of the weighted residuals (the first channel's unit) when every
         channel's is given, else None (estimated from the residuals)."""
-        return None if self.estimated else self.sigmas[self.first_channel]
+        return None if self.estimated else self.noise
 
 
 def record_mech(mech: SliderCrank, own: dict) -> SliderCrank:

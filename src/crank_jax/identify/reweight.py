@@ -25,7 +25,7 @@ def _weighted(state: FitState, levels: dict[str, float]) -> FitState:
     """`state` with its request and plan weighting each channel by `levels` (SI)."""
     req = dataclasses.replace(state.req, sigmas=levels)
     plan = dataclasses.replace(state.plan, single=ch.reweighted(state.plan.single, levels),
-                               noise=levels[req.first_channel])
+                               noise=req.noise)
     return state.but(req=req, plan=plan)
 
 
