@@ -32,8 +32,8 @@ from .fit_options import Init, Method, ShootingMode, check_options
 from .userforce import force_names, force_starts
 
 __all__ = ["FitRequest", "normalize", "STATE_NAMES", "LOAD_NAMES", "SIGNED_FIELDS",
-           "free_names",
-           "load_param", "reported_names", "window_data", "record_mech", "record_loads"]
+           "free_names", "load_param", "reported_names", "window_data", "record_mech",
+           "record_loads"]
 
 STATE_NAMES = ("phi0", "dphi0")
 #: Load parameters that can be free, name -> (side, role), from the one load table
