@@ -54,3 +54,10 @@ def test_a_request_cannot_be_made_without_its_channels():
     missing = [f.name for f in dataclasses.fields(FitRequest)
                if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
     assert {"angles", "sigmas"} <= set(missing)
+
+
+def test_a_level_for_a_channel_no_record_has_is_refused_by_name(two_channels):
+    scene, data = two_channels
+    with pytest.raises(ValueError, match=r"sigma names channel 'v_s', which no record has; "
+                                         r"the channels are \['phi', 'x_s'\]"):
+        normalize(scene, data, ("k", "c"), sigma={"v_s": 1e-3}, **_OPTIONS)

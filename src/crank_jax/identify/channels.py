@@ -18,12 +18,24 @@ from ..scene import Scene
 from .angle import angle_estimate
 from .start import channel_level
 
-__all__ = ["channel_names", "given_levels", "channel_angles", "channel_sigmas", "direction"]
+__all__ = ["channel_names", "check_sigma_names", "given_levels", "channel_angles",
+           "channel_sigmas", "direction"]
 
 
 def channel_names(records: Sequence[Data]) -> tuple[str, ...]:
     """Every channel of `records`, each once, in the order they first appear."""
     return tuple(dict.fromkeys(s.name for d in records for s, _ in d.outputs()))
+
+
+def check_sigma_names(sigma, records: Sequence[Data]) -> None:
+    """`ValueError` naming the channel when `sigma` (a dict) names one no record has."""
+    if not isinstance(sigma, dict):
+        return
+    have = channel_names(records)
+    bad = [k for k in sigma if k not in have]
+    if bad:
+        raise ValueError(f"sigma names channel {bad[0]!r}, which no record has; the channels "
+                         f"are {sorted(have)}")
 
 
 def given_levels(sigma, first: str) -> dict[str, float]:

@@ -27,7 +27,13 @@ from ..records.load_by import loads_by
 from ..records.sensors import OFFSET_NAMES
 from ..scene import Scene
 from ..sweep.distributions import MAX_SEED
-from .channels import channel_angles, channel_names, channel_sigmas, given_levels
+from .channels import (
+    channel_angles,
+    channel_names,
+    channel_sigmas,
+    check_sigma_names,
+    given_levels,
+)
 from .fit_options import Init, Method, ShootingMode, check_options
 from .userforce import force_names, force_starts
 
@@ -244,16 +250,6 @@ def _offset_starts(free, records) -> dict[str, float]:
     return start
 
 
-def _check_sigma_names(sigma, records) -> None:
-    if not isinstance(sigma, dict):
-        return
-    have = channel_names(records)
-    bad = [k for k in sigma if k not in have]
-    if bad:
-        raise ValueError(f"sigma names channel {bad[0]!r}, which no record has; the channels "
-                         f"are {sorted(have)}")
-
-
 def _check_start(start: dict[str, float]) -> None:
     for n, v in start.items():
         if not math.isfinite(v):
@@ -374,7 +370,7 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
                          "phi_offset (the sensor's offset), or `load_by='time'`")
     loads = tuple(record_loads(sc, d) for d, sc in zip(records, scenes))
     start = _starts(scenes[0].mech, free, records, loads, force)
-    _check_sigma_names(sigma, records)
+    check_sigma_names(sigma, records)
     init_kind = _init(init, start)
     _check_start(start)
     names = reported_names(free, len(records), per_record)
