@@ -310,8 +310,6 @@ EXPERIMENT_INTERNALS = {
                                    "fit_programs_options, identify_design",
     "crank_jax.identify.request": "fit_programs_options builds the fit's plan (normalize) "
                                   "to compile its Jacobian programs under each option",
-    "crank_jax.identify.channel_noise": "fit_programs_options: the plan's channels "
-                                        "(with_channels)",
     "crank_jax.identify.fit_plan": "fit_programs_options: the plan itself (make_plan)",
     "crank_jax.identify.uncertainty": "identify_design applies the fit's identifiability "
                                       "analysis (analyze) to the Jacobian at the true "

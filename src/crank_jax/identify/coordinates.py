@@ -26,9 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.params import FIELDS, SliderCrank
+from ..model.params import FIELDS, FRICTION_SCALED, SliderCrank
 from ..simulation import linearize
-from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
+from .request import LOAD_NAMES, SIGNED_FIELDS
 
 __all__ = ["coordinate", "coordinates", "folded", "fold", "FOLDED", "values_of", "values_program"]
 

@@ -231,7 +231,6 @@ def fit(
                     segments=segments, multistart=multistart, seed=seed, max_steps=max_steps,
                     tol=tol, sigma=sigma, profile=profile, window=window, progress=progress,
                     warn=warn, per_record=per_record, force=force, load_by=load_by)
-    req = ch.with_channels(req)
     plan = make_plan(req)
     state = FitState(req, plan, Run(plan.z0, float("nan"), 0, False, plan.abort or ""), 0,
                      (), plan.shooting)

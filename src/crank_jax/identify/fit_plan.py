@@ -19,12 +19,12 @@ from ..runtime.arrays import device_array
 from ..solve.adjoints import ForwardSensitivities
 from . import channel_noise as ch
 from .angle import motion_period
-from .fit_options import ShootingMode
+from .fit_options import Init, ShootingMode
 from .physical import load_scale, ranges
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at
 from .request import LOAD_NAMES, STATE_NAMES, FitRequest
-from .stages import Plan, Shooting
+from .stages import Plan, Shooting, Shot
 from .start import half_window, noise_level, observed_period, regressor_start, smooth_derivatives
 from .strategy import (
     MAX_ODE_STEPS,
@@ -45,7 +45,7 @@ __all__ = ["make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
 def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
     """Start values of the global names, each record's start state, and notes."""
     start, notes = dict(req.start), []
-    if req.init == "regressor":
+    if req.init is Init.REGRESSOR:
         # On the angle the channels tell: the regressor form is written in phi.
         reg, notes = regressor_start(req.scene.mech, ch.angle_records(req), req.free, periods)
         start.update(reg)
@@ -171,7 +171,6 @@ def make_plan(req: FitRequest) -> Plan:
     # Motion is judged on the angle the channels tell; the fit's residuals and their
     # noise level are in the first channel's unit.
     noises = [noise_level(d.ts, a) for d, a in zip(req.records, req.angles)]
-    noise = req.sigmas[req.first_channel]
     multi = len(req.records) > 1
     quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in
                   ((no_motion(ang, n) or constant_channel(d) or aliased(ang), d)
@@ -187,8 +186,8 @@ def make_plan(req: FitRequest) -> Plan:
         return _aborted(req, start, states, solver, too_far, notes)
     ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
     full_start = {n: float(v) for n, v in zip(ss.names, ss.host_values(z_start))}
-    plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, tuple(notes),
-                Shooting("single"), start, states, solver,
+    plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, req.noise, periods, tuple(notes),
+                Shooting(Shot.SINGLE), start, states, solver,
                 ranges=ranges(mech_start, req.records, req.angles, periods, start))
     spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
     # Each record judged by its own solve: one absurd record among good ones is as
@@ -222,7 +221,7 @@ def make_plan(req: FitRequest) -> Plan:
     if max(s for s, _ in segs) > 1:
         shoot, z0 = shooting(req, plan, [s for s, _ in segs])
         plan = dataclasses.replace(plan, shoot=shoot, z0=z0,
-                                   shooting=Shooting("multiple", tuple(s for s, _ in segs)))
+                                   shooting=Shooting(Shot.MULTIPLE, tuple(s for s, _ in segs)))
     if req.shooting is ShootingMode.AUTO and req.segments is None:
         plan = dataclasses.replace(
             plan, notes=(*plan.notes, f"{plan.shooting.label}: {segs[0][1]}"))
@@ -235,7 +234,7 @@ def _aborted(req, start, states, solver, why: str, notes) -> Plan:
     z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
     full = {n: float(v) for n, v in zip(ss.names, ss.host_values(z))}
     return Plan(ss, ss, z, np.eye(ss.p), full, float("nan"), [], tuple(notes),
-                Shooting("none"), start, states, solver, abort=why)
+                Shooting(Shot.NONE), start, states, solver, abort=why)
 
 
 def shooting(req: FitRequest, plan: Plan, nseg) -> tuple[Problem, np.ndarray]:

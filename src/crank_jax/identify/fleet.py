@@ -32,7 +32,6 @@ import numpy as np
 
 from ..runtime.blas import one_blas_thread
 from ..runtime.progress import progress_bar
-from . import channel_noise as ch
 from .attempt import in_range
 from .fit import finish, fit
 from .fit_plan import make_plan, recoordinate
@@ -93,7 +92,7 @@ def _plan(scene, data, free, kw) -> _Member | str:
     """A record's request and plan, as `fit` makes them; a string: why it is not for the
     fleet (it is then fitted by `fit`)."""
     t_begin = time.perf_counter()
-    req = ch.with_channels(normalize(scene, data, free, **kw))
+    req = normalize(scene, data, free, **kw)
     plan = make_plan(req)
     if plan.abort:
         return "refused before any optimisation"

@@ -16,9 +16,9 @@ import math
 
 import numpy as np
 
-from ..model.params import FIELDS, SliderCrank
+from ..model.params import FIELDS, SCALE_GROUP, SliderCrank
 from ..simulation import linearize
-from .request import LOAD_NAMES, SCALE_GROUP, SIGNED_FIELDS
+from .request import LOAD_NAMES, SIGNED_FIELDS
 from .start import half_window, smooth_derivatives
 
 __all__ = ["Ranges", "ranges", "load_scale", "RUNAWAY", "SPEED_RUNAWAY"]

@@ -16,14 +16,14 @@ import numpy as np
 
 from ..model.dynamics import equation_residual
 from ..model.loads import AbstractLoad
-from ..model.params import SliderCrank
+from ..model.params import SCALE_GROUP, SliderCrank
 from ..records.data import Data
 from ..runtime.arrays import device_array
-from .request import SCALE_GROUP
 from .segments import bucket
 
 __all__ = ["smooth_derivatives", "half_window", "regressor_start", "regressor_samples",
-           "padded_rows", "observed_period", "noise_level", "MAX_WINDOW", "MAX_REGRESSOR_ROWS"]
+           "padded_rows", "observed_period", "noise_level", "channel_level", "MAX_WINDOW",
+           "MAX_REGRESSOR_ROWS", "MIN_RELATIVE_NOISE"]
 
 #: At most this many samples enter one local fit: a wider window is thinned evenly
 #: (enough to average the noise out of a start value, and bounded work per sample).
@@ -144,6 +144,17 @@ def noise_level(ts: np.ndarray, y: np.ndarray) -> float:
     c = 1.0 / np.prod(diff, axis=2)
     c /= np.linalg.norm(c, axis=1, keepdims=True)
     return float(np.sqrt(np.mean(np.sum(c * y[idx], axis=1) ** 2)))
+
+
+#: A channel's noise level is at least this fraction of its data's spread (a noiseless
+#: synthetic channel would otherwise get an infinite weight).
+MIN_RELATIVE_NOISE = 1e-9
+
+
+def channel_level(ts: np.ndarray, y: np.ndarray) -> float:
+    """A channel's noise level for weighting (its unit): [`noise_level`][], at least
+    [`MIN_RELATIVE_NOISE`][] of the data's spread and never 0. `ts` (n,), s; `y` (n,)."""
+    return max(noise_level(ts, y), MIN_RELATIVE_NOISE * float(np.std(y)), 1e-300)
 
 
 def half_window(ts: np.ndarray, period: float | None) -> int:

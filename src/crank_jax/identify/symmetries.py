@@ -18,7 +18,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .request import FRICTION_SCALED, LOAD_NAMES, SCALE_GROUP
+from ..model.params import FRICTION_SCALED, SCALE_GROUP
+from .request import LOAD_NAMES
 
 __all__ = ["known_directions", "fixed_scale_members", "scale_message", "name_list"]
 

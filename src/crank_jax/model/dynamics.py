@@ -29,7 +29,7 @@ from .geometry import Geometry, geometry
 from .loads import AbstractLoad, NoLoad, as_load, only_own_loads
 from .params import SliderCrank
 from .structure import Structure
-from .trig import check_form, form_field
+from .trig import Trig, check_form, form_field
 
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
@@ -202,7 +202,7 @@ def acceleration(
 
 
 def _acceleration(p: Coefficients, phi, dphi, t, load, torque, structure, force,
-                  trig: str = "library") -> Array:
+                  trig: Trig = Trig.LIBRARY) -> Array:
     """[`acceleration`][] from [`Coefficients`][] (loads already loads), the geometry's
     sin, cos and 1/sqrt traced in the form `trig` (`trig.FORMS`)."""
     g = geometry(p, phi, structure, trig)
@@ -277,7 +277,7 @@ class CrankField(eqx.Module):
     torque: AbstractLoad
     structure: Structure = eqx.field(static=True, default=_FULL)
     force: Callable | None = None
-    trig: str = form_field()
+    trig: Trig = form_field()
 
     def __check_init__(self):
         check_form(self.trig)
@@ -311,7 +311,7 @@ class PackedCrankField(eqx.Module):
     torque: AbstractLoad
     structure: Structure = eqx.field(static=True, default=_FULL)
     force: Callable | None = None
-    trig: str = form_field()
+    trig: Trig = form_field()
 
     def __check_init__(self):
         check_form(self.trig)

@@ -41,7 +41,7 @@ from .angle_load import AngleLoad
 from .load_base import AbstractLoad, Nonsmooth, check_load_values
 from .params import as_float_array
 from .sampled import INTERPOLATIONS, InputLoad, SampledLoad, is_sampled
-from .trig import check_form, form_field
+from .trig import Trig, form_field
 
 __all__ = ["AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineLoad",
            "SampledLoad", "InputLoad", "AngleLoad", "is_sampled", "as_load",
@@ -88,10 +88,9 @@ class HarmonicLoad(AbstractLoad):
     X1: Float[Array, ""] = eqx.field(converter=as_float_array)
     freq_hz: Float[Array, ""] = eqx.field(converter=as_float_array)
     phase: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
-    trig: str = form_field()  # how sin is traced (trig.py): a solver's choice
+    trig: Trig = form_field()  # how sin is traced (trig.py): a solver's choice
 
     def __check_init__(self):
-        check_form(self.trig)
         check_load_values(self, ("X0", "X1", "freq_hz", "phase"), frequencies=("freq_hz",))
 
     def __call__(self, t: ArrayLike) -> Array:
@@ -116,10 +115,9 @@ class MultiSineLoad(AbstractLoad):
     freqs_hz: Float[Array, " k"] = eqx.field(converter=as_float_array)
     phases: Float[Array, " k"] = eqx.field(converter=as_float_array)
     X0: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
-    trig: str = form_field()  # how sin is traced (trig.py): a solver's choice
+    trig: Trig = form_field()  # how sin is traced (trig.py): a solver's choice
 
     def __check_init__(self):
-        check_form(self.trig)
         arrays = (self.amplitudes, self.freqs_hz, self.phases)
         shapes = [np.shape(a) for a in arrays]
         if len(set(shapes)) > 1 or 0 in shapes[0]:

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..identify.start import noise_level
+from ..identify.start import channel_level
 from ..model.outputs import output
 from ..records.data import MIN_SAMPLES, Data
 from ..simulation import simulate
@@ -215,7 +215,7 @@ def predict_windows(scene, mech, load, torque, sensors, win: Data, windows, stat
     **returns** each window's row of `Validation.windows`."""
     ts = np.asarray(win.ts)
     ys = np.stack([np.asarray(y) for _, y in win.outputs()])  # (C, n)
-    sigma = [max(noise_level(ts, y), 1e-9 * float(np.std(y)), 1e-300) for y in ys]
+    sigma = [channel_level(ts, y) for y in ys]
     pred = Predictor(mech, load, torque, jnp.asarray(scene.rtol, float),
                         jnp.asarray(scene.atol, float),
                         jnp.asarray([s.scale for s in sensors], float),
