@@ -199,15 +199,16 @@ _PROMOTABLE = LOAD_KINDS[:3]
 #: exact type (a subclass, which may override any method, is a user's class).
 OWN_LOADS: frozenset[type] = frozenset(kind.cls for kind in LOAD_KINDS)
 
-# Static values equal exactly when their values are (what JAX's trace cache compares).
-_PLAIN = (type(None), bool, int, float, complex, str)
+# Static values equal exactly when their values are (what JAX's trace cache compares);
+# the model's own enum of the trigonometry's form (`trig.Trig`) is one.
+_PLAIN = (type(None), bool, int, float, complex, str, trig.Trig)
 _MAX_DEPTH = 8  # the table's kinds nest three deep (AngleLoad -> SampledLoad -> coeffs)
 
 
 def only_own_loads(*loads) -> bool:
     """Whether `loads` hold crank-jax's own code only, at any depth: each is exactly one
     of [`OWN_LOADS`][], and each of its fields is an array, a plain value (None, bool,
-    int, float, complex, str), a tuple of these or again such a load. A closed test on
+    int, float, complex, str, [`Trig`][crank_jax.model.trig.Trig]), a tuple of these or again such a load. A closed test on
     the objects alone: a user's class or subclass anywhere, a function or any other
     object in a field (static or not) makes it False."""
     return all(_own(x, 0) for x in loads)
