@@ -12,12 +12,9 @@ from .fit_result import Profile
 from .optimize import evaluate, least_squares
 from .problem import Problem
 from .programs import Pinned
+from .verdict import CHI2_95
 
 __all__ = ["profile_likelihood", "hessian_disagreement", "CHI2_95"]
-
-#: 95% quantile of chi-squared with 1 degree of freedom.
-CHI2_95 = 3.841458820694124
-
 
 #: Grid points on each side of the estimate before the walk outwards.
 _GRID_SIDE = 4

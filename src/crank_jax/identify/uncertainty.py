@@ -292,33 +292,33 @@ def undefined(p: int, why: str) -> Uncertainty:
                        np.ones(p, bool))
 
 
-def sample_rows(ss) -> tuple[np.ndarray, list[int]]:
-    """Indices of the fitted samples in the single-shooting residual vector of `ss` (the
-    rows in time order, padding left out), and the number of samples per series (one
-    series per record and channel)."""
-    rows, lengths, k = [], [], 0
-    for e in ss.exps:
-        n, size = e.n, int(np.prod(e.seg.ts.shape))
-        for _ in e.channels:
-            rows.append(k + np.arange(n))
-            lengths.append(n)
-            k += size
-    return np.concatenate(rows), lengths
-
-
-def channel_rows(ss) -> dict[str, tuple[np.ndarray, list[int], float]]:
-    """Channel name -> (its fitted rows in the single-shooting residual vector of `ss`,
-    over every record that has the channel; the samples per record; the channel's weight
-    in the residuals)."""
-    out: dict[str, tuple[list, list, float]] = {}
+def _series(ss):
+    """`(channel, weight, rows, n)` of each record's channels, in the order of the
+    single-shooting residual vector of `ss`: its `n` fitted rows there (padding left out)
+    and the channel's weight in the residuals."""
     k = 0
     for e in ss.exps:
         n, size = e.n, int(np.prod(e.seg.ts.shape))
         for c, name in enumerate(e.channels):
-            rows, lengths, _ = out.setdefault(name, ([], [], float(e.weight[c])))
-            rows.append(k + np.arange(n))
-            lengths.append(n)
+            yield name, float(e.weight[c]), k + np.arange(n), n
             k += size
+
+
+def sample_rows(ss) -> tuple[np.ndarray, list[int]]:
+    """Indices of the fitted samples in the single-shooting residual vector of `ss` (time
+    order), and the number of samples per series (one per record and channel)."""
+    series = list(_series(ss))
+    return np.concatenate([s[2] for s in series]), [s[3] for s in series]
+
+
+def channel_rows(ss) -> dict[str, tuple[np.ndarray, list[int], float]]:
+    """Channel name -> (its fitted rows over every record that has it, the samples per
+    record, its weight in the residuals)."""
+    out: dict[str, tuple[list, list, float]] = {}
+    for name, w, rows, n in _series(ss):
+        got = out.setdefault(name, ([], [], w))
+        got[0].append(rows)
+        got[1].append(n)
     return {name: (np.concatenate(r), ln, w) for name, (r, ln, w) in out.items()}
 
 

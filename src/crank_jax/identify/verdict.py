@@ -33,6 +33,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..runtime.arrays import device_array
+from .uncertainty import Z95, own_scale
 
 __all__ = ["DirectionProfile", "Checked", "profile_direction", "check", "wide_offset",
            "bound_offsets", "CHI2_95", "DISAGREE"]
@@ -41,8 +42,6 @@ __all__ = ["DirectionProfile", "Checked", "profile_direction", "check", "wide_of
 CHI2_95 = 3.841458820694124
 #: A profile half-width more than this factor away from the Hessian's is said in a note.
 DISAGREE = 2.0
-_Z95 = 1.959963984540054
-_DECADE = math.log(10.0)
 _MAX_POINTS = 6  # re-fits per side
 
 
@@ -67,12 +66,7 @@ class DirectionProfile(NamedTuple):
 def wide_offset(u, values, log, ref) -> float:
     """The offset along `u` (z units) that moves its most-moved parameter by a decade in
     its own scale (see the module's docstring)."""
-    log = np.asarray(log, dtype=bool)
-    ref = np.asarray(ref, dtype=float)
-    # z units per natural unit (ln 10 of them make a decade): 1 in log coordinates;
-    # max(|value|, ref) / ref in linear ones, z = value / ref.
-    per = np.where(log, 1.0, np.maximum(np.abs(values), ref) / ref)
-    return _DECADE / float(np.max(np.abs(u) / per))
+    return math.log(10.0) / float(np.max(np.abs(u) / own_scale(values, log, ref)))
 
 
 def bound_offsets(u, z_hat, folded) -> tuple[float, float]:
@@ -106,7 +100,7 @@ def profile_direction(problem, z_hat, u, se: float, n: int, rss_min: float, wide
     traced, is_open = True, False
     for side, sign in ((1, 1.0), (0, -1.0)):
         limit = min(wide, bounds[side])
-        first = min(1.5 * _Z95 * se, limit) if math.isfinite(se) and se > 0 else limit
+        first = min(1.5 * Z95 * se, limit) if math.isfinite(se) and se > 0 else limit
         outcome, walk = trace.walk(sign, first, limit)
         if outcome == "untraced":
             traced = False
@@ -241,7 +235,7 @@ def check(problem, z_hat, candidates: Sequence, values, log, ref, folded, names,
         if prof.open:
             continue
         closed.append(u)
-        half = _Z95 * se
+        half = Z95 * se
         wide = [abs(prof.lo), abs(prof.hi)]
         off = [not b and (w > DISAGREE * half or w < half / DISAGREE)
                for w, b in zip(wide, prof.at_bound)]
