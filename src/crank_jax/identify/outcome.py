@@ -11,7 +11,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Run", "termination", "budget_spent", "failed_message", "stalled_message"]
+__all__ = ["Run", "termination", "budget_spent", "failed_message", "stalled_message",
+           "finite"]
+
+
+def finite(x) -> float | None:
+    """`x` as a float, or None where it is None or not finite (JSON's null)."""
+    return None if x is None or not math.isfinite(x) else float(x)
 
 
 class Run(NamedTuple):
@@ -40,13 +46,11 @@ def termination(verdict: str, words: str, *, predicted_decrease: float | None = 
     noise-level units of cost, `sigma^2` (`noise`, the residuals' noise level, in the
     first channel's unit), when the noise level is known; `largest_step` is the largest
     step of a coordinate over its standard error."""
-    def num(x):
-        return None if x is None or not math.isfinite(x) else float(x)
-
     return {"verdict": verdict, "words": words,
-            "predicted_decrease": num(predicted_decrease), "largest_step": num(largest_step),
-            "falling_per_iteration": num(falling_per_iteration), "direction": direction,
-            "noise": num(noise)}
+            "predicted_decrease": finite(predicted_decrease),
+            "largest_step": finite(largest_step),
+            "falling_per_iteration": finite(falling_per_iteration), "direction": direction,
+            "noise": finite(noise)}
 
 
 def budget_spent(max_steps: int, falling: float | None = None,
