@@ -30,7 +30,8 @@ from ..model.params import FIELDS, SliderCrank
 from ..simulation import linearize
 from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
 
-__all__ = ["coordinate", "coordinates", "folded", "fold", "FOLDED", "values_of", "values_program"]
+__all__ = ["coordinate", "coordinates", "folded", "fold", "FOLDED", "values_of", "values_program",
+           "own_scale"]
 
 # Linear scale of a mechanism field that starts at 0 (a friction coefficient, an offset
 # in units of r): the optimiser's first steps are O(1) in z.
@@ -93,6 +94,15 @@ def coordinates(name: str, start: float, mech: SliderCrank, omega: float | None,
     if linear and lg:
         return False, abs(start), True
     return lg, rf, folded(name, lg)
+
+
+def own_scale(values, log, ref) -> np.ndarray:
+    """(p,) z units per unit of each parameter's own magnitude: 1 for a log coordinate
+    (a step of 1 is a factor e), `max(|value|, ref) / ref` for a linear one
+    (`z = value / ref`)."""
+    ref = np.asarray(ref, dtype=float)
+    own = np.maximum(np.abs(np.asarray(values, dtype=float)), ref) / np.where(ref > 0, ref, 1)
+    return np.where(np.asarray(log, dtype=bool) | ~(own > 0), 1.0, own)
 
 
 def fold(z):

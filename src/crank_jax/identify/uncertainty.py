@@ -24,15 +24,15 @@ from typing import NamedTuple
 import numpy as np
 
 from ..runtime.arrays import device_array
+from .coordinates import own_scale
 from .diagnostics import robust_uncertainty
 from .programs import jacobian_at
 from .symmetries import fixed_scale_members, known_directions, name_list
+from .verdict import Z95, check
 
 __all__ = ["Uncertainty", "analyze", "assess", "undefined", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
            "sample_rows", "inflate", "misfit", "own_scale"]
 
-#: Two-sided 95% quantile of the standard normal distribution.
-Z95 = 1.959963984540054
 #: Relative singular values below this are the numerical null space.
 RANK_TOL = 1e-7
 #: A direction whose standard error (in log coordinates, or a linear one in units of its
@@ -98,33 +98,21 @@ def analyze(
 ) -> Uncertainty:
     """Standard errors, intervals, correlations and identifiability of a fit.
 
-    **Arguments:**
+    **Arguments:** `J` (N, p): the residuals' Jacobian in z (rows of zero weight
+    allowed); `residuals` (N,) at the estimate; `n`: fitted samples; `names`, `values`
+    (p,), `log` (p,), `ref` (p,): the reported parameters, their estimates, whether each
+    is in log space, the scale of linear ones; `sigma`: the noise level if known (default:
+    from the residuals); `geometry`: `r`, `L`, `b`, `s` (m), for the coupler's
+    equivalent-mass direction; `folded` (p,): parameters `>= 0` (interval cut at 0);
+    `fixed_scale`: fixed non-zero members of the common scale
+    ([`fixed_scale_members`][crank_jax.identify.symmetries.fixed_scale_members]: any one
+    and there is none); `closed`: unit vectors of z along which the profile likelihood
+    closes ([`verdict.check`][crank_jax.identify.verdict.check]), not flagged.
 
-    - `J`: (N, p) Jacobian of the residuals with respect to the coordinates z (rows of
-      zero weight allowed).
-    - `residuals`: (N,) residuals at the estimate, rad.
-    - `n`: number of fitted samples (the non-zero-weight rows).
-    - `names`, `values` (p,), `log` (p,): the reported parameters, their estimates and
-      whether each is fitted in log space; `ref` (p,): the scale of linear coordinates.
-    - `sigma`: the noise standard deviation if known; default: from the residuals.
-    - `geometry`: `r`, `L`, `b`, `s` (m), to test the coupler's equivalent-mass direction.
-    - `folded` (p,): parameters that are `>= 0`, fitted in linear coordinates from 0 (see
-      `problem.folded`): their interval is the linear one cut at 0.
-    - `fixed_scale`: fixed parameters and loads that take part in the common scale and are
-      not zero (see
-      [`fixed_scale_members`][crank_jax.identify.symmetries.fixed_scale_members]): when
-      there is one, no common scale exists.
-    - `closed`: unit vectors of z along which the profile likelihood closes
-      ([`verdict.check`][crank_jax.identify.verdict.check]): a weak direction along one
-      of them is determined after all, and is not flagged.
-
-    Every verdict is judged on the parameters' own scale (see [`own_scale`][]): a linear
-    coordinate is measured in units of `max(|value|, ref)`, so that its standard error is
-    a relative one, as a log coordinate's is (a drive torque started near 0 has a tiny
-    `ref`, and in units of it a well-determined torque looked undetermined). The
-    covariance returned is that of z.
-
-    **Returns:** an [`Uncertainty`][].
+    Every verdict is judged on the parameters' own scale ([`own_scale`][]), a linear
+    coordinate in units of `max(|value|, ref)` (a torque started near 0 has a tiny `ref`,
+    and in units of it a well-determined torque looked undetermined). The covariance
+    returned is that of z. **Returns:** an [`Uncertainty`][].
     """
     log = np.asarray(log, dtype=bool)
     values = np.asarray(values, dtype=float)
@@ -140,15 +128,6 @@ def analyze(
         cands.append((u * per / g, se * g))
     return unc._replace(covariance_z=unc.covariance_z * np.outer(per, per),
                         candidates=tuple(cands))
-
-
-def own_scale(values, log, ref) -> np.ndarray:
-    """(p,) z units per unit of each parameter's own magnitude: 1 for a log coordinate
-    (a step of 1 is a factor e), `max(|value|, ref) / ref` for a linear one
-    (`z = value / ref`)."""
-    ref = np.asarray(ref, dtype=float)
-    own = np.maximum(np.abs(np.asarray(values, dtype=float)), ref) / np.where(ref > 0, ref, 1)
-    return np.where(np.asarray(log, dtype=bool) | ~(own > 0), 1.0, own)
 
 
 def _unit(u: np.ndarray) -> np.ndarray:
@@ -373,20 +352,21 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
         return r_hat, values, rms, undefined(
             ss.p, "the sensitivities are undefined at the estimate (the solve failed), so "
                   "nothing can be said about identifiability"), notes, None
-    kw = dict(geometry={k: float(getattr(ss.base, k)) for k in "rLbs"}, folded=ss.folded,
-              fixed_scale=fixed_scale_members(ss.base, ss.names,
-                                              [(e.load, e.torque) for e in ss.exps]))
-    unc = analyze(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma, **kw)
+    fixed = fixed_scale_members(ss.base, ss.names, [(e.load, e.torque) for e in ss.exps])
+
+    def judge(closed=()):
+        return analyze(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
+                       {k: float(getattr(ss.base, k)) for k in "rLbs"}, ss.folded, fixed,
+                       closed)
+
+    unc = judge()
     if unc.candidates:
         # The sensitivities only suggest a weak direction; the profile likelihood decides.
-        from .verdict import check
-
         checked = check(ss, z_hat, unc.candidates, values, ss.log, np.asarray(ss.ref),
                         ss.folded, ss.names, n, float(r_hat @ r_hat), hold=null_space(J))
         notes += checked.notes
         if checked.closed:
-            unc = analyze(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
-                          closed=checked.closed, **kw)
+            unc = judge(checked.closed)
     if not unc.identifiable:
         notes += [f"not identifiable: {m}" for m in unc.directions]
         bad = [nm for nm, a in zip(ss.names, unc.affected) if a]

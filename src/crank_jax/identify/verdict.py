@@ -33,13 +33,15 @@ from typing import NamedTuple
 import numpy as np
 
 from ..runtime.arrays import device_array
-from .uncertainty import Z95, own_scale
+from .coordinates import own_scale
 
 __all__ = ["DirectionProfile", "Checked", "profile_direction", "check", "wide_offset",
-           "bound_offsets", "CHI2_95", "DISAGREE"]
+           "bound_offsets", "CHI2_95", "Z95", "DISAGREE"]
 
 #: 95% quantile of chi-squared with 1 degree of freedom.
 CHI2_95 = 3.841458820694124
+#: Two-sided 95% quantile of the standard normal distribution.
+Z95 = 1.959963984540054
 #: A profile half-width more than this factor away from the Hessian's is said in a note.
 DISAGREE = 2.0
 _MAX_POINTS = 6  # re-fits per side
