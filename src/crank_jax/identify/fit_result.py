@@ -89,13 +89,14 @@ class FitResult(NamedTuple):
     """Per record, channel name -> what its sensor reads under the fitted model (n,), SI."""
     termination: dict | None = None
     """How the reported optimisation ended, judged in the data's units: `verdict`
-    (`"converged"`, `"stalled"`, `"budget"`, `"ran off"`, `"failed"` or `"refused"`), `words` (the
+    (`"converged"` at a stationary point; `"stalled"`, the cost stopped falling while the
+    linearisation predicts more, along `direction`, a ridge or a curved valley;
+    `"budget"`; `"ran off"` the physical range; `"failed"`; or `"refused"`), `words` (the
     same in a sentence), `predicted_decrease` (the cost decrease the Gauss-Newton step
     predicts, in noise-level units `sigma^2`), `largest_step` (its largest move of a
     coordinate, in standard errors), `falling_per_iteration` (the cost's fall per
-    iteration over the last 8, `sigma^2`), `direction` (of a stall: the combination, in
-    standard errors) and `noise` (sigma, the first channel's unit); see
-    `outcome.termination`."""
+    iteration over the last 8, `sigma^2`) and `noise` (sigma, the first channel's
+    unit)."""
 
     def to_json(self) -> dict:
         """The `fit.json` document (exactly the documented top-level keys)."""

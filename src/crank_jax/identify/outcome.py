@@ -1,8 +1,5 @@
 """How an optimisation of a fit ended: the [`Run`][] it returns, its `termination` record
-(`fit.json`'s), and the words of its messages. Shared by LM
-([`optimize`][crank_jax.identify.optimize]), optax's methods
-([`optax_fit`][crank_jax.identify.optax_fit]) and the fit's result.
-"""
+(`fit.json`'s), and the words of its messages, for LM, optax and the fit's result."""
 
 from __future__ import annotations
 
@@ -35,17 +32,9 @@ class Run(NamedTuple):
 def termination(verdict: str, words: str, *, predicted_decrease: float | None = None,
                 largest_step: float | None = None, falling_per_iteration: float | None = None,
                 direction: str | None = None, noise: float | None = None) -> dict:
-    """How an optimisation ended, as `fit.json`'s `termination` holds it.
-
-    `verdict`: `"converged"` (at a stationary point of the weighted cost, judged in the
-    data's units), `"stalled"` (the cost stopped falling while the linearisation still
-    predicts a decrease: along `direction`, a ridge or a curved valley), `"budget"` (the
-    iteration budget spent, the cost still falling by `falling_per_iteration`), `"ran
-    off"` (the estimate left the physical range, see
-    [`physical`][crank_jax.identify.physical]), or `"failed"`. The figures are in
-    noise-level units of cost, `sigma^2` (`noise`, the residuals' noise level, in the
-    first channel's unit), when the noise level is known; `largest_step` is the largest
-    step of a coordinate over its standard error."""
+    """How an optimisation ended, as `fit.json`'s `termination` holds it (its fields: see
+    [`FitResult`][crank_jax.identify.fit_result.FitResult]`.termination`); the figures
+    non-finite or unknown are null."""
     return {"verdict": verdict, "words": words,
             "predicted_decrease": finite(predicted_decrease),
             "largest_step": finite(largest_step),

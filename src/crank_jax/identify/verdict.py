@@ -1,27 +1,19 @@
 """Identifiability verdicts checked against the profile likelihood.
 
-The sensitivity matrix flags a direction `u` of the coordinates z (unit length) as weakly
-determined when its standard error `sigma / |J u|` is large (see `uncertainty.analyze`).
-That is a quadratic guess, in coordinates whose scale can be arbitrary (a parameter that
-starts at 0 is linear with a made-up scale), so it is only a candidate. The verdict is
-the likelihood's: the profile along `u` (every other direction re-fitted, the offset `t`
-along `u` held) is traced outwards on each side until its deviance
-`n ln(RSS(t) / RSS_min)` passes the 95% threshold of chi-squared(1) or the offset reaches
-a wide range:
-
-- **a decade**: the parameter that `u` moves most, in its own scale, changes by a factor
-  10 (log coordinates: `ln 10`; linear ones: `ln 10` times `max(|value|, ref)`);
-- **or a bound**: a parameter that cannot be negative reaches 0. The profile stays flat
-  down to 0 there, so the interval's end is that bound (`[0, hi]`, an upper limit), not
-  an open end.
+The sensitivities flag a unit direction `u` of z as weakly determined when its standard
+error `sigma / |J u|` is large (`uncertainty.analyze`): a quadratic guess, in coordinates
+whose scale can be arbitrary, so only a candidate. The verdict is the likelihood's: the
+profile along `u` (every other direction re-fitted) is traced outwards on each side until
+its deviance `n ln(RSS(t) / RSS_min)` passes the 95% threshold of chi-squared(1) or the
+offset reaches a wide range: **a decade** of the parameter `u` moves most, in its own
+scale, **or a bound** 0 of a parameter that cannot be negative (then the interval's end
+is that bound, `[0, hi]`, not an open end).
 
 A direction is **not determined** only when a side stays below the threshold over the
-whole wide range. (A re-fit that stops before converging still bounds the profile from
-above, so a point below the threshold counts; one above it leaves the profile untraced.)
-Otherwise the profile closes: the direction is determined, its
-crossings give the profile interval, and a Hessian half-width `1.96 se` more than 2x
-away from the profile's on either side is said in a note. A profile that cannot be
-traced (a re-fit fails) leaves the candidate flagged and says so.
+whole range (a re-fit that stops before converging still bounds the profile from above:
+below the threshold it counts, above it leaves the profile untraced). Otherwise it is
+determined, and a Hessian half-width `1.96 se` more than 2x off the profile's is said in
+a note. A profile that cannot be traced leaves the candidate flagged and says so.
 """
 
 from __future__ import annotations
