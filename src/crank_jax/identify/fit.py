@@ -42,7 +42,7 @@ from .fit_result import (
     with_wrapped_angles,
 )
 from .measurement import fitted_channels
-from .outcome import Run, termination
+from .outcome import FAILS_AT_END, Run, termination
 from .profile import hessian_disagreement, profile_likelihood
 from .request import free_names, normalize
 from .reweight import reweight
@@ -87,7 +87,7 @@ def _result(state: FitState, t_begin: float) -> FitResult:
         r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, req.known_sigma)
     term = best.termination
     if converged and not math.isfinite(rms):
-        converged, message = False, "the ODE solve fails at the final estimate"
+        converged, message = False, FAILS_AT_END
         term = None
     if plan.abort:
         term = termination("refused", plan.abort)

@@ -18,6 +18,7 @@ from ..solve.adjoints import ForwardSensitivities
 from . import channel_noise as ch
 from .angle import motion_period
 from .fit_options import ShootingMode
+from .outcome import FAILS_AT_START
 from .physical import load_scale, ranges
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at
@@ -202,7 +203,7 @@ def make_plan(req: FitRequest) -> Plan:
     abort = _refusal(req, (absurd_start(int(n), sp, p, ss.max_steps, _turns(ang))
                            for n, sp, p, ang in zip(steps0, spans, periods, req.angles)))
     if abort is None and failed0 > 0:
-        abort = "the ODE solve fails at the start values; choose other start values"
+        abort = FAILS_AT_START
     if abort:
         return dataclasses.replace(plan, abort=abort)
     budget = ode_budget(int(np.max(steps0)))

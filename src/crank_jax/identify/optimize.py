@@ -13,7 +13,7 @@ import numpy as np
 from ..runtime.arrays import device_array
 from ..runtime.progress import progress_bar
 from .gauss_newton import Step, direction, gauss_newton
-from .outcome import Run, budget_spent, failed_message, stalled_message, termination
+from .outcome import NON_FINITE, Run, budget_spent, failed_message, stalled_message, termination
 from .programs import jacobian_at, residuals_at
 from .strategy import AT_ZERO, FAR_FROM_NOISE
 
@@ -332,7 +332,7 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
         except _Stop as stop:
             converged, message, term = stop.converged, stop.message, stop.term
     if ev.best_w is None or not np.all(np.isfinite(ev.best_w)):
-        message = "the iterates became non-finite"
+        message = NON_FINITE
         return Run(z0, float("nan"), ev.iterations, False, message,
                    termination("failed", message, noise=noise))
     if ev.best_failed:

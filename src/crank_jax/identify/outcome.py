@@ -9,7 +9,12 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = ["Run", "termination", "budget_spent", "failed_message", "stalled_message",
-           "finite"]
+           "finite", "NON_FINITE", "FAILS_AT_END", "FAILS_AT_START"]
+
+#: The messages of a run whose iterates, end point or start cannot be solved.
+NON_FINITE = "the iterates became non-finite"
+FAILS_AT_END = "the ODE solve fails at the final estimate"
+FAILS_AT_START = "the ODE solve fails at the start values; choose other start values"
 
 
 def finite(x) -> float | None:
