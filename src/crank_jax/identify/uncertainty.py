@@ -44,6 +44,7 @@ PRACTICAL_LIMIT = 0.5
 _AFFECTED = 0.05
 # Two unit directions whose inner product exceeds this (in magnitude) are the same one.
 _SAME_DIRECTION = 0.99
+_RICHER = ", or make the experiment richer (a larger amplitude, a known load)"
 
 
 class Uncertainty(NamedTuple):
@@ -165,10 +166,8 @@ def _analyze_own(J, residuals, n, names, values, log, ref, sigma, geometry, fold
     # parameters orthogonal to it keep their (correct) standard errors.
     inv_s2 = np.where(numeric_null, 0.0, 1.0 / np.where(s > 0, s, 1.0) ** 2)
     cov = sigma**2 * (V * inv_s2) @ V.T
-    se_z = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    se_z[affected] = np.nan
+    se_z, ci = _intervals(cov, affected, values, log, ref, folded)
     stderr = np.where(log, values * se_z, ref * se_z)
-    lo, hi = _intervals(values, se_z, log, ref, folded)
     with np.errstate(invalid="ignore", divide="ignore"):
         d = np.sqrt(np.diag(cov))
         corr = cov / np.outer(d, d)
@@ -176,7 +175,7 @@ def _analyze_own(J, residuals, n, names, values, log, ref, sigma, geometry, fold
     corr[:, affected] = np.nan
     s_min = s[-1] if s.size else 0.0
     cond = float(s_max / s_min) if s_min > 0 else math.inf
-    return Uncertainty(stderr, np.column_stack([lo, hi]), corr, cov, s, cond, sigma,
+    return Uncertainty(stderr, ci, corr, cov, s, cond, sigma,
                        not directions, directions, affected, tuple(candidates))
 
 
@@ -215,17 +214,19 @@ def _named(J, V, flagged, weak, se_dir, sigma, s_max, known, names, log, confirm
     return directions, (np.column_stack([Q, rest]) if rest.size else Q), candidates
 
 
-def _intervals(values, se_z, log, ref, folded) -> tuple[np.ndarray, np.ndarray]:
-    """95% Laplace intervals: log-normal for log coordinates, normal for linear ones, and
-    for a folded parameter (`>= 0`) the normal one cut at 0. An estimate at or near its
-    bound of 0 then gets the one-sided interval `[0, value + 1.96 se]`, which holds 0 when
-    the data cannot tell the parameter from 0."""
+def _intervals(cov, affected, values, log, ref, folded) -> tuple[np.ndarray, np.ndarray]:
+    """The standard errors in z (p,) of the covariance `cov` (NaN where `affected`) and
+    the 95% Laplace intervals (p, 2): log-normal for log coordinates, normal for linear
+    ones, cut at 0 for a folded parameter (`>= 0`: an estimate near its bound 0 gets
+    `[0, value + 1.96 se]`, which holds 0 when the data cannot tell it from 0)."""
+    se_z = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    se_z[affected] = np.nan
     log = np.asarray(log, dtype=bool)
     lo = np.where(log, values * np.exp(-Z95 * se_z), values - Z95 * ref * se_z)
     hi = np.where(log, values * np.exp(Z95 * se_z), values + Z95 * ref * se_z)
     if folded is not None:
         lo = np.where(np.asarray(folded, dtype=bool), np.maximum(lo, 0.0), lo)
-    return lo, hi
+    return se_z, np.column_stack([lo, hi])
 
 
 def _describe(Vf: np.ndarray, names, log, se_dir, out: list[str]) -> None:
@@ -241,17 +242,14 @@ def _describe(Vf: np.ndarray, names, log, se_dir, out: list[str]) -> None:
         order = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) > _AFFECTED]
         combo = " ".join(_term(names[i], v[i], bool(log[i])) for i in order).lstrip("+ ")
         out.append(f"the combination {combo} is not determined by the data: fix one of "
-                   f"{name_list(involved)}, or make the experiment richer (a larger amplitude, "
-                   "a known load)")
+                   f"{name_list(involved)}{_RICHER}")
     elif len(involved) <= d:
         out.append(f"none of {name_list(involved)} is determined by the data, alone or in "
-                   "combination: fix them, or make the experiment richer (a larger "
-                   "amplitude, a known load)")
+                   f"combination: fix them{_RICHER}")
     else:
         out.append(f"{name_list(involved)} enter the data only through "
                    f"{max(len(involved) - d, 0)} combinations ({d} directions are not "
-                   f"determined): fix {d} of them, or make the "
-                   "experiment richer (a larger amplitude, a known load)")
+                   f"determined): fix {d} of them{_RICHER}")
 
 
 def null_space(J: np.ndarray) -> np.ndarray:
@@ -305,13 +303,9 @@ def inflate(unc: Uncertainty, factor: np.ndarray, values: np.ndarray, log, ref,
             folded=None) -> Uncertainty:
     """`unc` with every standard error multiplied by `factor` (p,) >= 1 and the intervals
     and the covariance widened to match (correlations unchanged)."""
-    log = np.asarray(log, dtype=bool)
     cov = unc.covariance_z * np.outer(factor, factor)
-    se_z = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    se_z[unc.affected] = np.nan
-    lo, hi = _intervals(values, se_z, log, ref, folded)
-    return unc._replace(stderr=unc.stderr * factor, ci95=np.column_stack([lo, hi]),
-                        covariance_z=cov)
+    _, ci = _intervals(cov, unc.affected, values, log, ref, folded)
+    return unc._replace(stderr=unc.stderr * factor, ci95=ci, covariance_z=cov)
 
 
 def misfit(ss, unc: Uncertainty, r_hat, J, values, sigma):
