@@ -1,8 +1,6 @@
-"""One optimisation of a fit, and a few of them: the try from one start (with the
-single-shooting polish after multiple shooting), tries from perturbed starts, and the
-choice of the run to report. [`escalation`][crank_jax.identify.escalation] decides which
-tries to make.
-"""
+"""One optimisation of a fit (with the single-shooting polish after multiple shooting),
+tries from perturbed starts, and the choice of the run to report;
+[`escalation`][crank_jax.identify.escalation] decides which tries to make."""
 
 from __future__ import annotations
 
@@ -75,11 +73,10 @@ def in_range(plan: Plan, run: Run) -> Run:
 
 def _single_from(run_fn, req: FitRequest, ss: Problem, z: np.ndarray, B: np.ndarray,
                  desc: str) -> Run:
-    """One LM optimisation of the single-shooting problem `ss` over the directions `B`
-    from `z` (the polish, and the runs held at and released from a bound), in value
-    coordinates ([`InValues`][crank_jax.identify.programs.InValues]: these runs start
-    near the minimum, where its valleys are the equation of motion's linear balances);
-    its estimate in `ss`'s coordinates."""
+    """One optimisation of the single-shooting problem `ss` over the directions `B` from
+    `z` (the polish, the runs held at and released from a bound), in value coordinates
+    ([`InValues`][crank_jax.identify.programs.InValues]: near the minimum its valleys are
+    the equation of motion's linear balances); its estimate in `ss`'s coordinates."""
     view = InValues(ss, z, B)
     run = guarded(run_fn, view, np.zeros(view.B.shape[1]), req.max_steps, req.tol, desc,
                   req.progress)

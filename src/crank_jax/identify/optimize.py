@@ -20,20 +20,19 @@ from .strategy import AT_ZERO, FAR_FROM_NOISE
 __all__ = ["least_squares", "evaluate", "STALL_STEPS",
            "DECREASE_FRACTION", "STEP_FRACTION", "STALL_DECREASE", "BOUND_STEPS"]
 
-#: The stall test looks this many iterations back (see `_Evaluations`).
+#: The stall test looks this many iterations back.
 STALL_STEPS = 8
-#: Converged in the data's units when the Gauss-Newton step predicts a cost decrease
-#: below this fraction of one noise-level unit of cost (`sigma^2`, the cost of a change
-#: of 2 in chi-squared) ...
+#: Converged when the Gauss-Newton step predicts a cost decrease below this many
+#: `sigma^2` (the cost of a change of 2 in chi-squared) ...
 DECREASE_FRACTION = 1e-4
-#: ... and moves no coordinate by more than this fraction of its standard error
-#: (`sigma sqrt(diag (J^T J)^-1)`, the noise level's, not the misfit's: the stricter).
+#: ... and moves no coordinate by more than this fraction of its standard error at the
+#: noise level (not the misfit's: the stricter).
 STEP_FRACTION = 1e-2
 #: A stall: the best cost has fallen by less than this many `sigma^2` over the last
 #: [`STALL_STEPS`][] iterations while the linearisation still predicts more.
 STALL_DECREASE = 1e-2
-#: A run with `at_bounds` stops once a folded parameter has sat at its bound 0 (within
-#: `AT_ZERO`) this many iterations in a row without the run converging.
+#: With `at_bounds`, a run stops once a folded parameter has sat at its bound 0 (within
+#: `AT_ZERO`) this many iterations in a row.
 BOUND_STEPS = 3
 
 
