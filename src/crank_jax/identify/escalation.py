@@ -12,7 +12,7 @@ import numpy as np
 from ..runtime.arrays import device_array
 from . import attempt as at
 from .fit_options import Method, ShootingMode
-from .fit_plan import recoordinate, shooting
+from .fit_plan import recoordinate, record_spans, shooting
 from .motion_start import motion_start
 from .outcome import Run
 from .problem import Problem
@@ -74,8 +74,7 @@ def optimize_fit(state: FitState) -> FitState:
         return not _settled(req, plan, runs, at.best_run(runs)[0])
 
     if escalate and plan.shoot is plan.single and go_on():
-        nseg = [record_segments(float(d.ts[-1] - d.ts[0]), p)
-                for d, p in zip(req.records, plan.periods)]
+        nseg = [record_segments(sp, p) for sp, p in zip(record_spans(req), plan.periods)]
         ms, z0 = shooting(req, plan, nseg)
         escalated = Shooting("multiple", tuple(nseg))
         runs += at.multistart(req, plan, ms, z0, 1, req.seed, escalated.label)

@@ -38,7 +38,7 @@ from .strategy import (
 from .uncertainty import RANK_TOL
 
 __all__ = ["make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
-           "recoordinate", "recoordinate_basis", "single_problem"]
+           "recoordinate", "recoordinate_basis", "single_problem", "record_spans"]
 
 
 def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
@@ -96,7 +96,7 @@ def _start_solve(req, start, states, solver, periods):
         z = _start_z(ss, start, states)
         r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, device_array(z)))
         absurd = any(absurd_start(int(n), sp, p, turns=_turns(a)) for n, sp, p, a in
-                     zip(np.atleast_1d(steps), _spans(req), periods, req.angles))
+                     zip(np.atleast_1d(steps), record_spans(req), periods, req.angles))
         if int(failed) == 0 or budget == MAX_ODE_STEPS or absurd:
             return ss, z, r, int(failed), np.atleast_1d(steps).astype(int), J
 
@@ -126,7 +126,7 @@ def _turns(angle: np.ndarray) -> float:
     return abs(float(angle[-1] - angle[0])) / (2 * math.pi)
 
 
-def _spans(req: FitRequest) -> list[float]:
+def record_spans(req: FitRequest) -> list[float]:
     """Each record's length, s."""
     return [float(d.ts[-1] - d.ts[0]) for d in req.records]
 
@@ -196,7 +196,7 @@ def make_plan(req: FitRequest) -> Plan:
     plan = Plan(ss, ss, z_start, np.eye(ss.p), _values(ss, z_start), noise, periods,
                 tuple(notes), Shooting("single"), start, states, solver,
                 ranges=ranges(mech_start, req.records, req.angles, periods, start))
-    spans = _spans(req)
+    spans = record_spans(req)
     # Each record judged by its own solve: one absurd record among good ones is as
     # absurd as alone (the steps of the slowest record against the periods of another
     # let a record of 10^4 turns through).
