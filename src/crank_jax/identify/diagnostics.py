@@ -1,22 +1,16 @@
 """Residual diagnostics and honest uncertainty when the model does not explain the data.
 
-The white-noise (Laplace) covariance `sigma^2 (J^T J)^-1` assumes independent residuals.
-When the model is wrong (unmodelled friction, a disturbance, a drifting offset) the
-residuals are correlated in time, and that covariance is overconfident, often by an order
-of magnitude. This module
+The white-noise (Laplace) covariance `sigma^2 (J^T J)^-1` assumes independent residuals;
+a wrong model (unmodelled friction, a disturbance, a drifting offset) correlates them in
+time, and that covariance is overconfident, often by an order of magnitude. This module
+tests the residuals for whiteness ([`residual_diagnostics`][]: Ljung-Box, the lag-1
+autocorrelation, the effective number of samples), estimates a covariance that allows for
+the correlation ([`hac_covariance`][]: Newey-West), and never reports variances below the
+white-noise ones ([`widen`][]); [`robust_uncertainty`][] does all three for a fit.
 
-- tests the residuals for whiteness ([`residual_diagnostics`][]: the Ljung-Box test, the
-  lag-1 autocorrelation, and the effective number of independent samples);
-- estimates a covariance that allows for the correlation ([`hac_covariance`][]: the
-  Newey-West heteroskedasticity-and-autocorrelation-consistent sandwich);
-- combines the two so that the reported variances are never smaller than the white-noise
-  ones ([`widen`][]), and [`robust_uncertainty`][] does all three for a fit.
-
-Several records: the residual vector is their concatenation; pass `lengths` (the number
-of samples of each record, in order) so that no lag pairs samples of different records.
-
-Only NumPy and the standard library are used (the chi-squared tail is computed here from
-the regularised incomplete gamma function), so this module costs nothing to import.
+Several records: pass `lengths` (samples per record, in order) so that no lag pairs
+samples of different records. Only NumPy and the standard library (the chi-squared tail
+computed here), so this module costs nothing to import.
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
 """Uncertainty and identifiability from the sensitivity matrix.
 
-With residuals `r(z)` (n,) and coordinates `z` (p,) (log-values for positive quantities,
-so the Jacobian's columns are the sensitivities scaled by the parameter values):
-
-- sensitivities `J = dr/dz` (n, p), by forward mode through the ODE solve
-  (`diffrax.ForwardMode` and `jax.jacfwd`: p tangents are cheaper than n cotangents);
-- noise variance `sigma^2 = |r|^2 / (n - p)`; Fisher information `J^T J / sigma^2`; Laplace
-  covariance `sigma^2 (J^T J)^-1`, from the SVD `J = U diag(s) V^T`;
-- a direction `v` of `z`-space is **unidentifiable** when it is numerically in the null
-  space (`s < 1e-7 s_max`) or so weakly determined that its standard error `sigma / s`
-  exceeds [`PRACTICAL_LIMIT`][] (a 50% relative error, each parameter on its own scale);
-- the common-scale direction of DESIGN.md section 3 (every free mass, inertia, stiffness,
-  damping and load amplitude multiplied by one factor) is tested explicitly and reported
-  in words.
+With residuals `r(z)` (n,) and coordinates `z` (p,): sensitivities `J = dr/dz` (n, p) by
+forward mode through the ODE solve (p tangents are cheaper than n cotangents); noise
+variance `sigma^2 = |r|^2 / (n - p)`; Laplace covariance `sigma^2 (J^T J)^-1` from the SVD
+`J = U diag(s) V^T`. A direction of z is **unidentifiable** when it is numerically in the
+null space ([`RANK_TOL`][]) or its standard error `sigma / s` exceeds
+[`PRACTICAL_LIMIT`][] (each parameter on its own scale); the model's known flat
+directions ([`symmetries`][crank_jax.identify.symmetries]) are tested by name.
 """
 
 from __future__ import annotations
