@@ -83,12 +83,10 @@ def profile_direction(problem, z_hat, u, se: float, n: int, rss_min: float, wide
                       hold=None) -> DirectionProfile:
     """Trace the profile likelihood along `u` (p,) from `z_hat` (p,), each side from
     1.5 Hessian half-widths (`1.96 se`) outwards, at least doubling, to `wide` or the
-    side's bound,
-    then one interpolated re-fit near the crossing (linear in `sqrt(deviance)`, exact for
-    a quadratic cost). `problem`: the fit's single-shooting problem; `n`: the number of
-    residuals; `rss_min`: `|r|^2` at `z_hat`; `hold` (p, h): directions held fixed in the
-    re-fits besides `u` (the exactly flat ones, which the fit holds fixed too: LM crawls
-    along them without converging)."""
+    side's bound, then one interpolated re-fit near the crossing (linear in
+    `sqrt(deviance)`). `problem`: the fit's single-shooting problem; `n`: the number of
+    residuals; `rss_min`: `|r|^2` at `z_hat`; `hold` (p, h): the exactly flat directions,
+    held in the re-fits as the fit holds them (LM crawls along them)."""
     trace = _Trace(problem, z_hat, u, hold, n, rss_min, max_steps, tol)
     ends, at_bound = [math.nan, math.nan], [False, False]
     traced, is_open = True, False
