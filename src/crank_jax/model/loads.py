@@ -208,9 +208,9 @@ _MAX_DEPTH = 8  # the table's kinds nest three deep (AngleLoad -> SampledLoad ->
 def only_own_loads(*loads) -> bool:
     """Whether `loads` hold crank-jax's own code only, at any depth: each is exactly one
     of [`OWN_LOADS`][], and each of its fields is an array, a plain value (None, bool,
-    int, float, complex, str, [`Trig`][crank_jax.model.trig.Trig]), a tuple of these or again such a load. A closed test on
-    the objects alone: a user's class or subclass anywhere, a function or any other
-    object in a field (static or not) makes it False."""
+    int, float, complex, str, [`Trig`][crank_jax.model.trig.Trig]), a tuple of these or
+    again such a load. A closed test on the objects alone: a user's class or subclass
+    anywhere, a function or any other object in a field (static or not) makes it False."""
     return all(_own(x, 0) for x in loads)
 
 
