@@ -40,7 +40,7 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
     # Gradient methods: reverse mode, its backward program chosen here, at the edge.
     problem = shoot if req.method is Method.LM else dataclasses.replace(
         shoot, adjoint=DiscreteAdjoint(backward=backward_program()))
-    run_fn = _optimizer(req, plan)
+    run_fn = _optimizer(req)
     run = guarded(run_fn, Subspace(problem, device_array(z0), device_array(B)),
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
     run = run._replace(z=z0 + B @ run.z)
@@ -83,15 +83,14 @@ def _single_from(run_fn, req: FitRequest, ss: Problem, z: np.ndarray, B: np.ndar
     return run._replace(z=view.lift(run.z) if np.all(np.isfinite(run.z)) else z)
 
 
-def _optimizer(req: FitRequest, plan: Plan):
+def _optimizer(req: FitRequest):
     """The optimiser of `req`: LM with its tests judged in the data's units (the
     residuals' noise level; a stall counts as convergence only near that level), or
     optax's."""
     if req.method is not Method.LM:
         return minimize_optax
-    sigma = req.known_sigma
-    return functools.partial(least_squares, stall_rms=stall_rms(plan.noise, sigma),
-                             noise=noise_unit(plan.noise, sigma), at_bounds=True)
+    return functools.partial(least_squares, stall_rms=stall_rms(req.noise),
+                             noise=noise_unit(req.noise), at_bounds=True)
 
 
 def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
@@ -110,7 +109,7 @@ def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
     at0 = [i for i in range(ss.n_global) if ss.folded[i] and abs(z[i]) < AT_ZERO]
     if not at0:
         return run
-    run_fn = _optimizer(req, plan)
+    run_fn = _optimizer(req)
     zc = z.copy()
     zc[at0] = 0.0
     Bh = np.asarray(plan.Bg, dtype=float).copy()

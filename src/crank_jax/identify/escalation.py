@@ -149,7 +149,7 @@ def _conclude(req: FitRequest, plan: Plan, runs, first: Run, tried: list[str],
         how = "stalled" if _stalled(first, plan, req) else "converged"
         why = "did not converge" if not first.converged else (
             f"{how} at rms {at.run_rms(first, n):.3g} {unit}, far above the record's noise "
-            f"level ({plan.noise:.3g} {unit})")
+            f"level ({req.noise:.3g} {unit})")
         notes.append(f"the {plan.shooting.label} fit {why}; tried {' and '.join(tried)}; the "
                      f"result is {won} (rms {at.run_rms(best, n):.3g} {unit}"
                      + (", the lowest-cost converged try)" if best.converged
@@ -172,7 +172,7 @@ def _conclude(req: FitRequest, plan: Plan, runs, first: Run, tried: list[str],
 
 def _unit2(req: FitRequest, plan: Plan) -> float:
     """The noise-level unit of cost, `sigma^2`."""
-    return noise_unit(plan.noise, req.known_sigma) ** 2
+    return noise_unit(req.noise) ** 2
 
 
 def _settled(req: FitRequest, plan: Plan, runs, last: Run) -> bool:
@@ -241,4 +241,4 @@ def _in_shoot(plan: Plan, z: np.ndarray) -> np.ndarray:
 def _stalled(run: Run, plan: Plan, req: FitRequest) -> bool:
     """Not converged, or converged far from the noise level."""
     return not run.converged or far_from_noise(at.run_rms(run, plan.single.n_residuals),
-                                               plan.noise, req.known_sigma)
+                                               req.noise)

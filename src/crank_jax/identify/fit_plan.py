@@ -192,7 +192,7 @@ def make_plan(req: FitRequest) -> Plan:
     if too_far:
         return _aborted(req, start, states, solver, too_far, notes)
     ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
-    plan = Plan(ss, ss, z_start, np.eye(ss.p), _values(ss, z_start), req.noise, periods,
+    plan = Plan(ss, ss, z_start, np.eye(ss.p), _values(ss, z_start), periods,
                 tuple(notes), Shooting(Shot.SINGLE), start, states, solver,
                 ranges=ranges(mech_start, req.records, req.angles, periods, start))
     spans = record_spans(req)
@@ -235,7 +235,7 @@ def _aborted(req, start, states, solver, why: str, notes) -> Plan:
     """A plan that stops before any solve (see `absurd_frequency`)."""
     ss = single_problem(req, start, states, SMALL_ODE_BUDGET, solver)
     z = _start_z(ss, start, states)
-    return Plan(ss, ss, z, np.eye(ss.p), _values(ss, z), float("nan"), [], tuple(notes),
+    return Plan(ss, ss, z, np.eye(ss.p), _values(ss, z), [], tuple(notes),
                 Shooting(Shot.NONE), start, states, solver, abort=why)
 
 

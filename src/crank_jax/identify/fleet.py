@@ -98,7 +98,7 @@ def _plan(scene, data, free, kw) -> _Member | str:
         return "refused before any optimisation"
     if plan.Bg.shape[1] != plan.single.p:
         return "a flat direction is held fixed"
-    return _Member(req, plan, noise_unit(plan.noise, req.known_sigma), t_begin)
+    return _Member(req, plan, noise_unit(req.noise), t_begin)
 
 
 def _run(m: _Member, z, cost, iterations, status, dec, big) -> Run:
@@ -113,7 +113,7 @@ def _run(m: _Member, z, cost, iterations, status, dec, big) -> Run:
                   largest_step=float(big), noise=m.noise))
     run = in_range(m.plan, run)
     rms = math.sqrt(2 * run.cost / max(m.plan.single.n_residuals, 1))
-    if run.converged and far_from_noise(rms, m.plan.noise, m.req.known_sigma):
+    if run.converged and far_from_noise(rms, m.req.noise):
         run = run._replace(converged=False, message="ended far above the noise level")
     return run
 

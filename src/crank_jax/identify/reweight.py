@@ -24,8 +24,7 @@ REWEIGHT_ROUNDS = 3
 def _weighted(state: FitState, levels: dict[str, float]) -> FitState:
     """`state` with its request and plan weighting each channel by `levels` (SI)."""
     req = dataclasses.replace(state.req, sigmas=levels)
-    plan = dataclasses.replace(state.plan, single=ch.reweighted(state.plan.single, levels),
-                               noise=req.noise)
+    plan = dataclasses.replace(state.plan, single=ch.reweighted(state.plan.single, levels))
     return state.but(req=req, plan=plan)
 
 

@@ -86,7 +86,6 @@ class Plan:
     z0: np.ndarray  # start coordinates of `shoot`
     Bg: np.ndarray  # (p, q) basis of the global directions optimised (flat ones held)
     start: dict  # start value of every reported name
-    noise: float  # the records' noise level, rad
     periods: list  # each record's cycle, s: its observed period, or the time of a turn
     # for a crank that turns (None: neither), once planned
     notes: tuple[str, ...]

@@ -263,18 +263,19 @@ def perturb(z0: np.ndarray, names, log, rng: np.random.Generator, folded=None) -
     return z
 
 
-def far_from_noise(rms: float, noise: float, sigma: float | None) -> bool:
-    """True when a fit's rms residual (rad) is far above the noise level of the record."""
-    return not (math.isfinite(rms) and rms <= stall_rms(noise, sigma))
+def far_from_noise(rms: float, noise: float) -> bool:
+    """True when a fit's rms residual is far above `noise`, the records' noise level
+    (`FitRequest.noise`, the first channel's unit)."""
+    return not (math.isfinite(rms) and rms <= stall_rms(noise))
 
 
-def noise_unit(noise: float, sigma: float | None) -> float:
-    """The noise level (residual unit) that LM's termination is judged in: the record's
-    measured level `noise`, or `sigma` when given and larger."""
-    return max(noise, sigma or 0.0, 1e-12)
+def noise_unit(noise: float) -> float:
+    """The noise level (residual unit) that LM's termination is judged in: the records'
+    level `noise` (`FitRequest.noise`: given by `sigma=` or estimated), kept above 0."""
+    return max(noise, 1e-12)
 
 
-def stall_rms(noise: float, sigma: float | None) -> float:
-    """The rms residual above which a fit is far from the record's noise level `noise`
-    (and from `sigma`, when given): [`FAR_FROM_NOISE`][] times the larger."""
-    return FAR_FROM_NOISE * noise_unit(noise, sigma)
+def stall_rms(noise: float) -> float:
+    """The rms residual above which a fit is far from the records' noise level `noise`:
+    [`FAR_FROM_NOISE`][] times it."""
+    return FAR_FROM_NOISE * noise_unit(noise)
