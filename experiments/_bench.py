@@ -131,3 +131,30 @@ def write_section(page: Path, begin: str, end: str, text: str, what: str) -> Non
     page.write_text(pat.sub(lambda _: block, src) if pat.search(src)
                     else src.rstrip() + "\n\n" + block + "\n")
     print(f"rewrote the {what} table in {page.relative_to(ROOT)}")
+
+
+def rk4(f, t: float, y, h: float, steps: int):
+    """`steps` classical Runge-Kutta steps of `h` from `(t, y)` of `y' = f(t, y)` (numpy):
+    the hand-written integrators of the peers and the stand-in records."""
+    for s in range(steps):
+        ts = t + s * h
+        k1 = f(ts, y)
+        k2 = f(ts + h / 2, y + h / 2 * k1)
+        k3 = f(ts + h / 2, y + h / 2 * k2)
+        k4 = f(ts + h, y + h * k3)
+        y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return y
+
+
+def tooth_edges(tf, phi, dphi, teeth: int, rng, jitter: float = 2e-5):
+    """A toothed wheel's edge record of a dense motion `(tf, phi, dphi)` (rad, rad/s, with
+    dphi > 0): the angles of the edges (a gap each turn: no edge at the last tooth) and
+    their times, interpolated in the angle (Hermite, dt/dphi = 1/dphi) with `jitter` s of
+    Gaussian noise from `rng`. Returns `(times, angles)`, s and rad."""
+    from scipy.interpolate import CubicHermiteSpline
+
+    step = 2 * np.pi / teeth
+    k = np.arange(np.ceil(phi[0] / step), np.floor(phi[-1] / step) + 1)
+    angle = k[k % teeth != teeth - 1] * step
+    ts = CubicHermiteSpline(phi, tf, 1.0 / dphi)(angle) + rng.normal(0.0, jitter, angle.shape)
+    return ts, angle

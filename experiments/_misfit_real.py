@@ -31,7 +31,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline
+from _bench import tooth_edges
 
 import crank_jax as cj
 
@@ -141,11 +141,8 @@ def _coast_samples(seed: int, t1: float):
     tr = cj.simulate(mech, p["phi0"], p["dphi0"], jnp.asarray(tf), load=load, force=Windage(),
                      rtol=1e-10, atol=1e-10)
     phi, dphi = np.asarray(tr.phi), np.asarray(tr.dphi)
-    step = 2 * np.pi / TEETH
-    k = np.arange(np.ceil(phi[0] / step), np.floor(phi[-1] / step) + 1)
-    angle = k[k % TEETH != TEETH - 1] * step
     rng = np.random.default_rng(seed)
-    ts = CubicHermiteSpline(phi, tf, 1.0 / dphi)(angle) + rng.normal(0.0, 2e-5, angle.shape)
+    ts, angle = tooth_edges(tf, phi, dphi, TEETH, rng)
     force = gas_force(angle) + rng.normal(0.0, 0.01 * gas_force(0.0), angle.shape)
     return ts, angle, force
 

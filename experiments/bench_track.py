@@ -21,7 +21,7 @@ import argparse
 import json
 import time
 
-from _bench import RESULTS, ROOT, median_time, save, setup_jax, use_clock, write_section
+from _bench import RESULTS, ROOT, median_time, rk4, save, setup_jax, use_clock, write_section
 
 jax = setup_jax()
 
@@ -55,14 +55,7 @@ def numpy_ekf(model, settings, state, ts, ys) -> np.ndarray:
     def propagate(x, t, dt):
         z, y, h = x[2:], x[:2].copy(), dt / model.substeps
         f = lambda s, y: np.array([y[1], float(acc(z, y[0], y[1], s))])  # noqa: E731
-        for k in range(model.substeps):
-            s = t + k * h
-            k1 = f(s, y)
-            k2 = f(s + h / 2, y + h / 2 * k1)
-            k3 = f(s + h / 2, y + h / 2 * k2)
-            k4 = f(s + h, y + h * k3)
-            y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        return np.concatenate([y, z])
+        return np.concatenate([rk4(f, t, y, h, model.substeps), z])
 
     x, P, tp = np.asarray(state.x), np.asarray(state.P), float(state.t)
     R = np.diag(np.asarray(settings.R))

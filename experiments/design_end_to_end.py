@@ -20,7 +20,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.identify.corner import plot_design  # noqa: E402
+from crank_jax.bayes.corner import plot_design  # noqa: E402
 from crank_jax.runtime.io import atomic_write  # noqa: E402
 
 FREE = ("m_s", "I_p", "k", "c")

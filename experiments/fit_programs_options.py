@@ -51,7 +51,6 @@ def main(argv=None):
 
     setup_jax()
     import crank_jax as cj
-    from crank_jax.identify import channel_noise as ch
     from crank_jax.identify.fit_plan import make_plan
     from crank_jax.identify.programs import jacobian_at
     from crank_jax.identify.request import normalize
@@ -59,10 +58,10 @@ def main(argv=None):
     lab = cj.load_scene("lab-rig")
     start = cj.Scene(lab.mech.replace(k=2.4, c=0.004), phi0=1.0, name="lab-rig-start")
     data = cj.synthesize(lab, t1=5.0, rate=200.0, noise_std=1e-3, seed=1)
-    req = ch.with_channels(normalize(
+    req = normalize(
         start, data, ("k", "c", "phi0", "dphi0"), init="scene", method="lm",
         shooting="auto", segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8,
-        sigma=None, profile=None, window=None, progress=False, warn=False))
+        sigma=None, profile=None, window=None, progress=False, warn=False)
     plan = make_plan(req)  # compiles the start solve once (not timed)
     progs = {"single": (plan.single, plan.z0[:plan.single.p]), "multiple": (plan.shoot, plan.z0)}
     res = {"load_before": os.getloadavg(), "xla_flags": os.environ.get("XLA_FLAGS"),

@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _bench import FIGURES, RESULTS, machine, setup_jax
+from _bench import FIGURES, RESULTS, machine, rk4, setup_jax
 
 jax = setup_jax()
 
@@ -173,15 +173,9 @@ def fleet_records(n: int, seed: int = 1):
             for j, (name, d) in FAILING.items():
                 if j < n:
                     (k if name == "k" else c)[j] *= 1 + d
-        for s in range(sub):
-            q = p | {"k": k, "c": c}
-            f = lambda tt, yy: np.stack([yy[1], accel(yy[0], yy[1], tt, q)])  # noqa: E731
-            tt = t + s * h
-            k1 = f(tt, y)
-            k2 = f(tt + h / 2, y + h / 2 * k1)
-            k3 = f(tt + h / 2, y + h / 2 * k2)
-            k4 = f(tt + h, y + h * k3)
-            y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        q = p | {"k": k, "c": c}
+        f = lambda tt, yy: np.stack([yy[1], accel(yy[0], yy[1], tt, q)])  # noqa: E731
+        y = rk4(f, t, y, h, sub)
     return ts, out + rng.normal(0.0, 1e-3, out.shape)
 
 

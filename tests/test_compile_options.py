@@ -36,10 +36,10 @@ def problems(lab_rig):
     start = cj.Scene(lab_rig.mech.replace(k=2.4, c=0.004), phi0=1.0, name="start")
     ts = np.linspace(0.0, 1.5, 151)  # a decaying swing: a record's shapes, no solve
     data = cj.Data(ts, np.exp(-0.2 * ts) * np.cos(8.0 * ts))
-    req = ch.with_channels(normalize(
+    req = normalize(
         start, data, ("k", "c", "phi0", "dphi0"), init="scene", method="lm",
         shooting="single", segments=None, multistart=1, seed=0, max_steps=None,
-        tol=1e-8, sigma=None, profile=None, window=None, progress=False, warn=False))
+        tol=1e-8, sigma=None, profile=None, window=None, progress=False, warn=False)
     start_g, states, _ = _starts(req, [None])
     solver = pick_solver(start.mech, req.loads[0][0], float(start.rtol), start.solver)
     ss = _problem(req, start_g, states, [1], MAX_ODE_STEPS, solver)

@@ -113,12 +113,12 @@ def _plan_and_request(noise):
     shoot = types.SimpleNamespace(names=("a",), log=(True,), folded=(False,),
                                   state_on=np.zeros(0, dtype=bool))
     plan = types.SimpleNamespace(single=single, shoot=shoot, z0=np.zeros(1),
-                                 periods=[1.0], noise=noise,
+                                 periods=[1.0],
                                  shooting=Shooting("multiple", (2,)), ranges=None)
     req = types.SimpleNamespace(shooting=ShootingMode.AUTO, segments=None, method=Method.LM,
                                 multistart=1,
                                 seed=0, sigma=None, records=[], known_sigma=None,
-                                unit="rad")
+                                unit="rad", noise=noise)
     return FitState(req, plan, None, 0, (), plan.shooting)
 
 

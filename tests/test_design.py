@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
+from crank_jax.bayes.design import max_tones
 from crank_jax.cli.main import main
-from crank_jax.identify.design import max_tones
 
 
 @pytest.fixture(scope="module")

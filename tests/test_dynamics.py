@@ -153,3 +153,22 @@ def test_packed_field_is_the_field_and_differentiates_alike(rng):
 
             np.testing.assert_allclose(jax.grad(accel)(m.k, True), jax.grad(accel)(m.k, False),
                                        rtol=1e-12)
+
+
+def test_equation_residual_vanishes_on_the_model_and_is_M_K_q(rng):
+    # The regressor's residual M phi'' + K phi'^2 - q: zero at the model's own acceleration
+    # (an independent path: acceleration divides by M once), and the three functions'
+    # combination elsewhere.
+    from crank_jax.model.dynamics import equation_residual
+
+    load = cj.HarmonicLoad(3.0, 2.0, 1.5, 0.3)
+    torque = cj.HarmonicLoad(-0.2, 0.5, 2.5, 1.0)
+    for mech, phi, dphi, t in _cases(rng):
+        dd = cj.model.acceleration(mech, phi, dphi, t, load, torque)
+        M = cj.model.mass(mech, phi)
+        assert abs(equation_residual(mech, phi, dphi, dd, t, load, torque)) <= 1e-11 * (
+            abs(M * dd) + abs(cj.model.generalized_force(mech, phi, dphi, t, load, torque)))
+        expect = (M * 1.7 + cj.model.coriolis(mech, phi) * dphi**2
+                  - cj.model.generalized_force(mech, phi, dphi, t, load, torque))
+        np.testing.assert_allclose(equation_residual(mech, phi, dphi, 1.7, t, load, torque),
+                                   expect, rtol=1e-12, atol=1e-12)

@@ -1,6 +1,7 @@
 """The solvers' field traces the acceleration once per program (`model/dynamics.py`,
 `_traced_once`): fewer traces, the same compiled numbers, and no cached trace for a
-user's code."""
+user's code, decided on the loads' objects alone (`model/loads.py`, `only_own_loads`):
+exactly one of crank-jax's load kinds, with plain static values, or the plain path."""
 
 from __future__ import annotations
 
@@ -67,6 +68,57 @@ def test_a_users_force_is_traced_afresh_at_every_site(monkeypatch):
     calls = _count_geometry(monkeypatch)
     jax.make_jaxpr(lambda k: _solve(k, force=_Drag(jnp.asarray(0.01))))(2.0)
     assert not dyn._own_code(SCENE.load, SCENE.load, _Drag(jnp.asarray(0.01)))
+    assert len(calls) > 1
+
+
+class _Doubled(HarmonicLoad):
+    """A user's subclass of one of crank-jax's loads: its code is the user's."""
+
+    def __call__(self, t):
+        return 2.0 * super().__call__(t)
+
+
+def _own_kinds():
+    """One load of every kind of the table, each with its nested parts (a spline's
+    coefficients, an input's signal, an angle table's record and period)."""
+    from crank_jax.model import AngleLoad, InputLoad, MultiSineLoad, SampledLoad
+
+    ts, vs = np.linspace(0.0, 1.0, 6), np.arange(6.0)
+    return [cj.model.NoLoad(), cj.model.ConstantLoad(1.5), HarmonicLoad(0.0, 1.0, 2.0),
+            MultiSineLoad([1.0, 2.0], [1.0, 3.0], [0.0, 0.5]), SampledLoad(ts, vs),
+            SampledLoad(ts, vs, "zoh"), InputLoad(gain=1.0, column="u").bind(ts, vs),
+            AngleLoad.from_samples(np.linspace(0.0, 7.0, 6), vs, ts=ts, period=2 * np.pi)]
+
+
+def test_crank_jax_own_loads_take_the_cached_trace():
+    for load in _own_kinds():
+        assert dyn._own_code(load, HarmonicLoad(0.1, 0.2, 0.3), None), type(load).__name__
+        assert dyn._own_code(cj.model.NoLoad(), load, None), type(load).__name__
+
+
+def test_a_users_code_anywhere_takes_the_plain_path():
+    from crank_jax.model import InputLoad
+
+    own = HarmonicLoad(0.0, 1.0, 2.0)
+    users = {
+        "a user's force": (own, own, _Drag(jnp.asarray(0.01))),
+        "a user's subclass of an own load": (_Doubled(0.0, 1.0, 2.0), own, None),
+        "the same as the torque": (own, _Doubled(0.0, 1.0, 2.0), None),
+        # `column` is a static field: a function there would be hashed, never traced
+        "a callable in a static field": (InputLoad(gain=1.0, column=len), own, None),
+        "a user's object in an array field": (eqx.tree_at(lambda x: x.X1, own, object()),
+                                              own, None),
+        "an array of objects": (eqx.tree_at(lambda x: x.X1, own,
+                                            np.array([_Drag(jnp.asarray(1.0))], dtype=object)),
+                                own, None),
+    }
+    for what, (load, torque, force) in users.items():
+        assert not dyn._own_code(load, torque, force), what
+
+
+def test_a_users_subclass_is_traced_afresh_at_every_site(monkeypatch):
+    calls = _count_geometry(monkeypatch)
+    jax.make_jaxpr(lambda k: _solve(k, torque=_Doubled(0.01, 0.02, 0.7)))(2.0)
     assert len(calls) > 1
 
 

@@ -322,17 +322,16 @@ def test_a_raised_step_budget_is_the_budget_of_the_problem_optimised(lab_rig):
     # step budget. Single shooting optimised the start solve's problem, at the smaller
     # budget, while the polish and the result used the larger one; and the escalation,
     # seeing two problems, took the plan for a multiply shot one.
-    from crank_jax.identify import channel_noise as ch
     from crank_jax.identify.fit_plan import make_plan
     from crank_jax.identify.request import normalize
     from crank_jax.identify.strategy import MAX_ODE_STEPS
 
     data = cj.synthesize(lab_rig, t1=40.0, rate=25.0, noise_std=1e-3, seed=0)
-    req = ch.with_channels(normalize(
+    req = normalize(
         lab_rig, data, ("k", "c", "phi0", "dphi0"), init="scene", method="lm",
         shooting="single", segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8,
         sigma=None, profile=None, window=None, progress=False, warn=False, per_record=(),
-        force=None))
+        force=None)
     plan = make_plan(req)
     assert plan.abort is None and plan.single.max_steps == MAX_ODE_STEPS
     assert plan.shoot is plan.single

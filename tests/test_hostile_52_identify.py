@@ -12,7 +12,7 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.cli import main
-from crank_jax.identify.horizon import cut
+from crank_jax.validation.horizon import cut
 
 
 def _one_line(capsys, *needles) -> str:
@@ -245,7 +245,7 @@ def test_scene_out_anyway_needs_scene_out(tmp_path, capsys):
 
 
 def test_a_chain_that_never_moves_is_found():
-    from crank_jax.identify.posterior import MIN_MOVED, moved_fraction
+    from crank_jax.bayes.posterior import MIN_MOVED, moved_fraction
 
     rng = np.random.default_rng(0)
     w = rng.normal(size=(3, 40, 2))
@@ -258,7 +258,7 @@ def test_a_chain_that_never_moves_is_found():
 
 
 def _post(stuck=(0,), chains=1):
-    from crank_jax.identify.posterior import Posterior, sampler_warnings
+    from crank_jax.bayes.posterior import Posterior, sampler_warnings
 
     moved = np.array([0.0 if i in stuck else 1.0 for i in range(chains)])
     draws = {"k": np.full((chains, 30), 2.0)}
@@ -285,7 +285,7 @@ def test_a_stuck_posterior_is_marked_and_one_chain_says_no_rhat():
 
 def test_cli_posterior_with_a_stuck_chain_exits_1_and_marks_the_json(tmp_path, capsys,
                                                                      monkeypatch):
-    import crank_jax.identify.posterior as ps
+    import crank_jax.bayes.posterior as ps
 
     monkeypatch.setattr(ps, "posterior", lambda *a, **k: _post())
     out, plot = tmp_path / "post.json", tmp_path / "corner.png"
@@ -302,7 +302,7 @@ def test_cli_posterior_with_a_stuck_chain_exits_1_and_marks_the_json(tmp_path, c
 def test_a_chain_stuck_after_a_short_warmup_is_sampled_again_with_a_smaller_step():
     # One chain, 20 warm-up steps: the adapted step (3.3 in whitened coordinates) was
     # rejected at every draw, and the posterior reported sd = 0 with no warning.
-    from crank_jax.identify.posterior import MIN_MOVED
+    from crank_jax.bayes.posterior import MIN_MOVED
 
     scene = cj.load_scene("lab-rig")
     data = cj.synthesize(scene, t1=1.5, rate=100, noise_std=2e-3, seed=3)

@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from crank_jax.model.foreign_code import foreign_classes
 from crank_jax.runtime import persistent
+from crank_jax.runtime.foreign_code import foreign_classes
 
 # --- the store's "our code" is decided by file location -----------------------------------
 

@@ -218,7 +218,7 @@ def test_validate_refuses_a_constant_record(tmp_path, capsys, value):
 
 
 def test_spread_check_passes_small_real_motion():
-    from crank_jax.identify.validation import _check_spread
+    from crank_jax.validation.kstep import _check_spread
 
     d = cj.Data(np.arange(10) * 0.01, np.zeros(10))
     _check_spread(1234.5 + 1e-9 * np.sin(np.arange(50)), d, 0.0)  # 1 nrad at 1234.5 rad

@@ -6,7 +6,8 @@ No function longer than 60 lines (docstring excluded), no module longer than 400
 subpackages (function-level imports included), no underscore-private name imported from
 another module of the package. The architecture (docs/guide/architecture.md): the core,
 `model/` and `solve/`, imports nothing outside itself (no runtime, records, fit, sweep,
-report, CLI or front door), the top level holds only the front door, and no two files
+report, CLI or front door) and no host module (importlib, sysconfig, os, sys, pathlib),
+the top level holds only the front door, and no two files
 share a name.
 """
 
@@ -184,6 +185,30 @@ def test_core_imports_nothing_outside_itself():
     assert set(bad) == CORE_BREACHES_LEFT, sorted(set(bad) ^ CORE_BREACHES_LEFT)
 
 
+#: The host's modules (the interpreter, the environment, files and where they lie): the
+#: core's numbers are functions of its arguments, so it asks the host nothing. Deciding
+#: what counts as crank-jax's own code by where its files lie is the program store's
+#: business (`runtime/foreign_code.py`), not the physics'.
+HOST_MODULES = ("importlib", "sysconfig", "os", "sys", "pathlib")
+
+
+def _host_imports(path: Path) -> set[str]:
+    """The [`HOST_MODULES`][] that `path` imports, at any depth."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            out.add(node.module.split(".")[0])
+    return out & set(HOST_MODULES)
+
+
+def test_core_imports_no_host_module():
+    bad = [f"{_name(p)} imports {m}" for p in MODULES if _group(_name(p)) in CORE
+           for m in sorted(_host_imports(p))]
+    assert not bad, f"the core imports host modules: {bad}"
+
+
 def test_top_level_holds_only_the_front_door():
     top = {p.name for p in SRC.glob("*.py")}
     assert top <= FRONT_DOOR, f"top-level modules beyond the front door: {top - FRONT_DOOR}"
@@ -235,13 +260,14 @@ def test_the_rules_catch_what_they_forbid(tmp_path, monkeypatch):
                       "identify/__init__.py": "",
                       "solve/a.py": "def f():\n    from ..runtime import b\n",
                       "runtime/b.py": "", "extra.py": "", "model/b.py": "",
+                      "model/h.py": "def f():\n    import importlib.util\n",
                       "report/r.py": "from ..identify import i\n",
                       "identify/i.py": "def g():\n    from ..report import r\n"}.items():
         (fake / rel).parent.mkdir(parents=True, exist_ok=True)
         (fake / rel).write_text(text)
     monkeypatch.setattr(mod, "SRC", fake)
     monkeypatch.setattr(mod, "MODULES", sorted(fake.rglob("*.py")))
-    for check in (test_core_imports_nothing_outside_itself,
+    for check in (test_core_imports_nothing_outside_itself, test_core_imports_no_host_module,
                   test_top_level_holds_only_the_front_door, test_no_two_files_share_a_name,
                   test_no_cycles_between_subpackages):
         with pytest.raises((AssertionError, pytest.fail.Exception)):
@@ -284,15 +310,13 @@ EXPERIMENT_INTERNALS = {
                                    "fit_programs_options, identify_design",
     "crank_jax.identify.request": "fit_programs_options builds the fit's plan (normalize) "
                                   "to compile its Jacobian programs under each option",
-    "crank_jax.identify.channel_noise": "fit_programs_options: the plan's channels "
-                                        "(with_channels)",
     "crank_jax.identify.fit_plan": "fit_programs_options: the plan itself (make_plan)",
     "crank_jax.identify.uncertainty": "identify_design applies the fit's identifiability "
                                       "analysis (analyze) to the Jacobian at the true "
                                       "parameters, without a fit",
     "crank_jax.identify.attempt": "optimiser_variants swaps the optimiser under the fit's "
                                   "tries (attempt)",
-    "crank_jax.identify.corner": "design_end_to_end draws the Design figure that "
+    "crank_jax.bayes.corner": "design_end_to_end draws the Design figure that "
                                  "`crank-jax design --plot` draws (plot_design; no public "
                                  "plot API)",
     "crank_jax.vibration.drive": "bench_vibration's brute-force baseline steps the same "

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import experiment
 
 import crank_jax as cj
 from crank_jax.cli import main
@@ -178,16 +179,11 @@ def _tooth_record(scene, t1, seed, teeth=36):
     """A coast-down of `scene` sampled at the edges of a 36-1 toothed wheel: irregular
     times (20 us of jitter), no sample at the missing tooth, the force column with 5 N of
     noise."""
-    from scipy.interpolate import CubicHermiteSpline
-
     tf = np.linspace(0.0, t1, int(t1 * 4000) + 1)
     tr = scene.simulate(jnp.asarray(tf), rtol=1e-10, atol=1e-10)
-    phi, dphi = np.asarray(tr.phi), np.asarray(tr.dphi)
-    step = 2 * np.pi / teeth
-    k = np.arange(np.ceil(phi[0] / step), np.floor(phi[-1] / step) + 1)
-    angle = k[k % teeth != teeth - 1] * step
     rng = np.random.default_rng(seed)
-    ts = CubicHermiteSpline(phi, tf, 1.0 / dphi)(angle) + rng.normal(0, 2e-5, angle.shape)
+    ts, angle = experiment("_bench").tooth_edges(tf, np.asarray(tr.phi), np.asarray(tr.dphi),
+                                                 teeth, rng)
     force = _gas(angle) + rng.normal(0.0, 5.0, angle.shape)
     return cj.Data(ts, angle, load=cj.SampledLoad(ts, force), source=f"coast-{seed}")
 

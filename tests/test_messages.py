@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 import crank_jax as cj
+import crank_jax.bayes.priors as priors_module
 import crank_jax.runtime.io as io_module
 import crank_jax.scene as scene_module
 from crank_jax.cli import main
@@ -54,7 +55,7 @@ def test_a_prior_too_narrow_is_named(tmp_path, capsys, record, prior):
                   tmp_path / "p.json"], capsys)
     assert "[priors].k" in err and "narrower" in err and "widen the prior" in err, err
     with pytest.raises(ValueError, match="narrower"):
-        cj.identify.priors.parse_priors({"k": prior.strip('"')}, ("k",))
+        priors_module.parse_priors({"k": prior.strip('"')}, ("k",))
 
 
 def test_prior_precision_of_a_narrow_prior_is_finite():
@@ -63,9 +64,9 @@ def test_prior_precision_of_a_narrow_prior_is_finite():
 
     import numpy as np
 
-    from crank_jax.identify.priors import prior_arrays, prior_precision
+    from crank_jax.bayes.priors import prior_arrays, prior_precision
 
-    codes, params = prior_arrays(("phi0",), cj.identify.priors.parse_priors(
+    codes, params = prior_arrays(("phi0",), priors_module.parse_priors(
         {"phi0": "normal(1e-140, 1e-149)"}, ("phi0",)))
     # A coordinate scaled by 1e20: the prior's sd in it is 1e-169, whose square is 0.
     problem = SimpleNamespace(values=lambda z: np.asarray(z), log=[False], ref=[1e20])
@@ -103,7 +104,7 @@ def test_posterior_refuses_draws_beyond_memory(tmp_path, capsys, record):
     assert "--draws" in err and "GiB" in err and "give --draws <= " in err, err
     assert "draws=" not in err and "`" not in err, err
     limit = int(err.split("give --draws <= ")[1].split()[0])
-    from crank_jax.identify.posterior import check_posterior_memory, posterior_bytes
+    from crank_jax.bayes.posterior import check_posterior_memory, posterior_bytes
 
     check_posterior_memory(limit, 4, 500, 4)  # the count it names fits
     with pytest.raises(ValueError,
@@ -128,7 +129,7 @@ def test_posterior_reads_a_scene_with_a_byte_order_mark(tmp_path, capsys, record
     err = _error(["posterior", record, scene, "--free", "k,phi0", "--out",
                   tmp_path / "p.json"], capsys)
     assert "[priors].k" in err and "zero width" in err, err
-    assert cj.identify.priors.load_priors(scene) == {"k": "lognormal(2, 0)"}
+    assert priors_module.load_priors(scene) == {"k": "lognormal(2, 0)"}
 
 
 @pytest.mark.parametrize("argv", [

@@ -9,7 +9,6 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.identify import angle
-from crank_jax.identify import channel_noise as ch
 from crank_jax.identify.angle import slide_angle
 from crank_jax.identify.fit_plan import make_plan, recoordinate
 from crank_jax.identify.motion_start import motion_start
@@ -62,7 +61,6 @@ def _plan(records, start):
                     segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8,
                     sigma=None, profile=None, window=None, progress=False, warn=False,
                     per_record=(), force=None)
-    req = ch.with_channels(req)
     return req, make_plan(req)
 
 
@@ -95,7 +93,6 @@ def test_motion_start_leaves_a_nonlinear_parameter_at_its_start():
                     shooting="single", segments=None, multistart=1, seed=0, max_steps=None,
                     tol=1e-8, sigma=None, profile=None, window=None, progress=False,
                     warn=False, per_record=(), force=None)
-    req = ch.with_channels(req)
     plan = make_plan(req)
     ss = plan.single
     zs = motion_start(ss, plan.z0[:ss.p], req.records, req.angles, plan.periods)

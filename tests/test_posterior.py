@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import crank_jax as cj
+from crank_jax.bayes.priors import load_priors, parse_priors
 from crank_jax.cli.main import main
-from crank_jax.identify.priors import load_priors, parse_priors
 
 
 @pytest.mark.parametrize("spec, match", [
@@ -65,9 +65,9 @@ def test_chains_one_after_another_match_the_vmapped_chains(short_record):
     import jax
     import jax.numpy as jnp
 
-    from crank_jax.identify import nuts
-    from crank_jax.identify.posterior import _laplace_z, _problem_at
-    from crank_jax.identify.priors import prior_arrays
+    from crank_jax.bayes import nuts
+    from crank_jax.bayes.posterior import _laplace_z, _problem_at
+    from crank_jax.bayes.priors import prior_arrays
     from crank_jax.identify.request import normalize
 
     scene, data = short_record
@@ -162,7 +162,7 @@ class _Coords:
     ("uniform(0.5, 8)", lambda z: z),
 ])
 def test_log_prior_is_the_density_of_the_coordinate(spec, expect):
-    from crank_jax.identify.priors import log_prior, prior_arrays
+    from crank_jax.bayes.priors import log_prior, prior_arrays
 
     priors = parse_priors({"k": spec, "phi0": "normal(1, 0.1)"}, ("k", "phi0"))
     codes, params = prior_arrays(("k", "phi0"), priors, _Coords.log)
@@ -177,7 +177,7 @@ def test_log_prior_is_the_density_of_the_coordinate(spec, expect):
 
 
 def test_flat_prior_keeps_a_nonnegative_linear_field_nonnegative():
-    from crank_jax.identify.priors import log_prior, prior_arrays
+    from crank_jax.bayes.priors import log_prior, prior_arrays
 
     codes, params = prior_arrays(("k", "c_s"), {}, (True, False))
     assert float(log_prior(np.array([0.0, 0.1]), _Coords(), codes, params)) == 0.0
@@ -187,7 +187,7 @@ def test_flat_prior_keeps_a_nonnegative_linear_field_nonnegative():
 def test_prior_precision_in_the_coordinates():
     """lognormal(m, s) on a log coordinate has sd s in z; normal(mu, sd) on a linear one
     with ref 2 has sd sd / 2 in z."""
-    from crank_jax.identify.priors import prior_arrays, prior_precision
+    from crank_jax.bayes.priors import prior_arrays, prior_precision
 
     priors = parse_priors({"k": "lognormal(2, 0.5)", "phi0": "normal(1, 0.1)"}, ("k", "phi0"))
     codes, params = prior_arrays(("k", "phi0"), priors, _Coords.log)

@@ -27,9 +27,9 @@ import pytest
 from conftest import flip_byte as _flip
 
 import crank_jax as cj
-from crank_jax.model.foreign_code import foreign_classes
 from crank_jax.model.loads import AbstractLoad
 from crank_jax.runtime import persistent, program_store
+from crank_jax.runtime.foreign_code import foreign_classes
 from crank_jax.runtime.io import atomic_write
 from crank_jax.runtime.program_store import MAGIC, Entry
 

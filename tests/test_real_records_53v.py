@@ -173,7 +173,7 @@ def test_default_state_window_is_never_longer_than_the_record():
     # A crank that turns slowly and less than a revolution, no spring and no gravity: no
     # period and no revolution, so the old rule's 1 s, past the end of this 0.6 s record
     # ("init_window takes 31 of the window's 31 samples"). At most half the record now.
-    from crank_jax.identify.state_window import record_init_window
+    from crank_jax.validation.state_window import record_init_window
 
     mech = cj.SliderCrank(r=0.05, L=0.2, b=0.1, s=0.0, m_c=0.1, m_p=0.05, m_s=0.1,
                           I_c=2e-3, I_p=2e-4, k=0.0, c=0.0, g=0.0)

@@ -116,7 +116,7 @@ def test_data_refuses_a_column_with_two_roles():
 def test_cli_posterior_reads_the_scenes_sensors(lab_scene_file, tmp_path, monkeypatch):
     """`posterior` read the raw column as the angle (phi0 = -1.03 where fit gave 1.0); it
     now reads every record through the function `fit` reads them with."""
-    import crank_jax.identify.posterior as post
+    import crank_jax.bayes.posterior as post
 
     scene = lab_scene_file('[sensors]\nphi = { column = "phi", scale = -1.0, offset = 0.3 }\n')
     rec = _csv(tmp_path / "rec.csv", t=TS, phi=0.3 - ANGLE)
@@ -140,7 +140,7 @@ def test_posterior_problem_reads_channels_as_the_fit():
     the true values the residuals are the noise (2 mrad), not the raw column's misfit."""
     import jax.numpy as jnp
 
-    from crank_jax.identify.posterior import _problem_at
+    from crank_jax.bayes.posterior import _problem_at
     from crank_jax.identify.programs import jacobian_at
     from crank_jax.identify.request import normalize
 
@@ -246,7 +246,7 @@ def test_scene_out_keeps_the_scenes_sensors_and_a_plain_angle_column(tmp_path):
 
 
 def test_designed_scene_keeps_the_sensors():
-    from crank_jax.identify.design import _with_torque
+    from crank_jax.bayes.design import _with_torque
 
     scene = dataclasses.replace(cj.load_scene("lab-rig"),
                                 sensors=(Sensor("x_s", "slide", "mm", -1.0, 0.2),))

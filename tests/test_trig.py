@@ -127,6 +127,19 @@ def test_traced_as_sets_the_form_in_a_field_and_its_loads_and_nothing_else(lab_r
     np.testing.assert_allclose(ari, lib, rtol=1e-14)
 
 
+def test_the_form_is_an_enum_resolved_at_construction(lab_rig):
+    # A module made with the form's name holds the enum: the field is one type wherever
+    # it was made, and a name and its enum give the same static structure (one program).
+    by_name = CrankField(lab_rig.mech, *_loads(), trig="arithmetic")
+    by_enum = CrankField(lab_rig.mech, *_loads(), trig=trig.Trig.ARITHMETIC)
+    assert type(by_name.trig) is trig.Trig and by_name.trig is trig.Trig.ARITHMETIC
+    assert by_name.trig == "arithmetic"  # still equal to its name
+    assert type(cj.HarmonicLoad(0.5, 2.0, 3.0, trig="arithmetic").trig) is trig.Trig
+    assert jax.tree.structure(by_name) == jax.tree.structure(by_enum)
+    assert type(trig.traced_as(CrankField(lab_rig.mech, *_loads()), "arithmetic").trig
+                ) is trig.Trig
+
+
 @pytest.mark.parametrize("make", [
     lambda m: CrankField(m, *_loads(), trig="fast"),
     lambda m: cj.HarmonicLoad(0.5, 2.0, 3.0, trig="fast"),

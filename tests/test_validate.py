@@ -1,4 +1,4 @@
-"""Validation on a second record (crank_jax.identify.validation), Data.window and synthetic
+"""Validation on a second record (crank_jax.validation.kstep), Data.window and synthetic
 transients."""
 
 import math
@@ -81,8 +81,8 @@ def test_scene_loads_fill_a_missing_column(shaken):
 
 def test_default_init_window_is_a_period(shaken):
     lin = cj.linearize(shaken.mech)
-    assert cj.validate.__module__ == "crank_jax.identify.validation"
-    from crank_jax.identify.validation import default_init_window
+    assert cj.validate.__module__ == "crank_jax.validation.kstep"
+    from crank_jax.validation.kstep import default_init_window
 
     assert default_init_window(shaken) == pytest.approx(2 * math.pi / float(lin.omega_n))
 

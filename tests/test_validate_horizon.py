@@ -8,7 +8,7 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.cli import main
-from crank_jax.identify.horizon import cut
+from crank_jax.validation.horizon import cut
 
 #: The held-out record's drive level, and the fitted scene's: 3% off.
 TAU_TRUE, TAU_MODEL = 0.2575, 0.25

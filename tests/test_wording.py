@@ -85,7 +85,7 @@ def record(tmp_path_factory) -> Path:
 
 
 def test_posterior_memory_refusal(tmp_path, capsys, record):
-    from crank_jax.identify.posterior import check_posterior_memory, posterior_bytes
+    from crank_jax.bayes.posterior import check_posterior_memory, posterior_bytes
 
     with pytest.raises(ValueError) as e:
         check_posterior_memory(10**9, 4, 500, 4, max_memory=posterior_bytes(10, 4, 500, 4))

@@ -35,17 +35,13 @@ module is internal. The names of earlier releases are gone (docs/reference/index
 import sys as _sys
 from types import ModuleType as _ModuleType
 
-from .identify.design import Design, design
+from .bayes.design import Design, design
+from .bayes.posterior import Posterior, posterior
 from .identify.fit import (
     ConvergenceWarning,
     FitResult,
     IdentifiabilityWarning,
     fit,
-)
-from .identify.posterior import Posterior, posterior
-from .identify.validation import (
-    Validation,
-    validate,
 )
 from .model.linear import Linearization
 from .model.loads import (
@@ -89,6 +85,10 @@ from .sweep.run import (
 )
 from .sweep.run import sweep as run_sweep
 from .sweep.trajectories import Trajectories, load_trajectories
+from .validation.kstep import (
+    Validation,
+    validate,
+)
 from .vibration import (
     VibrationError,
     forced_response,

@@ -143,7 +143,7 @@ _TABLES: dict[str, tuple[str, ...]] = {
     "solver": ("name", "rtol", "atol"),
     "output": ("t1", "samples", "extras"),
 }
-# [priors] belongs to the posterior (identify/posterior.py reads and checks it); [fit]
+# [priors] belongs to the posterior (bayes/posterior.py reads and checks it); [fit]
 # marks a fitted scene from a fit that did not converge (identify/fitted.py).
 _TOP_KEYS = ("description", "sensors", "priors", "fit")
 

@@ -47,7 +47,7 @@ def _posterior_args(p: argparse.ArgumentParser) -> None:
 
 
 def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
-    from ..identify.posterior import check_posterior_memory
+    from ..bayes.posterior import check_posterior_memory
     from ..runtime.io import check_distinct_outputs, check_figure_format, check_output
 
     free = free_list(a.free)
@@ -70,8 +70,8 @@ def _posterior_check(a: argparse.Namespace) -> tuple[str, ...]:
 
 
 def _posterior_run(a: argparse.Namespace) -> int:
-    from ..identify.posterior import posterior
-    from ..identify.priors import load_priors, parse_priors
+    from ..bayes.posterior import posterior
+    from ..bayes.priors import load_priors, parse_priors
     from ..runtime.io import atomic_write
     from ..scene import load_scene
 
@@ -115,7 +115,7 @@ def _posterior_run(a: argparse.Namespace) -> int:
                            f"{a.out} is marked reliable = false" +
                            (f" and {a.plot} was not drawn" if a.plot else ""))
     if a.plot:
-        from ..identify.corner import plot_corner
+        from ..bayes.corner import plot_corner
 
         plot_corner(post, a.plot, title=f"{', '.join(files)} with {a.scene}")
         print(f"wrote {a.plot}", file=sys.stderr)
@@ -169,7 +169,7 @@ def _design_outputs(a: argparse.Namespace) -> None:
 
 
 def _design_run(a: argparse.Namespace) -> int:
-    from ..identify.design import design
+    from ..bayes.design import design
     from ..runtime.io import atomic_write
     from ..scene import load_scene, save_scene
 
@@ -207,7 +207,7 @@ def _design_run(a: argparse.Namespace) -> int:
         f.write("\n")
     print(f"wrote {a.scene_out} and {a.out}", file=sys.stderr)
     if a.plot:
-        from ..identify.corner import plot_design
+        from ..bayes.corner import plot_design
 
         plot_design(d, a.plot)
         print(f"wrote {a.plot}", file=sys.stderr)

@@ -82,7 +82,7 @@ def _check_numbers(a: argparse.Namespace) -> None:
 
 def _init_free(a: argparse.Namespace) -> tuple[str, ...]:
     """The names of --init-free, each checked (before any record is read)."""
-    from ..identify.validation import init_free_names
+    from ..validation.kstep import init_free_names
 
     try:
         return init_free_names(tuple(x.strip() for x in a.init_free.split(",") if x.strip()))
@@ -112,7 +112,6 @@ def _read(a: argparse.Namespace, scene):
 
 
 def _validate_run(a: argparse.Namespace) -> int:
-    from ..identify.validation import validate
     from ..report.validation_plot import plot_validation
     from ..runtime.io import (
         atomic_write,
@@ -122,6 +121,7 @@ def _validate_run(a: argparse.Namespace) -> int:
         check_output,
     )
     from ..scene import load_scene
+    from ..validation.kstep import validate
 
     _check_numbers(a)
     check_input(a.data, "DATA")  # at once: a FIFO with no writer would block the read

@@ -1,8 +1,6 @@
-"""One optimisation of a fit, and a few of them: the try from one start (with the
-single-shooting polish after multiple shooting), tries from perturbed starts, and the
-choice of the run to report. [`escalation`][crank_jax.identify.escalation] decides which
-tries to make.
-"""
+"""One optimisation of a fit (with the single-shooting polish after multiple shooting),
+tries from perturbed starts, and the choice of the run to report;
+[`escalation`][crank_jax.identify.escalation] decides which tries to make."""
 
 from __future__ import annotations
 
@@ -42,22 +40,21 @@ def attempt(req: FitRequest, plan: Plan, shoot: Problem, z0: np.ndarray, zk: np.
     # Gradient methods: reverse mode, its backward program chosen here, at the edge.
     problem = shoot if req.method is Method.LM else dataclasses.replace(
         shoot, adjoint=DiscreteAdjoint(backward=backward_program()))
-    run_fn = _optimizer(req, plan)
+    run_fn = _optimizer(req)
     run = guarded(run_fn, Subspace(problem, device_array(z0), device_array(B)),
                    B.T @ (zk - z0), req.max_steps, req.tol, desc, req.progress)
     run = run._replace(z=z0 + B @ run.z)
-    if shoot is ss:
-        return in_range(plan, off_the_bound(req, plan, run, desc))
-    zp = recoordinate(shoot, ss, run.z)
-    if not np.isfinite(run.cost):
-        return run._replace(z=zp)
-    pol = _single_from(run_fn if req.method is Method.LM else least_squares, req, ss, zp,
-                       np.asarray(plan.Bg), desc + " (polish)")
-    # The estimate is the polish's, on the single-shooting cost: whether it converged is
-    # the polish's verdict (multiple shooting only brought it near; its own stall on the
-    # continuity defects says nothing about the point reported).
-    return in_range(plan, off_the_bound(
-        req, plan, pol._replace(iterations=run.iterations + pol.iterations), desc))
+    if shoot is not ss:
+        zp = recoordinate(shoot, ss, run.z)
+        if not np.isfinite(run.cost):
+            return run._replace(z=zp)
+        # The estimate is the polish's, on the single-shooting cost, and so is the verdict
+        # (multiple shooting only brought it near; its stall on the continuity defects
+        # says nothing about the point reported).
+        pol = _single_from(run_fn if req.method is Method.LM else least_squares, req, ss, zp,
+                           np.asarray(plan.Bg), desc + " (polish)")
+        run = pol._replace(iterations=run.iterations + pol.iterations)
+    return in_range(plan, off_the_bound(req, plan, run, desc))
 
 
 def in_range(plan: Plan, run: Run) -> Run:
@@ -76,45 +73,35 @@ def in_range(plan: Plan, run: Run) -> Run:
 
 def _single_from(run_fn, req: FitRequest, ss: Problem, z: np.ndarray, B: np.ndarray,
                  desc: str) -> Run:
-    """One LM optimisation of the single-shooting problem `ss` over the directions `B`
-    from `z` (the polish, and the runs held at and released from a bound), in value
-    coordinates ([`InValues`][crank_jax.identify.programs.InValues]: these runs start
-    near the minimum, where its valleys are the equation of motion's linear balances);
-    its estimate in `ss`'s coordinates."""
+    """One optimisation of the single-shooting problem `ss` over the directions `B` from
+    `z` (the polish, the runs held at and released from a bound), in value coordinates
+    ([`InValues`][crank_jax.identify.programs.InValues]: near the minimum its valleys are
+    the equation of motion's linear balances); its estimate in `ss`'s coordinates."""
     view = InValues(ss, z, B)
     run = guarded(run_fn, view, np.zeros(view.B.shape[1]), req.max_steps, req.tol, desc,
                   req.progress)
     return run._replace(z=view.lift(run.z) if np.all(np.isfinite(run.z)) else z)
 
 
-def _optimizer(req: FitRequest, plan: Plan):
+def _optimizer(req: FitRequest):
     """The optimiser of `req`: LM with its tests judged in the data's units (the
     residuals' noise level; a stall counts as convergence only near that level), or
     optax's."""
     if req.method is not Method.LM:
         return minimize_optax
-    sigma = req.known_sigma
-    return functools.partial(least_squares, stall_rms=stall_rms(plan.noise, sigma),
-                             noise=noise_unit(plan.noise, sigma), at_bounds=True)
+    return functools.partial(least_squares, stall_rms=stall_rms(req.noise),
+                             noise=noise_unit(req.noise), at_bounds=True)
 
 
 def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
     """`run` (single-shooting coordinates), or a better end where it stalled with a
-    folded parameter (a friction term, `value = ref |z|`) at its bound 0.
-
-    At the bound the cost has a kink in `z`: LM's steps across it are reflected and
-    rejected, its damping grows, and it stalls there, the other parameters short of
-    their valley's floor too (experiments/misfit_rig.py, case `friction`: `F_s` at 0,
-    rms 0.0916, where the fit with `F_s` held at 0 reaches 0.091495 and the free optimum
-    0.091464). The fit's LM runs stop once a folded parameter has sat at its bound for
-    a few iterations (`least_squares(at_bounds=True)`) instead of crawling there for
-    30-100. As an active-set method does, the parameters at the bound are held there
-    while LM finishes the others; then, where the cost falls into the feasible side
-    (the gradient `J_i . r < 0`, `J` taken at `z_i = 0+`: `_fold`'s derivative there is
-    +1), they are released from their one-dimensional Gauss-Newton step and LM runs over
-    all of them. Otherwise the point on the bound is a constrained minimum (its verdict
-    the held run's). The run reported is the best of these (converged first, then
-    cost); its iterations are all of them."""
+    folded parameter (a friction term, `value = ref |z|`) at its bound 0, where the cost
+    has a kink and LM crawls (`least_squares(at_bounds=True)` stops it there;
+    experiments/misfit_rig.py, case `friction`). As an active-set method does, those
+    parameters are held at 0 while LM finishes the others; then, where the cost falls
+    into the feasible side (`J_i . r < 0`, `J` at `z_i = 0+`), they are released from
+    their one-dimensional Gauss-Newton step and LM runs over all. The run reported is the
+    best of these (converged first, then cost); its iterations are all of them."""
     if run.converged or req.method is not Method.LM or not np.isfinite(run.cost):
         return run
     ss = plan.single
@@ -122,7 +109,7 @@ def off_the_bound(req: FitRequest, plan: Plan, run: Run, desc: str) -> Run:
     at0 = [i for i in range(ss.n_global) if ss.folded[i] and abs(z[i]) < AT_ZERO]
     if not at0:
         return run
-    run_fn = _optimizer(req, plan)
+    run_fn = _optimizer(req)
     zc = z.copy()
     zc[at0] = 0.0
     Bh = np.asarray(plan.Bg, dtype=float).copy()

@@ -1,10 +1,11 @@
-"""A fit's channels: the crank angle they tell, their noise levels, their residuals'
-weights by the levels found (the refits that find them are
+"""A fit's channels during and after the fit: the start model's crank angle, their
+residuals' weights by the levels found (the refits that find them are
 [`reweight`][crank_jax.identify.reweight]'s), and the per-channel report.
 
 Residuals are in the first channel's unit: a channel's are weighted by the first
 channel's noise level over its own, so every channel counts by its noise. Unknown levels
-are estimated from the record first (`noise_level`), then from the fit's own residuals,
+are estimated from the record first (when the request is made, see
+[`channels`][crank_jax.identify.channels]), then from the fit's own residuals,
 and the fit is repeated from its estimate while they move by more than
 [`REWEIGHT_TOLERANCE`][] (iteratively reweighted least squares: at its fixed point each
 channel's weight is its residuals' own level, the maximum-likelihood weighting).
@@ -12,7 +13,6 @@ channel's weight is its residuals' own level, the maximum-likelihood weighting).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import equinox as eqx
@@ -21,18 +21,17 @@ import numpy as np
 from ..records.data import Data
 from ..runtime.arrays import device_array
 from .angle import angle_estimate, motion_period
+from .channels import direction
 from .diagnostics import residual_diagnostics
-from .measurement import fitted_channels
+from .measurement import channel_weights, fitted_channels
 from .problem import Problem
 from .programs import residuals_at
 from .request import FitRequest
-from .start import half_window, noise_level, smooth_derivatives
+from .start import half_window, smooth_derivatives
 from .uncertainty import channel_rows
 
-__all__ = ["channel_angles", "channel_sigmas", "model_angles",
-           "reweighted", "unknown_levels", "new_levels", "channel_report",
-           "residual_levels", "with_channels", "angle_records", "segment_states",
-           "REWEIGHT_TOLERANCE"]
+__all__ = ["model_angles", "reweighted", "new_levels", "channel_report", "residual_levels",
+           "angle_records", "segment_states", "REWEIGHT_TOLERANCE"]
 
 #: Refit while a channel's estimated noise level moves by more than this factor.
 REWEIGHT_TOLERANCE = 1.25
@@ -45,58 +44,9 @@ def model_angles(req: FitRequest, ss: Problem, r) -> list[np.ndarray]:
     for d, a, fitted, st in zip(req.records, req.angles, fitted_channels(ss, r), req.states):
         model = Data(d.ts, None, d.load, d.torque, source=d.source, channels=fitted,
                      sensors=tuple(s for s, _ in d.outputs()))
-        est = angle_estimate(model, req.scene.mech, _direction(st), float(a[0]))
+        est = angle_estimate(model, req.scene.mech, direction(st), float(a[0]))
         out.append(a if est is None or not np.all(np.isfinite(est)) else est)
     return out
-
-
-def with_channels(req: FitRequest) -> FitRequest:
-    """`req` with each record's crank angle (`channel_angles`) and each channel's noise
-    level (`channel_sigmas`)."""
-    req = dataclasses.replace(req, angles=channel_angles(req))
-    return dataclasses.replace(req, sigmas=channel_sigmas(req))
-
-
-def _direction(state) -> float:
-    return -1.0 if state[1] < 0 else 1.0
-
-
-def channel_angles(req: FitRequest) -> tuple[np.ndarray, ...]:
-    """Each record's crank angle as its channels tell it (`angle.py`); for a record with
-    only slider speed or acceleration, the scene's motion simulated over it."""
-    out = []
-    for d, st, (load, torque) in zip(req.records, req.states, req.loads):
-        est = angle_estimate(d, req.scene.mech, _direction(st), st[0])
-        if est is None:
-            ts = d.ts if d.ts[0] == 0.0 else np.concatenate([[0.0], d.ts])
-            traj = req.scene.simulate(ts, load=load, torque=torque, throw=False)
-            est = np.asarray(traj.phi)[-d.n:]
-        out.append(np.asarray(est, dtype=float))
-    return tuple(out)
-
-
-#: A channel's noise level is at least this fraction of its data's spread (a noiseless
-#: synthetic channel would otherwise get an infinite weight).
-_MIN_RELATIVE_NOISE = 1e-9
-
-
-def channel_sigmas(req: FitRequest) -> dict[str, float]:
-    """Each channel's noise level, SI: given (`sigma`: a dict, or a number for the first
-    channel) or estimated from the record alone (`noise_level`, the largest over the
-    records)."""
-    given = dict(req.sigma) if isinstance(req.sigma, dict) else {}
-    if req.sigma is not None and not isinstance(req.sigma, dict):
-        given[req.first_channel] = float(req.sigma)
-    out: dict[str, float] = {}
-    for d in req.records:
-        for s, y in d.outputs():
-            level = max(noise_level(d.ts, y), _MIN_RELATIVE_NOISE * float(np.std(y)),
-                        1e-300)
-            out[s.name] = max(out.get(s.name, 0.0), level)
-    out.update(given)
-    return out
-
-
 
 
 def residual_levels(ss: Problem, r: np.ndarray) -> dict[str, float]:
@@ -109,25 +59,17 @@ def residual_levels(ss: Problem, r: np.ndarray) -> dict[str, float]:
 def reweighted(problem: Problem, sigmas: dict[str, float]) -> Problem:
     """`problem` with each channel weighted by the first channel's level over its own
     (`sigmas`, SI); the weights are array leaves, so nothing recompiles."""
-    first = problem.exps[0].channels[0]
-    new = tuple(device_array([sigmas[first] / sigmas[n] for n in e.channels], float)
+    first = sigmas[problem.exps[0].channels[0]]
+    new = tuple(device_array(channel_weights(e.channels, sigmas, first), float)
                 for e in problem.exps)
     return eqx.tree_at(lambda p: tuple(e.weight for e in p.exps), problem, new)
-
-
-def unknown_levels(req: FitRequest) -> list[str]:
-    """The channels whose noise level the fit estimates (not given)."""
-    names = list(dict.fromkeys(s.name for d in req.records for s, _ in d.outputs()))
-    given = set(req.sigma) if isinstance(req.sigma, dict) else (
-        {req.first_channel} if req.sigma is not None else set())
-    return [n for n in names if n not in given]
 
 
 def new_levels(req: FitRequest, ss: Problem, z: np.ndarray) -> dict[str, float] | None:
     """The channels' noise levels from the residuals at `z` (the unknown ones only; degrees
     of freedom shared out by sample count), or None when none moves by more than
     [`REWEIGHT_TOLERANCE`][] (or the solve fails)."""
-    unknown = unknown_levels(req)
+    unknown = req.estimated
     if len(req.sigmas) < 2 or not unknown:
         return None
     r, failed, _ = (np.asarray(x) for x in residuals_at(ss, device_array(z)))

@@ -1,21 +1,15 @@
-"""The optimisers' coordinates of a fit's free parameters.
+"""The optimisers' coordinates `z` of a fit's free parameters, all O(1), chosen per name
+by [`coordinate`][]:
 
-Coordinates `z` (what the optimisers see, all O(1)), chosen per name by
-[`coordinate`][]:
-
-- a mechanism field that cannot be negative and starts positive is fitted as
-  `z = ln(value)`: a step in `z` is a relative change, positivity needs no constraint,
-  and the columns of the Jacobian are the sensitivities *scaled by the parameter values*
-  that the identifiability analysis needs;
-- a field that cannot be negative and starts at 0 (an absent body's mass), and the
-  damping and friction terms `c`, `T_c`, `c_s`, `F_s` whatever their start, are *folded*:
-  `value = ref |z|`. It stays valid whatever step the optimiser takes (a step below 0
-  is reflected), its sensitivity at the start is not zero (as it would be for `z^2` or
-  a softplus at its floor), and a value whose truth is 0 converges near 0 (see
-  `uncertainty` for its interval, cut at 0);
-- everything else (a signed field such as the offset `e`, the initial states and load
-  amplitudes) is linear: `z = value / ref`, with `ref` a typical magnitude (the start
-  value, the record's angle amplitude, that times the natural frequency).
+- `z = ln(value)` for a mechanism field that cannot be negative and starts positive: a
+  step is a relative change, positivity needs no constraint, and the Jacobian's columns
+  are the sensitivities scaled by the values, as the identifiability analysis needs;
+- *folded*, `value = ref |z|`, for one that starts at 0 and for the damping and friction
+  terms [`FOLDED`][]: valid whatever the step (a step below 0 is reflected), with a
+  non-zero sensitivity at the start (unlike `z^2` or a softplus at its floor), and a
+  true 0 converges near 0 (its interval cut at 0);
+- linear, `z = value / ref`, for everything else (a signed field, the states, the loads),
+  `ref` a typical magnitude.
 """
 
 from __future__ import annotations
@@ -26,11 +20,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.params import FIELDS, SliderCrank
+from ..model.params import FIELDS, FRICTION_SCALED, SliderCrank
 from ..simulation import linearize
-from .request import FRICTION_SCALED, LOAD_NAMES, SIGNED_FIELDS
+from .request import LOAD_NAMES, SIGNED_FIELDS
 
-__all__ = ["coordinate", "coordinates", "folded", "fold", "FOLDED", "values_of", "values_program"]
+__all__ = ["coordinate", "coordinates", "folded", "fold", "FOLDED", "values_of", "values_program",
+           "own_scale"]
 
 # Linear scale of a mechanism field that starts at 0 (a friction coefficient, an offset
 # in units of r): the optimiser's first steps are O(1) in z.
@@ -93,6 +88,15 @@ def coordinates(name: str, start: float, mech: SliderCrank, omega: float | None,
     if linear and lg:
         return False, abs(start), True
     return lg, rf, folded(name, lg)
+
+
+def own_scale(values, log, ref) -> np.ndarray:
+    """(p,) z units per unit of each parameter's own magnitude: 1 for a log coordinate
+    (a step of 1 is a factor e), `max(|value|, ref) / ref` for a linear one
+    (`z = value / ref`)."""
+    ref = np.asarray(ref, dtype=float)
+    own = np.maximum(np.abs(np.asarray(values, dtype=float)), ref) / np.where(ref > 0, ref, 1)
+    return np.where(np.asarray(log, dtype=bool) | ~(own > 0), 1.0, own)
 
 
 def fold(z):

@@ -1,22 +1,16 @@
 """Residual diagnostics and honest uncertainty when the model does not explain the data.
 
-The white-noise (Laplace) covariance `sigma^2 (J^T J)^-1` assumes independent residuals.
-When the model is wrong (unmodelled friction, a disturbance, a drifting offset) the
-residuals are correlated in time, and that covariance is overconfident, often by an order
-of magnitude. This module
+The white-noise (Laplace) covariance `sigma^2 (J^T J)^-1` assumes independent residuals;
+a wrong model (unmodelled friction, a disturbance, a drifting offset) correlates them in
+time, and that covariance is overconfident, often by an order of magnitude. This module
+tests the residuals for whiteness ([`residual_diagnostics`][]: Ljung-Box, the lag-1
+autocorrelation, the effective number of samples), estimates a covariance that allows for
+the correlation ([`hac_covariance`][]: Newey-West), and never reports variances below the
+white-noise ones ([`widen`][]); [`robust_uncertainty`][] does all three for a fit.
 
-- tests the residuals for whiteness ([`residual_diagnostics`][]: the Ljung-Box test, the
-  lag-1 autocorrelation, and the effective number of independent samples);
-- estimates a covariance that allows for the correlation ([`hac_covariance`][]: the
-  Newey-West heteroskedasticity-and-autocorrelation-consistent sandwich);
-- combines the two so that the reported variances are never smaller than the white-noise
-  ones ([`widen`][]), and [`robust_uncertainty`][] does all three for a fit.
-
-Several records: the residual vector is their concatenation; pass `lengths` (the number
-of samples of each record, in order) so that no lag pairs samples of different records.
-
-Only NumPy and the standard library are used (the chi-squared tail is computed here from
-the regularised incomplete gamma function), so this module costs nothing to import.
+Several records: pass `lengths` (samples per record, in order) so that no lag pairs
+samples of different records. Only NumPy and the standard library (the chi-squared tail
+computed here), so this module costs nothing to import.
 """
 
 from __future__ import annotations
@@ -37,16 +31,10 @@ _MAX_LAGS = 20
 
 
 def chi2_sf(x: float, dof: float) -> float:
-    """Survival function `P(X > x)` of a chi-squared variable with `dof` degrees of freedom.
-
-    It is the regularised upper incomplete gamma function `Q(dof/2, x/2)`: a power series
-    below `x/2 < dof/2 + 1`, a Lentz continued fraction above (accurate in the far tail,
-    where `1 - P` would cancel).
-
-    **Arguments:** `x` >= 0; `dof` > 0.
-
-    **Returns:** a float in [0, 1].
-    """
+    """Survival function `P(X > x)` (in [0, 1]) of a chi-squared variable with `dof` > 0
+    degrees of freedom at `x` >= 0: the regularised upper incomplete gamma function
+    `Q(dof/2, x/2)`, a power series below `x/2 < dof/2 + 1`, a Lentz continued fraction
+    above (accurate in the far tail, where `1 - P` would cancel)."""
     if not dof > 0:
         raise ValueError(f"chi2_sf: dof must be > 0, got {dof!r}")
     if not x > 0:
@@ -99,16 +87,12 @@ def _split(n: int, lengths: Sequence[int] | None) -> list[slice]:
 
 def autocorrelation(r: np.ndarray, n_lags: int, lengths: Sequence[int] | None = None
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Sample autocorrelation of residuals, pooled over records.
+    """Sample autocorrelation of residuals `r` (n,), pooled over records (`lengths`:
+    samples per record), each centred on its own mean, lag-`k` products within one record:
+    `rho_k = sum_records sum_t e_t e_{t+k} / sum_records sum_t e_t^2`.
 
-    Each record is centred on its own mean; a lag-`k` product pairs samples `k` apart
-    within one record. `rho_k = sum_records sum_t e_t e_{t+k} / sum_records sum_t e_t^2`.
-
-    **Arguments:** `r` (n,) residuals; `n_lags` >= 1; `lengths`: samples per record.
-
-    **Returns:** `(acf, pairs)`: `acf` (n_lags + 1,) with `acf[0] = 1`, and `pairs`
-    (n_lags + 1,), the number of products at each lag.
-    """
+    **Returns:** `(acf, pairs)`, both (n_lags + 1,): `acf[0] = 1`, and the number of
+    products at each lag."""
     r = np.asarray(r, dtype=float).ravel()
     parts = [r[s] - r[s].mean() for s in _split(r.shape[0], lengths)]
     gamma = np.zeros(n_lags + 1)
@@ -137,10 +121,8 @@ def auto_bandwidth(rho1: float | np.ndarray, n: int,
     full-length sum of its autocovariances is zero).
 
     **Arguments:** `rho1`: lag-1 autocorrelation(s), scalar or (p,); `n`: samples (of the
-    shortest record); `var` (p,): innovation variances (default: equal).
-
-    **Returns:** the number of lags, an int >= 1 (so at least lag 1 gets weight 1/2).
-    """
+    shortest record); `var` (p,): innovation variances (default: equal). **Returns:** the
+    number of lags, >= 1 (so at least lag 1 gets weight 1/2)."""
     rho = np.atleast_1d(np.asarray(rho1, dtype=float))
     rho = np.clip(np.where(np.isfinite(rho), rho, 0.0), -0.97, 0.97)
     v = np.ones_like(rho) if var is None else np.asarray(var, dtype=float)
@@ -155,16 +137,15 @@ def _score_bandwidth(g: np.ndarray, slices: list[slice], shortest: int) -> int:
     """Andrews' plug-in from an AR(1) fitted to each component of the scores `g` (n, p)."""
     p = g.shape[1]
     xy, xx, ss, m = np.zeros(p), np.zeros(p), np.zeros(p), 0
-    for s in slices:
-        gs = g[s] - g[s].mean(axis=0)
+    centred = [g[s] - g[s].mean(axis=0) for s in slices]
+    for gs in centred:
         xy += np.sum(gs[1:] * gs[:-1], axis=0)
         xx += np.sum(gs[:-1] ** 2, axis=0)
         m += gs.shape[0] - 1
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = np.where(xx > 0, xy / xx, 0.0)
     rho = np.clip(rho, -0.97, 0.97)
-    for s in slices:
-        gs = g[s] - g[s].mean(axis=0)
+    for gs in centred:
         ss += np.sum((gs[1:] - rho * gs[:-1]) ** 2, axis=0)
     keep = xx > 0
     if not keep.any():
@@ -222,19 +203,10 @@ class Diagnostics(NamedTuple):
 
 def residual_diagnostics(r: np.ndarray, n_lags: int | None = None,
                          lengths: Sequence[int] | None = None) -> Diagnostics:
-    """Test residuals for whiteness.
-
-    **Arguments:**
-
-    - `r`: (n,) residuals (several records concatenated, with `lengths`).
-    - `n_lags`: lags of the Ljung-Box test; default `min(20, shortest record // 5)`, at
-      least 1.
-    - `lengths`: samples per record (default: one record).
-
-    **Returns:** a [`Diagnostics`][]. The Ljung-Box statistic over several records is
-    `Q = n (n + 2) sum_k rho_k^2 / m_k` with `m_k` the number of lag-`k` pairs (`n - k`
-    for one record).
-    """
+    """Test residuals `r` (n,) for whiteness (several records concatenated, `lengths`
+    samples each; default one), over `n_lags` lags (default `min(20, shortest // 5)`, at
+    least 1). **Returns:** a [`Diagnostics`][]. The Ljung-Box statistic over several
+    records is `Q = n (n + 2) sum_k rho_k^2 / m_k`, `m_k` the number of lag-`k` pairs."""
     r = np.asarray(r, dtype=float).ravel()
     n = r.shape[0]
     if n < 3 or not np.all(np.isfinite(r)):
@@ -267,20 +239,12 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, bandwidth: int | None = None,
     `g_t = J_t r_t`: `Omega = c (Gamma_0 + sum_{l=1}^S w_l (Gamma_l + Gamma_l^T))`,
     `Gamma_l = sum_t g_t g_{t-l}^T` (within each record), Bartlett weights
     `w_l = 1 - l / (S + 1)` (which keep Omega positive semi-definite) and the small-sample
-    factor `c = n / (n - p)`. For white residuals it estimates the same thing as
-    `sigma^2 (J^T J)^-1`.
+    factor `c = n / (n - p)`; for white residuals the same as `sigma^2 (J^T J)^-1`.
 
-    **Arguments:**
-
-    - `J`: (n, p) Jacobian of the residuals with respect to the coordinates.
-    - `r`: (n,) residuals at the estimate.
-    - `bandwidth`: truncation lag S; default [`auto_bandwidth`][] from an AR(1) fitted to
-      each component of the scores `g_t` (Andrews' plug-in) and the shortest record.
-    - `lengths`: samples per record.
-
-    **Returns:** (p, p) covariance of the coordinates (pseudo-inverse of `J^T J` on its
-    numerical null space, like the white-noise one).
-    """
+    `J` (n, p): the residuals' Jacobian; `r` (n,): the residuals; `bandwidth`: S (default
+    [`auto_bandwidth`][] from an AR(1) fitted to each component of the scores);
+    `lengths`: samples per record. **Returns:** (p, p), `J^T J` pseudo-inverted on its
+    numerical null space, like the white-noise one."""
     J = np.asarray(J, dtype=float)
     r = np.asarray(r, dtype=float).ravel()
     n, p = J.shape
@@ -313,19 +277,10 @@ def _pinv_gram(J: np.ndarray) -> np.ndarray:
 
 
 def widen(cov_white: np.ndarray, cov_hac: np.ndarray) -> np.ndarray:
-    """A covariance whose variances are `max(white, HAC)`, element by element.
-
-    The HAC estimate can come out smaller than the white-noise one by chance (or when a
-    misfit makes the residuals anti-correlated); an honest report never claims more
-    precision than the white-noise analysis. The result is `D cov_hac D` with
-    `D = diag(max(1, sqrt(white_ii / hac_ii)))`: the HAC correlations, with each variance
-    raised to at least the white-noise one; positive semi-definite when `cov_hac` is. If
-    `cov_hac` has a non-positive or non-finite variance, `cov_white` is returned.
-
-    **Arguments:** `cov_white`, `cov_hac`: (p, p).
-
-    **Returns:** (p, p).
-    """
+    """`D cov_hac D` (p, p), `D = diag(max(1, sqrt(white_ii / hac_ii)))`: the HAC
+    correlations with each variance at least the white-noise one (the HAC estimate can
+    come out smaller by chance; a report never claims more precision than the white-noise
+    analysis). `cov_white` where `cov_hac` has a non-positive or non-finite variance."""
     cw = np.asarray(cov_white, dtype=float)
     ch = np.asarray(cov_hac, dtype=float)
     dw, dh = np.diag(cw), np.diag(ch)
@@ -366,17 +321,10 @@ class RobustUncertainty(NamedTuple):
 
 def robust_uncertainty(J: np.ndarray, r: np.ndarray, lengths: Sequence[int] | None = None,
                        sigma: float | None = None) -> RobustUncertainty:
-    """Whiteness test plus the covariance to report, for a least-squares fit.
-
-    **Arguments:**
-
-    - `J`: (n, p) Jacobian of the residuals at the estimate (single shooting, one row per
-      sample). `r`: (n,) residuals there. `lengths`: samples per record.
-    - `sigma`: the known noise standard deviation, rad; default `|r| / sqrt(n - p)`.
-
-    **Returns:** a [`RobustUncertainty`][]. To wire it into a fit, replace the Laplace
-    covariance of z by `cov` and transform the standard errors as before.
-    """
+    """Whiteness test plus the covariance to report, for a least-squares fit: `J` (n, p)
+    the residuals' Jacobian at the estimate (one row per sample), `r` (n,) the residuals,
+    `lengths` samples per record, `sigma` the noise level if known (default
+    `|r| / sqrt(n - p)`). **Returns:** a [`RobustUncertainty`][]."""
     J = np.asarray(J, dtype=float)
     r = np.asarray(r, dtype=float).ravel()
     n, p = J.shape

@@ -12,7 +12,7 @@ import numpy as np
 from ..runtime.arrays import device_array
 from . import attempt as at
 from .fit_options import Method, ShootingMode
-from .fit_plan import recoordinate, shooting
+from .fit_plan import recoordinate, record_spans, shooting
 from .motion_start import motion_start
 from .outcome import Run
 from .problem import Problem
@@ -27,19 +27,16 @@ __all__ = ["optimize_fit", "ESCALATION_STARTS", "ESCALATION_ITERATIONS", "REPROD
 #: Extra starts tried when a fit stalls far from the noise level.
 ESCALATION_STARTS = 4
 #: The extra starts stop once they have taken as many LM iterations as the tries before
-#: them, or this many if those took fewer (see `optimize_fit`): room for every extra start
-#: at the default budget of 100. Iterations, not seconds: a fit's outcome and its
-#: iteration count do not depend on the machine's load. (A floor of 100 cut the starts
-#: that found a slide-only rotating record's branch: experiments/rotating_rig.py.)
+#: them, or this many if those took fewer: room for every extra start at the default
+#: budget of 100 (a floor of 100 cut the starts that found a slide-only rotating record's
+#: branch: experiments/rotating_rig.py).
 ESCALATION_ITERATIONS = 100 * ESCALATION_STARTS
 #: Two converged tries whose costs differ by less than this many noise-level units
 #: (`sigma^2`: a chi-squared difference of 1) reached the same minimum.
 REPRODUCED = 0.5
 #: An escalation try that converges without lowering the best converged cost by more
-#: than this many noise-level units (`sigma^2`) ends the escalation (see
-#: `_no_progress`).
+#: than this many `sigma^2` ends the escalation (see `_no_progress`).
 PROGRESS = 1.0
-
 
 
 def optimize_fit(state: FitState) -> FitState:
@@ -47,102 +44,92 @@ def optimize_fit(state: FitState) -> FitState:
     multiple shooting (one segment per two observed periods), then a second start (the
     motion's, or the scene's when the first was the motion's), then more starts.
 
-    Where the plan shoots multiply (the start's predicted drift is large), the first
-    attempt starts from whichever of the scene's values and the motion's start
-    ([`motion_start`][]) has the lower cost: a generic start far off (a drive level 30%
-    low) crawled for hundreds of iterations through a slipped branch that the motion's
-    start never enters (experiments/misfit_rig.py).
-
-    Escalation is for what it can mend: a phase slip over a record's periods. A record
-    with no observed period (a transient, a creep, a step) cannot slip a cycle, so its
-    stall is the model's answer, reported at once. Escalation ends at the first try that
-    reaches the noise level; or once a converged minimum has been reached from two
-    different starts (within [`REPRODUCED`][] noise-level units of cost: the model's best
-    from here, on a record it cannot fully explain); or at the first converged try that
-    does not lower the best cost by [`PROGRESS`][] noise-level units; or once the extra
-    starts have taken as many LM iterations as the tries before them (at least
-    [`ESCALATION_ITERATIONS`][]). Iterations and costs, never wall time, decide, so the
-    same fit does the same tries, and reports the same result, on any machine.
+    Where the plan shoots multiply, the first attempt starts from whichever of the
+    scene's values and the motion's start ([`motion_start`][]) costs less: a generic start
+    far off crawled for hundreds of iterations through a slipped branch that the motion's
+    start never enters (experiments/misfit_rig.py). A record with no observed period
+    cannot slip a cycle: its stall is the model's answer, not escalated. Escalation ends
+    at the first try near the noise level, once a minimum is reached from two starts
+    (within [`REPRODUCED`][]), at a converged try that makes no [`PROGRESS`][], or once
+    the extra starts have spent their iterations ([`ESCALATION_ITERATIONS`][]): never
+    wall time, so the same fit makes the same tries on any machine.
 
     **Returns:** `state` with the best run, the iterations of every try, the notes and the
     shooting that won."""
     req, plan = state.req, state.plan
-    n = plan.single.n_residuals
     escalate = (req.shooting is ShootingMode.AUTO and req.segments is None
                 and req.method is Method.LM
                 and any(p is not None for p in plan.periods))
+    one = escalate and req.multistart == 1
     # (Solved only where it is used: it compiles the equation of motion's program.)
-    early = escalate and req.multistart == 1 and plan.shoot is not plan.single
+    early = one and plan.shoot is not plan.single
     zm = _motion_point(req, plan) if early else None
     moved_first = (zm is not None
                    and _start_cost(plan.shoot, zm) < _start_cost(plan.shoot, plan.z0))
-    notes = []
-    if moved_first:
-        runs = [(at.attempt(req, plan, plan.shoot, plan.z0, zm, "fit (from the motion)"), "")]
-        notes.append("the fit started from the motion (a start from the motion: the "
-                      "parameters that enter the equation of motion linearly, solved from "
-                      "the smoothed record), whose cost was below the scene's values'")
-    else:
-        runs = at.multistart(req, plan, plan.shoot, plan.z0, req.multistart, req.seed, "")
-    if req.multistart > 1:
-        best = at.best_run(runs)[0]
-        distinct = sum(r.cost > best.cost * (1 + 1e-3) + 1e-300 for r, _ in runs
-                       if np.isfinite(r.cost))
-        notes.append(f"multistart: {sum(r.converged for r, _ in runs)} of {req.multistart} "
-                     f"starts converged; {distinct} ended at a higher cost than the best")
+    runs, notes = _first_tries(req, plan, zm if moved_first else None)
     first = at.best_run(runs)[0]
     tried, escalated = [], None
-    unit2 = noise_unit(plan.noise, req.known_sigma) ** 2
 
     def go_on():
-        best = at.best_run(runs)[0]
-        return (_stalled(best, n, plan, req) and not _reproduced(runs, unit2)
-                and not _no_progress(runs, unit2))
+        return not _settled(req, plan, runs, at.best_run(runs)[0])
 
     if escalate and plan.shoot is plan.single and go_on():
-        nseg = [record_segments(float(d.ts[-1] - d.ts[0]), p)
-                for d, p in zip(req.records, plan.periods)]
+        nseg = [record_segments(sp, p) for sp, p in zip(record_spans(req), plan.periods)]
         ms, z0 = shooting(req, plan, nseg)
         escalated = Shooting("multiple", tuple(nseg))
-        label = escalated.label
-        runs += [(r, lab) for r, lab in at.multistart(req, plan, ms, z0, 1, req.seed, label)]
-        tried.append(label)
-    if escalate and req.multistart == 1 and not moved_first and go_on():
+        runs += at.multistart(req, plan, ms, z0, 1, req.seed, escalated.label)
+        tried.append(escalated.label)
+    if one and not moved_first and go_on():
         # (After a first start from the motion, the scene's values, whose cost was higher,
         # are no second opinion worth their iterations: they crawled 200 iterations through
         # a slipped branch on a slide-only record. The extra starts below are.)
-        if not early:
-            zm = _motion_point(req, plan)
+        zm = zm if early else _motion_point(req, plan)
         if zm is not None:
-            runs.append(_from_point(req, plan, zm, "a start from the motion"))
-            tried.append(runs[-1][1])
-    if escalate and req.multistart == 1 and go_on():
+            label = "a start from the motion"
+            runs.append((at.attempt(req, plan, plan.shoot, plan.z0, zm, f"fit ({label})"),
+                         label))
+            tried.append(label)
+    if one and go_on():
         tried.append(_hop(req, plan, runs))
     best, won = _conclude(req, plan, runs, first, tried, moved_first, notes, escalated)
     return state.but(best=best, iterations=sum(r.iterations for r, _ in runs),
                      notes=(*state.notes, *notes), shooting=won)
 
 
+def _first_tries(req: FitRequest, plan: Plan, zm: np.ndarray | None):
+    """The planned tries: one from the motion's start `zm` when given, else `multistart`
+    from the plan's. **Returns:** `(runs, notes)`."""
+    if zm is not None:
+        runs = [(at.attempt(req, plan, plan.shoot, plan.z0, zm, "fit (from the motion)"), "")]
+        return runs, ["the fit started from the motion (a start from the motion: the "
+                      "parameters that enter the equation of motion linearly, solved from "
+                      "the smoothed record), whose cost was below the scene's values'"]
+    runs = at.multistart(req, plan, plan.shoot, plan.z0, req.multistart, req.seed, "")
+    if req.multistart <= 1:
+        return runs, []
+    best = at.best_run(runs)[0]
+    distinct = sum(r.cost > best.cost * (1 + 1e-3) + 1e-300 for r, _ in runs
+                   if np.isfinite(r.cost))
+    return runs, [f"multistart: {sum(r.converged for r, _ in runs)} of {req.multistart} "
+                  f"starts converged; {distinct} ended at a higher cost than the best"]
+
+
 def _hop(req: FitRequest, plan: Plan, runs: list) -> str:
     """Extra starts around the best point so far (basin hopping), appended to `runs`: a
     start that comes back to it confirms it, one that finds a lower minimum replaces it.
-    They stop at the first that converges near the noise level or reproduces the best
-    minimum, or once they have spent the iterations of the runs before them (at least
-    [`ESCALATION_ITERATIONS`][]). **Returns:** what was tried, in words."""
-    n = plan.single.n_residuals
-    unit2 = noise_unit(plan.noise, req.known_sigma) ** 2
+    They stop as the escalation does (see `optimize_fit`). **Returns:** what was tried,
+    in words."""
     budget = max(ESCALATION_ITERATIONS, sum(r.iterations for r, _ in runs))
 
     def enough(done):
-        return (not _stalled(done[-1][0], n, plan, req) or _reproduced(runs + done, unit2)
-                or _no_progress(runs + done, unit2)
+        return (_settled(req, plan, runs + done, done[-1][0])
                 or sum(r.iterations for r, _ in done) >= budget)
 
     more = at.multistart(req, plan, plan.shoot, _in_shoot(plan, at.best_run(runs)[0].z),
                          ESCALATION_STARTS, req.seed + 1, "multistart", until=enough)
     runs += more
-    cut_short = (len(more) < ESCALATION_STARTS and _stalled(more[-1][0], n, plan, req)
-                 and not _reproduced(runs, unit2))
+    cut_short = (len(more) < ESCALATION_STARTS and _stalled(more[-1][0], plan, req)
+                 and not _reproduced(runs, _unit2(req, plan)))
     return (f"{len(more)} more start{'s' if len(more) > 1 else ''}"
             + (f" (of {ESCALATION_STARTS}: {budget} iterations spent)" if cut_short else ""))
 
@@ -155,21 +142,19 @@ def _conclude(req: FitRequest, plan: Plan, runs, first: Run, tried: list[str],
     and why."""
     shot = plan.shooting
     n = plan.single.n_residuals
-    unit2 = noise_unit(plan.noise, req.known_sigma) ** 2
     best, label = at.best_run(runs)
     unit = req.unit  # the residuals are in the first channel's unit
     if tried:
         won = "the first attempt" if best is first else label
+        how = "stalled" if _stalled(first, plan, req) else "converged"
         why = "did not converge" if not first.converged else (
-            f"stalled at rms {at.run_rms(first, n):.3g} {unit}, far above the record's noise "
-            f"level ({plan.noise:.3g} {unit})" if _stalled(first, n, plan, req) else
-            f"converged at rms {at.run_rms(first, n):.3g} {unit}, far above the record's noise "
-            f"level ({plan.noise:.3g} {unit})")
+            f"{how} at rms {at.run_rms(first, n):.3g} {unit}, far above the record's noise "
+            f"level ({req.noise:.3g} {unit})")
         notes.append(f"the {plan.shooting.label} fit {why}; tried {' and '.join(tried)}; the "
                      f"result is {won} (rms {at.run_rms(best, n):.3g} {unit}"
                      + (", the lowest-cost converged try)" if best.converged
                         else ", the lowest-cost try: none converged)"))
-        if _reproduced(runs, unit2):
+        if _reproduced(runs, _unit2(req, plan)):
             notes.append(f"the minimum at rms {at.run_rms(best, n):.3g} {unit} was reached from "
                          "more than one start: the model's best from here, not a local "
                          "minimum of one start; the misfit above the noise level is the "
@@ -183,6 +168,19 @@ def _conclude(req: FitRequest, plan: Plan, runs, first: Run, tried: list[str],
     if moved_first and best is first:
         shot = shot.won_by("a start from the motion")
     return best, shot
+
+
+def _unit2(req: FitRequest, plan: Plan) -> float:
+    """The noise-level unit of cost, `sigma^2`."""
+    return noise_unit(req.noise) ** 2
+
+
+def _settled(req: FitRequest, plan: Plan, runs, last: Run) -> bool:
+    """Whether the search ends after `runs`: `last` converged near the noise level, the
+    best minimum was reached twice, or the latest converged try made no progress."""
+    unit2 = _unit2(req, plan)
+    return (not _stalled(last, plan, req) or _reproduced(runs, unit2)
+            or _no_progress(runs, unit2))
 
 
 def _reproduced(runs, unit2: float) -> bool:
@@ -240,11 +238,7 @@ def _in_shoot(plan: Plan, z: np.ndarray) -> np.ndarray:
     return np.concatenate([recoordinate(ss, shoot, z), plan.z0[shoot.p:]])
 
 
-def _from_point(req: FitRequest, plan: Plan, zk: np.ndarray, label: str
-                ) -> tuple[Run, str]:
-    """One optimisation of `plan.shoot` from `zk`, labelled `label`."""
-    return at.attempt(req, plan, plan.shoot, plan.z0, zk, f"fit ({label})"), label
-
-
-def _stalled(run: Run, n: int, plan: Plan, req: FitRequest) -> bool:
-    return not run.converged or far_from_noise(at.run_rms(run, n), plan.noise, req.known_sigma)
+def _stalled(run: Run, plan: Plan, req: FitRequest) -> bool:
+    """Not converged, or converged far from the noise level."""
+    return not run.converged or far_from_noise(at.run_rms(run, plan.single.n_residuals),
+                                               req.noise)

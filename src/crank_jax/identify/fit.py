@@ -1,28 +1,22 @@
 """Parameter identification: fit a scene's parameters to one or more crank-angle records.
 
-`fit` reads as its steps, each in its own module: check the request
-([`request`][]), take start values from the data ([`start`][]), build the least-squares
-problem ([`problem`][]), plan the shooting and the step budget ([`plan`][],
-[`strategy`][]), optimize
-([`optimize`][]), escalate if the fit stalls far from the noise level, then the
-uncertainty and identifiability at the estimate ([`uncertainty`][]) and the result
-([`result`][]).
+`fit` reads as its stages, each taking the fit's state and returning a new one: the
+request ([`request`][crank_jax.identify.request]), the plan
+([`fit_plan`][crank_jax.identify.fit_plan]), the optimisation and its escalation
+([`escalation`][crank_jax.identify.escalation]), the channels' reweighting, then the
+uncertainty and identifiability at the estimate
+([`uncertainty`][crank_jax.identify.uncertainty]).
 
-Which optimiser to use:
+- `method="lm"` (default): Levenberg-Marquardt on the host, the residuals and Jacobian
+  from one compiled program (forward-mode sensitivities through the ODE solve). Best for
+  one or a few records and up to a dozen or two parameters; its Jacobian serves the
+  uncertainty too.
+- `method="optax"`: Adam, then L-BFGS, with reverse-mode gradients (one backward solve
+  whatever the number of coordinates), for large problems (many records or segments).
 
-- `method="lm"` (default): Levenberg-Marquardt (MINPACK's, through scipy, on the host),
-  with the residuals and the Jacobian from one compiled program: forward-mode
-  sensitivities through the ODE solve (`jax.jacfwd`). Best for the
-  usual problem: one or a few records, up to a dozen or two parameters. It converges in a
-  handful of iterations and its Jacobian is needed for the uncertainty anyway.
-- `method="optax"`: Adam, then L-BFGS, on the sum of squares with reverse-mode gradients
-  (one backward solve, whatever the number of parameters). Use it for large problems (many
-  records or many multiple-shooting segments, so many coordinates). It needs more
-  iterations than LM.
-
-Multiple shooting: each segment starts from its own state, and continuity at the shared
-samples is a weighted residual; the result is then polished by single shooting (so the
-estimate and its uncertainty are those of the ordinary least-squares problem).
+Multiple shooting: each segment starts from its own state, continuity at the shared
+samples a weighted residual; single shooting then polishes the estimate, so it and its
+uncertainty are those of the ordinary least-squares problem.
 """
 
 from __future__ import annotations
@@ -48,7 +42,7 @@ from .fit_result import (
     with_wrapped_angles,
 )
 from .measurement import fitted_channels
-from .outcome import Run, termination
+from .outcome import FAILS_AT_END, Run, termination
 from .profile import hessian_disagreement, profile_likelihood
 from .request import free_names, normalize
 from .reweight import reweight
@@ -93,7 +87,7 @@ def _result(state: FitState, t_begin: float) -> FitResult:
         r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, req.known_sigma)
     term = best.termination
     if converged and not math.isfinite(rms):
-        converged, message = False, "the ODE solve fails at the final estimate"
+        converged, message = False, FAILS_AT_END
         term = None
     if plan.abort:
         term = termination("refused", plan.abort)
@@ -231,7 +225,6 @@ def fit(
                     segments=segments, multistart=multistart, seed=seed, max_steps=max_steps,
                     tol=tol, sigma=sigma, profile=profile, window=window, progress=progress,
                     warn=warn, per_record=per_record, force=force, load_by=load_by)
-    req = ch.with_channels(req)
     plan = make_plan(req)
     state = FitState(req, plan, Run(plan.z0, float("nan"), 0, False, plan.abort or ""), 0,
                      (), plan.shooting)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import enum
 import math
 
-__all__ = ["Method", "ShootingMode", "check_options", "MAX_ITERATIONS", "SIGMA_RANGE"]
+__all__ = ["Method", "ShootingMode", "Init", "check_options", "MAX_ITERATIONS", "SIGMA_RANGE"]
 
 #: Largest iteration budget per start (`max_steps`): far beyond any fit that converges
 #: (tens to hundreds of iterations), and small enough for every integer type it meets.
@@ -32,6 +32,14 @@ class ShootingMode(enum.StrEnum):
     MULTIPLE = "multiple"
 
 
+class Init(enum.StrEnum):
+    """`fit(init=)`: the scene's values, the regressor's, or a dict of start values."""
+
+    SCENE = "scene"
+    REGRESSOR = "regressor"
+    DICT = "dict"
+
+
 _METHODS = tuple(m.value for m in Method)
 _SHOOTING = tuple(m.value for m in ShootingMode)
 
@@ -42,7 +50,7 @@ def check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
         raise ValueError(f"method must be 'lm' or 'optax', got {method!r}")
     if not isinstance(shooting, str) or shooting not in _SHOOTING:
         raise ValueError(f"shooting must be 'auto', 'single' or 'multiple', got {shooting!r}")
-    if segments is not None and (segments < 1 or shooting == "single" and segments > 1):
+    if segments is not None and (segments < 1 or shooting == ShootingMode.SINGLE and segments > 1):
         raise ValueError(f"segments = {segments} is not valid with shooting={shooting!r}")
     if multistart < 1:
         raise ValueError(f"multistart must be >= 1, got {multistart}")

@@ -1,10 +1,8 @@
-"""The plan of a fit, before any optimisation: start values from the data, the
-start solve, and what it decides (refuse at once, the step budget, the flat directions
-held fixed, single or multiple shooting). See [`fit`][] for the steps that follow.
-
-Each record is judged by itself: a record with no motion above its noise, or one the
-start values cannot follow (its solve absurdly long for what it shows), refuses the
-start before any optimisation, named in the message when there are several.
+"""The plan of a fit, before any optimisation: start values from the data, the start
+solve, and what it decides (refuse at once, the step budget, the flat directions held
+fixed, single or multiple shooting). Each record is judged by itself: one with no motion
+above its noise, or one the start values cannot follow, refuses the fit, named in the
+message when there are several.
 """
 
 from __future__ import annotations
@@ -19,12 +17,13 @@ from ..runtime.arrays import device_array
 from ..solve.adjoints import ForwardSensitivities
 from . import channel_noise as ch
 from .angle import motion_period
-from .fit_options import ShootingMode
+from .fit_options import Init, ShootingMode
+from .outcome import FAILS_AT_START
 from .physical import load_scale, ranges
 from .problem import Problem, build_problem, linear_frequency, pick_solver
 from .programs import jacobian_at
 from .request import LOAD_NAMES, STATE_NAMES, FitRequest
-from .stages import Plan, Shooting
+from .stages import Plan, Shooting, Shot
 from .start import half_window, noise_level, observed_period, regressor_start, smooth_derivatives
 from .strategy import (
     MAX_ODE_STEPS,
@@ -39,13 +38,13 @@ from .strategy import (
 from .uncertainty import RANK_TOL
 
 __all__ = ["make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
-           "recoordinate", "recoordinate_basis", "single_problem"]
+           "recoordinate", "recoordinate_basis", "single_problem", "record_spans"]
 
 
 def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
     """Start values of the global names, each record's start state, and notes."""
     start, notes = dict(req.start), []
-    if req.init == "regressor":
+    if req.init is Init.REGRESSOR:
         # On the angle the channels tell: the regressor form is written in phi.
         reg, notes = regressor_start(req.scene.mech, ch.angle_records(req), req.free, periods)
         start.update(reg)
@@ -82,25 +81,22 @@ def _start_mech(req: FitRequest, start: dict):
 
 
 def single_problem(req: FitRequest, start, states, budget, solver) -> Problem:
-    """The fit's single-shooting problem of `req` (its records, channels, sensors and
-    weights `req.sigmas`) at the start values `start` and record states `states`: the
-    posterior samples this very model."""
+    """The single-shooting problem of `req` at the start values `start` and record states
+    `states` (the posterior samples this very model)."""
     return _problem(req, start, states, [1] * len(req.records), budget, solver)
 
 
 def _start_solve(req, start, states, solver, periods):
     """The single-shooting problem at the smallest budget that solves the start, the
     start coordinates, and there the residuals, failures, steps per record (R,) and
-    sensitivities. A record whose solve runs out of the small budget, which is already
-    absurd for what it shows (see `absurd_start`), is not tried again at the large one:
-    that is seconds to learn what is known."""
-    spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
+    sensitivities. A record whose solve runs out of the small budget, already absurd for
+    what it shows (see `absurd_start`), is not tried again at the large one."""
     for budget in (SMALL_ODE_BUDGET, MAX_ODE_STEPS):
-        ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
-        z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
+        ss = single_problem(req, start, states, budget, solver)
+        z = _start_z(ss, start, states)
         r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, device_array(z)))
         absurd = any(absurd_start(int(n), sp, p, turns=_turns(a)) for n, sp, p, a in
-                     zip(np.atleast_1d(steps), spans, periods, req.angles))
+                     zip(np.atleast_1d(steps), record_spans(req), periods, req.angles))
         if int(failed) == 0 or budget == MAX_ODE_STEPS or absurd:
             return ss, z, r, int(failed), np.atleast_1d(steps).astype(int), J
 
@@ -111,10 +107,9 @@ CONSTANT_EPS = 1024
 
 
 def constant_channel(d) -> str | None:
-    """A message when a channel of record `d` is constant up to float rounding, else None.
-    A constant angle is no motion (`no_motion`), but the motion is judged on the angle the
-    channels tell, so a constant slide beside a moving angle passed, and the fit spent
-    hundreds of iterations on it. Decided before any solve."""
+    """A message when a channel of record `d` is constant up to float rounding, else None
+    (the motion is judged on the angle the channels tell: a constant slide beside a
+    moving angle passed, and the fit spent hundreds of iterations on it)."""
     for sensor, y in d.outputs():
         y = np.asarray(y, dtype=float)
         spread = float(np.std(y))
@@ -127,9 +122,25 @@ def constant_channel(d) -> str | None:
 
 
 def _turns(angle: np.ndarray) -> float:
-    """Net turns of a record's crank (its angle as the channels tell it), first sample to
-    last."""
+    """Net turns of a record's crank (its angle as the channels tell it)."""
     return abs(float(angle[-1] - angle[0])) / (2 * math.pi)
+
+
+def record_spans(req: FitRequest) -> list[float]:
+    """Each record's length, s."""
+    return [float(d.ts[-1] - d.ts[0]) for d in req.records]
+
+
+def _refusal(req: FitRequest, messages) -> str | None:
+    """The first of `messages` (one per record, None: fine), naming its record if several."""
+    multi = len(req.records) > 1
+    return next(((f"record {d.source}: {a}" if multi else a)
+                 for a, d in zip(messages, req.records) if a), None)
+
+
+def _start_z(ss: Problem, start, states) -> np.ndarray:
+    """The start coordinates of `ss`: `start`'s values, each record's state `states`."""
+    return ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
 
 
 def _state(name: str, states, start) -> float:
@@ -142,8 +153,7 @@ def _state(name: str, states, start) -> float:
 
 def _flat_basis(J0: np.ndarray) -> np.ndarray:
     """(p, q) basis of the directions to optimise, from the sensitivities at the start
-    (N, p). Directions in which the residuals are exactly flat (the common scale) are held
-    fixed: the optimiser would otherwise wander along them, and the reported point is the
+    (N, p): exactly flat ones (the common scale) are held, so the point reported is the
     one on the ridge nearest to the start."""
     p = J0.shape[1]
     if not np.all(np.isfinite(J0)):
@@ -167,45 +177,37 @@ def basis(Bg: np.ndarray, n_coords: int, on: np.ndarray | None = None) -> np.nda
 
 
 def make_plan(req: FitRequest) -> Plan:
+    """The plan of `req`'s fit (see the module's docstring)."""
     periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     # Motion is judged on the angle the channels tell; the fit's residuals and their
     # noise level are in the first channel's unit.
     noises = [noise_level(d.ts, a) for d, a in zip(req.records, req.angles)]
-    noise = req.sigmas[req.first_channel]
-    multi = len(req.records) > 1
-    quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in
-                  ((no_motion(ang, n) or constant_channel(d) or aliased(ang), d)
-                   for d, ang, n in zip(req.records, req.angles, noises)) if a), None)
+    quiet = _refusal(req, (no_motion(ang, n) or constant_channel(d) or aliased(ang)
+                           for d, ang, n in zip(req.records, req.angles, noises)))
     start, states, notes = _starts(req, periods)
     mech_start = _start_mech(req, start)
     solver = pick_solver(mech_start, req.loads[0][0], float(req.scene.rtol), req.scene.solver)
-    too_far = quiet or next((f"record {d.source}: {a}" if multi else a
-                    for a, d in ((absurd_frequency(linear_frequency(mech_start, lo), p), d)
-                                 for (lo, _), p, d in zip(req.loads, periods, req.records))
-                    if a), None)
+    too_far = quiet or _refusal(req, (absurd_frequency(linear_frequency(mech_start, lo), p)
+                                      for (lo, _), p in zip(req.loads, periods)))
     if too_far:
         return _aborted(req, start, states, solver, too_far, notes)
     ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
-    full_start = {n: float(v) for n, v in zip(ss.names, ss.host_values(z_start))}
-    plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, tuple(notes),
-                Shooting("single"), start, states, solver,
+    plan = Plan(ss, ss, z_start, np.eye(ss.p), _values(ss, z_start), periods,
+                tuple(notes), Shooting(Shot.SINGLE), start, states, solver,
                 ranges=ranges(mech_start, req.records, req.angles, periods, start))
-    spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
+    spans = record_spans(req)
     # Each record judged by its own solve: one absurd record among good ones is as
     # absurd as alone (the steps of the slowest record against the periods of another
     # let a record of 10^4 turns through).
-    abort = next(((f"record {d.source}: {a}" if multi else a)
-                  for a, d in ((absurd_start(int(n), sp, p, ss.max_steps, _turns(ang)), d)
-                               for n, sp, p, d, ang in zip(steps0, spans, periods,
-                                                           req.records, req.angles))
-                  if a), None)
+    abort = _refusal(req, (absurd_start(int(n), sp, p, ss.max_steps, _turns(ang))
+                           for n, sp, p, ang in zip(steps0, spans, periods, req.angles)))
     if abort is None and failed0 > 0:
-        abort = "the ODE solve fails at the start values; choose other start values"
+        abort = FAILS_AT_START
     if abort:
         return dataclasses.replace(plan, abort=abort)
     budget = ode_budget(int(np.max(steps0)))
     if budget != ss.max_steps:
-        ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
+        ss = single_problem(req, start, states, budget, solver)
     model = ch.model_angles(req, ss, r0)
     segs = [n_segments(sp, p, observed_period(d.ts, m), req.shooting, req.segments,
                        _turns(a), _turns(m), blind=not any(s.name == "phi"
@@ -222,7 +224,7 @@ def make_plan(req: FitRequest) -> Plan:
     if max(s for s, _ in segs) > 1:
         shoot, z0 = shooting(req, plan, [s for s, _ in segs])
         plan = dataclasses.replace(plan, shoot=shoot, z0=z0,
-                                   shooting=Shooting("multiple", tuple(s for s, _ in segs)))
+                                   shooting=Shooting(Shot.MULTIPLE, tuple(s for s, _ in segs)))
     if req.shooting is ShootingMode.AUTO and req.segments is None:
         plan = dataclasses.replace(
             plan, notes=(*plan.notes, f"{plan.shooting.label}: {segs[0][1]}"))
@@ -231,11 +233,15 @@ def make_plan(req: FitRequest) -> Plan:
 
 def _aborted(req, start, states, solver, why: str, notes) -> Plan:
     """A plan that stops before any solve (see `absurd_frequency`)."""
-    ss = _problem(req, start, states, [1] * len(req.records), SMALL_ODE_BUDGET, solver)
-    z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
-    full = {n: float(v) for n, v in zip(ss.names, ss.host_values(z))}
-    return Plan(ss, ss, z, np.eye(ss.p), full, float("nan"), [], tuple(notes),
-                Shooting("none"), start, states, solver, abort=why)
+    ss = single_problem(req, start, states, SMALL_ODE_BUDGET, solver)
+    z = _start_z(ss, start, states)
+    return Plan(ss, ss, z, np.eye(ss.p), _values(ss, z), [], tuple(notes),
+                Shooting(Shot.NONE), start, states, solver, abort=why)
+
+
+def _values(ss: Problem, z: np.ndarray) -> dict[str, float]:
+    """The reported names' values at `ss`'s coordinates `z`."""
+    return {n: float(v) for n, v in zip(ss.names, ss.host_values(z))}
 
 
 def shooting(req: FitRequest, plan: Plan, nseg) -> tuple[Problem, np.ndarray]:
@@ -259,9 +265,8 @@ def recoordinate(src: Problem, dst: Problem, z: np.ndarray) -> np.ndarray:
 def recoordinate_basis(src: Problem, dst: Problem, Bg: np.ndarray, z: np.ndarray
                        ) -> np.ndarray:
     """An orthonormal basis, in `dst`'s coordinates, of the directions `Bg` (p, q) spans in
-    `src`'s coordinates at `z` (to first order: the map between them is diagonal, each
-    coordinate a function of its own value). Flat directions held fixed in single shooting
-    stay held in multiple shooting."""
+    `src`'s at `z` (to first order: the map is diagonal), so that flat directions held in
+    single shooting stay held in multiple shooting."""
     v = src.host_values(z[:src.p])
     dv = np.where(src.log, v, np.asarray(src.ref))  # d value / d z_src
     dz = np.where(dst.log, 1.0 / np.where(dst.log, v, 1.0), 1.0 / np.asarray(dst.ref))

@@ -11,6 +11,7 @@ import numpy as np
 from ..model.params import SliderCrank
 from ..records.data import Data
 from .diagnostics import Diagnostics
+from .outcome import finite as num
 
 __all__ = ["FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning"]
 
@@ -88,25 +89,23 @@ class FitResult(NamedTuple):
     """Per record, channel name -> what its sensor reads under the fitted model (n,), SI."""
     termination: dict | None = None
     """How the reported optimisation ended, judged in the data's units: `verdict`
-    (`"converged"`, `"stalled"`, `"budget"`, `"ran off"`, `"failed"` or `"refused"`), `words` (the
+    (`"converged"` at a stationary point; `"stalled"`, the cost stopped falling while the
+    linearisation predicts more, along `direction`, a ridge or a curved valley;
+    `"budget"`; `"ran off"` the physical range; `"failed"`; or `"refused"`), `words` (the
     same in a sentence), `predicted_decrease` (the cost decrease the Gauss-Newton step
     predicts, in noise-level units `sigma^2`), `largest_step` (its largest move of a
     coordinate, in standard errors), `falling_per_iteration` (the cost's fall per
-    iteration over the last 8, `sigma^2`), `direction` (of a stall: the combination, in
-    standard errors) and `noise` (sigma, the first channel's unit); see
-    `outcome.termination`."""
+    iteration over the last 8, `sigma^2`) and `noise` (sigma, the first channel's
+    unit)."""
 
     def to_json(self) -> dict:
         """The `fit.json` document (exactly the documented top-level keys)."""
-        def num(x):
-            return float(x) if x is not None and math.isfinite(x) else None
-
         est = {}
         for i, n in enumerate(self.names):
             ci = self.ci95[n]
             est[n] = {
                 "value": num(self.values[n]),
-                "stderr": num(self.stderr[n]) if self.stderr[n] is not None else None,
+                "stderr": num(self.stderr[n]),
                 "ci95": [num(ci[0]), num(ci[1])] if ci is not None else None,
                 "start": num(self.start[n]),
                 "correlation": {m: num(float(self.correlation[i, j]))
@@ -116,7 +115,7 @@ class FitResult(NamedTuple):
                 est[n]["profile"] = {
                     "values": [float(v) for v in self.profile.values],
                     "deviance": [num(float(d)) for d in self.profile.deviance],
-                    "ci95": [num(c) if c is not None else None for c in self.profile.ci95],
+                    "ci95": [num(c) for c in self.profile.ci95],
                 }
         return {
             "estimates": est,
@@ -133,8 +132,7 @@ class FitResult(NamedTuple):
                             else self.diagnostics.to_json()),
             "channels": {n: {"rms": num(c["rms"]), "sigma": num(c["sigma"]),
                              "n_samples": int(c["n_samples"]),
-                             "ljung_box_p": (None if c["ljung_box_p"] is None
-                                             else num(c["ljung_box_p"]))}
+                             "ljung_box_p": num(c["ljung_box_p"])}
                          for n, c in (self.channels or {}).items()},
             "termination": (None if self.termination is None else dict(self.termination)),
             "predictions": self.predictions(),

@@ -50,13 +50,10 @@ def fitted_scene(scene: Scene, result, record: int = 0,
 
     **Arguments:** `scene`, the scene the fit started from; `result`, its
     [`FitResult`][crank_jax.FitResult]; `record`, which record's values to take for
-    names fitted per record (`name[i]`, `fit(per_record=...)`, and the states of a
-    multi-record fit); `sensors`, the sensors that record was read through (default:
-    its `Data`'s, in `result.data`), which join the scene's so that the written scene
-    reads the record as the fit did; `anyway`: take the last iterate of a fit that did
-    not converge too (default: refused, it is no fit). **Returns:** a [`Scene`][]; fitted
-    channel offsets (`x_s_offset`, ...) become its sensors' offsets. **Raises:**
-    `ValueError` naming `anyway` for a fit that did not converge.
+    names fitted per record (`name[i]`); `sensors`, those that record was read through
+    (default: its `Data`'s), joined to the scene's (see `_fitted_sensors`); `anyway`:
+    take the last iterate of a fit that did not converge (default: `ValueError` naming
+    `anyway`). **Returns:** a [`Scene`][]; fitted channel offsets become its sensors'.
     """
     _check_converged(result, anyway)
     values = {n: v for n, v in result.values.items() if "[" not in n}

@@ -32,7 +32,6 @@ import numpy as np
 
 from ..runtime.blas import one_blas_thread
 from ..runtime.progress import progress_bar
-from . import channel_noise as ch
 from .attempt import in_range
 from .fit import finish, fit
 from .fit_plan import make_plan, recoordinate
@@ -93,13 +92,13 @@ def _plan(scene, data, free, kw) -> _Member | str:
     """A record's request and plan, as `fit` makes them; a string: why it is not for the
     fleet (it is then fitted by `fit`)."""
     t_begin = time.perf_counter()
-    req = ch.with_channels(normalize(scene, data, free, **kw))
+    req = normalize(scene, data, free, **kw)
     plan = make_plan(req)
     if plan.abort:
         return "refused before any optimisation"
     if plan.Bg.shape[1] != plan.single.p:
         return "a flat direction is held fixed"
-    return _Member(req, plan, noise_unit(plan.noise, req.known_sigma), t_begin)
+    return _Member(req, plan, noise_unit(req.noise), t_begin)
 
 
 def _run(m: _Member, z, cost, iterations, status, dec, big) -> Run:
@@ -114,7 +113,7 @@ def _run(m: _Member, z, cost, iterations, status, dec, big) -> Run:
                   largest_step=float(big), noise=m.noise))
     run = in_range(m.plan, run)
     rms = math.sqrt(2 * run.cost / max(m.plan.single.n_residuals, 1))
-    if run.converged and far_from_noise(rms, m.plan.noise, m.req.known_sigma):
+    if run.converged and far_from_noise(rms, m.req.noise):
         run = run._replace(converged=False, message="ended far above the noise level")
     return run
 

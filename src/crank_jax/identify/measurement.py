@@ -14,7 +14,14 @@ from ..model.outputs import output
 from ..records.sensors import Sensor
 from ..runtime.arrays import device_array
 
-__all__ = ["calibration", "channel_errors", "fitted_channels"]
+__all__ = ["calibration", "channel_weights", "channel_errors", "fitted_channels"]
+
+
+def channel_weights(names: Sequence[str], sigmas, first_sigma: float) -> list[float]:
+    """Each channel's residual weight: the first channel's level `first_sigma` over its
+    own (`sigmas`, name -> SI level; a channel it lacks, or None, weighs 1), so every
+    channel counts by its noise in the first channel's unit."""
+    return [first_sigma / (sigmas or {}).get(n, first_sigma) for n in names]
 
 
 def calibration(sensors: Sequence[Sensor], sigmas, first_sigma: float, mech,
@@ -22,7 +29,7 @@ def calibration(sensors: Sequence[Sensor], sigmas, first_sigma: float, mech,
     """(scale, offset, weight, per_radian, channel names) of an `Experiment`: `per_radian`
     is the first channel's typical reading change per radian of crank (1 for an angle;
     `|scale| r` for the slider's position, times `omega` (rad/s) per time derivative)."""
-    weight = [first_sigma / (sigmas or {}).get(s.name, first_sigma) for s in sensors]
+    weight = channel_weights([s.name for s in sensors], sigmas, first_sigma)
     first = sensors[0]
     r = float(mech.r)
     per = {"phi": 1.0, "dphi": omega, "x_s": r, "v_s": r * omega, "a_s": r * omega**2}

@@ -15,7 +15,7 @@ import numpy as np
 from ..runtime.lazy import lazy_import
 from ..runtime.progress import progress_bar
 from .optimize import evaluate
-from .outcome import Run, budget_spent
+from .outcome import FAILS_AT_END, FAILS_AT_START, NON_FINITE, Run, budget_spent
 
 # Imported on first use (see lazy.py): only the optax method needs it.
 optax = lazy_import("optax")
@@ -27,9 +27,9 @@ def _outcome(model, z0, cost0, z, it, done, max_steps) -> Run:
     cost, failed = evaluate(model, z)
     zn = np.asarray(z)
     if not np.all(np.isfinite(zn)):
-        return Run(np.asarray(z0), float(cost0), it, False, "the iterates became non-finite")
+        return Run(np.asarray(z0), float(cost0), it, False, NON_FINITE)
     if failed > 0:
-        return Run(zn, cost, it, False, "the ODE solve fails at the final estimate")
+        return Run(zn, cost, it, False, FAILS_AT_END)
     if not done:
         return Run(zn, float(cost), it, False, budget_spent(max_steps))
     return Run(zn, float(cost), it, True, "converged")
@@ -75,8 +75,7 @@ def minimize_optax(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     reverse-mode gradients (the model must use the reverse adjoint)."""
     cost0, failed0 = evaluate(model, jnp.asarray(z0))
     if failed0 > 0 or not np.isfinite(cost0):
-        return Run(np.asarray(z0), float("nan"), 0, False,
-                   "the ODE solve fails at the start values; choose other start values")
+        return Run(np.asarray(z0), float("nan"), 0, False, FAILS_AT_START)
     z = jnp.asarray(z0)
     it, converged, stall = 0, False, 0
     with progress_bar(max_steps, desc, progress) as bar:

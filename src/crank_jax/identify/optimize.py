@@ -1,11 +1,7 @@
-"""Levenberg-Marquardt (MINPACK, through scipy) over the compiled residuals-and-
-sensitivities program, with its termination judged in the data's units (the optax
-method is [`optax_fit`][crank_jax.identify.optax_fit]).
-
-LM's loop runs on the host (see [`least_squares`][] for why): the only compiled program
-it calls is `jacobian_at`, which on the fused solvers and diffrax's explicit ones has no
-host callback, so JAX's persistent cache and the program store keep it between processes,
-and progress is shown after every iteration.
+"""Levenberg-Marquardt (MINPACK, through scipy, on the host: progress after every
+iteration) over the compiled residuals-and-sensitivities program `jacobian_at` (no host
+callback, so the persistent cache keeps it), its stop tests judged in the data's units
+(the optax method: [`optax_fit`][crank_jax.identify.optax_fit]).
 """
 
 from __future__ import annotations
@@ -17,27 +13,26 @@ import numpy as np
 from ..runtime.arrays import device_array
 from ..runtime.progress import progress_bar
 from .gauss_newton import Step, direction, gauss_newton
-from .outcome import Run, budget_spent, failed_message, stalled_message, termination
+from .outcome import NON_FINITE, Run, budget_spent, failed_message, stalled_message, termination
 from .programs import jacobian_at, residuals_at
 from .strategy import AT_ZERO, FAR_FROM_NOISE
 
 __all__ = ["least_squares", "evaluate", "STALL_STEPS",
            "DECREASE_FRACTION", "STEP_FRACTION", "STALL_DECREASE", "BOUND_STEPS"]
 
-#: The stall test looks this many iterations back (see `_Evaluations`).
+#: The stall test looks this many iterations back.
 STALL_STEPS = 8
-#: Converged in the data's units when the Gauss-Newton step predicts a cost decrease
-#: below this fraction of one noise-level unit of cost (`sigma^2`, the cost of a change
-#: of 2 in chi-squared) ...
+#: Converged when the Gauss-Newton step predicts a cost decrease below this many
+#: `sigma^2` (the cost of a change of 2 in chi-squared) ...
 DECREASE_FRACTION = 1e-4
-#: ... and moves no coordinate by more than this fraction of its standard error
-#: (`sigma sqrt(diag (J^T J)^-1)`, the noise level's, not the misfit's: the stricter).
+#: ... and moves no coordinate by more than this fraction of its standard error at the
+#: noise level (not the misfit's: the stricter).
 STEP_FRACTION = 1e-2
 #: A stall: the best cost has fallen by less than this many `sigma^2` over the last
 #: [`STALL_STEPS`][] iterations while the linearisation still predicts more.
 STALL_DECREASE = 1e-2
-#: A run with `at_bounds` stops once a folded parameter has sat at its bound 0 (within
-#: `AT_ZERO`) this many iterations in a row without the run converging.
+#: With `at_bounds`, a run stops once a folded parameter has sat at its bound 0 (within
+#: `AT_ZERO`) this many iterations in a row.
 BOUND_STEPS = 3
 
 
@@ -59,26 +54,16 @@ class _Stop(Exception):
 
 class _Evaluations:
     """The residuals and sensitivities MINPACK asks for, each point from one call of the
-    compiled [`jacobian_at`][] program (MINPACK asks for the Jacobian at a point whose
-    residuals it has just had). It keeps the best point seen (as optimistix's
-    `BestSoFarLeastSquares`) and decides when to stop, in the data's units when the
-    residuals' noise level `noise` (sigma) is known:
+    compiled [`jacobian_at`][] program; it keeps the best point seen (as optimistix's
+    `BestSoFarLeastSquares`) and holds the stop tests, judged in `sigma^2`, `sigma` the
+    residuals' noise level `noise` (without one, in the rms residual's square):
+    converged (the Gauss-Newton test, see [`DECREASE_FRACTION`][]), stalled (see
+    [`STALL_DECREASE`][]), at a bound ([`BOUND_STEPS`][]) or the budget spent.
 
-    - converged: the Gauss-Newton step predicts a cost decrease below
-      [`DECREASE_FRACTION`][] `sigma^2` and moves no coordinate by more than
-      [`STEP_FRACTION`][] of its standard error (or, whatever the noise, the step is below
-      `tol + tol |z|` in every coordinate);
-    - stalled: the best cost has fallen by less than [`STALL_DECREASE`][] `sigma^2` over
-      the last [`STALL_STEPS`][] iterations (LM crawling along a curved valley or a ridge,
-      the direction named from the Gauss-Newton step); without a noise level, by less
-      than `0.01` of the rms residual's square;
-    - the iteration budget spent.
-
-    A stall is convergence only where the fit explains the record: at an rms residual
-    within `stall_rms` (the fit passes [`FAR_FROM_NOISE`][] times the record's noise
-    level; None: anywhere). Above it, the cost has stopped falling without the
-    Gauss-Newton test being met: a local minimum (a bound held, a slipped turn) or a
-    model that cannot follow the record, reported as a stall, not as convergence."""
+    A stall is convergence only at an rms residual within `stall_rms` (the fit passes
+    [`FAR_FROM_NOISE`][] times the record's noise level; None: anywhere). Above it the
+    cost stopped falling short of the Gauss-Newton test: a local minimum (a bound held, a
+    slipped turn) or a model that cannot follow the record."""
 
     def __init__(self, model, max_steps: int, tol: float, bar,
                  stall_rms: float | None = None, noise: float | None = None,
@@ -91,7 +76,6 @@ class _Evaluations:
         self.best_w, self.best_cost, self.best_failed = None, math.inf, 0
         self.history = [math.inf] * (STALL_STEPS + 1)
         self.iterations = 0
-        self.last = termination("budget", "")  # how it ended, set by each stop
 
     def _at(self, w: np.ndarray) -> None:
         if self.w is not None and np.array_equal(w, self.w):
@@ -126,12 +110,13 @@ class _Evaluations:
         self._at(w)
         return self.r
 
-    def _unit(self, n: int) -> tuple[float, str]:
-        """The unit of cost the tests and messages use: `sigma^2` when the noise level is
-        known, else the rms residual's square at the best point."""
+    @property
+    def unit(self) -> tuple[float, str]:
+        """The unit of cost of the tests and messages: `sigma^2`, or without a noise
+        level the rms residual's square at the best point."""
         if self.noise:
             return self.noise**2, "sigma^2"
-        return max(2.0 * self.best_cost / max(n, 1), 1e-300), "rms^2"
+        return max(2.0 * self.best_cost / max(self.r.shape[0], 1), 1e-300), "rms^2"
 
     def jacobian(self, w):
         # MINPACK asks for the Jacobian once per iteration, at the accepted point.
@@ -143,13 +128,9 @@ class _Evaluations:
         if self.failed:
             stop = self._failed_stop()
         else:
-            # Converged when the Gauss-Newton step, the distance to the minimum the
-            # linearisation predicts, is small in the data's units: its predicted cost
-            # decrease a small fraction of sigma^2 (a chi-squared change far below 1) and
-            # every coordinate's move a small fraction of its standard error (with both at
-            # the same sigma, the first bounds the second by Cauchy-Schwarz: the second is
-            # the one that binds). MINPACK's own tests look at the damped step or the cost
-            # change, which are small also where LM crawls with a large damping.
+            # MINPACK's own tests look at the damped step or the cost change, which are
+            # small also where LM crawls with a large damping: these look at the
+            # Gauss-Newton step, the distance to the minimum the linearisation predicts.
             gn, z = self._step_here()
             stop = (self._converged_stop(gn, z) or self._bound_stop(gn, z)
                     or self._window_stop(gn) or self._budget_stop(gn))
@@ -158,19 +139,32 @@ class _Evaluations:
         return self.J
 
     def _step_here(self) -> tuple[Step, np.ndarray]:
-        """The Gauss-Newton step at the current point (standard errors at the noise level,
-        or at the rms residual without one) and the point in the problem's coordinates."""
-        unit = self._unit(self.r.shape[0])[0]
-        gn = gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(unit))
+        """The Gauss-Newton step at the current point (standard errors at `sqrt(unit)`)
+        and the point in the problem's coordinates."""
+        gn = gauss_newton(self.model, self.w, self.r, self.J, math.sqrt(self.unit[0]))
         return gn, np.asarray(self.model.lift(self.w))
 
+    def _small(self, gn: Step, z: np.ndarray) -> bool:
+        """The step below `tol + tol |z|` in every coordinate of the problem (`z`, not the
+        view's `w`: a subspace's `w` is the offset from its start, near 0)."""
+        return bool(np.all(np.abs(gn.dz) <= self.tol + self.tol * np.abs(z)))
+
+    def _term(self, verdict: str, words: str, gn: Step, fell: float | None,
+              direction: str | None = None) -> dict:
+        """The termination record at the Gauss-Newton step `gn`, `fell` the cost's fall
+        per iteration (in cost; inf or None: unknown)."""
+        unit = self.unit[0]
+        return termination(verdict, words, predicted_decrease=gn.decrease / unit,
+                           largest_step=gn.largest,
+                           falling_per_iteration=None if fell is None else fell / unit,
+                           direction=direction, noise=self.noise)
+
     def _converged(self, words: str, gn: Step, fell: float | None) -> _Stop:
-        """The stop of a converged run, `words` its verdict in words."""
-        unit = self._unit(self.r.shape[0])[0]
-        return _Stop(True, "converged", termination(
-            "converged", words, predicted_decrease=gn.decrease / unit,
-            largest_step=gn.largest,
-            falling_per_iteration=None if fell is None else fell / unit, noise=self.noise))
+        """The stop of a converged run: "converged: `words` no coordinate by more than
+        (the step's largest) of its standard error"."""
+        words = (f"converged: {words} no coordinate by more than {gn.largest:.2g} of its "
+                 "standard error")
+        return _Stop(True, "converged", self._term("converged", words, gn, fell))
 
     def _fell(self) -> float:
         """The best cost's fall per iteration over the stall window (or the iterations so
@@ -179,10 +173,9 @@ class _Evaluations:
         return (seen[0] - seen[-1]) / (len(seen) - 1) if len(seen) > 1 else math.inf
 
     def _failed_stop(self) -> _Stop | None:
-        """A point with failed samples: its residuals are a constant, so its Jacobian rows
-        are zero and the tests would see no slope and call that convergence. With nothing
-        left to move (every row failed, or no change over the stall window), or the budget
-        spent, the run stops as a failure."""
+        """A point with failed samples has constant residuals, zero Jacobian rows: the
+        tests would call it converged. With nothing left to move (every row failed, or no
+        change over the stall window), or the budget spent, the run fails."""
         h = self.history
         if not np.any(self.J) or (math.isfinite(h[0]) and h[0] - h[-1] <= 0.0):
             return _Stop(False, failed_message(self.failed))
@@ -192,51 +185,51 @@ class _Evaluations:
         return None
 
     def _converged_stop(self, gn: Step, z: np.ndarray) -> _Stop | None:
-        """Converged in the data's units (see `jacobian`), or, whatever the noise, the
-        step below `tol + tol |z|` in every coordinate of the problem (`z`, not the
-        view's `w`: a subspace's `w` is the offset from its start, near 0), for records
-        with no noise."""
-        unit, uname = self._unit(self.r.shape[0])
+        """Converged in `sigma^2` (both tests at the same sigma: by Cauchy-Schwarz the
+        step's is the one that binds), or, whatever the noise, a step below `tol`."""
+        unit, uname = self.unit
         in_units = (self.noise is not None and gn.decrease <= DECREASE_FRACTION * unit
                     and gn.largest <= STEP_FRACTION)
-        if not (in_units or np.all(np.abs(gn.dz) <= self.tol + self.tol * np.abs(z))):
+        if not (in_units or self._small(gn, z)):
             return None
-        return self._converged(f"converged: the Gauss-Newton step predicts a cost decrease "
-                               f"of {gn.decrease / unit:.2g} {uname} and moves no coordinate "
-                               f"by more than {gn.largest:.2g} of its standard error", gn,
-                               self._fell())
+        return self._converged(f"the Gauss-Newton step predicts a cost decrease of "
+                               f"{gn.decrease / unit:.2g} {uname} and moves", gn, self._fell())
 
     def _bound_stop(self, gn: Step, z: np.ndarray) -> _Stop | None:
-        """With `at_bounds`: the stop of a run whose folded parameter has sat at its bound
-        for [`BOUND_STEPS`][] iterations (see `_at_bound`)."""
+        """With `at_bounds`: a folded parameter has sat at its bound 0 for
+        [`BOUND_STEPS`][] iterations short of the Gauss-Newton test. The cost has a kink
+        there: LM's steps across it are reflected, its damping grows and it crawls along
+        it (experiments/misfit_rig.py, case `friction`). The caller holds those parameters
+        at 0, finishes the others, then releases them (`attempt.off_the_bound`)."""
         if not self.at_bounds:
             return None
         pressed = self._pressed(z)
         self.pressing = self.pressing + 1 if pressed else 0
         if self.pressing < BOUND_STEPS:
             return None
-        return self._at_bound(pressed, gn, self._fell())
+        unit, uname = self.unit
+        along = " and ".join(pressed)
+        words = (f"stalled at a bound: {along} stayed at 0 for {BOUND_STEPS} iterations "
+                 f"while the Gauss-Newton step predicts {gn.decrease / unit:.3g} {uname} "
+                 "more; to be held there while the others are fitted")
+        return _Stop(False, f"stalled at the bound {along} = 0",
+                     self._term("stalled", words, gn, self._fell(), f"{along} at its bound 0"))
 
     def _window_stop(self, gn: Step) -> _Stop | None:
-        """The stall window: a run whose best cost has fallen by less than
-        [`STALL_DECREASE`][] `sigma^2` over [`STALL_STEPS`][] iterations (without a noise
-        level, by less than 0.01 of the rms residual's square) has converged where the
-        linearisation promises no more than that either, and has stalled otherwise."""
+        """The stall window: the best cost fell by less than [`STALL_DECREASE`][]
+        `sigma^2` over [`STALL_STEPS`][] iterations (without a noise level, by less than
+        0.01 of the rms residual's square): converged where the linearisation promises no
+        more than that either (as `at_end` judges MINPACK's own stop), else stalled."""
         h, n = self.history, self.r.shape[0]
-        unit, uname = self._unit(n)
+        unit, uname = self.unit
         if not (math.isfinite(h[0]) and (h[0] - h[-1] <= STALL_DECREASE * unit if self.noise
                                          else h[0] - h[-1] <= 0.02 * h[-1] / n)):
             return None
         if self.noise and gn.decrease <= STALL_DECREASE * unit:
-            # At rest at a minimum, as `at_end` judges MINPACK's own stop (the friction
-            # stand-in's run released from its bound ended at the best minimum "stalled"
-            # with 1.4e-4 sigma^2 left to gain, and the fit reported a worse point that
-            # had converged).
             return self._converged(
-                f"converged: the cost fell by {(h[0] - h[-1]) / unit:.2g} {uname} over the "
-                f"last {STALL_STEPS} iterations and the Gauss-Newton step predicts "
-                f"{gn.decrease / unit:.2g} {uname} more, moving no coordinate by more than "
-                f"{gn.largest:.2g} of its standard error", gn, self._fell())
+                f"the cost fell by {(h[0] - h[-1]) / unit:.2g} {uname} over the last "
+                f"{STALL_STEPS} iterations and the Gauss-Newton step predicts "
+                f"{gn.decrease / unit:.2g} {uname} more, moving", gn, self._fell())
         return self._stalled(gn, h[0] - h[-1], STALL_STEPS)
 
     def _budget_stop(self, gn: Step) -> _Stop | None:
@@ -244,13 +237,10 @@ class _Evaluations:
         if self.iterations <= self.max_steps:
             return None
         self.iterations = self.max_steps
-        unit, uname = self._unit(self.r.shape[0])
+        unit, uname = self.unit
         fell = self._fell()
-        per = fell / unit if math.isfinite(fell) else None
-        message = budget_spent(self.max_steps, per, uname)
-        return _Stop(False, message, termination(
-            "budget", "budget spent: " + message, predicted_decrease=gn.decrease / unit,
-            largest_step=gn.largest, falling_per_iteration=per, noise=self.noise))
+        message = budget_spent(self.max_steps, fell / unit, uname)
+        return _Stop(False, message, self._term("budget", "budget spent: " + message, gn, fell))
 
     def _pressed(self, z: np.ndarray) -> list[str]:
         """The folded parameters (`value = ref |z|`, see `problem.folded`) at their bound 0
@@ -263,68 +253,38 @@ class _Evaluations:
         moves = np.linalg.norm(self.model.restrict(np.eye(z.shape[0]), self.w), axis=1) > 1e-9
         return [pr.names[i] for i in at0 if moves[i]]
 
-    def _at_bound(self, pressed: list[str], gn: Step, fell: float) -> _Stop:
-        """The stop of a run that has sat on a bound for [`BOUND_STEPS`][] iterations,
-        short of the Gauss-Newton test. The cost has a kink there in the folded
-        coordinate: LM's steps across it are reflected, its damping grows, and it crawls
-        along the kink (experiments/misfit_rig.py, case `friction`: 30-100 iterations
-        each time, the cost falling by less than 0.01 sigma^2 an iteration while the
-        Gauss-Newton step predicts thousands). The caller holds those parameters at 0 and
-        finishes the others, then releases them where the cost falls into the feasible
-        side (`attempt.off_the_bound`), as an active-set method does."""
-        unit, uname = self._unit(self.r.shape[0])
-        along = " and ".join(pressed)
-        words = (f"stalled at a bound: {along} stayed at 0 for {BOUND_STEPS} iterations "
-                 f"while the Gauss-Newton step predicts {gn.decrease / unit:.3g} {uname} "
-                 "more; to be held there while the others are fitted")
-        return _Stop(False, f"stalled at the bound {along} = 0", termination(
-            "stalled", words, predicted_decrease=gn.decrease / unit,
-            largest_step=gn.largest, falling_per_iteration=fell / unit,
-            direction=f"{along} at its bound 0", noise=self.noise))
-
     def _stalled(self, gn: Step, fell: float, steps: int) -> _Stop:
         """The stop of a run whose cost fell by only `fell` over its last `steps`
-        iterations while the Gauss-Newton step `gn` predicts more: along the direction
-        of that step (a curved valley or a ridge)."""
+        iterations while the Gauss-Newton step `gn` predicts more: along that step's
+        direction (a curved valley or a ridge). Converged only within `stall_rms`."""
         n = self.r.shape[0]
-        unit, uname = self._unit(n)
-        converged, message = self._stall(self.best_cost, n)
+        unit, uname = self.unit
+        rms = math.sqrt(2.0 * self.best_cost / max(n, 1))
+        converged = self.stall_rms is None or rms <= self.stall_rms
+        message = ("converged" if converged
+                   else stalled_message(rms, self.stall_rms / FAR_FROM_NOISE))
         along = direction(getattr(self.model.problem, "names", ()), gn.dz, gn.se)
         words = (f"stalled along {along}: the cost fell by {fell / unit:.2g} {uname} over "
                  f"the last {steps} iterations while the linearization predicts "
                  f"{gn.decrease / unit:.3g} {uname} more (a curved valley or a ridge in "
                  "that combination)")
-        return _Stop(converged, message, termination(
-            "stalled", words, predicted_decrease=gn.decrease / unit,
-            largest_step=gn.largest, falling_per_iteration=fell / steps / unit,
-            direction=along, noise=self.noise))
+        return _Stop(converged, message, self._term("stalled", words, gn, fell / steps, along))
 
     def at_end(self) -> _Stop:
         """The verdict where MINPACK stopped by itself (no further progress at machine
-        precision), by the same tests at the best point: converged where the Gauss-Newton
-        step is small in the data's units (or relative to `tol`), else a stall."""
+        precision, the solve's own rounding near a minimum), by the same tests at the
+        best point: what the linearisation still promises counts as nothing below what
+        the stall test would notice."""
         self._at(self.best_w)
-        unit, uname = self._unit(self.r.shape[0])
+        unit, uname = self.unit
         gn, z = self._step_here()
-        # MINPACK found no step that lowers the cost at machine precision (the solve's
-        # own rounding, near a minimum). What the linearisation still promises counts as
-        # nothing when it is below what the stall test would notice.
         if (gn.decrease <= (STALL_DECREASE if self.noise else DECREASE_FRACTION) * unit
-                or np.all(np.abs(gn.dz) <= self.tol + self.tol * np.abs(z))):
+                or self._small(gn, z)):
             return self._converged(
-                "converged: no further progress at machine precision, the Gauss-Newton "
-                f"step predicting a cost decrease of {gn.decrease / unit:.2g} {uname} and "
-                f"moving no coordinate by more than {gn.largest:.2g} of its standard error",
-                gn, None)
+                "no further progress at machine precision, the Gauss-Newton step predicting "
+                f"a cost decrease of {gn.decrease / unit:.2g} {uname} and moving", gn, None)
         seen = [c for c in self.history if math.isfinite(c)]
         return self._stalled(gn, seen[0] - seen[-1] if seen else 0.0, max(len(seen) - 1, 1))
-
-    def _stall(self, cost: float, n: int) -> tuple[bool, str]:
-        """(converged, message) of a run whose best cost has stopped falling."""
-        rms = math.sqrt(2.0 * cost / max(n, 1))
-        if self.stall_rms is None or rms <= self.stall_rms:
-            return True, "converged"
-        return False, stalled_message(rms, self.stall_rms / FAR_FROM_NOISE)
 
 
 def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
@@ -333,25 +293,20 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
     """Levenberg-Marquardt on a residual view `model` (a [`Subspace`][] or [`Pinned`][]
     problem) from `z0`, with a progress bar per iteration.
 
-    MINPACK's `lmder` (through `scipy.optimize.least_squares(method="lm")`, Marquardt's
-    scaling of the coordinates) drives the iterations on the host; each point costs one
-    call of the compiled residuals-and-sensitivities program, which the fit needs at its
-    start and at its estimate anyway. A compiled optimistix LM loop was tried first: its
-    program holds the residual solve and its linearisation inside optimistix's loop and
-    compiled slowly per problem shape, more than half of a cold `crank-jax fit`
-    (experiments/bench_end_to_end.py; docs/benchmarks/design-figures.md, Start-up); each
-    iteration costs the same solves either way.
+    MINPACK's `lmder` (`scipy.optimize.least_squares(method="lm")`, Marquardt's scaling)
+    drives the iterations on the host; each point costs one call of the compiled
+    residuals-and-sensitivities program. (A compiled optimistix LM loop compiled slowly
+    per problem shape, more than half of a cold `crank-jax fit`:
+    docs/benchmarks/design-figures.md, Start-up.)
 
-    The point reported is the best one seen: the lowest cost among points whose solves
-    all succeed (a failed solve's samples count as residuals of 10 rad, a stand-in, not a
-    misfit). A run whose best point still has failed samples is never `converged`, and
-    its cost is NaN. `stall_rms`: the rms residual above which a stall is not
-    convergence (see `_Evaluations`; None: a stall is convergence anywhere); `noise`:
-    the residuals' noise level, in which the termination tests are judged (None: only
-    the relative step test and a stall relative to the rms residual); `at_bounds`: stop,
-    as a stall, once a folded parameter has sat at its bound 0 for [`BOUND_STEPS`][]
-    iterations without converging (for a caller that then holds it there). The
-    run's `termination` says how it ended."""
+    The point reported is the best one seen among points whose solves all succeed (a
+    failed solve's samples are stand-ins, not a misfit: a run whose best point has
+    failed samples is never `converged`, its cost NaN). `stall_rms`: the rms residual
+    above which a stall is not convergence (None: none); `noise`: the residuals' noise
+    level the tests are judged in (None: the relative step test and a stall relative to
+    the rms residual); `at_bounds`: stop, as a stall, once a folded parameter has sat at
+    its bound 0 for [`BOUND_STEPS`][] iterations. The run's `termination` says how it
+    ended."""
     from scipy.optimize import least_squares as minpack_lm
 
     z0 = np.asarray(z0, dtype=float)
@@ -376,7 +331,7 @@ def least_squares(model, z0: np.ndarray, max_steps: int, tol: float, desc: str,
         except _Stop as stop:
             converged, message, term = stop.converged, stop.message, stop.term
     if ev.best_w is None or not np.all(np.isfinite(ev.best_w)):
-        message = "the iterates became non-finite"
+        message = NON_FINITE
         return Run(z0, float("nan"), ev.iterations, False, message,
                    termination("failed", message, noise=noise))
     if ev.best_failed:

@@ -1,8 +1,5 @@
 """How an optimisation of a fit ended: the [`Run`][] it returns, its `termination` record
-(`fit.json`'s), and the words of its messages. Shared by LM
-([`optimize`][crank_jax.identify.optimize]), optax's methods
-([`optax_fit`][crank_jax.identify.optax_fit]) and the fit's result.
-"""
+(`fit.json`'s), and the words of its messages, for LM, optax and the fit's result."""
 
 from __future__ import annotations
 
@@ -11,7 +8,18 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Run", "termination", "budget_spent", "failed_message", "stalled_message"]
+__all__ = ["Run", "termination", "budget_spent", "failed_message", "stalled_message",
+           "finite", "NON_FINITE", "FAILS_AT_END", "FAILS_AT_START"]
+
+#: The messages of a run whose iterates, end point or start cannot be solved.
+NON_FINITE = "the iterates became non-finite"
+FAILS_AT_END = "the ODE solve fails at the final estimate"
+FAILS_AT_START = "the ODE solve fails at the start values; choose other start values"
+
+
+def finite(x) -> float | None:
+    """`x` as a float, or None where it is None or not finite (JSON's null)."""
+    return None if x is None or not math.isfinite(x) else float(x)
 
 
 class Run(NamedTuple):
@@ -29,24 +37,14 @@ class Run(NamedTuple):
 def termination(verdict: str, words: str, *, predicted_decrease: float | None = None,
                 largest_step: float | None = None, falling_per_iteration: float | None = None,
                 direction: str | None = None, noise: float | None = None) -> dict:
-    """How an optimisation ended, as `fit.json`'s `termination` holds it.
-
-    `verdict`: `"converged"` (at a stationary point of the weighted cost, judged in the
-    data's units), `"stalled"` (the cost stopped falling while the linearisation still
-    predicts a decrease: along `direction`, a ridge or a curved valley), `"budget"` (the
-    iteration budget spent, the cost still falling by `falling_per_iteration`), `"ran
-    off"` (the estimate left the physical range, see
-    [`physical`][crank_jax.identify.physical]), or `"failed"`. The figures are in
-    noise-level units of cost, `sigma^2` (`noise`, the residuals' noise level, in the
-    first channel's unit), when the noise level is known; `largest_step` is the largest
-    step of a coordinate over its standard error."""
-    def num(x):
-        return None if x is None or not math.isfinite(x) else float(x)
-
+    """How an optimisation ended, as `fit.json`'s `termination` holds it (its fields: see
+    [`FitResult`][crank_jax.identify.fit_result.FitResult]`.termination`); the figures
+    non-finite or unknown are null."""
     return {"verdict": verdict, "words": words,
-            "predicted_decrease": num(predicted_decrease), "largest_step": num(largest_step),
-            "falling_per_iteration": num(falling_per_iteration), "direction": direction,
-            "noise": num(noise)}
+            "predicted_decrease": finite(predicted_decrease),
+            "largest_step": finite(largest_step),
+            "falling_per_iteration": finite(falling_per_iteration), "direction": direction,
+            "noise": finite(noise)}
 
 
 def budget_spent(max_steps: int, falling: float | None = None,

@@ -1,12 +1,10 @@
 """The physical range of a fit's estimates, read from the records: the scale of a load
 that starts at 0, and the estimates that ran off.
 
-A channel that cannot see a direction (a slide position repeats every turn; a speed
-says nothing of the angle's zero), or a start on the wrong branch, can lead the optimiser
-along a flat, physically absurd direction (an inertia 10^5 times its start, a drive
-torque that would spin the rig at thousands of rad/s) to a point that fits a little
-better than the start. Along such a direction the cost is flat, so the standard errors
-are huge and a step test alone may pass: a point out there is never called converged.
+A channel that cannot see a direction (a slide position repeats every turn), or a start
+on the wrong branch, can lead the optimiser along a flat, physically absurd direction (an
+inertia 10^5 times its start) to a point that fits a little better than the start; the
+cost is flat there, so a step test alone may pass: such a point is never converged.
 """
 
 from __future__ import annotations
@@ -16,9 +14,9 @@ import math
 
 import numpy as np
 
-from ..model.params import FIELDS, SliderCrank
+from ..model.params import FIELDS, SCALE_GROUP, SliderCrank
 from ..simulation import linearize
-from .request import LOAD_NAMES, SCALE_GROUP, SIGNED_FIELDS
+from .request import LOAD_NAMES, SIGNED_FIELDS
 from .start import half_window, smooth_derivatives
 
 __all__ = ["Ranges", "ranges", "load_scale", "RUNAWAY", "SPEED_RUNAWAY"]

@@ -12,20 +12,15 @@ channel of any record (empty where a record lacks it).
 from __future__ import annotations
 
 import csv
-import math
 import os
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from ..runtime.io import atomic_write
+from .outcome import finite as _num
 
 __all__ = ["prediction_table", "write_predictions_csv"]
-
-
-def _num(x) -> float | None:
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 def prediction_table(ts, measured: Mapping[str, np.ndarray],

@@ -12,12 +12,9 @@ from .fit_result import Profile
 from .optimize import evaluate, least_squares
 from .problem import Problem
 from .programs import Pinned
+from .verdict import CHI2_95
 
 __all__ = ["profile_likelihood", "hessian_disagreement", "CHI2_95"]
-
-#: 95% quantile of chi-squared with 1 degree of freedom.
-CHI2_95 = 3.841458820694124
-
 
 #: Grid points on each side of the estimate before the walk outwards.
 _GRID_SIDE = 4
@@ -28,19 +25,13 @@ _MAX_SIDE = 14
 def profile_likelihood(problem: Problem, z_hat, j: int, se_z: float, n: int, max_steps: int,
                        tol: float, progress: bool) -> Profile:
     """Profile likelihood of coordinate `j`, warm-started outwards from the estimate
-    `z_hat` (p,) on each side: a grid of 4 steps to 4.5 standard errors `se_z` (in z;
-    without one, a first step of 1% of the parameter's own magnitude `max(|value|,
-    ref)`), then doubling steps until the deviance passes the 95% threshold of chi-squared(1)
-    ([`CHI2_95`][]) or the parameter has moved by a decade of its own magnitude, or a
-    parameter that cannot be negative reaches 0. The crossing is then refined by one
-    re-fit where the deviance interpolates to the threshold (as `sqrt(RSS / RSS_min -
-    1)`, linear in the offset for a quadratic cost). (4.5: past twice the
-    Hessian's 95% half-width, so a profile 2x wider than it shows as one, see
-    [`hessian_disagreement`][].) The steps are in the parameter's coordinate: a relative
-    step for one in log coordinates, a step in the value itself for a signed one (whose
-    sign the values keep).
-
-    **Returns:** a [`Profile`][] with `n ln(RSS / RSS_min)` per point traced.
+    `z_hat` (p,) on each side: a grid of 4 steps to 4.5 standard errors `se_z` (past twice
+    the Hessian's 95% half-width, see [`hessian_disagreement`][]; without one, a first step
+    of 1% of the parameter's own magnitude), then doubling steps until the deviance passes
+    [`CHI2_95`][], the parameter has moved by a decade, or one that cannot be negative
+    reaches 0. The crossing is refined by one re-fit where the deviance interpolates to
+    the threshold (as `sqrt(RSS / RSS_min - 1)`, linear in the offset for a quadratic
+    cost). **Returns:** a [`Profile`][] with `n ln(RSS / RSS_min)` per point traced.
     """
     z_hat = np.array(z_hat, dtype=float)
     fold = bool(problem.folded[j])

@@ -23,12 +23,11 @@ __all__ = ["Program", "residuals_at", "jacobian_at", "Subspace",
 
 def compile_options(problem, *_) -> dict:
     """The XLA compile options of a fit program's call on `problem` (a [`Problem`][], or a
-    view of one with a `.problem`): [`FAST_COMPILE`][] on the CPU wherever it was found to
-    give the same bits as XLA's defaults: a multiple-shooting problem (its solves batched
-    over the segments), and any problem under crank-jax's CPU flags (`xla_flags.py`, which
-    the `crank-jax` program sets). Not a single-shooting problem under XLA's defaults:
-    there the two emitters round its scalar solve differently (the Jacobian moved by 1e-9,
-    the step count by 7 of 1959), and a fit's result must not depend on a compile choice."""
+    view of one with a `.problem`): [`FAST_COMPILE`][] on the CPU where it gives the same
+    bits as XLA's defaults: a multiple-shooting problem, and any problem under crank-jax's
+    CPU flags (`xla_flags.py`). Not a single-shooting problem under XLA's defaults: there
+    the two emitters round its scalar solve differently, and a fit's result must not
+    depend on a compile choice."""
     inner = getattr(problem, "problem", problem)
     if getattr(inner, "n_extra", 0) > 0 or small_loop_bytes() is not None:
         return fast_compile_on_cpu()
@@ -37,8 +36,7 @@ def compile_options(problem, *_) -> dict:
 
 def Program(fn, name: str) -> PersistentProgram:
     """A compiled function of the fit, kept between processes (see
-    [`PersistentProgram`][]), compiled with [`compile_options`][]. Call it, or
-    `.lower(...)` it (for inspection)."""
+    [`PersistentProgram`][]), compiled with [`compile_options`][]."""
     return PersistentProgram(fn, name, compile_options)
 
 
@@ -50,11 +48,10 @@ def segment_coloring(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     """A column colouring of a multiple-shooting problem's Jacobian `dr/dz` (N, P), for
     computing it from few forward-mode directions (Curtis, Powell and Reid, 1974).
 
-    A segment's initial state moves only that segment's samples and the two continuity
-    defects at its ends, so the states of segments two apart in one record, and of
-    different records, touch disjoint rows of `r`. One direction per global coordinate
-    and four for all the segment states (state component x segment parity) then give
-    every column. On the lab record in 24 segments that is 8 directions instead of 50.
+    A segment's initial state moves only that segment's samples and the continuity
+    defects at its ends, so the states of segments two apart, and of different records,
+    touch disjoint rows: one direction per global coordinate and four for all the segment
+    states (state component x segment parity) give every column.
 
     **Returns:** `(color (P,) int, mask (N, P) bool)`: column `j` of the Jacobian is
     column `color[j]` of the compressed one, on the rows where `mask[:, j]` (its possible
@@ -92,10 +89,8 @@ def _jacobian(problem, z):
     if problem.n_extra == 0:
         J, (r, failed, steps) = jax.jacfwd(f, has_aux=True)(z)
         return r, failed, steps, J
-    # Multiple shooting: the compressed Jacobian from few directions (see
-    # `segment_coloring`). Measured on the lab record in 24 segments: one evaluation
-    # ~80 ms with a direction per coordinate (50), the bulk of a warm CLI fit, and ~15 ms
-    # with these 8. Same values: a segment's solve sees the same tangent either way.
+    # Multiple shooting: the compressed Jacobian from few directions (`segment_coloring`),
+    # the same values: a segment's solve sees the same tangent either way.
     color, mask = segment_coloring(problem)
     seeds = jnp.asarray(np.eye(color.max() + 1)[color].T, dtype=z.dtype)  # (q, P)
 
@@ -142,15 +137,12 @@ class InValues:
     LM on the host: every parameter linear in its value (`u_i = value_i / s_i`, `s_i`
     the value at the start), where `problem` has some in log space (`z_i = ln value_i`).
 
-    Why: the equation of motion is linear in the mechanism's coefficients (damping,
-    friction, motor gain, inertias), so the valley of a balance such as `tau0 = c dphi
-    + F_s ...` (a rotating rig's mean speed) is straight in values and curved in logs,
-    and LM crawls along a curved one. Multiple shooting's problems are built in linear
-    coordinates for this (`build_problem(linear=True)`); this view gives single shooting
-    the same coordinates with no second compiled program: the map `u -> z` is diagonal,
-    applied on the host to the point and, by the chain rule, to the sensitivities.
-    (The friction stand-in of experiments/misfit_rig.py: its run with `F_s` held at 0
-    took 45 LM iterations in `problem`'s coordinates, 10 in these.)
+    Why: the equation of motion is linear in the mechanism's coefficients, so the valley
+    of a balance such as `tau0 = c dphi + F_s ...` is straight in values and curved in
+    logs, and LM crawls along a curved one. Multiple shooting's problems are built in
+    linear coordinates for this; this view gives single shooting the same with no second
+    compiled program: the diagonal map `u -> z` is applied on the host to the point and,
+    by the chain rule, to the sensitivities.
 
     A point with a log-space value at or below 0 is outside (`lift` gives NaN there),
     which the optimiser sees as a failed point and rejects."""

@@ -1,4 +1,5 @@
-"""Normalise and check a fit request before any compute.
+"""Normalise and check a fit request before any compute, then make it complete: a frozen
+[`FitRequest`][] with each record's crank angle and each channel's noise level resolved.
 
 Every mistake a user can make in a call to [`fit`][] (an unknown name, a profile of a
 parameter that is not free, a start value outside a parameter's domain, scenes that
@@ -26,24 +27,25 @@ from ..records.load_by import loads_by
 from ..records.sensors import OFFSET_NAMES
 from ..scene import Scene
 from ..sweep.distributions import MAX_SEED
-from .fit_options import Method, ShootingMode, check_options
+from .channels import (
+    channel_angles,
+    channel_names,
+    channel_sigmas,
+    check_sigma_names,
+    given_levels,
+)
+from .fit_options import Init, Method, ShootingMode, check_options
 from .userforce import force_names, force_starts
 
-__all__ = ["FitRequest", "normalize", "STATE_NAMES", "LOAD_NAMES", "SCALE_GROUP",
-           "SIGNED_FIELDS", "FRICTION_SCALED", "free_names",
-           "load_param", "reported_names", "window_data", "record_mech", "record_loads"]
+__all__ = ["FitRequest", "normalize", "STATE_NAMES", "LOAD_NAMES", "SIGNED_FIELDS",
+           "free_names", "load_param", "reported_names", "window_data", "record_mech",
+           "record_loads"]
 
 STATE_NAMES = ("phi0", "dphi0")
 #: Load parameters that can be free, name -> (side, role), from the one load table
 #: (`model.loads.LOAD_PARAMS`): each load's mean, amplitude and input gain (they enter
 #: linearly).
 LOAD_NAMES = {n: sr for n, sr in LOAD_PARAMS.items() if sr[1] in ("mean", "amp", "gain")}
-#: Parameters that enter the equation of motion linearly: scaling all of them (and every
-#: load) by one factor leaves the motion unchanged (DESIGN.md section 3).
-SCALE_GROUP = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
-#: Friction coefficients (where the model has them) scale with that group too: every term
-#: of the equation of motion is then multiplied by the same factor.
-FRICTION_SCALED = ("c_s", "T_c", "F_s")
 #: Mechanism fields that may be negative (the slider line's offset, from `model.params`);
 #: every other field is >= 0, and r, L strictly positive.
 SIGNED_FIELDS = frozenset(PARAM_SIGNED_FIELDS)
@@ -76,12 +78,15 @@ def reported_names(free: Sequence[str], n_records: int, per_record: Sequence[str
 
 @dataclasses.dataclass(frozen=True)
 class FitRequest:
-    """A checked fit request (see [`fit`][] for the meaning of each option).
+    """A checked fit request, complete when made (see [`fit`][] for the meaning of each
+    option; [`normalize`][] makes it).
 
     `records` are the windowed records; `loads` holds each record's `(load, torque)` (its
     own, else its scene's); `states` each record's fixed `(phi0, dphi0)` (its scene's),
     used for a state that is not free. `start` holds the start value of every free global
-    name (the initial states start from the data, later).
+    name (the initial states start from the data, later). `angles` holds each record's
+    crank angle as the data tell it (n,), rad (see `angle.py`), and `sigmas` each
+    channel's noise level, SI (given, else estimated from the record; see `channels.py`).
     """
 
     scene: Scene
@@ -89,9 +94,8 @@ class FitRequest:
     loads: tuple[tuple[AbstractLoad, AbstractLoad], ...]
     states: tuple[tuple[float, float], ...]
     free: tuple[str, ...]
-    names: tuple[str, ...]
     start: dict
-    init: str
+    init: Init
     method: Method
     shooting: ShootingMode
     segments: int | None
@@ -99,22 +103,24 @@ class FitRequest:
     seed: int
     max_steps: int
     tol: float
-    sigma: float | None
+    sigma: float | dict | None
     profile: str | None
-    window: tuple[float, float] | None
     progress: bool
     warn: bool
-    #: Each record's crank angle as the data tell it (n,), rad (see `angle.py`), and each
-    #: channel's noise level (SI): set by `fit` once, before any solve.
-    angles: tuple | None = None
-    sigmas: dict | None = None
+    angles: tuple[np.ndarray, ...]
+    sigmas: dict[str, float]
     #: Free names with a separate value per record (`n[i]`), besides the states.
     per_record: tuple = ()
     #: A user's force term (`fit(force=...)`), its free fields named `force.<field>`.
     force: object = None
 
     # What follows from the fields, worked out once per request (a frozen request's
-    # values never change; a new weighting is a new request).
+    # values never change; a new weighting is a new request, `dataclasses.replace`).
+
+    @functools.cached_property
+    def names(self) -> tuple[str, ...]:
+        """The names the fit reports (`reported_names`)."""
+        return reported_names(self.free, len(self.records), self.per_record)
 
     @functools.cached_property
     def first_channel(self) -> str:
@@ -127,13 +133,21 @@ class FitRequest:
         return SI_UNITS[self.first_channel]
 
     @functools.cached_property
+    def noise(self) -> float:
+        """The first channel's noise level: the level of the fit's residuals, SI."""
+        return self.sigmas[self.first_channel]
+
+    @functools.cached_property
+    def estimated(self) -> tuple[str, ...]:
+        """The channels whose noise level the fit estimates (not given by `sigma`)."""
+        given = given_levels(self.sigma, self.first_channel)
+        return tuple(n for n in channel_names(self.records) if n not in given)
+
+    @functools.cached_property
     def known_sigma(self) -> float | None:
         """The noise level of the weighted residuals (the first channel's unit) when every
         channel's is given, else None (estimated from the residuals)."""
-        names = {s.name for d in self.records for s, _ in d.outputs()}
-        if isinstance(self.sigma, dict):
-            return self.sigmas[self.first_channel] if names <= set(self.sigma) else None
-        return float(self.sigma) if self.sigma is not None and len(names) == 1 else None
+        return None if self.estimated else self.noise
 
 
 def record_mech(mech: SliderCrank, own: dict) -> SliderCrank:
@@ -229,21 +243,11 @@ def _offset_starts(free, records) -> dict[str, float]:
         cal = next((s for d in records for s, _ in d.outputs() if s.name == OFFSET_NAMES[n]),
                    None)
         if cal is None:
-            have = sorted({s.name for d in records for s, _ in d.outputs()})
+            have = sorted(channel_names(records))
             raise ValueError(f"{n} cannot be free: no record has a {OFFSET_NAMES[n]} channel "
                              f"(the channels are {have})")
         start[n] = float(cal.offset)
     return start
-
-
-def _check_sigma_names(sigma, records) -> None:
-    if not isinstance(sigma, dict):
-        return
-    have = {s.name for d in records for s, _ in d.outputs()}
-    bad = [k for k in sigma if k not in have]
-    if bad:
-        raise ValueError(f"sigma names channel {bad[0]!r}, which no record has; the channels "
-                         f"are {sorted(have)}")
 
 
 def _check_start(start: dict[str, float]) -> None:
@@ -299,29 +303,23 @@ def _check_distinct(records: list[Data]) -> None:
         seen[key] = i
 
 
-def _init(init, start: dict) -> str:
-    """The kind of `init` (`"scene"`, `"regressor"` or `"dict"`); a dict's start values
-    go into `start`, which must already hold every free global parameter."""
+def _init(init, start: dict) -> Init:
+    """The kind of `init`; a dict's start values go into `start`, which must already hold
+    every free global parameter."""
     if isinstance(init, dict):
         bad = [n for n in init if n not in start]
         if bad:
             raise ValueError(f"init gives start values for {bad}, which are not free global "
                              f"parameters ({sorted(start)})")
         start.update({n: float(v) for n, v in init.items()})
-        return "dict"
-    if init in ("scene", "regressor"):
-        return init
+        return Init.DICT
+    if init in (Init.SCENE, Init.REGRESSOR):
+        return Init(init)
     raise ValueError(f"init must be 'scene', 'regressor' or a dict, got {init!r}")
 
 
-def normalize(scene, data, free, *, init, method, shooting, segments, multistart, seed,
-              max_steps, tol, sigma, profile, window, progress, warn, per_record=(),
-              force=None, load_by="time") -> FitRequest:
-    """Check a fit request and bring it to one form (the arguments are those of [`fit`][]).
-
-    **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
-    """
-    scenes, records = _pairs(scene, data)
+def _check_free(free, force) -> tuple[str, ...]:
+    """`free` once each, every name one that can be free (`ValueError` otherwise)."""
     free = tuple(dict.fromkeys(free))
     known = free_names() + tuple(force_names(force))
     unknown = [n for n in free if n not in known]
@@ -329,7 +327,32 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
         raise ValueError(f"`free=` names unknown parameter(s) {unknown}; choose from "
                          f"{list(known)}" if unknown
                          else "`free=` must name at least one parameter")
+    return free
+
+
+def _starts(mech: SliderCrank, free, records, loads, force) -> dict[str, float]:
+    """The start value of every free global name: the mechanism's, the loads', the
+    channels' offsets and the force term's."""
+    start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}
+    start.update(_load_starts(free, records, loads))
+    start.update(_offset_starts(free, records))
+    start.update(force_starts(force, free))
+    return start
+
+
+def normalize(scene, data, free, *, init, method, shooting, segments, multistart, seed,
+              max_steps, tol, sigma, profile, window, progress, warn, per_record=(),
+              force=None, load_by="time") -> FitRequest:
+    """Check a fit request and bring it to one complete form (the arguments are those of
+    [`fit`][]): the options as enums, each record's crank angle and each channel's noise
+    level resolved ([`channels`][crank_jax.identify.channels]).
+
+    **Returns:** a [`FitRequest`][]. **Raises:** `ValueError` naming the field and the fix.
+    """
+    scenes, records = _pairs(scene, data)
+    free = _check_free(free, force)
     check_options(method, shooting, segments, multistart, max_steps, tol, sigma)
+    method, shooting = Method(method), ShootingMode(shooting)
     if (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
             or not 0 <= seed <= MAX_SEED):
         raise ValueError(f"`seed=` must be an integer from 0 to {MAX_SEED}, got {seed!r}")
@@ -346,12 +369,8 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
                          "tabled by the angle channel through its given calibration; fix "
                          "phi_offset (the sensor's offset), or `load_by='time'`")
     loads = tuple(record_loads(sc, d) for d, sc in zip(records, scenes))
-    mech = scenes[0].mech
-    start = {n: float(getattr(mech, n)) for n in free if n in FIELDS}
-    start.update(_load_starts(free, records, loads))
-    start.update(_offset_starts(free, records))
-    start.update(force_starts(force, free))
-    _check_sigma_names(sigma, records)
+    start = _starts(scenes[0].mech, free, records, loads, force)
+    check_sigma_names(sigma, records)
     init_kind = _init(init, start)
     _check_start(start)
     names = reported_names(free, len(records), per_record)
@@ -362,13 +381,15 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
     if n_total <= len(names):
         raise ValueError(f"too few samples: {n_total} samples for {len(names)} free "
                          "parameters")
+    scene, states = scenes[0], tuple((float(sc.phi0), float(sc.dphi0)) for sc in scenes)
+    first = records[0].outputs()[0][0].name
     return FitRequest(
-        scene=scenes[0], records=tuple(records), loads=loads,
-        states=tuple((float(sc.phi0), float(sc.dphi0)) for sc in scenes), free=free,
-        names=names, start=start, init=init_kind, method=Method(method),
-        shooting=ShootingMode(shooting),
+        scene=scene, records=tuple(records), loads=loads, states=states, free=free,
+        start=start, init=init_kind, method=method, shooting=shooting,
         segments=segments, multistart=int(multistart), seed=int(seed),
         max_steps=int(max_steps if max_steps is not None else
-                      (100 if method == Method.LM else 2000)),
-        tol=float(tol), sigma=sigma, profile=profile, window=window, progress=bool(progress),
-        warn=bool(warn), per_record=per_record, force=force)
+                      (100 if method is Method.LM else 2000)),
+        tol=float(tol), sigma=sigma, profile=profile, progress=bool(progress),
+        warn=bool(warn), angles=channel_angles(scene, records, states, loads),
+        sigmas=channel_sigmas(records, given_levels(sigma, first)), per_record=per_record,
+        force=force)

@@ -24,8 +24,7 @@ REWEIGHT_ROUNDS = 3
 def _weighted(state: FitState, levels: dict[str, float]) -> FitState:
     """`state` with its request and plan weighting each channel by `levels` (SI)."""
     req = dataclasses.replace(state.req, sigmas=levels)
-    plan = dataclasses.replace(state.plan, single=ch.reweighted(state.plan.single, levels),
-                               noise=levels[req.first_channel])
+    plan = dataclasses.replace(state.plan, single=ch.reweighted(state.plan.single, levels))
     return state.but(req=req, plan=plan)
 
 
@@ -58,7 +57,7 @@ def reweight(state: FitState) -> FitState:
     if len(sigmas) > 1:
         state = state.but(notes=(*state.notes, "channel noise levels: " + ", ".join(
             f"{n} {v:.3g}" for n, v in sigmas.items()) + " (SI; "
-            + ("given" if not ch.unknown_levels(state.req) else "estimated from the residuals")
+            + ("given" if not state.req.estimated else "estimated from the residuals")
             + "); each channel's residuals are weighted by them"))
     return state
 

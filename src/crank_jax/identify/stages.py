@@ -12,6 +12,7 @@ Each stage takes a frozen value and returns a new one; none changes what it was 
 from __future__ import annotations
 
 import dataclasses
+import enum
 
 import numpy as np
 
@@ -21,30 +22,36 @@ from .physical import Ranges
 from .problem import Problem
 from .request import FitRequest
 
-__all__ = ["Shooting", "Plan", "FitState"]
+__all__ = ["Shot", "Shooting", "Plan", "FitState"]
 
-#: `Shooting.kind`: refused before any solve, one shot per record, or segments.
-KINDS = ("none", "single", "multiple")
+class Shot(enum.StrEnum):
+    """`Shooting.kind`: refused before any solve, one shot per record, or segments."""
+
+    NONE = "none"
+    SINGLE = "single"
+    MULTIPLE = "multiple"
 
 
 @dataclasses.dataclass(frozen=True)
 class Shooting:
     """How a fit's problem is shot, and which start won.
 
-    - `kind`: one of `KINDS`.
-    - `segments`: with `"multiple"`, the number of segments of each record.
+    - `kind`: a [`Shot`][] (or its name).
+    - `segments`: with `Shot.MULTIPLE`, the number of segments of each record.
     - `starts`: the escalation's starts that won over the planned one, in words (e.g.
       "a start from the motion", "multistart start 2 of 4"), in the order they won.
     """
 
-    kind: str
+    kind: Shot
     segments: tuple[int, ...] = ()
     starts: tuple[str, ...] = ()
 
     def __post_init__(self):
-        if self.kind not in KINDS:
-            raise ValueError(f"Shooting kind must be one of {KINDS}, got {self.kind!r}")
-        if (self.kind == "multiple") != bool(self.segments):
+        if self.kind not in tuple(Shot):
+            raise ValueError(f"Shooting kind must be one of {[k.value for k in Shot]}, got "
+                             f"{self.kind!r}")
+        object.__setattr__(self, "kind", Shot(self.kind))  # a name given: its enum
+        if (self.kind is Shot.MULTIPLE) != bool(self.segments):
             raise ValueError("Shooting: segments are given with kind 'multiple', and only then")
 
     def _segments(self) -> str:
@@ -54,13 +61,13 @@ class Shooting:
     def mode(self) -> str:
         """`FitResult.shooting`: `"single"` or e.g. `"multiple (3+3 segments)"` (a refused
         fit says `"single"`: nothing was shot)."""
-        return f"multiple {self._segments()}" if self.kind == "multiple" else "single"
+        return f"multiple {self._segments()}" if self.kind is Shot.MULTIPLE else "single"
 
     @property
     def label(self) -> str:
         """`FitResult.strategy`: the shooting, then each start that won, e.g. "multiple
         shooting (6 segments), a start from the motion"."""
-        base = {"none": "none", "single": "single shooting"}.get(
+        base = {Shot.NONE: "none", Shot.SINGLE: "single shooting"}.get(
             self.kind, f"multiple shooting {self._segments()}")
         return ", ".join((base, *self.starts))
 
@@ -79,7 +86,6 @@ class Plan:
     z0: np.ndarray  # start coordinates of `shoot`
     Bg: np.ndarray  # (p, q) basis of the global directions optimised (flat ones held)
     start: dict  # start value of every reported name
-    noise: float  # the records' noise level, rad
     periods: list  # each record's cycle, s: its observed period, or the time of a turn
     # for a crank that turns (None: neither), once planned
     notes: tuple[str, ...]

@@ -14,16 +14,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.dynamics import coriolis, generalized_force, mass
+from ..model.dynamics import equation_residual
 from ..model.loads import AbstractLoad
-from ..model.params import SliderCrank
+from ..model.params import SCALE_GROUP, SliderCrank
 from ..records.data import Data
 from ..runtime.arrays import device_array
-from .request import SCALE_GROUP
 from .segments import row_bucket
 
 __all__ = ["smooth_derivatives", "half_window", "regressor_start", "regressor_samples",
-           "padded_rows", "observed_period", "noise_level", "MAX_WINDOW", "MAX_REGRESSOR_ROWS"]
+           "padded_rows", "observed_period", "noise_level", "channel_level", "MAX_WINDOW",
+           "MAX_REGRESSOR_ROWS", "MIN_RELATIVE_NOISE"]
 
 #: At most this many samples enter one local fit: a wider window is thinned evenly
 #: (enough to average the noise out of a start value, and bounded work per sample).
@@ -146,6 +146,17 @@ def noise_level(ts: np.ndarray, y: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(c * y[idx], axis=1) ** 2)))
 
 
+#: A channel's noise level is at least this fraction of its data's spread (a noiseless
+#: synthetic channel would otherwise get an infinite weight).
+MIN_RELATIVE_NOISE = 1e-9
+
+
+def channel_level(ts: np.ndarray, y: np.ndarray) -> float:
+    """A channel's noise level for weighting (its unit): [`noise_level`][], at least
+    [`MIN_RELATIVE_NOISE`][] of the data's spread and never 0. `ts` (n,), s; `y` (n,)."""
+    return max(noise_level(ts, y), MIN_RELATIVE_NOISE * float(np.std(y)), 1e-300)
+
+
 def half_window(ts: np.ndarray, period: float | None) -> int:
     """Half-width (samples) of the smoothing window: an eighth of `period` (s), or of a
     tenth of the record when no period is known."""
@@ -164,8 +175,7 @@ def _regressor(mech, phi, dphi, ddphi, ts, load, torque):
 
     def eom(theta, p, dp, ddp, t):
         m = mech.replace(**dict(zip(SCALE_GROUP, theta)))
-        return (mass(m, p) * ddp + coriolis(m, p) * dp**2
-                - generalized_force(m, p, dp, t, load, torque))
+        return equation_residual(m, p, dp, ddp, t, load, torque)
 
     def row(p, dp, ddp, t):
         e = eom(theta0, p, dp, ddp, t)

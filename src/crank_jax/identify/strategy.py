@@ -66,26 +66,20 @@ FAR_FROM_NOISE = 3.0
 def n_segments(span: float, period_data: float | None, period_model: float | None,
                shooting: str, segments: int | None, turns_data: float = 0.0,
                turns_model: float = 0.0, blind: bool = False) -> tuple[int, str]:
-    """Shooting segments for one record and the reason, in words.
-
-    The start values decide only *whether* to shoot multiply (`"auto"`: when their
-    predicted phase drift is large); the count comes from the record alone
-    ([`record_segments`][]). It is a shape of the compiled programs, so that other start
-    values reuse them.
+    """Shooting segments for one record and the reason, in words. The start values
+    decide only *whether* to shoot multiply (`"auto"`: when their predicted phase drift is
+    large); the count, a shape of the compiled programs, comes from the record alone
+    ([`record_segments`][]).
 
     **Arguments:** `span`, the record's length, s; `period_data`, its observed period, s
-    (None: less than one period); `period_model`, the start model's observed period over
-    the same samples; `shooting`, `"auto"`, `"single"` or `"multiple"`; `segments`, a
-    fixed count or None; `turns_data`, `turns_model`: the net turns of the record and of
-    the start model over it. A record with no period whose crank turns is judged by its
-    turns: the start model's drift is its turns' shortfall (times 2 pi), and segments
-    are cut per two turns.
-
-    `blind`: no channel of the record measures the angle (a slide position, a speed).
-    A slide reading repeats every turn and has two angles per position, so a segment
-    whose start may drift by more than [`BLIND_DRIFT`][] can be pulled onto another turn
-    or half-turn, where its continuity defect cannot close: such a record gets at least
-    one segment per `BLIND_DRIFT` of predicted drift (at most [`MAX_SEGMENTS`][]).
+    (None: less than one period); `period_model`, the start model's over the same
+    samples; `shooting`, `"auto"`, `"single"` or `"multiple"`; `segments`, a fixed count
+    or None; `turns_data`, `turns_model`: the net turns of the record and of the start
+    model (a turning crank with no period is judged by its turns' shortfall, its segments
+    cut per two turns); `blind`: no channel measures the angle (a slide reading repeats
+    every turn and has two angles per position, so a segment that may drift more than
+    [`BLIND_DRIFT`][] can slip a turn or half-turn: at least one segment per
+    `BLIND_DRIFT` of predicted drift, at most [`MAX_SEGMENTS`][]).
     """
     shooting = ShootingMode(shooting)
     if shooting is ShootingMode.SINGLE:
@@ -129,13 +123,9 @@ def record_segments(span: float, period_data: float | None) -> int:
     """The multiple-shooting segment count of a record `span` s long with observed period
     `period_data` s (None: less than one period): one segment per [`SEGMENT_PERIODS`][]
     periods, at most [`MAX_SEGMENTS`][], rounded up by [`segment_count`][].
-
-    From the record alone, not from the start values' predicted drift: on the lab record
-    (21.8 periods) LM converged to the same estimate from k at 0.5x to 2.5x its true value
-    with 4, 6, 12 and 24 segments alike (segment states start from the record, so each
-    segment's first samples point the parameters the right way however far the start's
-    phase drifts), while a drift-dependent count compiled new programs for each start.
-    """
+    From the record alone, not from the start's predicted drift (segment states start
+    from the record, so the count matters little; a drift-dependent one compiled new
+    programs for each start)."""
     if not period_data:
         return 2
     return segment_count(min(math.ceil(span / period_data / SEGMENT_PERIODS), MAX_SEGMENTS))
@@ -153,13 +143,10 @@ def segment_count(n: int) -> int:
 
 
 def ode_budget(steps0: int) -> int:
-    """The step budget of the fit's solves, from the steps of the solve at the start.
-
-    Generous next to the start solve, so that a trial point in a stiff corner fails fast
-    (and is rejected) instead of grinding through hundreds of thousands of steps. Two levels
-    only: the budget is static in the compiled program, and a finer ladder would straddle a
-    boundary (and recompile) from one noisy record to the next.
-    """
+    """The step budget of the fit's solves from the steps of the start solve: generous
+    next to it, so that a trial point in a stiff corner fails fast; two levels only (the
+    budget is static in the compiled program: a finer ladder would recompile from one
+    noisy record to the next)."""
     return SMALL_ODE_BUDGET if 20 * int(steps0) <= SMALL_ODE_BUDGET else MAX_ODE_STEPS
 
 
@@ -187,10 +174,8 @@ def absurd_start(steps0: int, span: float, period_data: float | None,
 
 def absurd_frequency(omega_start: float | None, period_data: float | None) -> str | None:
     """A message when the start model's linearised natural frequency (rad/s) is more than
-    [`FREQUENCY_RATIO`][] times off the record's observed one, else None. Checked before
-    any solve: such a start would spend minutes in stiff solves that cannot converge
-    (the linearised frequency is within ~20% of the true one even at large amplitude, far
-    inside the ratio)."""
+    [`FREQUENCY_RATIO`][] times off the record's observed one, else None (such a start
+    would spend minutes in stiff solves that cannot converge)."""
     if not omega_start or not period_data or not math.isfinite(omega_start):
         return None
     ratio = omega_start * period_data / (2 * math.pi)
@@ -218,16 +203,12 @@ def _pure_noise_ratio(n: int) -> float:
 def no_motion(phi: np.ndarray, noise: float) -> str | None:
     """A message when a record's angle shows no motion above its noise, else None.
 
-    The record's variance is compared with the noise level's square (from
-    `start.noise_level`): a pure-noise record (a pure-noise column, a crank at rest)
-    gives a ratio near 1, and no model can explain it (a fit would spend minutes on the
-    crossings of noise taken for periods, or "converge" on nothing). Both are estimates,
-    so the ratio of pure noise scatters, widely on a short record (over 10 for 20
-    samples one time in a thousand): the record is refused while the ratio stays below
-    what pure noise exceeds only with probability [`NO_MOTION_FALSE_ALARM`][] (an F
-    quantile; the noise level's stencil windows overlap, so it gets a sixth of their
-    count as degrees of freedom, which covers the simulated quantiles from 10 to 2000
-    samples), and at least `1 + MIN_MOTION^2`. Decided before any solve."""
+    The record's variance over the noise level's square (`start.noise_level`) is near 1
+    for pure noise (a crank at rest), which no model can explain. Both are estimates, so
+    that ratio scatters, widely on a short record: the record is refused while it stays
+    below what pure noise exceeds with probability [`NO_MOTION_FALSE_ALARM`][] (an F
+    quantile, the noise level's overlapping stencil windows counted as a sixth of their
+    number of degrees of freedom), and at least `1 + MIN_MOTION^2`."""
     x = np.asarray(phi, dtype=float)
     spread = float(np.std(x))
     # A spread of float rounding (or none) is no motion either, whatever the noise says.
@@ -264,15 +245,11 @@ def aliased(phi: np.ndarray) -> str | None:
 
 def perturb(z0: np.ndarray, names, log, rng: np.random.Generator, folded=None) -> np.ndarray:
     """A multistart point: the log-coordinates of `names` (the first entries of `z0`) plus
-    N(0, 0.5^2) (a factor `exp(N(0, 0.5^2))`), their other global coordinates times
-    `1 + N(0, 0.3^2)`; initial and segment states stay.
-
-    A global coordinate at 0 (below [`AT_ZERO`][]) gets N(0, 0.5^2) added instead, in
-    its unit (its `ref`, a typical magnitude), taken as `|.|` where `folded` says it is a
-    folded one (a value that cannot be negative): a factor cannot move it, and a fit
-    that has reached a bound at 0 (a guide friction `F_s`, say, in a curved valley) would
-    otherwise send every extra start back from that same 0 (experiments/misfit_rig.py,
-    case `friction`: all four extra starts did)."""
+    N(0, 0.5^2), their other global coordinates times `1 + N(0, 0.3^2)`; initial and
+    segment states stay. A global coordinate at 0 (below [`AT_ZERO`][]), which a factor
+    cannot move, gets N(0, 0.5^2) added in its unit `ref` instead (`|.|` where `folded`):
+    else every extra start from a bound at 0 stays there (experiments/misfit_rig.py,
+    case `friction`)."""
     z = np.array(z0, dtype=float)
     for i, n in enumerate(names):
         if log[i]:
@@ -286,18 +263,19 @@ def perturb(z0: np.ndarray, names, log, rng: np.random.Generator, folded=None) -
     return z
 
 
-def far_from_noise(rms: float, noise: float, sigma: float | None) -> bool:
-    """True when a fit's rms residual (rad) is far above the noise level of the record."""
-    return not (math.isfinite(rms) and rms <= stall_rms(noise, sigma))
+def far_from_noise(rms: float, noise: float) -> bool:
+    """True when a fit's rms residual is far above `noise`, the records' noise level
+    (`FitRequest.noise`, the first channel's unit)."""
+    return not (math.isfinite(rms) and rms <= stall_rms(noise))
 
 
-def noise_unit(noise: float, sigma: float | None) -> float:
-    """The noise level (residual unit) that LM's termination is judged in: the record's
-    measured level `noise`, or `sigma` when given and larger."""
-    return max(noise, sigma or 0.0, 1e-12)
+def noise_unit(noise: float) -> float:
+    """The noise level (residual unit) that LM's termination is judged in: the records'
+    level `noise` (`FitRequest.noise`: given by `sigma=` or estimated), kept above 0."""
+    return max(noise, 1e-12)
 
 
-def stall_rms(noise: float, sigma: float | None) -> float:
-    """The rms residual above which a fit is far from the record's noise level `noise`
-    (and from `sigma`, when given): [`FAR_FROM_NOISE`][] times the larger."""
-    return FAR_FROM_NOISE * noise_unit(noise, sigma)
+def stall_rms(noise: float) -> float:
+    """The rms residual above which a fit is far from the records' noise level `noise`:
+    [`FAR_FROM_NOISE`][] times it."""
+    return FAR_FROM_NOISE * noise_unit(noise)

@@ -18,22 +18,16 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .request import FRICTION_SCALED, LOAD_NAMES, SCALE_GROUP
+from ..model.params import FRICTION_SCALED, SCALE_GROUP
+from .request import LOAD_NAMES
 
-__all__ = ["known_directions", "fixed_scale_members", "scale_message", "name_list"]
+__all__ = ["known_directions", "fixed_scale_members", "name_list"]
 
 
 def name_list(names: Sequence[str]) -> str:
     """Names as prose: "a", "a and b", "a, b and c"."""
     names = list(names)
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
-
-
-def scale_message(names: Sequence[str]) -> str:
-    """The sentence for the common-scale direction, e.g. "m_c, m_p, m_s, I_c, I_p, k and c
-    are determined only up to a common scale: fix one of them or supply a known load"."""
-    return (f"{name_list(names)} are determined only up to a common scale: fix one of them "
-            "or supply a known load")
 
 
 def fixed_scale_members(base, names: Sequence[str], loads) -> list[str]:
@@ -92,7 +86,8 @@ def known_directions(names, values, log, ref, geometry, fixed_scale=()
     group = [n for n in names if n in SCALE_GROUP or n in LOAD_NAMES or n in FRICTION_SCALED]
     u = vector({n: values[idx[n]] for n in group}) if group and not fixed_scale else None
     if u is not None:
-        out.append((u, scale_message(group)))
+        out.append((u, f"{name_list(group)} are determined only up to a common scale: fix "
+                       "one of them or supply a known load"))
     # 2. The coupler is dynamically equivalent to point masses m_p (1 - b/L) at A and
     #    m_p b/L at B plus an inertia I_p - m_p b (L - b) about its centre of mass. So one
     #    more kg of coupler can be undone by the crank (mass at radius r), the slider and

@@ -1,18 +1,12 @@
 """Uncertainty and identifiability from the sensitivity matrix.
 
-With residuals `r(z)` (n,) and coordinates `z` (p,) (log-values for positive quantities,
-so the Jacobian's columns are the sensitivities scaled by the parameter values):
-
-- sensitivities `J = dr/dz` (n, p), by forward mode through the ODE solve
-  (`diffrax.ForwardMode` and `jax.jacfwd`: p tangents are cheaper than n cotangents);
-- noise variance `sigma^2 = |r|^2 / (n - p)`; Fisher information `J^T J / sigma^2`; Laplace
-  covariance `sigma^2 (J^T J)^-1`, from the SVD `J = U diag(s) V^T`;
-- a direction `v` of `z`-space is **unidentifiable** when it is numerically in the null
-  space (`s < 1e-7 s_max`) or so weakly determined that its standard error `sigma / s`
-  exceeds [`PRACTICAL_LIMIT`][] (a 50% relative error, each parameter on its own scale);
-- the common-scale direction of DESIGN.md section 3 (every free mass, inertia, stiffness,
-  damping and load amplitude multiplied by one factor) is tested explicitly and reported
-  in words.
+With residuals `r(z)` (n,) and coordinates `z` (p,): sensitivities `J = dr/dz` (n, p) by
+forward mode through the ODE solve (p tangents are cheaper than n cotangents); noise
+variance `sigma^2 = |r|^2 / (n - p)`; Laplace covariance `sigma^2 (J^T J)^-1` from the SVD
+`J = U diag(s) V^T`. A direction of z is **unidentifiable** when it is numerically in the
+null space ([`RANK_TOL`][]) or its standard error `sigma / s` exceeds
+[`PRACTICAL_LIMIT`][] (each parameter on its own scale); the model's known flat
+directions ([`symmetries`][crank_jax.identify.symmetries]) are tested by name.
 """
 
 from __future__ import annotations
@@ -24,15 +18,15 @@ from typing import NamedTuple
 import numpy as np
 
 from ..runtime.arrays import device_array
+from .coordinates import own_scale
 from .diagnostics import robust_uncertainty
 from .programs import jacobian_at
 from .symmetries import fixed_scale_members, known_directions, name_list
+from .verdict import Z95, check
 
 __all__ = ["Uncertainty", "analyze", "assess", "undefined", "PRACTICAL_LIMIT", "RANK_TOL", "Z95",
            "sample_rows", "inflate", "misfit", "own_scale"]
 
-#: Two-sided 95% quantile of the standard normal distribution.
-Z95 = 1.959963984540054
 #: Relative singular values below this are the numerical null space.
 RANK_TOL = 1e-7
 #: A direction whose standard error (in log coordinates, or a linear one in units of its
@@ -44,6 +38,7 @@ PRACTICAL_LIMIT = 0.5
 _AFFECTED = 0.05
 # Two unit directions whose inner product exceeds this (in magnitude) are the same one.
 _SAME_DIRECTION = 0.99
+_RICHER = ", or make the experiment richer (a larger amplitude, a known load)"
 
 
 class Uncertainty(NamedTuple):
@@ -98,33 +93,21 @@ def analyze(
 ) -> Uncertainty:
     """Standard errors, intervals, correlations and identifiability of a fit.
 
-    **Arguments:**
+    **Arguments:** `J` (N, p): the residuals' Jacobian in z (rows of zero weight
+    allowed); `residuals` (N,) at the estimate; `n`: fitted samples; `names`, `values`
+    (p,), `log` (p,), `ref` (p,): the reported parameters, their estimates, whether each
+    is in log space, the scale of linear ones; `sigma`: the noise level if known (default:
+    from the residuals); `geometry`: `r`, `L`, `b`, `s` (m), for the coupler's
+    equivalent-mass direction; `folded` (p,): parameters `>= 0` (interval cut at 0);
+    `fixed_scale`: fixed non-zero members of the common scale
+    ([`fixed_scale_members`][crank_jax.identify.symmetries.fixed_scale_members]: any one
+    and there is none); `closed`: unit vectors of z along which the profile likelihood
+    closes ([`verdict.check`][crank_jax.identify.verdict.check]), not flagged.
 
-    - `J`: (N, p) Jacobian of the residuals with respect to the coordinates z (rows of
-      zero weight allowed).
-    - `residuals`: (N,) residuals at the estimate, rad.
-    - `n`: number of fitted samples (the non-zero-weight rows).
-    - `names`, `values` (p,), `log` (p,): the reported parameters, their estimates and
-      whether each is fitted in log space; `ref` (p,): the scale of linear coordinates.
-    - `sigma`: the noise standard deviation if known; default: from the residuals.
-    - `geometry`: `r`, `L`, `b`, `s` (m), to test the coupler's equivalent-mass direction.
-    - `folded` (p,): parameters that are `>= 0`, fitted in linear coordinates from 0 (see
-      `problem.folded`): their interval is the linear one cut at 0.
-    - `fixed_scale`: fixed parameters and loads that take part in the common scale and are
-      not zero (see
-      [`fixed_scale_members`][crank_jax.identify.symmetries.fixed_scale_members]): when
-      there is one, no common scale exists.
-    - `closed`: unit vectors of z along which the profile likelihood closes
-      ([`verdict.check`][crank_jax.identify.verdict.check]): a weak direction along one
-      of them is determined after all, and is not flagged.
-
-    Every verdict is judged on the parameters' own scale (see [`own_scale`][]): a linear
-    coordinate is measured in units of `max(|value|, ref)`, so that its standard error is
-    a relative one, as a log coordinate's is (a drive torque started near 0 has a tiny
-    `ref`, and in units of it a well-determined torque looked undetermined). The
-    covariance returned is that of z.
-
-    **Returns:** an [`Uncertainty`][].
+    Every verdict is judged on the parameters' own scale ([`own_scale`][]), a linear
+    coordinate in units of `max(|value|, ref)` (a torque started near 0 has a tiny `ref`,
+    and in units of it a well-determined torque looked undetermined). The covariance
+    returned is that of z. **Returns:** an [`Uncertainty`][].
     """
     log = np.asarray(log, dtype=bool)
     values = np.asarray(values, dtype=float)
@@ -140,15 +123,6 @@ def analyze(
         cands.append((u * per / g, se * g))
     return unc._replace(covariance_z=unc.covariance_z * np.outer(per, per),
                         candidates=tuple(cands))
-
-
-def own_scale(values, log, ref) -> np.ndarray:
-    """(p,) z units per unit of each parameter's own magnitude: 1 for a log coordinate
-    (a step of 1 is a factor e), `max(|value|, ref) / ref` for a linear one
-    (`z = value / ref`)."""
-    ref = np.asarray(ref, dtype=float)
-    own = np.maximum(np.abs(np.asarray(values, dtype=float)), ref) / np.where(ref > 0, ref, 1)
-    return np.where(np.asarray(log, dtype=bool) | ~(own > 0), 1.0, own)
 
 
 def _unit(u: np.ndarray) -> np.ndarray:
@@ -186,10 +160,8 @@ def _analyze_own(J, residuals, n, names, values, log, ref, sigma, geometry, fold
     # parameters orthogonal to it keep their (correct) standard errors.
     inv_s2 = np.where(numeric_null, 0.0, 1.0 / np.where(s > 0, s, 1.0) ** 2)
     cov = sigma**2 * (V * inv_s2) @ V.T
-    se_z = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    se_z[affected] = np.nan
+    se_z, ci = _intervals(cov, affected, values, log, ref, folded)
     stderr = np.where(log, values * se_z, ref * se_z)
-    lo, hi = _intervals(values, se_z, log, ref, folded)
     with np.errstate(invalid="ignore", divide="ignore"):
         d = np.sqrt(np.diag(cov))
         corr = cov / np.outer(d, d)
@@ -197,7 +169,7 @@ def _analyze_own(J, residuals, n, names, values, log, ref, sigma, geometry, fold
     corr[:, affected] = np.nan
     s_min = s[-1] if s.size else 0.0
     cond = float(s_max / s_min) if s_min > 0 else math.inf
-    return Uncertainty(stderr, np.column_stack([lo, hi]), corr, cov, s, cond, sigma,
+    return Uncertainty(stderr, ci, corr, cov, s, cond, sigma,
                        not directions, directions, affected, tuple(candidates))
 
 
@@ -236,17 +208,19 @@ def _named(J, V, flagged, weak, se_dir, sigma, s_max, known, names, log, confirm
     return directions, (np.column_stack([Q, rest]) if rest.size else Q), candidates
 
 
-def _intervals(values, se_z, log, ref, folded) -> tuple[np.ndarray, np.ndarray]:
-    """95% Laplace intervals: log-normal for log coordinates, normal for linear ones, and
-    for a folded parameter (`>= 0`) the normal one cut at 0. An estimate at or near its
-    bound of 0 then gets the one-sided interval `[0, value + 1.96 se]`, which holds 0 when
-    the data cannot tell the parameter from 0."""
+def _intervals(cov, affected, values, log, ref, folded) -> tuple[np.ndarray, np.ndarray]:
+    """The standard errors in z (p,) of the covariance `cov` (NaN where `affected`) and
+    the 95% Laplace intervals (p, 2): log-normal for log coordinates, normal for linear
+    ones, cut at 0 for a folded parameter (`>= 0`: an estimate near its bound 0 gets
+    `[0, value + 1.96 se]`, which holds 0 when the data cannot tell it from 0)."""
+    se_z = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    se_z[affected] = np.nan
     log = np.asarray(log, dtype=bool)
     lo = np.where(log, values * np.exp(-Z95 * se_z), values - Z95 * ref * se_z)
     hi = np.where(log, values * np.exp(Z95 * se_z), values + Z95 * ref * se_z)
     if folded is not None:
         lo = np.where(np.asarray(folded, dtype=bool), np.maximum(lo, 0.0), lo)
-    return lo, hi
+    return se_z, np.column_stack([lo, hi])
 
 
 def _describe(Vf: np.ndarray, names, log, se_dir, out: list[str]) -> None:
@@ -262,17 +236,14 @@ def _describe(Vf: np.ndarray, names, log, se_dir, out: list[str]) -> None:
         order = [i for i in np.argsort(-np.abs(v)) if abs(v[i]) > _AFFECTED]
         combo = " ".join(_term(names[i], v[i], bool(log[i])) for i in order).lstrip("+ ")
         out.append(f"the combination {combo} is not determined by the data: fix one of "
-                   f"{name_list(involved)}, or make the experiment richer (a larger amplitude, "
-                   "a known load)")
+                   f"{name_list(involved)}{_RICHER}")
     elif len(involved) <= d:
         out.append(f"none of {name_list(involved)} is determined by the data, alone or in "
-                   "combination: fix them, or make the experiment richer (a larger "
-                   "amplitude, a known load)")
+                   f"combination: fix them{_RICHER}")
     else:
         out.append(f"{name_list(involved)} enter the data only through "
                    f"{max(len(involved) - d, 0)} combinations ({d} directions are not "
-                   f"determined): fix {d} of them, or make the "
-                   "experiment richer (a larger amplitude, a known load)")
+                   f"determined): fix {d} of them{_RICHER}")
 
 
 def null_space(J: np.ndarray) -> np.ndarray:
@@ -292,33 +263,33 @@ def undefined(p: int, why: str) -> Uncertainty:
                        np.ones(p, bool))
 
 
-def sample_rows(ss) -> tuple[np.ndarray, list[int]]:
-    """Indices of the fitted samples in the single-shooting residual vector of `ss` (the
-    rows in time order, padding left out), and the number of samples per series (one
-    series per record and channel)."""
-    rows, lengths, k = [], [], 0
-    for e in ss.exps:
-        n, size = e.n, int(np.prod(e.seg.ts.shape))
-        for _ in e.channels:
-            rows.append(k + np.arange(n))
-            lengths.append(n)
-            k += size
-    return np.concatenate(rows), lengths
-
-
-def channel_rows(ss) -> dict[str, tuple[np.ndarray, list[int], float]]:
-    """Channel name -> (its fitted rows in the single-shooting residual vector of `ss`,
-    over every record that has the channel; the samples per record; the channel's weight
-    in the residuals)."""
-    out: dict[str, tuple[list, list, float]] = {}
+def _series(ss):
+    """`(channel, weight, rows, n)` of each record's channels, in the order of the
+    single-shooting residual vector of `ss`: its `n` fitted rows there (padding left out)
+    and the channel's weight in the residuals."""
     k = 0
     for e in ss.exps:
         n, size = e.n, int(np.prod(e.seg.ts.shape))
         for c, name in enumerate(e.channels):
-            rows, lengths, _ = out.setdefault(name, ([], [], float(e.weight[c])))
-            rows.append(k + np.arange(n))
-            lengths.append(n)
+            yield name, float(e.weight[c]), k + np.arange(n), n
             k += size
+
+
+def sample_rows(ss) -> tuple[np.ndarray, list[int]]:
+    """Indices of the fitted samples in the single-shooting residual vector of `ss` (time
+    order), and the number of samples per series (one per record and channel)."""
+    series = list(_series(ss))
+    return np.concatenate([s[2] for s in series]), [s[3] for s in series]
+
+
+def channel_rows(ss) -> dict[str, tuple[np.ndarray, list[int], float]]:
+    """Channel name -> (its fitted rows over every record that has it, the samples per
+    record, its weight in the residuals)."""
+    out: dict[str, tuple[list, list, float]] = {}
+    for name, w, rows, n in _series(ss):
+        got = out.setdefault(name, ([], [], w))
+        got[0].append(rows)
+        got[1].append(n)
     return {name: (np.concatenate(r), ln, w) for name, (r, ln, w) in out.items()}
 
 
@@ -326,13 +297,9 @@ def inflate(unc: Uncertainty, factor: np.ndarray, values: np.ndarray, log, ref,
             folded=None) -> Uncertainty:
     """`unc` with every standard error multiplied by `factor` (p,) >= 1 and the intervals
     and the covariance widened to match (correlations unchanged)."""
-    log = np.asarray(log, dtype=bool)
     cov = unc.covariance_z * np.outer(factor, factor)
-    se_z = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    se_z[unc.affected] = np.nan
-    lo, hi = _intervals(values, se_z, log, ref, folded)
-    return unc._replace(stderr=unc.stderr * factor, ci95=np.column_stack([lo, hi]),
-                        covariance_z=cov)
+    _, ci = _intervals(cov, unc.affected, values, log, ref, folded)
+    return unc._replace(stderr=unc.stderr * factor, ci95=ci, covariance_z=cov)
 
 
 def misfit(ss, unc: Uncertainty, r_hat, J, values, sigma):
@@ -373,20 +340,21 @@ def assess(ss, z_hat, converged: bool, sigma: float | None = None):
         return r_hat, values, rms, undefined(
             ss.p, "the sensitivities are undefined at the estimate (the solve failed), so "
                   "nothing can be said about identifiability"), notes, None
-    kw = dict(geometry={k: float(getattr(ss.base, k)) for k in "rLbs"}, folded=ss.folded,
-              fixed_scale=fixed_scale_members(ss.base, ss.names,
-                                              [(e.load, e.torque) for e in ss.exps]))
-    unc = analyze(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma, **kw)
+    fixed = fixed_scale_members(ss.base, ss.names, [(e.load, e.torque) for e in ss.exps])
+
+    def judge(closed=()):
+        return analyze(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
+                       {k: float(getattr(ss.base, k)) for k in "rLbs"}, ss.folded, fixed,
+                       closed)
+
+    unc = judge()
     if unc.candidates:
         # The sensitivities only suggest a weak direction; the profile likelihood decides.
-        from .verdict import check
-
         checked = check(ss, z_hat, unc.candidates, values, ss.log, np.asarray(ss.ref),
                         ss.folded, ss.names, n, float(r_hat @ r_hat), hold=null_space(J))
         notes += checked.notes
         if checked.closed:
-            unc = analyze(J, r_hat, n, ss.names, values, ss.log, np.asarray(ss.ref), sigma,
-                          closed=checked.closed, **kw)
+            unc = judge(checked.closed)
     if not unc.identifiable:
         notes += [f"not identifiable: {m}" for m in unc.directions]
         bad = [nm for nm, a in zip(ss.names, unc.affected) if a]

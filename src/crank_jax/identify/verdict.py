@@ -1,27 +1,19 @@
 """Identifiability verdicts checked against the profile likelihood.
 
-The sensitivity matrix flags a direction `u` of the coordinates z (unit length) as weakly
-determined when its standard error `sigma / |J u|` is large (see `uncertainty.analyze`).
-That is a quadratic guess, in coordinates whose scale can be arbitrary (a parameter that
-starts at 0 is linear with a made-up scale), so it is only a candidate. The verdict is
-the likelihood's: the profile along `u` (every other direction re-fitted, the offset `t`
-along `u` held) is traced outwards on each side until its deviance
-`n ln(RSS(t) / RSS_min)` passes the 95% threshold of chi-squared(1) or the offset reaches
-a wide range:
-
-- **a decade**: the parameter that `u` moves most, in its own scale, changes by a factor
-  10 (log coordinates: `ln 10`; linear ones: `ln 10` times `max(|value|, ref)`);
-- **or a bound**: a parameter that cannot be negative reaches 0. The profile stays flat
-  down to 0 there, so the interval's end is that bound (`[0, hi]`, an upper limit), not
-  an open end.
+The sensitivities flag a unit direction `u` of z as weakly determined when its standard
+error `sigma / |J u|` is large (`uncertainty.analyze`): a quadratic guess, in coordinates
+whose scale can be arbitrary, so only a candidate. The verdict is the likelihood's: the
+profile along `u` (every other direction re-fitted) is traced outwards on each side until
+its deviance `n ln(RSS(t) / RSS_min)` passes the 95% threshold of chi-squared(1) or the
+offset reaches a wide range: **a decade** of the parameter `u` moves most, in its own
+scale, **or a bound** 0 of a parameter that cannot be negative (then the interval's end
+is that bound, `[0, hi]`, not an open end).
 
 A direction is **not determined** only when a side stays below the threshold over the
-whole wide range. (A re-fit that stops before converging still bounds the profile from
-above, so a point below the threshold counts; one above it leaves the profile untraced.)
-Otherwise the profile closes: the direction is determined, its
-crossings give the profile interval, and a Hessian half-width `1.96 se` more than 2x
-away from the profile's on either side is said in a note. A profile that cannot be
-traced (a re-fit fails) leaves the candidate flagged and says so.
+whole range (a re-fit that stops before converging still bounds the profile from above:
+below the threshold it counts, above it leaves the profile untraced). Otherwise it is
+determined, and a Hessian half-width `1.96 se` more than 2x off the profile's is said in
+a note. A profile that cannot be traced leaves the candidate flagged and says so.
 """
 
 from __future__ import annotations
@@ -33,16 +25,17 @@ from typing import NamedTuple
 import numpy as np
 
 from ..runtime.arrays import device_array
+from .coordinates import own_scale
 
 __all__ = ["DirectionProfile", "Checked", "profile_direction", "check", "wide_offset",
-           "bound_offsets", "CHI2_95", "DISAGREE"]
+           "bound_offsets", "CHI2_95", "Z95", "DISAGREE"]
 
 #: 95% quantile of chi-squared with 1 degree of freedom.
 CHI2_95 = 3.841458820694124
+#: Two-sided 95% quantile of the standard normal distribution.
+Z95 = 1.959963984540054
 #: A profile half-width more than this factor away from the Hessian's is said in a note.
 DISAGREE = 2.0
-_Z95 = 1.959963984540054
-_DECADE = math.log(10.0)
 _MAX_POINTS = 6  # re-fits per side
 
 
@@ -67,12 +60,7 @@ class DirectionProfile(NamedTuple):
 def wide_offset(u, values, log, ref) -> float:
     """The offset along `u` (z units) that moves its most-moved parameter by a decade in
     its own scale (see the module's docstring)."""
-    log = np.asarray(log, dtype=bool)
-    ref = np.asarray(ref, dtype=float)
-    # z units per natural unit (ln 10 of them make a decade): 1 in log coordinates;
-    # max(|value|, ref) / ref in linear ones, z = value / ref.
-    per = np.where(log, 1.0, np.maximum(np.abs(values), ref) / ref)
-    return _DECADE / float(np.max(np.abs(u) / per))
+    return math.log(10.0) / float(np.max(np.abs(u) / own_scale(values, log, ref)))
 
 
 def bound_offsets(u, z_hat, folded) -> tuple[float, float]:
@@ -95,18 +83,16 @@ def profile_direction(problem, z_hat, u, se: float, n: int, rss_min: float, wide
                       hold=None) -> DirectionProfile:
     """Trace the profile likelihood along `u` (p,) from `z_hat` (p,), each side from
     1.5 Hessian half-widths (`1.96 se`) outwards, at least doubling, to `wide` or the
-    side's bound,
-    then one interpolated re-fit near the crossing (linear in `sqrt(deviance)`, exact for
-    a quadratic cost). `problem`: the fit's single-shooting problem; `n`: the number of
-    residuals; `rss_min`: `|r|^2` at `z_hat`; `hold` (p, h): directions held fixed in the
-    re-fits besides `u` (the exactly flat ones, which the fit holds fixed too: LM crawls
-    along them without converging)."""
+    side's bound, then one interpolated re-fit near the crossing (linear in
+    `sqrt(deviance)`). `problem`: the fit's single-shooting problem; `n`: the number of
+    residuals; `rss_min`: `|r|^2` at `z_hat`; `hold` (p, h): the exactly flat directions,
+    held in the re-fits as the fit holds them (LM crawls along them)."""
     trace = _Trace(problem, z_hat, u, hold, n, rss_min, max_steps, tol)
     ends, at_bound = [math.nan, math.nan], [False, False]
     traced, is_open = True, False
     for side, sign in ((1, 1.0), (0, -1.0)):
         limit = min(wide, bounds[side])
-        first = min(1.5 * _Z95 * se, limit) if math.isfinite(se) and se > 0 else limit
+        first = min(1.5 * Z95 * se, limit) if math.isfinite(se) and se > 0 else limit
         outcome, walk = trace.walk(sign, first, limit)
         if outcome == "untraced":
             traced = False
@@ -241,7 +227,7 @@ def check(problem, z_hat, candidates: Sequence, values, log, ref, folded, names,
         if prof.open:
             continue
         closed.append(u)
-        half = _Z95 * se
+        half = Z95 * se
         wide = [abs(prof.lo), abs(prof.hi)]
         off = [not b and (w > DISAGREE * half or w < half / DISAGREE)
                for w, b in zip(wide, prof.at_bound)]

@@ -21,22 +21,21 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .coefficients import Coefficients, coefficients, pack, unpack
-from .foreign_code import foreign_classes
 from .geometry import Geometry, geometry
-from .loads import AbstractLoad, NoLoad, as_load
+from .loads import AbstractLoad, NoLoad, as_load, only_own_loads
 from .params import SliderCrank
 from .structure import Structure
-from .trig import check_form, form_field
+from .trig import Trig, check_form, form_field
 
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
     "kinetic_energy", "potential_energy", "power_in", "CrankField", "mass_terms",
     "coriolis_terms", "force_terms", "dissipative_terms", "PackedCrankField",
+    "equation_residual",
 ]
 
 _FULL = Structure()
@@ -167,6 +166,18 @@ def generalized_force(
                               structure)
 
 
+def equation_residual(mech: SliderCrank, phi, dphi, ddphi, t, load: AbstractLoad,
+                      torque: AbstractLoad, structure: Structure = _FULL) -> Array:
+    """`M phi'' + K phi'^2 - q`, N*m: zero on a motion of the model. `phi` (rad), `dphi`
+    (rad/s), `ddphi` (rad/s^2), `t` (s) of one shape; `load`, `torque` loads (not None).
+    The coefficients and the geometry are formed once for M, K and q (what a regressor
+    differentiates with respect to the parameters)."""
+    p = coefficients(mech, structure)
+    g = geometry(p, phi, structure)
+    return (mass_terms(p, g, structure) * ddphi + coriolis_terms(p, g, structure) * dphi**2
+            - force_terms(p, g, phi, dphi, t, load, torque, structure))
+
+
 def acceleration(
     mech: SliderCrank,
     phi: ArrayLike,
@@ -191,7 +202,7 @@ def acceleration(
 
 
 def _acceleration(p: Coefficients, phi, dphi, t, load, torque, structure, force,
-                  trig: str = "library") -> Array:
+                  trig: Trig = Trig.LIBRARY) -> Array:
     """[`acceleration`][] from [`Coefficients`][] (loads already loads), the geometry's
     sin, cos and 1/sqrt traced in the form `trig` (`trig.FORMS`)."""
     g = geometry(p, phi, structure, trig)
@@ -266,7 +277,7 @@ class CrankField(eqx.Module):
     torque: AbstractLoad
     structure: Structure = eqx.field(static=True, default=_FULL)
     force: Callable | None = None
-    trig: str = form_field()
+    trig: Trig = form_field()
 
     def __check_init__(self):
         check_form(self.trig)
@@ -300,7 +311,7 @@ class PackedCrankField(eqx.Module):
     torque: AbstractLoad
     structure: Structure = eqx.field(static=True, default=_FULL)
     force: Callable | None = None
-    trig: str = form_field()
+    trig: Trig = form_field()
 
     def __check_init__(self):
         check_form(self.trig)
@@ -324,12 +335,10 @@ _traced_once = eqx.filter_jit(_acceleration)
 
 
 def _own_code(load, torque, force) -> bool:
-    """Whether the field's loads hold only crank-jax's own classes, at any depth, and it
-    has no user force: only then is the acceleration's cached trace used. A user's class
-    may read a module global or a closure cell that JAX's trace cache does not see (issue
-    37's stale programs), so the field is traced afresh wherever its caller's program is.
-    The same test as the program store's ([`foreign_classes`][])."""
-    if force is not None:
-        return False
-    leaves, treedef = jax.tree_util.tree_flatten((load, torque))
-    return not foreign_classes((treedef,), [x for x in leaves if not eqx.is_array(x)])
+    """Whether the field's loads are crank-jax's own code only, at any depth, and it has
+    no user force: only then is the acceleration's cached trace used. A user's class
+    may read a module global or a closure cell that JAX's trace cache does not see, so
+    such a field is traced afresh wherever its caller's program is (the same numbers,
+    traced more slowly). Decided on the objects alone ([`only_own_loads`][]: exact types
+    of the table of load kinds, plain static values), never on where code lies."""
+    return force is None and only_own_loads(load, torque)

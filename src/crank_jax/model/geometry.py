@@ -18,7 +18,7 @@ from jaxtyping import Array, ArrayLike
 from .coefficients import Coefficients, coefficients
 from .params import SliderCrank
 from .structure import Structure
-from .trig import LIBRARY, rsqrt, sincos
+from .trig import LIBRARY, Trig, rsqrt, sincos
 
 __all__ = ["Geometry", "geometry", "CouplerAngle", "coupler_angle", "Kinematics", "kinematics"]
 
@@ -65,7 +65,7 @@ class Geometry(NamedTuple):
 
 
 def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
-             structure: Structure = _FULL, trig: str = LIBRARY) -> Geometry:
+             structure: Structure = _FULL, trig: Trig = LIBRARY) -> Geometry:
     """The geometry at crank angle `phi`, written for XLA's CPU fusion.
 
     `w = 1/cos(delta)` is a single `rsqrt` and every other quantity is a product of it:
@@ -84,7 +84,7 @@ def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
 
     **Arguments:** `mech`, the parameters or their [`Coefficients`][]; `phi`, crank angle
     in rad, any shape; `structure`: with `offset=False` the offset `e` is left out (it must
-    then be 0); `trig`, one of `trig.FORMS`: how sin, cos and 1/sqrt are traced.
+    then be 0); `trig`, a `trig.Trig`: how sin, cos and 1/sqrt are traced.
 
     **Returns:** a [`Geometry`][].
     """

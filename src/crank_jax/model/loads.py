@@ -27,9 +27,11 @@ Each kind declares which roles it has (a [`MultiSineLoad`][] has only `mean`; a
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -39,7 +41,7 @@ from .angle_load import AngleLoad
 from .load_base import AbstractLoad, Nonsmooth, check_load_values
 from .params import as_float_array
 from .sampled import INTERPOLATIONS, InputLoad, SampledLoad, is_sampled
-from .trig import check_form, form_field
+from .trig import Trig, form_field
 
 __all__ = ["AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineLoad",
            "SampledLoad", "InputLoad", "AngleLoad", "is_sampled", "as_load",
@@ -47,7 +49,7 @@ __all__ = ["AbstractLoad", "NoLoad", "ConstantLoad", "HarmonicLoad", "MultiSineL
            "nonsmooth_times",
            "ROLES", "SIDES", "LoadKind", "LOAD_KINDS", "LOAD_PARAMS", "load_kind",
            "param_name", "toml_key", "get_param", "set_param", "promote", "toml_keys",
-           "load_from_table", "load_to_table"]
+           "load_from_table", "load_to_table", "OWN_LOADS", "only_own_loads"]
 
 
 
@@ -86,10 +88,9 @@ class HarmonicLoad(AbstractLoad):
     X1: Float[Array, ""] = eqx.field(converter=as_float_array)
     freq_hz: Float[Array, ""] = eqx.field(converter=as_float_array)
     phase: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
-    trig: str = form_field()  # how sin is traced (trig.py): a solver's choice
+    trig: Trig = form_field()  # how sin is traced (trig.py): a solver's choice
 
     def __check_init__(self):
-        check_form(self.trig)
         check_load_values(self, ("X0", "X1", "freq_hz", "phase"), frequencies=("freq_hz",))
 
     def __call__(self, t: ArrayLike) -> Array:
@@ -114,10 +115,9 @@ class MultiSineLoad(AbstractLoad):
     freqs_hz: Float[Array, " k"] = eqx.field(converter=as_float_array)
     phases: Float[Array, " k"] = eqx.field(converter=as_float_array)
     X0: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
-    trig: str = form_field()  # how sin is traced (trig.py): a solver's choice
+    trig: Trig = form_field()  # how sin is traced (trig.py): a solver's choice
 
     def __check_init__(self):
-        check_form(self.trig)
         arrays = (self.amplitudes, self.freqs_hz, self.phases)
         shapes = [np.shape(a) for a in arrays]
         if len(set(shapes)) > 1 or 0 in shapes[0]:
@@ -194,6 +194,40 @@ LOAD_KINDS: tuple[LoadKind, ...] = (
               "gain": "gain"}),
 )
 _PROMOTABLE = LOAD_KINDS[:3]
+
+#: The load classes whose code is crank-jax's own: every kind of the table, matched by
+#: exact type (a subclass, which may override any method, is a user's class).
+OWN_LOADS: frozenset[type] = frozenset(kind.cls for kind in LOAD_KINDS)
+
+# Static values equal exactly when their values are (what JAX's trace cache compares);
+# the model's own enum of the trigonometry's form (`trig.Trig`) is one.
+_PLAIN = (type(None), bool, int, float, complex, str, trig.Trig)
+_MAX_DEPTH = 8  # the table's kinds nest three deep (AngleLoad -> SampledLoad -> coeffs)
+
+
+def only_own_loads(*loads) -> bool:
+    """Whether `loads` hold crank-jax's own code only, at any depth: each is exactly one
+    of [`OWN_LOADS`][], and each of its fields is an array, a plain value (None, bool,
+    int, float, complex, str, [`Trig`][crank_jax.model.trig.Trig]), a tuple of these or
+    again such a load. A closed test on the objects alone: a user's class or subclass
+    anywhere, a function or any other object in a field (static or not) makes it False."""
+    return all(_own(x, 0) for x in loads)
+
+
+def _own(x, depth: int) -> bool:
+    if depth > _MAX_DEPTH:
+        return False
+    if type(x) in _PLAIN:
+        return True
+    if isinstance(x, np.ndarray):
+        return x.dtype != object  # an object array holds anything
+    if isinstance(x, (jax.Array, np.generic)):
+        return True
+    if type(x) is tuple:
+        return all(_own(v, depth + 1) for v in x)
+    if type(x) in OWN_LOADS:
+        return all(_own(getattr(x, f.name), depth + 1) for f in dataclasses.fields(x))
+    return False
 
 
 def param_name(side: str, role: str) -> str:

@@ -13,7 +13,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 __all__ = ["SliderCrank", "FIELDS", "PAPER_FIELDS", "SIGNED_FIELDS", "WIDTH_FIELDS",
-           "check_shapes", "UNITS", "as_float_array", "validation_rules"]
+           "SCALE_GROUP", "FRICTION_SCALED", "check_shapes", "UNITS", "as_float_array",
+           "validation_rules"]
 
 #: The paper's twelve mechanism fields, in the order of its symbol table.
 PAPER_FIELDS: tuple[str, ...] = ("r", "L", "b", "s", "m_c", "m_p", "m_s", "I_c", "I_p", "k",
@@ -27,6 +28,12 @@ FIELDS: tuple[str, ...] = PAPER_FIELDS + ("e", "T_c", "w_c", "c_s", "F_s", "w_s"
 SIGNED_FIELDS: tuple[str, ...] = ("e", "gravity_angle")
 #: Smoothing widths of the Coulomb terms: numerical choices, not physical parameters.
 WIDTH_FIELDS: tuple[str, ...] = ("w_c", "w_s")
+#: Fields that enter the equation of motion linearly: scaling all of them (and every
+#: load) by one factor leaves the motion unchanged (DESIGN.md section 3).
+SCALE_GROUP: tuple[str, ...] = ("m_c", "m_p", "m_s", "I_c", "I_p", "k", "c")
+#: Friction coefficients: they scale with that group too (every term of the equation of
+#: motion is then multiplied by the same factor); their true value is often 0.
+FRICTION_SCALED: tuple[str, ...] = ("c_s", "T_c", "F_s")
 
 UNITS: dict[str, str] = {
     "r": "m", "L": "m", "b": "m", "s": "m", "m_c": "kg", "m_p": "kg", "m_s": "kg",

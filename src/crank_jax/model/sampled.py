@@ -12,7 +12,7 @@ from jaxtyping import Array, ArrayLike, Float
 from . import trig
 from .load_base import AbstractLoad, Nonsmooth, check_load_values
 from .params import as_float_array
-from .trig import check_form, form_field
+from .trig import Trig, form_field
 
 __all__ = ["SampledLoad", "InputLoad", "is_sampled", "bind_input", "INTERPOLATIONS"]
 
@@ -159,10 +159,9 @@ class InputLoad(AbstractLoad):
     freq_hz: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
     phase: Float[Array, ""] = eqx.field(converter=as_float_array, default=0.0)
     signal: SampledLoad | None = None
-    trig: str = form_field()  # how sin is traced (trig.py): a solver's choice
+    trig: Trig = form_field()  # how sin is traced (trig.py): a solver's choice
 
     def __check_init__(self):
-        check_form(self.trig)
         check_load_values(self, ("gain", "X0", "X1", "freq_hz", "phase"),
                           frequencies=("freq_hz",))
 

@@ -21,9 +21,10 @@ stage (68 kernels per step instead of 29). The seed is the bit-level estimate of
 4e-11, then rounding): within 2 ulp of `1/np.sqrt` over positive normal floats.
 
 Which form is an explicit, static choice (numerics are arguments or fields, not
-context state): each function takes `form`, one of [`FORMS`][], and a module that
-traces them (the crank's fields, the harmonic loads) holds it in a static field made by
-[`form_field`][], default `"library"`. A solver that wants the arithmetic form asks for
+context state): each function takes `form`, a [`Trig`][], and a module that traces them
+(the crank's fields, the harmonic loads) holds it in a static field made by
+[`form_field`][], default `Trig.LIBRARY` (its name, `"library"` or `"arithmetic"`, is
+converted when the module is made). A solver that wants the arithmetic form asks for
 the field in it with [`traced_as`][]: the lockstep batch (solve/lockstep.py) and the
 discrete adjoint's vectorised blocks (solve/adjoint.py) do. A user's own field offers no
 choice and is stepped as it is. A single trajectory has nothing to vectorise (the same
@@ -48,37 +49,53 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import enum
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-__all__ = ["LIBRARY", "ARITHMETIC", "FORMS", "form_field", "check_form", "traced_as",
-           "sincos", "sin", "rsqrt"]
+__all__ = ["Trig", "LIBRARY", "ARITHMETIC", "FORMS", "form_field", "as_form", "check_form",
+           "traced_as", "sincos", "sin", "rsqrt"]
 
-#: JAX's own `sin`, `cos` and `rsqrt` (cheaper to compile; the default).
-LIBRARY = "library"
-#: The arithmetic forms of this module, for float64 (other types take JAX's own).
-ARITHMETIC = "arithmetic"
-#: The forms a `form` argument or a [`form_field`][] takes.
-FORMS: tuple[str, ...] = (LIBRARY, ARITHMETIC)
+
+class Trig(enum.StrEnum):
+    """How sin, cos and 1/sqrt are traced (equal to its name, so a key or a comparison
+    that met the name meets the same value)."""
+
+    LIBRARY = "library"  # JAX's own `sin`, `cos` and `rsqrt` (cheaper to compile)
+    ARITHMETIC = "arithmetic"  # this module's arithmetic, for float64 (others: JAX's own)
+
+
+#: The default form, and the one a lockstep batch steps.
+LIBRARY, ARITHMETIC = Trig.LIBRARY, Trig.ARITHMETIC
+#: The names a `form` argument or a [`form_field`][] takes.
+FORMS: tuple[str, ...] = tuple(f.value for f in Trig)
 
 # Marks the field that [`traced_as`][] sets (a name alone could be a user's own field's).
 _MARK = "crank_jax_trig_form"
 
 
 def form_field():
-    """A module's static field `trig`, one of [`FORMS`][] (default `"library"`): how the
-    module traces sin, cos and 1/sqrt. [`traced_as`][] sets it."""
-    return eqx.field(static=True, default=LIBRARY, metadata={_MARK: True})
+    """A module's static field `trig`, a [`Trig`][] (default `Trig.LIBRARY`; a name of
+    [`FORMS`][] is converted, anything else refused by [`as_form`][]): how the module
+    traces sin, cos and 1/sqrt. [`traced_as`][] sets it."""
+    return eqx.field(static=True, default=LIBRARY, converter=as_form,
+                     metadata={_MARK: True})
 
 
-def check_form(form: str) -> None:
-    """`ValueError` naming the field unless `form` is one of [`FORMS`][] (for
-    `__check_init__`)."""
-    if form not in FORMS:
+def as_form(form) -> Trig:
+    """`form` (a [`Trig`][] or its name) as a [`Trig`][]; `ValueError` naming the field
+    otherwise."""
+    if not isinstance(form, str) or form not in FORMS:
         raise ValueError(f"trig must be one of {FORMS}, got {form!r}")
+    return Trig(form)
+
+
+def check_form(form) -> None:
+    """`ValueError` naming the field unless `form` is a [`Trig`][] or its name."""
+    as_form(form)
 
 
 def _chooses(x) -> bool:
@@ -86,7 +103,7 @@ def _chooses(x) -> bool:
         f.metadata.get(_MARK) for f in dataclasses.fields(x))
 
 
-def _set_form(module, form: str):
+def _set_form(module, form: Trig):
     if not _chooses(module):
         return module
     # A copy with the static field changed, set as JAX's unflattening sets fields (no
@@ -101,16 +118,16 @@ def _set_form(module, form: str):
     return new
 
 
-def traced_as(tree, form: str):
+def traced_as(tree, form: Trig | str):
     """`tree` (a vector field, a load, any pytree) with every module in it that holds a
     [`form_field`][] set to `form`: what a solver steps to have the field's sin, cos and
     1/sqrt traced in that form. Parts that offer no choice (a user's own field or load)
     are left as they are. Static fields are not searched."""
-    check_form(form)
+    form = as_form(form)
     return jax.tree_util.tree_map(lambda x: _set_form(x, form), tree, is_leaf=_chooses)
 
 
-def _use_arithmetic(x, form: str) -> bool:
+def _use_arithmetic(x, form: Trig) -> bool:
     return form == ARITHMETIC and x.dtype == jnp.float64
 
 # pi/2 = _PIO2_1 + _PIO2_2 + _PIO2_3 (fdlibm's pio2_1, pio2_2, pio2_2t): 33 + 33 + 53 bits.
@@ -152,7 +169,7 @@ def _sincos(x):
     return sin_x, cos_x
 
 
-def sincos(x: ArrayLike, form: str = LIBRARY) -> tuple[Array, Array]:
+def sincos(x: ArrayLike, form: Trig = LIBRARY) -> tuple[Array, Array]:
     """`(sin(x), cos(x))` of an angle `x` in rad, any shape.
 
     With `form="arithmetic"` and for float64 the polynomial form: within 1 ulp of
@@ -173,7 +190,7 @@ def _sincos_jvp(primals, tangents):
     return (s, c), (c * dx, -s * dx)
 
 
-def sin(x: ArrayLike, form: str = LIBRARY) -> Array:
+def sin(x: ArrayLike, form: Trig = LIBRARY) -> Array:
     """`sin(x)` through [`sincos`][] (the unused cosine is removed by XLA)."""
     return sincos(x, form)[0]
 
@@ -195,7 +212,7 @@ def _rsqrt(u):
     return jnp.where(u > 0.0, w, jnp.nan)
 
 
-def rsqrt(u: ArrayLike, form: str = LIBRARY) -> Array:
+def rsqrt(u: ArrayLike, form: Trig = LIBRARY) -> Array:
     """`1/sqrt(u)`, any shape. With `form="arithmetic"` and for float64 the Newton form:
     within 2 ulp for positive normal `u`, NaN for `u <= 0`. Otherwise `jax.lax.rsqrt`."""
     u = jnp.asarray(u)

@@ -19,7 +19,6 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ..identify import channel_noise as ch
 from ..identify.request import normalize
 from ..identify.start import half_window, smooth_derivatives
 from ..model.params import FIELDS, SIGNED_FIELDS, WIDTH_FIELDS
@@ -96,10 +95,10 @@ def prepare(scene: Scene, data: Data, free: Sequence[str] = ("k", "c"), *,
     """The [`TrackProblem`][] of `data` (arguments as [`track`][]'s)."""
     free = _check_free(free)
     _check_options(start, start_seconds, false_alarm_rate, change_ratio)
-    req = ch.with_channels(normalize(
+    req = normalize(
         scene, data, free + ("phi0", "dphi0"), init="scene", method="lm", shooting="auto",
         segments=None, multistart=1, seed=0, max_steps=None, tol=1e-8, sigma=None,
-        profile=None, window=None, progress=progress, warn=False, load_by=load_by))
+        profile=None, window=None, progress=progress, warn=False, load_by=load_by)
     rec = req.records[0]
     ts = np.asarray(rec.ts, float)
     outs = rec.outputs()

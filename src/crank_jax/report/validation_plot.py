@@ -19,7 +19,7 @@ def plot_validation(val, path: str | os.PathLike, title: str = "") -> None:
     """Draw, for each channel, data and prediction and below them the error; the
     initial-state window is shaded.
 
-    `val`: a [`Validation`][crank_jax.identify.validation.Validation] (read through its
+    `val`: a [`Validation`][crank_jax.validation.kstep.Validation] (read through its
     fields, so the report does not import the fit); `path`: the figure file (its suffix
     picks the format), written atomically."""
     plt = pyplot()

@@ -11,7 +11,7 @@ versions of JAX and of the libraries that trace into it, x64, the backend and th
 instruction-set flags (an executable is machine code). A program whose arguments hold
 a class from outside crank-jax (a user's load, a force of their own) is never stored: its
 code may read anything (a module global, a closure), so no key short of the traced
-program covers it (`model/foreign_code.py`); it is traced in every process, as `jax.jit` does,
+program covers it (`foreign_code.py`); it is traced in every process, as `jax.jit` does,
 and JAX's persistent cache spares its compilation. Later processes load a stored program
 (tens of milliseconds to a few tenths of a second, by size).
 Each file carries a SHA-256 of all of it, checked before anything is deserialised
@@ -39,8 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.foreign_code import foreign_classes
 from . import program_store
+from .foreign_code import foreign_classes
 from .xla_flags import instruction_sets
 
 __all__ = ["PersistentProgram", "program_store_dir", "enum_code", "enum_name", "FAST_COMPILE",
@@ -111,7 +111,7 @@ def _signature(name: str, args, options: tuple = ()) -> tuple[str | None, list, 
                                                                  object]:
     """(key, array leaves, their treedef, the static part) of a call; the key is None (not
     stored) when the static part names an object by its address (a user's function), or
-    holds a class from outside crank-jax anywhere (see `model/foreign_code.py`): only code
+    holds a class from outside crank-jax anywhere (see `foreign_code.py`): only code
     whose every input is in the key may skip tracing."""
     dyn, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree.flatten(dyn)

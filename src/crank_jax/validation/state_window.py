@@ -20,11 +20,11 @@ import math
 
 import numpy as np
 
+from ..identify.angle import angle_estimate
 from ..model.loads import AbstractLoad
 from ..records.data import MIN_SAMPLES, Data
 from ..scene import Scene
 from ..simulation import linearize
-from .angle import angle_estimate
 
 __all__ = ["default_init_window", "record_init_window", "init_window", "STATE_SAMPLES"]
 

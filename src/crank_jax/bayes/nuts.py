@@ -1,7 +1,7 @@
 """NUTS (blackjax) on the posterior's log density, with Stan's window warm-up, run in
 chunks of compiled steps so that a progress bar follows warm-up and sampling.
 
-The log density is that of [`posterior`][crank_jax.identify.posterior]: the fit's
+The log density is that of [`posterior`][crank_jax.bayes.posterior]: the fit's
 residual program, the noise level integrated out, the priors; sampled in coordinates
 whitened by the Laplace covariance.
 """
@@ -15,10 +15,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..identify.problem import Problem
 from ..runtime.lazy import lazy_import
 from ..runtime.progress import progress_bar
 from .priors import log_prior
-from .problem import Problem
 
 blackjax = lazy_import("blackjax")  # imported on first use (see lazy.py)
 

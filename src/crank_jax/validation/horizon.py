@@ -1,5 +1,5 @@
 """k-step-ahead prediction for
-[`validate`][crank_jax.identify.validation.validate]`(..., horizon=T)`.
+[`validate`][crank_jax.validation.kstep.validate]`(..., horizon=T)`.
 
 After the initial-state window the record is cut into consecutive windows of `T` s (a
 window holds the samples `a < t <= a + T`). Every window, the first included, estimates
@@ -29,11 +29,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..identify.start import channel_level
 from ..model.outputs import output
 from ..records.data import MIN_SAMPLES, Data
 from ..simulation import simulate
 from ..solve.adjoints import ForwardSensitivities
-from .start import noise_level
 
 __all__ = ["HEAD_FRACTION", "Window", "cut", "Predictor", "estimate_state", "predict"]
 
@@ -194,9 +194,9 @@ def bucket(n: int) -> int:
 
 def scored_windows(ts: np.ndarray, t_init: float, horizon: float
                    ) -> tuple[list[Window], np.ndarray]:
-    """The windows of [`cut`][crank_jax.identify.horizon.cut] and the mask (n,) of the samples they
-    predict (each window's after its head); `ValueError` naming `horizon` if fewer than
-    `MIN_SAMPLES` are left to predict."""
+    """The windows of [`cut`][crank_jax.validation.horizon.cut] and the mask (n,) of the
+    samples they predict (each window's after its head); `ValueError` naming `horizon` if
+    fewer than `MIN_SAMPLES` are left to predict."""
     windows = cut(ts, t_init, horizon)
     scored = np.zeros(ts.shape[0], bool)
     for w in windows:
@@ -210,12 +210,12 @@ def scored_windows(ts: np.ndarray, t_init: float, horizon: float
 
 def predict_windows(scene, mech, load, torque, sensors, win: Data, windows, state0, predicted,
              warnings) -> list[dict]:
-    """Predict every window (see [`crank_jax.identify.horizon`][]) into `predicted`, and the
+    """Predict every window (see [`crank_jax.validation.horizon`][]) into `predicted`, and the
     initial-state window from `state0` (its fitted state at the record's first sample);
     **returns** each window's row of `Validation.windows`."""
     ts = np.asarray(win.ts)
     ys = np.stack([np.asarray(y) for _, y in win.outputs()])  # (C, n)
-    sigma = [max(noise_level(ts, y), 1e-9 * float(np.std(y)), 1e-300) for y in ys]
+    sigma = [channel_level(ts, y) for y in ys]
     pred = Predictor(mech, load, torque, jnp.asarray(scene.rtol, float),
                         jnp.asarray(scene.atol, float),
                         jnp.asarray([s.scale for s in sensors], float),

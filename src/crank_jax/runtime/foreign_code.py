@@ -1,7 +1,7 @@
 """Code from outside crank-jax in a program's inputs (a user's `AbstractLoad` subclass, a
-force module of their own), which the program store (`runtime/persistent.py`) never
-stores and the field's cached trace of its acceleration never serves (`dynamics.py`).
-In the core because both need it, and the core imports nothing from the runtime.
+force module of their own), which the program store (`persistent.py`) never stores. A
+host question (where a class's files lie), so it is the runtime's: the core decides
+its own cached trace on the objects alone (`model/loads.py`, `only_own_loads`).
 
 A stored program is loaded without tracing, so its key must hold every input of the
 trace. For crank-jax's own classes it does (the package's source, the traced libraries'

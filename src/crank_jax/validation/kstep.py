@@ -18,7 +18,7 @@ top-level scores are the first channel's.
 `horizon=T` scores a k-step-ahead prediction instead (MATLAB's `compare(data, sys, k)`): after
 the initial-state window the record is cut into windows of `T` s, each window's state is
 estimated from its first samples and the rest of the window is predicted (see
-[`crank_jax.identify.horizon`][]). A driven rig whose drive level is a few percent off drifts
+[`crank_jax.validation.horizon`][]). A driven rig whose drive level is a few percent off drifts
 by radians over a long open-loop prediction, yet predicts one revolution ahead to a small
 fraction of a radian: that is what `T` of one revolution measures. `init_free` names
 parameters (e.g. `tau0`, the record's own drive level) estimated with the state on the
@@ -34,6 +34,9 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from ..identify.diagnostics import residual_diagnostics
+from ..identify.fit import fit
+from ..identify.request import LOAD_NAMES, STATE_NAMES, free_names, record_loads
 from ..model.loads import AbstractLoad, InputLoad, NoLoad, set_param
 from ..model.outputs import SI_UNITS, output
 from ..model.params import FIELDS
@@ -42,9 +45,6 @@ from ..records.load_by import loads_by
 from ..runtime.blas import one_blas_thread
 from ..scene import Scene
 from . import horizon as hz
-from .diagnostics import residual_diagnostics
-from .fit import fit
-from .request import LOAD_NAMES, STATE_NAMES, free_names, record_loads
 from .state_window import default_init_window
 from .state_window import init_window as state_window
 
@@ -118,7 +118,7 @@ class Validation(NamedTuple):
         """The window's times, measurements and predictions per channel, SI (see
         [`prediction_table`][crank_jax.identify.predictions.prediction_table]), and
         `scored` per sample (False: in the initial-state window, or a window's head)."""
-        from .predictions import prediction_table
+        from ..identify.predictions import prediction_table
 
         measured = self.data_channels or {"phi": self.phi}
         predicted = self.predicted_channels or {"phi": self.predicted}
@@ -222,7 +222,7 @@ def validate(
     - `data`: the validation record, a [`Data`][].
     - `t_start`, `t_end`: the window of the record to use, s (`None`: its own ends).
     - `init_window`: length of the initial-state window at the start, s (default: from
-      the record, [`record_init_window`][crank_jax.identify.state_window.record_init_window]:
+      the record, [`record_init_window`][crank_jax.validation.state_window.record_init_window]:
       one revolution of a crank that turns (at least 30 samples), else about one period;
       at most half the record; at least
       [`MIN_SAMPLES`][crank_jax.records.data.MIN_SAMPLES] samples).
@@ -234,7 +234,7 @@ def validate(
       loop; a time `T` > 0 s predicts k steps ahead: after the initial-state window the
       record is cut into windows of `T` s, each window's state is estimated from its first
       `max(MIN_SAMPLES samples, T / 10)` (the first window's too) and the rest of it
-      predicted open loop (see [`crank_jax.identify.horizon`][]). Scores are over the predicted
+      predicted open loop (see [`crank_jax.validation.horizon`][]). Scores are over the predicted
       samples. A `T` at least the rest of the record is one window: an open-loop
       prediction from the state its own head gives.
     - `init_free`: parameters estimated with the state on the initial-state window and

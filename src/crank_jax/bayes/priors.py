@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 import jax.numpy as jnp
 import numpy as np
 
+from ..identify.problem import Problem
 from ..model.params import FIELDS, SIGNED_FIELDS
 from ..sweep.distributions import (
     AbstractDistribution,
@@ -23,7 +24,6 @@ from ..sweep.distributions import (
     Uniform,
     parse_distribution,
 )
-from .problem import Problem
 
 __all__ = ["PRIOR_FAMILIES", "MIN_PRIOR_SPREAD", "MIN_PRIOR_WIDTH", "parse_priors",
            "load_priors", "prior_arrays", "log_prior", "prior_precision", "in_support",

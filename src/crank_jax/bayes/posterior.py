@@ -36,21 +36,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..identify.fit import fit
+from ..identify.fit_plan import single_problem
+from ..identify.fit_result import FitResult
+from ..identify.problem import Problem, pick_solver
+from ..identify.programs import jacobian_at
+from ..identify.request import STATE_NAMES, normalize
+from ..identify.strategy import MAX_ODE_STEPS, ode_budget
 from ..records.data import Data
 from ..runtime.blas import one_blas_thread
 from ..runtime.lazy import lazy_import
 from ..scene import Scene
 from ..sweep.distributions import AbstractDistribution
-from . import channel_noise as ch
-from .fit import fit
-from .fit_plan import single_problem
-from .fit_result import FitResult
 from .nuts import adaptation, initial_carry, run_chains, schedule
 from .priors import base_name, in_support, parse_priors, prior_arrays, prior_precision
-from .problem import Problem, pick_solver
-from .programs import jacobian_at
-from .request import STATE_NAMES, normalize, reported_names
-from .strategy import MAX_ODE_STEPS, ode_budget
 
 blackjax = lazy_import("blackjax")  # imported on first use (see lazy.py)
 
@@ -187,7 +186,6 @@ def _problem_at(req, res: FitResult) -> tuple[Problem, np.ndarray]:
     through its sensor and weighted by the noise level the fit ended with."""
     values = res.values
     multi = len(req.records) > 1
-    req = ch.with_channels(req)  # each record's angle and each channel's level, as fit's
     final = {n: c["sigma"] for n, c in (res.channels or {}).items()}
     req = dataclasses.replace(req, sigmas={**req.sigmas, **final})
 
@@ -274,8 +272,7 @@ def posterior(
                     segments=None, multistart=1, seed=seed, max_steps=None, tol=1e-8,
                     sigma=None, profile=None, window=window, progress=progress, warn=False,
                     load_by=load_by)
-    check_posterior_memory(draws, chains, warmup,
-                           len(reported_names(req.free, len(req.records))))
+    check_posterior_memory(draws, chains, warmup, len(req.names))
     prior = parse_priors(priors, req.free)
     res = fit(scene, data, req.free, window=window, progress=progress, warn=False,
               load_by=load_by)
