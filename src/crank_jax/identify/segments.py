@@ -85,12 +85,14 @@ def row_bucket(m: int) -> int:
     ..., 1536, 3072, 6144, ... (3 * 2^k: one size per doubling, coarser than [`bucket`][]).
 
     The rows of the fit's solves (a single-shooting record, a multiple-shooting segment)
-    and of the motion start's equation of motion take this ladder: a padded save time
-    lies a few nanoseconds past the row's end, so it costs a save interpolation and a
-    Jacobian row but no solver step, and a coarse ladder puts records of neighbouring
-    lengths in one program. At 200 Hz: 769-1536 samples (3.8-7.7 s) give one
-    single-shooting row, 1537-3072 (to 15.4 s) the next; a lab-rig segment (two periods,
-    62-93 samples whatever the record's length) one row of 96."""
+    and of the motion start's equation of motion take this ladder, so that records of
+    neighbouring lengths share one program. At 200 Hz: 769-1536 samples (3.8-7.7 s) give
+    one single-shooting row, 1537-3072 (to 15.4 s) the next; a lab-rig segment (two
+    periods, 62-93 samples whatever the record's length) one row of 96. The price: a
+    padded save time lies a few nanoseconds past the row's end and costs a save
+    interpolation, a Jacobian row and, every `WINDOW` of them, one tiny step of the
+    adaptive solver (see [`motion_steps`][]), so a record low in its rung solves a row
+    up to twice its length."""
     size = 6
     while size < m:
         size *= 2
