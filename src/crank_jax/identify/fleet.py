@@ -102,16 +102,17 @@ def _plan(scene, data, free, kw) -> _Member | str:
     return _Member(req, plan, noise_unit(plan.noise, req.known_sigma), t_begin)
 
 
-def _run(m: _Member, z, cost, iterations, status, dec, big) -> Run:
-    """The fleet's outcome of one member as the fit's `Run` (single-shooting coordinates),
-    judged as the fit judges its try: in range, and near the noise level."""
+def _run(m: _Member, z, cost, iterations, status, dec, big, r, J) -> Run:
+    """The fleet's outcome of one member as the fit's `Run` (single-shooting coordinates,
+    with its residuals `r` and sensitivities `J` there), judged as the fit judges its try:
+    in range, and near the noise level."""
     ok = STATUS[int(status)] == "converged" and math.isfinite(float(cost))
     words = (f"converged: the Gauss-Newton step predicts a cost decrease of {dec:.2g} "
              f"sigma^2 and moves no coordinate by more than {big:.2g} of its standard error")
     run = Run(np.asarray(z, float), float(cost), int(iterations), ok, "converged" if ok
               else f"ended {STATUS[int(status)]}", termination(
                   "converged" if ok else "failed", words, predicted_decrease=float(dec),
-                  largest_step=float(big), noise=m.noise))
+                  largest_step=float(big), noise=m.noise), (m.plan.single, r, J))
     run = in_range(m.plan, run)
     rms = math.sqrt(2 * run.cost / max(m.plan.single.n_residuals, 1))
     if run.converged and far_from_noise(rms, m.plan.noise, m.req.known_sigma):

@@ -48,6 +48,8 @@ class FleetRun(NamedTuple):
     status: np.ndarray  # (B,) index into STATUS
     decrease: np.ndarray  # (B,) the Gauss-Newton step's predicted decrease, sigma^2
     largest: np.ndarray  # (B,) its largest move over a standard error
+    r: np.ndarray  # (B, N) the residuals at `z`
+    J: np.ndarray  # (B, N, p) their sensitivities there
 
 
 def _scaled_step(J, r, d, lam, noise):
@@ -125,7 +127,7 @@ def _member(problem, z0, noise, tol, max_steps):
                       s.it + jnp.where(out, 0, 1), status, dec / unit, big)
 
     s = jax.lax.while_loop(lambda s: s.status == _RUNNING, body, s0)
-    return s.z, s.cost, s.it, s.status, s.dec, s.big
+    return s.z, s.cost, s.it, s.status, s.dec, s.big, s.r, s.J
 
 
 def _fleet(problems, z0, noise, tol, max_steps):
