@@ -29,7 +29,6 @@ from peers import HAVE_NUMBA  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.identify import fit_many  # noqa: E402
-from crank_jax.identify.fleet_lm import BATCHES  # noqa: E402
 
 PAGE = ROOT / "docs" / "benchmarks" / "performance.md"
 BEGIN, END = "<!-- BEGIN fleet -->", "<!-- END fleet -->"
@@ -96,10 +95,10 @@ def run(n: int, peer_n: int, smoke: bool) -> dict:
     scene, recs = records(n)
     data = [d for d, _ in recs]
     t = time.perf_counter()
-    # Compile (or load) the programs of every batch size the timed call uses: batches of
-    # BATCHES[-1] records and one of the rest, each padded to a size of BATCHES.
-    for part in {min(n, BATCHES[-1]), n % BATCHES[-1]} - {0}:
-        fit_many(scene, data[:part], FREE, progress=False, warn=False)
+    # The same call first: it compiles (or loads) the programs of every batch the timed
+    # call runs (the records' groups, by shooting, cut into batches of BATCHES[-1] and
+    # the rest, each padded to a size of BATCHES), so the timed call compiles nothing.
+    fit_many(scene, data, FREE, progress=False, warn=False)
     first = time.perf_counter() - t
     t, c = time.perf_counter(), time.process_time()
     fleet = fit_many(scene, data, FREE, progress=False, warn=False)
@@ -130,7 +129,39 @@ def run(n: int, peer_n: int, smoke: bool) -> dict:
             "throughput_ratio": peer_wall / ours,
             "peer_per_record_cpu_ms": 1e3 * peer_cpu,
             "throughput_ratio_cpu": peer_cpu / (cpu / n),
-            "peer_max_diff_over_stderr": float(np.nanmax(diff))}
+            "peer_max_diff_over_stderr": float(np.nanmax(diff)),
+            "shooting": {s: int(sum(r.strategy == s for r in fleet))
+                         for s in sorted({r.strategy for r in fleet})}}
+
+
+def cli(n: int) -> dict:
+    """`crank-jax fit REC1.csv ... lab-rig --each --out DIR` on `n` records, in a fresh
+    process twice (the second warm: its programs stored by the first); wall and CPU time
+    of the whole process, import included."""
+    import resource
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    _, recs = records(n)
+    with tempfile.TemporaryDirectory() as tmp:
+        files = []
+        for i, (d, _) in enumerate(recs):
+            files.append(str(Path(tmp) / f"rec{i:04d}.csv"))
+            cj.save_data(d, files[-1])
+        cmd = [sys.executable, "-m", "crank_jax", "fit", *files, "lab-rig", "--each",
+               "--out", str(Path(tmp) / "out"), "--quiet"]
+        times = []
+        for _ in range(2):
+            before = resource.getrusage(resource.RUSAGE_CHILDREN)
+            t = time.perf_counter()
+            subprocess.run(cmd, check=True, capture_output=True)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            times.append((time.perf_counter() - t, (after.ru_utime + after.ru_stime)
+                          - (before.ru_utime + before.ru_stime)))
+    return {"cli_records": n, "cli_first_s": times[0][0], "cli_warm_s": times[1][0],
+            "cli_warm_cpu_s": times[1][1]}
 
 
 def table(doc: dict) -> str:
@@ -164,6 +195,8 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=100, help="records (100)")
     ap.add_argument("--peer-n", type=int, default=10, help="records the peer fits (10)")
     ap.add_argument("--smoke", action="store_true")
+    ap.add_argument("--cli", type=int, default=0, metavar="N",
+                    help="also time the warm `crank-jax fit ... --each` command on N records")
     ap.add_argument("--table", action="store_true",
                     help="rewrite the docs table from bench_fit_many.json and stop")
     a = ap.parse_args()
@@ -174,6 +207,8 @@ def main() -> None:
     if a.smoke:
         a.n, a.peer_n = 4, 1
     doc = run(a.n, min(a.peer_n, a.n), a.smoke)
+    if a.cli:
+        doc.update(cli(a.cli))
     out = name.with_suffix(".smoke.json") if a.smoke else name
     out.write_text(json.dumps(doc, indent=2) + "\n")
     print(json.dumps({k: v for k, v in doc.items() if k != "machine"}, indent=2))
