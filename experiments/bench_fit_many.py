@@ -29,6 +29,7 @@ from peers import HAVE_NUMBA  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
 from crank_jax.identify import fit_many  # noqa: E402
+from crank_jax.identify.fleet_lm import BATCHES  # noqa: E402
 
 PAGE = ROOT / "docs" / "benchmarks" / "performance.md"
 BEGIN, END = "<!-- BEGIN fleet -->", "<!-- END fleet -->"
@@ -130,6 +131,7 @@ def run(n: int, peer_n: int, smoke: bool) -> dict:
             "peer_per_record_cpu_ms": 1e3 * peer_cpu,
             "throughput_ratio_cpu": peer_cpu / (cpu / n),
             "peer_max_diff_over_stderr": float(np.nanmax(diff)),
+            "batch_sizes": list(BATCHES),
             "shooting": {s: int(sum(r.strategy == s for r in fleet))
                          for s in sorted({r.strategy for r in fleet})}}
 
