@@ -188,8 +188,15 @@ def table(doc: dict) -> str:
         f"{doc['converged']} of {n} | |",
         f"| largest difference from the peer's estimate | "
         f"{doc['peer_max_diff_over_stderr']:.2g} standard errors | <= 0.05 |",
-        f"| the warm-up calls before (compiling each batch size's programs) | "
-        f"{doc['first_call_s']:.3g} s | |"])
+        f"| the same call before it (compiling its programs) | "
+        f"{doc['first_call_s']:.3g} s | |"] + ([
+        f"| `crank-jax fit` of {doc['cli_records']} records `--each`, warm, the process "
+        f"included | {doc['cli_warm_s']:.3g} s wall ({doc['cli_warm_cpu_s']:.3g} s of CPU; "
+        f"its first run, compiling: {doc['cli_first_s']:.3g} s) | 100 records <= 10 s |"]
+        if "cli_warm_s" in doc else []) + ([
+        "| the records' shooting | " + ", ".join(f"{v} {k}" for k, v in
+                                               doc["shooting"].items()) + " | |"]
+        if "shooting" in doc else []))
 
 
 def main() -> None:
