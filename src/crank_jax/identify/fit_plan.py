@@ -38,8 +38,8 @@ from .strategy import (
 )
 from .uncertainty import RANK_TOL
 
-__all__ = ["make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
-           "recoordinate", "recoordinate_basis", "single_problem"]
+__all__ = ["make_plan", "plan_steps", "start_solve", "constant_channel", "CONSTANT_EPS",
+           "shooting", "basis", "recoordinate", "recoordinate_basis", "single_problem"]
 
 
 def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
@@ -93,12 +93,13 @@ def _start_solve(req, start, states, solver, periods):
     start coordinates, and there the residuals, failures, steps per record (R,) and
     sensitivities. A record whose solve runs out of the small budget, which is already
     absurd for what it shows (see `absurd_start`), is not tried again at the large one:
-    that is seconds to learn what is known."""
+    that is seconds to learn what is known. A generator (see [`plan_steps`][]): it yields
+    each `(problem, z)` to solve and is sent `jacobian_at`'s host arrays there."""
     spans = [float(d.ts[-1] - d.ts[0]) for d in req.records]
     for budget in (SMALL_ODE_BUDGET, MAX_ODE_STEPS):
         ss = _problem(req, start, states, [1] * len(req.records), budget, solver)
         z = ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
-        r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, device_array(z)))
+        r, failed, steps, J = yield ss, z
         absurd = any(absurd_start(int(n), sp, p, turns=_turns(a)) for n, sp, p, a in
                      zip(np.atleast_1d(steps), spans, periods, req.angles))
         if int(failed) == 0 or budget == MAX_ODE_STEPS or absurd:
@@ -167,12 +168,32 @@ def basis(Bg: np.ndarray, n_coords: int, on: np.ndarray | None = None) -> np.nda
 
 
 def make_plan(req: FitRequest) -> Plan:
+    """The plan of a fit of `req` (see the module docstring): [`plan_steps`][] with each
+    start solve run here. That generator yields each start solve it needs, `(problem, z)`,
+    is sent [`start_solve`][]'s arrays there, and returns the plan, so that many records'
+    start solves can run side by side (`fleet.fit_many`)."""
+    steps = plan_steps(req)
+    try:
+        ask = next(steps)
+        while True:
+            ask = steps.send(start_solve(*ask))
+    except StopIteration as done:
+        return done.value
+
+
+def start_solve(ss: Problem, z: np.ndarray) -> tuple:
+    """`jacobian_at(ss, z)` as host arrays: residuals, failures, steps per record,
+    sensitivities."""
+    return tuple(np.asarray(x) for x in jacobian_at(ss, device_array(z)))
+
+
+def plan_steps(req: FitRequest):
+    """[`make_plan`][] as a generator of its start solves (see [`make_plan`][])."""
     periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     # Motion is judged on the angle the channels tell; the fit's residuals and their
     # noise level are in the first channel's unit.
     noises = [noise_level(d.ts, a) for d, a in zip(req.records, req.angles)]
-    noise = req.sigmas[req.first_channel]
-    multi = len(req.records) > 1
+    noise, multi = req.sigmas[req.first_channel], len(req.records) > 1
     quiet = next(((f"record {d.source}: {a}" if multi else a) for a, d in
                   ((no_motion(ang, n) or constant_channel(d) or aliased(ang), d)
                    for d, ang, n in zip(req.records, req.angles, noises)) if a), None)
@@ -185,7 +206,8 @@ def make_plan(req: FitRequest) -> Plan:
                     if a), None)
     if too_far:
         return _aborted(req, start, states, solver, too_far, notes)
-    ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
+    solved = yield from _start_solve(req, start, states, solver, periods)
+    ss, z_start, r0, failed0, steps0, J0 = solved
     full_start = {n: float(v) for n, v in zip(ss.names, ss.host_values(z_start))}
     plan = Plan(ss, ss, z_start, np.eye(ss.p), full_start, noise, periods, tuple(notes),
                 Shooting("single"), start, states, solver,
