@@ -84,6 +84,29 @@ def test_a_poisoned_record_leaves_the_others_bit_for_bit(lab_rig, records, fleet
 
 
 @pytest.mark.full
+def test_a_failing_start_solve_leaves_the_others_plans_alone(lab_rig, records):
+    from crank_jax.identify.fit_plan import start_solve
+    from crank_jax.identify.fleet_lm import start_solves
+
+    members = _members(lab_rig, records)
+    asks = [(m.plan.single, m.plan.single.to_z([m.plan.start[n] for n in m.plan.single.names]))
+            for m in members.values()]
+    side = start_solves(asks)  # side by side: each finite, each its own record's
+    for (ss, z), row in zip(asks, side):
+        alone = start_solve(ss, z)
+        assert int(row[1]) == 0 and np.all(np.isfinite(row[3]))
+        # (the records differ by their noise, 1e-3 rad: each row is its own record's)
+        np.testing.assert_allclose(row[0], alone[0], rtol=0, atol=1e-7)
+    # A start whose solve fails (NaN): every member is then solved by itself, so the
+    # others' plans are bit for bit their own.
+    ss, z = asks[1]
+    out = start_solves([asks[0], (ss, np.where(np.arange(z.size) == 1, np.nan, z)), asks[2]])
+    assert not np.all(np.isfinite(out[1][0]))
+    for a, b in zip(out[0] + out[2], start_solve(*asks[0]) + start_solve(*asks[2])):
+        assert np.array_equal(a, b)
+
+
+@pytest.mark.full
 def test_each_writes_a_fit_json_per_record_and_a_summary(tmp_path, records, fleet):
     paths = []
     for i, d in enumerate(records):
