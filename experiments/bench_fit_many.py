@@ -192,7 +192,7 @@ def table(doc: dict) -> str:
         f"{doc['first_call_s']:.3g} s | |"] + ([
         f"| `crank-jax fit` of {doc['cli_records']} records `--each`, warm, the process "
         f"included | {doc['cli_warm_s']:.3g} s wall ({doc['cli_warm_cpu_s']:.3g} s of CPU; "
-        f"its first run, compiling: {doc['cli_first_s']:.3g} s) | 100 records <= 10 s |"]
+        f"the run before it: {doc['cli_first_s']:.3g} s) | 100 records <= 10 s |"]
         if "cli_warm_s" in doc else []) + ([
         "| the records' shooting | " + ", ".join(f"{v} {k}" for k, v in
                                                doc["shooting"].items()) + " | |"]
