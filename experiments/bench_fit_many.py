@@ -166,7 +166,9 @@ def cli(n: int) -> dict:
             "cli_warm_cpu_s": times[1][1]}
 
 
-def table(doc: dict) -> str:
+def table(doc: dict, more: list[dict] = ()) -> str:
+    """The docs table of a 100-record run `doc`, with a row for each larger run of `more`
+    (`--n N`, results in bench_fit_many_nN.json)."""
     m = doc["machine"]
     n = doc["n"]
     return "\n".join([
@@ -184,6 +186,11 @@ def table(doc: dict) -> str:
         f"({doc.get('peer_per_record_cpu_ms', math.nan):.3g} ms of CPU) | |",
         f"| throughput, ours over the peer's | {doc['throughput_ratio']:.3g}x (wall), "
         f"{doc.get('throughput_ratio_cpu', math.nan):.3g}x (CPU time) | >= 20x |",
+        *[f"| {d['n']} records, warm (wall; {d['machine']['date']}) | {d['warm_s']:.3g} s "
+          f"({d['per_record_ms']:.3g} ms a record; {d['warm_cpu_s']:.3g} s of CPU; "
+          f"{d['throughput_ratio']:.3g}x the peer's wall throughput, "
+          f"{d['throughput_ratio_cpu']:.3g}x CPU, the peer on {d['peer_records']} records) "
+          f"| <= 60 s, >= 20x |" for d in more],
         f"| records fitted by the fleet / converged | {doc['fleet_records']} / "
         f"{doc['converged']} of {n} | |",
         f"| largest difference from the peer's estimate | "
@@ -211,14 +218,17 @@ def main() -> None:
     a = ap.parse_args()
     name = RESULTS / "bench_fit_many.json"
     if a.table:
-        write_section(PAGE, BEGIN, END, table(json.loads(name.read_text())), "fleet")
+        more = sorted(RESULTS.glob("bench_fit_many_n*.json"))
+        write_section(PAGE, BEGIN, END, table(json.loads(name.read_text()), [
+            json.loads(p.read_text()) for p in more]), "fleet")
         return
     if a.smoke:
         a.n, a.peer_n = 4, 1
     doc = run(a.n, min(a.peer_n, a.n), a.smoke)
     if a.cli:
         doc.update(cli(a.cli))
-    out = name.with_suffix(".smoke.json") if a.smoke else name
+    out = (name.with_suffix(".smoke.json") if a.smoke else name if a.n == 100
+           else name.with_name(f"bench_fit_many_n{a.n}.json"))
     out.write_text(json.dumps(doc, indent=2) + "\n")
     print(json.dumps({k: v for k, v in doc.items() if k != "machine"}, indent=2))
 
