@@ -84,16 +84,43 @@ def test_a_poisoned_record_leaves_the_others_bit_for_bit(lab_rig, records, fleet
 
 
 @pytest.mark.full
+def test_a_failing_start_solve_leaves_the_others_plans_alone(lab_rig, records):
+    from crank_jax.identify.fit_plan import start_solve
+    from crank_jax.identify.fleet_lm import start_solves
+
+    members = _members(lab_rig, records)
+    asks = [(m.plan.single, m.plan.single.to_z([m.plan.start[n] for n in m.plan.single.names]))
+            for m in members.values()]
+    side = start_solves(asks)  # side by side: each finite, each its own record's
+    for (ss, z), row in zip(asks, side):
+        alone = start_solve(ss, z)
+        assert int(row[1]) == 0 and np.all(np.isfinite(row[3]))
+        # (the records differ by their noise, 1e-3 rad: each row is its own record's)
+        np.testing.assert_allclose(row[0], alone[0], rtol=0, atol=1e-7)
+    # A start whose solve fails (NaN): every member is then solved by itself, so the
+    # others' plans are bit for bit their own.
+    ss, z = asks[1]
+    out = start_solves([asks[0], (ss, np.where(np.arange(z.size) == 1, np.nan, z)), asks[2]])
+    assert int(out[1][1]) > 0  # its solve failed
+    for a, b in zip(out[0] + out[2], start_solve(*asks[0]) + start_solve(*asks[2])):
+        assert np.array_equal(a, b)
+
+
+@pytest.mark.full
 def test_each_writes_a_fit_json_per_record_and_a_summary(tmp_path, records, fleet):
     paths = []
     for i, d in enumerate(records):
         paths.append(tmp_path / f"rec{i}.csv")
         cj.save_data(d, paths[-1])
     out = tmp_path / "fits"
-    rc = main(["fit", *map(str, paths), "lab-rig", "--each", "--out", str(out), "--quiet"])
+    rc = main(["fit", *map(str, paths), "lab-rig", "--each", "--out", str(out), "--quiet",
+               "--report", "fits.html"])
     assert rc == 0
-    assert sorted(p.name for p in out.iterdir()) == ["rec0.json", "rec1.json", "rec2.json",
-                                                     "summary.csv"]
+    assert sorted(p.name for p in out.iterdir()) == ["fits.html", "rec0.json", "rec1.json",
+                                                     "rec2.json", "summary.csv"]
+    html = (out / "fits.html").read_text()
+    assert html.count('<tr data-name="') == 3 and "3 of 3 records converged" in html
+    assert f'title="{fleet[1].values["k"]!r}"' in html
     doc = json.loads((out / "rec1.json").read_text())
     assert doc.keys() == fleet[1].to_json().keys()
     assert doc["estimates"]["k"]["value"] == pytest.approx(fleet[1].values["k"], rel=1e-12)
@@ -121,6 +148,9 @@ def test_each_refuses_clashes_before_any_fit(tmp_path, capsys):
     assert main(["fit", str(a), "lab-rig", "--each", "--out", str(tmp_path / "o"),
                  "--multistart", "3"]) == 2
     assert "--multistart is not taken with --each" in capsys.readouterr().err
+    assert main(["fit", str(a), "lab-rig", "--each", "--out", str(tmp_path / "o"),
+                 "--report", "summary.csv"]) == 2
+    assert "would clash with the results" in capsys.readouterr().err
     assert main(["fit", str(a), str(b), "lab-rig", "--out", "x.json"]) == 2
     err = capsys.readouterr().err
     assert "--each fits each record by itself" in err and err.count("\n") == 1
@@ -133,3 +163,31 @@ def test_fit_many_names_the_record_of_a_bad_request(lab_rig):
         fm.fit_many(lab_rig, records[:2], ("k", "nope"), progress=False)
     with pytest.raises(ValueError, match="one scene per record"):
         fm.fit_many([lab_rig], records[:2], progress=False)
+
+
+def _stand_in(k, se, converged=True):
+    """What the summary report reads of a fit's result, for a report without fits."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(names=("k", "c"), values={"k": k, "c": 0.002},
+                           stderr={"k": se, "c": None if not converged else 1e-5},
+                           converged=converged, identifiable=True if converged else None,
+                           iterations=5, rms_residual=1e-3, message="ended budget",
+                           warnings=["fit did not converge: ended budget"], data=[])
+
+
+def test_the_summary_report_has_a_row_and_a_verdict_per_record(tmp_path):
+    from crank_jax.report import write_fleet_report
+
+    fleet = fm.FleetResult([_stand_in(2.01, 0.01), _stand_in(1.98, 0.02),
+                            _stand_in(7.5, None, converged=False)],
+                           [None, None, "its fleet run ended budget"], 1.5)
+    path = tmp_path / "fits.html"
+    write_fleet_report(fleet, path, labels=["a.csv", "b.csv", "c.csv"], command="x")
+    html = path.read_text()
+    assert html.count('<tr data-name="') == 3
+    assert '<tr data-name="c.csv" class="bad">' in html and "did NOT converge" in html
+    assert "2 of 3 records converged" in html and "2 records fitted side by side" in html
+    assert 'title="2.01"' in html and "<svg" in html  # the spread figure
+    # The summary over the converged records: median k of 2.01 and 1.98.
+    assert "median 1.995" in html and list(tmp_path.iterdir()) == [path]

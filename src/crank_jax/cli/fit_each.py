@@ -1,6 +1,7 @@
 """`crank-jax fit REC1.csv REC2.csv ... SCENE --each --out DIR`: each record fitted by
 itself, side by side ([`fit_many`][crank_jax.identify.fleet.fit_many]); DIR gets
-`<record stem>.json` per record (a single fit's `fit.json`) and `summary.csv`."""
+`<record stem>.json` per record (a single fit's `fit.json`) and `summary.csv`, and with
+`--report HTML` one summary report (in DIR where HTML names no folder)."""
 
 from __future__ import annotations
 
@@ -18,16 +19,24 @@ SUMMARY = "summary.csv"
 
 #: Options of `fit` that a fit of each record by itself does not take, and their defaults.
 _NOT_EACH = (("more_data", [], "--more-data"), ("plot", None, "--plot"),
-             ("report", None, "--report"), ("predictions", None, "--predictions"),
+             ("predictions", None, "--predictions"),
              ("scene_out", None, "--scene-out"), ("profile", None, "--profile"),
              ("multistart", 1, "--multistart"), ("per_record", "", "--per-record"),
              ("method", "lm", "--method"), ("shooting", None, "--shooting"),
              ("segments", None, "--segments"))
 
 
+def report_path(a: argparse.Namespace) -> Path | None:
+    """Where `--report` goes with `--each`: in `--out DIR` when it names no folder."""
+    if not a.report:
+        return None
+    p = Path(a.report)
+    return Path(a.out) / p if p.parent == Path(".") else p
+
+
 def _outputs(a: argparse.Namespace, files: list[str]) -> tuple[Path, dict[str, Path]]:
     """The output directory and each record's JSON file, checked before any work: one
-    stem per record, DIR not a file, no output over an input."""
+    stem per record, DIR not a file, no output over an input (nor the report over one)."""
     from ..runtime.io import check_output
 
     if not a.out:
@@ -44,8 +53,12 @@ def _outputs(a: argparse.Namespace, files: list[str]) -> tuple[Path, dict[str, P
         stems[stem] = f
     out.mkdir(parents=True, exist_ok=True)
     paths = {f: out / f"{Path(f).stem}.json" for f in files}
+    report = report_path(a)
+    if report is not None and (report.suffix.lower() == ".json" or report.name == SUMMARY):
+        raise UserError(f"--report {a.report!r} would clash with the results in {a.out}; "
+                        "name an .html file")
     try:
-        for p in [*paths.values(), out / SUMMARY]:
+        for p in [*paths.values(), out / SUMMARY] + ([report] if report else []):
             check_output(p, files + [a.scene], "--out")
     except ValueError as e:
         raise UserError(str(e)) from None
@@ -90,11 +103,16 @@ def fit_each(a: argparse.Namespace, files: list[str], write_json, fit_kwargs) ->
         w = csv.DictWriter(fh, fieldnames=names, lineterminator="\n")
         w.writeheader()
         w.writerows({k: "" if v is None else v for k, v in row.items()} for row in rows)
+    if a.report:
+        from ..report import write_fleet_report
+
+        write_fleet_report(fleet, report_path(a), labels=files, scene=scene)
     alone = sum(x is not None for x in fleet.alone)
     ok = sum(r.converged for r in fleet)
     print(f"fitted {len(files)} records ({len(files) - alone} side by side, {alone} by "
           f"themselves), {ok} converged, in {fleet.seconds:.1f} s; wrote {len(files)} JSON "
-          f"files and {SUMMARY} in {out}", file=sys.stderr)
+          f"files and {SUMMARY} in {out}" + (f"; the report {report_path(a)}" if a.report
+                                               else ""), file=sys.stderr)
     refused = [f for f, res in zip(files, fleet)
                if (res.termination or {}).get("verdict") == "refused"]
     if refused:

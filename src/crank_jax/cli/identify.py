@@ -40,7 +40,9 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
                         "`predictions`)")
     p.add_argument("--report", metavar="HTML",
                    help="write a self-contained HTML report (estimates, correlations, "
-                        "figures, verdicts, provenance) to this file")
+                        "figures, verdicts, provenance) to this file; with --each one "
+                        "summary report of the records (in --out DIR when HTML names no "
+                        "folder)")
     p.add_argument("--init", default="scene", choices=("scene", "regressor"),
                    help="start values: the scene's, or from the linear regressor form")
     p.add_argument("--method", default="lm", choices=("lm", "optax"),

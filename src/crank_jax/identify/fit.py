@@ -84,7 +84,10 @@ def _result(state: FitState, t_begin: float) -> FitResult:
         r_hat, values = ss.no_residuals(), ss.host_values(z_hat)
         rms, unc, more, diag = float("nan"), undefined(ss.p, "did not converge"), [], None
     else:
-        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, req.known_sigma)
+        # (The fleet's run holds its residuals and sensitivities at its estimate.)
+        at = best.solved[1:] if best.solved is not None and best.solved[0] is ss else None
+        r_hat, values, rms, unc, more, diag = assess(ss, z_hat, converged, req.known_sigma,
+                                                     at=at)
     term = best.termination
     if converged and not math.isfinite(rms):
         converged, message = False, FAILS_AT_END

@@ -37,8 +37,9 @@ from .strategy import (
 )
 from .uncertainty import RANK_TOL
 
-__all__ = ["make_plan", "constant_channel", "CONSTANT_EPS", "shooting", "basis",
-           "recoordinate", "recoordinate_basis", "single_problem", "record_spans"]
+__all__ = ["make_plan", "plan_steps", "start_solve", "constant_channel", "CONSTANT_EPS",
+           "shooting", "basis", "recoordinate", "recoordinate_basis", "single_problem",
+           "record_spans"]
 
 
 def _starts(req: FitRequest, periods) -> tuple[dict, list, list]:
@@ -90,11 +91,13 @@ def _start_solve(req, start, states, solver, periods):
     """The single-shooting problem at the smallest budget that solves the start, the
     start coordinates, and there the residuals, failures, steps per record (R,) and
     sensitivities. A record whose solve runs out of the small budget, already absurd for
-    what it shows (see `absurd_start`), is not tried again at the large one."""
+    what it shows (see `absurd_start`), is not tried again at the large one. A generator
+    (see [`plan_steps`][]): it yields each `(problem, z)` to solve and is sent
+    `jacobian_at`'s host arrays there."""
     for budget in (SMALL_ODE_BUDGET, MAX_ODE_STEPS):
         ss = single_problem(req, start, states, budget, solver)
         z = _start_z(ss, start, states)
-        r, failed, steps, J = (np.asarray(x) for x in jacobian_at(ss, device_array(z)))
+        r, failed, steps, J = yield ss, z
         absurd = any(absurd_start(int(n), sp, p, turns=_turns(a)) for n, sp, p, a in
                      zip(np.atleast_1d(steps), record_spans(req), periods, req.angles))
         if int(failed) == 0 or budget == MAX_ODE_STEPS or absurd:
@@ -177,7 +180,27 @@ def basis(Bg: np.ndarray, n_coords: int, on: np.ndarray | None = None) -> np.nda
 
 
 def make_plan(req: FitRequest) -> Plan:
-    """The plan of `req`'s fit (see the module's docstring)."""
+    """The plan of `req`'s fit (see the module's docstring): [`plan_steps`][] with each
+    start solve run here. That generator yields each start solve it needs, `(problem, z)`,
+    is sent [`start_solve`][]'s arrays there, and returns the plan, so that many records'
+    start solves can run side by side (`fleet.fit_many`)."""
+    steps = plan_steps(req)
+    try:
+        ask = next(steps)
+        while True:
+            ask = steps.send(start_solve(*ask))
+    except StopIteration as done:
+        return done.value
+
+
+def start_solve(ss: Problem, z: np.ndarray) -> tuple:
+    """`jacobian_at(ss, z)` as host arrays: residuals, failures, steps per record,
+    sensitivities."""
+    return tuple(np.asarray(x) for x in jacobian_at(ss, device_array(z)))
+
+
+def plan_steps(req: FitRequest):
+    """[`make_plan`][] as a generator of its start solves (see [`make_plan`][])."""
     periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
     # Motion is judged on the angle the channels tell; the fit's residuals and their
     # noise level are in the first channel's unit.
@@ -191,7 +214,8 @@ def make_plan(req: FitRequest) -> Plan:
                                       for (lo, _), p in zip(req.loads, periods)))
     if too_far:
         return _aborted(req, start, states, solver, too_far, notes)
-    ss, z_start, r0, failed0, steps0, J0 = _start_solve(req, start, states, solver, periods)
+    ss, z_start, r0, failed0, steps0, J0 = yield from _start_solve(req, start, states, solver,
+                                                                   periods)
     plan = Plan(ss, ss, z_start, np.eye(ss.p), _values(ss, z_start), periods,
                 tuple(notes), Shooting(Shot.SINGLE), start, states, solver,
                 ranges=ranges(mech_start, req.records, req.angles, periods, start))

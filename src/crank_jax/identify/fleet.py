@@ -2,7 +2,8 @@
 and free set by itself, side by side in one compiled program.
 
 Each record is planned as [`fit`][] plans it (its request checked, its start values and
-noise level from the data, its start solve judged); the records whose plan is single
+noise level from the data, its start solve judged; the start solves of the records of one
+shape side by side, in one compiled call per batch); the records whose plan is single
 shooting are grouped by the shape of their problem (the bucket length of
 [`segments`][crank_jax.identify.segments]) and fitted under one `jax.vmap` of a
 Levenberg-Marquardt loop ([`fleet_lm`][crank_jax.identify.fleet_lm]) with the fit's own
@@ -34,9 +35,9 @@ from ..runtime.blas import one_blas_thread
 from ..runtime.progress import progress_bar
 from .attempt import in_range
 from .fit import finish, fit
-from .fit_plan import make_plan, recoordinate
+from .fit_plan import make_plan, plan_steps, recoordinate
 from .fit_result import FitResult
-from .fleet_lm import BATCHES, STATUS, run_batch, shape_key
+from .fleet_lm import BATCHES, STATUS, run_batch, shape_key, start_solves
 from .outcome import Run, termination
 from .request import normalize
 from .stages import FitState
@@ -88,12 +89,49 @@ class _Member(NamedTuple):
     t_begin: float
 
 
+def _request(scene, data, free, kw):
+    """A record's request, as `fit` makes it."""
+    return normalize(scene, data, free, **kw)
+
+
 def _plan(scene, data, free, kw) -> _Member | str:
     """A record's request and plan, as `fit` makes them; a string: why it is not for the
     fleet (it is then fitted by `fit`)."""
     t_begin = time.perf_counter()
-    req = normalize(scene, data, free, **kw)
-    plan = make_plan(req)
+    req = _request(scene, data, free, kw)
+    return _member(req, make_plan(req), t_begin)
+
+
+def _plan_all(reqs: dict, bar) -> dict:
+    """Each request's plan (index -> Plan), as `make_plan` makes it, the start solves of
+    the records of one shape side by side ([`start_solves`][crank_jax.identify.fleet_lm.
+    start_solves]): each record's [`plan_steps`][crank_jax.identify.fit_plan.plan_steps]
+    is stepped until it asks for a solve, then the asks are solved together."""
+    steps, asks, plans = {i: plan_steps(r) for i, r in reqs.items()}, {}, {}
+
+    def advance(i, solved):
+        try:
+            asks[i] = next(steps[i]) if solved is None else steps[i].send(solved)
+        except StopIteration as done:
+            plans[i] = done.value
+            asks.pop(i, None)
+            bar.update(1)
+
+    for i in steps:
+        advance(i, None)
+    while asks:
+        groups: dict = {}
+        for i, (ss, _) in asks.items():
+            groups.setdefault(shape_key(ss), []).append(i)
+        for idx in groups.values():
+            for i, solved in zip(idx, start_solves([asks[i] for i in idx])):
+                advance(i, solved)
+    return plans
+
+
+def _member(req, plan, t_begin: float) -> _Member | str:
+    """The fleet's member of a planned record; a string: why it is not for the fleet (it
+    is then fitted by `fit`)."""
     if plan.abort:
         return "refused before any optimisation"
     if plan.Bg.shape[1] != plan.single.p:
@@ -101,16 +139,17 @@ def _plan(scene, data, free, kw) -> _Member | str:
     return _Member(req, plan, noise_unit(req.noise), t_begin)
 
 
-def _run(m: _Member, z, cost, iterations, status, dec, big) -> Run:
-    """The fleet's outcome of one member as the fit's `Run` (single-shooting coordinates),
-    judged as the fit judges its try: in range, and near the noise level."""
+def _run(m: _Member, z, cost, iterations, status, dec, big, r, J) -> Run:
+    """The fleet's outcome of one member as the fit's `Run` (single-shooting coordinates,
+    with its residuals `r` and sensitivities `J` there), judged as the fit judges its try:
+    in range, and near the noise level."""
     ok = STATUS[int(status)] == "converged" and math.isfinite(float(cost))
     words = (f"converged: the Gauss-Newton step predicts a cost decrease of {dec:.2g} "
              f"sigma^2 and moves no coordinate by more than {big:.2g} of its standard error")
     run = Run(np.asarray(z, float), float(cost), int(iterations), ok, "converged" if ok
               else f"ended {STATUS[int(status)]}", termination(
                   "converged" if ok else "failed", words, predicted_decrease=float(dec),
-                  largest_step=float(big), noise=m.noise))
+                  largest_step=float(big), noise=m.noise), (m.plan.single, r, J))
     run = in_range(m.plan, run)
     rms = math.sqrt(2 * run.cost / max(m.plan.single.n_residuals, 1))
     if run.converged and far_from_noise(rms, m.req.noise):
@@ -210,18 +249,19 @@ def fit_many(
     kw = dict(init=init, method="lm", shooting="auto", segments=None, multistart=1, seed=0,
               max_steps=max_steps, tol=tol, sigma=sigma, profile=None, window=window,
               progress=False, warn=warn, force=force, load_by=load_by)
-    members, alone = {}, {}
+    members, alone, reqs = {}, {}, {}
+    for i, (sc, d) in enumerate(zip(scenes, records)):
+        try:
+            reqs[i] = _request(sc, d, free, kw)
+        except ValueError as e:
+            raise ValueError(f"record {i}: {e}") from None
     with progress_bar(None, "fit_many", progress, unit="record") as bar:
-        for i, (sc, d) in enumerate(zip(scenes, records)):
-            try:
-                m = _plan(sc, d, free, kw)
-            except ValueError as e:
-                raise ValueError(f"record {i}: {e}") from None
+        for i, plan in sorted(_plan_all(reqs, bar).items()):
+            m = _member(reqs[i], plan, t0)
             if isinstance(m, str):
                 alone[i] = m
             else:
                 members[i] = m
-            bar.update(1)
         steps = 100 if max_steps is None else int(max_steps)
         runs, left = _fit_fleet(members, tol, steps, bar)
     alone.update(left)

@@ -23,10 +23,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .fit_plan import start_solve
 from .optimize import DECREASE_FRACTION, STEP_FRACTION
 from .programs import Program, jacobian_at
 
-__all__ = ["STATUS", "FleetRun", "fleet_program", "stack", "shape_key", "BATCHES"]
+__all__ = ["STATUS", "FleetRun", "fleet_program", "stack", "shape_key", "BATCHES",
+           "start_solves"]
 
 #: A member's status at the end of [`fleet_program`][] (index into this tuple).
 STATUS = ("converged", "budget", "failed", "stalled", "running")
@@ -48,6 +50,8 @@ class FleetRun(NamedTuple):
     status: np.ndarray  # (B,) index into STATUS
     decrease: np.ndarray  # (B,) the Gauss-Newton step's predicted decrease, sigma^2
     largest: np.ndarray  # (B,) its largest move over a standard error
+    r: np.ndarray  # (B, N) the residuals at `z`
+    J: np.ndarray  # (B, N, p) their sensitivities there
 
 
 def _scaled_step(J, r, d, lam, noise):
@@ -125,7 +129,7 @@ def _member(problem, z0, noise, tol, max_steps):
                       s.it + jnp.where(out, 0, 1), status, dec / unit, big)
 
     s = jax.lax.while_loop(lambda s: s.status == _RUNNING, body, s0)
-    return s.z, s.cost, s.it, s.status, s.dec, s.big
+    return s.z, s.cost, s.it, s.status, s.dec, s.big, s.r, s.J
 
 
 def _fleet(problems, z0, noise, tol, max_steps):
@@ -163,3 +167,34 @@ def run_batch(problems, z0s, noises, tol: float, max_steps: int) -> FleetRun:
     noise = jnp.asarray([noises[i] for i in list(range(n)) + pad], dtype=z0.dtype)
     out = fleet_program(probs, z0, noise, jnp.asarray(tol, z0.dtype), jnp.asarray(max_steps))
     return FleetRun(*(np.asarray(x)[:n] for x in out))
+
+
+def _jacobians(problems, z):
+    return jax.vmap(jacobian_at.fn)(problems, z)
+
+
+#: `jacobians_program(problems, z (B, p))`: `jacobian_at` of each member, side by side.
+jacobians_program = Program(_jacobians, "fleet_jacobians")
+
+
+def start_solves(asks: list) -> list[tuple]:
+    """[`start_solve`][crank_jax.identify.fit_plan.start_solve] of each `(problem, z)` of
+    `asks` (problems of one [`shape_key`][]), side by side in batches of [`BATCHES`][]
+    (padded with copies of the first). A batch with a member whose solve failed or is not
+    finite is solved again member by member: no record's plan then depends on another's."""
+    out = []
+    for k in range(0, len(asks), BATCHES[-1]):
+        part = asks[k:k + BATCHES[-1]]
+        if len(part) == 1:
+            out.append(start_solve(*part[0]))
+            continue
+        pad = part + [part[0]] * (next(b for b in BATCHES if b >= len(part)) - len(part))
+        res = jacobians_program(stack([p for p, _ in pad]),
+                                jnp.asarray(np.stack([z for _, z in pad])))
+        host = [np.asarray(x)[:len(part)] for x in res]
+        rows = [tuple(h[j] for h in host) for j in range(len(part))]
+        if not all(int(r[1]) == 0 and np.all(np.isfinite(r[0])) and np.all(np.isfinite(r[3]))
+                   for r in rows):
+            rows = [start_solve(*a) for a in part]
+        out += rows
+    return out

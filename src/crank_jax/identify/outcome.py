@@ -32,6 +32,10 @@ class Run(NamedTuple):
     converged: bool
     message: str
     termination: dict | None = None
+    #: `(problem, r, J)`: the residuals (N,) and sensitivities (N, p) of the single-shooting
+    #: `problem` at `z`, where the optimiser already holds them (the fleet), so that the
+    #: uncertainty need not solve again; None where not.
+    solved: tuple | None = None
 
 
 def termination(verdict: str, words: str, *, predicted_decrease: float | None = None,

@@ -317,15 +317,16 @@ def misfit(ss, unc: Uncertainty, r_hat, J, values, sigma):
         f"(up to {worst:.3g}x the white-noise ones)"]
 
 
-def assess(ss, z_hat, converged: bool, sigma: float | None = None):
-    """Residuals, sensitivities and uncertainty at the estimate `z_hat` of the
-    single-shooting problem `ss`.
+def assess(ss, z_hat, converged: bool, sigma: float | None = None, at=None):
+    """Residuals, sensitivities and uncertainty at the estimate `z_hat` of the single-
+    shooting problem `ss` (`at`: those residuals (N,) and sensitivities (N, p) if solved).
     **Returns:** `(r, values, rms, Uncertainty, notes, Diagnostics or None)`.
 
     Identifiability is judged only at a converged estimate: a fit that did not converge
     says so, not that the data cannot determine a direction."""
     try:
-        r_hat, failed, _, J = (np.asarray(x) for x in jacobian_at(ss, device_array(z_hat)))
+        r_hat, failed, _, J = (np.asarray(x) for x in (
+            (at[0], 0, 0, at[1]) if at is not None else jacobian_at(ss, device_array(z_hat))))
     except (RuntimeError, ValueError) as e:
         return (ss.no_residuals(), ss.host_values(z_hat),
                 float("nan"), undefined(ss.p, f"sensitivities could not be computed: "

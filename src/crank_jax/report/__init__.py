@@ -14,9 +14,11 @@ import os
 from collections.abc import Sequence
 
 from .context import fit_context, validation_context
+from .fleet_report import fleet_context
 from .track_report import track_context
 
-__all__ = ["write_fit_report", "write_validation_report", "write_track_report", "render"]
+__all__ = ["write_fit_report", "write_validation_report", "write_track_report",
+           "write_fleet_report", "render"]
 
 
 def render(context: dict) -> str:
@@ -62,3 +64,14 @@ def write_track_report(res, path: str | os.PathLike, *, scene=None,
     """Write the HTML report of a [`TrackResult`][crank_jax.online.tracked.TrackResult] to
     `path`, atomically (arguments as [`write_fit_report`][])."""
     _write(path, render(track_context(res, scene=scene, command=command, title=title)))
+
+
+def write_fleet_report(fleet, path: str | os.PathLike, *, labels: Sequence[str] | None = None,
+                       scene=None, command: Sequence[str] | str | None = None,
+                       title: str = "") -> None:
+    """Write the summary report of many independent fits (a
+    [`FleetResult`][crank_jax.identify.fleet.FleetResult]) to `path`, atomically: a row
+    per record (`labels`, default its file's name) with its estimates, standard errors and
+    verdict, and the estimates' spread (other arguments as [`write_fit_report`][])."""
+    _write(path, render(fleet_context(fleet, labels, scene=scene, command=command,
+                                      title=title)))
