@@ -107,6 +107,15 @@ def save(name: str, payload: dict, smoke: bool) -> Path:
     return path
 
 
+def write_json(path: Path, payload: dict) -> None:
+    """Write `payload` to `path` as indented JSON, atomically (a temporary file beside it,
+    then renamed: an interrupted run leaves the previous results whole)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(payload, indent=1) + "\n")
+    tmp.replace(path)
+
+
 def interp_time(errors, times, target: float) -> float | None:
     """Time at error `target` by log-log interpolation along a work-precision curve
     (None if `target` is outside the measured range)."""

@@ -35,7 +35,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _bench import RESULTS, ROOT, machine, setup_jax
+from _bench import RESULTS, ROOT, machine, setup_jax, write_json
 
 jax = setup_jax()
 
@@ -286,10 +286,7 @@ def main(argv=None) -> dict:
     else:
         entry.update(machine=machine(), crank_jax=cj.__file__,
                      records=in_process(start, args.repeats))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(out, indent=1) + "\n")
-    tmp.replace(args.out)
+    write_json(args.out, out)
     return out
 
 

@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from _bench import RESULTS, machine, setup_jax
+from _bench import RESULTS, machine, setup_jax, write_json
 
 #: (record length s, noise seed)
 RECORDS = ((5.0, 1), (8.0, 8), (10.0, 9))
@@ -72,10 +72,7 @@ def main(argv=None) -> dict:
             runs.append({"label": label, "round": r, "cpu_s": cpu, "median_cpu_s": med})
             print(label, r, med, flush=True)
     out = {"machine": machine(), "records": [t for t, _ in RECORDS], "runs": runs}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(out, indent=1) + "\n")
-    tmp.replace(args.out)
+    write_json(args.out, out)
     return out
 
 
