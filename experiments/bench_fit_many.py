@@ -92,7 +92,9 @@ def _numba_rhs():
     return rhs
 
 
-def run(n: int, peer_n: int, smoke: bool) -> dict:
+def run(n: int, peer_n: int, smoke: bool, rig: str = "lab") -> dict:
+    if rig == "rotating":
+        return run_rot(n, peer_n, smoke)
     scene, recs = records(n)
     data = [d for d, _ in recs]
     t = time.perf_counter()
@@ -132,6 +134,67 @@ def run(n: int, peer_n: int, smoke: bool) -> dict:
             "throughput_ratio_cpu": peer_cpu / (cpu / n),
             "peer_max_diff_over_stderr": float(np.nanmax(diff)),
             "batch_sizes": list(BATCHES),
+            "shooting": {s: int(sum(r.strategy == s for r in fleet))
+                         for s in sorted({r.strategy for r in fleet})}}
+
+
+def run_rot(n: int, peer_n: int, smoke: bool) -> dict:
+    """The rotating rig with two channels (experiments/fleet_rot.py), both channels weighted
+    by their known noise in the fleet and in the peer."""
+    import fleet_rot as fr
+
+    scene, recs = fr.records(n)
+    data = [d for d, _ in recs]
+    kw = dict(sigma=dict(fr.NOISE), progress=False, warn=False)
+    t = time.perf_counter()
+    fit_many(scene, data, fr.FREE, **kw)  # the same call first: it compiles
+    first = time.perf_counter() - t
+    t, c = time.perf_counter(), time.process_time()
+    fleet = fit_many(scene, data, fr.FREE, **kw)
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    est = np.array([[r.values[k] for k in fr.FREE] for r in fleet])
+    se = np.array([[r.stderr[k] or math.nan for k in fr.FREE] for r in fleet])
+    truth = np.array([t_ for _, t_ in recs])
+    z = (est[:, :2] - truth[:, :2]) / se[:, :2]
+    rhs = fr.numba_rhs()
+    fr.peer_fit(rhs, scene, data[0])  # numba's compile
+    t, c = time.perf_counter(), time.process_time()
+    peer = [fr.peer_fit(rhs, scene, d) for d in data[:peer_n]]
+    peer_wall = (time.perf_counter() - t) / peer_n
+    peer_cpu = (time.process_time() - c) / peer_n
+    # The peer again, started at the fleet's estimate: does it stay there (the same
+    # minimum, within a twentieth of a standard error)? It also gives the fleet
+    # estimate's cost under the peer's model (the peer's cost at its start).
+    again = [fr.peer_fit(rhs, scene, d, list(x)) for d, x in zip(data, est[:peer_n])]
+    diff = np.abs(np.array([p[0] for p in peer]) - est[:peer_n]) / se[:peer_n]
+    diff_again = np.abs(np.array([p[0] for p in again]) - est[:peer_n]) / se[:peer_n]
+    same = diff.max(axis=1) <= 0.05
+    ours = wall / n
+    return {"smoke": smoke, "rig": "rotating", "machine": machine(), "n": n,
+            "samples": int(data[0].ts.size), "channels": list(fr.NOISE),
+            "noise": dict(fr.NOISE), "free": list(fr.FREE), "first_call_s": first,
+            "warm_s": wall, "warm_cpu_s": cpu, "per_record_ms": 1e3 * ours,
+            "fleet_records": int(sum(a is None for a in fleet.alone)),
+            "alone_reasons": sorted({a for a in fleet.alone if a is not None}),
+            "converged": int(sum(r.converged for r in fleet)),
+            "iterations_median": float(np.median([r.iterations for r in fleet])),
+            "z_truth_rms_tau0_c": float(np.sqrt(np.nanmean(z**2))),
+            "peer": "scipy least_squares(lm) over solve_ivp DOP853, "
+                    + ("numba rhs" if HAVE_NUMBA else "plain Python rhs (numba missing)"),
+            "peer_records": peer_n, "peer_per_record_ms": 1e3 * peer_wall,
+            "throughput_ratio": peer_wall / ours,
+            "peer_per_record_cpu_ms": 1e3 * peer_cpu,
+            "throughput_ratio_cpu": peer_cpu / (cpu / n),
+            "peer_start": "nominal tau0, c; phi0, dphi0 from the record's first 5 samples",
+            "peer_same_minimum": int(same.sum()),
+            "peer_worse_minimum": int(sum(p[1] > a[2] + 1.0 for p, a in zip(peer, again))),
+            "peer_cost": [p[1] for p in peer], "fleet_cost_under_peer": [a[2] for a in again],
+            "peer_max_diff_over_stderr": float(np.nanmax(diff)),
+            "peer_max_diff_same_minimum": (float(np.nanmax(diff[same])) if same.any()
+                                           else None),
+            "peer_from_fleet_max_diff_over_stderr": float(np.nanmax(diff_again)),
+            "peer_from_fleet_max_diff_by_param": dict(zip(
+                fr.FREE, np.nanmax(diff_again, axis=0).tolist())),
             "shooting": {s: int(sum(r.strategy == s for r in fleet))
                          for s in sorted({r.strategy for r in fleet})}}
 
@@ -211,6 +274,8 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=100, help="records (100)")
     ap.add_argument("--peer-n", type=int, default=10, help="records the peer fits (10)")
     ap.add_argument("--smoke", action="store_true")
+    ap.add_argument("--rig", choices=("lab", "rotating"), default="lab",
+                    help="lab (default) or rotating: the rotating rig with two channels")
     ap.add_argument("--cli", type=int, default=0, metavar="N",
                     help="also time the warm `crank-jax fit ... --each` command on N records")
     ap.add_argument("--table", action="store_true",
@@ -224,7 +289,9 @@ def main() -> None:
         return
     if a.smoke:
         a.n, a.peer_n = 4, 1
-    doc = run(a.n, min(a.peer_n, a.n), a.smoke)
+    if a.rig == "rotating":
+        name = RESULTS / "bench_fit_many_rot.json"
+    doc = run(a.n, min(a.peer_n, a.n), a.smoke, a.rig)
     if a.cli:
         doc.update(cli(a.cli))
     out = (name.with_suffix(".smoke.json") if a.smoke else name if a.n == 100
