@@ -269,6 +269,52 @@ def table(doc: dict, more: list[dict] = ()) -> str:
         if "shooting" in doc else []))
 
 
+def table_rot(doc: dict) -> str:
+    """The docs sub-table of a rotating-rig run `doc` (bench_fit_many_rot.json)."""
+    m, n = doc["machine"], doc["n"]
+    alone = doc["n"] - doc["fleet_records"]
+    gap = [p - f for p, f in zip(doc["peer_cost"], doc["fleet_cost_under_peer"])]
+    return "\n".join([
+        "### The rotating rig, two channels", "",
+        f"`experiments/bench_fit_many.py --rig rotating --n {n} --peer-n "
+        f"{doc['peer_records']}` ({m['date']}, {m['cores']} cores, {m['cpu']}; the lead "
+        "ran tests on the same 2 cores at the time: wall times are rough, CPU times beside "
+        "them; results in `experiments/results/bench_fit_many_rot.json`). The rotating rig "
+        "of `misfit_bench.py` (`experiments/fleet_rot.py`: offset slider-crank, tilted "
+        "mount, constant torque tau0 against damping c), each record its own unit (tau0, c "
+        "+-5%, any start angle, 3-7 rad/s), 3 s at 200 Hz (about nine turns), two channels: "
+        "crank angle `phi` (noise 2e-3 rad) and slide position `x_s` (5e-5 m), both "
+        "weighted by their noise; free tau0, c, phi0, dphi0 from the nominal scene. The "
+        f"peer: {doc['peer']}, both channels' residuals over their noise, a "
+        "finite-difference step of 1e-6 (the default, 1.5e-8, is below the ODE's error and "
+        "left it in false minima), started from the nominal tau0, c and the record's first "
+        f"samples, looped over {doc['peer_records']} of the records.", "",
+        "| what | figure | target |", "|---|---|---|",
+        f"| {n} records, warm (wall) | {doc['warm_s']:.3g} s ({doc['per_record_ms']:.3g} ms "
+        f"a record; {doc['warm_cpu_s']:.3g} s of CPU) | |",
+        f"| the peer, per record | {doc['peer_per_record_ms']:.3g} ms "
+        f"({doc['peer_per_record_cpu_ms']:.3g} ms of CPU) | |",
+        f"| throughput, ours over the peer's | {doc['throughput_ratio']:.3g}x (wall), "
+        f"{doc['throughput_ratio_cpu']:.3g}x (CPU time) | >= 20x |",
+        f"| records fitted by the fleet / converged | {doc['fleet_records']} / "
+        f"{doc['converged']} of {n}" + (f" ({alone} by `fit`: "
+                                        + "; ".join(doc["alone_reasons"]) + ")"
+                                        if alone else "") + " | |",
+        f"| the peer's fits at the fleet's minimum (within 0.05 standard errors) | "
+        f"{doc['peer_same_minimum']} of {doc['peer_records']} (in a worse minimum: "
+        f"{doc['peer_worse_minimum']}); stopped above the fleet estimate's cost under the "
+        f"peer's own model: {sum(g > 0 for g in gap)} of {doc['peer_records']} (by at most "
+        f"{max(gap):.2g} "
+        "in half the sum of squares) | |",
+        f"| largest difference from the peer's estimate | "
+        f"{doc['peer_max_diff_over_stderr']:.2g} standard errors; the peer restarted at the "
+        f"fleet's estimate: {doc['peer_from_fleet_max_diff_over_stderr']:.2g} | <= 0.05 |",
+        f"| the same call before it (compiling its programs) | "
+        f"{doc['first_call_s']:.3g} s | |",
+        "| the records' shooting | " + ", ".join(f"{v} {k}" for k, v in
+                                               doc["shooting"].items()) + " | |"])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=100, help="records (100)")
@@ -284,8 +330,11 @@ def main() -> None:
     name = RESULTS / "bench_fit_many.json"
     if a.table:
         more = sorted(RESULTS.glob("bench_fit_many_n*.json"))
-        write_section(PAGE, BEGIN, END, table(json.loads(name.read_text()), [
-            json.loads(p.read_text()) for p in more]), "fleet")
+        text = table(json.loads(name.read_text()), [json.loads(p.read_text()) for p in more])
+        rot = RESULTS / "bench_fit_many_rot.json"
+        if rot.exists():
+            text += "\n\n" + table_rot(json.loads(rot.read_text()))
+        write_section(PAGE, BEGIN, END, text, "fleet")
         return
     if a.smoke:
         a.n, a.peer_n = 4, 1
