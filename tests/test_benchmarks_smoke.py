@@ -75,3 +75,36 @@ def test_numba_dop853_is_scipys_dop853():
     ys, _ = peers.dop853_numba(p, (1.0, 0.0), ts, 1e-5, 1e-7)
     phi, _ = peers.scipy_solve("DOP853", p, (1.0, 0.0), ts, 1e-5, 1e-7)
     assert np.max(np.abs(ys[:, 0] - phi)) < 1e-11
+
+
+def test_rotating_fleet_peer_matches_crank_jax():
+    # The fleet bench's rotating-rig peer (offset slider line, tilted mount, constant
+    # torque) has its own right-hand side and slide kinematics: both must be crank_jax's
+    # model, or the peer fits another rig and the bench compares nothing.
+    sys.path.insert(0, str(EXP))
+    import fleet_rot as fr
+    import numpy as np
+    from scipy.integrate import solve_ivp
+
+    from crank_jax.model.outputs import output
+
+    sc = fr.scene(0.21, 0.0095, 1.2, 4.0)
+    ts = np.linspace(0.0, 2.0, 201)
+    tr = sc.simulate(ts, solver="dopri8", rtol=1e-13, atol=1e-15)
+    d = sc.mech.as_dict()
+    p = tuple(float(d[k]) for k in fr.PARAM_ORDER)
+    sol = solve_ivp(fr.numba_rhs(), (0.0, 2.0), [1.2, 4.0], method="DOP853", t_eval=ts,
+                    rtol=1e-12, atol=1e-14, args=(0.21, p))
+    assert np.max(np.abs(sol.y[0] - np.asarray(tr.phi))) < 1e-8
+    x_s = np.asarray(output("x_s", sc.mech, ts, tr.phi, tr.dphi))
+    assert np.max(np.abs(fr.slide(sol.y[0], p) - x_s)) < 1e-9
+
+
+@pytest.mark.full
+def test_fleet_bench_rotating_smoke():
+    # About 60 s on the shared 2-core machine (the fleet's compile and the peer's fits).
+    subprocess.run([sys.executable, str(EXP / "bench_fit_many.py"), "--smoke", "--rig",
+                    "rotating"], check=True, cwd=EXP, capture_output=True, timeout=300)
+    data = json.loads((EXP / "results" / "bench_fit_many_rot.smoke.json").read_text())
+    assert data["smoke"] is True and data["rig"] == "rotating"
+    assert data["channels"] == ["phi", "x_s"]
