@@ -95,6 +95,21 @@ def _numba_rhs():
     return rhs
 
 
+def _timings(fleet, n, first, wall, cpu, peer_n, peer_wall, peer_cpu) -> dict:
+    """The fields both rigs' results share: the fleet's times and counts, the peer's."""
+    return {"first_call_s": first, "warm_s": wall, "warm_cpu_s": cpu,
+            "per_record_ms": 1e3 * wall / n,
+            "fleet_records": int(sum(a is None for a in fleet.alone)),
+            "converged": int(sum(r.converged for r in fleet)),
+            "iterations_median": float(np.median([r.iterations for r in fleet])),
+            "peer": "scipy least_squares(lm) over solve_ivp DOP853, "
+                    + ("numba rhs" if HAVE_NUMBA else "plain Python rhs (numba missing)"),
+            "peer_records": peer_n, "peer_per_record_ms": 1e3 * peer_wall,
+            "throughput_ratio": peer_wall / (wall / n),
+            "peer_per_record_cpu_ms": 1e3 * peer_cpu,
+            "throughput_ratio_cpu": peer_cpu / (cpu / n)}
+
+
 def run(n: int, peer_n: int, smoke: bool, rig: str = "lab") -> dict:
     if rig == "rotating":
         return run_rot(n, peer_n, smoke)
@@ -121,20 +136,10 @@ def run(n: int, peer_n: int, smoke: bool, rig: str = "lab") -> dict:
     peer_wall = (time.perf_counter() - t) / peer_n
     peer_cpu = (time.process_time() - c) / peer_n
     diff = np.abs(peer - est[:peer_n]) / se[:peer_n]
-    ours = wall / n
     return {"smoke": smoke, "machine": machine(), "n": n, "samples": 1001,
-            "free": list(FREE), "first_call_s": first, "warm_s": wall, "warm_cpu_s": cpu,
-            "per_record_ms": 1e3 * ours, "fleet_records": int(sum(a is None for a in
-                                                                 fleet.alone)),
-            "converged": int(sum(r.converged for r in fleet)),
-            "iterations_median": float(np.median([r.iterations for r in fleet])),
+            "free": list(FREE), **_timings(fleet, n, first, wall, cpu, peer_n, peer_wall,
+                                            peer_cpu),
             "z_truth_rms": float(np.sqrt(np.nanmean(z**2))),
-            "peer": "scipy least_squares(lm) over solve_ivp DOP853, "
-                    + ("numba rhs" if HAVE_NUMBA else "plain Python rhs (numba missing)"),
-            "peer_records": peer_n, "peer_per_record_ms": 1e3 * peer_wall,
-            "throughput_ratio": peer_wall / ours,
-            "peer_per_record_cpu_ms": 1e3 * peer_cpu,
-            "throughput_ratio_cpu": peer_cpu / (cpu / n),
             "peer_max_diff_over_stderr": float(np.nanmax(diff)),
             "batch_sizes": list(BATCHES),
             "shooting": {s: int(sum(r.strategy == s for r in fleet))
@@ -172,22 +177,12 @@ def run_rot(n: int, peer_n: int, smoke: bool) -> dict:
     diff = np.abs(np.array([p[0] for p in peer]) - est[:peer_n]) / se[:peer_n]
     diff_again = np.abs(np.array([p[0] for p in again]) - est[:peer_n]) / se[:peer_n]
     same = diff.max(axis=1) <= 0.05
-    ours = wall / n
     return {"smoke": smoke, "rig": "rotating", "machine": machine(), "n": n,
             "samples": int(data[0].ts.size), "channels": list(fr.NOISE),
-            "noise": dict(fr.NOISE), "free": list(fr.FREE), "first_call_s": first,
-            "warm_s": wall, "warm_cpu_s": cpu, "per_record_ms": 1e3 * ours,
-            "fleet_records": int(sum(a is None for a in fleet.alone)),
+            "noise": dict(fr.NOISE), "free": list(fr.FREE),
+            **_timings(fleet, n, first, wall, cpu, peer_n, peer_wall, peer_cpu),
             "alone_reasons": sorted({a for a in fleet.alone if a is not None}),
-            "converged": int(sum(r.converged for r in fleet)),
-            "iterations_median": float(np.median([r.iterations for r in fleet])),
             "z_truth_rms_tau0_c": float(np.sqrt(np.nanmean(z**2))),
-            "peer": "scipy least_squares(lm) over solve_ivp DOP853, "
-                    + ("numba rhs" if HAVE_NUMBA else "plain Python rhs (numba missing)"),
-            "peer_records": peer_n, "peer_per_record_ms": 1e3 * peer_wall,
-            "throughput_ratio": peer_wall / ours,
-            "peer_per_record_cpu_ms": 1e3 * peer_cpu,
-            "throughput_ratio_cpu": peer_cpu / (cpu / n),
             "peer_tolerances": [fr.PEER_RTOL, fr.PEER_ATOL], "diff_step": fr.DIFF_STEP,
             "peer_start": "nominal tau0, c; phi0, dphi0 from the record's first 5 samples",
             "peer_same_minimum": int(same.sum()),
