@@ -29,7 +29,7 @@ from .geometry import Geometry, geometry
 from .loads import AbstractLoad, NoLoad, as_load, only_own_loads
 from .params import SliderCrank
 from .structure import Structure
-from .trig import Trig, check_form, form_field
+from .trig import Trig, form_field
 
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
@@ -279,9 +279,6 @@ class CrankField(eqx.Module):
     force: Callable | None = None
     trig: Trig = form_field()
 
-    def __check_init__(self):
-        check_form(self.trig)
-
     def acceleration(self, t, phi, dphi):
         """phi'' = (q - K phi'^2) / M, rad/s^2, at time `t` (s)."""
         return _acceleration(coefficients(self.mech, self.structure), jnp.asarray(phi),
@@ -312,9 +309,6 @@ class PackedCrankField(eqx.Module):
     structure: Structure = eqx.field(static=True, default=_FULL)
     force: Callable | None = None
     trig: Trig = form_field()
-
-    def __check_init__(self):
-        check_form(self.trig)
 
     def __call__(self, t, y, args=None):
         phi, dphi = y

@@ -56,7 +56,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-__all__ = ["Trig", "LIBRARY", "ARITHMETIC", "FORMS", "form_field", "as_form", "check_form",
+__all__ = ["Trig", "LIBRARY", "ARITHMETIC", "FORMS", "form_field", "as_form",
            "traced_as", "sincos", "sin", "rsqrt"]
 
 
@@ -91,11 +91,6 @@ def as_form(form) -> Trig:
     if not isinstance(form, str) or form not in FORMS:
         raise ValueError(f"trig must be one of {FORMS}, got {form!r}")
     return Trig(form)
-
-
-def check_form(form) -> None:
-    """`ValueError` naming the field unless `form` is a [`Trig`][] or its name."""
-    as_form(form)
 
 
 def _chooses(x) -> bool:
