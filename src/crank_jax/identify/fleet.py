@@ -89,16 +89,11 @@ class _Member(NamedTuple):
     t_begin: float
 
 
-def _request(scene, data, free, kw):
-    """A record's request, as `fit` makes it."""
-    return normalize(scene, data, free, **kw)
-
-
 def _plan(scene, data, free, kw) -> _Member | str:
     """A record's request and plan, as `fit` makes them; a string: why it is not for the
     fleet (it is then fitted by `fit`)."""
     t_begin = time.perf_counter()
-    req = _request(scene, data, free, kw)
+    req = normalize(scene, data, free, **kw)
     return _member(req, make_plan(req), t_begin)
 
 
@@ -252,7 +247,7 @@ def fit_many(
     members, alone, reqs = {}, {}, {}
     for i, (sc, d) in enumerate(zip(scenes, records)):
         try:
-            reqs[i] = _request(sc, d, free, kw)
+            reqs[i] = normalize(sc, d, free, **kw)
         except ValueError as e:
             raise ValueError(f"record {i}: {e}") from None
     with progress_bar(None, "fit_many", progress, unit="record") as bar:
