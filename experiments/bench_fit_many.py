@@ -31,8 +31,8 @@ jax = setup_jax()
 from peers import HAVE_NUMBA  # noqa: E402
 
 import crank_jax as cj  # noqa: E402
-from crank_jax.identify import fit_many  # noqa: E402
-from crank_jax.identify.fleet_lm import BATCHES  # noqa: E402
+from crank_jax.fleet import fit_many  # noqa: E402
+from crank_jax.fleet.batch_lm import BATCHES  # noqa: E402
 
 PAGE = ROOT / "docs" / "benchmarks" / "performance.md"
 BEGIN, END = "<!-- BEGIN fleet -->", "<!-- END fleet -->"
@@ -239,7 +239,7 @@ def table(doc: dict, more: list[dict] = ()) -> str:
         f"{m['cpu']}; a shared machine, other jobs running: wall times are rough; results in "
         "`experiments/results/bench_fit_many.json`). Lab-rig records, each its own unit "
         "(k, c +-10%, release +-0.2 rad), 5 s at 200 Hz, noise 1e-3 rad, free k, c, phi0, "
-        "dphi0, fitted by `crank_jax.identify.fit_many` (one vmap-ed LM program) against "
+        "dphi0, fitted by `crank_jax.fleet.fit_many` (one vmap-ed LM program) against "
         f"the peer: {doc['peer']}, looped over {doc['peer_records']} of the records.", "",
         "| what | figure | target |", "|---|---|---|",
         f"| {n} records, warm (wall) | {doc['warm_s']:.3g} s ({doc['per_record_ms']:.3g} ms "

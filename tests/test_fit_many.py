@@ -1,4 +1,4 @@
-"""Many independent fits at once (`crank_jax.identify.fit_many`, `crank-jax fit --each`):
+"""Many independent fits at once (`crank_jax.fleet.fit_many`, `crank-jax fit --each`):
 the fleet's estimates are the single fits', a failing record changes no other's result,
 and the command writes one fit.json per record and a summary."""
 
@@ -10,7 +10,7 @@ import pytest
 
 import crank_jax as cj
 from crank_jax.cli import main
-from crank_jax.identify import fleet as fm
+from crank_jax.fleet import many as fm
 
 # Three lab-rig records of slightly different lengths (one row length: 384 samples) and noise.
 SPECS = ((1, 2.9, 1e-3), (2, 3.0, 2e-3), (3, 3.3, 1e-3))
@@ -85,8 +85,8 @@ def test_a_poisoned_record_leaves_the_others_bit_for_bit(lab_rig, records, fleet
 
 @pytest.mark.full
 def test_a_failing_start_solve_leaves_the_others_plans_alone(lab_rig, records):
+    from crank_jax.fleet.batch_lm import start_solves
     from crank_jax.identify.fit_plan import start_solve
-    from crank_jax.identify.fleet_lm import start_solves
 
     members = _members(lab_rig, records)
     asks = [(m.plan.single, m.plan.single.to_z([m.plan.start[n] for n in m.plan.single.names]))

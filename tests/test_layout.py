@@ -289,7 +289,7 @@ EXPERIMENT_INTERNALS = {
                                    "(backward_program)",
     "crank_jax.report.plotting": "tooling: the figures' style (pyplot, save_figure)",
     # measured or swapped internals
-    "crank_jax.identify.fleet_lm": "bench_fit_many warms up every batch size (BATCHES) of "
+    "crank_jax.fleet.batch_lm": "bench_fit_many warms up every batch size (BATCHES) of "
                                    "the fleet's programs that its timed call uses",
     "crank_jax.solve.adaptive": "bench_fusion compiles the fused step loop bare "
                                 "(solve_adaptive) to count its body's kernels for a plain, a "

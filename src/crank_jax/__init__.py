@@ -25,7 +25,8 @@ The front door (`__all__`, 50 names; the reasons in docs/reference/index.md):
 Documented namespaces, each with its own `__all__`: `crank_jax.model` (physics helpers:
 energy, kinematics, reactions, the mass matrix, ...), `crank_jax.solve` (`solve` for any
 vector field, the solver policy), `crank_jax.identify` (residual diagnostics, profiles,
-start values), `crank_jax.sweep` (distributions, the names a sweep takes),
+start values), `crank_jax.fleet` (`fit_many`: many records, each fitted by
+itself, side by side), `crank_jax.sweep` (distributions, the names a sweep takes),
 `crank_jax.vibration` (result classes), `crank_jax.report` (HTML reports),
 `crank_jax.online` (`track`: follow a running machine's parameters, change alarms). Every other
 module is internal. The names of earlier releases are gone (docs/reference/index.md,
@@ -100,7 +101,8 @@ from .vibration.backbone import backbone
 #: The documented namespaces beside the front door: reachable as attributes (imported on
 #: first use) and shown by `dir(crank_jax)`. Every other module of the package is internal:
 #: importable by its full name (`import crank_jax.runtime.io as io`), never an attribute.
-_NAMESPACES = ("model", "solve", "identify", "sweep", "vibration", "report", "online")
+_NAMESPACES = ("model", "solve", "identify", "fleet", "sweep", "vibration", "report",
+               "online")
 
 
 class _FrontDoor(_ModuleType):

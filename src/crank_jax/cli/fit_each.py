@@ -1,5 +1,5 @@
 """`crank-jax fit REC1.csv REC2.csv ... SCENE --each --out DIR`: each record fitted by
-itself, side by side ([`fit_many`][crank_jax.identify.fleet.fit_many]); DIR gets
+itself, side by side ([`fit_many`][crank_jax.fleet.many.fit_many]); DIR gets
 `<record stem>.json` per record (a single fit's `fit.json`) and `summary.csv`, and with
 `--report HTML` one summary report (in DIR where HTML names no folder)."""
 
@@ -79,7 +79,7 @@ def fit_each(a: argparse.Namespace, files: list[str], write_json, fit_kwargs) ->
     (the fit command's own). Exit 0 when every record was fitted (a fit that did not
     converge is a result, as for one record); a record refused before any fit (no motion,
     an absurd start) is the input's to fix: exit 2, after every output is written."""
-    from ..identify import fit_many
+    from ..fleet import fit_many
     from ..runtime.io import atomic_write, check_input
     from ..scene import load_scene
     from .channel_options import read_records

@@ -7,9 +7,6 @@ are the tools around them:
 - `fitted_scene`: the scene a fit started from, with its estimates (what
   `crank-jax fit` writes as the fitted scene file); `save_fitted_scene` writes it (a fit
   that did not converge only when asked, marked in the file);
-- `fit_many`: many independent fits of one scene and free set, side by side in one
-  compiled program (a [`FleetResult`][crank_jax.identify.fleet.FleetResult]: one
-  `FitResult` per record);
 - `DEMO` and `demo_record`: the settings, scene and synthetic record of the demo
   experiment (`crank-jax demo`), for a script or test that fits what the demo fits;
 - `FREE_NAMES`: every name `fit(free=...)` accepts; `regressor_start`: start values of the
@@ -32,9 +29,8 @@ from .diagnostics import widen as widen_covariance
 from .fit import FREE_NAMES, regressor_start
 from .fit_result import Profile
 from .fitted import fitted_scene, save_fitted_scene
-from .fleet import FleetResult, fit_many
 
 __all__ = ["fitted_scene", "save_fitted_scene", "FREE_NAMES", "regressor_start", "Profile",
            "residual_diagnostics", "Diagnostics",
            "hac_covariance", "widen_covariance", "robust_uncertainty", "RobustUncertainty",
-           "DEMO", "demo_record", "fit_many", "FleetResult"]
+           "DEMO", "demo_record"]

@@ -70,7 +70,7 @@ def write_fleet_report(fleet, path: str | os.PathLike, *, labels: Sequence[str] 
                        scene=None, command: Sequence[str] | str | None = None,
                        title: str = "") -> None:
     """Write the summary report of many independent fits (a
-    [`FleetResult`][crank_jax.identify.fleet.FleetResult]) to `path`, atomically: a row
+    [`FleetResult`][crank_jax.fleet.many.FleetResult]) to `path`, atomically: a row
     per record (`labels`, default its file's name) with its estimates, standard errors and
     verdict, and the estimates' spread (other arguments as [`write_fit_report`][])."""
     _write(path, render(fleet_context(fleet, labels, scene=scene, command=command,

@@ -1,5 +1,5 @@
 """The summary report of many independent fits
-([`fit_many`][crank_jax.identify.fleet.fit_many], `crank-jax fit ... --each --report`): a
+([`fit_many`][crank_jax.fleet.many.fit_many], `crank-jax fit ... --each --report`): a
 table of the records with their estimates, standard errors and verdicts, and a figure of
 the estimates' spread over the records, in the page the single fit's report uses."""
 
@@ -83,7 +83,7 @@ def _summary(fleet, names) -> list[tuple[str, str]]:
 
 
 def fleet_context(fleet, labels=None, *, scene=None, command=None, title: str = "") -> dict:
-    """The template's values for a [`FleetResult`][crank_jax.identify.fleet.FleetResult];
+    """The template's values for a [`FleetResult`][crank_jax.fleet.many.FleetResult];
     `labels` name the records (default: their files' names, else their index)."""
     res = fleet.results
     labels = [str(x) for x in (labels or [r.data[0].source if r.data else i

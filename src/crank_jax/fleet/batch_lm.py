@@ -1,6 +1,6 @@
 """Levenberg-Marquardt as one JAX program, for many independent fits side by side.
 
-[`fit_many`][crank_jax.identify.fleet.fit_many] stacks the problems (single or multiple
+[`fit_many`][crank_jax.fleet.many.fit_many] stacks the problems (single or multiple
 shooting) of records of one shape (the same scene structure, free set, bucket length and
 segment count) and runs
 [`fleet_program`][] on them: `jax.vmap` of a `jax.lax.while_loop` LM, so the records'
@@ -23,9 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .fit_plan import start_solve
-from .optimize import DECREASE_FRACTION, STEP_FRACTION
-from .programs import Program, jacobian_at
+from ..identify.fit_plan import start_solve
+from ..identify.optimize import DECREASE_FRACTION, STEP_FRACTION
+from ..identify.programs import Program, jacobian_at
 
 __all__ = ["STATUS", "FleetRun", "fleet_program", "stack", "shape_key", "BATCHES",
            "start_solves"]

@@ -6,7 +6,7 @@ noise level from the data, its start solve judged; the start solves of the recor
 shape side by side, in one compiled call per batch); the records whose plan is single
 shooting are grouped by the shape of their problem (the bucket length of
 [`segments`][crank_jax.identify.segments]) and fitted under one `jax.vmap` of a
-Levenberg-Marquardt loop ([`fleet_lm`][crank_jax.identify.fleet_lm]) with the fit's own
+Levenberg-Marquardt loop ([`batch_lm`][crank_jax.fleet.batch_lm]) with the fit's own
 stop test. A fleet estimate is reported through the fit's own result
 ([`fit.finish`][crank_jax.identify.fit.finish]: the uncertainty, the channels, the
 warnings), so it reads exactly as a single fit's.
@@ -31,17 +31,17 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..identify.attempt import in_range
+from ..identify.fit import finish, fit
+from ..identify.fit_plan import make_plan, plan_steps, recoordinate
+from ..identify.fit_result import FitResult
+from ..identify.outcome import Run, termination
+from ..identify.request import normalize
+from ..identify.stages import FitState
+from ..identify.strategy import far_from_noise, noise_unit
 from ..runtime.blas import one_blas_thread
 from ..runtime.progress import progress_bar
-from .attempt import in_range
-from .fit import finish, fit
-from .fit_plan import make_plan, plan_steps, recoordinate
-from .fit_result import FitResult
-from .fleet_lm import BATCHES, STATUS, run_batch, shape_key, start_solves
-from .outcome import Run, termination
-from .request import normalize
-from .stages import FitState
-from .strategy import far_from_noise, noise_unit
+from .batch_lm import BATCHES, STATUS, run_batch, shape_key, start_solves
 
 __all__ = ["fit_many", "FleetResult", "SUMMARY_COLUMNS"]
 
@@ -99,7 +99,7 @@ def _plan(scene, data, free, kw) -> _Member | str:
 
 def _plan_all(reqs: dict, bar) -> dict:
     """Each request's plan (index -> Plan), as `make_plan` makes it, the start solves of
-    the records of one shape side by side ([`start_solves`][crank_jax.identify.fleet_lm.
+    the records of one shape side by side ([`start_solves`][crank_jax.fleet.batch_lm.
     start_solves]): each record's [`plan_steps`][crank_jax.identify.fit_plan.plan_steps]
     is stepped until it asks for a solve, then the asks are solved together."""
     steps, asks, plans = {i: plan_steps(r) for i, r in reqs.items()}, {}, {}
@@ -155,7 +155,7 @@ def _run(m: _Member, z, cost, iterations, status, dec, big, r, J) -> Run:
 def _fleet(items: dict, tol: float, max_steps: int, bar) -> tuple[dict, dict]:
     """Fleet runs of `items` (index -> (problem, z0, noise)), by shape, in batches; a batch
     with a member that did not converge runs again without it. **Returns:** (index -> its
-    row of [`FleetRun`][crank_jax.identify.fleet_lm.FleetRun] for the converged, index ->
+    row of [`FleetRun`][crank_jax.fleet.batch_lm.FleetRun] for the converged, index ->
     the status of each other one)."""
     groups: dict = {}
     for i, (problem, _, _) in items.items():
