@@ -113,9 +113,9 @@ def test_the_names_of_earlier_releases_are_gone(old):
 
 def test_renamed_names_are_the_old_objects():
     # The renames are spellings only: the same functions and classes.
-    from crank_jax.identify import diagnostics
     from crank_jax.model import dynamics, geometry, linear, newton_euler, structure
     from crank_jax.solve import policy
+    from crank_jax.stats import diagnostics
     from crank_jax.sweep import run
 
     assert cj.model.geometry_at is geometry.geometry

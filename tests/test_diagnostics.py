@@ -1,4 +1,4 @@
-"""Residual whiteness tests and the Newey-West covariance (identify/diagnostics.py)."""
+"""Residual whiteness tests and the Newey-West covariance (stats/diagnostics.py)."""
 
 import math
 
@@ -7,7 +7,7 @@ import pytest
 import scipy.stats
 
 import crank_jax as cj
-from crank_jax.identify import diagnostics as dg
+from crank_jax.stats import diagnostics as dg
 
 
 def ar1(rng, n, rho, sigma=1.0):

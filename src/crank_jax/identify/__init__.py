@@ -17,15 +17,15 @@ are the tools around them:
   variances as a floor under it); `robust_uncertainty` and its `RobustUncertainty`.
 """
 
-from .demo import DEMO, demo_record
-from .diagnostics import (
+from ..stats.diagnostics import (
     Diagnostics,
     RobustUncertainty,
     hac_covariance,
     residual_diagnostics,
     robust_uncertainty,
 )
-from .diagnostics import widen as widen_covariance
+from ..stats.diagnostics import widen as widen_covariance
+from .demo import DEMO, demo_record
 from .fit import FREE_NAMES, regressor_start
 from .fit_result import Profile
 from .fitted import fitted_scene, save_fitted_scene

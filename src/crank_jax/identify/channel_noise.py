@@ -20,9 +20,9 @@ import numpy as np
 
 from ..records.data import Data
 from ..runtime.arrays import device_array
+from ..stats.diagnostics import residual_diagnostics
 from .angle import angle_estimate, motion_period
 from .channels import direction
-from .diagnostics import residual_diagnostics
 from .measurement import channel_weights, fitted_channels
 from .problem import Problem
 from .programs import residuals_at

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..model.params import SliderCrank
 from ..records.data import Data
-from .diagnostics import Diagnostics
+from ..stats.diagnostics import Diagnostics
 from .outcome import finite as num
 
 __all__ = ["FitResult", "Profile", "IdentifiabilityWarning", "ConvergenceWarning"]

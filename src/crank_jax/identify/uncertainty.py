@@ -18,8 +18,8 @@ from typing import NamedTuple
 import numpy as np
 
 from ..runtime.arrays import device_array
+from ..stats.diagnostics import robust_uncertainty
 from .coordinates import own_scale
-from .diagnostics import robust_uncertainty
 from .programs import jacobian_at
 from .symmetries import fixed_scale_members, known_directions, name_list
 from .verdict import Z95, check

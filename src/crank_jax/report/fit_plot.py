@@ -81,7 +81,7 @@ def plot_channel(ax1, ax2, result, name: str) -> None:
 def plot_acf(ax, diag) -> None:
     """Draw the residual autocorrelation on a matplotlib axis, with the +-1.96/sqrt(n) band
     that white residuals stay inside 95% of the time, and the test result in the title.
-    `diag`: a fit's [`Diagnostics`][crank_jax.identify.diagnostics.Diagnostics]."""
+    `diag`: a fit's [`Diagnostics`][crank_jax.stats.diagnostics.Diagnostics]."""
     lags = np.arange(diag.acf.shape[0])
     ax.vlines(lags, 0.0, diag.acf, color="C0", lw=1.5)
     ax.plot(lags, diag.acf, "o", ms=3, color="C0")

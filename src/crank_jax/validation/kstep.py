@@ -34,7 +34,6 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ..identify.diagnostics import residual_diagnostics
 from ..identify.fit import fit
 from ..identify.request import LOAD_NAMES, STATE_NAMES, free_names, record_loads
 from ..model.loads import AbstractLoad, InputLoad, NoLoad, set_param
@@ -44,6 +43,7 @@ from ..records.data import Data, DataError
 from ..records.load_by import loads_by
 from ..runtime.blas import one_blas_thread
 from ..scene import Scene
+from ..stats.diagnostics import residual_diagnostics
 from . import horizon as hz
 from .state_window import default_init_window
 from .state_window import init_window as state_window
@@ -127,7 +127,7 @@ class Validation(NamedTuple):
 
     def error_diagnostics(self):
         """The whiteness of the scored prediction errors (a
-        [`Diagnostics`][crank_jax.identify.diagnostics.Diagnostics]), or None where there
+        [`Diagnostics`][crank_jax.stats.diagnostics.Diagnostics]), or None where there
         are too few finite ones to test."""
         e = (np.asarray(self.phi) - np.asarray(self.predicted))[np.asarray(self.scored)]
         try:

@@ -182,7 +182,7 @@ class Diagnostics(NamedTuple):
     bandwidth: int
 
     def not_white_message(self) -> str:
-        """[`not_white_message`][crank_jax.identify.diagnostics.not_white_message] of
+        """[`not_white_message`][crank_jax.stats.diagnostics.not_white_message] of
         these diagnostics (a method, so that the report reads it without importing the fit)."""
         return not_white_message(self)
 
