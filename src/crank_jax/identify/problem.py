@@ -39,7 +39,7 @@ from ..solve.trajectory import solve_crank
 from .coordinates import coordinates, values_of, values_program
 from .measurement import calibration, channel_errors, fitted_channels
 from .request import LOAD_NAMES, record_mech
-from .segments import Experiment, make_segments, motion_steps, padded_load
+from .segments import Experiment, make_segments, padded_load
 from .userforce import PREFIX, with_force_values
 
 __all__ = ["Problem", "Experiment", "build_problem", "natural_period", "linear_frequency",
@@ -226,9 +226,9 @@ class Problem(eqx.Module):
 
     def residuals(self, z: Array) -> tuple[Array, Array, Array]:
         """(r, n_failed, steps): the stacked residual vector, how many samples failed,
-        and per record the most ODE steps any one of its solves took, its padding's left
-        out (`motion_steps`), (R,) (so that a record the start values cannot follow is
-        found by itself, see `plan.make_plan`)."""
+        and per record the most ODE steps any one of its solves took, (R,) (so that a
+        record the start values cannot follow is found by itself, see
+        `plan.make_plan`)."""
         mech, per = self.unpack(z)
         rs, cont, failed, steps = [], [], 0, []
         # A point outside the mechanism's valid set (a coupler shorter than the crank, a
@@ -239,7 +239,7 @@ class Problem(eqx.Module):
             invalid = _invalid(mech_e)
             force = own.pop(PREFIX)
             phi, dphi, n_steps = self.simulate_segments(mech_e, e, load, torque, y0s, force)
-            steps.append(jnp.max(motion_steps(e.seg, self.solver, n_steps, self.max_steps)))
+            steps.append(jnp.max(n_steps))
             ok = jnp.isfinite(phi) & jnp.isfinite(dphi) & ~invalid
             failed = failed + jnp.sum(~ok & (e.seg.w > 0))
             err = channel_errors(mech_e, e, load, torque, phi, dphi, offsets_e, self.structure,

@@ -5,16 +5,14 @@ problem holds it ([`Experiment`][])."""
 from __future__ import annotations
 
 import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
 from ..model.loads import AbstractLoad, AngleLoad, InputLoad, SampledLoad
 from ..runtime.arrays import device_array
-from ..solve.adaptive import WINDOW, AdaptiveERK
 
 __all__ = ["bucket", "row_bucket", "Segments", "Experiment", "segment_layout", "make_segments",
-           "padded_load", "motion_steps"]
+           "padded_load"]
 
 
 def bucket(m: int) -> int:
@@ -89,10 +87,9 @@ def row_bucket(m: int) -> int:
     neighbouring lengths share one program. At 200 Hz: 769-1536 samples (3.8-7.7 s) give
     one single-shooting row, 1537-3072 (to 15.4 s) the next; a lab-rig segment (two
     periods, 62-93 samples whatever the record's length) one row of 96. The price: a
-    padded save time lies a few nanoseconds past the row's end and costs a save
-    interpolation, a Jacobian row and, every `WINDOW` of them, one tiny step of the
-    adaptive solver (see [`motion_steps`][]), so a record low in its rung solves a row
-    up to twice its length."""
+    padded save time repeats the row's last and costs a Jacobian row (weight 0), but no
+    solver step (the adaptive solver stops at the first of them, see
+    `solve.adaptive.solve_adaptive`)."""
     size = 6
     while size < m:
         size *= 2
@@ -137,11 +134,11 @@ def make_segments(ts: np.ndarray, ys: np.ndarray, n_segments: int, pad: bool = T
         a, b = (bounds[s], bounds[s + 1]) if s < S else (n - 1, n - 1)
         k = b - a + 1 if S > 1 else n
         seg_t = ts[a:a + k]
-        # Padding times continue just past the end, so each row stays strictly increasing
-        # without extending the integration by more than a few nanoseconds. An inactive
-        # row is such padding after the record's last sample: a solve of a few steps from
-        # the state there (its start, see `channel_noise.segment_states`).
-        pad_t = seg_t[-1] + 1e-9 * np.arange(1, m - k + 1) * max(1.0, abs(seg_t[-1]))
+        # Padding times repeat the row's last: the solve stops at the first and the
+        # repeats take its value, so padding costs no step. An inactive row is such
+        # padding of the record's last sample: a solve of no step from the state there
+        # (its start, see `channel_noise.segment_states`).
+        pad_t = np.full(m - k, seg_t[-1])
         T[s] = np.concatenate([seg_t, pad_t])
         if s >= S:
             continue
@@ -152,22 +149,6 @@ def make_segments(ts: np.ndarray, ys: np.ndarray, n_segments: int, pad: bool = T
         E[s], F[s], on[s] = k - 1, a, 1.0
     size = float(bucket(own) if pad else own)
     return Segments(*(device_array(x) for x in (T, P, W, E, F, on, size)))
-
-
-def motion_steps(seg: Segments, solver, n_steps: Array, max_steps: int) -> Array:
-    """(S,) each row's ODE steps `n_steps` (S,) less those its padded save times took.
-
-    The `"dopri8-adaptive"` solver writes save times in windows of `WINDOW` and ends a
-    step at its window's last one, so every `WINDOW` padded save times past a row's end
-    take one (tiny) step. The step counts a fit judges (its step budget, an absurd start)
-    leave them out, and so count the motion's steps as an unpadded solve would (to one),
-    whatever the ladder (else a record low in its rung could be judged to need the larger
-    step budget, a static of the programs, where the same record in a shorter row did
-    not). A solve stopped by its budget never reached its padding: its count stays."""
-    if not isinstance(solver, AdaptiveERK):
-        return n_steps
-    pad = (seg.ts.shape[1] - 1 - seg.end) // WINDOW
-    return jnp.where(n_steps >= max_steps, n_steps, jnp.maximum(n_steps - pad, 0))
 
 
 def padded_load(load: AbstractLoad) -> AbstractLoad:
