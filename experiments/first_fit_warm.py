@@ -29,6 +29,7 @@ import json
 import os
 import re
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -179,10 +180,10 @@ NOTE = (
     "1536 (3 programs); the 10 and 12 s records then share all of them (24 and 32 "
     "segments; 2001 and 2401 samples, in 3072). The 16 s record has 48 segments (64 rows) "
     "and 3201 samples (past 3072): 3 programs. (It compiled a fourth, its single-shooting "
-    "Jacobian at the larger step budget, until the step counts a fit judges left out the "
-    "steps that padded save times take, `segments.motion_steps`, below: its start solve "
-    "counted 1769 steps in a row of 6144 against 944 unpadded, past the 1638 that raise "
-    "the budget, a static of the programs.) Longer records raise it themselves (a start "
+    "Jacobian at the larger step budget, while padded save times took steps of their own: "
+    "its start solve counted 1769 steps in a row of 6144 against 944 unpadded, past the "
+    "1638 that raise the budget, a static of the programs; padding now repeats a row's "
+    "last save time and takes no step.) Longer records raise it themselves (a start "
     "solve of more than 1638 steps: roughly 25-30 s of this rig) and compile once at "
     "that level. At 200 Hz the single-shooting ladder's edges (7.7 s, 15.4 s) lie near the "
     "lab rig's segment classes' (7.3 s, 14.7 s), so a record across one pays once for "
@@ -200,28 +201,25 @@ def _warm_cost() -> str:
     res = json.loads(path.read_text())
     cells = []
     for t in res["records"]:
-        runs = {lab: [f"{r['median_cpu_s'][str(t)]:.3f}" for r in res["runs"]
-                      if r["label"] == lab] for lab in ("before", "after")}
-        cells.append(f"{t:g} s: {', '.join(runs['before'])} s before, "
-                     f"{', '.join(runs['after'])} s after")
+        runs = {lab: [r["median_cpu_s"][str(t)] for r in res["runs"] if r["label"] == lab]
+                for lab in ("before", "after")}
+        ratio = statistics.median(runs["after"]) / statistics.median(runs["before"])
+        cells.append(f"{t:g} s: {', '.join(f'{x:.3f}' for x in runs['before'])} s before, "
+                     f"{', '.join(f'{x:.3f}' for x in runs['after'])} s after "
+                     f"({ratio:.2f}x)")
     return (
         "The warm fit's cost of the padding (`experiments/warm_padding_cost.py`, "
         f"{res['machine']['date']}, results in `experiments/results/warm_padding_cost.json`: "
-        "the warm fit's median CPU time over 11 fits in a fresh process, the code before and "
-        "after alternated twice): " + "; ".join(cells) + ". About 1.0x, except a record just "
-        "past a rung (8 s: 1601 samples in a single-shooting row of 3072, where the bucket "
-        "gave 1728) at 1.1-1.2x. A padded save time does cost solver steps: the "
-        "`dopri8-adaptive` solver writes save times in windows of 4 and shortens a step to "
-        "its window's end, so every 4 padded save times at a row's end cost one (tiny) step "
-        "attempt (the 5 s record's single-shooting solve: 559 steps in a row of 1152, 655 in "
-        "one of 1536; the counts a fit judges leave them out, `segments.motion_steps`). The "
-        "table's warm column, with other jobs beside it, agrees for 5-7 s and shows the "
-        "worst case: a record low in its rung, whose single-shooting row is mostly "
-        "padding, 8 s (1601 samples in 3072) and 16 s (3201 in 6144, where the bucket gave "
-        "3456; its single-shooting Jacobian 0.028 s of CPU unpadded, 0.034 s in 3456, "
-        "0.061 s in 6144) about 1.4-1.5x. That is the price of the coarse ladder: a finer one "
-        "splits the 5 s and 6 s records again; a solver that passed padded save times "
-        "without a step would remove it (not done).")
+        f"the warm fit's median CPU time over {res.get('repeats', 11)} fits in a fresh "
+        "process, the two codes alternated): " + "; ".join(cells) + ". `before`: padded "
+        "save times a few nanoseconds past a row's end. The `dopri8-adaptive` solver writes "
+        "save times in windows of 4 and shortens a step to its window's end, so every 4 of "
+        "them cost one (tiny) step attempt, and a record low in its rung, whose "
+        "single-shooting row is mostly padding (8 s: 1601 samples in 3072; 16 s: 3201 in "
+        "6144), paid most. `after`: the padding repeats a row's last save time; the solver "
+        "stops at the first and the repeats take its value (`solve.adaptive.solve_adaptive`), "
+        "so a padded row takes exactly the steps of the unpadded one, and its residuals are "
+        "the same to the bit (`tests/test_warm_lengths.py`).")
 
 
 CLI_NOTE = (

@@ -25,7 +25,7 @@ from pathlib import Path
 from _bench import RESULTS, machine, setup_jax, write_json
 
 #: (record length s, noise seed)
-RECORDS = ((5.0, 1), (8.0, 8), (10.0, 9))
+RECORDS = ((5.0, 1), (8.0, 8), (10.0, 9), (16.0, 16))
 
 
 def child(repeats: int) -> None:
@@ -71,7 +71,8 @@ def main(argv=None) -> dict:
             med = {t: sorted(v)[len(v) // 2] for t, v in cpu.items()}
             runs.append({"label": label, "round": r, "cpu_s": cpu, "median_cpu_s": med})
             print(label, r, med, flush=True)
-    out = {"machine": machine(), "records": [t for t, _ in RECORDS], "runs": runs}
+    out = {"machine": machine(), "records": [t for t, _ in RECORDS], "runs": runs,
+           "repeats": args.repeats, "before": str(args.before), "after": str(args.after)}
     write_json(args.out, out)
     return out
 
