@@ -205,3 +205,33 @@ def test_new_values_do_not_retrace(lab_rig):
 
     run(lab_rig.mech, jnp.array(1.0))
     run(lab_rig.mech.replace(k=3.0, c=0.01), jnp.array(0.5))
+
+
+@pytest.mark.parametrize("mode", ["reverse", "forward"])
+def test_repeats_of_the_last_save_time_take_its_value_and_its_derivative(mode):
+    # A fit pads its rows with repeats of the last save time: the solve stops at the first
+    # and gives the repeats its value, with no step of their own; each derivative sends a
+    # repeat's share to the first (reverse mode: the discrete adjoint sees only the rows
+    # the step loop wrote, so a repeat's cotangent was lost until the copy moved outside
+    # the solve's derivative rules).
+    from crank_jax.solve import solve, solver_named
+
+    def field(t, y, a):
+        return jnp.stack([y[1], -a[0] * jnp.sin(y[0]) - a[1] * y[1]])
+
+    solver, y0, a = solver_named("dopri8-adaptive"), jnp.array([1.0, 0.0]), jnp.array([4.0, 0.1])
+    ts = jnp.linspace(0.0, 2.0, 21)
+    padded = jnp.concatenate([ts, jnp.full(9, 2.0)])
+
+    def run(t, a):
+        return solve(field, solver, t, y0, a, adjoint=mode, checks=False)
+
+    plain, rep = run(ts, a), run(padded, a)
+    np.testing.assert_array_equal(np.asarray(rep.ys[:21]), np.asarray(plain.ys))
+    np.testing.assert_array_equal(np.asarray(rep.ys[21:]),
+                                  np.broadcast_to(np.asarray(plain.ys[-1]), (9, 2)))
+    assert int(rep.num_steps) == int(plain.num_steps)
+    d = jax.grad if mode == "reverse" else jax.jacfwd
+    got = d(lambda a: jnp.sum(run(padded, a).ys[:, 0] ** 2))(a)
+    want = d(lambda a: jnp.sum(run(ts, a).ys[:, 0] ** 2) + 9 * run(ts, a).ys[-1, 0] ** 2)(a)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-12)

@@ -228,9 +228,10 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     - `field`: the vector field `field(t, y, args) -> dy/dt`, a callable pytree; its
       inexact-array leaves are differentiable parameters. Batched, `t` has shape (B,).
     - `y0`: the state at `ts[0]`, a pytree of arrays (small: the stages are unrolled).
-    - `ts` (n,): increasing save times, any spacing, whose last may repeat (the repeats
-      take its value and cost no step: a fit pads its rows so); batched, also (B, n),
-      each member's own (a member writes its i-th sample at its own i-th time).
+    - `ts` (n,): increasing save times, any spacing, whose last may repeat (the loop
+      stops at the first and writes no repeat: [`adaptive_solve`][] gives them its
+      value); batched, also (B, n), each member's own (its i-th sample at its own i-th
+      time).
     - `rtol`, `atol`: tolerances of the local error per step as diffrax's `PIDController`
       scales them (RMS over the state of `err / (atol + rtol max(|y0|, |y1|))`; a step is
       accepted when it is <= 1).
@@ -294,10 +295,9 @@ def solve_adaptive(field, y0, ts, rtol, atol, args=None, *, max_steps: int,
     for _ in range(done.ndim - 1):
         outcome_of = jax.vmap(outcome_of)
     result = outcome_of(done[..., 0])
-    ys = _repeats_of_the_end(out[:n], _rows(ts, y0p.ndim), t_end)
     # Save times a member never reached (a failed solve) hold inf, as diffrax leaves them.
     reached = _rows(ts, y0p.ndim) <= state.t[None]
-    ys = jnp.where(reached, ys, jnp.inf)
+    ys = jnp.where(reached, out[:n], jnp.inf)
     if record is not None:
         return unpack(ys), result, state.steps[..., 0], log
     return unpack(ys), result, state.steps[..., 0]
@@ -383,17 +383,6 @@ def _step_loop(attempt, state0: _Step, y0p, ts, window, unroll, chunk, max_steps
     log0 = None if record is None else record.log0
     _, state, out, log = jax.lax.while_loop(cond, body, (jnp.array(1), state0, out0, log0))
     return state, out, log
-
-
-def _repeats_of_the_end(out, twr, t_end):
-    """`out` (n, ...) with every save time equal to the last, `t_end`, given the value the
-    loop wrote at the first of them. The loop stops when a member reaches `t_end`, so it
-    writes no repeat past its window: a fit pads its rows with repeats of the last time,
-    and they cost no step. Strictly increasing times give `out` as it is (the last row is
-    its own first)."""
-    at_end = twr >= t_end
-    first = jnp.argmax(at_end, axis=0)[None]
-    return jnp.where(at_end, jnp.take_along_axis(out, first, axis=0), out)
 
 
 def _rows(ts, ndim):

@@ -53,7 +53,7 @@ from .adaptive import outcome, solve_adaptive
 from .erk import dopri8
 from .library_api import result_code
 
-__all__ = ["adaptive_solve"]
+__all__ = ["adaptive_solve", "repeats_of_the_end"]
 
 
 def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint,
@@ -70,11 +70,25 @@ def adaptive_solve(field, y0, ts, rtol, atol, *, max_steps: int, adjoint,
     sees (see `solve_adaptive`).
 
     **Returns:** `(ys, result, num_steps)`, as `solve_adaptive` (`ys` like `y0` with a
-    leading axis n; `result` a `diffrax.RESULTS`).
+    leading axis n; `result` a `diffrax.RESULTS`); save times that repeat the last take
+    its value ([`repeats_of_the_end`][]).
     """
     out = _adaptive(field, y0, ts, rtol, atol, max_steps, adjoint, error_size, solver)
     ys, code, steps = out
+    ys = jax.tree_util.tree_map(lambda y: repeats_of_the_end(y, ts), ys)
     return (ys, *outcome(code.astype(jnp.int32), steps.astype(jnp.int32)))
+
+
+def repeats_of_the_end(ys, ts):
+    """`ys` (n, ...) with every save time equal to the last given the value at the first
+    of them. The step loop stops when it reaches the last time, so it writes no repeat
+    past its window: a fit pads its rows with repeats of the last time, and they cost no
+    step. Outside the solve's derivative rules, so that each derivative sends a repeat's
+    share to the first (the discrete adjoint sees the rows the loop wrote). Strictly
+    increasing times give `ys` as it is."""
+    at_end = ts >= ts[-1]
+    first = jnp.argmax(at_end)
+    return jnp.where(at_end.reshape((-1,) + (1,) * (ys.ndim - 1)), ys[first], ys)
 
 
 def _side_by_side(rebuild, dyn, batched):
