@@ -34,8 +34,8 @@ from .trig import Trig, form_field
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
     "kinetic_energy", "potential_energy", "power_in", "CrankField", "mass_terms",
-    "coriolis_terms", "force_terms", "dissipative_terms", "PackedCrankField",
-    "equation_residual",
+    "coriolis_terms", "force_terms", "dissipative_terms", "acceleration_terms",
+    "PackedCrankField", "equation_residual",
 ]
 
 _FULL = Structure()
@@ -195,15 +195,24 @@ def acceleration(
     the fast solvers step (see [`geometry_terms`][]).
     """
     load, torque = as_load(load), as_load(torque)
-    return _acceleration(coefficients(mech, structure), jnp.asarray(phi), jnp.asarray(dphi),
-                         t, load, torque, structure, force)
+    phi = jnp.asarray(phi)
+    p, g = formed_at(mech, phi, structure)
+    return acceleration_terms(p, g, phi, jnp.asarray(dphi), t, load, torque, structure, force)
 
 
 def _acceleration(p: Coefficients, phi, dphi, t, load, torque, structure, force,
                   trig: Trig = Trig.LIBRARY) -> Array:
     """[`acceleration`][] from [`Coefficients`][] (loads already loads), the geometry's
-    sin, cos and 1/sqrt traced in the form `trig` (`trig.FORMS`)."""
+    sin, cos and 1/sqrt traced in the form `trig` (`trig.FORMS`): what a solver steps."""
     g = geometry_terms(p, phi, structure, trig)
+    return acceleration_terms(p, g, phi, dphi, t, load, torque, structure, force)
+
+
+def acceleration_terms(p: Coefficients, g: Geometry, phi, dphi, t, load: AbstractLoad,
+                       torque: AbstractLoad, structure: Structure = _FULL,
+                       force: Callable | None = None) -> Array:
+    """phi'' from [`Coefficients`][] and a [`Geometry`][] (see [`acceleration`][]); the one
+    place it is written. `load` and `torque` must be loads (not None)."""
     q = force_terms(p, g, phi, dphi, t, load, torque, structure)
     if force is not None:
         q = q + force(t, phi, dphi)
