@@ -14,6 +14,7 @@ import numpy as np
 
 from ..model.outputs import SI_UNITS
 from ..runtime.arrays import device_array
+from ..simulation import linearize
 from ..solve.adjoints import ForwardSensitivities
 from . import channel_noise as ch
 from .angle import motion_period
@@ -209,9 +210,13 @@ def plan_steps(req: FitRequest):
                            for d, ang, n in zip(req.records, req.angles, noises)))
     start, states, notes = _starts(req, periods)
     mech_start = _start_mech(req, start)
-    solver = pick_solver(mech_start, req.loads[0][0], float(req.scene.rtol), req.scene.solver)
-    too_far = quiet or _refusal(req, (absurd_frequency(linear_frequency(mech_start, lo), p)
-                                      for (lo, _), p in zip(req.loads, periods)))
+    # The start model linearised once under each record's slider force: the solver's
+    # choice (the first record's) and the frequency test read it.
+    lins = [linearize(mech_start, lo) for lo, _ in req.loads]
+    solver = pick_solver(mech_start, req.loads[0][0], float(req.scene.rtol), req.scene.solver,
+                         lin=lins[0])
+    too_far = quiet or _refusal(req, (absurd_frequency(linear_frequency(lin), p)
+                                      for lin, p in zip(lins, periods)))
     if too_far:
         return _aborted(req, start, states, solver, too_far, notes)
     ss, z_start, r0, failed0, steps0, J0 = yield from _start_solve(req, start, states, solver,
