@@ -24,7 +24,8 @@ import math
 
 import numpy as np
 
-from ..model.geometry import formed_at, geometry_terms
+from ..model.coefficients import coefficients
+from ..model.geometry import geometry_terms
 from ..model.params import SliderCrank
 from ..records.data import Data
 from .start import noise_level, observed_period
@@ -62,9 +63,9 @@ def _arcs(mech: SliderCrank):
     """The two half-turns between the slider's ends: (x ascending, phi) for the half-turn
     on which x falls as phi grows (a), and for the one on which it rises (b); the ends'
     positions and the top's angle; and x at `_GRID` angles over a turn."""
+    p = coefficients(mech)  # formed once for the three grids
     grid = np.linspace(0.0, 2 * math.pi, _GRID, endpoint=False)
-    p, g = formed_at(mech, grid)  # the coefficients formed once for the three grids
-    xg = np.asarray(g.x_s, dtype=float)
+    xg = np.asarray(geometry_terms(p, grid).x_s, dtype=float)
     top, bot = grid[np.argmax(xg)], grid[np.argmin(xg)]
     down = np.linspace(0.0, (bot - top) % (2 * math.pi), _GRID) + top
     up = np.linspace(0.0, (top - bot) % (2 * math.pi), _GRID) + bot

@@ -272,8 +272,7 @@ def linear_frequency(lin) -> float | None:
 
 
 def natural_period(lin) -> float | None:
-    """The period 2 pi / omega_n of the linearisation `lin` (a `Linearization`), s, or
-    None when its equilibrium is not stable."""
+    """The period 2 pi / omega_n of the linearisation `lin`, s; None if it is unstable."""
     w = float(np.asarray(lin.omega_n))
     return 2 * math.pi / w if math.isfinite(w) and w > 0 else None
 
@@ -388,16 +387,14 @@ def build_problem(
                    jnp.asarray(atol), int(max_steps), adjoint, tuple(fold), per_record, force)
 
 
-def pick_solver(mech: SliderCrank, load, rtol: float, solver: str, lin=None
-                ) -> AbstractSolver:
+def pick_solver(mech: SliderCrank, load, rtol: float, solver: str, lin=None) -> AbstractSolver:
     """The ODE solver of a fit: the policy's ([`resolve_solver`][]) for the scene's name,
     at the start values, as `simulate` would run it (no save times: a fit's segments have
     their own). `"dopri8-adaptive"` steps its Jacobians' stages in a loop (`loop_stages`):
     a fit calls them tens of times, and compiles them in every process. `lin`: the
-    linearisation of `mech` under `load` where the caller has it."""
+    linearisation of `mech` under `load` where the caller has it; else the front door's
+    stored one is used (the policy's own traces it in every process)."""
     if lin is None and solver == "auto" and is_concrete((mech, load)):
-        # The front door's stored linearisation (the policy's own traces it in every
-        # process).
         lin = linearize(mech, load)
     solver = resolve_solver(solver, mech, rtol, load=load, lin=lin)
     return solver.with_loop_stages() if isinstance(solver, AdaptiveDopri8) else solver

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .coefficients import Coefficients, coefficients, pack, unpack
-from .geometry import Geometry, formed_at, geometry_terms
+from .geometry import Geometry, geometry_terms
 from .loads import AbstractLoad, NoLoad, as_load, only_own_loads
 from .params import SliderCrank
 from .structure import Structure
@@ -33,12 +33,20 @@ from .trig import Trig, form_field
 
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
-    "kinetic_energy", "potential_energy", "power_in", "CrankField", "mass_terms",
+    "kinetic_energy", "potential_energy", "power_in", "CrankField", "formed_at", "mass_terms",
     "coriolis_terms", "force_terms", "dissipative_terms", "acceleration_terms",
     "PackedCrankField", "equation_residual",
 ]
 
 _FULL = Structure()
+
+
+def formed_at(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL
+              ) -> tuple[Coefficients, Geometry]:
+    """The [`Coefficients`][] of `mech` and its [`Geometry`][] at `phi`, formed once: the
+    pair that the term builders below take."""
+    p = coefficients(mech, structure)
+    return p, geometry_terms(p, phi, structure)
 
 
 def mass_terms(p: Coefficients, g: Geometry, structure: Structure = _FULL) -> Array:

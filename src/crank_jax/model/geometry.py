@@ -2,12 +2,10 @@
 
 [`geometry_terms`][] is the one place the coupler angle, its phi-derivatives, the slider's
 lever and the body positions are computed, from the parameters' [`Coefficients`][]; M, K,
-q, the energy, the kinematics and the Newton-Euler form all read it, the functions of a
-mechanism through [`formed_at`][] (the coefficients and the geometry, formed once). The
-slider runs along the line `y = e` (the paper has `e = 0`); the loop closure
-`r sin(phi) - L sin(delta) = e` gives `sin(delta)`. Primes are derivatives with respect to
-phi; dots with respect to time. Every function works on scalars and broadcasts over arrays
-of phi and of the parameters.
+q, the energy, the kinematics and the Newton-Euler form all read it. The slider runs along
+the line `y = e` (the paper has `e = 0`); the loop closure `r sin(phi) - L sin(delta) = e`
+gives `sin(delta)`. Primes are derivatives with respect to phi; dots with respect to time.
+Every function works on scalars and broadcasts over arrays of phi and of the parameters.
 """
 
 from __future__ import annotations
@@ -22,8 +20,8 @@ from .params import SliderCrank
 from .structure import Structure
 from .trig import LIBRARY, Trig, rsqrt, sincos
 
-__all__ = ["Geometry", "geometry", "geometry_terms", "formed_at", "CouplerAngle",
-           "coupler_angle", "Kinematics", "kinematics"]
+__all__ = ["Geometry", "geometry", "geometry_terms", "CouplerAngle", "coupler_angle",
+           "Kinematics", "kinematics"]
 
 _FULL = Structure()
 
@@ -79,14 +77,6 @@ def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
     """
     p = mech if isinstance(mech, Coefficients) else coefficients(mech, structure)
     return geometry_terms(p, phi, structure, trig)
-
-
-def formed_at(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL,
-              trig: Trig = LIBRARY) -> tuple[Coefficients, Geometry]:
-    """The [`Coefficients`][] of `mech` and its [`Geometry`][] at `phi`, formed once: what
-    the model's functions of a mechanism read (the term builders take the pair)."""
-    p = coefficients(mech, structure)
-    return p, geometry_terms(p, phi, structure, trig)
 
 
 def geometry_terms(p: Coefficients, phi: ArrayLike, structure: Structure = _FULL,
@@ -162,7 +152,7 @@ def coupler_angle(mech: SliderCrank, phi: ArrayLike) -> CouplerAngle:
 
     **Returns:** a [`CouplerAngle`][] whose fields have the shape of `phi`.
     """
-    _, g = formed_at(mech, phi)
+    g = geometry(mech, phi)
     return CouplerAngle(g.delta, g.sin, g.cos, g.d1, g.d2)
 
 
@@ -202,7 +192,7 @@ def kinematics(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike, ddphi: ArrayL
     """
     r, b, s = mech.r, mech.b, mech.s
     phi, dphi, ddphi = jnp.broadcast_arrays(*(jnp.asarray(x) for x in (phi, dphi, ddphi)))
-    _, g = formed_at(mech, phi)
+    g = geometry(mech, phi)
     sphi, cphi, sd, cd, d1, d2 = g.sphi, g.cphi, g.sin, g.cos, g.d1, g.d2
     w2 = dphi * dphi
 

@@ -38,8 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .dynamics import force_terms, mass_terms
-from .geometry import Geometry, formed_at
+from .dynamics import force_terms, formed_at, mass_terms
+from .geometry import Geometry
 from .loads import AbstractLoad, ConstantLoad, NoLoad, as_load
 from .params import SliderCrank
 
@@ -104,12 +104,21 @@ def equilibrium(mech: SliderCrank, load: AbstractLoad | None = None,
     return _equilibrium(mech, mean_loads(load, torque))
 
 
-def _q_xi(mech: SliderCrank, loads, phi: Array) -> tuple[Array, Array]:
-    """q(phi, 0) (N*m) and xi = -dq/dphi (N*m/rad), loads at their means."""
+def _at_rest(mech: SliderCrank, loads, phi: Array) -> tuple[Array, Array, Array, Array]:
+    """The equation at crank angle `phi` and rest, loads at their means: q(phi, 0) (N*m),
+    k_crit (N*m/rad), mu = M(phi) (kg*m^2) and chi = c + c_s lever^2 (N*m*s/rad)."""
     p, g = formed_at(mech, phi)
     q = force_terms(p, g, phi, 0.0, 0.0, *loads)
+    mu = mass_terms(p, g)
+    chi = mech.c + mech.c_s * g.lever * g.lever
     has_P = not isinstance(loads[0], NoLoad)
-    return q, mech.k - _softening(mech, g, loads[0].mean(), has_P)
+    return q, _softening(mech, g, loads[0].mean(), has_P), mu, chi
+
+
+def _q_xi(mech: SliderCrank, loads, phi: Array) -> tuple[Array, Array]:
+    """q(phi, 0) (N*m) and xi = -dq/dphi (N*m/rad), loads at their means."""
+    q, k_crit, _, _ = _at_rest(mech, loads, phi)
+    return q, mech.k - k_crit
 
 
 def _newton_step(mech: SliderCrank, loads, phi: Array) -> Array:
@@ -186,13 +195,9 @@ def mean_loads(load, torque) -> tuple[AbstractLoad, AbstractLoad]:
 # concrete solve); inside an outer jit it is simply inlined.
 @eqx.filter_jit
 def _linearize(mech: SliderCrank, loads) -> Linearization:
-    has_P = not isinstance(loads[0], NoLoad)
     phi_eq = _equilibrium(mech, loads)
-    at = jnp.where(jnp.isnan(phi_eq), 0.0, phi_eq)
-    p, g = formed_at(mech, at)
-    mu = mass_terms(p, g)
-    chi = mech.c + mech.c_s * g.lever * g.lever
-    k_crit = _softening(mech, g, loads[0].mean(), has_P) + jnp.zeros_like(mu)
+    _, k_crit, mu, chi = _at_rest(mech, loads, jnp.where(jnp.isnan(phi_eq), 0.0, phi_eq))
+    k_crit = k_crit + jnp.zeros_like(mu)
     xi = mech.k - k_crit
     # Only defined for a statically stable equilibrium; NaN says "no oscillation" honestly
     # rather than a silently clipped number.
