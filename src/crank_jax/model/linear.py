@@ -106,7 +106,8 @@ def equilibrium(mech: SliderCrank, load: AbstractLoad | None = None,
 
 def _at_rest(mech: SliderCrank, loads, phi: Array) -> tuple[Array, Array, Array, Array]:
     """The equation at crank angle `phi` and rest, loads at their means: q(phi, 0) (N*m),
-    k_crit (N*m/rad), mu = M(phi) (kg*m^2) and chi = c + c_s lever^2 (N*m*s/rad)."""
+    k_crit (N*m/rad), mu = M(phi) (kg*m^2) and chi = c + c_s lever^2 (N*m*s/rad). Its
+    callers run under `jit`, which leaves out what they do not read."""
     p, g = formed_at(mech, phi)
     q = force_terms(p, g, phi, 0.0, 0.0, *loads)
     mu = mass_terms(p, g)
