@@ -42,15 +42,15 @@ def _solve(k, *, force=None, adjoint=ForwardSensitivities(), solver="dopri8-adap
 
 
 def _count_geometry(monkeypatch) -> list:
-    """Count the acceleration's traces (each calls `geometry` once)."""
+    """Count the acceleration's traces (each calls `geometry_terms` once)."""
     calls = []
-    real = dyn.geometry
+    real = dyn.geometry_terms
 
     def counted(*a, **k):
         calls.append(1)
         return real(*a, **k)
 
-    monkeypatch.setattr(dyn, "geometry", counted)
+    monkeypatch.setattr(dyn, "geometry_terms", counted)
     return calls
 
 

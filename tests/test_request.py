@@ -61,3 +61,16 @@ def test_a_level_for_a_channel_no_record_has_is_refused_by_name(two_channels):
     with pytest.raises(ValueError, match=r"sigma names channel 'v_s', which no record has; "
                                          r"the channels are \['phi', 'x_s'\]"):
         normalize(scene, data, ("k", "c"), sigma={"v_s": 1e-3}, **_OPTIONS)
+
+
+def test_a_record_without_an_angle_channel_starts_from_its_own_scenes_state():
+    # Only a slider speed: the angle is the scene's motion simulated over the record, from
+    # that record's own initial state (one scene per record), not the first scene's.
+    lab = cj.load_scene("lab-rig")
+    other = dataclasses.replace(lab, phi0=np.asarray(0.4), dphi0=np.asarray(0.0))
+    ts = np.linspace(0.0, 0.5, 26)
+    records = [cj.Data(ts, None, channels={"v_s": 0.01 * np.sin(k * ts)}) for k in (1, 2)]
+    req = normalize([lab, other], records, ("k", "c"), sigma=None, **_OPTIONS)
+    for scene, angle in zip((lab, other), req.angles):
+        expected = np.asarray(scene.simulate(ts, throw=False).phi)
+        np.testing.assert_array_equal(angle, expected)

@@ -35,7 +35,6 @@ from .solve.policy import check_travel, host_plan, is_concrete
 from .solve.solvers import AbstractSolver
 from .solve.trajectory import (
     Trajectory,
-    forward_differentiated,
     output_columns,
     solve_trajectory,
     succeeded,
@@ -188,12 +187,25 @@ def _adjoint_for(adjoint: AbstractAdjoint, shorthand: bool, host: bool, inputs
         # `"reverse"`: the backward program that suits this process's XLA flags, read here
         # at the edge (the core reads none), on traced calls only (~10 us).
         adjoint = as_adjoint("reverse", backward=backward_program())
-    if isinstance(adjoint, DiscreteAdjoint) and forward_differentiated(inputs):
+    if isinstance(adjoint, DiscreteAdjoint) and _forward_differentiated(inputs):
         # Under jax.jacfwd / jax.jvp: the reverse adjoint is a custom_vjp, which JAX cannot
         # differentiate forward ("can't apply forward-mode autodiff (jvp) to a custom_vjp
         # function"); forward mode gives the same derivatives of the same solution.
         adjoint = as_adjoint("forward")
     return adjoint
+
+
+def _forward_differentiated(tree) -> bool:
+    """Whether a leaf of `tree` carries a forward-mode tangent (a `jax.jvp` tracer, as
+    `jax.jacfwd` makes). Reverse mode (`jax.grad`, `jax.vjp`) traces with JAX's direct
+    linearize (`LinearizeTracer`), which is not one; where a user turned it off
+    (`jax_use_direct_linearize=False`), reverse mode traces through `jvp` too, and
+    nothing is changed."""
+    if not getattr(jax.config, "jax_use_direct_linearize", False):
+        return False
+    from jax.interpreters.ad import JVPTracer
+
+    return any(isinstance(x, JVPTracer) for x in jax.tree_util.tree_leaves(tree))
 
 
 # Outcomes of a stored solve, by index (names of `diffrax.RESULTS`): a stored program

@@ -24,7 +24,8 @@ import math
 
 import numpy as np
 
-from ..model.geometry import geometry
+from ..model.coefficients import coefficients
+from ..model.geometry import geometry_terms
 from ..model.params import SliderCrank
 from ..records.data import Data
 from .start import noise_level, observed_period
@@ -62,13 +63,14 @@ def _arcs(mech: SliderCrank):
     """The two half-turns between the slider's ends: (x ascending, phi) for the half-turn
     on which x falls as phi grows (a), and for the one on which it rises (b); the ends'
     positions and the top's angle; and x at `_GRID` angles over a turn."""
+    p = coefficients(mech)  # formed once for the three grids
     grid = np.linspace(0.0, 2 * math.pi, _GRID, endpoint=False)
-    xg = np.asarray(geometry(mech, grid).x_s, dtype=float)
+    xg = np.asarray(geometry_terms(p, grid).x_s, dtype=float)
     top, bot = grid[np.argmax(xg)], grid[np.argmin(xg)]
     down = np.linspace(0.0, (bot - top) % (2 * math.pi), _GRID) + top
     up = np.linspace(0.0, (top - bot) % (2 * math.pi), _GRID) + bot
-    xa = np.asarray(geometry(mech, down).x_s, dtype=float)
-    xb = np.asarray(geometry(mech, up).x_s, dtype=float)
+    xa = np.asarray(geometry_terms(p, down).x_s, dtype=float)
+    xb = np.asarray(geometry_terms(p, up).x_s, dtype=float)
     return (xa[::-1], down[::-1]), (xb, up), float(xg.min()), float(xg.max()), top, xg
 
 

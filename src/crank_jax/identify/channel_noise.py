@@ -118,8 +118,8 @@ def segment_states(problem: Problem, req: FitRequest) -> np.ndarray:
         first = np.asarray(e.seg.first)[1:]
         if first.size == 0:
             continue
-        ps, dps, _ = smooth_derivatives(d.ts, a, half_window(d.ts, motion_period(
-            d.ts, a)), first)
+        period = motion_period(d.ts, a)
+        ps, dps, _ = smooth_derivatives(d.ts, a, half_window(d.ts, period), first)
         for p_, dp in zip(ps, dps):
             out += [p_ / float(e.ref_phi), dp / float(e.ref_dphi)]
     return np.asarray(out, dtype=float)

@@ -60,7 +60,8 @@ def channel_angles(scene: Scene, records: Sequence[Data], states, loads
         est = angle_estimate(d, scene.mech, direction(st), st[0])
         if est is None:
             ts = d.ts if d.ts[0] == 0.0 else np.concatenate([[0.0], d.ts])
-            traj = scene.simulate(ts, load=load, torque=torque, throw=False)
+            traj = scene.simulate(ts, phi0=st[0], dphi0=st[1], load=load, torque=torque,
+                                  throw=False)
             est = np.asarray(traj.phi)[-d.n:]
         out.append(np.asarray(est, dtype=float))
     return tuple(out)

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..model.outputs import SI_UNITS
 from ..runtime.arrays import device_array
+from ..simulation import linearize
 from ..solve.adjoints import ForwardSensitivities
 from . import channel_noise as ch
 from .angle import motion_period
@@ -34,6 +35,7 @@ from .strategy import (
     n_segments,
     no_motion,
     ode_budget,
+    refusal,
 )
 from .uncertainty import RANK_TOL
 
@@ -134,13 +136,6 @@ def record_spans(req: FitRequest) -> list[float]:
     return [float(d.ts[-1] - d.ts[0]) for d in req.records]
 
 
-def _refusal(req: FitRequest, messages) -> str | None:
-    """The first of `messages` (one per record, None: fine), naming its record if several."""
-    multi = len(req.records) > 1
-    return next(((f"record {d.source}: {a}" if multi else a)
-                 for a, d in zip(messages, req.records) if a), None)
-
-
 def _start_z(ss: Problem, start, states) -> np.ndarray:
     """The start coordinates of `ss`: `start`'s values, each record's state `states`."""
     return ss.to_z([start[n] if n in start else _state(n, states, start) for n in ss.names])
@@ -202,16 +197,20 @@ def start_solve(ss: Problem, z: np.ndarray) -> tuple:
 def plan_steps(req: FitRequest):
     """[`make_plan`][] as a generator of its start solves (see [`make_plan`][])."""
     periods = [observed_period(d.ts, a) for d, a in zip(req.records, req.angles)]
+    start, states, notes = _starts(req, periods)
+    mech_start = _start_mech(req, start)
+    # The start model linearised once under each record's slider force: the solver's
+    # choice (the first record's) and the frequency test read it.
+    lins = [linearize(mech_start, lo) for lo, _ in req.loads]
+    solver = pick_solver(mech_start, req.loads[0][0], float(req.scene.rtol), req.scene.solver,
+                         lin=lins[0])
     # Motion is judged on the angle the channels tell; the fit's residuals and their
     # noise level are in the first channel's unit.
     noises = [noise_level(d.ts, a) for d, a in zip(req.records, req.angles)]
-    quiet = _refusal(req, (no_motion(ang, n) or constant_channel(d) or aliased(ang)
-                           for d, ang, n in zip(req.records, req.angles, noises)))
-    start, states, notes = _starts(req, periods)
-    mech_start = _start_mech(req, start)
-    solver = pick_solver(mech_start, req.loads[0][0], float(req.scene.rtol), req.scene.solver)
-    too_far = quiet or _refusal(req, (absurd_frequency(linear_frequency(mech_start, lo), p)
-                                      for (lo, _), p in zip(req.loads, periods)))
+    quiet = refusal(req.records, (no_motion(ang, n) or constant_channel(d) or aliased(ang)
+                                  for d, ang, n in zip(req.records, req.angles, noises)))
+    too_far = quiet or refusal(req.records, (absurd_frequency(linear_frequency(lin), p)
+                                             for lin, p in zip(lins, periods)))
     if too_far:
         return _aborted(req, start, states, solver, too_far, notes)
     ss, z_start, r0, failed0, steps0, J0 = yield from _start_solve(req, start, states, solver,
@@ -223,8 +222,8 @@ def plan_steps(req: FitRequest):
     # Each record judged by its own solve: one absurd record among good ones is as
     # absurd as alone (the steps of the slowest record against the periods of another
     # let a record of 10^4 turns through).
-    abort = _refusal(req, (absurd_start(int(n), sp, p, ss.max_steps, _turns(ang))
-                           for n, sp, p, ang in zip(steps0, spans, periods, req.angles)))
+    abort = refusal(req.records, (absurd_start(int(n), sp, p, ss.max_steps, _turns(ang))
+                                  for n, sp, p, ang in zip(steps0, spans, periods, req.angles)))
     if abort is None and failed0 > 0:
         abort = FAILS_AT_START
     if abort:

@@ -264,16 +264,15 @@ class Problem(eqx.Module):
         return jnp.concatenate(rs + cont), failed, jnp.stack(steps)
 
 
-def linear_frequency(mech: SliderCrank, load: AbstractLoad | None = None) -> float | None:
-    """The linearised natural frequency omega_n, rad/s, or None when phi = 0 is not a
-    stable equilibrium."""
-    period = natural_period(mech, load)
+def linear_frequency(lin) -> float | None:
+    """The natural frequency omega_n of the linearisation `lin`, rad/s (2 pi over
+    [`natural_period`][]'s), or None when its equilibrium is not stable."""
+    period = natural_period(lin)
     return 2 * math.pi / period if period is not None else None
 
 
-def natural_period(mech: SliderCrank, load: AbstractLoad | None = None) -> float | None:
-    """The linearised period 2 pi / omega_n, s, or None when phi = 0 is not stable."""
-    lin = linearize(mech, load)
+def natural_period(lin) -> float | None:
+    """The period 2 pi / omega_n of the linearisation `lin`, s; None if it is unstable."""
     w = float(np.asarray(lin.omega_n))
     return 2 * math.pi / w if math.isfinite(w) and w > 0 else None
 
@@ -350,7 +349,7 @@ def build_problem(
     for i, (data, load, torque, phi0, dphi0) in enumerate(records):
         angle = data.phi if angles is None else angles[i]
         amp = max(float(np.max(np.abs(angle - np.mean(angle)))), 1e-3)
-        period = natural_period(mech, load)
+        period = natural_period(linearize(mech, load))
         span = float(data.ts[-1] - data.ts[0])
         omega = 2 * math.pi / (period if period is not None else span)
         ref_phi, ref_dphi = max(amp, abs(phi0)), max(amp * omega, abs(dphi0))
@@ -388,13 +387,14 @@ def build_problem(
                    jnp.asarray(atol), int(max_steps), adjoint, tuple(fold), per_record, force)
 
 
-def pick_solver(mech: SliderCrank, load, rtol: float, solver: str) -> AbstractSolver:
+def pick_solver(mech: SliderCrank, load, rtol: float, solver: str, lin=None) -> AbstractSolver:
     """The ODE solver of a fit: the policy's ([`resolve_solver`][]) for the scene's name,
     at the start values, as `simulate` would run it (no save times: a fit's segments have
     their own). `"dopri8-adaptive"` steps its Jacobians' stages in a loop (`loop_stages`):
-    a fit calls them tens of times, and compiles them in every process."""
-    # The front door's stored linearisation (the policy's own traces it in every process).
-    lin = (linearize(mech, load) if solver == "auto" and is_concrete((mech, load))
-           else None)
+    a fit calls them tens of times, and compiles them in every process. `lin`: the
+    linearisation of `mech` under `load` where the caller has it; else the front door's
+    stored one is used (the policy's own traces it in every process)."""
+    if lin is None and solver == "auto" and is_concrete((mech, load)):
+        lin = linearize(mech, load)
     solver = resolve_solver(solver, mech, rtol, load=load, lin=lin)
     return solver.with_loop_stages() if isinstance(solver, AdaptiveDopri8) else solver

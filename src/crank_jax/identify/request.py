@@ -383,6 +383,8 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
                          "parameters")
     scene, states = scenes[0], tuple((float(sc.phi0), float(sc.dphi0)) for sc in scenes)
     first = records[0].outputs()[0][0].name
+    sigmas = channel_sigmas(records, given_levels(sigma, first))
+    angles = channel_angles(scene, records, states, loads)
     return FitRequest(
         scene=scene, records=tuple(records), loads=loads, states=states, free=free,
         start=start, init=init_kind, method=method, shooting=shooting,
@@ -390,6 +392,4 @@ def normalize(scene, data, free, *, init, method, shooting, segments, multistart
         max_steps=int(max_steps if max_steps is not None else
                       (100 if method is Method.LM else 2000)),
         tol=float(tol), sigma=sigma, profile=profile, progress=bool(progress),
-        warn=bool(warn), angles=channel_angles(scene, records, states, loads),
-        sigmas=channel_sigmas(records, given_levels(sigma, first)), per_record=per_record,
-        force=force)
+        warn=bool(warn), angles=angles, sigmas=sigmas, per_record=per_record, force=force)

@@ -20,7 +20,7 @@ from .fit_options import ShootingMode
 __all__ = ["AUTO_PERIODS", "SEGMENT_PERIODS", "MAX_DRIFT", "BLIND_DRIFT", "MAX_ODE_STEPS",
            "SMALL_ODE_BUDGET",
            "STEPS_PER_PERIOD", "FAR_FROM_NOISE", "FREQUENCY_RATIO", "n_segments", "ode_budget",
-           "absurd_start", "absurd_frequency", "segment_count", "record_segments",
+           "absurd_start", "absurd_frequency", "refusal", "segment_count", "record_segments",
            "MAX_SEGMENTS", "MIN_MOTION", "no_motion", "aliased",
            "perturb", "AT_ZERO", "far_from_noise", "stall_rms", "noise_unit"]
 
@@ -185,6 +185,14 @@ def absurd_frequency(omega_start: float | None, period_data: float | None) -> st
             f"{omega_start / (2 * math.pi):.3g} Hz, {ratio:.3g} times the record's "
             f"{1 / period_data:.3g} Hz: choose start values nearer the truth (e.g. "
             "`init='regressor'`, or a stiffness from the observed period)")
+
+
+def refusal(records, messages) -> str | None:
+    """The fit's refusal from its records' judgements: the first of `messages` (one per
+    record, None: fine), naming its record (`source`) if there are several."""
+    multi = len(records) > 1
+    return next(((f"record {d.source}: {a}" if multi else a)
+                 for a, d in zip(messages, records) if a), None)
 
 
 def _pure_noise_ratio(n: int) -> float:

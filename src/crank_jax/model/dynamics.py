@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
 from .coefficients import Coefficients, coefficients, pack, unpack
-from .geometry import Geometry, geometry
+from .geometry import Geometry, geometry_terms
 from .loads import AbstractLoad, NoLoad, as_load, only_own_loads
 from .params import SliderCrank
 from .structure import Structure
@@ -33,12 +33,20 @@ from .trig import Trig, form_field
 
 __all__ = [
     "Structure", "mass", "coriolis", "generalized_force", "acceleration", "energy",
-    "kinetic_energy", "potential_energy", "power_in", "CrankField", "mass_terms",
-    "coriolis_terms", "force_terms", "dissipative_terms", "PackedCrankField",
-    "equation_residual",
+    "kinetic_energy", "potential_energy", "power_in", "CrankField", "formed_at", "mass_terms",
+    "coriolis_terms", "force_terms", "dissipative_terms", "acceleration_terms",
+    "PackedCrankField", "equation_residual",
 ]
 
 _FULL = Structure()
+
+
+def formed_at(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL
+              ) -> tuple[Coefficients, Geometry]:
+    """The [`Coefficients`][] of `mech` and its [`Geometry`][] at `phi`, formed once: the
+    pair that the term builders below take."""
+    p = coefficients(mech, structure)
+    return p, geometry_terms(p, phi, structure)
 
 
 def mass_terms(p: Coefficients, g: Geometry, structure: Structure = _FULL) -> Array:
@@ -116,8 +124,8 @@ def mass(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) -> Arr
     **Arguments:** `mech`; `phi`, crank angle (rad), any shape; `structure`, the static
     set of terms to include. **Returns:** an array of `phi`'s shape, always > 0.
     """
-    p = coefficients(mech, structure)
-    return mass_terms(p, geometry(p, phi, structure), structure)
+    p, g = formed_at(mech, phi, structure)
+    return mass_terms(p, g, structure)
 
 
 def coriolis(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) -> Array:
@@ -131,8 +139,8 @@ def coriolis(mech: SliderCrank, phi: ArrayLike, structure: Structure = _FULL) ->
 
     **Returns:** an array of `phi`'s shape.
     """
-    p = coefficients(mech, structure)
-    return coriolis_terms(p, geometry(p, phi, structure), structure)
+    p, g = formed_at(mech, phi, structure)
+    return coriolis_terms(p, g, structure)
 
 
 def generalized_force(
@@ -161,9 +169,8 @@ def generalized_force(
     load, torque = as_load(load), as_load(torque)
     phi, dphi = jnp.asarray(phi), jnp.asarray(dphi)
     zero = jnp.zeros(jnp.broadcast_shapes(phi.shape, dphi.shape, jnp.shape(t))) * mech.r
-    p = coefficients(mech, structure)
-    return zero + force_terms(p, geometry(p, phi, structure), phi, dphi, t, load, torque,
-                              structure)
+    p, g = formed_at(mech, phi, structure)
+    return zero + force_terms(p, g, phi, dphi, t, load, torque, structure)
 
 
 def equation_residual(mech: SliderCrank, phi, dphi, ddphi, t, load: AbstractLoad,
@@ -172,8 +179,7 @@ def equation_residual(mech: SliderCrank, phi, dphi, ddphi, t, load: AbstractLoad
     (rad/s), `ddphi` (rad/s^2), `t` (s) of one shape; `load`, `torque` loads (not None).
     The coefficients and the geometry are formed once for M, K and q (what a regressor
     differentiates with respect to the parameters)."""
-    p = coefficients(mech, structure)
-    g = geometry(p, phi, structure)
+    p, g = formed_at(mech, phi, structure)
     return (mass_terms(p, g, structure) * ddphi + coriolis_terms(p, g, structure) * dphi**2
             - force_terms(p, g, phi, dphi, t, load, torque, structure))
 
@@ -194,18 +200,27 @@ def acceleration(
     q (any pytree callable, e.g. an `equinox` MLP: a learned friction law, a controller).
 
     One geometry evaluation (a single `rsqrt`) and a single division: this is the form
-    the fast solvers step (see [`geometry`][]).
+    the fast solvers step (see [`geometry_terms`][]).
     """
     load, torque = as_load(load), as_load(torque)
-    return _acceleration(coefficients(mech, structure), jnp.asarray(phi), jnp.asarray(dphi),
-                         t, load, torque, structure, force)
+    phi = jnp.asarray(phi)
+    p, g = formed_at(mech, phi, structure)
+    return acceleration_terms(p, g, phi, jnp.asarray(dphi), t, load, torque, structure, force)
 
 
 def _acceleration(p: Coefficients, phi, dphi, t, load, torque, structure, force,
                   trig: Trig = Trig.LIBRARY) -> Array:
     """[`acceleration`][] from [`Coefficients`][] (loads already loads), the geometry's
-    sin, cos and 1/sqrt traced in the form `trig` (`trig.FORMS`)."""
-    g = geometry(p, phi, structure, trig)
+    sin, cos and 1/sqrt traced in the form `trig` (`trig.FORMS`): what a solver steps."""
+    g = geometry_terms(p, phi, structure, trig)
+    return acceleration_terms(p, g, phi, dphi, t, load, torque, structure, force)
+
+
+def acceleration_terms(p: Coefficients, g: Geometry, phi, dphi, t, load: AbstractLoad,
+                       torque: AbstractLoad, structure: Structure = _FULL,
+                       force: Callable | None = None) -> Array:
+    """phi'' from [`Coefficients`][] and a [`Geometry`][] (see [`acceleration`][]); the one
+    place it is written. `load` and `torque` must be loads (not None)."""
     q = force_terms(p, g, phi, dphi, t, load, torque, structure)
     if force is not None:
         q = q + force(t, phi, dphi)
@@ -222,7 +237,11 @@ def potential_energy(mech: SliderCrank, phi: ArrayLike) -> Array:
     and slider centres of mass (the slider at y = e), J; gravity along
     (-cos(gamma), -sin(gamma)), gamma = `gravity_angle` (0: the paper's -x)."""
     phi = jnp.asarray(phi)
-    g = geometry(mech, phi)
+    return _potential(mech, formed_at(mech, phi)[1], phi)
+
+
+def _potential(mech: SliderCrank, g: Geometry, phi: Array) -> Array:
+    """[`potential_energy`][] at the [`Geometry`][] `g` of `phi`."""
     weight_x = mech.m_c * g.x_c + mech.m_p * g.x_p + mech.m_s * g.x_s
     weight_y = mech.m_c * g.y_c + mech.m_p * g.y_p + mech.m_s * mech.e
     gamma = mech.gravity_angle
@@ -232,8 +251,11 @@ def potential_energy(mech: SliderCrank, phi: ArrayLike) -> Array:
 
 
 def energy(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike) -> Array:
-    """Mechanical energy T + V, J. Constant when c = P = tau = 0 and there is no friction."""
-    return kinetic_energy(mech, phi, dphi) + potential_energy(mech, phi)
+    """Mechanical energy T + V, J. Constant when c = P = tau = 0 and there is no friction.
+    The coefficients and the geometry are formed once for both."""
+    phi = jnp.asarray(phi)
+    p, g = formed_at(mech, phi)
+    return 0.5 * mass_terms(p, g) * jnp.square(dphi) + _potential(mech, g, phi)
 
 
 def power_in(
@@ -247,8 +269,7 @@ def power_in(
     """
     load, torque = as_load(load), as_load(torque)
     phi, dphi = jnp.asarray(phi), jnp.asarray(dphi)
-    p = coefficients(mech)
-    g = geometry(p, phi)
+    p, g = formed_at(mech, phi)
     gen = load.at(t, phi) * g.lever + torque.at(t, phi) + dissipative_terms(p, g, dphi)
     return gen * dphi
 

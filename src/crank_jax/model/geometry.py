@@ -1,11 +1,11 @@
 """Geometry and kinematics of the slider-crank (paper eq. 1-15, with an offset slider line).
 
-[`geometry`][] is the one place the coupler angle, its phi-derivatives, the slider's lever
-and the body positions are computed; M, K, q, the energy, the kinematics and the
-Newton-Euler form all read it. The slider runs along the line `y = e` (the paper has
-`e = 0`); the loop closure `r sin(phi) - L sin(delta) = e` gives `sin(delta)`. Primes are
-derivatives with respect to phi; dots with respect to time. Every function works on
-scalars and broadcasts over arrays of phi and of the parameters.
+[`geometry_terms`][] is the one place the coupler angle, its phi-derivatives, the slider's
+lever and the body positions are computed, from the parameters' [`Coefficients`][]; M, K,
+q, the energy, the kinematics and the Newton-Euler form all read it. The slider runs along
+the line `y = e` (the paper has `e = 0`); the loop closure `r sin(phi) - L sin(delta) = e`
+gives `sin(delta)`. Primes are derivatives with respect to phi; dots with respect to time.
+Every function works on scalars and broadcasts over arrays of phi and of the parameters.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ from .params import SliderCrank
 from .structure import Structure
 from .trig import LIBRARY, Trig, rsqrt, sincos
 
-__all__ = ["Geometry", "geometry", "CouplerAngle", "coupler_angle", "Kinematics", "kinematics"]
+__all__ = ["Geometry", "geometry", "geometry_terms", "CouplerAngle", "coupler_angle",
+           "Kinematics", "kinematics"]
 
 _FULL = Structure()
 
@@ -66,7 +67,22 @@ class Geometry(NamedTuple):
 
 def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
              structure: Structure = _FULL, trig: Trig = LIBRARY) -> Geometry:
-    """The geometry at crank angle `phi`, written for XLA's CPU fusion.
+    """The geometry at crank angle `phi` ([`geometry_terms`][] of the coefficients).
+
+    **Arguments:** `mech`, the parameters or their [`Coefficients`][]; `phi`, crank angle
+    in rad, any shape; `structure`: with `offset=False` the offset `e` is left out (it must
+    then be 0); `trig`, a `trig.Trig`: how sin, cos and 1/sqrt are traced.
+
+    **Returns:** a [`Geometry`][].
+    """
+    p = mech if isinstance(mech, Coefficients) else coefficients(mech, structure)
+    return geometry_terms(p, phi, structure, trig)
+
+
+def geometry_terms(p: Coefficients, phi: ArrayLike, structure: Structure = _FULL,
+                   trig: Trig = LIBRARY) -> Geometry:
+    """The geometry at crank angle `phi` from [`Coefficients`][], written for XLA's CPU
+    fusion: the one place it is computed.
 
     `w = 1/cos(delta)` is a single `rsqrt` and every other quantity is a product of it:
     XLA does not duplicate "expensive" ops (sqrt, division) into several consumers, so
@@ -82,13 +98,9 @@ def geometry(mech: SliderCrank | Coefficients, phi: ArrayLike,
     The whole right-hand side then fuses into ~2 kernels per Runge-Kutta stage, traced
     parameters or not. Unused fields cost nothing under `jit` (dead-code elimination).
 
-    **Arguments:** `mech`, the parameters or their [`Coefficients`][]; `phi`, crank angle
-    in rad, any shape; `structure`: with `offset=False` the offset `e` is left out (it must
-    then be 0); `trig`, a `trig.Trig`: how sin, cos and 1/sqrt are traced.
-
-    **Returns:** a [`Geometry`][].
+    **Arguments:** `p`, the parameters' [`Coefficients`][]; `phi`, `structure` and `trig`
+    as [`geometry`][]'s.
     """
-    p = mech if isinstance(mech, Coefficients) else coefficients(mech, structure)
     r, L, b, s = p.r, p.L, p.b, p.s
     phi = jnp.asarray(phi)
     sphi, cphi = sincos(phi, trig)

@@ -38,9 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from .coefficients import coefficients
-from .dynamics import force_terms, mass_terms
-from .geometry import geometry
+from .dynamics import force_terms, formed_at, mass_terms
+from .geometry import Geometry
 from .loads import AbstractLoad, ConstantLoad, NoLoad, as_load
 from .params import SliderCrank
 
@@ -77,10 +76,9 @@ class Linearization(NamedTuple):
     then those at phi = 0, a rate scale rather than an equilibrium's."""
 
 
-def _softening(mech: SliderCrank, phi: Array, P: Array, has_P: bool) -> Array:
+def _softening(mech: SliderCrank, g: Geometry, P: Array, has_P: bool) -> Array:
     """k_crit(phi) = dq/dphi + k at rest (q without its spring term, differentiated),
-    N*m/rad, written by hand."""
-    g = geometry(mech, phi)
+    N*m/rad, written by hand; `g`, the [`Geometry`][] at phi."""
     # Gravity's x-part, d/dphi of q's g cos(gamma) (...), and its y-part, d/dphi of
     # -g sin(gamma) ((m_c s + m_p r) cos(phi) - m_p b delta' cos(delta)).
     coupler = mech.r * g.cphi + mech.b * (g.d2 * g.sin + g.d1 * g.d1 * g.cos)
@@ -106,12 +104,22 @@ def equilibrium(mech: SliderCrank, load: AbstractLoad | None = None,
     return _equilibrium(mech, mean_loads(load, torque))
 
 
+def _at_rest(mech: SliderCrank, loads, phi: Array) -> tuple[Array, Array, Array, Array]:
+    """The equation at crank angle `phi` and rest, loads at their means: q(phi, 0) (N*m),
+    k_crit (N*m/rad), mu = M(phi) (kg*m^2) and chi = c + c_s lever^2 (N*m*s/rad). Its
+    callers run under `jit`, which leaves out what they do not read."""
+    p, g = formed_at(mech, phi)
+    q = force_terms(p, g, phi, 0.0, 0.0, *loads)
+    mu = mass_terms(p, g)
+    chi = mech.c + mech.c_s * g.lever * g.lever
+    has_P = not isinstance(loads[0], NoLoad)
+    return q, _softening(mech, g, loads[0].mean(), has_P), mu, chi
+
+
 def _q_xi(mech: SliderCrank, loads, phi: Array) -> tuple[Array, Array]:
     """q(phi, 0) (N*m) and xi = -dq/dphi (N*m/rad), loads at their means."""
-    p = coefficients(mech)
-    q = force_terms(p, geometry(p, phi), phi, 0.0, 0.0, *loads)
-    has_P = not isinstance(loads[0], NoLoad)
-    return q, mech.k - _softening(mech, phi, loads[0].mean(), has_P)
+    q, k_crit, _, _ = _at_rest(mech, loads, phi)
+    return q, mech.k - k_crit
 
 
 def _newton_step(mech: SliderCrank, loads, phi: Array) -> Array:
@@ -188,14 +196,9 @@ def mean_loads(load, torque) -> tuple[AbstractLoad, AbstractLoad]:
 # concrete solve); inside an outer jit it is simply inlined.
 @eqx.filter_jit
 def _linearize(mech: SliderCrank, loads) -> Linearization:
-    has_P = not isinstance(loads[0], NoLoad)
     phi_eq = _equilibrium(mech, loads)
-    at = jnp.where(jnp.isnan(phi_eq), 0.0, phi_eq)
-    p = coefficients(mech)
-    g = geometry(p, at)
-    mu = mass_terms(p, g)
-    chi = mech.c + mech.c_s * g.lever * g.lever
-    k_crit = _softening(mech, at, loads[0].mean(), has_P) + jnp.zeros_like(mu)
+    _, k_crit, mu, chi = _at_rest(mech, loads, jnp.where(jnp.isnan(phi_eq), 0.0, phi_eq))
+    k_crit = k_crit + jnp.zeros_like(mu)
     xi = mech.k - k_crit
     # Only defined for a statically stable equilibrium; NaN says "no oscillation" honestly
     # rather than a silently clipped number.

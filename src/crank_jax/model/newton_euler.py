@@ -38,7 +38,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike
 
-from .geometry import coupler_angle
+from .geometry import CouplerAngle, coupler_angle
 from .loads import AbstractLoad, as_load
 from .params import SliderCrank
 
@@ -65,9 +65,14 @@ def global_form(
     load: AbstractLoad | None = None, torque: AbstractLoad | None = None,
 ) -> GlobalForm:
     """Build Mbar, J, qbar_c and qbar_e at a scalar state (phi rad, dphi rad/s, t s)."""
+    return _global_form(mech, coupler_angle(mech, phi), phi, dphi, t, load, torque)
+
+
+def _global_form(mech: SliderCrank, ca: CouplerAngle, phi, dphi, t, load, torque
+                 ) -> GlobalForm:
+    """[`global_form`][] at the coupler angle `ca` of `phi`."""
     load, torque = as_load(load), as_load(torque)
     r, L, b, s, g = mech.r, mech.L, mech.b, mech.s, mech.g
-    ca = coupler_angle(mech, phi)
     sd, cd, d1, d2 = ca.sin, ca.cos, ca.d1, ca.d2
     sp, cp = jnp.sin(phi), jnp.cos(phi)
     J = jnp.stack([
@@ -148,7 +153,8 @@ def reactions(
     eighth row, the crank's moment balance, is then satisfied exactly when phi'' obeys the
     equation of motion: it is the projection D'Alembert's principle keeps.
     """
-    gf = global_form(mech, phi, dphi, t, load, torque)
+    ca = coupler_angle(mech, phi)
+    gf = _global_form(mech, ca, phi, dphi, t, load, torque)
     h = gf.Mbar @ gf.J * ddphi + gf.qbar_c - gf.qbar_e
     # The kept rows of `distribution_matrix` are triangular once ordered from the slider
     # inwards, so they are solved by substitution, not by an LU: a batched LAPACK kernel
@@ -156,7 +162,6 @@ def reactions(
     # sweep's shard_map) each device's kernel holds a thread the others wait for, a
     # deadlock (jax 0.10). Rows: 4 -> B_x, 2 -> A_x, 0 -> O_x; 7 (the coupler's moment,
     # with A_y = B_y - h3 from row 3) -> B_y; then 3, 1 and 5. cos(delta) > 0 (L > r+|e|).
-    ca = coupler_angle(mech, phi)
     b, L = mech.b, mech.L
     B_x = -h[4]
     A_x = B_x - h[2]

@@ -136,8 +136,16 @@ def choose_solver(
     **Returns:** a name from [`SOLVERS`][]. Needs concrete parameters; traced ones (inside
     `jit`) skip the stiffness test.
     """
-    if is_concrete(mech) and is_concrete(load):
-        lin = linearize(mech, load) if lin is None else lin
+    concrete = is_concrete(mech) and is_concrete(load)
+    if concrete and lin is None:
+        lin = linearize(mech, load)
+    return _choose(lin if concrete else None, rtol, span)
+
+
+def _choose(lin, rtol: float, span: float) -> str:
+    """[`choose_solver`][] from `lin`, the linearisation of concrete parameters and loads
+    (None for traced ones: no stiffness test)."""
+    if lin is not None:
         rate, decay = fastest_mode(lin)
         slow = _slowest_rate(lin)
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
@@ -173,8 +181,9 @@ def resolve_solver(
     """
     if isinstance(solver, AbstractSolver):
         return solver
-    return solver_named(_resolve_name(check_solver(solver), mech, rtol, load, torque, ts,
-                                      max_steps, batch_invariant, lin))
+    name = _resolve_name(check_solver(solver), mech, rtol, load, torque, ts, max_steps,
+                         batch_invariant, lin)
+    return solver_named(name)
 
 
 def _resolve_name(solver, mech, rtol, load, torque, ts, max_steps, batch_invariant,
@@ -187,9 +196,11 @@ def _resolve_name(solver, mech, rtol, load, torque, ts, max_steps, batch_invaria
     concrete_ts = ts is not None and is_concrete(ts)
     span = float(np.ptp(np.asarray(ts))) if concrete_ts else 10.0
     rtol_host = float(np.max(np.asarray(rtol))) if is_concrete(rtol) else 1e-8
-    if lin is None and is_concrete(mech) and is_concrete(load):
+    if not (is_concrete(mech) and is_concrete(load)):
+        lin = None  # traced values: no stiffness test, no interval budget
+    elif lin is None:
         lin = linearize(mech, load)  # once, for the stiffness test and the interval budget
-    name = choose_solver(mech, rtol_host, load, span=span, lin=lin)
+    name = _choose(lin, rtol_host, span)
     sampled = any(is_sampled(x) for x in (load, torque))
     if batch_invariant:
         if (name in ("tsit5", "dopri8") and concrete_ts and not sampled
@@ -235,21 +246,20 @@ def _fits_interval_budget(lin, ts: np.ndarray, max_steps: int | None) -> bool:
     return _UNIFORM_MARGIN * dt * top / _EXPLICIT_H_RATE <= per_interval
 
 
-def check_time_scale(mech: SliderCrank, solver: AbstractSolver, span: float, max_steps: int,
-                     load: AbstractLoad | None = None, lin=None) -> float | None:
-    """`ValueError` if the linearised fastest mode cannot be integrated over `span`; else
-    the fastest rate, 1/s (None for traced values), for [`check_travel`][].
+def check_time_scale(lin, solver: AbstractSolver, span: float, max_steps: int
+                     ) -> float | None:
+    """`ValueError` if the fastest mode of `lin`, the linearisation of concrete parameters
+    and loads, cannot be integrated over `span`; else the fastest rate, 1/s, for
+    [`check_travel`][]; None where `lin` is None (traced values: not checked).
 
     An explicit solver needs at least `span * rate / 3.5` steps (its stability limit on the
     fastest mode, `rate` from [`fastest_mode`][]); more than `max_steps` means the solve can
     only fail. Any solver fails once `span * rate > 1e12` (or the rate overflows). Both
     happen when k, a mass or an inertia is off by orders of magnitude (k = 1e300, masses of
     1e-300), so the message names the rate and the linearisation and asks to check them.
-    Concrete values only; traced ones are skipped.
     """
-    if not (is_concrete(mech) and is_concrete(load)):
+    if lin is None:
         return None
-    lin = linearize(mech, load) if lin is None else lin
     rate, _ = fastest_mode(lin)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         rate = np.asarray(rate, dtype=float)
@@ -333,7 +343,7 @@ def host_plan(mech, load, torque, ts, rtol, atol, solver, max_steps, throw, stru
     top = span = None
     if checked:
         span = float(np.ptp(np.asarray(ts)))
-        top = check_time_scale(host_mech, solver, span, int(max_steps), load, lin=lin)
+        top = check_time_scale(lin, solver, span, int(max_steps))
     invalid = _invalid_parameter(host_mech) if concrete else None
     return HostPlan(solver, structure, lin, top, span, invalid)
 

@@ -34,7 +34,7 @@ if TYPE_CHECKING:  # annotations only: diffrax is imported where it is used
     import diffrax
 
 __all__ = ["Trajectory", "solve_trajectory", "solve_crank", "OUTPUTS", "output_columns",
-           "forward_differentiated", "succeeded", "warn_if_float32"]
+           "succeeded", "warn_if_float32"]
 
 
 #: Derived outputs `simulate(outputs=...)` can add, with the columns each one produces.
@@ -191,19 +191,6 @@ def solve_crank(mech, load, torque, force, y0, ts, rtol, atol, *, solver: Abstra
     return _solve_impl(mech, load, torque, force, y0, ts, rtol, atol, solver=solver,
                        max_steps=max_steps, adjoint=adjoint, structure=structure,
                        outputs=(), throw=False, mode="unchecked")
-
-
-def forward_differentiated(tree) -> bool:
-    """Whether a leaf of `tree` carries a forward-mode tangent (a `jax.jvp` tracer, as
-    `jax.jacfwd` makes). Reverse mode (`jax.grad`, `jax.vjp`) traces with JAX's direct
-    linearize (`LinearizeTracer`), which is not one; where a user turned it off
-    (`jax_use_direct_linearize=False`), reverse mode traces through `jvp` too, and
-    nothing is changed."""
-    if not getattr(jax.config, "jax_use_direct_linearize", False):
-        return False
-    from jax.interpreters.ad import JVPTracer
-
-    return any(isinstance(x, JVPTracer) for x in jax.tree_util.tree_leaves(tree))
 
 
 def succeeded(result) -> bool:
