@@ -74,6 +74,34 @@ def random_mech(rng: np.random.Generator, **overrides) -> "cj.SliderCrank":
     return cj.SliderCrank(**v)
 
 
+# Each compiled program holds a couple of hundred memory mappings of machine code (about
+# 210 for a crank solve, XLA:CPU) until JAX's caches drop it, and Linux refuses a process
+# more than `vm.max_map_count` (65530 by default): a run of the full tier in one process
+# compiled past it and aborted inside XLA's compiler (about 300 programs). After a module
+# whose run left more than a third of the limit, the caches go (what later modules share
+# compiles again: the run pays a little time to stay alive).
+_MAP_LIMIT = Path("/proc/sys/vm/max_map_count")
+
+
+def _mappings() -> tuple[int, int]:
+    try:
+        return (sum(1 for _ in open(f"/proc/{os.getpid()}/maps")),
+                int(_MAP_LIMIT.read_text()))
+    except OSError:  # not Linux: no such limit to watch
+        return 0, 1
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _compiled_code_within_the_map_limit():
+    yield
+    used, limit = _mappings()
+    if used > limit // 3:
+        import gc
+
+        jax.clear_caches()
+        gc.collect()
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(20261121)
