@@ -85,8 +85,8 @@ _MAP_LIMIT = Path("/proc/sys/vm/max_map_count")
 
 def _mappings() -> tuple[int, int]:
     try:
-        return (sum(1 for _ in open(f"/proc/{os.getpid()}/maps")),
-                int(_MAP_LIMIT.read_text()))
+        with open(f"/proc/{os.getpid()}/maps", "rb") as maps:
+            return sum(1 for _ in maps), int(_MAP_LIMIT.read_text())
     except OSError:  # not Linux: no such limit to watch
         return 0, 1
 
