@@ -26,6 +26,7 @@ import numpy as np
 from ..identify.fit_plan import start_solve
 from ..identify.optimize import DECREASE_FRACTION, STEP_FRACTION
 from ..identify.programs import Program, jacobian_at
+from ..runtime.arrays import device_array
 
 __all__ = ["STATUS", "FleetRun", "fleet_program", "stack", "shape_key", "BATCHES",
            "start_solves"]
@@ -150,9 +151,18 @@ def shape_key(problem) -> tuple:
                           for x in leaves)
 
 
+def _stacked(xs):
+    """Leaves of one shape stacked on the host, then copied to the device in one go (a
+    weakly typed leaf by `jnp.stack`, which keeps it weak: the program's key holds each
+    leaf's type)."""
+    if getattr(xs[0], "weak_type", False):
+        return jnp.stack([jnp.asarray(x) for x in xs])
+    return device_array(np.stack([np.asarray(x) for x in xs]))
+
+
 def stack(problems) -> object:
     """Problems of one [`shape_key`][] as one batched problem (a leading axis)."""
-    return jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *problems)
+    return jax.tree.map(lambda *xs: _stacked(xs), *problems)
 
 
 def run_batch(problems, z0s, noises, tol: float, max_steps: int) -> FleetRun:
@@ -161,10 +171,10 @@ def run_batch(problems, z0s, noises, tol: float, max_steps: int) -> FleetRun:
     (each member's result is its own: a copy steps exactly as its original)."""
     n = len(problems)
     size = next(b for b in BATCHES if b >= n)
-    pad = [0] * (size - n)
-    probs = stack([problems[i] for i in range(n)] + [problems[i] for i in pad])
-    z0 = jnp.asarray(np.stack([z0s[i] for i in list(range(n)) + pad]))
-    noise = jnp.asarray([noises[i] for i in list(range(n)) + pad], dtype=z0.dtype)
+    rows = list(range(n)) + [0] * (size - n)
+    probs = stack([problems[i] for i in rows])
+    z0 = device_array(np.stack([z0s[i] for i in rows]))
+    noise = device_array(np.asarray([noises[i] for i in rows], dtype=z0.dtype))
     out = fleet_program(probs, z0, noise, jnp.asarray(tol, z0.dtype), jnp.asarray(max_steps))
     return FleetRun(*(np.asarray(x)[:n] for x in out))
 
