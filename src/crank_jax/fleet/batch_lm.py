@@ -39,7 +39,7 @@ _MAX_DAMPING = 1e16
 #: Batch sizes of the compiled program: a group of records is cut into batches of at most
 #: the largest, each padded (with copies of its first member) to the next size here, so a
 #: few programs serve any count of records.
-BATCHES = (4, 16, 64)
+BATCHES = (4, 16, 32, 64)
 
 
 class FleetRun(NamedTuple):
