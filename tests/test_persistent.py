@@ -276,3 +276,14 @@ def test_fit_on_a_diffrax_solver_is_stored_and_loaded(tmp_path):
     # Loaded, stored-on-compile and plainly compiled programs: the same numbers.
     assert second["values"] == first["values"] == plain["values"]
     assert second["stderr"] == first["stderr"] == plain["stderr"]
+
+
+def test_the_key_holds_all_of_crank_jax_source():
+    # The traced code is anywhere in the package (the fleet's LM in fleet/, the fit's in
+    # identify/): a key over runtime/ alone loaded a changed program as stored before.
+    import crank_jax
+    from crank_jax.runtime import persistent
+
+    root = Path(crank_jax.__file__).resolve().parent
+    assert persistent.SOURCE == root
+    assert root / "fleet" / "batch_lm.py" in set(persistent.SOURCE.rglob("*.py"))

@@ -142,9 +142,9 @@ def _write_json(res, path) -> None:
     """A fit's `fit.json` (the CLI's words in its messages), written atomically."""
     from ..runtime.io import atomic_write
 
+    text = json.dumps(_in_cli_words(res).to_json(), indent=2)  # one write, not one a token
     with atomic_write(path) as f:
-        json.dump(_in_cli_words(res).to_json(), f, indent=2)
-        f.write("\n")
+        f.write(text + "\n")
 
 
 def _report(res, a: argparse.Namespace, truth: dict | None = None, title: str = "") -> int:

@@ -26,6 +26,7 @@ import numpy as np
 from ..identify.fit_plan import start_solve
 from ..identify.optimize import DECREASE_FRACTION, STEP_FRACTION
 from ..identify.programs import Program, jacobian_at
+from ..runtime.arrays import device_array
 
 __all__ = ["STATUS", "FleetRun", "fleet_program", "stack", "shape_key", "BATCHES",
            "start_solves"]
@@ -38,7 +39,7 @@ _MAX_DAMPING = 1e16
 #: Batch sizes of the compiled program: a group of records is cut into batches of at most
 #: the largest, each padded (with copies of its first member) to the next size here, so a
 #: few programs serve any count of records.
-BATCHES = (4, 16, 64)
+BATCHES = (4, 16, 32, 64)
 
 
 class FleetRun(NamedTuple):
@@ -54,10 +55,21 @@ class FleetRun(NamedTuple):
     J: np.ndarray  # (B, N, p) their sensitivities there
 
 
-def _scaled_step(J, r, d, lam, noise):
-    """From one SVD of the column-scaled `J / d`: the Gauss-Newton step `dz`, each
-    coordinate's standard error at the noise level, the predicted decrease, and the LM
-    step with damping `lam` (Marquardt's scaling: `d` the columns' norms)."""
+class _Svd(NamedTuple):
+    """One SVD of the column-scaled `J / d` (Marquardt's scaling: `d` the columns' norms),
+    and what the stop test reads from it: the Gauss-Newton step `dz`, its predicted
+    decrease and its largest move over a standard error at the noise level."""
+
+    S: jax.Array
+    keep: jax.Array
+    ur: jax.Array
+    V: jax.Array
+    dz: jax.Array
+    dec: jax.Array
+    big: jax.Array
+
+
+def _svd(J, r, d, noise) -> _Svd:
     U, S, Vt = jnp.linalg.svd(J / d, full_matrices=False)
     keep = S > S[0] * jnp.finfo(J.dtype).eps * max(J.shape)
     inv = jnp.where(keep, 1.0 / jnp.where(keep, S, 1.0), 0.0)
@@ -66,8 +78,19 @@ def _scaled_step(J, r, d, lam, noise):
     dz = -V @ (inv * ur)
     se = noise * jnp.sqrt(jnp.sum((V * inv) ** 2, axis=1))
     se = jnp.where(se > 0, se, jnp.inf)
-    step = -V @ (jnp.where(keep, S / (S**2 + lam), 0.0) * ur)
-    return dz, se, 0.5 * jnp.sum((ur * keep) ** 2), step
+    dec = 0.5 * jnp.sum((ur * keep) ** 2)
+    return _Svd(S, keep, ur, V, dz, dec, jnp.max(jnp.abs(dz) / se))
+
+
+def _step(g: _Svd, lam):
+    """The LM step with damping `lam`."""
+    return -g.V @ (jnp.where(g.keep, g.S / (g.S**2 + lam), 0.0) * g.ur)
+
+
+def _converged(g: _Svd, z, noise, tol):
+    """The host LM's stop test (see the module's docstring)."""
+    return ((g.dec <= DECREASE_FRACTION * noise**2) & (g.big <= STEP_FRACTION)) | jnp.all(
+        jnp.abs(g.dz) <= tol + tol * jnp.abs(z))
 
 
 class _State(NamedTuple):
@@ -80,8 +103,7 @@ class _State(NamedTuple):
     nu: jax.Array
     it: jax.Array
     status: jax.Array
-    dec: jax.Array
-    big: jax.Array
+    svd: _Svd
 
 
 def _evaluate(problem, z):
@@ -93,43 +115,42 @@ def _evaluate(problem, z):
 
 
 def _member(problem, z0, noise, tol, max_steps):
-    """One member's LM loop (vmapped by `_fleet`)."""
+    """One member's LM loop (vmapped by `_fleet`). The stop test is judged at each point
+    as it is accepted, so a member stops without another solve there."""
     r, J, cost, ok = _evaluate(problem, z0)
     d = jnp.maximum(jnp.linalg.norm(J, axis=0), 1e-300)
-    status = jnp.where(ok, _RUNNING, _FAILED)
-    zero = jnp.zeros((), z0.dtype)
+    g = _svd(J, r, d, noise)
+    inf = jnp.full((), jnp.inf, z0.dtype)
+    g = g._replace(dec=jnp.where(ok, g.dec, inf), big=jnp.where(ok, g.big, inf))
+    status = jnp.where(ok, jnp.where(_converged(g, z0, noise, tol), _CONVERGED, jnp.where(
+        max_steps <= 0, _BUDGET, _RUNNING)), _FAILED)
     s0 = _State(z0, r, J, cost, d, jnp.asarray(1e-3, z0.dtype), jnp.asarray(2.0, z0.dtype),
-                jnp.asarray(0), status, zero + jnp.inf, zero + jnp.inf)
+                jnp.asarray(0), status, g)
 
     def body(s: _State) -> _State:
-        dz, se, dec, step = _scaled_step(s.J, s.r, s.d, s.lam, noise)
-        unit = noise**2
-        big = jnp.max(jnp.abs(dz) / se)
-        conv = ((dec <= DECREASE_FRACTION * unit) & (big <= STEP_FRACTION)) | jnp.all(
-            jnp.abs(dz) <= tol + tol * jnp.abs(s.z))
-        out = conv | (s.it >= max_steps)
-        # A member at its end solves at its own point (a healthy solve, nothing to select).
-        zt = jnp.where(out, s.z, s.z + step)
+        step = _step(s.svd, s.lam)
+        zt = s.z + step
         rt, Jt, ct, okt = _evaluate(problem, zt)
         lin = s.r + s.J @ step
         pred = s.cost - 0.5 * jnp.sum(lin * lin)
         rho = (s.cost - ct) / jnp.where(pred > 0, pred, jnp.inf)
-        take = okt & (ct < s.cost) & ~out
+        take = okt & (ct < s.cost)
         lam = jnp.where(take, s.lam * jnp.maximum(1 / 3, 1 - (2 * rho - 1) ** 3), s.lam * s.nu)
         nu = jnp.where(take, 2.0, 2 * s.nu)
-        stalled = ~take & ~out & (lam > _MAX_DAMPING)
-        status = jnp.where(conv, _CONVERGED, jnp.where(
-            out, _BUDGET, jnp.where(stalled, _STALLED, _RUNNING)))
 
         def pick(new, old):
             return jnp.where(take, new, old)
 
-        return _State(pick(zt, s.z), pick(rt, s.r), pick(Jt, s.J), pick(ct, s.cost),
-                      jnp.maximum(s.d, pick(jnp.linalg.norm(Jt, axis=0), s.d)), lam, nu,
-                      s.it + jnp.where(out, 0, 1), status, dec / unit, big)
+        z, r, J = pick(zt, s.z), pick(rt, s.r), pick(Jt, s.J)
+        d = jnp.maximum(s.d, pick(jnp.linalg.norm(Jt, axis=0), s.d))
+        g, it = _svd(J, r, d, noise), s.it + 1
+        status = jnp.where(~take & (lam > _MAX_DAMPING), _STALLED, jnp.where(
+            _converged(g, z, noise, tol), _CONVERGED,
+            jnp.where(it >= max_steps, _BUDGET, _RUNNING)))
+        return _State(z, r, J, pick(ct, s.cost), d, lam, nu, it, status, g)
 
     s = jax.lax.while_loop(lambda s: s.status == _RUNNING, body, s0)
-    return s.z, s.cost, s.it, s.status, s.dec, s.big, s.r, s.J
+    return s.z, s.cost, s.it, s.status, s.svd.dec / noise**2, s.svd.big, s.r, s.J
 
 
 def _fleet(problems, z0, noise, tol, max_steps):
@@ -150,9 +171,18 @@ def shape_key(problem) -> tuple:
                           for x in leaves)
 
 
+def _stacked(xs):
+    """Leaves of one shape stacked on the host, then copied to the device in one go (a
+    weakly typed leaf by `jnp.stack`, which keeps it weak: the program's key holds each
+    leaf's type)."""
+    if getattr(xs[0], "weak_type", False):
+        return jnp.stack([jnp.asarray(x) for x in xs])
+    return device_array(np.stack([np.asarray(x) for x in xs]))
+
+
 def stack(problems) -> object:
     """Problems of one [`shape_key`][] as one batched problem (a leading axis)."""
-    return jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *problems)
+    return jax.tree.map(lambda *xs: _stacked(xs), *problems)
 
 
 def run_batch(problems, z0s, noises, tol: float, max_steps: int) -> FleetRun:
@@ -161,10 +191,10 @@ def run_batch(problems, z0s, noises, tol: float, max_steps: int) -> FleetRun:
     (each member's result is its own: a copy steps exactly as its original)."""
     n = len(problems)
     size = next(b for b in BATCHES if b >= n)
-    pad = [0] * (size - n)
-    probs = stack([problems[i] for i in range(n)] + [problems[i] for i in pad])
-    z0 = jnp.asarray(np.stack([z0s[i] for i in list(range(n)) + pad]))
-    noise = jnp.asarray([noises[i] for i in list(range(n)) + pad], dtype=z0.dtype)
+    rows = list(range(n)) + [0] * (size - n)
+    probs = stack([problems[i] for i in rows])
+    z0 = device_array(np.stack([z0s[i] for i in rows]))
+    noise = device_array(np.asarray([noises[i] for i in rows], dtype=z0.dtype))
     out = fleet_program(probs, z0, noise, jnp.asarray(tol, z0.dtype), jnp.asarray(max_steps))
     return FleetRun(*(np.asarray(x)[:n] for x in out))
 

@@ -20,6 +20,10 @@ def split_fields(line: str, delim: str | None) -> list[str]:
     (`csv.Error` for a malformed line)."""
     if delim is None:
         return [_unquote(x) for x in line.split()]
+    if '"' not in line and "\r" not in line and "\0" not in line:
+        # Nothing `csv` treats specially (a quote, a line break, NUL): its fields are the
+        # line cut at each delimiter, without the cost of a reader a line.
+        return [x.strip() for x in line.split(delim)]
     return [_unquote(x) for x in next(csv.reader([line], delimiter=delim))]
 
 

@@ -80,6 +80,9 @@ def program_store_dir() -> Path | None:
 
 
 _ENV: str | None = None
+#: The source the key holds: all of crank-jax (the traced code is anywhere in it; only
+#: `runtime/` was, and a changed fit program was loaded as stored under its old code).
+SOURCE = Path(__file__).resolve().parents[1]
 
 
 def _environment() -> str:
@@ -87,7 +90,7 @@ def _environment() -> str:
     global _ENV  # reading the source and cpuinfo costs a few milliseconds: once
     if _ENV is None:
         h = hashlib.sha256()
-        for p in sorted(Path(__file__).resolve().parent.rglob("*.py")):
+        for p in sorted(SOURCE.rglob("*.py")):
             h.update(p.read_bytes())
         h.update(instruction_sets().encode())
         versions = []
