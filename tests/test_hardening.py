@@ -20,6 +20,7 @@ import crank_jax.cli.simulate_command as cli_simulate
 import crank_jax.records.data as cj_data
 import crank_jax.records.table as cj_table
 import crank_jax.runtime.io as cj_io
+import crank_jax.runtime.progress as progress
 import crank_jax.scene as cj_scene
 from crank_jax.cli import main
 
@@ -109,6 +110,9 @@ def test_row7_refused_when_the_disk_cannot_hold_it(tmp_path, capsys, monkeypatch
 
 def test_row7_long_runs_stream_in_bounded_chunks(tmp_path, capsys, monkeypatch, spy_simulate):
     monkeypatch.setattr(cli_simulate, "CHUNK_SAMPLES", 40)
+    # stderr is not a terminal here: progress comes as a line every LOG_INTERVAL s, and
+    # this run is shorter than the default 5 s (the check held only on a slow machine).
+    monkeypatch.setattr(progress, "LOG_INTERVAL", 0.0)
     out, png = tmp_path / "x.csv", tmp_path / "x.png"
     code, _, err = _run(capsys, "simulate", "lab-rig", "--t1", "2", "--samples", "201",
                         "--extras", "energy", "--out", out, "--plot", png)

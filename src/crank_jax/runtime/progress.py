@@ -39,9 +39,11 @@ class _LogBar(_NoBar):
     one every `interval` s, and a last one when the work ends (if any was printed or it
     took over `interval`)."""
 
-    def __init__(self, total, desc: str, unit: str, file, interval: float = LOG_INTERVAL):
+    def __init__(self, total, desc: str, unit: str, file, interval: float | None = None):
         self.total, self.desc, self.unit, self.file = total, desc, unit, file
-        self.interval, self.n, self.postfix = interval, 0, ""
+        # The module's LOG_INTERVAL as it is when the bar starts (a test may shorten it).
+        self.interval = LOG_INTERVAL if interval is None else interval
+        self.n, self.postfix = 0, ""
         self.t0 = self.last = time.monotonic()
         self.printed, self.closed = False, False
 
