@@ -38,3 +38,20 @@ def test_a_terminal_gets_the_bar_and_no_progress_gets_nothing(monkeypatch):
     assert type(bar).__name__ == "tqdm"
     bar.close()
     assert type(progress.progress_bar(5, "fit", False)).__name__ == "_NoBar"
+
+
+def test_a_log_does_not_repeat_its_last_line(capsys, monkeypatch):
+    # A line printed at the last update is the end's line too: close adds none, unless
+    # something changed since (here the postfix).
+    clock = iter(float(t) for t in range(0, 1000, 6))  # each reading 6 s after the last
+    monkeypatch.setattr(progress.time, "monotonic", lambda: next(clock))
+    with progress.progress_bar(4, "sweep", True, unit="sample") as bar:
+        for _ in range(4):
+            bar.update()
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[-1].startswith("sweep: 4/4 sample") and len(lines) == len(set(lines)) == 4
+    with progress.progress_bar(4, "fit", True) as bar:
+        bar.update(4)
+        bar.set_postfix(rms=0.5)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == [lines[0], lines[1]] and lines[1].startswith("fit: 4/4 it (rms=0.5)")

@@ -250,7 +250,9 @@ def fit_many(
             reqs[i] = normalize(sc, d, free, **kw)
         except ValueError as e:
             raise ValueError(f"record {i}: {e}") from None
-    with progress_bar(None, "fit_many", progress, unit="record") as bar:
+    # Two steps a record: its plan, then its fit in a batch.
+    with progress_bar(2 * len(records), "fit_many (plans, fits)", progress, unit="step"
+                      ) as bar:
         for i, plan in sorted(_plan_all(reqs, bar).items()):
             m = _member(reqs[i], plan, t0)
             if isinstance(m, str):

@@ -45,7 +45,7 @@ class _LogBar(_NoBar):
         self.interval = LOG_INTERVAL if interval is None else interval
         self.n, self.postfix = 0, ""
         self.t0 = self.last = time.monotonic()
-        self.printed, self.closed = False, False
+        self.printed, self.closed, self.shown = False, False, None
 
     def update(self, n=1):
         self.n += n
@@ -57,7 +57,7 @@ class _LogBar(_NoBar):
         self.postfix = ", ".join(f"{k}={v}" for k, v in items.items())
 
     def _line(self):
-        self.last = time.monotonic()
+        self.last, self.shown = time.monotonic(), (self.n, self.postfix)
         total = f"/{self.total}" if self.total else ""
         extra = f" ({self.postfix})" if self.postfix else ""
         print(f"{self.desc}: {self.n}{total} {self.unit}{extra}, "
@@ -65,7 +65,9 @@ class _LogBar(_NoBar):
         self.printed = True
 
     def close(self):
-        if not self.closed and (self.printed or time.monotonic() - self.t0 >= self.interval):
+        # The last line, unless the last update's line already said it.
+        long = self.printed or time.monotonic() - self.t0 >= self.interval
+        if not self.closed and long and self.shown != (self.n, self.postfix):
             self._line()
         self.closed = True
 
