@@ -287,3 +287,25 @@ def test_the_key_holds_all_of_crank_jax_source():
     root = Path(crank_jax.__file__).resolve().parent
     assert persistent.SOURCE == root
     assert root / "fleet" / "batch_lm.py" in set(persistent.SOURCE.rglob("*.py"))
+
+
+def test_loaded_programs_are_bounded_and_an_evicted_one_loads_again(tmp_path):
+    # Each loaded executable holds ~210 memory mappings, and a process may hold 65530:
+    # the loaded set is bounded. With room for one, two shapes called in turn evict each
+    # other; each comes back from the store (no compile), with the same numbers.
+    script = PRELUDE + r"""
+import numpy as np
+from crank_jax.runtime import program_store
+program_store.LOADED.limit = 1
+mech = cj.load_scene("lab-rig").mech
+out = [float(np.sum(cj.simulate(mech, 1.0, 0.0, np.linspace(0, 1, n)).phi))
+       for n in (50, 60, 50, 60)]
+print(json.dumps({"phi": out, "compiled": compiled, "loaded": len(program_store.LOADED)}))
+"""
+    env = {k: v for k, v in os.environ.items() if k != "CRANK_JAX_NO_CACHE"}
+    out = subprocess.run([sys.executable, "-c", script, str(tmp_path)], env=env,
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["loaded"] == 1 and got["compiled"].count("simulate") == 2, got
+    assert got["phi"][0] == got["phi"][2] != got["phi"][1] == got["phi"][3]

@@ -41,6 +41,7 @@ import numpy as np
 
 from . import program_store
 from .foreign_code import foreign_classes
+from .program_store import LOADED
 from .xla_flags import instruction_sets
 
 __all__ = ["PersistentProgram", "program_store_dir", "enum_code", "enum_name", "FAST_COMPILE",
@@ -167,7 +168,7 @@ class PersistentProgram:
         self.jitted = eqx.filter_jit(fn)
         self.compiler_options = compiler_options
         self._flat: dict = {}  # (treedef, array mask, static leaves, options) -> jax.jit
-        self._loaded: dict[str, Callable] = {}  # key -> compiled executable
+        self._unstored: set[str] = set()  # keys whose program runs unstored here
 
     def options(self, *args) -> tuple:
         """The XLA compile options of a call with `args`, as sorted `(name, value)` pairs
@@ -185,15 +186,17 @@ class PersistentProgram:
         key, leaves, treedef, static = _signature(self.name, args, options)
         if key is None:
             return self._jit(args)
-        call = self._loaded.get(key)
+        if key in self._unstored:
+            return self._jit(args)
+        call = LOADED.get((self.name, key))
         if call is not None:
-            return self._jit(args) if call is _UNSTORED else tuple(call(*leaves))
+            return tuple(call(*leaves))
         path = store / f"{self.name}-{key[:32]}.xla"
         call = _load(path, key, len(leaves))
         if call is not None:
             out = self._try(call, leaves)
             if out is not None:
-                self._loaded[key] = call
+                LOADED.put((self.name, key), call)
                 return out
             program_store.discard(path)  # it does not run here: compiled and stored anew
         # The program's name carries the key, and a retry a random tag: JAX's own cache
@@ -205,9 +208,9 @@ class PersistentProgram:
             if out is not None:
                 if blob is not None:  # stored only once it has run
                     program_store.write(path, blob)
-                self._loaded[key] = call
+                LOADED.put((self.name, key), call)
                 return out
-        self._loaded[key] = _UNSTORED
+        self._unstored.add(key)
         return self._jit(args)
 
     @staticmethod
@@ -297,7 +300,6 @@ class PersistentProgram:
             return compiled, None
 
 
-_UNSTORED = object()  # marks a program that runs unstored in this process
 
 #: Compile options this process's XLA refused ("No such compile option", a value it cannot
 #: parse): left out of every later compile (another jaxlib may have dropped or renamed one).

@@ -1,5 +1,6 @@
 """The files of the compiled-program store (see `persistent.py`): their format, a checked
-read, an atomic write, and the eviction of the least recently used.
+read, an atomic write, and the eviction of the least recently used; and the executables
+loaded from it in memory, as few as a process can hold ([`LoadedPrograms`][]).
 
 A stored program is one file, `<name>-<key prefix>.xla`, made of
 
@@ -21,13 +22,14 @@ import hashlib
 import os
 import stat
 import time
+from collections import OrderedDict
 from pathlib import Path
 from typing import NamedTuple
 
 from .io import remove_stale_temps, temp_file
 
 __all__ = ["Entry", "pack", "unpack", "read", "write", "discard", "evict", "MAGIC",
-           "MAX_PROGRAMS", "STALE_TEMP_S"]
+           "MAX_PROGRAMS", "STALE_TEMP_S", "LoadedPrograms", "LOADED"]
 
 #: The format's tag; a new layout gets a new number (older files are then misses).
 MAGIC = b"crank-jax program 4\n"
@@ -153,3 +155,35 @@ def evict(store: Path) -> None:
     programs.sort()
     for _, p in programs[:max(0, len(programs) - MAX_PROGRAMS)]:
         discard(Path(p))
+
+
+class LoadedPrograms:
+    """The executables the programs of this process loaded or compiled, at most `limit`,
+    over all programs: the least recently called goes first (and is loaded from the
+    store again if it is called again). Each holds a couple of hundred memory mappings of
+    machine code (about 210 for a crank solve on XLA:CPU) and Linux refuses a process more
+    than `vm.max_map_count` (65530 by default): about 300 kept at once, and XLA aborts the
+    process in its next compile."""
+
+    def __init__(self, limit: int):
+        self.limit = limit
+        self._calls: OrderedDict = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._calls)
+
+    def get(self, key):
+        call = self._calls.get(key)
+        if call is not None:
+            self._calls.move_to_end(key)
+        return call
+
+    def put(self, key, call) -> None:
+        self._calls[key] = call
+        self._calls.move_to_end(key)
+        while len(self._calls) > self.limit:
+            self._calls.popitem(last=False)
+
+
+#: Every `PersistentProgram`'s loaded executables (see [`LoadedPrograms`][]).
+LOADED = LoadedPrograms(96)
