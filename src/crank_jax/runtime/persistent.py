@@ -188,7 +188,7 @@ class PersistentProgram:
             return self._jit(args)
         if key in self._unstored:
             return self._jit(args)
-        call = LOADED.get((self.name, key))
+        call = LOADED.get((self, key))
         if call is not None:
             return tuple(call(*leaves))
         path = store / f"{self.name}-{key[:32]}.xla"
@@ -196,7 +196,7 @@ class PersistentProgram:
         if call is not None:
             out = self._try(call, leaves)
             if out is not None:
-                LOADED.put((self.name, key), call)
+                LOADED.put((self, key), call)
                 return out
             program_store.discard(path)  # it does not run here: compiled and stored anew
         # The program's name carries the key, and a retry a random tag: JAX's own cache
@@ -208,7 +208,7 @@ class PersistentProgram:
             if out is not None:
                 if blob is not None:  # stored only once it has run
                     program_store.write(path, blob)
-                LOADED.put((self.name, key), call)
+                LOADED.put((self, key), call)
                 return out
         self._unstored.add(key)
         return self._jit(args)

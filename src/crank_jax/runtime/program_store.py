@@ -163,7 +163,11 @@ class LoadedPrograms:
     store again if it is called again). Each holds a couple of hundred memory mappings of
     machine code (about 210 for a crank solve on XLA:CPU) and Linux refuses a process more
     than `vm.max_map_count` (65530 by default): about 300 kept at once, and XLA aborts the
-    process in its next compile."""
+    process in its next compile.
+
+    Keyed by `(program, key)`: each program object keeps its own, as when each held its
+    own dict (a second object of the same name loads from the store, as a fresh process
+    does)."""
 
     def __init__(self, limit: int):
         self.limit = limit
