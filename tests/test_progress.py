@@ -6,13 +6,23 @@ import io
 from crank_jax.runtime import progress
 
 
-def test_progress_in_a_log_is_whole_lines_at_an_interval(capsys, monkeypatch):
-    clock = iter(float(t) for t in range(0, 1000, 2))  # each reading 2 s after the last
+def _clock(monkeypatch, step: int) -> None:
+    """The progress module's clock: each reading `step` s after the last."""
+    clock = iter(float(t) for t in range(0, 1000, step))
     monkeypatch.setattr(progress.time, "monotonic", lambda: next(clock))
+
+
+def _updates(bar, n: int, **postfix) -> None:
+    for _ in range(n):
+        bar.update()
+    if postfix:
+        bar.set_postfix(**postfix)
+
+
+def test_progress_in_a_log_is_whole_lines_at_an_interval(capsys, monkeypatch):
+    _clock(monkeypatch, 2)
     with progress.progress_bar(100, "fit", True, unit="it") as bar:
-        for _ in range(10):
-            bar.update()
-        bar.set_postfix(rms=0.5)
+        _updates(bar, 10, rms=0.5)
     err = capsys.readouterr().err
     assert "\r" not in err
     lines = err.splitlines()
@@ -43,11 +53,9 @@ def test_a_terminal_gets_the_bar_and_no_progress_gets_nothing(monkeypatch):
 def test_a_log_does_not_repeat_its_last_line(capsys, monkeypatch):
     # A line printed at the last update is the end's line too: close adds none, unless
     # something changed since (here the postfix).
-    clock = iter(float(t) for t in range(0, 1000, 6))  # each reading 6 s after the last
-    monkeypatch.setattr(progress.time, "monotonic", lambda: next(clock))
+    _clock(monkeypatch, 6)
     with progress.progress_bar(4, "sweep", True, unit="sample") as bar:
-        for _ in range(4):
-            bar.update()
+        _updates(bar, 4)
     lines = capsys.readouterr().err.splitlines()
     assert lines[-1].startswith("sweep: 4/4 sample") and len(lines) == len(set(lines)) == 4
     with progress.progress_bar(4, "fit", True) as bar:
