@@ -373,3 +373,25 @@ def test_a_killed_writers_temporary_program_is_removed_by_the_next_store(tmp_pat
                         program_store.pack(key, Entry(1, False, 1, b"z" * 10)))
     assert not list(store.glob(".*.tmp"))
     assert not (store / "p-a.xla").exists()
+
+
+def _with_callback(x, w):
+    # A host callback: the store cannot hold this program (`_custom_calls`).
+    y = jax.pure_callback(lambda a: np.asarray(a) * 2.0, jax.ShapeDtypeStruct(x.shape, x.dtype),
+                          x)
+    return y * w, jnp.sum(x)
+
+
+def test_loaded_programs_are_evicted_but_an_unstorable_one_is_kept(store, monkeypatch):
+    # The bounded set of loaded executables drops the least recently called, which the
+    # store gives back; one the store cannot hold would only compile again, so it stays.
+    monkeypatch.setattr(program_store, "LOADED", program_store.LoadedPrograms(0))
+    monkeypatch.setattr(persistent, "LOADED", program_store.LOADED)
+    stored, unstorable = Counted(), Counted(_with_callback, "store_test_callback")
+    first = [stored(_X, _W), unstorable(_X, _W)]
+    again = [stored(_X, _W), unstorable(_X, _W)]
+    assert stored.compiled == 1 and unstorable.compiled == 1
+    assert len(program_store.LOADED) == 0 and len(list(store.glob("*.xla"))) == 1
+    for a, b in zip(first, again):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

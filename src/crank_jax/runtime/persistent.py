@@ -169,6 +169,9 @@ class PersistentProgram:
         self.compiler_options = compiler_options
         self._flat: dict = {}  # (treedef, array mask, static leaves, options) -> jax.jit
         self._unstored: set[str] = set()  # keys whose program runs unstored here
+        # Executables the store cannot hold (a host callback): kept here, out of LOADED's
+        # eviction, which would only compile them again.
+        self._unstorable: dict[str, Callable] = {}
 
     def options(self, *args) -> tuple:
         """The XLA compile options of a call with `args`, as sorted `(name, value)` pairs
@@ -188,7 +191,9 @@ class PersistentProgram:
             return self._jit(args)
         if key in self._unstored:
             return self._jit(args)
-        call = LOADED.get((self, key))
+        call = self._unstorable.get(key)
+        if call is None:
+            call = LOADED.get((self, key))
         if call is not None:
             return tuple(call(*leaves))
         path = store / f"{self.name}-{key[:32]}.xla"
@@ -206,9 +211,11 @@ class PersistentProgram:
             call, blob = self._compile(leaves, treedef, static, key, tag, options)
             out = self._try(call, leaves)
             if out is not None:
-                if blob is not None:  # stored only once it has run
+                if blob is None:
+                    self._unstorable[key] = call
+                else:  # stored only once it has run
                     program_store.write(path, blob)
-                LOADED.put((self, key), call)
+                    LOADED.put((self, key), call)
                 return out
         self._unstored.add(key)
         return self._jit(args)
