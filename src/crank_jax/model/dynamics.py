@@ -229,7 +229,13 @@ def acceleration_terms(p: Coefficients, g: Geometry, phi, dphi, t, load: Abstrac
 
 def kinetic_energy(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike) -> Array:
     """T = M(phi) phi'^2 / 2, J."""
-    return 0.5 * mass(mech, phi) * jnp.square(dphi)
+    phi = jnp.asarray(phi)
+    return _kinetic(*formed_at(mech, phi), dphi)
+
+
+def _kinetic(p: Coefficients, g: Geometry, dphi) -> Array:
+    """[`kinetic_energy`][] from [`Coefficients`][] and the [`Geometry`][] of phi."""
+    return 0.5 * mass_terms(p, g) * jnp.square(dphi)
 
 
 def potential_energy(mech: SliderCrank, phi: ArrayLike) -> Array:
@@ -255,7 +261,7 @@ def energy(mech: SliderCrank, phi: ArrayLike, dphi: ArrayLike) -> Array:
     The coefficients and the geometry are formed once for both."""
     phi = jnp.asarray(phi)
     p, g = formed_at(mech, phi)
-    return 0.5 * mass_terms(p, g) * jnp.square(dphi) + _potential(mech, g, phi)
+    return _kinetic(p, g, dphi) + _potential(mech, g, phi)
 
 
 def power_in(
