@@ -66,8 +66,7 @@ def test_a_poisoned_record_leaves_the_others_bit_for_bit(lab_rig, records, fleet
 
     members = _members(lab_rig, records)
     items = {i: (m.plan.shoot, m.plan.z0, m.noise) for i, m in members.items()}
-    bar = fm.progress_bar(None, "", False)
-    good, _ = fm._fleet(items, 1e-8, 100, bar)
+    good, _ = fm._fleet(items, 1e-8, 100)
     assert sorted(good) == [0, 1, 2]
     for i, res in enumerate(fleet):  # the fleet's own results are fit_many's
         assert res.values["k"] == members[i].plan.single.host_values(good[i][0])[0]
@@ -77,9 +76,9 @@ def test_a_poisoned_record_leaves_the_others_bit_for_bit(lab_rig, records, fleet
     ys[..., 40] = np.nan
     nan = (eqx.tree_at(lambda p: p.exps[0].seg.ys, problem, ys), z0, noise)
     far = (items[2][0], items[2][1] + np.array([np.log(1e6), 0, 0, 0]), items[2][2])
-    out, left = fm._fleet({0: items[0], 1: nan, 2: items[2], 3: far}, 1e-8, 100, bar)
+    out, left = fm._fleet({0: items[0], 1: nan, 2: items[2], 3: far}, 1e-8, 100)
     assert sorted(left) == [1, 3] and sorted(out) == [0, 2]
-    clean, _ = fm._fleet({0: items[0], 2: items[2]}, 1e-8, 100, bar)
+    clean, _ = fm._fleet({0: items[0], 2: items[2]}, 1e-8, 100)
     for i in (0, 2):
         assert all(np.array_equal(a, b) for a, b in zip(out[i], clean[i]))
 
@@ -110,6 +109,62 @@ def test_a_start_near_the_minimum_takes_the_gauss_newton_step():
         assert fm.STATUS[int(out.status[0])] == "converged"
         assert int(out.iterations[0]) <= 2, out.iterations
         assert np.all(np.abs(out.z[0] - z) <= se / 20)
+
+
+@pytest.mark.full
+def test_the_plans_overlapping_the_fits_change_no_result(lab_rig, records):
+    # 20 records: two batches of one shape or more, the second planned while the first is
+    # fitted. Each result equals, bit for bit, its batch fitted after every plan, on
+    # this thread (the overlap changes the time, never a result).
+    from crank_jax.fleet.batch_lm import largest_batch
+
+    many = [cj.Data(ts=d.ts, phi=d.phi + np.random.default_rng(9 + k).normal(
+        0.0, 1e-4, d.ts.shape)) for k in range(7) for d in records][:20]
+    fleet = fm.fit_many(lab_rig, many, FREE, progress=False)
+    assert fleet.alone == [None] * 20
+    members = _members(lab_rig, many)
+    groups: dict = {}
+    for i, m in members.items():
+        groups.setdefault(fm.shape_key(m.plan.shoot), []).append(i)
+    assert max(map(len, groups.values())) > largest_batch()
+    runs = {}
+    for idx in groups.values():
+        for k in range(0, len(idx), largest_batch()):
+            part = idx[k:k + largest_batch()]
+            runs.update(fm._fit_fleet({i: members[i] for i in part}, 1e-8, 100,
+                                      fm.progress_bar(None, "", False))[0])
+    for i, res in enumerate(fleet):
+        single = members[i].plan.single
+        assert [res.values[n] for n in single.names] == list(single.host_values(runs[i].z))
+
+
+@pytest.mark.full
+def test_two_threads_fitting_batches_at_once_both_finish():
+    # Two compiled LM calls at once would each park an XLA:CPU intra-op thread in the
+    # batched SVD's wait for its own work (a pool of two: both wait forever); the fleet
+    # serialises them. Two threads' batches of one record each finish.
+    import threading
+
+    from crank_jax.fleet.batch_lm import run_batch
+
+    fr = experiment("fleet_rot")
+    scene, recs = fr.records(1)
+    kw = dict(init="scene", method="lm", shooting="single", segments=None, multistart=1,
+              seed=0, max_steps=None, tol=1e-8, sigma=dict(fr.NOISE), profile=None,
+              window=None, progress=False, warn=False, force=None, load_by="time")
+    m = fm._plan(scene, recs[0][0], fr.FREE, kw)
+    args = ([m.plan.single] * 4, [m.plan.z0] * 4, [m.noise] * 4, 1e-8, 100)
+    alone = run_batch(*args)
+    out = {}
+    threads = [threading.Thread(target=lambda k=k: out.setdefault(k, run_batch(*args)),
+                                daemon=True) for k in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert sorted(out) == [0, 1], "a batch did not finish within 120 s"
+    for k in (0, 1):
+        assert all(np.array_equal(a, b) for a, b in zip(out[k], alone))
 
 
 @pytest.mark.full

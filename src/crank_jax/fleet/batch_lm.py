@@ -17,6 +17,7 @@ whatever the noise, a step below `tol + tol |z|` in every coordinate).
 
 from __future__ import annotations
 
+import threading
 from typing import NamedTuple
 
 import jax
@@ -29,7 +30,7 @@ from ..identify.programs import Program, jacobian_at
 from ..runtime.arrays import device_array
 
 __all__ = ["STATUS", "FleetRun", "fleet_program", "stack", "shape_key", "BATCHES",
-           "start_solves"]
+           "CPU_LARGEST", "largest_batch", "start_solves", "run_batch", "EXECUTION"]
 
 #: A member's status at the end of [`fleet_program`][] (index into this tuple).
 STATUS = ("converged", "budget", "failed", "stalled", "running")
@@ -53,6 +54,32 @@ _DAMPING_DECREASE = 0.1
 #: the largest, each padded (with copies of its first member) to the next size here, so a
 #: few programs serve any count of records.
 BATCHES = (4, 16, 32, 64)
+
+
+#: Held around the fleet's compiled calls ([`run_batch`][], [`start_solves`][]), which
+#: [`fit_many`][crank_jax.fleet.many.fit_many] makes from two threads (its plans, its
+#: batches). Never two at once: a batched LAPACK kernel (the LM's SVD, an implicit
+#: solver's LU) waits on XLA:CPU's intra-op threads for work it hands to the same
+#: threads, so two of them at once on a pool of two threads wait forever (seen with
+#: jax 0.10.2 on 2 cores: every thread of the pool in `ParallelBatchMap`). The plans'
+#: other calls (the linearisation) hold no such kernel.
+EXECUTION = threading.Lock()
+
+
+#: The largest batch on the CPU. There a batch's members step one after another within
+#: each lockstep step (no vector lanes across members), and a batch runs until its
+#: slowest member is done, so a smaller batch costs less a member: 100 lab-rig records,
+#: multiple shooting, 31.8, 35.1, 37.8 and 38.4 ms a member in batches of 4, 16, 32 and
+#: 64; the rotating rig's 21-23 ms in all (2026-12-02, 2-core Xeon). 16 also lets
+#: `fit_many` start fitting after 16 plans, not 64 (its plans overlap its fits).
+CPU_LARGEST = 16
+
+
+def largest_batch() -> int:
+    """The most members one [`fleet_program`][] call steps side by side: [`CPU_LARGEST`][]
+    on the CPU, the largest of [`BATCHES`][] on an accelerator (where a batch's members
+    are the device's parallel lanes)."""
+    return CPU_LARGEST if jax.default_backend() == "cpu" else BATCHES[-1]
 
 
 class FleetRun(NamedTuple):
@@ -201,7 +228,7 @@ def stack(problems) -> object:
 
 def run_batch(problems, z0s, noises, tol: float, max_steps: int) -> FleetRun:
     """[`fleet_program`][] on a list of problems of one [`shape_key`][] (at most
-    `BATCHES[-1]`), padded to a size of [`BATCHES`][] with copies of the first member
+    [`largest_batch`][]), padded to a size of [`BATCHES`][] with copies of the first member
     (each member's result is its own: a copy steps exactly as its original)."""
     n = len(problems)
     size = next(b for b in BATCHES if b >= n)
@@ -209,8 +236,10 @@ def run_batch(problems, z0s, noises, tol: float, max_steps: int) -> FleetRun:
     probs = stack([problems[i] for i in rows])
     z0 = device_array(np.stack([z0s[i] for i in rows]))
     noise = device_array(np.asarray([noises[i] for i in rows], dtype=z0.dtype))
-    out = fleet_program(probs, z0, noise, jnp.asarray(tol, z0.dtype), jnp.asarray(max_steps))
-    return FleetRun(*(np.asarray(x)[:n] for x in out))
+    with EXECUTION:
+        out = fleet_program(probs, z0, noise, jnp.asarray(tol, z0.dtype),
+                            jnp.asarray(max_steps))
+        return FleetRun(*(np.asarray(x)[:n] for x in out))
 
 
 def _jacobians(problems, z):
@@ -226,9 +255,14 @@ def start_solves(asks: list) -> list[tuple]:
     `asks` (problems of one [`shape_key`][]), side by side in batches of [`BATCHES`][]
     (padded with copies of the first). A batch with a member whose solve failed or is not
     finite is solved again member by member: no record's plan then depends on another's."""
+    with EXECUTION:
+        return _start_solves(asks)
+
+
+def _start_solves(asks: list) -> list[tuple]:
     out = []
-    for k in range(0, len(asks), BATCHES[-1]):
-        part = asks[k:k + BATCHES[-1]]
+    for k in range(0, len(asks), largest_batch()):
+        part = asks[k:k + largest_batch()]
         if len(part) == 1:
             out.append(start_solve(*part[0]))
             continue

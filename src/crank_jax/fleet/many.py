@@ -18,15 +18,18 @@ cannot settle (its plan holds a flat direction, its fleet run did not converge, 
 the physical range or ended far above the noise, where the fit would escalate) is fitted
 by [`fit`][] itself, and its result says so in its warnings and in `FleetResult.alone`.
 A record whose fleet run fails is taken out and its batch run again without it, so that
-no failing record changes another's result.
+no failing record changes another's result. The records are planned on the calling
+thread while a worker thread fits the batches already planned (see `_pipeline`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
@@ -41,7 +44,7 @@ from ..identify.stages import FitState
 from ..identify.strategy import far_from_noise, noise_unit
 from ..runtime.blas import one_blas_thread
 from ..runtime.progress import progress_bar
-from .batch_lm import BATCHES, STATUS, run_batch, shape_key, start_solves
+from .batch_lm import STATUS, largest_batch, run_batch, shape_key, start_solves
 
 __all__ = ["fit_many", "FleetResult", "SUMMARY_COLUMNS"]
 
@@ -152,7 +155,7 @@ def _run(m: _Member, z, cost, iterations, status, dec, big, r, J) -> Run:
     return run
 
 
-def _fleet(items: dict, tol: float, max_steps: int, bar) -> tuple[dict, dict]:
+def _fleet(items: dict, tol: float, max_steps: int) -> tuple[dict, dict]:
     """Fleet runs of `items` (index -> (problem, z0, noise)), by shape, in batches; a batch
     with a member that did not converge runs again without it. **Returns:** (index -> its
     row of [`FleetRun`][crank_jax.fleet.batch_lm.FleetRun] for the converged, index ->
@@ -162,21 +165,20 @@ def _fleet(items: dict, tol: float, max_steps: int, bar) -> tuple[dict, dict]:
         groups.setdefault(shape_key(problem), []).append(i)
     done, left = {}, {}
     for idx in groups.values():
-        while idx:
-            rows = {}
-            for k in range(0, len(idx), BATCHES[-1]):
-                part = idx[k:k + BATCHES[-1]]
+        for k in range(0, len(idx), largest_batch()):
+            part = idx[k:k + largest_batch()]
+            while part:
                 out = run_batch(*zip(*(items[i] for i in part)), tol, max_steps)
-                rows.update({i: row for i, row in zip(part, zip(*out))})
-                bar.update(len(part))
-            bad = [i for i in idx if STATUS[int(rows[i][3])] != "converged"
-                   or not math.isfinite(float(rows[i][1]))]
-            left.update({i: STATUS[int(rows[i][3])] for i in bad})
-            if not bad:
-                done.update(rows)
-            # Again without the failing members (their neighbours' solves step in lockstep
-            # with theirs): each result is then that of a batch of converging records.
-            idx = [i for i in idx if i not in bad] if bad else []
+                rows = dict(zip(part, zip(*out)))
+                bad = [i for i in part if STATUS[int(rows[i][3])] != "converged"
+                       or not math.isfinite(float(rows[i][1]))]
+                left.update({i: STATUS[int(rows[i][3])] for i in bad})
+                if not bad:
+                    done.update(rows)
+                # Again without the failing members (their neighbours' solves step in
+                # lockstep with theirs): each result is then that of a batch of
+                # converging records.
+                part = [i for i in part if i not in bad] if bad else []
     return done, left
 
 
@@ -185,12 +187,12 @@ def _fit_fleet(members: dict, tol: float, max_steps: int, bar) -> tuple[dict, di
     shooting where the fit plans it), then, for those, a single-shooting polish from that
     estimate (as `fit`'s). **Returns:** (index -> Run, index -> why left to `fit`)."""
     first, left = _fleet({i: (m.plan.shoot, m.plan.z0, m.noise) for i, m in members.items()},
-                         tol, max_steps, bar)
+                         tol, max_steps)
     left = {i: f"its fleet run ended {v}" for i, v in left.items()}
     multi = [i for i in first if members[i].plan.shoot is not members[i].plan.single]
     polish, more = _fleet({i: (members[i].plan.single, recoordinate(
         members[i].plan.shoot, members[i].plan.single, first[i][0]), members[i].noise)
-        for i in multi}, tol, max_steps, bar)
+        for i in multi}, tol, max_steps)
     left.update({i: f"its fleet polish ended {v}" for i, v in more.items()})
     runs = {}
     for i, row in first.items():
@@ -203,7 +205,69 @@ def _fit_fleet(members: dict, tol: float, max_steps: int, bar) -> tuple[dict, di
             runs[i] = run
         else:
             left[i] = f"its fleet run {run.message}"
+    bar.update(len(members))
     return runs, left
+
+
+class _Locked:
+    """A progress bar updated from the planning thread and the fleet's worker."""
+
+    def __init__(self, bar):
+        self.bar, self.lock = bar, threading.Lock()
+
+    def update(self, n=1):
+        with self.lock:
+            self.bar.update(n)
+
+
+def _pipeline(reqs: dict, tol: float, max_steps: int, bar, t0: float
+              ) -> tuple[dict, dict]:
+    """Each request planned and fitted: the plans on this thread, [`largest_batch`][]
+    records at a time, while one worker thread runs the fleet's batches, each submitted
+    as soon as its shape has a full batch of planned records (the rest at the end); then
+    each batch's results are finished here. A shape's batches are its records in order,
+    cut into full batches, whatever the timing: the overlap changes the time, never a
+    result. Python plans the next records on one core while XLA fits a batch on the other
+    (planning is host work: a quarter of the fleet's time on the lab rig); the two
+    threads' compiled calls that could block each other take turns (see
+    [`EXECUTION`][crank_jax.fleet.batch_lm.EXECUTION]). `t0`: when `fit_many` began (a
+    result's time counts from it). **Returns:** (index -> its [`FitResult`][], index ->
+    why it is left to `fit`)."""
+    members, alone, pending, futures = {}, {}, {}, []
+    order = sorted(reqs)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="crank-jax-fleet") as worker:
+        def submit(idx):
+            futures.append(worker.submit(_fit_fleet, {i: members[i] for i in idx}, tol,
+                                         max_steps, bar))
+
+        try:
+            for k in range(0, len(order), largest_batch()):
+                part = {i: reqs[i] for i in order[k:k + largest_batch()]}
+                for i, plan in sorted(_plan_all(part, bar).items()):
+                    m = _member(reqs[i], plan, t0)
+                    if isinstance(m, str):
+                        alone[i] = m
+                        continue
+                    members[i] = m
+                    idx = pending.setdefault(shape_key(m.plan.shoot), [])
+                    idx.append(i)
+                    if len(idx) == largest_batch():
+                        submit(pending.pop(shape_key(m.plan.shoot)))
+            for idx in pending.values():
+                submit(idx)
+            fitted = {}
+            for fut in futures:
+                runs, left = fut.result()
+                alone.update(left)
+                for i, run in runs.items():
+                    m = members[i]
+                    fitted[i] = finish(FitState(m.req, m.plan, run, run.iterations, (),
+                                                m.plan.shooting), m.t_begin)
+        except BaseException:
+            for fut in futures:
+                fut.cancel()
+            raise
+    return fitted, alone
 
 
 @one_blas_thread
@@ -244,30 +308,21 @@ def fit_many(
     kw = dict(init=init, method="lm", shooting="auto", segments=None, multistart=1, seed=0,
               max_steps=max_steps, tol=tol, sigma=sigma, profile=None, window=window,
               progress=False, warn=warn, force=force, load_by=load_by)
-    members, alone, reqs = {}, {}, {}
+    reqs = {}
     for i, (sc, d) in enumerate(zip(scenes, records)):
         try:
             reqs[i] = normalize(sc, d, free, **kw)
         except ValueError as e:
             raise ValueError(f"record {i}: {e}") from None
+    steps = 100 if max_steps is None else int(max_steps)
     # Two steps a record: its plan, then its fit in a batch.
     with progress_bar(2 * len(records), "fit_many (plans, fits)", progress, unit="step"
                       ) as bar:
-        for i, plan in sorted(_plan_all(reqs, bar).items()):
-            m = _member(reqs[i], plan, t0)
-            if isinstance(m, str):
-                alone[i] = m
-            else:
-                members[i] = m
-        steps = 100 if max_steps is None else int(max_steps)
-        runs, left = _fit_fleet(members, tol, steps, bar)
-    alone.update(left)
+        fitted, alone = _pipeline(reqs, tol, steps, _Locked(bar), t0)
     results = []
     for i, (sc, d) in enumerate(zip(scenes, records)):
-        if i in runs:
-            m = members[i]
-            results.append(finish(FitState(m.req, m.plan, runs[i], runs[i].iterations, (),
-                                           m.plan.shooting), m.t_begin))
+        if i in fitted:
+            results.append(fitted[i])
             continue
         res = fit(sc, d, free, **{**kw, "progress": progress})
         note = f"fitted by fit itself, not in fit_many's fleet: {alone[i]}"
