@@ -83,8 +83,20 @@ def test_a_poisoned_record_leaves_the_others_bit_for_bit(lab_rig, records, fleet
         assert all(np.array_equal(a, b) for a, b in zip(out[i], clean[i]))
 
 
+@pytest.fixture(scope="module")
+def rotating_member():
+    """One record of the fleet bench's rotating rig (two channels, weighted by their
+    noise), planned for single shooting: the fleet's member."""
+    fr = experiment("fleet_rot")
+    scene, recs = fr.records(1)
+    kw = dict(init="scene", method="lm", shooting="single", segments=None, multistart=1,
+              seed=0, max_steps=None, tol=1e-8, sigma=dict(fr.NOISE), profile=None,
+              window=None, progress=False, warn=False, force=None, load_by="time")
+    return fm._plan(scene, recs[0][0], fr.FREE, kw)
+
+
 @pytest.mark.full
-def test_a_start_near_the_minimum_takes_the_gauss_newton_step():
+def test_a_start_near_the_minimum_takes_the_gauss_newton_step(rotating_member):
     # The rotating rig of the fleet bench (two channels, weighted by their noise), whose
     # column-scaled sensitivities have a singular value of 0.004 of the largest. One
     # standard error off the minimum in every coordinate the problem is linear to well
@@ -94,12 +106,7 @@ def test_a_start_near_the_minimum_takes_the_gauss_newton_step():
     # Gauss-Newton's and took 6 iterations here.
     from crank_jax.fleet.batch_lm import run_batch
 
-    fr = experiment("fleet_rot")
-    scene, recs = fr.records(1)
-    kw = dict(init="scene", method="lm", shooting="single", segments=None, multistart=1,
-              seed=0, max_steps=None, tol=1e-8, sigma=dict(fr.NOISE), profile=None,
-              window=None, progress=False, warn=False, force=None, load_by="time")
-    m = fm._plan(scene, recs[0][0], fr.FREE, kw)
+    m = rotating_member
     out = run_batch([m.plan.single], [m.plan.z0], [m.noise], 1e-8, 100)
     assert fm.STATUS[int(out.status[0])] == "converged"
     z, J = out.z[0], out.J[0]
@@ -139,7 +146,7 @@ def test_the_plans_overlapping_the_fits_change_no_result(lab_rig, records):
 
 
 @pytest.mark.full
-def test_two_threads_fitting_batches_at_once_both_finish():
+def test_two_threads_fitting_batches_at_once_both_finish(rotating_member):
     # Two compiled LM calls at once would each park an XLA:CPU intra-op thread in the
     # batched SVD's wait for its own work (a pool of two: both wait forever); the fleet
     # serialises them. Two threads' batches of one record each finish.
@@ -147,12 +154,7 @@ def test_two_threads_fitting_batches_at_once_both_finish():
 
     from crank_jax.fleet.batch_lm import run_batch
 
-    fr = experiment("fleet_rot")
-    scene, recs = fr.records(1)
-    kw = dict(init="scene", method="lm", shooting="single", segments=None, multistart=1,
-              seed=0, max_steps=None, tol=1e-8, sigma=dict(fr.NOISE), profile=None,
-              window=None, progress=False, warn=False, force=None, load_by="time")
-    m = fm._plan(scene, recs[0][0], fr.FREE, kw)
+    m = rotating_member
     args = ([m.plan.single] * 4, [m.plan.z0] * 4, [m.noise] * 4, 1e-8, 100)
     alone = run_batch(*args)
     out = {}
