@@ -260,9 +260,9 @@ def start_solves(asks: list) -> list[tuple]:
 
 
 def _start_solves(asks: list) -> list[tuple]:
-    out = []
-    for k in range(0, len(asks), largest_batch()):
-        part = asks[k:k + largest_batch()]
+    out, size = [], largest_batch()
+    for k in range(0, len(asks), size):
+        part = asks[k:k + size]
         if len(part) == 1:
             out.append(start_solve(*part[0]))
             continue

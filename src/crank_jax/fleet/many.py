@@ -163,10 +163,10 @@ def _fleet(items: dict, tol: float, max_steps: int) -> tuple[dict, dict]:
     groups: dict = {}
     for i, (problem, _, _) in items.items():
         groups.setdefault(shape_key(problem), []).append(i)
-    done, left = {}, {}
+    done, left, size = {}, {}, largest_batch()
     for idx in groups.values():
-        for k in range(0, len(idx), largest_batch()):
-            part = idx[k:k + largest_batch()]
+        for k in range(0, len(idx), size):
+            part = idx[k:k + size]
             while part:
                 out = run_batch(*zip(*(items[i] for i in part)), tol, max_steps)
                 rows = dict(zip(part, zip(*out)))
@@ -234,25 +234,25 @@ def _pipeline(reqs: dict, tol: float, max_steps: int, bar, t0: float
     result's time counts from it). **Returns:** (index -> its [`FitResult`][], index ->
     why it is left to `fit`)."""
     members, alone, pending, futures = {}, {}, {}, []
-    order = sorted(reqs)
+    order, size = sorted(reqs), largest_batch()
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="crank-jax-fleet") as worker:
         def submit(idx):
             futures.append(worker.submit(_fit_fleet, {i: members[i] for i in idx}, tol,
                                          max_steps, bar))
 
         try:
-            for k in range(0, len(order), largest_batch()):
-                part = {i: reqs[i] for i in order[k:k + largest_batch()]}
+            for k in range(0, len(order), size):
+                part = {i: reqs[i] for i in order[k:k + size]}
                 for i, plan in sorted(_plan_all(part, bar).items()):
                     m = _member(reqs[i], plan, t0)
                     if isinstance(m, str):
                         alone[i] = m
                         continue
                     members[i] = m
-                    idx = pending.setdefault(shape_key(m.plan.shoot), [])
-                    idx.append(i)
-                    if len(idx) == largest_batch():
-                        submit(pending.pop(shape_key(m.plan.shoot)))
+                    key = shape_key(m.plan.shoot)
+                    pending.setdefault(key, []).append(i)
+                    if len(pending[key]) == size:
+                        submit(pending.pop(key))
             for idx in pending.values():
                 submit(idx)
             fitted = {}

@@ -21,6 +21,7 @@ import contextlib
 import hashlib
 import os
 import stat
+import threading
 import time
 from collections import OrderedDict
 from pathlib import Path
@@ -167,26 +168,30 @@ class LoadedPrograms:
 
     Keyed by `(program, key)`: each program object keeps its own, as when each held its
     own dict (a second object of the same name loads from the store, as a fresh process
-    does)."""
+    does). Thread-safe: `fit_many` calls programs from two threads, and one thread's
+    eviction between another's lookup and its `move_to_end` would be a `KeyError`."""
 
     def __init__(self, limit: int):
         self.limit = limit
         self._calls: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
 
     def __len__(self) -> int:
         return len(self._calls)
 
     def get(self, key):
-        call = self._calls.get(key)
-        if call is not None:
-            self._calls.move_to_end(key)
-        return call
+        with self._lock:
+            call = self._calls.get(key)
+            if call is not None:
+                self._calls.move_to_end(key)
+            return call
 
     def put(self, key, call) -> None:
-        self._calls[key] = call
-        self._calls.move_to_end(key)
-        while len(self._calls) > self.limit:
-            self._calls.popitem(last=False)
+        with self._lock:
+            self._calls[key] = call
+            self._calls.move_to_end(key)
+            while len(self._calls) > self.limit:
+                self._calls.popitem(last=False)
 
 
 #: Every `PersistentProgram`'s loaded executables (see [`LoadedPrograms`][]).
